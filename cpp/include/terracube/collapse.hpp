@@ -1,0 +1,77 @@
+// Collapsible cubes: overhang removal, Reina et al., IEEE AIM 2014, section III, Algorithm 1.
+#pragma once
+
+#include <Eigen/Core>
+#include <cstddef>
+#include <cstdint>
+#include <optional>
+#include <vector>
+
+#include "terracube/cube_grid.hpp"
+
+namespace terracube {
+
+/// An axis-aligned box [m] in the leveled frame; points outside it take no part.
+struct CropBox {
+  Eigen::Vector3d min = Eigen::Vector3d::Constant(-1e9);
+  Eigen::Vector3d max = Eigen::Vector3d::Constant(1e9);
+};
+
+/// How the occupancy bit vector V and the ground matrix M are stored. Both give bit-identical
+/// results; kAuto picks kDense when V and M fit `dense_budget_bytes` and cost no more than a few
+/// bytes per point, and kSparse (sorting I, hashing columns) otherwise, so memory stays O(N).
+enum class CubeStorage { kAuto = 0, kDense = 1, kSparse = 2 };
+
+/// Parameters of collapse_overhangs. Defaults follow the paper's examples.
+struct CollapseParams {
+  /// Cube edge E [m], > 0.
+  double edge_m = 0.5;
+  /// σ [cubes], >= 1: an occupied cube separated from its column's ground by σ or more empty
+  /// cubes is collapsed. Use sigma_from_robot_height() for σ = ceil(robot height / E).
+  int sigma = 2;
+  /// Rigid transform applied to every point before CBC (leveling, see leveling_transform()).
+  Eigen::Matrix4d transform = Eigen::Matrix4d::Identity();
+  /// Optional crop box in the transformed (leveled) frame.
+  std::optional<CropBox> crop;
+  /// NaN/Inf rows: false -> std::invalid_argument naming how many; true -> such rows are
+  /// dropped (never overhang) and counted in CollapseResult::num_dropped_non_finite.
+  bool drop_non_finite = false;
+  CubeStorage storage = CubeStorage::kAuto;
+  /// Largest V + M allowed for the dense storage [bytes].
+  std::size_t dense_budget_bytes = std::size_t{256} << 20;
+};
+
+/// σ = ceil(robot_height_m / edge_m), at least 1 (section III).
+int sigma_from_robot_height(double robot_height_m, double edge_m);
+
+/// The rotation that levels a sensor whose attitude is (roll, pitch) [rad]:
+/// R = Ry(pitch) * Rx(roll), i.e. the sensor-to-gravity-aligned rotation with yaw = 0.
+Eigen::Matrix4d leveling_transform(double roll_rad, double pitch_rad);
+
+/// Result of collapse_overhangs.
+struct CollapseResult {
+  CubeGrid grid;
+  /// One flag per input point, in input order: 1 = the point lies in a collapsed cube.
+  std::vector<std::uint8_t> overhang;
+  /// L, sorted ascending: indices I of the occupied cubes (eq. 7).
+  std::vector<std::int64_t> occupied_cubes;
+  /// R, sorted ascending: indices I of the collapsed cubes.
+  std::vector<std::int64_t> removed_cubes;
+  std::size_t num_points = 0;             ///< N, input rows
+  std::size_t num_used = 0;               ///< rows that entered CBC
+  std::size_t num_cropped = 0;            ///< rows outside the crop box
+  std::size_t num_dropped_non_finite = 0; ///< NaN/Inf rows dropped (drop_non_finite)
+  std::size_t num_overhang = 0;           ///< rows flagged overhang
+  CubeStorage storage_used = CubeStorage::kDense;
+};
+
+/// Algorithm 1: builds the CBC (V and L in one O(N) pass), sorts L, sweeps every column
+/// bottom-up keeping its ground in M and collapses the cubes σ or more empty cubes above it.
+/// Throws std::invalid_argument on a non-positive edge, σ < 1, a non-rigid transform, NaN/Inf
+/// rows (unless dropped) or an extent whose cube count would overflow a 64-bit index.
+CollapseResult collapse_overhangs(const PointsView<float>& points, const CollapseParams& params = {});
+CollapseResult collapse_overhangs(const PointsView<double>& points, const CollapseParams& params = {});
+CollapseResult collapse_overhangs(const std::vector<Eigen::Vector3d>& points,
+                                  const CollapseParams& params = {});
+
+}  // namespace terracube

@@ -1,0 +1,64 @@
+#include "cloud_frame.hpp"
+
+#include <Eigen/Dense>
+#include <sstream>
+#include <stdexcept>
+
+namespace terracube::detail {
+
+void check_rigid_transform(const Eigen::Matrix4d& transform, const char* what) {
+  if (!transform.allFinite()) {
+    throw std::invalid_argument(std::string(what) + " contains NaN or Inf");
+  }
+  const Eigen::Matrix3d rotation = transform.topLeftCorner<3, 3>();
+  const bool last_row_ok = transform.row(3).isApprox(Eigen::RowVector4d(0, 0, 0, 1), 1e-9);
+  const bool orthonormal = (rotation.transpose() * rotation).isIdentity(1e-6);
+  if (!last_row_ok || !orthonormal || rotation.determinant() < 0.0) {
+    throw std::invalid_argument(std::string(what) +
+                                " must be a rigid 4x4 transform (proper rotation, last row 0 0 0 1)");
+  }
+}
+
+void check_collapse_params(const CollapseParams& params) {
+  if (!(params.edge_m > 0.0) || !std::isfinite(params.edge_m)) {
+    throw std::invalid_argument("edge must be a positive finite length in metres, got " +
+                                std::to_string(params.edge_m));
+  }
+  if (params.sigma < 1) {
+    throw std::invalid_argument("sigma must be at least 1 cube, got " + std::to_string(params.sigma));
+  }
+  check_rigid_transform(params.transform, "transform");
+  if (params.crop && (!params.crop->min.allFinite() || !params.crop->max.allFinite() ||
+                      (params.crop->min.array() > params.crop->max.array()).any())) {
+    throw std::invalid_argument("crop box must be finite with min <= max on every axis");
+  }
+}
+
+CubeGrid make_grid(const CloudExtent& extent, double edge_m) {
+  CubeGrid grid;
+  grid.edge_m = edge_m;
+  grid.min_corner = extent.min;
+  const double inverse_edge = 1.0 / edge_m;
+  // Keep every count and their product below 2^62 so that eq. (7) never overflows.
+  constexpr double kLimit = 4.611686018427388e18;  // 2^62
+  double counts[3];
+  long double product = 1.0L;
+  for (int axis = 0; axis < 3; ++axis) {
+    counts[axis] = std::floor((extent.max[axis] - extent.min[axis]) * inverse_edge + 0.5) + 1.0;
+    product *= static_cast<long double>(counts[axis]);
+  }
+  if (!(counts[0] < kLimit && counts[1] < kLimit && counts[2] < kLimit && product < kLimit)) {
+    std::ostringstream message;
+    message << "the cloud's extent (" << extent.max[0] - extent.min[0] << " x " << extent.max[1] - extent.min[1]
+            << " x " << extent.max[2] - extent.min[2] << " m) at edge " << edge_m << " m needs "
+            << static_cast<double>(product)
+            << " cubes, which overflows a 64-bit cube index; crop the cloud or use a larger edge";
+    throw std::invalid_argument(message.str());
+  }
+  grid.ixmax = static_cast<std::int64_t>(counts[0]);
+  grid.iymax = static_cast<std::int64_t>(counts[1]);
+  grid.izmax = static_cast<std::int64_t>(counts[2]);
+  return grid;
+}
+
+}  // namespace terracube::detail

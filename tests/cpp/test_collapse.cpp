@@ -1,0 +1,348 @@
+#include <gtest/gtest.h>
+#include <terracube/collapse.hpp>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <set>
+
+#include "test_support.hpp"
+
+namespace terracube {
+namespace {
+
+// Algorithm 1 of Reina et al. (2014) written out loop by loop, as the paper states it: V as a
+// std::vector<bool>, the unsorted list L, std::sort, M holding the ground cube's index I.
+struct NaiveResult {
+  std::vector<std::uint8_t> overhang;
+  std::vector<std::int64_t> occupied;
+  std::vector<std::int64_t> removed;
+};
+
+NaiveResult naive_algorithm1(const std::vector<Eigen::Vector3d>& points, double edge, int sigma) {
+  NaiveResult out;
+  out.overhang.assign(points.size(), 0);
+  if (points.empty()) return out;
+  double min[3] = {1e300, 1e300, 1e300};
+  double max[3] = {-1e300, -1e300, -1e300};
+  for (const auto& p : points) {
+    for (int a = 0; a < 3; ++a) {
+      min[a] = std::min(min[a], p[a]);
+      max[a] = std::max(max[a], p[a]);
+    }
+  }
+  const double inv = 1.0 / edge;
+  const auto round_half_up = [&](double v, int a) { return static_cast<std::int64_t>(std::floor((v - min[a]) * inv + 0.5)); };
+  const std::int64_t ixmax = round_half_up(max[0], 0) + 1;
+  const std::int64_t iymax = round_half_up(max[1], 1) + 1;
+  const std::int64_t izmax = round_half_up(max[2], 2) + 1;
+  std::vector<bool> V(static_cast<std::size_t>(ixmax * iymax * izmax), false);
+  std::vector<std::int64_t> L;
+  std::vector<std::int64_t> index_of_point(points.size());
+  for (std::size_t i = 0; i < points.size(); ++i) {
+    const std::int64_t I = round_half_up(points[i].x(), 0) + round_half_up(points[i].y(), 1) * ixmax +
+                           round_half_up(points[i].z(), 2) * ixmax * iymax;
+    index_of_point[i] = I;
+    if (!V[static_cast<std::size_t>(I)]) {
+      V[static_cast<std::size_t>(I)] = true;
+      L.push_back(I);
+    }
+  }
+  std::sort(L.begin(), L.end());
+  const std::int64_t columns = ixmax * iymax;
+  std::vector<std::int64_t> M(static_cast<std::size_t>(columns), -1);
+  std::set<std::int64_t> R;
+  for (const std::int64_t I : L) {
+    auto& ground = M[static_cast<std::size_t>(I % columns)];
+    if (ground == -1) {
+      ground = I;
+    } else {
+      const std::int64_t empty_cubes = (I - ground) / columns - 1;
+      if (empty_cubes < sigma) {
+        ground = I;
+      } else {
+        R.insert(I);
+      }
+    }
+  }
+  for (std::size_t i = 0; i < points.size(); ++i) out.overhang[i] = R.count(index_of_point[i]) ? 1 : 0;
+  out.occupied = L;
+  out.removed.assign(R.begin(), R.end());
+  return out;
+}
+
+void expect_same_as_naive(const std::vector<Eigen::Vector3d>& points, double edge, int sigma) {
+  const NaiveResult expected = naive_algorithm1(points, edge, sigma);
+  for (const CubeStorage storage : {CubeStorage::kDense, CubeStorage::kSparse, CubeStorage::kAuto}) {
+    CollapseParams params;
+    params.edge_m = edge;
+    params.sigma = sigma;
+    params.storage = storage;
+    const CollapseResult result = collapse_overhangs(points, params);
+    ASSERT_EQ(result.overhang, expected.overhang) << "storage " << static_cast<int>(storage);
+    ASSERT_EQ(result.occupied_cubes, expected.occupied);
+    ASSERT_EQ(result.removed_cubes, expected.removed);
+    ASSERT_EQ(result.num_overhang,
+              static_cast<std::size_t>(std::count(expected.overhang.begin(), expected.overhang.end(), 1)));
+  }
+}
+
+// --- hand-made columns ------------------------------------------------------------------------
+
+/// One column at x = y = 0 with a point at the centre of each listed layer (E = 1, z = layer).
+std::vector<Eigen::Vector3d> column(const std::vector<int>& layers) {
+  std::vector<Eigen::Vector3d> points;
+  for (const int layer : layers) points.emplace_back(0.0, 0.0, static_cast<double>(layer));
+  return points;
+}
+
+std::vector<std::uint8_t> collapse_mask(const std::vector<Eigen::Vector3d>& points, int sigma,
+                                        CubeStorage storage = CubeStorage::kAuto) {
+  CollapseParams params;
+  params.edge_m = 1.0;
+  params.sigma = sigma;
+  params.storage = storage;
+  return collapse_overhangs(points, params).overhang;
+}
+
+TEST(CollapseColumns, GapOfSigmaMinusOneEmptyCubesKeepsTheCubeAsGround) {
+  // σ = 3: layers 0 and 3 are separated by 2 = σ - 1 empty cubes.
+  EXPECT_EQ(collapse_mask(column({0, 3}), 3), (std::vector<std::uint8_t>{0, 0}));
+}
+
+TEST(CollapseColumns, GapOfExactlySigmaEmptyCubesCollapses) {
+  EXPECT_EQ(collapse_mask(column({0, 4}), 3), (std::vector<std::uint8_t>{0, 1}));
+}
+
+TEST(CollapseColumns, GapOfSigmaPlusOneEmptyCubesCollapses) {
+  EXPECT_EQ(collapse_mask(column({0, 5}), 3), (std::vector<std::uint8_t>{0, 1}));
+}
+
+TEST(CollapseColumns, SigmaOneCollapsesAnySingleEmptyCube) {
+  EXPECT_EQ(collapse_mask(column({0, 1, 3}), 1), (std::vector<std::uint8_t>{0, 0, 1}));
+}
+
+TEST(CollapseColumns, GroundClimbsThroughSmallGapsLikeAStaircase) {
+  // Each step leaves 1 empty cube (< σ = 2): every cube becomes the ground in turn.
+  EXPECT_EQ(collapse_mask(column({0, 2, 4, 6, 8}), 2), (std::vector<std::uint8_t>{0, 0, 0, 0, 0}));
+}
+
+TEST(CollapseColumns, SeveralOverhangLayersAreMeasuredFromTheGroundNotFromEachOther) {
+  // Ground 0-1, a bridge deck at 5-6, a canopy at 8 and a wire at 12: all collapse, because the
+  // collapsed cubes count as empty: the gaps are measured from the ground at layer 1.
+  EXPECT_EQ(collapse_mask(column({0, 1, 5, 6, 8, 12}), 2), (std::vector<std::uint8_t>{0, 0, 1, 1, 1, 1}));
+}
+
+TEST(CollapseColumns, WallsAndTrunksStay) {
+  std::vector<int> trunk;
+  for (int layer = 0; layer < 20; ++layer) trunk.push_back(layer);
+  EXPECT_EQ(collapse_mask(column(trunk), 2), std::vector<std::uint8_t>(20, 0));
+}
+
+TEST(CollapseColumns, SingleCubeColumnsAreGround) {
+  const std::vector<Eigen::Vector3d> points = {{0, 0, 0}, {1, 0, 7}, {2, 3, 4}, {5, 5, 5}};
+  EXPECT_EQ(collapse_mask(points, 1), std::vector<std::uint8_t>(4, 0));
+}
+
+TEST(CollapseColumns, ColumnsAreIndependent) {
+  // A column whose lowest cube is high up keeps it as ground even when its neighbour has ground
+  // at layer 0: the paper's rule looks at one column at a time.
+  const std::vector<Eigen::Vector3d> points = {{0, 0, 0}, {0, 0, 5}, {1, 0, 5}, {1, 0, 9}};
+  EXPECT_EQ(collapse_mask(points, 2), (std::vector<std::uint8_t>{0, 1, 0, 1}));
+}
+
+TEST(CollapseColumns, ExactRemovedCubeIndices) {
+  const std::vector<Eigen::Vector3d> points = {{0, 0, 0}, {0, 0, 5}, {1, 1, 0}, {1, 1, 1}, {1, 1, 4}};
+  CollapseParams params;
+  params.edge_m = 1.0;
+  params.sigma = 2;
+  const CollapseResult result = collapse_overhangs(points, params);
+  ASSERT_EQ(result.grid.ixmax, 2);
+  ASSERT_EQ(result.grid.iymax, 2);
+  ASSERT_EQ(result.grid.izmax, 6);
+  EXPECT_EQ(result.occupied_cubes, (std::vector<std::int64_t>{0, 3, 7, 19, 20}));
+  EXPECT_EQ(result.removed_cubes, (std::vector<std::int64_t>{19, 20}));
+  EXPECT_EQ(result.overhang, (std::vector<std::uint8_t>{0, 1, 0, 0, 1}));
+}
+
+TEST(CollapseColumns, MultiplePointsInOneCubeShareItsFate) {
+  const std::vector<Eigen::Vector3d> points = {{0, 0, 0}, {0.1, 0.1, 4.1}, {-0.1, 0.2, 3.8}, {0.2, -0.1, 0.2}};
+  EXPECT_EQ(collapse_mask(points, 2), (std::vector<std::uint8_t>{0, 1, 1, 0}));
+}
+
+// --- against the naive Algorithm 1 -------------------------------------------------------------
+
+TEST(CollapseVsNaive, RandomScenesAreIdenticalForEveryStorage) {
+  for (std::uint32_t seed = 1; seed <= 12; ++seed) {
+    const auto points = test::random_scene(seed, 3000 + 500 * seed, 5.0 + seed);
+    const double edge = 0.1 + 0.05 * (seed % 7);
+    const int sigma = 1 + static_cast<int>(seed % 4);
+    SCOPED_TRACE("seed " + std::to_string(seed));
+    expect_same_as_naive(points, edge, sigma);
+  }
+}
+
+TEST(CollapseVsNaive, TinyAndDegenerateClouds) {
+  expect_same_as_naive({{1, 2, 3}}, 0.5, 2);
+  expect_same_as_naive({{1, 2, 3}, {1, 2, 3}, {1, 2, 3}}, 0.5, 2);              // duplicates
+  expect_same_as_naive({{0, 0, 0}, {0, 0, 10}}, 0.5, 2);                        // one column
+  expect_same_as_naive({{0, 0, 0}, {10, 0, 0}, {20, 0, 0}}, 0.5, 2);            // one layer
+  expect_same_as_naive({{-5, -5, -5}, {-5, -5, 5}, {5, 5, -5}, {5, 5, 5}}, 1.0, 1);  // negatives
+}
+
+TEST(CollapseVsNaive, RealKittiAndOusterScans) {
+  const auto data = test::shared_data_dir();
+  if (!data) GTEST_SKIP() << "../shared/data not found (set TERRACUBE_DATA_DIR)";
+  for (const std::string file : {"/kitti_seq00/velodyne/000000.bin", "/ouster128/ouster128_000000_xyzi_valid.bin"}) {
+    SCOPED_TRACE(file);
+    const test::XyziScan scan = test::read_xyzi_bin(*data + file);
+    const auto points = scan.as_vectors();
+    expect_same_as_naive(points, 0.5, 2);
+    expect_same_as_naive(points, 0.2, 4);
+    // The float32 strided view of the same values gives the same answer as the doubles.
+    CollapseParams params;
+    params.edge_m = 0.2;
+    params.sigma = 4;
+    EXPECT_EQ(collapse_overhangs(scan.xyz(), params).overhang, collapse_overhangs(points, params).overhang);
+  }
+}
+
+// --- leveling and cropping --------------------------------------------------------------------
+
+TEST(CollapsePreprocessing, LevelingATiltedScanRecoversTheLevelResult) {
+  // A level scene on cube-centre positions, then seen by a sensor pitched 20 degrees.
+  std::vector<Eigen::Vector3d> level;
+  for (int i = 0; i < 30; ++i) {
+    for (int j = 0; j < 10; ++j) {
+      level.emplace_back(0.5 * i, 0.5 * j, 0.0);                       // ground
+      if (i > 10 && i < 20) level.emplace_back(0.5 * i, 0.5 * j, 3.0);  // a bridge deck
+    }
+  }
+  const Eigen::Matrix4d leveling = leveling_transform(0.05, 0.35);
+  std::vector<Eigen::Vector3d> tilted;
+  for (const auto& p : level) tilted.push_back(leveling.topLeftCorner<3, 3>().transpose() * p);
+  CollapseParams params;
+  params.edge_m = 0.5;
+  params.sigma = 2;
+  const CollapseResult reference = collapse_overhangs(level, params);
+  EXPECT_EQ(reference.num_overhang, 90U);
+  params.transform = leveling;
+  const CollapseResult leveled = collapse_overhangs(tilted, params);
+  EXPECT_EQ(leveled.overhang, reference.overhang);
+  params.transform = Eigen::Matrix4d::Identity();
+  EXPECT_NE(collapse_overhangs(tilted, params).overhang, reference.overhang);
+}
+
+TEST(CollapsePreprocessing, CropBoxExcludesPointsAndTheyAreNeverOverhang) {
+  const std::vector<Eigen::Vector3d> points = {{0, 0, 0}, {0, 0, 5}, {50, 0, 0}, {50, 0, 5}};
+  CollapseParams params;
+  params.edge_m = 1.0;
+  params.crop = CropBox{{-1, -1, -1}, {10, 10, 10}};
+  const CollapseResult result = collapse_overhangs(points, params);
+  EXPECT_EQ(result.overhang, (std::vector<std::uint8_t>{0, 1, 0, 0}));
+  EXPECT_EQ(result.num_cropped, 2U);
+  EXPECT_EQ(result.num_used, 2U);
+  EXPECT_EQ(result.grid.ixmax, 1);  // the grid covers only the cropped cloud
+}
+
+// --- storage ----------------------------------------------------------------------------------
+
+TEST(CollapseStorage, TenKilometreCloudAtFiveCentimetresStaysSparseAndExact) {
+  // 200,000 x 200,000 x 2,000 cubes would be 10 TB of bits: the sparse path must be chosen.
+  auto points = test::random_scene(7, 2000, 20.0);
+  const std::size_t n = points.size();
+  for (std::size_t i = 0; i < n; ++i) points.push_back(points[i] + Eigen::Vector3d(10000.0, 10000.0, 95.0));
+  CollapseParams params;
+  params.edge_m = 0.05;
+  params.sigma = 20;
+  const CollapseResult result = collapse_overhangs(points, params);
+  EXPECT_EQ(result.storage_used, CubeStorage::kSparse);
+  EXPECT_GT(result.grid.num_cubes(), std::int64_t{1} << 40);
+  // Far-apart halves do not interact: each matches the result of its own half.
+  const std::vector<Eigen::Vector3d> near(points.begin(), points.begin() + static_cast<std::ptrdiff_t>(n));
+  const CollapseResult near_only = collapse_overhangs(near, params);
+  EXPECT_TRUE(std::equal(near_only.overhang.begin(), near_only.overhang.end(), result.overhang.begin()));
+  EXPECT_TRUE(std::equal(near_only.overhang.begin(), near_only.overhang.end(), result.overhang.begin() + n));
+  params.storage = CubeStorage::kDense;
+  EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument);
+}
+
+// --- bad input --------------------------------------------------------------------------------
+
+TEST(CollapseBadInput, EmptyCloudGivesAValidEmptyResult) {
+  const CollapseResult result = collapse_overhangs(std::vector<Eigen::Vector3d>{}, CollapseParams{});
+  EXPECT_TRUE(result.overhang.empty());
+  EXPECT_TRUE(result.occupied_cubes.empty());
+  EXPECT_TRUE(result.removed_cubes.empty());
+  EXPECT_EQ(result.grid.num_cubes(), 0);
+}
+
+TEST(CollapseBadInput, NanAndInfRowsAreCountedInTheError) {
+  std::vector<Eigen::Vector3d> points = {{0, 0, 0}, {NAN, 0, 0}, {0, 0, 5}, {0, std::numeric_limits<double>::infinity(), 0}};
+  try {
+    collapse_overhangs(points, CollapseParams{});
+    FAIL() << "expected std::invalid_argument";
+  } catch (const std::invalid_argument& error) {
+    EXPECT_NE(std::string(error.what()).find("2 of 4 point rows contain NaN or Inf (first at row 1)"), std::string::npos)
+        << error.what();
+  }
+}
+
+TEST(CollapseBadInput, NanRowsCanBeDroppedAndReported) {
+  std::vector<Eigen::Vector3d> points = {{0, 0, 0}, {NAN, 0, 0}, {0, 0, 5}, {0, 0, -std::numeric_limits<double>::infinity()}};
+  CollapseParams params;
+  params.drop_non_finite = true;
+  const CollapseResult result = collapse_overhangs(points, params);
+  EXPECT_EQ(result.num_dropped_non_finite, 2U);
+  EXPECT_EQ(result.overhang, (std::vector<std::uint8_t>{0, 0, 1, 0}));
+}
+
+TEST(CollapseBadInput, NonPositiveEdgeAndSigmaBelowOneAreRejected) {
+  const std::vector<Eigen::Vector3d> points = {{0, 0, 0}};
+  for (const double edge : {0.0, -1.0, std::numeric_limits<double>::quiet_NaN(), std::numeric_limits<double>::infinity()}) {
+    CollapseParams params;
+    params.edge_m = edge;
+    EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument) << edge;
+  }
+  CollapseParams params;
+  params.sigma = 0;
+  EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument);
+}
+
+TEST(CollapseBadInput, ExtentThatOverflowsTheIndexIsRejected) {
+  const std::vector<Eigen::Vector3d> points = {{-1e300, 0, 0}, {1e300, 1e300, 1e300}};
+  try {
+    collapse_overhangs(points, CollapseParams{});
+    FAIL() << "expected std::invalid_argument";
+  } catch (const std::invalid_argument& error) {
+    EXPECT_NE(std::string(error.what()).find("overflows a 64-bit cube index"), std::string::npos) << error.what();
+  }
+  // 2^21 cubes per axis: each count fits but the product (2^63) does not.
+  const std::vector<Eigen::Vector3d> cube = {{0, 0, 0}, {2097152.0, 2097152.0, 2097152.0}};
+  CollapseParams params;
+  params.edge_m = 1.0;
+  EXPECT_THROW(collapse_overhangs(cube, params), std::invalid_argument);
+}
+
+TEST(CollapseBadInput, NonRigidTransformsAndBadCropsAreRejected) {
+  const std::vector<Eigen::Vector3d> points = {{0, 0, 0}};
+  CollapseParams params;
+  params.transform(0, 0) = 2.0;
+  EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument);
+  params.transform = Eigen::Matrix4d::Identity();
+  params.transform(2, 2) = -1.0;  // a reflection
+  EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument);
+  params.transform = Eigen::Matrix4d::Identity();
+  params.transform(0, 3) = NAN;
+  EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument);
+  params.transform = Eigen::Matrix4d::Identity();
+  params.crop = CropBox{{1, 1, 1}, {0, 0, 0}};
+  EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument);
+}
+
+TEST(CollapseBadInput, ViewWithoutDataIsRejected) {
+  EXPECT_THROW(collapse_overhangs(PointsView<float>(nullptr, 3), CollapseParams{}), std::invalid_argument);
+}
+
+}  // namespace
+}  // namespace terracube

@@ -1,0 +1,33 @@
+// Shared helpers for the C++ tests: locating ../shared/data and reading its scans.
+#pragma once
+
+#include <terracube/cube_grid.hpp>
+
+#include <Eigen/Core>
+#include <cstdint>
+#include <optional>
+#include <random>
+#include <string>
+#include <vector>
+
+namespace terracube::test {
+
+/// The shared real-data folder: $TERRACUBE_DATA_DIR, else ../shared/data beside the repository,
+/// else /work/shared/data. Empty when none exists.
+std::optional<std::string> shared_data_dir();
+
+/// A KITTI-style .bin scan: float32 rows of (x, y, z, intensity).
+struct XyziScan {
+  std::vector<float> values;  // N * 4
+  PointsView<float> xyz() const { return {values.data(), values.size() / 4, 4, 1}; }
+  std::vector<Eigen::Vector3d> as_vectors() const;
+};
+XyziScan read_xyzi_bin(const std::string& path);
+
+/// SemanticKITTI labels: the low 16 bits of each uint32 are the semantic class.
+std::vector<std::uint16_t> read_semantic_labels(const std::string& path);
+
+/// A seeded random scene: rough ground, some canopy blobs over it, walls, trunks and noise.
+std::vector<Eigen::Vector3d> random_scene(std::uint32_t seed, std::size_t num_points, double extent_m);
+
+}  // namespace terracube::test
