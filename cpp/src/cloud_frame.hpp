@@ -3,11 +3,13 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <algorithm>
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
 #include <limits>
 #include <optional>
+#include <stdexcept>
 #include <string>
 
 #include "terracube/collapse.hpp"
@@ -18,35 +20,56 @@ namespace terracube::detail {
 /// Throws std::invalid_argument unless `transform` is finite and rigid (a proper rotation).
 void check_rigid_transform(const Eigen::Matrix4d& transform, const char* what);
 
-/// Maps input rows into the leveled frame and tells whether a row takes part.
-template <typename Scalar>
+/// Maps input rows into the leveled frame and tells whether a row takes part. The transform and
+/// the crop are template switches so that the common case (neither) compiles to a bare loop.
+template <typename Scalar, bool kTransform, bool kCrop>
 class LeveledCloud {
  public:
-  LeveledCloud(const PointsView<Scalar>& points, const Eigen::Matrix4d& transform,
-               const std::optional<CropBox>& crop)
+  LeveledCloud(const PointsView<Scalar>& points, const Eigen::Matrix4d& transform, const std::optional<CropBox>& crop)
       : points_(points),
         rotation_(transform.topLeftCorner<3, 3>()),
         translation_(transform.topRightCorner<3, 1>()),
-        identity_(transform.isIdentity(0.0)),
-        crop_(crop) {}
+        crop_(crop ? *crop : CropBox{}) {}
+
+  /// Neither a transform nor a crop: every finite row takes part unchanged.
+  static constexpr bool kPlain = !kTransform && !kCrop;
 
   std::size_t size() const { return points_.size; }
+
+  /// The raw coordinates of `row`, as doubles.
+  double raw(std::size_t row, int axis) const {
+    return static_cast<double>(
+        points_.data[static_cast<std::ptrdiff_t>(row) * points_.row_stride + axis * points_.column_stride]);
+  }
+
+  /// Writes the leveled point of `row` to `out` without any check: for rows known to take part.
+  void map_unchecked(std::size_t row, Eigen::Vector3d& out) const {
+    const Scalar* p = points_.data + static_cast<std::ptrdiff_t>(row) * points_.row_stride;
+    const Eigen::Vector3d in(static_cast<double>(p[0]), static_cast<double>(p[points_.column_stride]),
+                             static_cast<double>(p[2 * points_.column_stride]));
+    if constexpr (kTransform) {
+      out = rotation_ * in + translation_;
+    } else {
+      out = in;
+    }
+  }
 
   /// Writes the leveled point of `row` to `out`; returns 0 when it takes part, 1 when it is
   /// NaN/Inf, 2 when it falls outside the crop box.
   int map(std::size_t row, Eigen::Vector3d& out) const {
-    const double x = static_cast<double>(points_(row, 0));
-    const double y = static_cast<double>(points_(row, 1));
-    const double z = static_cast<double>(points_(row, 2));
+    const Scalar* p = points_.data + static_cast<std::ptrdiff_t>(row) * points_.row_stride;
+    const double x = static_cast<double>(p[0]);
+    const double y = static_cast<double>(p[points_.column_stride]);
+    const double z = static_cast<double>(p[2 * points_.column_stride]);
     // x - x is 0 for finite x and NaN for NaN/Inf: one test for all three coordinates.
     if (!((x - x) + (y - y) + (z - z) == 0.0)) return 1;
-    if (identity_) {
-      out = {x, y, z};
-    } else {
+    if constexpr (kTransform) {
       out = rotation_ * Eigen::Vector3d(x, y, z) + translation_;
+    } else {
+      out = {x, y, z};
     }
-    if (crop_ && ((out.array() < crop_->min.array()).any() || (out.array() > crop_->max.array()).any())) {
-      return 2;
+    if constexpr (kCrop) {
+      if ((out.array() < crop_.min.array()).any() || (out.array() > crop_.max.array()).any()) return 2;
     }
     return 0;
   }
@@ -55,9 +78,19 @@ class LeveledCloud {
   PointsView<Scalar> points_;
   Eigen::Matrix3d rotation_;
   Eigen::Vector3d translation_;
-  bool identity_;
-  std::optional<CropBox> crop_;
+  CropBox crop_;
 };
+
+/// Calls f(cloud) with the LeveledCloud specialisation that `transform` and `crop` need.
+template <typename Scalar, typename F>
+decltype(auto) visit_leveled(const PointsView<Scalar>& points, const Eigen::Matrix4d& transform,
+                             const std::optional<CropBox>& crop, F&& f) {
+  const bool moves = !transform.isIdentity(0.0);
+  if (moves && crop) return f(LeveledCloud<Scalar, true, true>(points, transform, crop));
+  if (moves) return f(LeveledCloud<Scalar, true, false>(points, transform, crop));
+  if (crop) return f(LeveledCloud<Scalar, false, true>(points, transform, crop));
+  return f(LeveledCloud<Scalar, false, false>(points, transform, crop));
+}
 
 /// Counts of the first pass over a cloud.
 struct CloudExtent {
@@ -71,15 +104,65 @@ struct CloudExtent {
 
 /// First pass: bounding box of the used points (eqs. 1-3 need xmin, ymin, zmin) and counts.
 /// Throws std::invalid_argument on NaN/Inf rows unless drop_non_finite.
-template <typename Scalar>
-CloudExtent measure_extent(const LeveledCloud<Scalar>& cloud, bool drop_non_finite) {
+/// Bounding box of a plain cloud without per-row branches: two interleaved accumulator sets
+/// break the min/max dependency chains. Returns false when a row is NaN/Inf (then the caller
+/// takes the checking path).
+template <typename Cloud>
+bool try_fast_extent(const Cloud& cloud, CloudExtent& extent) {
+  // Six running minima/maxima over x y z x y z: two rows per step, independent chains that the
+  // compiler turns into packed min/max.
+  constexpr double kInf = std::numeric_limits<double>::infinity();
+  double lo[6] = {kInf, kInf, kInf, kInf, kInf, kInf};
+  double hi[6] = {-kInf, -kInf, -kInf, -kInf, -kInf, -kInf};
+  double poison[6] = {0, 0, 0, 0, 0, 0};  // stay 0 while every coordinate is finite, NaN otherwise
+  const std::size_t n = cloud.size();
+  const std::size_t pairs = n / 2;
+  for (std::size_t pair = 0; pair < pairs; ++pair) {
+    double v[6];
+    for (int k = 0; k < 6; ++k) v[k] = cloud.raw(2 * pair + static_cast<std::size_t>(k / 3), k % 3);
+    for (int k = 0; k < 6; ++k) {
+      poison[k] += v[k] - v[k];
+      lo[k] = v[k] < lo[k] ? v[k] : lo[k];
+      hi[k] = v[k] > hi[k] ? v[k] : hi[k];
+    }
+  }
+  if (n % 2 == 1) {
+    for (int axis = 0; axis < 3; ++axis) {
+      const double v = cloud.raw(n - 1, axis);
+      poison[axis] += v - v;
+      lo[axis] = v < lo[axis] ? v : lo[axis];
+      hi[axis] = v > hi[axis] ? v : hi[axis];
+    }
+  }
+  for (int k = 0; k < 6; ++k) {
+    if (!(poison[k] == 0.0)) return false;
+  }
+  for (int axis = 0; axis < 3; ++axis) {
+    extent.min[axis] = std::min(lo[axis], lo[axis + 3]);
+    extent.max[axis] = std::max(hi[axis], hi[axis + 3]);
+  }
+  extent.num_used = n;
+  return true;
+}
+
+template <typename Cloud>
+CloudExtent measure_extent(const Cloud& cloud, bool drop_non_finite) {
   CloudExtent extent;
+  if constexpr (Cloud::kPlain) {
+    if (try_fast_extent(cloud, extent)) return extent;
+  }
+  constexpr double kInf = std::numeric_limits<double>::infinity();
+  double min_x = kInf, min_y = kInf, min_z = kInf, max_x = -kInf, max_y = -kInf, max_z = -kInf;
   Eigen::Vector3d p;
   for (std::size_t row = 0; row < cloud.size(); ++row) {
     const int status = cloud.map(row, p);
     if (status == 0) {
-      extent.min = extent.min.cwiseMin(p);
-      extent.max = extent.max.cwiseMax(p);
+      min_x = p.x() < min_x ? p.x() : min_x;
+      min_y = p.y() < min_y ? p.y() : min_y;
+      min_z = p.z() < min_z ? p.z() : min_z;
+      max_x = p.x() > max_x ? p.x() : max_x;
+      max_y = p.y() > max_y ? p.y() : max_y;
+      max_z = p.z() > max_z ? p.z() : max_z;
       ++extent.num_used;
     } else if (status == 1) {
       if (extent.num_non_finite == 0) extent.first_non_finite_row = row;
@@ -88,6 +171,8 @@ CloudExtent measure_extent(const LeveledCloud<Scalar>& cloud, bool drop_non_fini
       ++extent.num_cropped;
     }
   }
+  extent.min = {min_x, min_y, min_z};
+  extent.max = {max_x, max_y, max_z};
   if (extent.num_non_finite > 0 && !drop_non_finite) {
     throw std::invalid_argument(
         std::to_string(extent.num_non_finite) + " of " + std::to_string(cloud.size()) +

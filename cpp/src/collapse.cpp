@@ -14,8 +14,6 @@ namespace terracube {
 
 namespace {
 
-constexpr std::uint32_t kNoCube32 = std::numeric_limits<std::uint32_t>::max();
-
 /// Algorithm 1, lines 5-15: sweep the sorted occupied cubes L. Sorting by I (eq. 7) visits the
 /// layers bottom-up, so every column is seen bottom-up too. ground_of(column) is M: the layer iz
 /// of the column's current ground cube, -1 for none. An occupied cube separated from the ground
@@ -62,7 +60,7 @@ std::size_t dense_bytes(const CubeGrid& grid) {
 
 CubeStorage choose_storage(const CubeGrid& grid, const CollapseParams& params, std::size_t num_used) {
   // 2^31 cubes keeps per-point indices in 32 bits on the dense path.
-  const bool fits = grid.num_cubes() < (std::int64_t{1} << 31) && dense_bytes(grid) <= params.dense_budget_bytes;
+  const bool fits = grid.num_cubes() < (std::int64_t{1} << 31) - 64 && dense_bytes(grid) <= params.dense_budget_bytes;
   if (params.storage == CubeStorage::kDense) {
     if (!fits) {
       throw std::invalid_argument("dense cube storage would need " + std::to_string(dense_bytes(grid)) +
@@ -77,29 +75,64 @@ CubeStorage choose_storage(const CubeGrid& grid, const CollapseParams& params, s
   return fits && dense_bytes(grid) <= affordable ? CubeStorage::kDense : CubeStorage::kSparse;
 }
 
-/// Dense path: V is a bit vector over all cubes, M a vector over all columns.
-template <typename Scalar>
-void collapse_dense(const detail::LeveledCloud<Scalar>& cloud, const CollapseParams& params, CollapseResult& result) {
+/// Cube indices of rows [begin, end) into `out`, dense path only (every count and the product
+/// stay below 2^31, so 32-bit truncation is the floor of eqs. 1-3). Rows that take no part get
+/// `no_cube`. The plain, all-used case is a branch-free loop the compiler vectorises.
+template <typename Cloud>
+void quantize_block(const Cloud& cloud, const CubeGrid& grid, bool all_used, std::uint32_t no_cube,
+                    std::size_t begin, std::size_t end, std::uint32_t* out) {
+  const double inverse_edge = 1.0 / grid.edge_m;
+  const double x0 = grid.min_corner.x();
+  const double y0 = grid.min_corner.y();
+  const double z0 = grid.min_corner.z();
+  const auto ixmax = static_cast<std::uint32_t>(grid.ixmax);
+  const auto layer = static_cast<std::uint32_t>(grid.num_columns());
+  const auto cube_of = [&](double x, double y, double z) {
+    const auto ix = static_cast<std::uint32_t>(static_cast<std::int32_t>((x - x0) * inverse_edge + 0.5));
+    const auto iy = static_cast<std::uint32_t>(static_cast<std::int32_t>((y - y0) * inverse_edge + 0.5));
+    const auto iz = static_cast<std::uint32_t>(static_cast<std::int32_t>((z - z0) * inverse_edge + 0.5));
+    return ix + iy * ixmax + iz * layer;  // eq. (7)
+  };
+  if constexpr (Cloud::kPlain) {
+    if (all_used) {
+      for (std::size_t row = begin; row < end; ++row) {
+        out[row - begin] = cube_of(cloud.raw(row, 0), cloud.raw(row, 1), cloud.raw(row, 2));
+      }
+      return;
+    }
+  }
+  Eigen::Vector3d p;
+  for (std::size_t row = begin; row < end; ++row) {
+    out[row - begin] = cloud.map(row, p) == 0 ? cube_of(p.x(), p.y(), p.z()) : no_cube;
+  }
+}
+
+/// Dense path: V is a bit vector over all cubes, M a vector over all columns. Cube indices are
+/// computed block by block (twice: to set V, then to read the collapsed flags), which is cheaper
+/// than storing one per point.
+template <typename Cloud>
+void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseResult& result) {
+  constexpr std::size_t kBlock = 2048;
   const CubeGrid& grid = result.grid;
-  const GridQuantizer quantizer(grid);
-  std::vector<std::uint64_t> occupancy(static_cast<std::size_t>((grid.num_cubes() + 63) / 64), 0);  // V
-  std::vector<std::uint32_t> cube_of_point(cloud.size());
+  const bool all_used = result.num_used == cloud.size();
+  // V, plus one all-ones word: rows that take no part point at it and are never overhang.
+  const std::size_t words = static_cast<std::size_t>((grid.num_cubes() + 63) / 64);
+  std::vector<std::uint64_t> occupancy(words + 1, 0);
+  occupancy[words] = ~std::uint64_t{0};
+  const auto no_cube = static_cast<std::uint32_t>(words * 64);
+  std::uint32_t cubes[kBlock];
 
   // Algorithm 1, lines 1-4: one O(N) pass sets V.
-  Eigen::Vector3d p;
-  for (std::size_t row = 0; row < cloud.size(); ++row) {
-    if (cloud.map(row, p) != 0) {
-      cube_of_point[row] = kNoCube32;
-      continue;
-    }
-    const std::int64_t cube = quantizer(p);
-    cube_of_point[row] = static_cast<std::uint32_t>(cube);
-    occupancy[static_cast<std::size_t>(cube >> 6)] |= std::uint64_t{1} << (cube & 63);
+  for (std::size_t begin = 0; begin < cloud.size(); begin += kBlock) {
+    const std::size_t end = std::min(cloud.size(), begin + kBlock);
+    quantize_block(cloud, grid, all_used, no_cube, begin, end, cubes);
+    for (std::size_t i = 0; i < end - begin; ++i) occupancy[cubes[i] >> 6] |= std::uint64_t{1} << (cubes[i] & 63);
   }
+  occupancy[words] = ~std::uint64_t{0};
 
   // L sorted: reading V in index order is a bucket sort of L, O(|V| / 64 + |L|).
   std::vector<std::int64_t>& occupied = result.occupied_cubes;
-  for (std::size_t word = 0; word < occupancy.size(); ++word) {
+  for (std::size_t word = 0; word < words; ++word) {
     for (std::uint64_t bits = occupancy[word]; bits != 0; bits &= bits - 1) {
       occupied.push_back(static_cast<std::int64_t>(word * 64 + static_cast<std::size_t>(__builtin_ctzll(bits))));
     }
@@ -117,19 +150,23 @@ void collapse_dense(const detail::LeveledCloud<Scalar>& cloud, const CollapsePar
     occupancy[static_cast<std::size_t>(cube >> 6)] &= ~(std::uint64_t{1} << (cube & 63));
   }
   std::size_t count = 0;
-  for (std::size_t row = 0; row < cloud.size(); ++row) {
-    const std::uint32_t cube = cube_of_point[row];
-    const bool removed = cube != kNoCube32 && ((occupancy[cube >> 6] >> (cube & 63)) & 1U) == 0;
-    result.overhang[row] = removed ? 1 : 0;
-    count += removed ? 1 : 0;
+  std::uint8_t* overhang = result.overhang.data();
+  for (std::size_t begin = 0; begin < cloud.size(); begin += kBlock) {
+    const std::size_t end = std::min(cloud.size(), begin + kBlock);
+    quantize_block(cloud, grid, all_used, no_cube, begin, end, cubes);
+    for (std::size_t i = 0; i < end - begin; ++i) {
+      const auto removed = static_cast<std::uint8_t>(((occupancy[cubes[i] >> 6] >> (cubes[i] & 63)) & 1U) ^ 1U);
+      overhang[begin + i] = removed;
+      count += removed;
+    }
   }
   result.num_overhang = count;
 }
 
 /// Sparse path: L is the sorted set of the points' cube indices and M a hash map over the
 /// columns that hold points, so memory is O(N) whatever the extent.
-template <typename Scalar>
-void collapse_sparse(const detail::LeveledCloud<Scalar>& cloud, const CollapseParams& params,
+template <typename Cloud>
+void collapse_sparse(const Cloud& cloud, const CollapseParams& params,
                      CollapseResult& result) {
   const CubeGrid& grid = result.grid;
   const GridQuantizer quantizer(grid);
@@ -175,20 +212,20 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
   result.overhang.assign(points.size, 0);
   result.grid.edge_m = params.edge_m;
 
-  const detail::LeveledCloud<Scalar> cloud(points, params.transform, params.crop);
-  const detail::CloudExtent extent = detail::measure_extent(cloud, params.drop_non_finite);
-  result.num_used = extent.num_used;
-  result.num_cropped = extent.num_cropped;
-  result.num_dropped_non_finite = extent.num_non_finite;
-  if (extent.num_used == 0) return result;  // empty grid, nothing occupied, nothing removed
-
-  result.grid = detail::make_grid(extent, params.edge_m);
-  result.storage_used = choose_storage(result.grid, params, extent.num_used);
-  if (result.storage_used == CubeStorage::kDense) {
-    collapse_dense(cloud, params, result);
-  } else {
-    collapse_sparse(cloud, params, result);
-  }
+  detail::visit_leveled(points, params.transform, params.crop, [&](const auto& cloud) {
+    const detail::CloudExtent extent = detail::measure_extent(cloud, params.drop_non_finite);
+    result.num_used = extent.num_used;
+    result.num_cropped = extent.num_cropped;
+    result.num_dropped_non_finite = extent.num_non_finite;
+    if (extent.num_used == 0) return;  // empty grid, nothing occupied, nothing removed
+    result.grid = detail::make_grid(extent, params.edge_m);
+    result.storage_used = choose_storage(result.grid, params, extent.num_used);
+    if (result.storage_used == CubeStorage::kDense) {
+      collapse_dense(cloud, params, result);
+    } else {
+      collapse_sparse(cloud, params, result);
+    }
+  });
   return result;
 }
 

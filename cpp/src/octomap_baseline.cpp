@@ -17,11 +17,19 @@ namespace {
 constexpr std::int64_t kOctomapKeys = 65536;  // 16-bit keys per axis
 constexpr std::int64_t kOctomapKeyOffset = 32768;
 
+template <typename Cloud>
+std::vector<std::uint8_t> octomap_mask(const Cloud& cloud, const CollapseParams& params);
+
 template <typename Scalar>
 std::vector<std::uint8_t> octomap_impl(const PointsView<Scalar>& points, const CollapseParams& params) {
   detail::check_collapse_params(params);
-  std::vector<std::uint8_t> overhang(points.size, 0);
-  const detail::LeveledCloud<Scalar> cloud(points, params.transform, params.crop);
+  return detail::visit_leveled(points, params.transform, params.crop,
+                               [&](const auto& cloud) { return octomap_mask(cloud, params); });
+}
+
+template <typename Cloud>
+std::vector<std::uint8_t> octomap_mask(const Cloud& cloud, const CollapseParams& params) {
+  std::vector<std::uint8_t> overhang(cloud.size(), 0);
   const detail::CloudExtent extent = detail::measure_extent(cloud, params.drop_non_finite);
   if (extent.num_used == 0) return overhang;
   const CubeGrid grid = detail::make_grid(extent, params.edge_m);

@@ -10,6 +10,9 @@ namespace terracube {
 
 namespace {
 
+template <typename Cloud>
+std::vector<std::uint8_t> point_gap_mask(const Cloud& cloud, const PointGapParams& params);
+
 struct CellPoint {
   std::int64_t cell;
   double z;
@@ -27,8 +30,14 @@ std::vector<std::uint8_t> point_gap_impl(const PointsView<Scalar>& points, const
                                 std::to_string(params.min_gap_m));
   }
   detail::check_rigid_transform(params.transform, "transform");
-  std::vector<std::uint8_t> overhang(points.size, 0);
-  const detail::LeveledCloud<Scalar> cloud(points, params.transform, params.crop);
+  return detail::visit_leveled(points, params.transform, params.crop, [&](const auto& cloud) {
+    return point_gap_mask(cloud, params);
+  });
+}
+
+template <typename Cloud>
+std::vector<std::uint8_t> point_gap_mask(const Cloud& cloud, const PointGapParams& params) {
+  std::vector<std::uint8_t> overhang(cloud.size(), 0);
   detail::CloudExtent extent = detail::measure_extent(cloud, params.drop_non_finite);
   if (extent.num_used == 0) return overhang;
   extent.min.z() = extent.max.z() = 0.0;  // 2D cells: only x and y count

@@ -1,0 +1,140 @@
+// Bindings for cube_grid.hpp and collapse.hpp.
+#include <pybind11/eigen.h>
+#include <pybind11/stl.h>
+#include <terracube/collapse.hpp>
+
+#include <sstream>
+
+#include "points.hpp"
+
+namespace terracube::python {
+
+namespace {
+
+const char* storage_name(CubeStorage storage) {
+  switch (storage) {
+    case CubeStorage::kDense:
+      return "dense";
+    case CubeStorage::kSparse:
+      return "sparse";
+    default:
+      return "auto";
+  }
+}
+
+}  // namespace
+
+void bind_collapse(py::module_& m) {
+  py::class_<CubeGrid>(m, "CubeGrid", "CBC grid geometry (eqs. 1-9); cube (0,0,0) is centred on min_corner.")
+      .def(py::init<>())
+      .def_readonly("min_corner", &CubeGrid::min_corner, "(3,) float64: (xmin, ymin, zmin) [m]")
+      .def_readonly("edge", &CubeGrid::edge_m, "cube edge E [m]")
+      .def_readonly("ixmax", &CubeGrid::ixmax, "cubes along x")
+      .def_readonly("iymax", &CubeGrid::iymax, "cubes along y")
+      .def_readonly("izmax", &CubeGrid::izmax, "cubes along z")
+      .def_property_readonly("num_cubes", &CubeGrid::num_cubes)
+      .def_property_readonly("num_columns", &CubeGrid::num_columns)
+      .def(
+          "coordinates",
+          [](const CubeGrid& grid, const py::array_t<std::int64_t, py::array::c_style | py::array::forcecast>& index) {
+            auto in = index.unchecked<1>();
+            py::array_t<std::int64_t> out({in.shape(0), py::ssize_t{3}});
+            auto o = out.mutable_unchecked<2>();
+            const std::int64_t cubes = grid.num_cubes();
+            for (py::ssize_t i = 0; i < in.shape(0); ++i) {
+              if (in(i) < 0 || in(i) >= cubes) throw py::index_error("cube index out of the grid");
+              const CubeCoordinates c = grid.coordinates(in(i));
+              o(i, 0) = c.x();
+              o(i, 1) = c.y();
+              o(i, 2) = c.z();
+            }
+            return out;
+          },
+          py::arg("index"), "(K,) int64 cube indices I -> (K, 3) int64 (ix, iy, iz), inverse of eq. (7)")
+      .def(
+          "centers",
+          [](const CubeGrid& grid, const py::array_t<std::int64_t, py::array::c_style | py::array::forcecast>& index) {
+            auto in = index.unchecked<1>();
+            py::array_t<double> out({in.shape(0), py::ssize_t{3}});
+            auto o = out.mutable_unchecked<2>();
+            const std::int64_t cubes = grid.num_cubes();
+            for (py::ssize_t i = 0; i < in.shape(0); ++i) {
+              if (in(i) < 0 || in(i) >= cubes) throw py::index_error("cube index out of the grid");
+              const Eigen::Vector3d c = grid.center(in(i));
+              for (int a = 0; a < 3; ++a) o(i, a) = c[a];
+            }
+            return out;
+          },
+          py::arg("index"), "(K,) int64 cube indices I -> (K, 3) float64 cube centres [m]")
+      .def("__repr__", [](const CubeGrid& grid) {
+        std::ostringstream text;
+        text << "CubeGrid(edge=" << grid.edge_m << ", ixmax=" << grid.ixmax << ", iymax=" << grid.iymax
+             << ", izmax=" << grid.izmax << ", min_corner=[" << grid.min_corner.transpose() << "])";
+        return text.str();
+      });
+
+  py::enum_<CubeStorage>(m, "CubeStorage")
+      .value("auto", CubeStorage::kAuto)
+      .value("dense", CubeStorage::kDense)
+      .value("sparse", CubeStorage::kSparse);
+
+  py::class_<CropBox>(m, "CropBox")
+      .def(py::init([](const Eigen::Vector3d& min, const Eigen::Vector3d& max) { return CropBox{min, max}; }),
+           py::arg("min"), py::arg("max"))
+      .def_readwrite("min", &CropBox::min)
+      .def_readwrite("max", &CropBox::max);
+
+  py::class_<CollapseParams>(m, "CollapseParams")
+      .def(py::init<>())
+      .def_readwrite("edge_m", &CollapseParams::edge_m)
+      .def_readwrite("sigma", &CollapseParams::sigma)
+      .def_readwrite("transform", &CollapseParams::transform)
+      .def_readwrite("crop", &CollapseParams::crop)
+      .def_readwrite("drop_non_finite", &CollapseParams::drop_non_finite)
+      .def_readwrite("storage", &CollapseParams::storage)
+      .def_readwrite("dense_budget_bytes", &CollapseParams::dense_budget_bytes);
+
+  py::class_<CollapseResult>(m, "CollapseResult", "Result of collapse_overhangs; arrays are views into it.")
+      .def_readonly("grid", &CollapseResult::grid)
+      .def_property_readonly(
+          "overhang", [](const py::object& self) { return bool_view_of(self.cast<const CollapseResult&>().overhang, self); },
+          "(N,) bool: the point lies in a collapsed cube (input order)")
+      .def_property_readonly(
+          "occupied_cubes",
+          [](const py::object& self) { return view_of(self.cast<const CollapseResult&>().occupied_cubes, self); },
+          "(K,) int64: L, indices I of occupied cubes, sorted")
+      .def_property_readonly(
+          "removed_cubes",
+          [](const py::object& self) { return view_of(self.cast<const CollapseResult&>().removed_cubes, self); },
+          "(R,) int64: R, indices I of collapsed cubes, sorted")
+      .def_readonly("num_points", &CollapseResult::num_points)
+      .def_readonly("num_used", &CollapseResult::num_used)
+      .def_readonly("num_cropped", &CollapseResult::num_cropped)
+      .def_readonly("num_dropped_non_finite", &CollapseResult::num_dropped_non_finite)
+      .def_readonly("num_overhang", &CollapseResult::num_overhang)
+      .def_property_readonly("storage_used",
+                             [](const CollapseResult& result) { return storage_name(result.storage_used); })
+      .def("__repr__", [](const CollapseResult& result) {
+        std::ostringstream text;
+        text << "CollapseResult(points=" << result.num_points << ", overhang=" << result.num_overhang
+             << ", occupied_cubes=" << result.occupied_cubes.size() << ", removed_cubes=" << result.removed_cubes.size()
+             << ", cropped=" << result.num_cropped << ", dropped_non_finite=" << result.num_dropped_non_finite
+             << ", grid=" << result.grid.ixmax << "x" << result.grid.iymax << "x" << result.grid.izmax
+             << " @ " << result.grid.edge_m << " m, storage=" << storage_name(result.storage_used) << ")";
+        return text.str();
+      });
+
+  m.def(
+      "collapse_overhangs",
+      [](const py::array& points, const CollapseParams& params) {
+        return with_points(points, "points", [&](const auto& view) {
+          py::gil_scoped_release release;
+          return collapse_overhangs(view, params);
+        });
+      },
+      py::arg("points"), py::arg("params"));
+  m.def("sigma_from_robot_height", &sigma_from_robot_height, py::arg("robot_height"), py::arg("edge"));
+  m.def("leveling_transform", &leveling_transform, py::arg("roll"), py::arg("pitch"));
+}
+
+}  // namespace terracube::python
