@@ -79,7 +79,9 @@ void bind_collapse(py::module_& m) {
       .value("sparse", CubeStorage::kSparse);
 
   py::class_<CropBox>(m, "CropBox")
-      .def(py::init([](const Eigen::Vector3d& min, const Eigen::Vector3d& max) { return CropBox{min, max}; }),
+      .def(py::init([](const Eigen::Vector3d& min, const Eigen::Vector3d& max) {
+             return CropBox{min, max};
+           }),
            py::arg("min"), py::arg("max"))
       .def_readwrite("min", &CropBox::min)
       .def_readwrite("max", &CropBox::max);
@@ -97,7 +99,8 @@ void bind_collapse(py::module_& m) {
   py::class_<CollapseResult>(m, "CollapseResult", "Result of collapse_overhangs; arrays are views into it.")
       .def_readonly("grid", &CollapseResult::grid)
       .def_property_readonly(
-          "overhang", [](const py::object& self) { return bool_view_of(self.cast<const CollapseResult&>().overhang, self); },
+          "overhang",
+          [](const py::object& self) { return bool_view_of(self.cast<const CollapseResult&>().overhang, self); },
           "(N,) bool: the point lies in a collapsed cube (input order)")
       .def_property_readonly(
           "occupied_cubes",
@@ -119,8 +122,8 @@ void bind_collapse(py::module_& m) {
         text << "CollapseResult(points=" << result.num_points << ", overhang=" << result.num_overhang
              << ", occupied_cubes=" << result.occupied_cubes.size() << ", removed_cubes=" << result.removed_cubes.size()
              << ", cropped=" << result.num_cropped << ", dropped_non_finite=" << result.num_dropped_non_finite
-             << ", grid=" << result.grid.ixmax << "x" << result.grid.iymax << "x" << result.grid.izmax
-             << " @ " << result.grid.edge_m << " m, storage=" << storage_name(result.storage_used) << ")";
+             << ", grid=" << result.grid.ixmax << "x" << result.grid.iymax << "x" << result.grid.izmax << " @ "
+             << result.grid.edge_m << " m, storage=" << storage_name(result.storage_used) << ")";
         return text.str();
       });
 

@@ -25,8 +25,7 @@ inline std::string shape_string(const py::array& array) {
 template <typename F>
 auto with_points(const py::array& array, const char* name, F&& f) {
   if (array.ndim() != 2 || array.shape(1) != 3) {
-    throw py::value_error(std::string(name) + " must be an (N, 3) array of x, y, z, got shape " +
-                          shape_string(array));
+    throw py::value_error(std::string(name) + " must be an (N, 3) array of x, y, z, got shape " + shape_string(array));
   }
   const auto view = [&](auto scalar) {
     using Scalar = decltype(scalar);

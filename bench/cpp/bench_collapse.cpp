@@ -32,7 +32,8 @@ std::vector<double> synthetic_cloud(std::size_t n) {
 std::vector<float> kitti_scan() {
   namespace fs = std::filesystem;
   const char* env = std::getenv("TERRACUBE_DATA_DIR");
-  for (const fs::path dir : {fs::path(env ? env : ""), fs::path(TERRACUBE_DEFAULT_DATA_DIR), fs::path("/work/shared/data")}) {
+  for (const fs::path dir :
+       {fs::path(env ? env : ""), fs::path(TERRACUBE_DEFAULT_DATA_DIR), fs::path("/work/shared/data")}) {
     std::ifstream file(dir / "kitti_seq00/velodyne/000000.bin", std::ios::binary | std::ios::ate);
     if (!file) continue;
     std::vector<float> values(static_cast<std::size_t>(file.tellg()) / sizeof(float));

@@ -12,6 +12,7 @@
 #include <stdexcept>
 #include <string>
 
+#include "packed_extent.hpp"
 #include "terracube/collapse.hpp"
 #include "terracube/cube_grid.hpp"
 
@@ -35,6 +36,8 @@ class LeveledCloud {
   static constexpr bool kPlain = !kTransform && !kCrop;
 
   std::size_t size() const { return points_.size; }
+
+  const PointsView<Scalar>& view() const { return points_; }
 
   /// The raw coordinates of `row`, as doubles.
   double raw(std::size_t row, int axis) const {
@@ -109,6 +112,16 @@ struct CloudExtent {
 /// takes the checking path).
 template <typename Cloud>
 bool try_fast_extent(const Cloud& cloud, CloudExtent& extent) {
+  bool handled = false;
+  double packed_min[3], packed_max[3];
+  const bool finite = packed_extent(cloud.view(), packed_min, packed_max, handled);
+  if (handled) {
+    if (!finite) return false;
+    extent.min = {packed_min[0], packed_min[1], packed_min[2]};
+    extent.max = {packed_max[0], packed_max[1], packed_max[2]};
+    extent.num_used = cloud.size();
+    return true;
+  }
   // Six running minima/maxima over x y z x y z: two rows per step, independent chains that the
   // compiler turns into packed min/max.
   constexpr double kInf = std::numeric_limits<double>::infinity();
@@ -174,10 +187,10 @@ CloudExtent measure_extent(const Cloud& cloud, bool drop_non_finite) {
   extent.min = {min_x, min_y, min_z};
   extent.max = {max_x, max_y, max_z};
   if (extent.num_non_finite > 0 && !drop_non_finite) {
-    throw std::invalid_argument(
-        std::to_string(extent.num_non_finite) + " of " + std::to_string(cloud.size()) +
-        " point rows contain NaN or Inf (first at row " + std::to_string(extent.first_non_finite_row) +
-        "); clean the cloud or set drop_non_finite=True to drop them");
+    throw std::invalid_argument(std::to_string(extent.num_non_finite) + " of " + std::to_string(cloud.size()) +
+                                " point rows contain NaN or Inf (first at row " +
+                                std::to_string(extent.first_non_finite_row) +
+                                "); clean the cloud or set drop_non_finite=True to drop them");
   }
   return extent;
 }

@@ -19,8 +19,8 @@ namespace {
 /// of the column's current ground cube, -1 for none. An occupied cube separated from the ground
 /// by fewer than σ empty cubes becomes the new ground; otherwise it is collapsed into R.
 template <typename GroundOf>
-void sweep_columns(const std::vector<std::int64_t>& occupied, std::int64_t num_columns, int sigma,
-                   GroundOf&& ground_of, std::vector<std::int64_t>& removed) {
+void sweep_columns(const std::vector<std::int64_t>& occupied, std::int64_t num_columns, int sigma, GroundOf&& ground_of,
+                   std::vector<std::int64_t>& removed) {
   for (const std::int64_t cube : occupied) {
     const std::int64_t column = cube % num_columns;
     const std::int64_t layer = cube / num_columns;
@@ -63,8 +63,8 @@ CubeStorage choose_storage(const CubeGrid& grid, const CollapseParams& params, s
   const bool fits = grid.num_cubes() < (std::int64_t{1} << 31) - 64 && dense_bytes(grid) <= params.dense_budget_bytes;
   if (params.storage == CubeStorage::kDense) {
     if (!fits) {
-      throw std::invalid_argument("dense cube storage would need " + std::to_string(dense_bytes(grid)) +
-                                  " bytes for " + std::to_string(grid.num_cubes()) +
+      throw std::invalid_argument("dense cube storage would need " + std::to_string(dense_bytes(grid)) + " bytes for " +
+                                  std::to_string(grid.num_cubes()) +
                                   " cubes, over dense_budget_bytes; use storage auto or sparse");
     }
     return CubeStorage::kDense;
@@ -79,8 +79,8 @@ CubeStorage choose_storage(const CubeGrid& grid, const CollapseParams& params, s
 /// stay below 2^31, so 32-bit truncation is the floor of eqs. 1-3). Rows that take no part get
 /// `no_cube`. The plain, all-used case is a branch-free loop the compiler vectorises.
 template <typename Cloud>
-void quantize_block(const Cloud& cloud, const CubeGrid& grid, bool all_used, std::uint32_t no_cube,
-                    std::size_t begin, std::size_t end, std::uint32_t* out) {
+void quantize_block(const Cloud& cloud, const CubeGrid& grid, bool all_used, std::uint32_t no_cube, std::size_t begin,
+                    std::size_t end, std::uint32_t* out) {
   const double inverse_edge = 1.0 / grid.edge_m;
   const double x0 = grid.min_corner.x();
   const double y0 = grid.min_corner.y();
@@ -107,12 +107,9 @@ void quantize_block(const Cloud& cloud, const CubeGrid& grid, bool all_used, std
   }
 }
 
-/// Dense path: V is a bit vector over all cubes, M a vector over all columns. Cube indices are
-/// computed block by block (twice: to set V, then to read the collapsed flags), which is cheaper
-/// than storing one per point.
+/// Dense path: V is a bit vector over all cubes, M a vector over all columns.
 template <typename Cloud>
 void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseResult& result) {
-  constexpr std::size_t kBlock = 2048;
   const CubeGrid& grid = result.grid;
   const bool all_used = result.num_used == cloud.size();
   // V, plus one all-ones word: rows that take no part point at it and are never overhang.
@@ -120,14 +117,11 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
   std::vector<std::uint64_t> occupancy(words + 1, 0);
   occupancy[words] = ~std::uint64_t{0};
   const auto no_cube = static_cast<std::uint32_t>(words * 64);
-  std::uint32_t cubes[kBlock];
+  std::vector<std::uint32_t> cubes(cloud.size());
 
   // Algorithm 1, lines 1-4: one O(N) pass sets V.
-  for (std::size_t begin = 0; begin < cloud.size(); begin += kBlock) {
-    const std::size_t end = std::min(cloud.size(), begin + kBlock);
-    quantize_block(cloud, grid, all_used, no_cube, begin, end, cubes);
-    for (std::size_t i = 0; i < end - begin; ++i) occupancy[cubes[i] >> 6] |= std::uint64_t{1} << (cubes[i] & 63);
-  }
+  quantize_block(cloud, grid, all_used, no_cube, 0, cloud.size(), cubes.data());
+  for (const std::uint32_t cube : cubes) occupancy[cube >> 6] |= std::uint64_t{1} << (cube & 63);
   occupancy[words] = ~std::uint64_t{0};
 
   // L sorted: reading V in index order is a bucket sort of L, O(|V| / 64 + |L|).
@@ -151,14 +145,11 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
   }
   std::size_t count = 0;
   std::uint8_t* overhang = result.overhang.data();
-  for (std::size_t begin = 0; begin < cloud.size(); begin += kBlock) {
-    const std::size_t end = std::min(cloud.size(), begin + kBlock);
-    quantize_block(cloud, grid, all_used, no_cube, begin, end, cubes);
-    for (std::size_t i = 0; i < end - begin; ++i) {
-      const auto removed = static_cast<std::uint8_t>(((occupancy[cubes[i] >> 6] >> (cubes[i] & 63)) & 1U) ^ 1U);
-      overhang[begin + i] = removed;
-      count += removed;
-    }
+  for (std::size_t row = 0; row < cloud.size(); ++row) {
+    const std::uint32_t cube = cubes[row];
+    const auto removed = static_cast<std::uint8_t>(((occupancy[cube >> 6] >> (cube & 63)) & 1U) ^ 1U);
+    overhang[row] = removed;
+    count += removed;
   }
   result.num_overhang = count;
 }
@@ -166,8 +157,7 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
 /// Sparse path: L is the sorted set of the points' cube indices and M a hash map over the
 /// columns that hold points, so memory is O(N) whatever the extent.
 template <typename Cloud>
-void collapse_sparse(const Cloud& cloud, const CollapseParams& params,
-                     CollapseResult& result) {
+void collapse_sparse(const Cloud& cloud, const CollapseParams& params, CollapseResult& result) {
   const CubeGrid& grid = result.grid;
   const GridQuantizer quantizer(grid);
   std::vector<std::int64_t> cube_of_point(cloud.size(), -1);
@@ -250,9 +240,9 @@ Eigen::Matrix4d leveling_transform(double roll_rad, double pitch_rad) {
     throw std::invalid_argument("roll and pitch must be finite angles in radians");
   }
   Eigen::Matrix4d transform = Eigen::Matrix4d::Identity();
-  transform.topLeftCorner<3, 3>() = (Eigen::AngleAxisd(pitch_rad, Eigen::Vector3d::UnitY()) *
-                                     Eigen::AngleAxisd(roll_rad, Eigen::Vector3d::UnitX()))
-                                        .toRotationMatrix();
+  transform.topLeftCorner<3, 3>() =
+      (Eigen::AngleAxisd(pitch_rad, Eigen::Vector3d::UnitY()) * Eigen::AngleAxisd(roll_rad, Eigen::Vector3d::UnitX()))
+          .toRotationMatrix();
   return transform;
 }
 

@@ -86,10 +86,10 @@ std::vector<std::uint8_t> octomap_mask(const Cloud& cloud, const CollapseParams&
       if (ground < 0 || layer - ground - 1 < params.sigma) {
         ground = layer;
       } else {
-        removed_tree.updateNode(octomap::OcTreeKey(static_cast<octomap::key_type>(keys[end][0]),
-                                                   static_cast<octomap::key_type>(keys[end][1]),
-                                                   static_cast<octomap::key_type>(layer)),
-                                true, /*lazy_eval=*/true);
+        removed_tree.updateNode(
+            octomap::OcTreeKey(static_cast<octomap::key_type>(keys[end][0]),
+                               static_cast<octomap::key_type>(keys[end][1]), static_cast<octomap::key_type>(layer)),
+            true, /*lazy_eval=*/true);
       }
     }
     begin = end;

@@ -30,9 +30,8 @@ std::vector<std::uint8_t> point_gap_impl(const PointsView<Scalar>& points, const
                                 std::to_string(params.min_gap_m));
   }
   detail::check_rigid_transform(params.transform, "transform");
-  return detail::visit_leveled(points, params.transform, params.crop, [&](const auto& cloud) {
-    return point_gap_mask(cloud, params);
-  });
+  return detail::visit_leveled(points, params.transform, params.crop,
+                               [&](const auto& cloud) { return point_gap_mask(cloud, params); });
 }
 
 template <typename Cloud>

@@ -32,7 +32,9 @@ NaiveResult naive_algorithm1(const std::vector<Eigen::Vector3d>& points, double 
     }
   }
   const double inv = 1.0 / edge;
-  const auto round_half_up = [&](double v, int a) { return static_cast<std::int64_t>(std::floor((v - min[a]) * inv + 0.5)); };
+  const auto round_half_up = [&](double v, int a) {
+    return static_cast<std::int64_t>(std::floor((v - min[a]) * inv + 0.5));
+  };
   const std::int64_t ixmax = round_half_up(max[0], 0) + 1;
   const std::int64_t iymax = round_half_up(max[1], 1) + 1;
   const std::int64_t izmax = round_half_up(max[2], 2) + 1;
@@ -184,9 +186,9 @@ TEST(CollapseVsNaive, RandomScenesAreIdenticalForEveryStorage) {
 
 TEST(CollapseVsNaive, TinyAndDegenerateClouds) {
   expect_same_as_naive({{1, 2, 3}}, 0.5, 2);
-  expect_same_as_naive({{1, 2, 3}, {1, 2, 3}, {1, 2, 3}}, 0.5, 2);              // duplicates
-  expect_same_as_naive({{0, 0, 0}, {0, 0, 10}}, 0.5, 2);                        // one column
-  expect_same_as_naive({{0, 0, 0}, {10, 0, 0}, {20, 0, 0}}, 0.5, 2);            // one layer
+  expect_same_as_naive({{1, 2, 3}, {1, 2, 3}, {1, 2, 3}}, 0.5, 2);                   // duplicates
+  expect_same_as_naive({{0, 0, 0}, {0, 0, 10}}, 0.5, 2);                             // one column
+  expect_same_as_naive({{0, 0, 0}, {10, 0, 0}, {20, 0, 0}}, 0.5, 2);                 // one layer
   expect_same_as_naive({{-5, -5, -5}, {-5, -5, 5}, {5, 5, -5}, {5, 5, 5}}, 1.0, 1);  // negatives
 }
 
@@ -214,7 +216,7 @@ TEST(CollapsePreprocessing, LevelingATiltedScanRecoversTheLevelResult) {
   std::vector<Eigen::Vector3d> level;
   for (int i = 0; i < 30; ++i) {
     for (int j = 0; j < 10; ++j) {
-      level.emplace_back(0.5 * i, 0.5 * j, 0.0);                       // ground
+      level.emplace_back(0.5 * i, 0.5 * j, 0.0);                        // ground
       if (i > 10 && i < 20) level.emplace_back(0.5 * i, 0.5 * j, 3.0);  // a bridge deck
     }
   }
@@ -278,18 +280,21 @@ TEST(CollapseBadInput, EmptyCloudGivesAValidEmptyResult) {
 }
 
 TEST(CollapseBadInput, NanAndInfRowsAreCountedInTheError) {
-  std::vector<Eigen::Vector3d> points = {{0, 0, 0}, {NAN, 0, 0}, {0, 0, 5}, {0, std::numeric_limits<double>::infinity(), 0}};
+  std::vector<Eigen::Vector3d> points = {
+      {0, 0, 0}, {NAN, 0, 0}, {0, 0, 5}, {0, std::numeric_limits<double>::infinity(), 0}};
   try {
     collapse_overhangs(points, CollapseParams{});
     FAIL() << "expected std::invalid_argument";
   } catch (const std::invalid_argument& error) {
-    EXPECT_NE(std::string(error.what()).find("2 of 4 point rows contain NaN or Inf (first at row 1)"), std::string::npos)
+    EXPECT_NE(std::string(error.what()).find("2 of 4 point rows contain NaN or Inf (first at row 1)"),
+              std::string::npos)
         << error.what();
   }
 }
 
 TEST(CollapseBadInput, NanRowsCanBeDroppedAndReported) {
-  std::vector<Eigen::Vector3d> points = {{0, 0, 0}, {NAN, 0, 0}, {0, 0, 5}, {0, 0, -std::numeric_limits<double>::infinity()}};
+  std::vector<Eigen::Vector3d> points = {
+      {0, 0, 0}, {NAN, 0, 0}, {0, 0, 5}, {0, 0, -std::numeric_limits<double>::infinity()}};
   CollapseParams params;
   params.drop_non_finite = true;
   const CollapseResult result = collapse_overhangs(points, params);
@@ -299,7 +304,8 @@ TEST(CollapseBadInput, NanRowsCanBeDroppedAndReported) {
 
 TEST(CollapseBadInput, NonPositiveEdgeAndSigmaBelowOneAreRejected) {
   const std::vector<Eigen::Vector3d> points = {{0, 0, 0}};
-  for (const double edge : {0.0, -1.0, std::numeric_limits<double>::quiet_NaN(), std::numeric_limits<double>::infinity()}) {
+  for (const double edge :
+       {0.0, -1.0, std::numeric_limits<double>::quiet_NaN(), std::numeric_limits<double>::infinity()}) {
     CollapseParams params;
     params.edge_m = edge;
     EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument) << edge;

@@ -57,11 +57,11 @@ struct CollapseResult {
   std::vector<std::int64_t> occupied_cubes;
   /// R, sorted ascending: indices I of the collapsed cubes.
   std::vector<std::int64_t> removed_cubes;
-  std::size_t num_points = 0;             ///< N, input rows
-  std::size_t num_used = 0;               ///< rows that entered CBC
-  std::size_t num_cropped = 0;            ///< rows outside the crop box
-  std::size_t num_dropped_non_finite = 0; ///< NaN/Inf rows dropped (drop_non_finite)
-  std::size_t num_overhang = 0;           ///< rows flagged overhang
+  std::size_t num_points = 0;              ///< N, input rows
+  std::size_t num_used = 0;                ///< rows that entered CBC
+  std::size_t num_cropped = 0;             ///< rows outside the crop box
+  std::size_t num_dropped_non_finite = 0;  ///< NaN/Inf rows dropped (drop_non_finite)
+  std::size_t num_overhang = 0;            ///< rows flagged overhang
   CubeStorage storage_used = CubeStorage::kDense;
 };
 
@@ -71,7 +71,6 @@ struct CollapseResult {
 /// rows (unless dropped) or an extent whose cube count would overflow a 64-bit index.
 CollapseResult collapse_overhangs(const PointsView<float>& points, const CollapseParams& params = {});
 CollapseResult collapse_overhangs(const PointsView<double>& points, const CollapseParams& params = {});
-CollapseResult collapse_overhangs(const std::vector<Eigen::Vector3d>& points,
-                                  const CollapseParams& params = {});
+CollapseResult collapse_overhangs(const std::vector<Eigen::Vector3d>& points, const CollapseParams& params = {});
 
 }  // namespace terracube

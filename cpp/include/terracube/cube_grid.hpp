@@ -13,13 +13,12 @@ namespace terracube {
 template <typename Scalar>
 struct PointsView {
   const Scalar* data = nullptr;
-  std::size_t size = 0;             ///< number of points N
-  std::ptrdiff_t row_stride = 3;    ///< elements between consecutive points
-  std::ptrdiff_t column_stride = 1; ///< elements between x, y and z of one point
+  std::size_t size = 0;              ///< number of points N
+  std::ptrdiff_t row_stride = 3;     ///< elements between consecutive points
+  std::ptrdiff_t column_stride = 1;  ///< elements between x, y and z of one point
 
   PointsView() = default;
-  PointsView(const Scalar* data_, std::size_t size_, std::ptrdiff_t row_stride_ = 3,
-             std::ptrdiff_t column_stride_ = 1)
+  PointsView(const Scalar* data_, std::size_t size_, std::ptrdiff_t row_stride_ = 3, std::ptrdiff_t column_stride_ = 1)
       : data(data_), size(size_), row_stride(row_stride_), column_stride(column_stride_) {}
   /// A view of contiguous Eigen vectors (x, y, z, x, y, z, ...).
   explicit PointsView(const std::vector<Eigen::Matrix<Scalar, 3, 1>>& points)
@@ -66,9 +65,7 @@ struct CubeGrid {
     return {column % ixmax, column / ixmax, index / columns};
   }
   /// Centre of cube `index` [m].
-  Eigen::Vector3d center(std::int64_t index) const {
-    return min_corner + edge_m * coordinates(index).cast<double>();
-  }
+  Eigen::Vector3d center(std::int64_t index) const { return min_corner + edge_m * coordinates(index).cast<double>(); }
 };
 
 /// Eqs. (1)-(3): the cube coordinate of one coordinate value along one axis.
