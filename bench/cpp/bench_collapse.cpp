@@ -55,6 +55,16 @@ void BM_CollapseSynthetic500k(benchmark::State& state) {
 }
 BENCHMARK(BM_CollapseSynthetic500k)->Unit(benchmark::kMillisecond);
 
+void BM_CollapseSynthetic500kSparse(benchmark::State& state) {
+  static const std::vector<double> xyz = synthetic_cloud(500000);
+  terracube::CollapseParams params;
+  params.storage = terracube::CubeStorage::kSparse;
+  const terracube::PointsView<double> view(xyz.data(), xyz.size() / 3);
+  for (auto _ : state) benchmark::DoNotOptimize(terracube::collapse_overhangs(view, params));
+  state.SetItemsProcessed(state.iterations() * static_cast<std::int64_t>(view.size));
+}
+BENCHMARK(BM_CollapseSynthetic500kSparse)->Unit(benchmark::kMillisecond);
+
 template <int kMethod>
 void BM_Kitti(benchmark::State& state) {
   static const std::vector<float> values = kitti_scan();

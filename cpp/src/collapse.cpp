@@ -154,24 +154,87 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
   result.num_overhang = count;
 }
 
-/// Sparse path: L is the sorted set of the points' cube indices and M a hash map over the
-/// columns that hold points, so memory is O(N) whatever the extent.
+/// An insert-only open-addressing hash set of cube indices that grows with the number of distinct
+/// cubes (not points), so it stays cache-sized for typical scans. Slots are final once growth stops.
+class CubeSet {
+ public:
+  CubeSet() { rehash(1024); }
+
+  void insert(std::int64_t cube) {
+    std::size_t slot = home(cube);
+    while (keys_[slot] != cube) {
+      if (keys_[slot] == kEmpty) {
+        keys_[slot] = cube;
+        if (2 * ++size_ > keys_.size()) rehash(2 * keys_.size());
+        return;
+      }
+      slot = (slot + 1) & mask_;
+    }
+  }
+
+  /// The slot of a cube that was inserted.
+  std::size_t find(std::int64_t cube) const {
+    std::size_t slot = home(cube);
+    while (keys_[slot] != cube) slot = (slot + 1) & mask_;
+    return slot;
+  }
+
+  std::size_t capacity() const { return keys_.size(); }
+
+  /// The distinct cubes, in no particular order: the unsorted list L.
+  std::vector<std::int64_t> keys() const {
+    std::vector<std::int64_t> out;
+    out.reserve(size_);
+    for (const std::int64_t key : keys_) {
+      if (key != kEmpty) out.push_back(key);
+    }
+    return out;
+  }
+
+ private:
+  static constexpr std::int64_t kEmpty = -1;
+
+  std::size_t home(std::int64_t cube) const {  // Fibonacci hashing, top bits
+    return static_cast<std::size_t>((static_cast<std::uint64_t>(cube) * 0x9E3779B97F4A7C15ULL) >> shift_);
+  }
+
+  void rehash(std::size_t capacity) {
+    std::vector<std::int64_t> old = std::move(keys_);
+    keys_.assign(capacity, kEmpty);
+    mask_ = capacity - 1;
+    shift_ = 64 - static_cast<int>(__builtin_ctzll(capacity));
+    size_ = 0;
+    for (const std::int64_t key : old) {
+      if (key != kEmpty) insert(key);
+    }
+  }
+
+  std::vector<std::int64_t> keys_;
+  std::size_t mask_ = 0;
+  int shift_ = 64;
+  std::size_t size_ = 0;
+};
+
+/// Sparse path: V is a hash set over the occupied cubes only and M a hash map over the columns
+/// that hold points, so memory is O(N) whatever the extent.
 template <typename Cloud>
 void collapse_sparse(const Cloud& cloud, const CollapseParams& params, CollapseResult& result) {
   const CubeGrid& grid = result.grid;
   const GridQuantizer quantizer(grid);
+  CubeSet occupancy;  // V
   std::vector<std::int64_t> cube_of_point(cloud.size(), -1);
-  std::vector<std::int64_t>& occupied = result.occupied_cubes;
-  occupied.reserve(result.num_used);
   Eigen::Vector3d p;
+  std::int64_t previous = -1;
   for (std::size_t row = 0; row < cloud.size(); ++row) {
     if (cloud.map(row, p) != 0) continue;
-    cube_of_point[row] = quantizer(p);
-    occupied.push_back(cube_of_point[row]);
+    const std::int64_t cube = quantizer(p);
+    cube_of_point[row] = cube;
+    if (cube != previous) occupancy.insert(cube);  // scans are ordered: neighbours share cubes
+    previous = cube;
   }
+  std::vector<std::int64_t>& occupied = result.occupied_cubes;
+  occupied = occupancy.keys();  // unsorted L
   std::sort(occupied.begin(), occupied.end());
-  occupied.erase(std::unique(occupied.begin(), occupied.end()), occupied.end());
-  occupied.shrink_to_fit();
 
   std::unordered_map<std::int64_t, std::int64_t> ground;  // M, only for columns that hold points
   ground.reserve(occupied.size());
@@ -180,13 +243,14 @@ void collapse_sparse(const Cloud& cloud, const CollapseParams& params, CollapseR
       [&ground](std::int64_t column) -> std::int64_t& { return ground.try_emplace(column, -1).first->second; },
       result.removed_cubes);
 
-  const std::vector<std::int64_t>& removed_cubes = result.removed_cubes;  // sorted: swept in I order
+  std::vector<std::uint8_t> removed_slot(occupancy.capacity(), 0);
+  for (const std::int64_t cube : result.removed_cubes) removed_slot[occupancy.find(cube)] = 1;
   std::size_t count = 0;
   for (std::size_t row = 0; row < cloud.size(); ++row) {
     const std::int64_t cube = cube_of_point[row];
-    const bool removed = cube >= 0 && std::binary_search(removed_cubes.begin(), removed_cubes.end(), cube);
-    result.overhang[row] = removed ? 1 : 0;
-    count += removed ? 1 : 0;
+    const std::uint8_t removed = cube < 0 ? 0 : removed_slot[occupancy.find(cube)];
+    result.overhang[row] = removed;
+    count += removed;
   }
   result.num_overhang = count;
 }

@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from typing import Optional, Tuple
 
 import typer
 
@@ -23,11 +22,11 @@ def _run_collapse(
     name: str,
     output_dir: Path,
     edge: float,
-    sigma: Optional[int],
+    sigma: int | None,
     robot_height: float,
     roll_deg: float,
     pitch_deg: float,
-    crop: Optional[Tuple[float, float, float, float, float, float]],
+    crop: tuple[float, float, float, float, float, float] | None,
     output_format: str,
     picture: bool,
 ) -> None:
@@ -73,12 +72,12 @@ def _run_collapse(
         typer.echo(f"  picture: {png}")
 
 
-_EDGE = typer.Option(0.5, "--edge", "-e", help="Cube edge E [m].")
-_SIGMA = typer.Option(None, "--sigma", "-s", help="σ [cubes]; default ceil(robot height / E).")
-_HEIGHT = typer.Option(1.0, "--robot-height", help="Robot height [m], gives σ when --sigma is not set.")
-_ROLL = typer.Option(0.0, "--roll", help="Sensor roll [deg], for leveling.")
-_PITCH = typer.Option(0.0, "--pitch", help="Sensor pitch [deg], for leveling.")
-_CROP = typer.Option(None, "--crop", help="Crop box XMIN YMIN ZMIN XMAX YMAX ZMAX [m], leveled frame.")
+_EDGE = typer.Option(0.5, "--edge", "-e", help="Cube edge E, metres.")
+_SIGMA = typer.Option(None, "--sigma", "-s", help="σ in cubes; default ceil(robot height / E).")
+_HEIGHT = typer.Option(1.0, "--robot-height", help="Robot height in metres, gives σ when --sigma is not set.")
+_ROLL = typer.Option(0.0, "--roll", help="Sensor roll in degrees, for leveling.")
+_PITCH = typer.Option(0.0, "--pitch", help="Sensor pitch in degrees, for leveling.")
+_CROP = typer.Option(None, "--crop", help="Crop box XMIN YMIN ZMIN XMAX YMAX ZMAX in metres, leveled frame.")
 _FORMAT = typer.Option("ply", "--format", "-f", help="Classified cloud format: ply, npz or txt.")
 _PNG = typer.Option(True, "--png/--no-png", help="Also write a picture.")
 
@@ -88,11 +87,11 @@ def collapse(
     input_path: Path = typer.Argument(..., help="Point cloud: .bin (KITTI), .npy, .npz, .txt/.xyz/.csv."),
     output_dir: Path = typer.Option(Path("terracube_out"), "--output-dir", "-o", help="Where to write."),
     edge: float = _EDGE,
-    sigma: Optional[int] = _SIGMA,
+    sigma: int | None = _SIGMA,
     robot_height: float = _HEIGHT,
     roll: float = _ROLL,
     pitch: float = _PITCH,
-    crop: Optional[Tuple[float, float, float, float, float, float]] = _CROP,
+    crop: tuple[float, float, float, float, float, float] | None = _CROP,
     output_format: str = _FORMAT,
     png: bool = _PNG,
 ) -> None:
@@ -104,21 +103,38 @@ def collapse(
     except (ValueError, FileNotFoundError) as error:
         typer.secho(f"error: {error}", fg=typer.colors.RED, err=True)
         raise typer.Exit(2) from error
-    _run_collapse(points, input_path.stem, output_dir, edge, sigma, robot_height, roll, pitch, crop, output_format, png)
+    _run_collapse(
+        points, input_path.stem, output_dir, edge, sigma, robot_height, roll, pitch, crop, output_format, png
+    )
 
 
 @app.command()
 def demo(
     output_dir: Path = typer.Option(Path("terracube_demo"), "--output-dir", "-o", help="Where to write."),
     edge: float = _EDGE,
-    sigma: Optional[int] = _SIGMA,
-    robot_height: float = typer.Option(1.5, "--robot-height", help="Robot height [m] for σ."),
+    sigma: int | None = _SIGMA,
+    robot_height: float = typer.Option(1.5, "--robot-height", help="Robot height in metres, for σ."),
 ) -> None:
-    """Run overhang removal on the bundled Ouster sample scan and write the cloud and a picture."""
+    """Run overhang removal on the bundled Ouster sample scan and write the cloud and a picture.
+
+    The sample's road is near z = 0; the crop drops the few multipath returns below z = -1 m, which
+    would otherwise become their column's ground and lift the real ground out as "overhang".
+    """
     from .io import load_sample_scan
 
+    crop = (-100.0, -100.0, -1.0, 100.0, 100.0, 40.0)
     _run_collapse(
-        load_sample_scan(), "ouster128_sample", output_dir, edge, sigma, robot_height, 0.0, 0.0, None, "ply", True
+        load_sample_scan(),
+        "ouster128_sample",
+        output_dir,
+        edge,
+        sigma,
+        robot_height,
+        0.0,
+        0.0,
+        crop,
+        "ply",
+        True,
     )
 
 

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Optional, Sequence
 
 import numpy as np
 
@@ -22,7 +22,11 @@ __all__ = [
 CubeGrid = _core.CubeGrid
 CollapseResult = _core.CollapseResult
 
-_STORAGE = {"auto": _core.CubeStorage.auto, "dense": _core.CubeStorage.dense, "sparse": _core.CubeStorage.sparse}
+_STORAGE = {
+    "auto": _core.CubeStorage.auto,
+    "dense": _core.CubeStorage.dense,
+    "sparse": _core.CubeStorage.sparse,
+}
 
 
 def _as_points(points) -> np.ndarray:
@@ -39,7 +43,7 @@ def _as_transform(transform) -> np.ndarray:
     return matrix
 
 
-def _as_crop(crop) -> Optional[_core.CropBox]:
+def _as_crop(crop) -> _core.CropBox | None:
     if crop is None:
         return None
     box = np.asarray(crop, dtype=np.float64)
@@ -71,8 +75,8 @@ class CollapseParams:
 
     edge: float = 0.5
     sigma: int = 2
-    transform: Optional[np.ndarray] = None
-    crop: Optional[Sequence[Sequence[float]]] = None
+    transform: np.ndarray | None = None
+    crop: Sequence[Sequence[float]] | None = None
     drop_non_finite: bool = False
     storage: str = "auto"
     dense_budget_bytes: int = field(default=256 << 20)
@@ -109,8 +113,8 @@ class PointGapParams:
 
     cell: float = 0.5
     min_gap: float = 1.0
-    transform: Optional[np.ndarray] = None
-    crop: Optional[Sequence[Sequence[float]]] = None
+    transform: np.ndarray | None = None
+    crop: Sequence[Sequence[float]] | None = None
     drop_non_finite: bool = False
 
     def to_core(self) -> _core.PointGapParams:
@@ -132,7 +136,7 @@ def collapse_overhangs(
     crop=None,
     drop_non_finite: bool = False,
     storage: str = "auto",
-    params: Optional[CollapseParams] = None,
+    params: CollapseParams | None = None,
 ) -> CollapseResult:
     """Remove overhangs with collapsible cubes (Algorithm 1 of Reina et al. 2014).
 
@@ -163,7 +167,7 @@ def collapse_overhangs(
 
 
 def point_gap_overhangs(
-    points, cell: float = 0.5, min_gap: float = 1.0, *, params: Optional[PointGapParams] = None, **kwargs
+    points, cell: float = 0.5, min_gap: float = 1.0, *, params: PointGapParams | None = None, **kwargs
 ) -> np.ndarray:
     """The point-based per-cell gap search the paper compares against.
 
@@ -176,7 +180,7 @@ def point_gap_overhangs(
 
 
 def octomap_column_overhangs(
-    points, edge: float = 0.5, sigma: int = 2, *, params: Optional[CollapseParams] = None, **kwargs
+    points, edge: float = 0.5, sigma: int = 2, *, params: CollapseParams | None = None, **kwargs
 ) -> np.ndarray:
     """Algorithm 1's column rule evaluated on an OctoMap OcTree aligned to the CBC grid.
 

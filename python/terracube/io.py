@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Union
 
 import numpy as np
 
 __all__ = ["read_points", "write_classified", "sample_scan_path", "load_sample_scan"]
 
-PathLike = Union[str, Path]
+PathLike = str | Path
 
 
 def sample_scan_path() -> Path:
@@ -55,7 +54,9 @@ def read_points(path: PathLike) -> np.ndarray:
             delimiter = "," if suffix == ".csv" else None
             points = np.loadtxt(path, delimiter=delimiter, ndmin=2, usecols=(0, 1, 2))
         else:
-            raise ValueError(f"{path}: unknown point-cloud format {suffix!r} (use .bin, .npy, .npz, .txt, .xyz, .csv)")
+            raise ValueError(
+                f"{path}: unknown point-cloud format {suffix!r} (use .bin, .npy, .npz, .txt, .xyz, .csv)"
+            )
     except (OSError, EOFError) as error:
         raise ValueError(f"{path}: cannot read: {error}") from error
     points = np.asarray(points)
@@ -85,7 +86,15 @@ def write_classified(path: PathLike, points: np.ndarray, overhang: np.ndarray) -
 
         vertex = np.empty(
             points.shape[0],
-            dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("overhang", "u1"), ("red", "u1"), ("green", "u1"), ("blue", "u1")],
+            dtype=[
+                ("x", "f4"),
+                ("y", "f4"),
+                ("z", "f4"),
+                ("overhang", "u1"),
+                ("red", "u1"),
+                ("green", "u1"),
+                ("blue", "u1"),
+            ],
         )
         vertex["x"], vertex["y"], vertex["z"] = (points[:, i] for i in range(3))
         vertex["overhang"] = overhang

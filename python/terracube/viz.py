@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional, Union
 
 import numpy as np
 
@@ -24,9 +23,9 @@ def _pyplot():
 def plot_overhangs(
     points: np.ndarray,
     overhang: np.ndarray,
-    path: Union[str, Path],
+    path: str | Path,
     *,
-    title: Optional[str] = None,
+    title: str | None = None,
     max_points: int = 150_000,
     seed: int = 0,
 ) -> Path:
@@ -58,7 +57,7 @@ def plot_overhangs(
     fig, (top, side) = plt.subplots(
         1, 2, figsize=(14, 6.5), gridspec_kw={"width_ratios": [1.0, 1.4]}, constrained_layout=True
     )
-    low, high = (np.percentile(xyz[kept, 2], [2, 98]) if kept.any() else (0.0, 1.0))
+    low, high = np.percentile(xyz[kept, 2], [2, 98]) if kept.any() else (0.0, 1.0)
     scatter = dict(s=0.6, linewidths=0, rasterized=True)
     top.scatter(xyz[kept, 0], xyz[kept, 1], c=xyz[kept, 2], cmap="viridis", vmin=low, vmax=high, **scatter)
     top.scatter(xyz[removed, 0], xyz[removed, 1], c="red", s=1.5, linewidths=0, rasterized=True)
@@ -72,8 +71,17 @@ def plot_overhangs(
     side.set_ylabel("z [m]")
     side.set_title("side view (vertical exaggeration)")
     handles = [
-        plt.Line2D([], [], marker="o", ls="", color=plt.get_cmap("viridis")(0.6), label=f"retained ({kept.sum():,})"),
-        plt.Line2D([], [], marker="o", ls="", color="red", label=f"overhang, removed ({removed.sum():,})"),
+        plt.Line2D(
+            [],
+            [],
+            marker="o",
+            ls="",
+            color=plt.get_cmap("viridis")(0.6),
+            label=f"retained ({int((~overhang).sum()):,})",
+        ),
+        plt.Line2D(
+            [], [], marker="o", ls="", color="red", label=f"overhang, removed ({int(overhang.sum()):,})"
+        ),
     ]
     side.legend(handles=handles, loc="upper right", markerscale=1.5)
     n_all = points.shape[0]
