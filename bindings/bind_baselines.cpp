@@ -12,7 +12,7 @@ namespace {
 py::array to_bool_array(std::vector<std::uint8_t>&& mask) {
   auto* owned = new std::vector<std::uint8_t>(std::move(mask));
   py::capsule free_when_done(owned, [](void* p) { delete static_cast<std::vector<std::uint8_t>*>(p); });
-  return bool_view_of(*owned, free_when_done);
+  return bool_view_of(*owned, free_when_done, /*writeable=*/true);
 }
 
 }  // namespace

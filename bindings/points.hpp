@@ -44,16 +44,23 @@ auto with_points(const py::array& array, const char* name, F&& f) {
                        py::str(array.dtype()).cast<std::string>() + "; convert with .astype(numpy.float64)");
 }
 
-/// A numpy array viewing `data` that keeps `owner` (the C++ result object) alive.
-template <typename T>
-py::array view_of(const std::vector<T>& data, const py::object& owner) {
-  return py::array_t<T>({static_cast<py::ssize_t>(data.size())}, {static_cast<py::ssize_t>(sizeof(T))}, data.data(),
-                        owner);
+inline py::array read_only(py::array array) {
+  array.attr("setflags")(py::arg("write") = false);
+  return array;
 }
 
-/// A numpy bool array viewing a vector of 0/1 bytes, keeping `owner` alive.
-inline py::array bool_view_of(const std::vector<std::uint8_t>& data, const py::object& owner) {
-  return py::array(py::dtype("bool"), {static_cast<py::ssize_t>(data.size())}, {py::ssize_t{1}}, data.data(), owner);
+/// A read-only numpy array viewing `data` that keeps `owner` (the C++ result object) alive.
+template <typename T>
+py::array view_of(const std::vector<T>& data, const py::object& owner) {
+  return read_only(py::array_t<T>({static_cast<py::ssize_t>(data.size())}, {static_cast<py::ssize_t>(sizeof(T))},
+                                  data.data(), owner));
+}
+
+/// A numpy bool array viewing a vector of 0/1 bytes, keeping `owner` alive; read-only when the
+/// owner is a result object that other views share.
+inline py::array bool_view_of(const std::vector<std::uint8_t>& data, const py::object& owner, bool writeable = false) {
+  py::array array(py::dtype("bool"), {static_cast<py::ssize_t>(data.size())}, {py::ssize_t{1}}, data.data(), owner);
+  return writeable ? array : read_only(array);
 }
 
 }  // namespace terracube::python

@@ -24,6 +24,9 @@ void check_collapse_params(const CollapseParams& params) {
     throw std::invalid_argument("edge must be a positive finite length in metres, got " +
                                 std::to_string(params.edge_m));
   }
+  if (!std::isfinite(1.0 / params.edge_m)) {
+    throw std::invalid_argument("edge " + std::to_string(params.edge_m) + " m is too small to quantise with");
+  }
   if (params.sigma < 1) {
     throw std::invalid_argument("sigma must be at least 1 cube, got " + std::to_string(params.sigma));
   }

@@ -265,6 +265,7 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
   result.num_points = points.size;
   result.overhang.assign(points.size, 0);
   result.grid.edge_m = params.edge_m;
+  result.storage_used = params.storage == CubeStorage::kSparse ? CubeStorage::kSparse : CubeStorage::kDense;
 
   detail::visit_leveled(points, params.transform, params.crop, [&](const auto& cloud) {
     const detail::CloudExtent extent = detail::measure_extent(cloud, params.drop_non_finite);

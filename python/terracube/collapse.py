@@ -86,6 +86,8 @@ class CollapseParams:
             raise ValueError(f"storage must be one of {sorted(_STORAGE)}, got {self.storage!r}")
         if isinstance(self.sigma, bool) or int(self.sigma) != self.sigma:
             raise ValueError(f"sigma must be a whole number of cubes, got {self.sigma!r}")
+        if not 1 <= int(self.sigma) < 2**31:
+            raise ValueError(f"sigma must be between 1 and 2**31 - 1 cubes, got {self.sigma!r}")
         params = _core.CollapseParams()
         params.edge_m = float(self.edge)
         params.sigma = int(self.sigma)
