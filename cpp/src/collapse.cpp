@@ -6,6 +6,7 @@
 #include <limits>
 #include <stdexcept>
 #include <string>
+#include <type_traits>
 #include <unordered_map>
 
 #include "cloud_frame.hpp"
@@ -24,10 +25,10 @@ void sweep_columns(const std::vector<std::int64_t>& occupied, std::int64_t num_c
   for (const std::int64_t cube : occupied) {
     const std::int64_t column = cube % num_columns;
     const std::int64_t layer = cube / num_columns;
-    std::int64_t& ground = ground_of(column);
+    auto& ground = ground_of(column);
     const std::int64_t empty_between = layer - ground - 1;
     if (ground < 0 || empty_between < sigma) {
-      ground = layer;
+      ground = static_cast<std::remove_reference_t<decltype(ground)>>(layer);
     } else {
       removed.push_back(cube);
     }
@@ -55,7 +56,7 @@ struct GridQuantizer {
 
 std::size_t dense_bytes(const CubeGrid& grid) {
   return static_cast<std::size_t>((grid.num_cubes() + 63) / 64) * 8 +
-         static_cast<std::size_t>(grid.num_columns()) * sizeof(std::int64_t);
+         static_cast<std::size_t>(grid.num_columns()) * sizeof(std::int32_t);
 }
 
 CubeStorage choose_storage(const CubeGrid& grid, const CollapseParams& params, std::size_t num_used) {
@@ -132,10 +133,11 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
     }
   }
 
-  std::vector<std::int64_t> ground(static_cast<std::size_t>(grid.num_columns()), -1);  // M
+  // M; layers fit 32 bits on the dense path (fewer than 2^31 cubes).
+  std::vector<std::int32_t> ground(static_cast<std::size_t>(grid.num_columns()), -1);
   sweep_columns(
       occupied, grid.num_columns(), params.sigma,
-      [&ground](std::int64_t column) -> std::int64_t& { return ground[static_cast<std::size_t>(column)]; },
+      [&ground](std::int64_t column) -> std::int32_t& { return ground[static_cast<std::size_t>(column)]; },
       result.removed_cubes);
 
   // Points in R's cubes are overhang: clear R's bits in V, then a point is overhang when its
