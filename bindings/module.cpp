@@ -6,10 +6,12 @@ namespace py = pybind11;
 namespace terracube::python {
 void bind_collapse(py::module_& m);
 void bind_baselines(py::module_& m);
+void bind_elevation(py::module_& m);
 }  // namespace terracube::python
 
 PYBIND11_MODULE(_core, m) {
   m.doc() = "terracube C++ core (private: use the terracube package)";
   terracube::python::bind_collapse(m);
   terracube::python::bind_baselines(m);
+  terracube::python::bind_elevation(m);
 }

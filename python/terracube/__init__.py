@@ -11,6 +11,17 @@ from .collapse import (
     point_gap_overhangs,
     sigma_from_robot_height,
 )
+from .elevation import (
+    TERRAIN_COLORS,
+    ElevationMap,
+    ElevationParams,
+    MapGeometry,
+    TerrainClass,
+    TerrainParams,
+    build_elevation_map,
+    classify_terrain,
+    dem_without_overhangs,
+)
 
 __version__ = "0.1.0"
 
@@ -18,6 +29,15 @@ __all__ = [
     "CollapseParams",
     "CollapseResult",
     "CubeGrid",
+    "ElevationMap",
+    "ElevationParams",
+    "MapGeometry",
+    "TERRAIN_COLORS",
+    "TerrainClass",
+    "TerrainParams",
+    "build_elevation_map",
+    "classify_terrain",
+    "dem_without_overhangs",
     "PointGapParams",
     "collapse_overhangs",
     "leveling_transform",

@@ -1,0 +1,172 @@
+// Bindings for elevation_map.hpp and terrain.hpp.
+#include <pybind11/eigen.h>
+#include <pybind11/stl.h>
+#include <terracube/elevation_map.hpp>
+#include <terracube/terrain.hpp>
+
+#include <sstream>
+
+#include "points.hpp"
+
+namespace terracube::python {
+
+namespace {
+
+/// A writeable (nx, ny) float32 view of a layer that keeps the map alive.
+py::array layer_view(const py::object& map_object, const std::string& name) {
+  auto& map = map_object.cast<ElevationMap&>();
+  Layer& layer = map.get(name);
+  return py::array_t<float>(
+      {layer.rows(), layer.cols()},
+      {static_cast<py::ssize_t>(sizeof(float) * layer.cols()), static_cast<py::ssize_t>(sizeof(float))}, layer.data(),
+      map_object);
+}
+
+std::vector<std::uint8_t> selection(
+    const std::optional<py::array_t<bool, py::array::c_style | py::array::forcecast>>& use, std::size_t rows) {
+  std::vector<std::uint8_t> flags;
+  if (!use) return flags;
+  if (use->ndim() != 1 || static_cast<std::size_t>(use->shape(0)) != rows) {
+    throw py::value_error("use must be an (N,) bool array with one flag per point");
+  }
+  flags.assign(use->data(), use->data() + rows);
+  return flags;
+}
+
+}  // namespace
+
+void bind_elevation(py::module_& m) {
+  py::class_<MapGeometry>(m, "MapGeometry",
+                          "Cell (i, j) is centred on origin + (i + 0.5, j + 0.5) * resolution; i along x, j along y.")
+      .def(py::init([](double resolution, const Eigen::Vector2d& origin, const Eigen::Vector2i& size) {
+             MapGeometry g;
+             g.resolution_m = resolution;
+             g.origin_m = origin;
+             g.size = size.array();
+             return g;
+           }),
+           py::arg("resolution"), py::arg("origin"), py::arg("size"))
+      .def_readonly("resolution", &MapGeometry::resolution_m, "cell edge [m]")
+      .def_readonly("origin", &MapGeometry::origin_m, "(2,) lower-left corner of cell (0, 0) [m]")
+      .def_property_readonly(
+          "size", [](const MapGeometry& g) { return Eigen::Vector2i(g.size.matrix()); }, "(2,) cells along x and y")
+      .def_property_readonly("length", &MapGeometry::length_m, "(2,) map length along x and y [m]")
+      .def_property_readonly("num_cells", &MapGeometry::num_cells)
+      .def(
+          "position_of",
+          [](const MapGeometry& g, int i, int j) {
+            return Eigen::Vector2d(g.position_of({i, j}));
+          },
+          py::arg("i"), py::arg("j"), "centre of cell (i, j) [m]")
+      .def(
+          "index_of",
+          [](const MapGeometry& g, double x, double y) -> std::optional<std::pair<int, int>> {
+            const auto index = g.index_of({x, y});
+            if (!index) return std::nullopt;
+            return std::make_pair(index->x(), index->y());
+          },
+          py::arg("x"), py::arg("y"), "cell (i, j) holding (x, y), or None outside the map")
+      .def("__repr__", [](const MapGeometry& g) {
+        std::ostringstream text;
+        text << "MapGeometry(resolution=" << g.resolution_m << ", origin=[" << g.origin_m.transpose() << "], size=["
+             << g.size.transpose() << "])";
+        return text.str();
+      });
+
+  py::class_<ElevationMap>(m, "ElevationMap")
+      .def(py::init<const MapGeometry&>(), py::arg("geometry"))
+      .def_property_readonly("geometry", &ElevationMap::geometry)
+      .def_property_readonly("layers", &ElevationMap::layers)
+      .def("exists", &ElevationMap::exists, py::arg("name"))
+      .def("get", &layer_view, py::arg("name"), "(nx, ny) float32 view of a layer; KeyError when missing")
+      .def(
+          "add",
+          [](ElevationMap& map, const std::string& name,
+             const py::array_t<float, py::array::c_style | py::array::forcecast>& data) {
+            if (data.ndim() != 2) throw py::value_error("a layer must be a 2D (nx, ny) array");
+            Layer layer = Eigen::Map<const Layer>(data.data(), data.shape(0), data.shape(1));
+            map.add(name, std::move(layer));
+          },
+          py::arg("name"), py::arg("data"))
+      .def("add_constant", py::overload_cast<const std::string&, float>(&ElevationMap::add), py::arg("name"),
+           py::arg("value"));
+
+  py::class_<ElevationParams>(m, "ElevationParams")
+      .def(py::init<>())
+      .def_readwrite("resolution_m", &ElevationParams::resolution_m)
+      .def(
+          "set_extent",
+          [](ElevationParams& p, double origin_x, double origin_y, int size_x, int size_y) {
+            p.origin_m = Eigen::Vector2d(origin_x, origin_y);
+            p.size = CellIndex(size_x, size_y);
+          },
+          py::arg("origin_x"), py::arg("origin_y"), py::arg("size_x"), py::arg("size_y"))
+      .def("clear_extent",
+           [](ElevationParams& p) {
+             p.origin_m.reset();
+             p.size.reset();
+           })
+      .def_property_readonly("has_extent", [](const ElevationParams& p) { return p.origin_m.has_value(); })
+      .def_readwrite("discontinuity_m", &ElevationParams::discontinuity_m)
+      .def_readwrite("transform", &ElevationParams::transform)
+      .def_readwrite("crop", &ElevationParams::crop)
+      .def_readwrite("drop_non_finite", &ElevationParams::drop_non_finite)
+      .def_readwrite("max_cells", &ElevationParams::max_cells);
+
+  m.def(
+      "build_elevation_map",
+      [](const py::array& points, const ElevationParams& params,
+         const std::optional<py::array_t<bool, py::array::c_style | py::array::forcecast>>& use) {
+        return with_points(points, "points", [&](const auto& view) {
+          const std::vector<std::uint8_t> flags = selection(use, view.size);
+          py::gil_scoped_release release;
+          return build_elevation_map(view, params, use ? &flags : nullptr);
+        });
+      },
+      py::arg("points"), py::arg("params"), py::arg("use") = py::none());
+
+  py::class_<OverhangFreeMap>(m, "OverhangFreeMap")
+      .def_readonly("map", &OverhangFreeMap::map)
+      .def_readonly("collapse", &OverhangFreeMap::collapse);
+  m.def(
+      "build_overhang_free_map",
+      [](const py::array& points, const CollapseParams& collapse, const ElevationParams& elevation) {
+        return with_points(points, "points", [&](const auto& view) {
+          py::gil_scoped_release release;
+          return build_overhang_free_map(view, collapse, elevation);
+        });
+      },
+      py::arg("points"), py::arg("collapse"), py::arg("elevation"));
+
+  py::enum_<GroundReference>(m, "GroundReference")
+      .value("sensor_height", GroundReference::kSensorHeight)
+      .value("local_ground", GroundReference::kLocalGround);
+
+  py::class_<TerrainParams>(m, "TerrainParams")
+      .def(py::init<>())
+      .def_readwrite("ground_height_m", &TerrainParams::ground_height_m)
+      .def_readwrite("std_dev_m", &TerrainParams::std_dev_m)
+      .def_readwrite("robot_height_m", &TerrainParams::robot_height_m)
+      .def_readwrite("reference", &TerrainParams::reference)
+      .def_readwrite("sensor_height_m", &TerrainParams::sensor_height_m)
+      .def_readwrite("local_ground_radius_cells", &TerrainParams::local_ground_radius_cells);
+
+  m.def(
+      "classify_terrain",
+      [](ElevationMap& map, const TerrainParams& params) {
+        TerrainClassification result;
+        {
+          py::gil_scoped_release release;
+          result = classify_terrain(map, params);
+        }
+        return py::array_t<std::uint8_t>({result.classes.rows(), result.classes.cols()}, result.classes.data());
+      },
+      py::arg("map"), py::arg("params"), "(nx, ny) uint8 classes; adds class, relative_height, ground layers");
+  m.def("step_layer", [](const py::array_t<float, py::array::c_style | py::array::forcecast>& height) {
+    if (height.ndim() != 2) throw py::value_error("height must be a 2D array");
+    const Layer in = Eigen::Map<const Layer>(height.data(), height.shape(0), height.shape(1));
+    return Layer(step_layer(in));
+  });
+}
+
+}  // namespace terracube::python

@@ -1,0 +1,115 @@
+// 2.5D elevation maps: one grid geometry plus named float layers, NaN for empty cells (in the
+// manner of grid_map_core). The DEM of Reina et al. (2014) is the "mean" layer; the per-cell
+// statistics of the terrain-classification paper (highest elevation, std-dev, discontinuity) are
+// the "max", "std_dev" and "discontinuity" layers.
+#pragma once
+
+#include <Eigen/Core>
+#include <cstddef>
+#include <cstdint>
+#include <limits>
+#include <optional>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "terracube/collapse.hpp"
+#include "terracube/cube_grid.hpp"
+
+namespace terracube {
+
+/// One float layer: rows are cells along x (index i), columns cells along y (index j).
+using Layer = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+/// A cell index (i along x, j along y).
+using CellIndex = Eigen::Array2i;
+
+/// Grid geometry. Convention: `origin_m` is the corner of cell (0, 0) with the smallest x and y;
+/// cell (i, j) covers [origin + i * res, origin + (i + 1) * res) along x (likewise j along y) and
+/// is centred on origin + (i + 0.5, j + 0.5) * res.
+struct MapGeometry {
+  double resolution_m = 0.1;                           ///< cell edge [m], > 0
+  Eigen::Vector2d origin_m = Eigen::Vector2d::Zero();  ///< lower-left corner of cell (0, 0) [m]
+  CellIndex size = CellIndex::Zero();                  ///< cells along x and y
+
+  std::size_t num_cells() const { return static_cast<std::size_t>(size.x()) * static_cast<std::size_t>(size.y()); }
+  /// Length of the map along x and y [m].
+  Eigen::Vector2d length_m() const { return size.cast<double>() * resolution_m; }
+  /// Centre of cell `index` [m].
+  Eigen::Vector2d position_of(const CellIndex& index) const {
+    return origin_m + (index.cast<double>() + 0.5).matrix() * resolution_m;
+  }
+  /// The cell holding `position`, or nothing when it lies outside the map.
+  std::optional<CellIndex> index_of(const Eigen::Vector2d& position) const;
+};
+
+/// A grid geometry with named float layers, NaN meaning "no data".
+class ElevationMap {
+ public:
+  ElevationMap() = default;
+  explicit ElevationMap(const MapGeometry& geometry);
+
+  const MapGeometry& geometry() const { return geometry_; }
+  /// Adds (or overwrites) a layer filled with `value`.
+  void add(const std::string& name, float value = std::numeric_limits<float>::quiet_NaN());
+  /// Adds (or overwrites) a layer; throws std::invalid_argument when its size is not the map's.
+  void add(const std::string& name, Layer data);
+  bool exists(const std::string& name) const;
+  /// Throws std::out_of_range naming the missing layer and the ones there are.
+  const Layer& get(const std::string& name) const;
+  Layer& get(const std::string& name);
+  /// Layer names in the order they were added.
+  std::vector<std::string> layers() const;
+
+ private:
+  MapGeometry geometry_;
+  std::vector<std::pair<std::string, Layer>> layers_;
+};
+
+/// Parameters of build_elevation_map.
+struct ElevationParams {
+  double resolution_m = 0.1;  ///< cell edge [m], > 0
+  /// Map extent. Unset: the points' bounding box in x and y, snapped outwards to the resolution.
+  std::optional<Eigen::Vector2d> origin_m;
+  std::optional<CellIndex> size;
+  /// A cell is discontinuous when its sorted elevations contain a gap longer than this [m].
+  double discontinuity_m = 1.0;
+  /// Applied to the points before mapping (e.g. leveling_transform()).
+  Eigen::Matrix4d transform = Eigen::Matrix4d::Identity();
+  /// Optional crop box in the transformed frame; points outside it take no part.
+  std::optional<CropBox> crop;
+  /// NaN/Inf rows: false -> std::invalid_argument; true -> ignored.
+  bool drop_non_finite = false;
+  /// Largest number of cells allowed (memory guard): 64 M cells = 256 MB per float layer.
+  std::size_t max_cells = std::size_t{1} << 26;
+};
+
+/// Builds the map in O(N + cells) plus a per-cell sort of the elevations for the discontinuity
+/// flag. Layers: "count" (0 for empty), "min", "max", "mean" (the DEM), "std_dev" (population),
+/// "discontinuity" (1 or 0); NaN where a cell holds no point. Points outside the map are ignored.
+/// `use` (optional, one flag per point) selects the points that take part.
+ElevationMap build_elevation_map(const PointsView<float>& points, const ElevationParams& params,
+                                 const std::vector<std::uint8_t>* use = nullptr);
+ElevationMap build_elevation_map(const PointsView<double>& points, const ElevationParams& params,
+                                 const std::vector<std::uint8_t>* use = nullptr);
+
+/// The collapsible-cubes paper's "DEM without overhangs" plus planner layers:
+/// collapse_overhangs, then build_elevation_map from the points it kept, then
+///  - "clearance": from the top of the kept points to the lowest overhang point above them [m],
+///    +inf where the cell has no overhang, NaN where it has no kept point;
+///  - "step": the largest |max - max of a neighbour| over the 8 neighbours with data [m].
+/// The map is built in collapse's frame: its transform and crop replace elevation's. Build the raw
+/// DEM with the same ElevationParams (and that transform and crop) to compare.
+struct OverhangFreeMap {
+  ElevationMap map;         ///< layers of the kept points, plus clearance and step
+  CollapseResult collapse;  ///< the overhang mask and cubes
+};
+OverhangFreeMap build_overhang_free_map(const PointsView<float>& points, const CollapseParams& collapse,
+                                        const ElevationParams& elevation);
+OverhangFreeMap build_overhang_free_map(const PointsView<double>& points, const CollapseParams& collapse,
+                                        const ElevationParams& elevation);
+
+/// The "step" layer of a height layer: the largest absolute difference to the 8 neighbours that
+/// have data; 0 where no neighbour has data, NaN where the cell has none.
+Layer step_layer(const Layer& height);
+
+}  // namespace terracube

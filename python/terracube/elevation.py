@@ -1,0 +1,325 @@
+"""Elevation maps (named float layers, NaN = empty) and terrain classes."""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import _core
+from .collapse import CollapseParams, CollapseResult, _as_crop, _as_points, _as_transform
+
+__all__ = [
+    "ElevationMap",
+    "MapGeometry",
+    "ElevationParams",
+    "TerrainClass",
+    "TerrainParams",
+    "build_elevation_map",
+    "dem_without_overhangs",
+    "classify_terrain",
+    "TERRAIN_COLORS",
+]
+
+MapGeometry = _core.MapGeometry
+
+
+class TerrainClass(enum.IntEnum):
+    """Per-cell terrain class (uint8), mirroring ``terracube::TerrainClass``."""
+
+    UNKNOWN = 0
+    GROUND = 1
+    OBSTACLE = 2
+    OVERHANGING_OBJECT = 3
+    VERTICAL_OBJECT = 4
+    HORIZONTAL_EDGE = 5
+
+
+#: RGB colours used for class pictures.
+TERRAIN_COLORS = {
+    TerrainClass.UNKNOWN: (1.0, 1.0, 1.0),
+    TerrainClass.GROUND: (0.62, 0.80, 0.45),
+    TerrainClass.OBSTACLE: (0.90, 0.35, 0.20),
+    TerrainClass.OVERHANGING_OBJECT: (0.15, 0.55, 0.25),
+    TerrainClass.VERTICAL_OBJECT: (0.30, 0.30, 0.75),
+    TerrainClass.HORIZONTAL_EDGE: (0.95, 0.80, 0.20),
+}
+
+
+class ElevationMap:
+    """A grid geometry with named float32 layers of shape (nx, ny); NaN means no data.
+
+    Cell (i, j) covers x in [origin_x + i*res, origin_x + (i+1)*res) and likewise j along y; its
+    centre is ``geometry.position_of(i, j)``. ``map["mean"]`` is a writeable view (no copy).
+    """
+
+    def __init__(self, core: _core.ElevationMap):
+        self._core = core
+
+    @classmethod
+    def empty(cls, resolution: float, origin: Sequence[float], size: Sequence[int]) -> ElevationMap:
+        return cls(_core.ElevationMap(_core.MapGeometry(float(resolution), np.asarray(origin, float), size)))
+
+    @property
+    def geometry(self) -> MapGeometry:
+        return self._core.geometry
+
+    @property
+    def resolution(self) -> float:
+        return self._core.geometry.resolution
+
+    @property
+    def layers(self) -> list[str]:
+        return list(self._core.layers)
+
+    def __contains__(self, name: str) -> bool:
+        return self._core.exists(name)
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if not self._core.exists(name):
+            raise KeyError(f"no layer {name!r}; layers: {', '.join(self.layers)}")
+        return self._core.get(name)
+
+    def __setitem__(self, name: str, data) -> None:
+        data = np.asarray(data, dtype=np.float32)
+        size = tuple(self.geometry.size)
+        if data.shape != size:
+            raise ValueError(f"layer {name!r} has shape {data.shape}, the map is {size}")
+        self._core.add(name, data)
+
+    def cell_centers(self) -> tuple[np.ndarray, np.ndarray]:
+        """(nx,) x and (ny,) y coordinates of the cell centres [m]."""
+        g = self.geometry
+        x = g.origin[0] + (np.arange(g.size[0]) + 0.5) * g.resolution
+        y = g.origin[1] + (np.arange(g.size[1]) + 0.5) * g.resolution
+        return x, y
+
+    def save(self, path: str | Path) -> Path:
+        """Write geometry and every layer to a compressed .npz file."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        g = self.geometry
+        np.savez_compressed(
+            path,
+            resolution=np.float64(g.resolution),
+            origin=np.asarray(g.origin, dtype=np.float64),
+            size=np.asarray(g.size, dtype=np.int64),
+            layer_names=np.asarray(self.layers),
+            **{f"layer_{name}": self[name] for name in self.layers},
+        )
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> ElevationMap:
+        """Read a map written by :meth:`save`; ValueError naming the file when it is not one."""
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as archive:
+                elevation_map = cls.empty(float(archive["resolution"]), archive["origin"], archive["size"])
+                for name in archive["layer_names"]:
+                    elevation_map[str(name)] = archive[f"layer_{name}"]
+        except (KeyError, OSError, EOFError, ValueError) as error:
+            raise ValueError(f"{path}: not a terracube elevation map: {error}") from error
+        return elevation_map
+
+    def to_png(self, name: str, path: str | Path, *, title: str | None = None, cmap: str = "viridis") -> Path:
+        """Render one layer as a PNG picture (x right, y up, NaN white)."""
+        from .viz import plot_layer
+
+        return plot_layer(self, name, path, title=title, cmap=cmap)
+
+    def to_geotiff(self, name: str, path: str | Path, *, crs: str | None = None) -> Path:
+        """Write one layer as a single-band float32 GeoTIFF (needs the ``geo`` extra: rasterio)."""
+        try:
+            import rasterio
+            from rasterio.transform import from_origin
+        except ImportError as error:
+            raise ImportError("GeoTIFF export needs rasterio: pip install 'terracube[geo]'") from error
+        g = self.geometry
+        data = self[name]
+        # Rasters run north-down: row 0 is the largest y, so rows are j reversed and columns are i.
+        raster = np.ascontiguousarray(data.T[::-1, :])
+        top = g.origin[1] + g.size[1] * g.resolution
+        transform = from_origin(g.origin[0], top, g.resolution, g.resolution)
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with rasterio.open(
+            path,
+            "w",
+            driver="GTiff",
+            height=raster.shape[0],
+            width=raster.shape[1],
+            count=1,
+            dtype="float32",
+            crs=crs,
+            transform=transform,
+            nodata=np.nan,
+        ) as dataset:
+            dataset.write(raster, 1)
+            dataset.set_band_description(1, name)
+        return path
+
+    def __repr__(self) -> str:
+        g = self.geometry
+        return (
+            f"ElevationMap({g.size[0]}x{g.size[1]} cells at {g.resolution} m, origin=({g.origin[0]:.2f}, "
+            f"{g.origin[1]:.2f}), layers={self.layers})"
+        )
+
+
+@dataclass
+class ElevationParams:
+    """Parameters of :func:`build_elevation_map`, mirroring ``terracube::ElevationParams``.
+
+    Attributes
+    ----------
+    resolution : float
+        Cell edge [m].
+    origin, size : (2,) or None
+        Fixed extent: lower-left corner of cell (0, 0) [m] and cells along x, y. Both or neither;
+        neither means the points' bounding box snapped outwards to the resolution.
+    discontinuity : float
+        A gap between sorted elevations longer than this [m] sets the discontinuity flag (1 m).
+    transform, crop, drop_non_finite
+        As in :class:`terracube.CollapseParams`.
+    max_cells : int
+        Memory guard on the number of cells.
+    """
+
+    resolution: float = 0.1
+    origin: Sequence[float] | None = None
+    size: Sequence[int] | None = None
+    discontinuity: float = 1.0
+    transform: np.ndarray | None = None
+    crop: Sequence[Sequence[float]] | None = None
+    drop_non_finite: bool = False
+    max_cells: int = 1 << 26
+
+    def to_core(self) -> _core.ElevationParams:
+        params = _core.ElevationParams()
+        params.resolution_m = float(self.resolution)
+        if (self.origin is None) != (self.size is None):
+            raise ValueError("give both origin and size for a fixed map extent, or neither")
+        if self.size is not None:
+            origin = np.asarray(self.origin, dtype=np.float64)
+            size = np.asarray(self.size)
+            if origin.shape != (2,) or not np.all(np.isfinite(origin)):
+                raise ValueError(f"origin must be two finite coordinates [m], got {self.origin!r}")
+            if (
+                size.shape != (2,)
+                or np.any(size < 1)
+                or np.any(size >= 2**31)
+                or np.any(size != np.round(size))
+            ):
+                raise ValueError(f"size must be two positive whole cell counts, got {self.size!r}")
+            params.set_extent(float(origin[0]), float(origin[1]), int(size[0]), int(size[1]))
+        params.discontinuity_m = float(self.discontinuity)
+        params.transform = _as_transform(self.transform)
+        params.crop = _as_crop(self.crop)
+        params.drop_non_finite = bool(self.drop_non_finite)
+        params.max_cells = int(self.max_cells)
+        return params
+
+
+def build_elevation_map(
+    points, resolution: float = 0.1, *, use=None, params: ElevationParams | None = None, **kwargs
+):
+    """Per-cell layers from a cloud in O(N): count, min, max, mean (the DEM), std_dev, discontinuity.
+
+    Parameters
+    ----------
+    points : (N, 3) float32 or float64 array
+    resolution : float
+        Cell edge [m]; other options as in :class:`ElevationParams` (``params`` overrides them).
+    use : (N,) bool, optional
+        Only these points take part.
+    """
+    if params is None:
+        params = ElevationParams(resolution, **kwargs)
+    use_flags = None if use is None else np.asarray(use, dtype=bool)
+    return ElevationMap(_core.build_elevation_map(_as_points(points), params.to_core(), use_flags))
+
+
+def dem_without_overhangs(
+    points,
+    edge: float = 0.5,
+    sigma: int = 2,
+    resolution: float = 0.1,
+    *,
+    collapse: CollapseParams | None = None,
+    elevation: ElevationParams | None = None,
+) -> tuple[ElevationMap, CollapseResult]:
+    """The collapsible-cubes paper's DEM without overhangs, plus ``clearance`` and ``step`` layers.
+
+    Runs :func:`terracube.collapse_overhangs`, then maps the points it kept in the same (leveled,
+    cropped) frame. Extra layers: ``overhang_min`` (lowest overhang point), ``clearance`` (from the
+    top of the kept points to the lowest overhang above them, +inf where none) and ``step`` (largest
+    height difference of ``max`` to the 8 neighbours). Returns (map, collapse result).
+    """
+    collapse = collapse or CollapseParams(edge, sigma)
+    elevation = elevation or ElevationParams(resolution)
+    result = _core.build_overhang_free_map(_as_points(points), collapse.to_core(), elevation.to_core())
+    return ElevationMap(result.map), result.collapse
+
+
+_REFERENCES = {
+    "sensor_height": _core.GroundReference.sensor_height,
+    "local_ground": _core.GroundReference.local_ground,
+}
+
+
+@dataclass
+class TerrainParams:
+    """Thresholds of the classification paper's Table 1 (defaults are its values).
+
+    Attributes
+    ----------
+    ground_height : float
+        "Low" cells have a relative highest elevation below this [m] (0.2).
+    std_dev : float
+        A "small" spread of elevations is a std-dev below this [m] (0.1).
+    robot_height : float
+        "High" cells reach this relative height [m] or more (0.7); "middle" lies between.
+    reference : {"sensor_height", "local_ground"}
+        What the highest elevation is measured from: the plane ``z = -sensor_height`` of a leveled
+        sensor frame (the paper), or the lowest ``min`` elevation within ``local_ground_radius``
+        cells (for maps chained over slopes).
+    sensor_height : float
+        Sensor height above the ground [m] for ``reference="sensor_height"``.
+    local_ground_radius : int
+        Window half-size [cells] for ``reference="local_ground"``.
+    """
+
+    ground_height: float = 0.2
+    std_dev: float = 0.1
+    robot_height: float = 0.7
+    reference: str = "sensor_height"
+    sensor_height: float = 0.0
+    local_ground_radius: int = 10
+
+    def to_core(self) -> _core.TerrainParams:
+        if self.reference not in _REFERENCES:
+            raise ValueError(f"reference must be one of {sorted(_REFERENCES)}, got {self.reference!r}")
+        params = _core.TerrainParams()
+        params.ground_height_m = float(self.ground_height)
+        params.std_dev_m = float(self.std_dev)
+        params.robot_height_m = float(self.robot_height)
+        params.reference = _REFERENCES[self.reference]
+        params.sensor_height_m = float(self.sensor_height)
+        params.local_ground_radius_cells = int(self.local_ground_radius)
+        return params
+
+
+def classify_terrain(
+    elevation_map: ElevationMap, params: TerrainParams | None = None, **kwargs
+) -> np.ndarray:
+    """Classify every cell (Table 1) and return an (nx, ny) uint8 array of :class:`TerrainClass`.
+
+    Also adds the layers ``class`` (float, NaN for unknown), ``relative_height`` and ``ground``.
+    """
+    if params is None:
+        params = TerrainParams(**kwargs)
+    return _core.classify_terrain(elevation_map._core, params.to_core())
