@@ -140,25 +140,20 @@ MapGeometry make_geometry(const ElevationParams& params, const detail::CloudExte
   return geometry;
 }
 
-/// Per-cell accumulators; sums are taken relative to the cell's first elevation so that the
-/// variance does not cancel for large absolute heights.
-struct CellStats {
-  std::vector<std::uint32_t> count;
-  std::vector<double> shift, sum, sum_squares, min, max;
-  explicit CellStats(std::size_t cells)
-      : count(cells, 0),
-        shift(cells, 0.0),
-        sum(cells, 0.0),
-        sum_squares(cells, 0.0),
-        min(cells, std::numeric_limits<double>::infinity()),
-        max(cells, -std::numeric_limits<double>::infinity()) {}
-  void add(std::size_t cell, double z) {
-    if (count[cell]++ == 0) shift[cell] = z;
-    const double d = z - shift[cell];
-    sum[cell] += d;
-    sum_squares[cell] += d * d;
-    min[cell] = std::min(min[cell], z);
-    max[cell] = std::max(max[cell], z);
+/// Per-cell accumulators, one cache line per cell; sums are taken relative to the cell's first
+/// elevation so that the variance does not cancel for large absolute heights.
+struct alignas(64) CellAccumulator {
+  double shift = 0.0, sum = 0.0, sum_squares = 0.0;
+  double min = std::numeric_limits<double>::infinity();
+  double max = -std::numeric_limits<double>::infinity();
+  std::uint32_t count = 0;
+  void add(double z) {
+    if (count++ == 0) shift = z;
+    const double d = z - shift;
+    sum += d;
+    sum_squares += d * d;
+    min = std::min(min, z);
+    max = std::max(max, z);
   }
 };
 
@@ -169,11 +164,16 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
                                 std::to_string(cloud.size()) + " points");
   }
   const auto selected = [&](std::size_t row) { return use == nullptr || (*use)[row] != 0; };
-  // Pass 1: extent of the selected points (and NaN/Inf check).
+  // Pass 1: extent of the selected points and NaN/Inf check (the check only, for a fixed extent).
   detail::CloudExtent extent;
   Eigen::Vector3d p;
+  const bool fixed_extent = params.origin_m.has_value();
   for (std::size_t row = 0; row < cloud.size(); ++row) {
     if (!selected(row)) continue;
+    if (fixed_extent) {
+      if (cloud.map(row, p) == 1 && extent.num_non_finite++ == 0) extent.first_non_finite_row = row;
+      continue;
+    }
     const int status = cloud.map(row, p);
     if (status == 1) {
       if (extent.num_non_finite++ == 0) extent.first_non_finite_row = row;
@@ -200,7 +200,7 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   // Pass 2: cell of every point (row-major cell = i * ny + j), statistics.
   constexpr std::uint32_t kOutside = std::numeric_limits<std::uint32_t>::max();
   std::vector<std::uint32_t> cell_of_point(cloud.size(), kOutside);
-  CellStats stats(cells);
+  std::vector<CellAccumulator> stats(cells);
   for (std::size_t row = 0; row < cloud.size(); ++row) {
     if (!selected(row) || cloud.map(row, p) != 0) continue;
     const double fx = std::floor((p.x() - geometry.origin_m.x()) * inverse);
@@ -208,17 +208,23 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     if (!(fx >= 0.0 && fy >= 0.0 && fx < static_cast<double>(nx) && fy < static_cast<double>(ny))) continue;
     const auto cell = static_cast<std::size_t>(static_cast<std::int64_t>(fx) * ny + static_cast<std::int64_t>(fy));
     cell_of_point[row] = static_cast<std::uint32_t>(cell);
-    stats.add(cell, p.z());
+    stats[cell].add(p.z());
   }
 
-  // Discontinuity: bucket the elevations by cell (counting sort), sort each cell's few values.
+  // Discontinuity: only cells whose elevations span more than the threshold can hold a gap; bucket
+  // their elevations by cell (counting sort) and sort each cell's few values.
   std::vector<std::size_t> offset(cells + 1, 0);
-  for (std::size_t cell = 0; cell < cells; ++cell) offset[cell + 1] = offset[cell] + stats.count[cell];
+  for (std::size_t cell = 0; cell < cells; ++cell) {
+    const CellAccumulator& c = stats[cell];
+    const bool candidate = c.count > 1 && c.max - c.min > params.discontinuity_m;
+    offset[cell + 1] = offset[cell] + (candidate ? c.count : 0);
+  }
   std::vector<double> sorted(offset[cells]);
   {
     std::vector<std::size_t> next(offset.begin(), offset.end() - 1);
     for (std::size_t row = 0; row < cloud.size(); ++row) {
-      if (cell_of_point[row] == kOutside) continue;
+      const std::uint32_t cell = cell_of_point[row];
+      if (cell == kOutside || offset[cell] == offset[cell + 1]) continue;
       cloud.map(row, p);
       sorted[next[cell_of_point[row]]++] = p.z();
     }
@@ -228,18 +234,19 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   Layer count(nx, ny), min(nx, ny), max(nx, ny), mean(nx, ny), std_dev(nx, ny), discontinuity(nx, ny);
   float* count_data = count.data();
   for (std::size_t cell = 0; cell < cells; ++cell) {
-    const std::uint32_t n = stats.count[cell];
+    const CellAccumulator& c = stats[cell];
+    const std::uint32_t n = c.count;
     count_data[cell] = static_cast<float>(n);
     if (n == 0) {
       min.data()[cell] = max.data()[cell] = mean.data()[cell] = std_dev.data()[cell] = discontinuity.data()[cell] =
           kNaN;
       continue;
     }
-    const double average = stats.sum[cell] / n;
-    const double variance = std::max(0.0, stats.sum_squares[cell] / n - average * average);
-    min.data()[cell] = static_cast<float>(stats.min[cell]);
-    max.data()[cell] = static_cast<float>(stats.max[cell]);
-    mean.data()[cell] = static_cast<float>(stats.shift[cell] + average);
+    const double average = c.sum / n;
+    const double variance = std::max(0.0, c.sum_squares / n - average * average);
+    min.data()[cell] = static_cast<float>(c.min);
+    max.data()[cell] = static_cast<float>(c.max);
+    mean.data()[cell] = static_cast<float>(c.shift + average);
     std_dev.data()[cell] = static_cast<float>(std::sqrt(variance));
     const auto begin = sorted.begin() + static_cast<std::ptrdiff_t>(offset[cell]);
     const auto end = sorted.begin() + static_cast<std::ptrdiff_t>(offset[cell + 1]);
