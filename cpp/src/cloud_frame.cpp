@@ -31,8 +31,11 @@ void check_collapse_params(const CollapseParams& params) {
     throw std::invalid_argument("sigma must be at least 1 cube, got " + std::to_string(params.sigma));
   }
   check_rigid_transform(params.transform, "transform");
-  if (params.crop && (!params.crop->min.allFinite() || !params.crop->max.allFinite() ||
-                      (params.crop->min.array() > params.crop->max.array()).any())) {
+  check_crop(params.crop);
+}
+
+void check_crop(const std::optional<CropBox>& crop) {
+  if (crop && (!crop->min.allFinite() || !crop->max.allFinite() || (crop->min.array() > crop->max.array()).any())) {
     throw std::invalid_argument("crop box must be finite with min <= max on every axis");
   }
 }

@@ -199,6 +199,9 @@ CloudExtent measure_extent(const Cloud& cloud, bool drop_non_finite) {
 /// count would overflow a 64-bit index.
 CubeGrid make_grid(const CloudExtent& extent, double edge_m);
 
+/// Throws std::invalid_argument unless the crop box (if any) is finite with min <= max.
+void check_crop(const std::optional<CropBox>& crop);
+
 /// Throws std::invalid_argument unless edge > 0 and finite, and sigma >= 1.
 void check_collapse_params(const CollapseParams& params);
 

@@ -108,10 +108,7 @@ void check_elevation_params(const ElevationParams& params) {
     throw std::invalid_argument("map size must be at least 1 x 1 cells");
   }
   detail::check_rigid_transform(params.transform, "transform");
-  if (params.crop && (!params.crop->min.allFinite() || !params.crop->max.allFinite() ||
-                      (params.crop->min.array() > params.crop->max.array()).any())) {
-    throw std::invalid_argument("crop box must be finite with min <= max on every axis");
-  }
+  detail::check_crop(params.crop);
 }
 
 MapGeometry make_geometry(const ElevationParams& params, const detail::CloudExtent& extent) {
