@@ -35,7 +35,7 @@ void ElevationMap::add(const std::string& name, Layer data) {
   }
   for (auto& [existing, layer] : layers_) {
     if (existing == name) {
-      layer = std::move(data);
+      layer.array() = data.array();  // in place: views of the old layer stay valid
       return;
     }
   }
@@ -122,9 +122,12 @@ MapGeometry make_geometry(const ElevationParams& params, const detail::CloudExte
     cells_y = params.size->y();
   } else if (extent.num_used > 0) {
     // Snap outwards to whole cells so that every point falls inside.
-    const double first_x = std::floor(extent.min.x() / params.resolution_m);
-    const double first_y = std::floor(extent.min.y() / params.resolution_m);
-    geometry.origin_m = Eigen::Vector2d(first_x, first_y) * params.resolution_m;
+    for (int axis = 0; axis < 2; ++axis) {
+      double origin = std::floor(extent.min[axis] / params.resolution_m) * params.resolution_m;
+      // first * res can round above the minimum (1.7 / 0.1 = 17, 17 * 0.1 = 1.7000000000000002).
+      while (origin > extent.min[axis]) origin -= params.resolution_m;
+      geometry.origin_m[axis] = origin;
+    }
     cells_x = std::floor((extent.max.x() - geometry.origin_m.x()) / params.resolution_m) + 1.0;
     cells_y = std::floor((extent.max.y() - geometry.origin_m.y()) / params.resolution_m) + 1.0;
   }
@@ -192,7 +195,6 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   const std::size_t cells = geometry.num_cells();
   const auto nx = static_cast<std::int64_t>(geometry.size.x());
   const auto ny = static_cast<std::int64_t>(geometry.size.y());
-  const double inverse = 1.0 / geometry.resolution_m;
 
   // Pass 2: cell of every point (row-major cell = i * ny + j), statistics.
   constexpr std::uint32_t kOutside = std::numeric_limits<std::uint32_t>::max();
@@ -200,8 +202,9 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   std::vector<CellAccumulator> stats(cells);
   for (std::size_t row = 0; row < cloud.size(); ++row) {
     if (!selected(row) || cloud.map(row, p) != 0) continue;
-    const double fx = std::floor((p.x() - geometry.origin_m.x()) * inverse);
-    const double fy = std::floor((p.y() - geometry.origin_m.y()) * inverse);
+    // Divide (not multiply by 1/res) so that binning agrees with MapGeometry::index_of.
+    const double fx = std::floor((p.x() - geometry.origin_m.x()) / geometry.resolution_m);
+    const double fy = std::floor((p.y() - geometry.origin_m.y()) / geometry.resolution_m);
     if (!(fx >= 0.0 && fy >= 0.0 && fx < static_cast<double>(nx) && fy < static_cast<double>(ny))) continue;
     const auto cell = static_cast<std::size_t>(static_cast<std::int64_t>(fx) * ny + static_cast<std::int64_t>(fy));
     cell_of_point[row] = static_cast<std::uint32_t>(cell);

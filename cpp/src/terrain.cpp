@@ -70,21 +70,23 @@ TerrainClassification classify_terrain(ElevationMap& map, const TerrainParams& p
   out.relative_height = highest - out.ground;  // NaN stays NaN
   out.classes.setConstant(nx, ny, static_cast<std::uint8_t>(TerrainClass::kUnknown));
 
-  const auto low = static_cast<float>(params.ground_height_m);
-  const auto high = static_cast<float>(params.robot_height_m);
-  const auto small = static_cast<float>(params.std_dev_m);
+  // Thresholds compare in double, so a 0.7 m threshold means 0.7, not float(0.7) = 0.69999999.
+  const double low = params.ground_height_m;
+  const double high = params.robot_height_m;
+  const double small = params.std_dev_m;
   for (Eigen::Index k = 0; k < highest.size(); ++k) {
-    const float h = out.relative_height.data()[k];
+    const double h = out.relative_height.data()[k];
     if (std::isnan(h)) continue;
+    const bool small_spread = static_cast<double>(spread.data()[k]) < small;
     TerrainClass c;
     if (gap.data()[k] == 1.0F) {
       c = TerrainClass::kOverhangingObject;
     } else if (h < low) {
-      c = spread.data()[k] < small ? TerrainClass::kGround : TerrainClass::kObstacle;
+      c = small_spread ? TerrainClass::kGround : TerrainClass::kObstacle;
     } else if (h < high) {
       c = TerrainClass::kObstacle;
     } else {
-      c = spread.data()[k] < small ? TerrainClass::kObstacle : TerrainClass::kVerticalObject;
+      c = small_spread ? TerrainClass::kObstacle : TerrainClass::kVerticalObject;
     }
     out.classes.data()[k] = static_cast<std::uint8_t>(c);
   }

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import enum
+import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -85,7 +86,7 @@ class ElevationMap:
 
     def __setitem__(self, name: str, data) -> None:
         data = np.asarray(data, dtype=np.float32)
-        size = tuple(self.geometry.size)
+        size = tuple(int(n) for n in self.geometry.size)
         if data.shape != size:
             raise ValueError(f"layer {name!r} has shape {data.shape}, the map is {size}")
         self._core.add(name, data)
@@ -121,7 +122,7 @@ class ElevationMap:
                 elevation_map = cls.empty(float(archive["resolution"]), archive["origin"], archive["size"])
                 for name in archive["layer_names"]:
                     elevation_map[str(name)] = archive[f"layer_{name}"]
-        except (KeyError, OSError, EOFError, ValueError) as error:
+        except (KeyError, OSError, EOFError, ValueError, TypeError, zipfile.BadZipFile) as error:
             raise ValueError(f"{path}: not a terracube elevation map: {error}") from error
         return elevation_map
 
@@ -322,4 +323,7 @@ def classify_terrain(
     """
     if params is None:
         params = TerrainParams(**kwargs)
+    missing = [name for name in ("max", "min", "std_dev", "discontinuity") if name not in elevation_map]
+    if missing:
+        raise KeyError(f"classify_terrain needs the layers {', '.join(missing)}; the map has {elevation_map.layers}")
     return _core.classify_terrain(elevation_map._core, params.to_core())
