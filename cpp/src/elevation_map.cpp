@@ -290,8 +290,10 @@ OverhangFreeMap overhang_free_impl(const PointsView<Scalar>& points, const Colla
   // The geometry follows all points (kept and overhang) unless fixed, so both maps align.
   if (!params.origin_m) {
     const ElevationMap all = build_impl(points, params, nullptr);
-    params.origin_m = all.geometry().origin_m;
-    params.size = all.geometry().size;
+    if (all.geometry().num_cells() > 0) {  // an empty cloud keeps the auto (empty) extent
+      params.origin_m = all.geometry().origin_m;
+      params.size = all.geometry().size;
+    }
   }
   out.map = build_impl(points, params, &kept);
   const ElevationMap overhangs = build_impl(points, params, &out.collapse.overhang);

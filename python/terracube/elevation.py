@@ -325,5 +325,6 @@ def classify_terrain(
         params = TerrainParams(**kwargs)
     missing = [name for name in ("max", "min", "std_dev", "discontinuity") if name not in elevation_map]
     if missing:
-        raise KeyError(f"classify_terrain needs the layers {', '.join(missing)}; the map has {elevation_map.layers}")
+        have = ", ".join(elevation_map.layers)
+        raise KeyError(f"classify_terrain needs the layers {', '.join(missing)}; the map has {have}")
     return _core.classify_terrain(elevation_map._core, params.to_core())
