@@ -1,0 +1,914 @@
+#include <gtest/gtest.h>
+#include <terracube/collapse.hpp>
+#include <terracube/elevation_map.hpp>
+
+#include <algorithm>
+#include <cmath>
+#include <functional>
+#include <limits>
+#include <map>
+#include <optional>
+#include <random>
+#include <stdexcept>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "test_support.hpp"
+
+namespace terracube {
+namespace {
+
+constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+constexpr float kInf = std::numeric_limits<float>::infinity();
+const std::vector<std::string> kStatisticLayers = {"count", "min", "max", "mean", "std_dev", "discontinuity"};
+
+// --- helpers ----------------------------------------------------------------------------------
+
+/// Runs `call`, expects it to throw `Error` whose message contains every one of `parts`.
+template <typename Error>
+void expect_throw_with(const std::function<void()>& call, const std::vector<std::string>& parts) {
+  try {
+    call();
+    ADD_FAILURE() << "expected an exception";
+  } catch (const Error& error) {
+    const std::string message = error.what();
+    for (const std::string& part : parts) {
+      EXPECT_NE(message.find(part), std::string::npos) << "'" << part << "' not in: " << message;
+    }
+  }
+}
+
+/// NaN-aware exact equality of two layers (NaN == NaN, +inf == +inf).
+void expect_same_layer(const Layer& actual, const Layer& expected, const std::string& what) {
+  ASSERT_EQ(actual.rows(), expected.rows()) << what;
+  ASSERT_EQ(actual.cols(), expected.cols()) << what;
+  int mismatches = 0;
+  for (Eigen::Index i = 0; i < actual.rows(); ++i) {
+    for (Eigen::Index j = 0; j < actual.cols(); ++j) {
+      const float a = actual(i, j);
+      const float e = expected(i, j);
+      if ((std::isnan(a) && std::isnan(e)) || a == e) continue;
+      ADD_FAILURE() << what << " at (" << i << ", " << j << "): " << a << " != " << e;
+      if (++mismatches == 5) return;
+    }
+  }
+}
+
+/// NaN in exactly the same cells, the other values within `tolerance`.
+void expect_near_layer(const Layer& actual, const Layer& expected, float tolerance, const std::string& what) {
+  ASSERT_EQ(actual.rows(), expected.rows()) << what;
+  ASSERT_EQ(actual.cols(), expected.cols()) << what;
+  int mismatches = 0;
+  for (Eigen::Index i = 0; i < actual.rows(); ++i) {
+    for (Eigen::Index j = 0; j < actual.cols(); ++j) {
+      const float a = actual(i, j);
+      const float e = expected(i, j);
+      if (std::isnan(a) && std::isnan(e)) continue;
+      if (!std::isnan(a) && !std::isnan(e) && std::abs(a - e) <= tolerance) continue;
+      ADD_FAILURE() << what << " at (" << i << ", " << j << "): " << a << " vs " << e;
+      if (++mismatches == 5) return;
+    }
+  }
+}
+
+void expect_same_statistics(const ElevationMap& actual, const ElevationMap& expected) {
+  EXPECT_EQ(actual.geometry().resolution_m, expected.geometry().resolution_m);
+  EXPECT_EQ(actual.geometry().origin_m, expected.geometry().origin_m);
+  EXPECT_EQ(actual.geometry().size.matrix(), expected.geometry().size.matrix());
+  for (const std::string& name : kStatisticLayers) expect_same_layer(actual.get(name), expected.get(name), name);
+}
+
+/// The naive reference: the elevations of each cell, binned as the documented convention says,
+/// cell = floor((p - origin) / resolution), points outside ignored.
+using NaiveCells = std::map<std::pair<int, int>, std::vector<double>>;
+
+NaiveCells naive_cells(const std::vector<Eigen::Vector3d>& points, const MapGeometry& geometry) {
+  NaiveCells cells;
+  for (const Eigen::Vector3d& p : points) {
+    const double fx = std::floor((p.x() - geometry.origin_m.x()) / geometry.resolution_m);
+    const double fy = std::floor((p.y() - geometry.origin_m.y()) / geometry.resolution_m);
+    if (fx < 0 || fy < 0 || fx >= geometry.size.x() || fy >= geometry.size.y()) continue;
+    cells[{static_cast<int>(fx), static_cast<int>(fy)}].push_back(p.z());
+  }
+  return cells;
+}
+
+bool within_relative(float actual, double expected, double relative) {
+  return std::abs(static_cast<double>(actual) - expected) <= relative * std::abs(expected);
+}
+
+/// Every layer of `map` against the naive per-cell lists of elevations.
+void expect_matches_naive(const ElevationMap& map, const std::vector<Eigen::Vector3d>& points, double discontinuity_m) {
+  ASSERT_EQ(map.layers(), kStatisticLayers);
+  const MapGeometry& geometry = map.geometry();
+  const NaiveCells cells = naive_cells(points, geometry);
+  const Layer& count = map.get("count");
+  const Layer& min = map.get("min");
+  const Layer& max = map.get("max");
+  const Layer& mean = map.get("mean");
+  const Layer& std_dev = map.get("std_dev");
+  const Layer& discontinuity = map.get("discontinuity");
+  for (const std::string& name : kStatisticLayers) {
+    ASSERT_EQ(map.get(name).rows(), geometry.size.x()) << name;
+    ASSERT_EQ(map.get(name).cols(), geometry.size.y()) << name;
+  }
+  for (int i = 0; i < geometry.size.x(); ++i) {
+    for (int j = 0; j < geometry.size.y(); ++j) {
+      SCOPED_TRACE("cell (" + std::to_string(i) + ", " + std::to_string(j) + ")");
+      const auto found = cells.find({i, j});
+      if (found == cells.end()) {
+        ASSERT_EQ(count(i, j), 0.0F);
+        ASSERT_TRUE(std::isnan(min(i, j)));
+        ASSERT_TRUE(std::isnan(max(i, j)));
+        ASSERT_TRUE(std::isnan(mean(i, j)));
+        ASSERT_TRUE(std::isnan(std_dev(i, j)));
+        ASSERT_TRUE(std::isnan(discontinuity(i, j)));
+        continue;
+      }
+      std::vector<double> z = found->second;
+      std::sort(z.begin(), z.end());
+      const double n = static_cast<double>(z.size());
+      double sum = 0.0;
+      for (const double v : z) sum += v;
+      const double average = sum / n;
+      double squares = 0.0;
+      for (const double v : z) squares += (v - average) * (v - average);
+      const double population_std = std::sqrt(squares / n);
+      bool gap = false;
+      for (std::size_t k = 1; k < z.size(); ++k) gap = gap || z[k] - z[k - 1] > discontinuity_m;
+
+      ASSERT_EQ(count(i, j), static_cast<float>(z.size()));
+      ASSERT_EQ(min(i, j), static_cast<float>(z.front()));
+      ASSERT_EQ(max(i, j), static_cast<float>(z.back()));
+      ASSERT_TRUE(within_relative(mean(i, j), average, 1e-5)) << mean(i, j) << " vs " << average;
+      ASSERT_TRUE(within_relative(std_dev(i, j), population_std, 1e-5)) << std_dev(i, j) << " vs " << population_std;
+      ASSERT_EQ(discontinuity(i, j), gap ? 1.0F : 0.0F);
+    }
+  }
+}
+
+std::vector<float> as_floats(const std::vector<Eigen::Vector3d>& points, int stride) {
+  std::vector<float> values(points.size() * static_cast<std::size_t>(stride), -7.0F);  // padding is never read
+  for (std::size_t row = 0; row < points.size(); ++row) {
+    for (int axis = 0; axis < 3; ++axis) {
+      values[row * static_cast<std::size_t>(stride) + static_cast<std::size_t>(axis)] =
+          static_cast<float>(points[row][axis]);
+    }
+  }
+  return values;
+}
+
+/// The points as the float view sees them.
+std::vector<Eigen::Vector3d> rounded_to_float(const std::vector<Eigen::Vector3d>& points) {
+  std::vector<Eigen::Vector3d> out;
+  for (const Eigen::Vector3d& p : points) out.push_back(p.cast<float>().cast<double>());
+  return out;
+}
+
+ElevationParams fixed_extent(double resolution_m, Eigen::Vector2d origin_m, CellIndex size) {
+  ElevationParams params;
+  params.resolution_m = resolution_m;
+  params.origin_m = origin_m;
+  params.size = size;
+  return params;
+}
+
+/// Auto extent: origin a multiple of the resolution, within one cell below the smallest point,
+/// and the last cell holding the largest one.
+void expect_snapped_extent(const MapGeometry& geometry, const std::vector<Eigen::Vector3d>& points) {
+  Eigen::Vector2d lo = Eigen::Vector2d::Constant(std::numeric_limits<double>::infinity());
+  Eigen::Vector2d hi = -lo;
+  for (const Eigen::Vector3d& p : points) {
+    lo = lo.cwiseMin(p.head<2>());
+    hi = hi.cwiseMax(p.head<2>());
+  }
+  for (int axis = 0; axis < 2; ++axis) {
+    const double res = geometry.resolution_m;
+    const double origin = geometry.origin_m[axis];
+    EXPECT_NEAR(origin / res, std::round(origin / res), 1e-9) << "axis " << axis;
+    EXPECT_LE(origin, lo[axis]) << "axis " << axis;
+    EXPECT_GT(origin, lo[axis] - res) << "axis " << axis;
+    EXPECT_LE(origin + (geometry.size[axis] - 1) * res, hi[axis]) << "axis " << axis;
+    EXPECT_GT(origin + geometry.size[axis] * res, hi[axis]) << "axis " << axis;
+  }
+}
+
+/// "(i, j)" or "outside": index_of results compared as text, safe when there is no cell.
+std::string cell(const std::optional<CellIndex>& index) {
+  return index ? "(" + std::to_string((*index)(0)) + ", " + std::to_string((*index)(1)) + ")" : "outside";
+}
+
+// --- MapGeometry --------------------------------------------------------------------------------
+
+MapGeometry example_geometry() {
+  MapGeometry geometry;
+  geometry.resolution_m = 0.5;
+  geometry.origin_m = {-1.0, 2.0};
+  geometry.size = {4, 3};  // x in [-1, 1), y in [2, 3.5)
+  return geometry;
+}
+
+TEST(MapGeometry, CountsLengthAndCellCentres) {
+  const MapGeometry geometry = example_geometry();
+  EXPECT_EQ(geometry.num_cells(), 12U);
+  EXPECT_EQ(geometry.length_m(), Eigen::Vector2d(2.0, 1.5));
+  EXPECT_EQ(geometry.position_of({0, 0}), Eigen::Vector2d(-0.75, 2.25));
+  EXPECT_EQ(geometry.position_of({3, 2}), Eigen::Vector2d(0.75, 3.25));
+  EXPECT_EQ(geometry.position_of({1, 2}), Eigen::Vector2d(-0.25, 3.25));
+}
+
+TEST(MapGeometry, IndexOfCellCentreIsTheCell) {
+  const MapGeometry geometry = example_geometry();
+  for (int i = 0; i < 4; ++i) {
+    for (int j = 0; j < 3; ++j) {
+      EXPECT_EQ(cell(geometry.index_of(geometry.position_of({i, j}))), cell(CellIndex(i, j)));
+    }
+  }
+}
+
+TEST(MapGeometry, LowerCellBoundaryIsInsideTheCellAndUpperBoundaryIsTheNextCell) {
+  const MapGeometry geometry = example_geometry();
+  EXPECT_EQ(cell(geometry.index_of({-1.0, 2.0})), "(0, 0)");  // the map's corner
+  EXPECT_EQ(cell(geometry.index_of({-0.5, 2.5})), "(1, 1)");  // shared corner of 4 cells
+  EXPECT_EQ(cell(geometry.index_of({0.0, 3.0})), "(2, 2)");
+  EXPECT_EQ(cell(geometry.index_of({std::nextafter(-0.5, -1.0), std::nextafter(2.5, 0.0)})), "(0, 0)");
+  // Just below the map's upper boundaries (1e-9 m: x - origin must not round onto the boundary).
+  EXPECT_EQ(cell(geometry.index_of({1.0 - 1e-9, 3.5 - 1e-9})), "(3, 2)");
+}
+
+TEST(MapGeometry, UpperBoundaryOfTheLastCellIsOutside) {
+  const MapGeometry geometry = example_geometry();
+  EXPECT_FALSE(geometry.index_of({1.0, 2.25}).has_value());
+  EXPECT_FALSE(geometry.index_of({0.0, 3.5}).has_value());
+  EXPECT_FALSE(geometry.index_of({1.0, 3.5}).has_value());
+}
+
+TEST(MapGeometry, NegativeCoordinatesFloorTowardsMinusInfinity) {
+  MapGeometry geometry;
+  geometry.resolution_m = 0.25;
+  geometry.origin_m = {-2.0, -1.0};
+  geometry.size = {8, 8};
+  EXPECT_EQ(cell(geometry.index_of({-1.9, -0.9})), "(0, 0)");
+  EXPECT_EQ(cell(geometry.index_of({-0.1, -0.01})), "(7, 3)");
+  EXPECT_EQ(cell(geometry.index_of({-1.75, -0.75})), "(1, 1)");
+  EXPECT_EQ(cell(geometry.index_of({-0.25, 0.0})), "(7, 4)");
+  EXPECT_FALSE(geometry.index_of({0.0, 0.0}).has_value()) << "x = 0 is the upper boundary of the last column";
+  EXPECT_FALSE(geometry.index_of({-2.01, 0.0}).has_value());
+}
+
+TEST(MapGeometry, PointsOutsideGiveNothing) {
+  const MapGeometry geometry = example_geometry();
+  EXPECT_FALSE(geometry.index_of({std::nextafter(-1.0, -2.0), 2.5}).has_value());
+  EXPECT_FALSE(geometry.index_of({0.0, std::nextafter(2.0, 0.0)}).has_value());
+  EXPECT_FALSE(geometry.index_of({-50.0, -50.0}).has_value());
+  EXPECT_FALSE(geometry.index_of({50.0, 2.5}).has_value());
+  EXPECT_FALSE(geometry.index_of({std::numeric_limits<double>::quiet_NaN(), 2.5}).has_value());
+  MapGeometry empty;
+  EXPECT_FALSE(empty.index_of({0.0, 0.0}).has_value());
+}
+
+// --- ElevationMap -----------------------------------------------------------------------------
+
+TEST(ElevationMapLayers, AddGetExistsAndLayersInInsertionOrder) {
+  ElevationMap map(example_geometry());
+  EXPECT_TRUE(map.layers().empty());
+  map.add("zeta", 2.5F);
+  map.add("alpha");
+  Layer data(4, 3);
+  for (int k = 0; k < 12; ++k) data.data()[k] = static_cast<float>(k);
+  map.add("mid", data);
+  EXPECT_EQ(map.layers(), (std::vector<std::string>{"zeta", "alpha", "mid"}));
+  EXPECT_TRUE(map.exists("alpha"));
+  EXPECT_FALSE(map.exists("beta"));
+  EXPECT_EQ(map.get("zeta"), Layer::Constant(4, 3, 2.5F));
+  EXPECT_TRUE(map.get("alpha").array().isNaN().all()) << "the default fill is NaN (no data)";
+  EXPECT_EQ(map.get("mid"), data);
+  EXPECT_EQ(map.get("mid")(1, 2), 5.0F) << "row-major: (i, j) is element i * size_y + j";
+  const ElevationMap& const_map = map;
+  EXPECT_EQ(const_map.get("mid"), data);
+  map.get("mid")(0, 0) = 42.0F;  // the non-const accessor writes through
+  EXPECT_EQ(const_map.get("mid")(0, 0), 42.0F);
+}
+
+TEST(ElevationMapLayers, OverwritingKeepsThePlaceInTheOrder) {
+  ElevationMap map(example_geometry());
+  map.add("a", 1.0F);
+  map.add("b", 2.0F);
+  map.add("c", 3.0F);
+  map.add("a", 10.0F);
+  map.add("b", Layer::Constant(4, 3, 20.0F));
+  EXPECT_EQ(map.layers(), (std::vector<std::string>{"a", "b", "c"}));
+  EXPECT_EQ(map.get("a"), Layer::Constant(4, 3, 10.0F));
+  EXPECT_EQ(map.get("b"), Layer::Constant(4, 3, 20.0F));
+}
+
+TEST(ElevationMapLayers, GettingAnUnknownLayerThrowsOutOfRangeNamingIt) {
+  ElevationMap map(example_geometry());
+  map.add("max");
+  map.add("mean");
+  expect_throw_with<std::out_of_range>([&] { map.get("std_dev"); }, {"'std_dev'", "max, mean"});
+  const ElevationMap& const_map = map;
+  expect_throw_with<std::out_of_range>([&] { const_map.get("relative_height"); }, {"'relative_height'"});
+}
+
+TEST(ElevationMapLayers, AddingALayerOfTheWrongSizeThrowsInvalidArgument) {
+  ElevationMap map(example_geometry());
+  expect_throw_with<std::invalid_argument>([&] { map.add("bad", Layer::Zero(3, 4)); }, {"'bad'", "3 x 4", "4 x 3"});
+  EXPECT_THROW(map.add("bad", Layer::Zero(4, 4)), std::invalid_argument);
+  EXPECT_THROW(map.add("bad", Layer()), std::invalid_argument);
+  EXPECT_FALSE(map.exists("bad"));
+}
+
+TEST(ElevationMapLayers, BadGeometryIsRejected) {
+  MapGeometry geometry = example_geometry();
+  geometry.resolution_m = 0.0;
+  EXPECT_THROW(ElevationMap{geometry}, std::invalid_argument);
+  geometry.resolution_m = std::numeric_limits<double>::quiet_NaN();
+  EXPECT_THROW(ElevationMap{geometry}, std::invalid_argument);
+  geometry = example_geometry();
+  geometry.size = {-1, 3};
+  EXPECT_THROW(ElevationMap{geometry}, std::invalid_argument);
+}
+
+// --- build_elevation_map: hand-made cells -------------------------------------------------------
+
+TEST(BuildElevationMap, HandMadeCellsGiveExactStatistics) {
+  // res 1: cell (0, 0) holds 1, 2, 4, 5 (mean 3, population std sqrt(2.5)), cell (1, 0) one point.
+  const std::vector<Eigen::Vector3d> points = {
+      {0.5, 0.5, 1.0}, {0.1, 0.9, 5.0}, {0.9, 0.1, 2.0}, {0.0, 0.0, 4.0}, {1.5, 0.5, -3.0}};
+  const ElevationMap map = build_elevation_map(PointsView<double>(points), fixed_extent(1.0, {0.0, 0.0}, {2, 2}));
+  EXPECT_EQ(map.layers(), kStatisticLayers);
+  expect_same_layer(map.get("count"), (Layer(2, 2) << 4, 0, 1, 0).finished(), "count");
+  expect_same_layer(map.get("min"), (Layer(2, 2) << 1, kNaN, -3, kNaN).finished(), "min");
+  expect_same_layer(map.get("max"), (Layer(2, 2) << 5, kNaN, -3, kNaN).finished(), "max");
+  expect_same_layer(map.get("mean"), (Layer(2, 2) << 3, kNaN, -3, kNaN).finished(), "mean");
+  expect_same_layer(map.get("std_dev"), (Layer(2, 2) << static_cast<float>(std::sqrt(2.5)), kNaN, 0, kNaN).finished(),
+                    "std_dev");
+  expect_same_layer(map.get("discontinuity"), (Layer(2, 2) << 1, kNaN, 0, kNaN).finished(), "discontinuity");
+}
+
+TEST(BuildElevationMap, GapExactlyEqualToTheThresholdIsNotADiscontinuity) {
+  // Unsorted on purpose: the gap is between sorted neighbours 0.0 and 1.0.
+  const std::vector<Eigen::Vector3d> points = {{0.5, 0.5, 1.0}, {0.5, 0.5, 0.0}};
+  ElevationParams params = fixed_extent(1.0, {0.0, 0.0}, {1, 1});
+  params.discontinuity_m = 1.0;
+  EXPECT_EQ(build_elevation_map(PointsView<double>(points), params).get("discontinuity")(0, 0), 0.0F);
+  params.discontinuity_m = std::nextafter(1.0, 0.0);  // the 1.0 m gap is now strictly greater
+  EXPECT_EQ(build_elevation_map(PointsView<double>(points), params).get("discontinuity")(0, 0), 1.0F);
+}
+
+TEST(BuildElevationMap, GapJustAboveTheThresholdIsADiscontinuity) {
+  const std::vector<Eigen::Vector3d> points = {{0.5, 0.5, 0.0}, {0.5, 0.5, std::nextafter(1.0, 2.0)}};
+  ElevationParams params = fixed_extent(1.0, {0.0, 0.0}, {1, 1});
+  params.discontinuity_m = 1.0;
+  EXPECT_EQ(build_elevation_map(PointsView<double>(points), params).get("discontinuity")(0, 0), 1.0F);
+}
+
+TEST(BuildElevationMap, OnlyGapsBetweenSortedNeighboursCount) {
+  // 0, 0.75, 1.5, 2.25: the range is 2.25 but no gap between sorted neighbours exceeds 1.
+  const std::vector<Eigen::Vector3d> points = {{0.5, 0.5, 2.25}, {0.5, 0.5, 0.0}, {0.5, 0.5, 1.5}, {0.5, 0.5, 0.75}};
+  const ElevationMap map = build_elevation_map(PointsView<double>(points), fixed_extent(1.0, {0.0, 0.0}, {1, 1}));
+  EXPECT_EQ(map.get("discontinuity")(0, 0), 0.0F);
+}
+
+TEST(BuildElevationMap, PointsOutsideAFixedExtentAreIgnored) {
+  const std::vector<Eigen::Vector3d> points = {{-0.01, 0.5, 9.0}, {0.5, 0.5, 1.0},  {2.0, 0.5, 9.0},
+                                               {1.99, 0.5, 2.0},  {0.5, -3.0, 9.0}, {0.5, 1.0, 9.0}};
+  const ElevationMap map = build_elevation_map(PointsView<double>(points), fixed_extent(1.0, {0.0, 0.0}, {2, 1}));
+  expect_same_layer(map.get("count"), (Layer(2, 1) << 1, 1).finished(), "count");
+  expect_same_layer(map.get("max"), (Layer(2, 1) << 1, 2).finished(), "max");
+}
+
+TEST(BuildElevationMap, AutoExtentSnapsTheOriginDownToTheResolutionAndIncludesTheMaxPoint) {
+  // x in [-0.7, 1.5], y in [0.2, 0.9] at 0.5 m: origin (-1, 0); x = 1.5 (the max) opens a 6th column.
+  const std::vector<Eigen::Vector3d> points = {{-0.7, 0.2, 0.0}, {1.5, 0.9, 1.0}, {0.3, 0.5, 2.0}};
+  ElevationParams params;
+  params.resolution_m = 0.5;
+  const ElevationMap map = build_elevation_map(PointsView<double>(points), params);
+  EXPECT_EQ(map.geometry().origin_m, Eigen::Vector2d(-1.0, 0.0));
+  EXPECT_EQ(map.geometry().size.matrix(), CellIndex(6, 2).matrix());
+  EXPECT_EQ(map.geometry().resolution_m, 0.5);
+  // (-0.7, 0.2) -> (0, 0); (0.3, 0.5) -> (2, 1); (1.5, 0.9) -> (5, 1).
+  expect_same_layer(map.get("count"), (Layer(6, 2) << 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 1).finished(), "count");
+  // The same max at x = 1.49 stays in the 5th column.
+  const std::vector<Eigen::Vector3d> inside = {{-0.7, 0.2, 0.0}, {1.49, 0.9, 1.0}};
+  EXPECT_EQ(build_elevation_map(PointsView<double>(inside), params).geometry().size.matrix(), CellIndex(5, 2).matrix());
+  // A negative origin that is already a multiple stays.
+  const std::vector<Eigen::Vector3d> on_grid = {{-1.5, -2.0, 0.0}, {-1.4, -1.9, 0.0}};
+  EXPECT_EQ(build_elevation_map(PointsView<double>(on_grid), params).geometry().origin_m, Eigen::Vector2d(-1.5, -2.0));
+}
+
+TEST(BuildElevationMap, AutoExtentKeepsEveryPointOfCloudsOnDecimalCoordinates) {
+  // Coordinates such as 0.3 or 57.9 at 0.1 m lie within a rounding error of a cell boundary.
+  // Whatever side they fall on, the auto extent must hold every point of the cloud.
+  ElevationParams params;
+  params.resolution_m = 0.1;
+  int dropped = 0;
+  for (int k = 0; k < 1000; ++k) {
+    const double a = k / 10.0;
+    const double b = (k + 3) / 10.0;
+    const std::vector<Eigen::Vector3d> points = {{a, a, 0.0}, {b, b, 1.0}};
+    const ElevationMap map = build_elevation_map(PointsView<double>(points), params);
+    if (map.get("count").sum() != 2.0F && ++dropped <= 3) {
+      ADD_FAILURE() << "points at " << a << " and " << b << ": map origin " << map.geometry().origin_m.transpose()
+                    << ", size " << map.geometry().size.transpose() << ", counted " << map.get("count").sum();
+    }
+  }
+  EXPECT_EQ(dropped, 0) << "of 1000 two-point clouds lost a point";
+}
+
+TEST(BuildElevationMap, PointsAreBinnedIntoTheCellThatIndexOfNames) {
+  // The map must agree with its own geometry: each point is counted in geometry.index_of(point).
+  const ElevationParams params = fixed_extent(0.1, {0.0, -5.0}, {100, 100});
+  std::vector<Eigen::Vector3d> points;
+  for (int k = 0; k < 100; ++k) points.emplace_back(k / 10.0, -5.0 + k / 10.0, 0.0);
+  const ElevationMap map = build_elevation_map(PointsView<double>(points), params);
+  Layer expected = Layer::Zero(100, 100);
+  for (const Eigen::Vector3d& p : points) {
+    const auto index = map.geometry().index_of(p.head<2>());
+    ASSERT_TRUE(index.has_value());
+    expected((*index)(0), (*index)(1)) += 1.0F;
+  }
+  expect_same_layer(map.get("count"), expected, "count");
+}
+
+// --- build_elevation_map against the naive reference ----------------------------------------------
+
+TEST(BuildElevationMapVsNaive, RandomScenesDoubleViewAutoExtent) {
+  for (std::uint32_t seed = 1; seed <= 5; ++seed) {
+    SCOPED_TRACE("seed " + std::to_string(seed));
+    const auto points = test::random_scene(seed, 6000, 6.0 + seed);
+    ElevationParams params;
+    params.resolution_m = 0.1 + 0.07 * seed;
+    params.discontinuity_m = 0.25 * seed;
+    const ElevationMap map = build_elevation_map(PointsView<double>(points), params);
+    expect_snapped_extent(map.geometry(), points);
+    EXPECT_EQ(map.get("count").sum(), static_cast<float>(points.size()));
+    expect_matches_naive(map, points, params.discontinuity_m);
+    EXPECT_GT(map.get("discontinuity").array().isNaN().count(), 0) << "the scene must leave empty cells";
+    EXPECT_GT((map.get("discontinuity").array() == 1.0F).count(), 0) << "the scene must have gaps";
+  }
+}
+
+TEST(BuildElevationMapVsNaive, RandomScenesFloatViewsContiguousAndStrided) {
+  for (std::uint32_t seed = 11; seed <= 14; ++seed) {
+    SCOPED_TRACE("seed " + std::to_string(seed));
+    const auto points = rounded_to_float(test::random_scene(seed, 6000, 9.0));
+    const ElevationParams params = fixed_extent(0.25, {2.0, -1.0}, {20, 30});  // covers part of the scene
+    const std::vector<float> packed = as_floats(points, 3);
+    const std::vector<float> strided = as_floats(points, 4);
+    const ElevationMap from_packed = build_elevation_map(PointsView<float>(packed.data(), points.size()), params);
+    const ElevationMap from_strided =
+        build_elevation_map(PointsView<float>(strided.data(), points.size(), 4, 1), params);
+    expect_matches_naive(from_packed, points, params.discontinuity_m);
+    expect_matches_naive(from_strided, points, params.discontinuity_m);
+    EXPECT_LT(from_packed.get("count").sum(), static_cast<float>(points.size())) << "some points must be outside";
+    // Auto extent from the float views.
+    ElevationParams automatic;
+    automatic.resolution_m = 0.2;
+    const ElevationMap auto_strided =
+        build_elevation_map(PointsView<float>(strided.data(), points.size(), 4, 1), automatic);
+    expect_snapped_extent(auto_strided.geometry(), points);
+    expect_matches_naive(auto_strided, points, automatic.discontinuity_m);
+  }
+}
+
+TEST(BuildElevationMapVsNaive, ColumnMajorDoubleView) {
+  const auto points = test::random_scene(21, 4000, 7.0);
+  std::vector<double> columns(3 * points.size());
+  for (std::size_t row = 0; row < points.size(); ++row) {
+    for (int axis = 0; axis < 3; ++axis)
+      columns[static_cast<std::size_t>(axis) * points.size() + row] = points[row][axis];
+  }
+  ElevationParams params;
+  params.resolution_m = 0.3;
+  const PointsView<double> view(columns.data(), points.size(), 1, static_cast<std::ptrdiff_t>(points.size()));
+  const ElevationMap map = build_elevation_map(view, params);
+  expect_matches_naive(map, points, params.discontinuity_m);
+  expect_same_statistics(map, build_elevation_map(PointsView<double>(points), params));
+}
+
+TEST(BuildElevationMapVsNaive, RealKittiScanOnAFixedExtent) {
+  const auto data = test::shared_data_dir();
+  if (!data) GTEST_SKIP() << "../shared/data not found (set TERRACUBE_DATA_DIR)";
+  const test::XyziScan scan = test::read_xyzi_bin(*data + "/kitti_seq00/velodyne/000000.bin");
+  const auto points = scan.as_vectors();
+  const ElevationParams params = fixed_extent(0.1, {-20.0, -10.0}, {400, 200});
+  const ElevationMap map = build_elevation_map(scan.xyz(), params);
+  expect_matches_naive(map, points, params.discontinuity_m);
+  const float counted = map.get("count").sum();
+  EXPECT_GT(counted, 0.3F * static_cast<float>(points.size()));
+  EXPECT_LT(counted, static_cast<float>(points.size())) << "points beyond the 40 m x 20 m extent are ignored";
+  expect_same_statistics(build_elevation_map(PointsView<double>(points), params), map);
+}
+
+// --- selection, transform, crop ----------------------------------------------------------------
+
+TEST(BuildElevationMapSelection, UseSelectsThePointsThatTakePart) {
+  const auto points = test::random_scene(31, 5000, 8.0);
+  std::vector<std::uint8_t> use(points.size());
+  std::vector<Eigen::Vector3d> selected;
+  for (std::size_t row = 0; row < points.size(); ++row) {
+    use[row] = static_cast<std::uint8_t>(row % 3 == 0 ? 0 : 7);  // any non-zero flag selects
+    if (use[row] != 0) selected.push_back(points[row]);
+  }
+  for (const bool fixed : {false, true}) {
+    SCOPED_TRACE(fixed ? "fixed extent" : "auto extent");
+    ElevationParams params = fixed ? fixed_extent(0.2, {1.0, 1.0}, {25, 25}) : ElevationParams{};
+    params.resolution_m = 0.2;
+    const ElevationMap map = build_elevation_map(PointsView<double>(points), params, &use);
+    expect_same_statistics(map, build_elevation_map(PointsView<double>(selected), params));
+    expect_matches_naive(map, selected, params.discontinuity_m);
+  }
+}
+
+TEST(BuildElevationMapSelection, AutoExtentFollowsOnlyTheSelectedPoints) {
+  const std::vector<Eigen::Vector3d> points = {{0.25, 0.25, 0.0}, {10.0, 10.0, 0.0}, {0.75, 0.25, 1.0}};
+  const std::vector<std::uint8_t> use = {1, 0, 1};
+  ElevationParams params;
+  params.resolution_m = 0.5;
+  const ElevationMap map = build_elevation_map(PointsView<double>(points), params, &use);
+  EXPECT_EQ(map.geometry().origin_m, Eigen::Vector2d(0.0, 0.0));
+  EXPECT_EQ(map.geometry().size.matrix(), CellIndex(2, 1).matrix());
+  expect_same_layer(map.get("max"), (Layer(2, 1) << 0, 1).finished(), "max");
+}
+
+TEST(BuildElevationMapSelection, UseOfTheWrongLengthIsRejected) {
+  const std::vector<Eigen::Vector3d> points = {{0, 0, 0}, {1, 1, 1}};
+  const std::vector<std::uint8_t> use = {1, 1, 1};
+  expect_throw_with<std::invalid_argument>(
+      [&] { build_elevation_map(PointsView<double>(points), ElevationParams{}, &use); }, {"3 flags for 2 points"});
+}
+
+TEST(BuildElevationMapTransform, LevelingATiltedSceneGivesTheLevelScenesLayers) {
+  // Ground, steps and a deck 3 m up, with points kept well inside their 0.5 m cells.
+  std::mt19937_64 rng(5);
+  std::uniform_real_distribution<double> inside(0.05, 0.45);
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  std::vector<Eigen::Vector3d> level;
+  for (int i = 0; i < 24; ++i) {
+    for (int j = 0; j < 12; ++j) {
+      for (int k = 0; k < 6; ++k) {
+        const double x = 0.5 * i + inside(rng);
+        const double y = 0.5 * j + inside(rng);
+        level.emplace_back(x, y, 0.1 * (i / 6) + 0.05 * unit(rng));
+        if (i > 8 && i < 16 && k < 2) level.emplace_back(x, y, 3.0 + 0.2 * unit(rng));
+      }
+    }
+  }
+  const Eigen::Matrix4d leveling = leveling_transform(0.05, 0.35);
+  std::vector<Eigen::Vector3d> tilted;
+  for (const auto& p : level) tilted.push_back(leveling.topLeftCorner<3, 3>().transpose() * p);
+  ElevationParams params;
+  params.resolution_m = 0.5;
+  const ElevationMap reference = build_elevation_map(PointsView<double>(level), params);
+  params.transform = leveling;
+  const ElevationMap leveled = build_elevation_map(PointsView<double>(tilted), params);
+  EXPECT_EQ(leveled.geometry().origin_m, reference.geometry().origin_m);
+  ASSERT_EQ(leveled.geometry().size.matrix(), reference.geometry().size.matrix());
+  expect_same_layer(leveled.get("count"), reference.get("count"), "count");
+  expect_same_layer(leveled.get("discontinuity"), reference.get("discontinuity"), "discontinuity");
+  for (const std::string name : {"min", "max", "mean", "std_dev"}) {
+    expect_near_layer(leveled.get(name), reference.get(name), 1e-4F, name);
+  }
+  EXPECT_GT((reference.get("discontinuity").array() == 1.0F).count(), 0);
+  params.transform = Eigen::Matrix4d::Identity();
+  const ElevationMap unleveled = build_elevation_map(PointsView<double>(tilted), params);
+  EXPECT_FALSE(unleveled.geometry().size.matrix() == reference.geometry().size.matrix() &&
+               unleveled.get("max").isApprox(reference.get("max")));
+}
+
+TEST(BuildElevationMapTransform, TranslationMovesPointsBeforeBinning) {
+  const std::vector<Eigen::Vector3d> points = {{0.25, 0.25, 0.0}};
+  ElevationParams params = fixed_extent(0.5, {0.0, 0.0}, {3, 2});
+  params.transform(0, 3) = 1.0;
+  params.transform(1, 3) = 0.5;
+  params.transform(2, 3) = 1.75;
+  const ElevationMap map = build_elevation_map(PointsView<double>(points), params);
+  expect_same_layer(map.get("max"), (Layer(3, 2) << kNaN, kNaN, kNaN, kNaN, kNaN, 1.75).finished(), "max");
+}
+
+TEST(BuildElevationMapTransform, CropBoxInTheTransformedFrameExcludesPoints) {
+  const std::vector<Eigen::Vector3d> points = {{0.2, 0.2, 0.0}, {0.2, 0.2, 5.0}, {8.0, 8.0, 0.0}, {0.7, 0.2, 1.0}};
+  ElevationParams params;
+  params.resolution_m = 0.5;
+  params.crop = CropBox{{-1.0, -1.0, -1.0}, {1.0, 1.0, 3.0}};
+  const ElevationMap map = build_elevation_map(PointsView<double>(points), params);
+  EXPECT_EQ(map.geometry().size.matrix(), CellIndex(2, 1).matrix()) << "the auto extent follows the cropped cloud";
+  expect_same_layer(map.get("max"), (Layer(2, 1) << 0, 1).finished(), "max");
+  expect_same_layer(map.get("discontinuity"), (Layer(2, 1) << 0, 0).finished(), "discontinuity");
+  // The crop applies after the transform: lifting everything by 2.5 m pushes z = 1 out of it.
+  params.transform(2, 3) = 2.5;
+  const ElevationMap lifted = build_elevation_map(PointsView<double>(points), params);
+  EXPECT_EQ(lifted.geometry().size.matrix(), CellIndex(1, 1).matrix());
+  expect_same_layer(lifted.get("max"), (Layer(1, 1) << 2.5).finished(), "max");
+}
+
+// --- bad input ----------------------------------------------------------------------------------
+
+TEST(BuildElevationMapBadInput, NanAndInfRowsThrowWithTheirCount) {
+  const std::vector<Eigen::Vector3d> points = {
+      {0, 0, 0}, {NAN, 0, 0}, {1, 1, 1}, {0, 0, std::numeric_limits<double>::infinity()}, {2, 2, 2}};
+  expect_throw_with<std::invalid_argument>([&] { build_elevation_map(PointsView<double>(points), ElevationParams{}); },
+                                           {"2 of 5 point rows contain NaN or Inf (first at row 1)"});
+  // A fixed extent does not skip the check.
+  expect_throw_with<std::invalid_argument>(
+      [&] {
+        build_elevation_map(PointsView<double>(points), fixed_extent(1.0, {0, 0}, {3, 3}));
+      },
+      {"2 of 5 point rows contain NaN or Inf (first at row 1)", "drop_non_finite"});
+  const std::vector<float> floats = as_floats(points, 4);
+  EXPECT_THROW(build_elevation_map(PointsView<float>(floats.data(), points.size(), 4, 1), ElevationParams{}),
+               std::invalid_argument);
+}
+
+TEST(BuildElevationMapBadInput, NanAndInfRowsAreDroppedOnRequest) {
+  const std::vector<Eigen::Vector3d> points = {
+      {0, 0, 0}, {NAN, 0, 0}, {1, 1, 1}, {0, 0, -std::numeric_limits<double>::infinity()}, {2, 2, 2}};
+  const std::vector<Eigen::Vector3d> finite = {{0, 0, 0}, {1, 1, 1}, {2, 2, 2}};
+  ElevationParams params;
+  params.resolution_m = 0.5;
+  params.drop_non_finite = true;
+  const ElevationMap map = build_elevation_map(PointsView<double>(points), params);
+  expect_same_statistics(map, build_elevation_map(PointsView<double>(finite), params));
+  EXPECT_EQ(map.get("count").sum(), 3.0F);
+  ElevationParams fixed = fixed_extent(1.0, {0, 0}, {3, 3});
+  fixed.drop_non_finite = true;
+  const std::vector<float> floats = as_floats(points, 4);
+  const ElevationMap from_floats = build_elevation_map(PointsView<float>(floats.data(), points.size(), 4, 1), fixed);
+  expect_same_statistics(from_floats, build_elevation_map(PointsView<double>(finite), fixed));
+  EXPECT_EQ(from_floats.get("count"), Layer::Identity(3, 3));
+}
+
+TEST(BuildElevationMapBadInput, EmptyCloudGivesAnEmptyMapWithEveryLayer) {
+  const ElevationMap map = build_elevation_map(PointsView<double>(), ElevationParams{});
+  EXPECT_EQ(map.geometry().size.matrix(), CellIndex(0, 0).matrix());
+  EXPECT_EQ(map.geometry().num_cells(), 0U);
+  ASSERT_EQ(map.layers(), kStatisticLayers);
+  for (const std::string& name : kStatisticLayers) EXPECT_EQ(map.get(name).size(), 0) << name;
+  // Nothing selected is the same as nothing at all.
+  const std::vector<Eigen::Vector3d> points = {{1, 1, 1}};
+  const std::vector<std::uint8_t> none = {0};
+  EXPECT_EQ(build_elevation_map(PointsView<double>(points), ElevationParams{}, &none).geometry().num_cells(), 0U);
+  // An empty cloud on a fixed extent is a map of empty cells.
+  const ElevationMap fixed = build_elevation_map(PointsView<float>(), fixed_extent(0.5, {1.0, 2.0}, {3, 4}));
+  EXPECT_EQ(fixed.get("count"), Layer::Zero(3, 4));
+  for (const std::string name : {"min", "max", "mean", "std_dev", "discontinuity"}) {
+    EXPECT_TRUE(fixed.get(name).array().isNaN().all()) << name;
+  }
+}
+
+TEST(BuildElevationMapBadInput, NonPositiveResolutionIsRejected) {
+  const std::vector<Eigen::Vector3d> points = {{0, 0, 0}};
+  for (const double resolution :
+       {0.0, -0.1, std::numeric_limits<double>::quiet_NaN(), std::numeric_limits<double>::infinity(), 1e-320}) {
+    ElevationParams params;
+    params.resolution_m = resolution;
+    expect_throw_with<std::invalid_argument>([&] { build_elevation_map(PointsView<double>(points), params); },
+                                             {"resolution"});
+  }
+}
+
+TEST(BuildElevationMapBadInput, OriginWithoutSizeOrSizeWithoutOriginIsRejected) {
+  const std::vector<Eigen::Vector3d> points = {{0, 0, 0}};
+  ElevationParams params;
+  params.origin_m = Eigen::Vector2d(0.0, 0.0);
+  expect_throw_with<std::invalid_argument>([&] { build_elevation_map(PointsView<double>(points), params); },
+                                           {"both origin and size"});
+  params.origin_m.reset();
+  params.size = CellIndex(4, 4);
+  expect_throw_with<std::invalid_argument>([&] { build_elevation_map(PointsView<double>(points), params); },
+                                           {"both origin and size"});
+}
+
+TEST(BuildElevationMapBadInput, ZeroOrNegativeSizeIsRejected) {
+  const std::vector<Eigen::Vector3d> points = {{0, 0, 0}};
+  for (const CellIndex& size : {CellIndex(0, 4), CellIndex(4, 0), CellIndex(-1, 4)}) {
+    expect_throw_with<std::invalid_argument>(
+        [&] {
+          build_elevation_map(PointsView<double>(points), fixed_extent(0.1, {0, 0}, size));
+        },
+        {"at least 1 x 1"});
+  }
+  ElevationParams params = fixed_extent(0.1, {std::numeric_limits<double>::quiet_NaN(), 0}, {4, 4});
+  EXPECT_THROW(build_elevation_map(PointsView<double>(points), params), std::invalid_argument);
+}
+
+TEST(BuildElevationMapBadInput, MapsOverMaxCellsAreRejected) {
+  // A 1 km x 1 km cloud at 1 cm needs 10^10 cells, over the default 2^26.
+  const std::vector<Eigen::Vector3d> points = {{0, 0, 0}, {1000, 1000, 0}};
+  ElevationParams params;
+  params.resolution_m = 0.01;
+  expect_throw_with<std::invalid_argument>([&] { build_elevation_map(PointsView<double>(points), params); },
+                                           {"max_cells = 67108864", "coarser resolution"});
+  // The guard applies to fixed extents too, and exactly at the limit the map is built.
+  params = fixed_extent(1.0, {0, 0}, {10, 10});
+  params.max_cells = 99;
+  EXPECT_THROW(build_elevation_map(PointsView<double>(points), params), std::invalid_argument);
+  params.max_cells = 100;
+  EXPECT_EQ(build_elevation_map(PointsView<double>(points), params).geometry().num_cells(), 100U);
+}
+
+TEST(BuildElevationMapBadInput, NonRigidTransformsBadCropsAndBadThresholdsAreRejected) {
+  const std::vector<Eigen::Vector3d> points = {{0, 0, 0}};
+  ElevationParams params;
+  params.transform(0, 0) = 2.0;  // a scaling
+  expect_throw_with<std::invalid_argument>([&] { build_elevation_map(PointsView<double>(points), params); }, {"rigid"});
+  params.transform = Eigen::Matrix4d::Identity();
+  params.transform(1, 1) = -1.0;  // a reflection
+  EXPECT_THROW(build_elevation_map(PointsView<double>(points), params), std::invalid_argument);
+  params.transform = Eigen::Matrix4d::Identity();
+  params.transform(3, 0) = 0.5;  // a projective last row
+  EXPECT_THROW(build_elevation_map(PointsView<double>(points), params), std::invalid_argument);
+  params.transform = Eigen::Matrix4d::Identity();
+  params.transform(2, 3) = std::numeric_limits<double>::infinity();
+  EXPECT_THROW(build_elevation_map(PointsView<double>(points), params), std::invalid_argument);
+  params.transform = Eigen::Matrix4d::Identity();
+  params.crop = CropBox{{1, 1, 1}, {0, 0, 0}};
+  EXPECT_THROW(build_elevation_map(PointsView<double>(points), params), std::invalid_argument);
+  params.crop.reset();
+  for (const double gap : {0.0, -1.0, std::numeric_limits<double>::quiet_NaN()}) {
+    params.discontinuity_m = gap;
+    EXPECT_THROW(build_elevation_map(PointsView<double>(points), params), std::invalid_argument) << gap;
+  }
+}
+
+TEST(BuildElevationMapBadInput, ViewWithoutDataIsRejected) {
+  EXPECT_THROW(build_elevation_map(PointsView<float>(nullptr, 3), ElevationParams{}), std::invalid_argument);
+}
+
+// --- step_layer ---------------------------------------------------------------------------------
+
+TEST(StepLayer, LargestDifferenceToNeighboursWithDataZeroWhenIsolatedNaNWhenEmpty) {
+  const Layer height = (Layer(3, 3) << -0.5F, 1.0F, kNaN,  //
+                        2.5F, kNaN, kNaN,                  //
+                        kNaN, kNaN, 4.0F)
+                           .finished();
+  // (0,0): |1 - -0.5| = 1.5, |2.5 - -0.5| = 3 (diagonal (1,1) empty). (0,1): 1.5 and |2.5 - 1| = 1.5
+  // (diagonal). (1,0): 3 and 1.5. (2,2): no neighbour with data.
+  const Layer expected = (Layer(3, 3) << 3.0F, 1.5F, kNaN,  //
+                          3.0F, kNaN, kNaN,                 //
+                          kNaN, kNaN, 0.0F)
+                             .finished();
+  expect_same_layer(step_layer(height), expected, "step");
+}
+
+TEST(StepLayer, RectangularLayersUseAllEightNeighbours) {
+  const Layer height = (Layer(2, 4) << 0, 0, 0, 0,  //
+                        0, 0, 0, 2)
+                           .finished();
+  const Layer expected = (Layer(2, 4) << 0, 0, 2, 2,  //
+                          0, 0, 2, 2)
+                             .finished();
+  expect_same_layer(step_layer(height), expected, "step");
+  EXPECT_EQ(step_layer(Layer(0, 0)).size(), 0);
+  expect_same_layer(step_layer((Layer(1, 1) << 7).finished()), (Layer(1, 1) << 0).finished(), "single cell");
+}
+
+// --- build_overhang_free_map --------------------------------------------------------------------
+
+TEST(OverhangFreeMap, LayersAreTheElevationMapOfTheKeptPointsOnTheSameGeometry) {
+  for (std::uint32_t seed = 41; seed <= 44; ++seed) {
+    SCOPED_TRACE("seed " + std::to_string(seed));
+    const auto points = test::random_scene(seed, 6000, 10.0);
+    CollapseParams collapse;
+    collapse.edge_m = 0.4;
+    collapse.sigma = 2;
+    ElevationParams elevation;
+    elevation.resolution_m = 0.25;
+    const OverhangFreeMap result = build_overhang_free_map(PointsView<double>(points), collapse, elevation);
+    EXPECT_EQ(result.collapse.overhang, collapse_overhangs(points, collapse).overhang);
+    ASSERT_GT(result.collapse.num_overhang, 0U);
+    EXPECT_EQ(result.map.layers(), (std::vector<std::string>{"count", "min", "max", "mean", "std_dev", "discontinuity",
+                                                             "overhang_min", "clearance", "step"}));
+    // The geometry follows all points, as the raw DEM's does.
+    const ElevationMap raw = build_elevation_map(PointsView<double>(points), elevation);
+    EXPECT_EQ(result.map.geometry().origin_m, raw.geometry().origin_m);
+    EXPECT_EQ(result.map.geometry().size.matrix(), raw.geometry().size.matrix());
+
+    std::vector<std::uint8_t> kept(points.size());
+    std::vector<Eigen::Vector3d> kept_points, overhang_points;
+    for (std::size_t row = 0; row < points.size(); ++row) {
+      kept[row] = result.collapse.overhang[row] ? 0 : 1;
+      (kept[row] ? kept_points : overhang_points).push_back(points[row]);
+    }
+    ElevationParams same_geometry = elevation;
+    same_geometry.origin_m = raw.geometry().origin_m;
+    same_geometry.size = raw.geometry().size;
+    expect_same_statistics(result.map, build_elevation_map(PointsView<double>(points), same_geometry, &kept));
+    expect_same_statistics(result.map, build_elevation_map(PointsView<double>(kept_points), same_geometry));
+
+    // overhang_min and clearance from the naive per-cell lists.
+    const NaiveCells kept_cells = naive_cells(kept_points, result.map.geometry());
+    const NaiveCells overhang_cells = naive_cells(overhang_points, result.map.geometry());
+    Layer overhang_min = Layer::Constant(raw.geometry().size.x(), raw.geometry().size.y(), kNaN);
+    Layer clearance = overhang_min;
+    for (const auto& [cell, z] : overhang_cells) {
+      overhang_min(cell.first, cell.second) = static_cast<float>(*std::min_element(z.begin(), z.end()));
+    }
+    int finite = 0, infinite = 0;
+    for (const auto& [cell, z] : kept_cells) {
+      const float top = static_cast<float>(*std::max_element(z.begin(), z.end()));
+      const float lowest_overhang = overhang_min(cell.first, cell.second);
+      clearance(cell.first, cell.second) = std::isnan(lowest_overhang) ? kInf : lowest_overhang - top;
+      ++(std::isnan(lowest_overhang) ? infinite : finite);
+    }
+    EXPECT_GT(finite, 0);
+    EXPECT_GT(infinite, 0);
+    expect_same_layer(result.map.get("overhang_min"), overhang_min, "overhang_min");
+    expect_same_layer(result.map.get("clearance"), clearance, "clearance");
+    expect_same_layer(result.map.get("step"), step_layer(result.map.get("max")), "step");
+  }
+}
+
+TEST(OverhangFreeMap, GroundAndCanopyInOneCellGiveTheirVerticalDistanceAsClearance) {
+  // Cell (0, 0): ground at z = 0 and a canopy at z = 3 (5 empty 0.5 m cubes >= sigma 2: collapsed).
+  // Cell (1, 0): ground only.
+  const std::vector<Eigen::Vector3d> points = {{0.1, 0.1, 0.0}, {0.3, 0.2, 0.0}, {0.2, 0.3, 3.0}, {1.6, 0.2, 0.5}};
+  CollapseParams collapse;
+  collapse.edge_m = 0.5;
+  collapse.sigma = 2;
+  const OverhangFreeMap result =
+      build_overhang_free_map(PointsView<double>(points), collapse, fixed_extent(1.0, {0.0, 0.0}, {2, 1}));
+  EXPECT_EQ(result.collapse.overhang, (std::vector<std::uint8_t>{0, 0, 1, 0}));
+  expect_same_layer(result.map.get("max"), (Layer(2, 1) << 0.0F, 0.5F).finished(), "max");
+  expect_same_layer(result.map.get("discontinuity"), (Layer(2, 1) << 0, 0).finished(), "discontinuity");
+  expect_same_layer(result.map.get("overhang_min"), (Layer(2, 1) << 3.0F, kNaN).finished(), "overhang_min");
+  expect_same_layer(result.map.get("clearance"), (Layer(2, 1) << 3.0F, kInf).finished(), "clearance");
+  expect_same_layer(result.map.get("step"), (Layer(2, 1) << 0.5F, 0.5F).finished(), "step");
+}
+
+TEST(OverhangFreeMap, CellWithOnlyOverhangPointsHasNaNClearance) {
+  // One 1 m cube column spans both 0.2 m cells: the canopy over cell 1 is collapsed by the ground
+  // in cell 0, so cell 1 has an overhang but no kept point.
+  const std::vector<Eigen::Vector3d> points = {{0.1, 0.1, 0.0}, {0.3, 0.1, 5.0}};
+  CollapseParams collapse;
+  collapse.edge_m = 1.0;
+  collapse.sigma = 2;
+  const OverhangFreeMap result =
+      build_overhang_free_map(PointsView<double>(points), collapse, fixed_extent(0.2, {0.0, 0.0}, {2, 1}));
+  ASSERT_EQ(result.collapse.overhang, (std::vector<std::uint8_t>{0, 1}));
+  expect_same_layer(result.map.get("count"), (Layer(2, 1) << 1, 0).finished(), "count");
+  expect_same_layer(result.map.get("overhang_min"), (Layer(2, 1) << kNaN, 5.0F).finished(), "overhang_min");
+  expect_same_layer(result.map.get("clearance"), (Layer(2, 1) << kInf, kNaN).finished(), "clearance");
+}
+
+TEST(OverhangFreeMap, CollapseTransformAndCropReplaceTheElevationOnes) {
+  const auto points = test::random_scene(45, 4000, 8.0);
+  CollapseParams collapse;
+  collapse.transform = leveling_transform(0.03, -0.04);
+  collapse.crop = CropBox{{1.0, 1.0, -5.0}, {7.0, 7.0, 20.0}};
+  ElevationParams elevation;
+  elevation.resolution_m = 0.25;
+  elevation.transform = leveling_transform(0.4, 0.0);          // ignored
+  elevation.crop = CropBox{{0.0, 0.0, 0.0}, {0.1, 0.1, 0.1}};  // ignored
+  const OverhangFreeMap result = build_overhang_free_map(PointsView<double>(points), collapse, elevation);
+  ElevationParams expected_params = elevation;
+  expected_params.transform = collapse.transform;
+  expected_params.crop = collapse.crop;
+  const ElevationMap raw = build_elevation_map(PointsView<double>(points), expected_params);
+  EXPECT_EQ(result.map.geometry().origin_m, raw.geometry().origin_m);
+  EXPECT_EQ(result.map.geometry().size.matrix(), raw.geometry().size.matrix());
+  std::vector<std::uint8_t> kept(points.size());
+  for (std::size_t row = 0; row < points.size(); ++row) kept[row] = result.collapse.overhang[row] ? 0 : 1;
+  expected_params.origin_m = raw.geometry().origin_m;
+  expected_params.size = raw.geometry().size;
+  expect_same_statistics(result.map, build_elevation_map(PointsView<double>(points), expected_params, &kept));
+}
+
+TEST(OverhangFreeMap, FloatAndDoubleViewsOfTheSameValuesAgree) {
+  const auto points = rounded_to_float(test::random_scene(46, 5000, 9.0));
+  const std::vector<float> strided = as_floats(points, 4);
+  CollapseParams collapse;
+  collapse.edge_m = 0.3;
+  collapse.sigma = 3;
+  ElevationParams elevation;
+  elevation.resolution_m = 0.2;
+  const OverhangFreeMap from_float =
+      build_overhang_free_map(PointsView<float>(strided.data(), points.size(), 4, 1), collapse, elevation);
+  const OverhangFreeMap from_double = build_overhang_free_map(PointsView<double>(points), collapse, elevation);
+  EXPECT_EQ(from_float.collapse.overhang, from_double.collapse.overhang);
+  ASSERT_EQ(from_float.map.layers(), from_double.map.layers());
+  for (const std::string& name : from_double.map.layers()) {
+    expect_same_layer(from_float.map.get(name), from_double.map.get(name), name);
+  }
+}
+
+TEST(OverhangFreeMap, EmptyCloudGivesAnEmptyMapLikeBuildElevationMap) {
+  // build_elevation_map returns a 0 x 0 map with every layer for an empty cloud (or one whose
+  // points are all cropped); the overhang-free map must do the same rather than throw.
+  OverhangFreeMap result;
+  ASSERT_NO_THROW(result = build_overhang_free_map(PointsView<double>(), CollapseParams{}, ElevationParams{}));
+  EXPECT_EQ(result.map.geometry().num_cells(), 0U);
+  EXPECT_TRUE(result.map.exists("clearance"));
+  const std::vector<Eigen::Vector3d> points = {{0, 0, 0}, {0, 0, 5}};
+  CollapseParams cropped;
+  cropped.crop = CropBox{{10, 10, 10}, {11, 11, 11}};
+  ASSERT_NO_THROW(result = build_overhang_free_map(PointsView<double>(points), cropped, ElevationParams{}));
+  EXPECT_EQ(result.map.geometry().num_cells(), 0U);
+  EXPECT_EQ(result.collapse.overhang, (std::vector<std::uint8_t>{0, 0}));
+}
+
+}  // namespace
+}  // namespace terracube
