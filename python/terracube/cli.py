@@ -6,6 +6,7 @@ import math
 import time
 from pathlib import Path
 
+import numpy as np
 import typer
 
 app = typer.Typer(
@@ -136,6 +137,275 @@ def demo(
         "ply",
         True,
     )
+
+
+_RESOLUTION = typer.Option(0.1, "--resolution", "-r", help="Cell edge of the map, metres.")
+_ORIGIN = typer.Option(
+    None,
+    "--origin",
+    help="Corner X Y of the map with the smallest x and y, metres, leveled frame; needs --size.",
+)
+_SIZE = typer.Option(
+    None, "--size", help="Cells NX NY of the map along x and y; needs --origin. Default: the points' extent."
+)
+
+
+def _fail(message: str) -> typer.Exit:
+    """Print a red error message; the caller raises the returned Exit (code 2)."""
+    typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
+    return typer.Exit(2)
+
+
+def _read_points(input_path: Path):
+    from .io import read_points
+
+    try:
+        return read_points(input_path)
+    except (ValueError, FileNotFoundError) as error:
+        raise _fail(str(error)) from error
+
+
+def _frame(
+    roll_deg: float,
+    pitch_deg: float,
+    crop: tuple[float, float, float, float, float, float] | None,
+    origin: tuple[float, float] | None,
+    size: tuple[int, int] | None,
+):
+    """The leveling transform, crop box and fixed extent (or None) from the command-line options."""
+    from . import leveling_transform
+
+    if (origin is None) != (size is None):
+        raise _fail("give both --origin and --size for a fixed map extent, or neither")
+    transform = leveling_transform(math.radians(roll_deg), math.radians(pitch_deg))
+    crop_box = None if crop is None else (crop[:3], crop[3:])
+    return transform, crop_box, origin, size
+
+
+def _require_data(name: str, elevation_map) -> None:
+    if not np.any(elevation_map["count"] > 0):
+        raise _fail(f"{name}: no point falls inside the map; check --crop, --origin and --size")
+
+
+def _elapsed_ms(start: float) -> float:
+    return 1e3 * (time.perf_counter() - start)
+
+
+@app.command()
+def dem(
+    input_path: Path = typer.Argument(..., help="Point cloud: .bin (KITTI), .npy, .npz, .txt/.xyz/.csv."),
+    output_dir: Path = typer.Option(Path("terracube_out"), "--output-dir", "-o", help="Where to write."),
+    resolution: float = _RESOLUTION,
+    edge: float = _EDGE,
+    sigma: int | None = _SIGMA,
+    robot_height: float = _HEIGHT,
+    roll: float = _ROLL,
+    pitch: float = _PITCH,
+    crop: tuple[float, float, float, float, float, float] | None = _CROP,
+    origin: tuple[float, float] | None = _ORIGIN,
+    size: tuple[int, int] | None = _SIZE,
+) -> None:
+    """Build the DEM of one scan with and without overhangs (collapsible cubes); write the map and pictures.
+
+    Writes NAME_dem.npz (the DEM without overhangs, with clearance and step layers) and the pictures
+    NAME_dem_comparison.png, NAME_clearance.png and NAME_step.png. Both DEMs share one geometry.
+    """
+    from . import (
+        CollapseParams,
+        ElevationParams,
+        build_elevation_map,
+        dem_without_overhangs,
+        sigma_from_robot_height,
+    )
+    from .viz import plot_dem_comparison, plot_layer
+
+    points = _read_points(input_path)
+    name = input_path.stem
+    transform, crop_box, origin, size = _frame(roll, pitch, crop, origin, size)
+    try:
+        if sigma is None:
+            sigma = sigma_from_robot_height(robot_height, edge)
+        start = time.perf_counter()
+        raw = build_elevation_map(
+            points, resolution, transform=transform, crop=crop_box, origin=origin, size=size
+        )
+        raw_ms = _elapsed_ms(start)
+        _require_data(name, raw)
+        g = raw.geometry
+        start = time.perf_counter()
+        clean, result = dem_without_overhangs(
+            points,
+            collapse=CollapseParams(edge, sigma, transform=transform, crop=crop_box),
+            elevation=ElevationParams(resolution, origin=g.origin, size=g.size),
+        )
+        clean_ms = _elapsed_ms(start)
+    except (ValueError, TypeError) as error:
+        raise _fail(f"{name}: {error}") from error
+
+    before, after = raw["max"], clean["max"]
+    lower = int(np.count_nonzero(np.isfinite(before) & np.isfinite(after) & (after < before)))
+    emptied = int(np.count_nonzero(np.isfinite(before) & np.isnan(after)))
+    typer.echo(
+        f"{name}: DEM {g.size[0]} x {g.size[1]} cells at {g.resolution:g} m, "
+        f"{int(np.count_nonzero(np.isfinite(before))):,} with data; {result.num_overhang:,} of "
+        f"{result.num_points:,} points are overhang (edge {edge} m, sigma {sigma}); {lower:,} cells lower, "
+        f"{emptied:,} emptied; raw DEM {raw_ms:.1f} ms, DEM without overhangs {clean_ms:.1f} ms"
+    )
+    output_dir.mkdir(parents=True, exist_ok=True)
+    typer.echo(f"  map: {clean.save(output_dir / f'{name}_dem.npz')}")
+    comparison = plot_dem_comparison(
+        raw,
+        clean,
+        output_dir / f"{name}_dem_comparison.png",
+        title=f"{name}: highest elevation before and after overhang removal (E = {edge} m, σ = {sigma})",
+    )
+    clearance = plot_layer(
+        clean,
+        "clearance",
+        output_dir / f"{name}_clearance.png",
+        title=f"{name}: clearance from the retained points to the lowest overhang above",
+        cmap="RdYlGn",
+        vmin=0.0,
+        vmax=max(2.0 * robot_height, sigma * edge + edge),
+    )
+    step = plot_layer(
+        clean,
+        "step",
+        output_dir / f"{name}_step.png",
+        title=f"{name}: largest step of the DEM without overhangs to a neighbour cell",
+        cmap="plasma",
+        vmin=0.0,
+    )
+    typer.echo(f"  pictures: {comparison}, {clearance}, {step}")
+
+
+_REFERENCES = ("sensor_height", "local_ground")
+
+
+@app.command()
+def classify(
+    input_path: Path = typer.Argument(..., help="Point cloud: .bin (KITTI), .npy, .npz, .txt/.xyz/.csv."),
+    output_dir: Path = typer.Option(Path("terracube_out"), "--output-dir", "-o", help="Where to write."),
+    resolution: float = _RESOLUTION,
+    sensor_height: float = typer.Option(
+        0.0, "--sensor-height", help="Sensor height above the ground in metres: the ground is z = -height."
+    ),
+    reference: str = typer.Option(
+        "sensor_height",
+        "--reference",
+        help="Ground reference: sensor_height (the plane z = -sensor height) or local_ground "
+        "(the lowest point nearby).",
+    ),
+    ground_radius: int = typer.Option(
+        10, "--ground-radius", help="Window half-size in cells for --reference local_ground."
+    ),
+    ground_height: float = typer.Option(
+        0.2, "--ground-height", help="Cells lower than this above the ground, in metres, are low."
+    ),
+    std_dev: float = typer.Option(
+        0.1, "--std-dev", help="A std-dev of elevations below this, in metres, is a small spread."
+    ),
+    robot_height: float = typer.Option(
+        0.7, "--robot-height", help="Cells this high above the ground, in metres, or more are high."
+    ),
+    roll: float = _ROLL,
+    pitch: float = _PITCH,
+    crop: tuple[float, float, float, float, float, float] | None = _CROP,
+    origin: tuple[float, float] | None = _ORIGIN,
+    size: tuple[int, int] | None = _SIZE,
+    remove_overhangs: bool = typer.Option(
+        False,
+        "--remove-overhangs/--keep-overhangs",
+        help="Classify the DEM without overhangs instead of the raw map (the paper classifies raw maps).",
+    ),
+    edge: float = typer.Option(0.5, "--edge", "-e", help="Cube edge E in metres, for --remove-overhangs."),
+    sigma: int | None = typer.Option(
+        None, "--sigma", "-s", help="σ in cubes for --remove-overhangs; default ceil(robot height / E)."
+    ),
+) -> None:
+    """Classify the cells of one scan's elevation map: ground, obstacle, overhanging, vertical, edge.
+
+    Writes NAME_classes.npz (the map with class, relative_height and ground layers) and
+    NAME_classes.png.
+    """
+    from . import (
+        CollapseParams,
+        ElevationParams,
+        TerrainClass,
+        TerrainParams,
+        build_elevation_map,
+        classify_terrain,
+        dem_without_overhangs,
+        sigma_from_robot_height,
+    )
+    from .viz import plot_terrain_classes
+
+    if reference not in _REFERENCES:
+        raise _fail(f"--reference must be one of {', '.join(_REFERENCES)}, got {reference!r}")
+    points = _read_points(input_path)
+    name = input_path.stem
+    transform, crop_box, origin, size = _frame(roll, pitch, crop, origin, size)
+    terrain = TerrainParams(
+        ground_height=ground_height,
+        std_dev=std_dev,
+        robot_height=robot_height,
+        reference=reference,
+        sensor_height=sensor_height,
+        local_ground_radius=ground_radius,
+    )
+    try:
+        terrain.to_core()  # checks the thresholds before the map is built
+        start = time.perf_counter()
+        if remove_overhangs:
+            if sigma is None:
+                sigma = sigma_from_robot_height(robot_height, edge)
+            elevation_map, result = dem_without_overhangs(
+                points,
+                collapse=CollapseParams(edge, sigma, transform=transform, crop=crop_box),
+                elevation=ElevationParams(resolution, origin=origin, size=size),
+            )
+            source = (
+                f"DEM without overhangs (edge {edge} m, sigma {sigma}; "
+                f"{result.num_overhang:,} overhang points)"
+            )
+        else:
+            elevation_map = build_elevation_map(
+                points, resolution, transform=transform, crop=crop_box, origin=origin, size=size
+            )
+            source = "raw map"
+        map_ms = _elapsed_ms(start)
+        _require_data(name, elevation_map)
+        start = time.perf_counter()
+        classes = classify_terrain(elevation_map, terrain)
+        classify_ms = _elapsed_ms(start)
+    except (ValueError, TypeError) as error:
+        raise _fail(f"{name}: {error}") from error
+
+    g = elevation_map.geometry
+    counts = np.bincount(classes.ravel(), minlength=len(TerrainClass))
+    known = int(classes.size - counts[0])
+    where = (
+        f"sensor height {sensor_height:g} m"
+        if reference == "sensor_height"
+        else f"local ground, {ground_radius} cells"
+    )
+    typer.echo(
+        f"{name}: {g.size[0]} x {g.size[1]} cells at {g.resolution:g} m, {known:,} with data; {source}; "
+        f"reference {where}; map {map_ms:.1f} ms, classification {classify_ms:.1f} ms"
+    )
+    for terrain_class in TerrainClass:
+        count = int(counts[int(terrain_class)])
+        share = f" ({count / known:.1%} of cells with data)" if terrain_class and known else ""
+        typer.echo(f"  {terrain_class.name.lower().replace('_', ' '):<20} {count:>10,}{share}")
+    output_dir.mkdir(parents=True, exist_ok=True)
+    typer.echo(f"  map: {elevation_map.save(output_dir / f'{name}_classes.npz')}")
+    picture = plot_terrain_classes(
+        elevation_map,
+        classes,
+        output_dir / f"{name}_classes.png",
+        title=f"{name}: terrain classes ({source.split(' (')[0]}, {where})",
+    )
+    typer.echo(f"  picture: {picture}")
 
 
 @app.command()

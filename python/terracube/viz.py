@@ -1,4 +1,4 @@
-"""Pictures of overhang removal (matplotlib, imported lazily)."""
+"""Pictures of overhang removal, elevation-map layers and terrain classes (matplotlib, imported lazily)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["plot_overhangs"]
+__all__ = ["plot_overhangs", "plot_layer", "plot_dem_comparison", "plot_terrain_classes"]
 
 
 def _pyplot():
@@ -91,3 +91,308 @@ def plot_overhangs(
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+# --------------------------------------------------------------------------------------------
+# Elevation-map layers
+# --------------------------------------------------------------------------------------------
+
+#: Colour-bar labels of the layers the library writes; other layers are taken to be in metres.
+_LAYER_LABELS = {
+    "count": "points per cell",
+    "min": "lowest elevation z [m]",
+    "max": "highest elevation z [m]",
+    "mean": "mean elevation z [m]",
+    "std_dev": "std-dev of elevations [m]",
+    "discontinuity": "vertical gap in the cell (1) or not (0)",
+    "overhang_min": "lowest overhang point z [m]",
+    "clearance": "clearance under the lowest overhang [m]",
+    "step": "largest height step to a neighbour [m]",
+    "relative_height": "height above the ground reference [m]",
+    "ground": "ground reference z [m]",
+}
+
+_CLASS_NAMES = {
+    0: "unknown (no data)",
+    1: "ground",
+    2: "obstacle",
+    3: "overhanging object",
+    4: "vertical object",
+    5: "horizontal edge",
+}
+
+_INFINITE_COLOR = (0.82, 0.82, 0.82)
+
+
+def _extent(geometry) -> tuple[float, float, float, float]:
+    """(left, right, bottom, top) of the map [m], for imshow(..., origin="lower")."""
+    x0, y0 = (float(v) for v in geometry.origin)
+    nx, ny = (int(v) for v in geometry.size)
+    return (x0, x0 + nx * geometry.resolution, y0, y0 + ny * geometry.resolution)
+
+
+def _map_aspect(geometry) -> float:
+    """Width over height of the map."""
+    nx, ny = (int(v) for v in geometry.size)
+    return max(nx, 1) / max(ny, 1)
+
+
+def _panel_size(geometry, width: float) -> tuple[float, float]:
+    """(width, height) in inches of a panel showing the map at ``width`` inches, clamped."""
+    height = width / _map_aspect(geometry)
+    return width, float(np.clip(height, 2.5, 1.6 * width))
+
+
+def _colour_limits(values: np.ndarray, name: str) -> tuple[float, float]:
+    """Robust limits of the finite values: the 1st and 99th percentiles (0..1 for flags)."""
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        return 0.0, 1.0
+    if name == "discontinuity":
+        return 0.0, 1.0
+    if name == "count":
+        return 0.0, float(max(np.percentile(finite, 99), 1.0))
+    low, high = (float(v) for v in np.percentile(finite, [1, 99]))
+    if high <= low:
+        low, high = low - 0.5, high + 0.5
+    return low, high
+
+
+def _extend(values: np.ndarray, vmin: float, vmax: float) -> str:
+    finite = values[np.isfinite(values)]
+    below = bool(finite.size and finite.min() < vmin)
+    above = bool(finite.size and finite.max() > vmax)
+    return {(False, False): "neither", (True, False): "min", (False, True): "max"}.get((below, above), "both")
+
+
+def _style_axes(ax, geometry) -> None:
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_aspect("equal")
+    ax.set_facecolor("white")
+    left, right, bottom, top = _extent(geometry)
+    ax.set_xlim(left, right)
+    ax.set_ylim(bottom, top)
+
+
+def _draw_layer(ax, values: np.ndarray, geometry, cmap_name: str, vmin: float, vmax: float):
+    """imshow of an (nx, ny) layer, x right and y up; NaN transparent, +-inf in light grey."""
+    plt = _pyplot()
+    cmap = plt.get_cmap(cmap_name).copy()
+    cmap.set_bad((1.0, 1.0, 1.0, 0.0))
+    extent = _extent(geometry)
+    finite = np.where(np.isfinite(values), values, np.nan)
+    image = ax.imshow(
+        finite.T, origin="lower", extent=extent, cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest"
+    )
+    infinite = np.isinf(values)
+    if infinite.any():
+        overlay = np.zeros((*values.T.shape, 4))
+        overlay[infinite.T] = (*_INFINITE_COLOR, 1.0)
+        ax.imshow(overlay, origin="lower", extent=extent, interpolation="nearest")
+    return image
+
+
+def _layout() -> dict:
+    """Matplotlib >= 3.6 packs fixed-aspect map panels tightly with the "compressed" layout."""
+    import matplotlib
+
+    major, minor = (int(part) for part in matplotlib.__version__.split(".")[:2])
+    return {"layout": "compressed"} if (major, minor) >= (3, 6) else {"constrained_layout": True}
+
+
+def _save(fig, path: str | Path, dpi: int = 130) -> Path:
+    plt = _pyplot()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi, facecolor="white", bbox_inches="tight", pad_inches=0.15)
+    plt.close(fig)
+    return path
+
+
+def _infinite_legend(ax, values: np.ndarray, name: str) -> None:
+    plt = _pyplot()
+    count = int(np.isinf(values).sum())
+    if not count:
+        return
+    label = "no overhang above" if name == "clearance" else "infinite"
+    patch = plt.Rectangle((0, 0), 1, 1, facecolor=_INFINITE_COLOR, edgecolor="0.4", linewidth=0.5)
+    ax.legend([patch], [f"{label} ({count:,} cells)"], loc="upper right", fontsize="small", framealpha=0.9)
+
+
+def plot_layer(
+    elevation_map,
+    name: str,
+    path: str | Path,
+    *,
+    title: str | None = None,
+    cmap: str = "viridis",
+    vmin: float | None = None,
+    vmax: float | None = None,
+) -> Path:
+    """Save a PNG of one layer of an :class:`terracube.ElevationMap`, x to the right and y up.
+
+    Empty cells (NaN) stay white, infinite values (``clearance`` where no overhang lies above) are
+    light grey; the colour scale runs between the 1st and 99th percentiles of the finite values
+    unless ``vmin``/``vmax`` are given. The ``class`` layer is drawn with
+    :func:`plot_terrain_classes`. Returns the path.
+    """
+    values = np.asarray(elevation_map[name])
+    geometry = elevation_map.geometry
+    if name == "class":
+        classes = np.nan_to_num(values, nan=0.0).astype(np.uint8)
+        return plot_terrain_classes(elevation_map, classes, path, title=title)
+    plt = _pyplot()
+    low, high = _colour_limits(values, name)
+    low = low if vmin is None else float(vmin)
+    high = high if vmax is None else float(vmax)
+    width, height = _panel_size(geometry, 9.0)
+    fig, ax = plt.subplots(figsize=(width + 1.6, height + 1.0), **_layout())
+    image = _draw_layer(ax, values, geometry, cmap, low, high)
+    _style_axes(ax, geometry)
+    bar = fig.colorbar(image, ax=ax, extend=_extend(values, low, high), shrink=0.9)
+    bar.set_label(_LAYER_LABELS.get(name, f"{name} [m]"))
+    _infinite_legend(ax, values, name)
+    known = int(np.count_nonzero(~np.isnan(values)))
+    g = geometry
+    ax.set_title(
+        title or f"{name}: {known:,} of {g.size[0] * g.size[1]:,} cells with data ({g.resolution:g} m cells)"
+    )
+    return _save(fig, path)
+
+
+def plot_dem_comparison(
+    raw_map,
+    clean_map,
+    path: str | Path,
+    *,
+    layer: str = "max",
+    title: str | None = None,
+) -> Path:
+    """Save a PNG of a DEM before and after overhang removal, on one shared colour scale.
+
+    ``raw_map`` is built from every point (:func:`terracube.build_elevation_map`), ``clean_map``
+    from the points collapsible cubes kept (:func:`terracube.dem_without_overhangs`); both need
+    the same geometry. The panels sit side by side, or one above the other for wide maps.
+    """
+    plt = _pyplot()
+    g = raw_map.geometry
+    h = clean_map.geometry
+    if (
+        tuple(g.size) != tuple(h.size)
+        or not np.allclose(g.origin, h.origin)
+        or not np.isclose(g.resolution, h.resolution)
+    ):
+        raise ValueError(f"the maps differ in geometry: {g!r} vs {h!r}; build both on the same extent")
+    before = np.asarray(raw_map[layer])
+    after = np.asarray(clean_map[layer])
+    low, high = _colour_limits(np.concatenate([before.ravel(), after.ravel()]), layer)
+    stacked = _map_aspect(g) >= 1.3
+    width, height = _panel_size(g, 9.5 if stacked else 6.5)
+    if stacked:
+        fig, axes = plt.subplots(2, 1, figsize=(width + 1.8, 2 * height + 1.4), **_layout())
+    else:
+        fig, axes = plt.subplots(1, 2, figsize=(2 * width + 1.2, height + 1.2), **_layout())
+    both = np.isfinite(before) & np.isfinite(after)
+    lower = both & (after < before - 1e-6)
+    emptied = np.isfinite(before) & ~np.isfinite(after)
+    panels = (
+        (axes[0], before, f"before: every point ({int(np.isfinite(before).sum()):,} cells with data)"),
+        (
+            axes[1],
+            after,
+            f"after overhang removal ({int(lower.sum()):,} cells lower, {int(emptied.sum()):,} emptied)",
+        ),
+    )
+    for ax, values, label in panels:
+        image = _draw_layer(ax, values, g, "viridis", low, high)
+        _style_axes(ax, g)
+        ax.set_title(label, fontsize="medium")
+    changed = lower | emptied
+    if changed.any():
+        # Outline the cells overhang removal changed, in the "before" panel.
+        padded = np.pad(changed, 1).astype(float)
+        left, right, bottom, top = _extent(g)
+        xs = np.linspace(left - g.resolution / 2, right + g.resolution / 2, padded.shape[0])
+        ys = np.linspace(bottom - g.resolution / 2, top + g.resolution / 2, padded.shape[1])
+        axes[0].contour(xs, ys, padded.T, levels=[0.5], colors="red", linewidths=0.9)
+        axes[0].legend(
+            [plt.Line2D([], [], color="red", linewidth=1.2)],
+            [f"changed by overhang removal ({int(changed.sum()):,} cells)"],
+            loc="upper right",
+            fontsize="small",
+            framealpha=0.9,
+        )
+    extend = _extend(np.concatenate([before.ravel(), after.ravel()]), low, high)
+    bar = fig.colorbar(image, ax=list(axes), extend=extend, shrink=0.8, aspect=30, pad=0.015)
+    bar.set_label(_LAYER_LABELS.get(layer, f"{layer} [m]"))
+    fig.suptitle(title or f"DEM ({layer} layer) before and after overhang removal")
+    return _save(fig, path)
+
+
+def plot_terrain_classes(
+    elevation_map,
+    classes: np.ndarray,
+    path: str | Path,
+    *,
+    title: str | None = None,
+) -> Path:
+    """Save a PNG of an (nx, ny) class map (:func:`terracube.classify_terrain`), x right and y up,
+    in :data:`terracube.TERRAIN_COLORS`, with a legend naming every class and its cell count."""
+    from .elevation import TERRAIN_COLORS, TerrainClass
+
+    plt = _pyplot()
+    from matplotlib.colors import BoundaryNorm, ListedColormap
+
+    geometry = elevation_map.geometry
+    classes = np.asarray(classes)
+    size = tuple(int(v) for v in geometry.size)
+    if classes.shape != size:
+        raise ValueError(f"classes have shape {classes.shape}, the map is {size}")
+    order = list(TerrainClass)
+    cmap = ListedColormap([TERRAIN_COLORS[c] for c in order])
+    norm = BoundaryNorm(np.arange(len(order) + 1) - 0.5, len(order))
+    wide = _map_aspect(geometry) >= 1.3
+    width, height = _panel_size(geometry, 9.5 if wide else 7.0)
+    if wide:
+        figsize = (width + 0.8, height + 2.0)
+    else:
+        figsize = (width + 3.2, height + 1.0)
+    fig, ax = plt.subplots(figsize=figsize, **_layout())
+    ax.imshow(
+        classes.T.astype(np.int16),
+        origin="lower",
+        extent=_extent(geometry),
+        cmap=cmap,
+        norm=norm,
+        interpolation="nearest",
+    )
+    _style_axes(ax, geometry)
+    counts = np.bincount(classes.ravel(), minlength=len(order))
+    handles = [
+        plt.Rectangle((0, 0), 1, 1, facecolor=TERRAIN_COLORS[c], edgecolor="0.3", linewidth=0.6)
+        for c in order
+    ]
+    labels = [f"{_CLASS_NAMES.get(int(c), c.name.lower())} ({counts[int(c)]:,})" for c in order]
+    if wide:
+        ax.legend(
+            handles,
+            labels,
+            loc="upper center",
+            bbox_to_anchor=(0.5, -0.13),
+            ncol=3,
+            frameon=False,
+            title="class (cells)",
+        )
+    else:
+        ax.legend(
+            handles,
+            labels,
+            loc="upper left",
+            bbox_to_anchor=(1.02, 1.0),
+            frameon=False,
+            title="class (cells)",
+        )
+    known = int(classes.size - counts[0])
+    ax.set_title(title or f"terrain classes of {known:,} cells with data ({geometry.resolution:g} m cells)")
+    return _save(fig, path)
