@@ -131,6 +131,11 @@ def _extent(geometry) -> tuple[float, float, float, float]:
     return (x0, x0 + nx * geometry.resolution, y0, y0 + ny * geometry.resolution)
 
 
+def _require_cells(geometry) -> None:
+    if int(geometry.size[0]) * int(geometry.size[1]) == 0:
+        raise ValueError("the map has no cells to draw")
+
+
 def _map_aspect(geometry) -> float:
     """Width over height of the map."""
     nx, ny = (int(v) for v in geometry.size)
@@ -151,7 +156,7 @@ def _colour_limits(values: np.ndarray, name: str) -> tuple[float, float]:
     if name == "discontinuity":
         return 0.0, 1.0
     if name == "count":
-        return 0.0, float(max(np.percentile(finite, 99), 1.0))
+        return 1.0, float(max(np.percentile(finite, 99), 2.0))
     low, high = (float(v) for v in np.percentile(finite, [1, 99]))
     if high <= low:
         low, high = low - 0.5, high + 0.5
@@ -178,8 +183,7 @@ def _style_axes(ax, geometry) -> None:
 def _draw_layer(ax, values: np.ndarray, geometry, cmap_name: str, vmin: float, vmax: float):
     """imshow of an (nx, ny) layer, x right and y up; NaN transparent, +-inf in light grey."""
     plt = _pyplot()
-    cmap = plt.get_cmap(cmap_name).copy()
-    cmap.set_bad((1.0, 1.0, 1.0, 0.0))
+    cmap = plt.get_cmap(cmap_name).with_extremes(bad=(1.0, 1.0, 1.0, 0.0))
     extent = _extent(geometry)
     finite = np.where(np.isfinite(values), values, np.nan)
     image = ax.imshow(
@@ -239,9 +243,12 @@ def plot_layer(
     """
     values = np.asarray(elevation_map[name])
     geometry = elevation_map.geometry
+    _require_cells(geometry)
     if name == "class":
         classes = np.nan_to_num(values, nan=0.0).astype(np.uint8)
         return plot_terrain_classes(elevation_map, classes, path, title=title)
+    if name == "count":  # empty cells hold 0, not NaN: show them as empty too
+        values = np.where(values > 0, values, np.nan)
     plt = _pyplot()
     low, high = _colour_limits(values, name)
     low = low if vmin is None else float(vmin)
@@ -250,7 +257,7 @@ def plot_layer(
     fig, ax = plt.subplots(figsize=(width + 1.6, height + 1.0), **_layout())
     image = _draw_layer(ax, values, geometry, cmap, low, high)
     _style_axes(ax, geometry)
-    bar = fig.colorbar(image, ax=ax, extend=_extend(values, low, high), shrink=0.9)
+    bar = fig.colorbar(image, ax=ax, extend=_extend(values, low, high), shrink=0.9, pad=0.02)
     bar.set_label(_LAYER_LABELS.get(name, f"{name} [m]"))
     _infinite_legend(ax, values, name)
     known = int(np.count_nonzero(~np.isnan(values)))
@@ -284,6 +291,7 @@ def plot_dem_comparison(
         or not np.isclose(g.resolution, h.resolution)
     ):
         raise ValueError(f"the maps differ in geometry: {g!r} vs {h!r}; build both on the same extent")
+    _require_cells(g)
     before = np.asarray(raw_map[layer])
     after = np.asarray(clean_map[layer])
     low, high = _colour_limits(np.concatenate([before.ravel(), after.ravel()]), layer)
@@ -345,6 +353,7 @@ def plot_terrain_classes(
     from matplotlib.colors import BoundaryNorm, ListedColormap
 
     geometry = elevation_map.geometry
+    _require_cells(geometry)
     classes = np.asarray(classes)
     size = tuple(int(v) for v in geometry.size)
     if classes.shape != size:

@@ -1,0 +1,553 @@
+"""Benchmark elevation mapping and terrain classification against a vectorised numpy version.
+
+What is measured
+----------------
+One KITTI scan (seq 00, frame 0; a float32 strided view of x, y, z, intensity rows) becomes a
+40 x 20 m map at 0.1 m (origin (-20, -10) m, 400 x 200 = 80,000 cells) with every layer of
+``terracube.build_elevation_map`` -- count, min, max, mean, std_dev and discontinuity (a gap of more
+than 1 m between a cell's sorted elevations) -- and then the terrain classes of
+``terracube.classify_terrain`` (Table 1 of the terrain-classification paper, measured from the plane
+``z = -sensor_height`` with ``sensor_height = 1.73`` m, the KITTI Velodyne's mounting height; other
+thresholds at their defaults: ground 0.2 m, std-dev 0.1 m, robot 0.7 m).
+
+The same computation is written here with numpy array operations only (:func:`numpy_elevation_map`,
+:func:`numpy_classify`): cell indices with the C++ code's float64 formula, np.bincount for count,
+sum and the two-pass variance, one np.lexsort by (cell, z) for min, max and -- with np.diff -- the
+discontinuity flag, and np.where plus shifted slices for the classes and the horizontal edges.
+
+Each step is timed with ``time.perf_counter`` (one warm-up call, then the median of ``--repeat``
+calls, in milliseconds), in one process, single-threaded (the C++ code uses no threads; numpy's
+element-wise operations, sorts and bincounts run on one core). "total" is map + classification run
+back to back. Ratios are ``numpy time / C++ time``. ``dem_without_overhangs`` (collapsible cubes,
+edge 0.5 m, sigma 5, crop ((-100, -100, -3), (100, 100, 30))) is timed too, for information.
+
+Correctness is asserted before anything is timed: count, min and max must be equal, mean and
+std_dev within 1e-5 m, discontinuity, relative height and classes equal. The same check first runs
+on small seeded random clouds (float32 and float64, points outside the map, points on cell
+borders, vertical gaps) as a self-test. The speed target (C++ total at least 15x faster than numpy)
+is reported as MET / NOT MET, never asserted.
+
+Reproduce
+---------
+    python bench/bench_elevation.py                 # full run, a few seconds
+    python bench/bench_elevation.py --quick         # every 4th point, 3 repeats
+    python bench/bench_elevation.py --markdown      # also print a Markdown table
+
+The data directory is ``--data-dir``, else ``$TERRACUBE_DATA_DIR``, else ``<repo>/../shared/data``,
+else ``/work/shared/data``. Without the KITTI file a seeded synthetic scan stands in (and says so).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import terracube as tc
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+SYNTHETIC_SEED = 20140708
+QUICK_STRIDE = 4  # --quick keeps every 4th point
+
+RESOLUTION = 0.1
+ORIGIN = (-20.0, -10.0)
+SIZE = (400, 200)
+DISCONTINUITY = 1.0
+SENSOR_HEIGHT = 1.73
+DEM_EDGE = 0.5
+DEM_SIGMA = 5
+DEM_CROP = ((-100.0, -100.0, -3.0), (100.0, 100.0, 30.0))
+TARGET_RATIO = 15.0
+PAPER_CLASSIFY_MS = 200.0
+
+LAYERS = ("count", "min", "max", "mean", "std_dev", "discontinuity")
+GROUND = int(tc.TerrainClass.GROUND)
+OBSTACLE = int(tc.TerrainClass.OBSTACLE)
+OVERHANGING = int(tc.TerrainClass.OVERHANGING_OBJECT)
+VERTICAL = int(tc.TerrainClass.VERTICAL_OBJECT)
+EDGE = int(tc.TerrainClass.HORIZONTAL_EDGE)
+
+
+# --------------------------------------------------------------------------------------------
+# The same computation in numpy
+# --------------------------------------------------------------------------------------------
+
+
+def numpy_elevation_map(
+    points: np.ndarray,
+    resolution: float = RESOLUTION,
+    origin: tuple[float, float] = ORIGIN,
+    size: tuple[int, int] = SIZE,
+    discontinuity: float = DISCONTINUITY,
+) -> dict[str, np.ndarray]:
+    """count, min, max, mean, std_dev, discontinuity as (nx, ny) float32 layers, NaN where empty.
+
+    Cell (i, j) with i = floor((x - origin_x) / res) in float64, as the C++ code (and
+    ``MapGeometry.index_of``) does; points outside the map take no part; cell = i * ny + j.
+    """
+    nx, ny = size
+    num_cells = nx * ny
+    fx = points[:, 0].astype(np.float64)
+    fx -= origin[0]
+    fx /= resolution
+    np.floor(fx, out=fx)
+    fy = points[:, 1].astype(np.float64)
+    fy -= origin[1]
+    fy /= resolution
+    np.floor(fy, out=fy)
+    inside = (fx >= 0.0) & (fy >= 0.0) & (fx < nx) & (fy < ny)
+    cell = fx[inside].astype(np.int64)
+    cell *= ny
+    cell += fy[inside].astype(np.int64)
+    z = points[inside, 2].astype(np.float64)
+
+    count = np.bincount(cell, minlength=num_cells)
+    occupied = count > 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.bincount(cell, weights=z, minlength=num_cells) / count
+        deviation = z - mean[cell]
+        deviation *= deviation
+        variance = np.bincount(cell, weights=deviation, minlength=num_cells) / count
+
+    # Sorted by cell, then elevation: each occupied cell's run starts at its offset.
+    order = np.lexsort((z, cell))
+    z_sorted = z[order]
+    cell_sorted = cell[order]
+    ends = np.cumsum(count)
+    low = np.full(num_cells, np.nan)
+    high = np.full(num_cells, np.nan)
+    low[occupied] = z_sorted[ends[occupied] - count[occupied]]
+    high[occupied] = z_sorted[ends[occupied] - 1]
+    gap = np.diff(z_sorted) > discontinuity
+    gap &= cell_sorted[1:] == cell_sorted[:-1]
+    flag = np.where(occupied, 0.0, np.nan)
+    flag[cell_sorted[1:][gap]] = 1.0
+
+    def layer(values: np.ndarray) -> np.ndarray:
+        return values.astype(np.float32).reshape(nx, ny)
+
+    return {
+        "count": layer(count),
+        "min": layer(low),
+        "max": layer(high),
+        "mean": layer(mean),
+        "std_dev": layer(np.sqrt(variance)),
+        "discontinuity": layer(flag),
+    }
+
+
+def numpy_classify(
+    layers: dict[str, np.ndarray],
+    sensor_height: float = SENSOR_HEIGHT,
+    ground_height: float = 0.2,
+    std_dev: float = 0.1,
+    robot_height: float = 0.7,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Table 1 with the sensor-height reference: (classes, relative height).
+
+    As in the C++ code the relative height is float32 (``max - float32(-sensor_height)``) and the
+    thresholds compare in float64. discontinuity -> overhanging; low and small spread -> ground;
+    high and large spread -> vertical; everything else with data -> obstacle; then ground next to
+    an obstacle, overhanging or vertical cell (8-neighbourhood) -> horizontal edge. Empty cells
+    are unknown (0).
+    """
+    relative = layers["max"] - np.float32(-sensor_height)  # NaN where empty
+    height = relative.astype(np.float64)
+    small = layers["std_dev"].astype(np.float64) < std_dev
+    low = height < ground_height
+    high = height >= robot_height
+    classes = np.where(low & small, np.uint8(GROUND), np.uint8(OBSTACLE))
+    classes[high & ~small] = VERTICAL
+    classes[layers["discontinuity"] == 1.0] = OVERHANGING
+    classes[np.isnan(relative)] = 0
+
+    # Horizontal edges: a 3 x 3 dilation of the object cells with shifted slices.
+    nx, ny = classes.shape
+    padded = np.zeros((nx + 2, ny + 2), dtype=bool)
+    padded[1:-1, 1:-1] = (classes == OBSTACLE) | (classes == OVERHANGING) | (classes == VERTICAL)
+    near = np.zeros((nx, ny), dtype=bool)
+    for di in range(3):
+        for dj in range(3):
+            near |= padded[di : di + nx, dj : dj + ny]
+    classes[(classes == GROUND) & near] = EDGE
+    return classes, relative
+
+
+def cpp_map(points: np.ndarray, params: tc.ElevationParams) -> tc.ElevationMap:
+    return tc.build_elevation_map(points, params=params)
+
+
+def cpp_classify(elevation_map: tc.ElevationMap, params: tc.TerrainParams) -> np.ndarray:
+    return tc.classify_terrain(elevation_map, params)
+
+
+def elevation_params(
+    resolution: float = RESOLUTION, origin=ORIGIN, size=SIZE, discontinuity: float = DISCONTINUITY
+) -> tc.ElevationParams:
+    return tc.ElevationParams(resolution, origin=origin, size=size, discontinuity=discontinuity)
+
+
+# --------------------------------------------------------------------------------------------
+# Checks
+# --------------------------------------------------------------------------------------------
+
+
+def _require(condition: bool, message: str) -> None:
+    """An assert that survives ``python -O``."""
+    if not condition:
+        raise AssertionError(message)
+
+
+def _first_cells(mask: np.ndarray, limit: int = 5) -> str:
+    return ", ".join(str(tuple(int(v) for v in index)) for index in np.argwhere(mask)[:limit])
+
+
+def check_agreement(
+    name: str,
+    points: np.ndarray,
+    params: tc.ElevationParams,
+    terrain: tc.TerrainParams,
+    sensor_height: float,
+) -> tuple[tc.ElevationMap, np.ndarray]:
+    """Asserts numpy == C++ on every layer and the classes; returns the C++ map and classes."""
+    cpp = cpp_map(points, params)
+    reference = numpy_elevation_map(
+        points, params.resolution, tuple(params.origin), tuple(params.size), params.discontinuity
+    )
+    for layer in LAYERS:
+        got, want = cpp[layer], reference[layer]
+        _require(
+            got.shape == want.shape, f"{name}: layer {layer} is {got.shape} in C++, {want.shape} in numpy"
+        )
+        same_nan = np.isnan(got) == np.isnan(want)
+        _require(same_nan.all(), f"{name}: {layer}: empty cells differ at {_first_cells(~same_nan)}")
+        if layer in ("mean", "std_dev"):
+            bad = np.abs(np.nan_to_num(got) - np.nan_to_num(want)) > 1e-5
+        else:
+            bad = np.nan_to_num(got, nan=-1.0) != np.nan_to_num(want, nan=-1.0)
+        _require(
+            not bad.any(),
+            f"{name}: {layer} differs on {int(bad.sum())} cells, e.g. {_first_cells(bad)}: "
+            f"C++ {got[bad][:3]} vs numpy {want[bad][:3]}",
+        )
+    classes = cpp_classify(cpp, terrain)
+    expected, relative = numpy_classify(
+        reference,
+        sensor_height,
+        terrain.ground_height,
+        terrain.std_dev,
+        terrain.robot_height,
+    )
+    bad = classes != expected
+    _require(
+        not bad.any(),
+        f"{name}: classes differ on {int(bad.sum())} cells, e.g. {_first_cells(bad)}: "
+        f"C++ {classes[bad][:5]} vs numpy {expected[bad][:5]}",
+    )
+    same_height = (cpp["relative_height"] == relative) | (
+        np.isnan(relative) & np.isnan(cpp["relative_height"])
+    )
+    _require(same_height.all(), f"{name}: relative_height differs at {_first_cells(~same_height)}")
+    class_layer = np.where(expected == 0, np.nan, expected.astype(np.float32))
+    same_layer = (cpp["class"] == class_layer) | (np.isnan(class_layer) & np.isnan(cpp["class"]))
+    _require(
+        same_layer.all(), f"{name}: the class layer differs from the classes at {_first_cells(~same_layer)}"
+    )
+    return cpp, classes
+
+
+def self_test(trials: int = 40) -> None:
+    """numpy == C++ on small seeded clouds: both dtypes, outside points, cell borders, gaps."""
+    rng = np.random.default_rng(SYNTHETIC_SEED)
+    for trial in range(trials):
+        resolution = float(rng.choice([0.1, 0.25, 0.5, 1.0]))
+        size = tuple(int(v) for v in rng.integers(1, 30, size=2))
+        origin = tuple(float(v) for v in rng.uniform(-5.0, 5.0, size=2).round(1))
+        n = int(rng.integers(0, 800))
+        extent = np.array(size) * resolution
+        xy = np.asarray(origin) + rng.uniform(-0.2, 1.2, size=(n, 2)) * extent  # some outside
+        on_border = rng.random(n) < 0.2  # exactly on cell borders
+        xy[on_border] = (
+            np.asarray(origin) + np.floor(rng.uniform(-1, 1, size=(on_border.sum(), 2)) * size) * resolution
+        )
+        z = rng.normal(0.0, 0.3, n) + np.where(rng.random(n) < 0.3, rng.uniform(0.5, 4.0, n), 0.0)
+        z[rng.random(n) < 0.1] = 0.25  # ties
+        points = np.column_stack([xy, z]).astype(np.float32 if trial % 2 else np.float64)
+        params = elevation_params(resolution, origin, size, float(rng.choice([0.3, 1.0])))
+        sensor_height = float(rng.uniform(-0.5, 0.5))
+        terrain = tc.TerrainParams(sensor_height=sensor_height)
+        check_agreement(f"self-test {trial}", points, params, terrain, sensor_height)
+    # Heights at float32(threshold): 0.7 as float32 is 0.69999999, "middle" in double, "high" in float32.
+    edge_cases = np.array(
+        [[0.05, 0.05, 0.0], [0.05, 0.05, 0.7], [0.15, 0.05, 0.2], [0.25, 0.05, 0.0], [0.25, 0.05, 0.2]],
+        dtype=np.float32,
+    )
+    params = elevation_params(0.1, (0.0, 0.0), (3, 1), 1.0)
+    check_agreement("self-test thresholds", edge_cases, params, tc.TerrainParams(), 0.0)
+
+
+# --------------------------------------------------------------------------------------------
+# Input
+# --------------------------------------------------------------------------------------------
+
+
+def default_data_dir() -> Path:
+    """$TERRACUBE_DATA_DIR, else <repo>/../shared/data, else /work/shared/data."""
+    env = os.environ.get("TERRACUBE_DATA_DIR")
+    if env:
+        return Path(env)
+    sibling = REPO_ROOT.parent / "shared" / "data"
+    return sibling if sibling.is_dir() else Path("/work/shared/data")
+
+
+def load_xyzi_bin(path: Path) -> np.ndarray:
+    """A float32 x, y, z, intensity file as a strided (N, 3) view (no copy)."""
+    return np.fromfile(path, dtype=np.float32).reshape(-1, 4)[:, :3]
+
+
+def synthetic_scan(num_points: int = 120_000, seed: int = SYNTHETIC_SEED) -> np.ndarray:
+    """A stand-in when the KITTI file is missing: ground 1.73 m below the sensor, kerbs, walls, canopy."""
+    rng = np.random.default_rng(seed)
+    radius = 3.0 + 47.0 * rng.random(num_points) ** 2  # denser near the sensor, like a spinning LiDAR
+    angle = rng.uniform(-np.pi, np.pi, num_points)
+    x, y = radius * np.cos(angle), radius * np.sin(angle)
+    z = -SENSOR_HEIGHT + rng.normal(0.0, 0.02, num_points)
+    z += np.where(np.abs(y) > 6.0, 0.15, 0.0)  # kerbs either side of a 12 m road
+    wall = np.abs(np.abs(y) - 9.0) < 0.15
+    z[wall] += rng.uniform(0.0, 3.0, wall.sum())
+    canopy = (np.abs(y) > 7.0) & (rng.random(num_points) < 0.15)
+    z[canopy] += rng.uniform(3.0, 6.0, canopy.sum())
+    return np.column_stack([x, y, z]).astype(np.float32)
+
+
+@dataclass
+class Scan:
+    name: str
+    points: np.ndarray
+    note: str = ""
+
+
+def load_scan(data_dir: Path, quick: bool) -> Scan:
+    path = data_dir / "kitti_seq00" / "velodyne" / "000000.bin"
+    if path.is_file():
+        scan = Scan("KITTI 00/000000", load_xyzi_bin(path))
+    else:
+        scan = Scan(
+            "synthetic scan", synthetic_scan(), f"{path} not found, a seeded synthetic scan stands in"
+        )
+    if quick:
+        scan.points = scan.points[::QUICK_STRIDE]
+        scan.note = "; ".join(filter(None, [scan.note, f"every {QUICK_STRIDE}th point (--quick)"]))
+    return scan
+
+
+# --------------------------------------------------------------------------------------------
+# Timing
+# --------------------------------------------------------------------------------------------
+
+
+def median_ms(fn: Callable[[], object], repeat: int) -> float:
+    fn()  # warm-up
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times) * 1e3
+
+
+@dataclass
+class Results:
+    ms: dict = field(default_factory=dict)  # step -> median ms
+    class_counts: dict = field(default_factory=dict)
+    occupied: int = 0
+    points_in_map: int = 0
+    dem_cells: str = ""
+    dem_overhang: int = 0
+
+
+def measure(scan: Scan, repeat: int) -> Results:
+    points = scan.points
+    params = elevation_params()
+    terrain = tc.TerrainParams(sensor_height=SENSOR_HEIGHT)
+    results = Results()
+    elevation_map, classes = check_agreement(scan.name, points, params, terrain, SENSOR_HEIGHT)
+    results.occupied = int(np.count_nonzero(elevation_map["count"]))
+    results.points_in_map = int(elevation_map["count"].sum())
+    results.class_counts = {c: int(np.count_nonzero(classes == c)) for c in tc.TerrainClass}
+
+    numpy_layers = numpy_elevation_map(points)
+    results.ms["cpp_map"] = median_ms(lambda: cpp_map(points, params), repeat)
+    results.ms["cpp_classify"] = median_ms(lambda: cpp_classify(elevation_map, terrain), repeat)
+    results.ms["cpp_total"] = median_ms(lambda: cpp_classify(cpp_map(points, params), terrain), repeat)
+    results.ms["numpy_map"] = median_ms(lambda: numpy_elevation_map(points), repeat)
+    results.ms["numpy_classify"] = median_ms(lambda: numpy_classify(numpy_layers), repeat)
+    results.ms["numpy_total"] = median_ms(lambda: numpy_classify(numpy_elevation_map(points)), repeat)
+
+    collapse = tc.CollapseParams(DEM_EDGE, DEM_SIGMA, crop=DEM_CROP)
+    dem_map, dem_result = tc.dem_without_overhangs(points, collapse=collapse, elevation=params)
+    results.dem_overhang = int(dem_result.num_overhang)
+    results.ms["collapse"] = median_ms(
+        lambda: tc.collapse_overhangs(points, DEM_EDGE, DEM_SIGMA, crop=DEM_CROP), repeat
+    )
+    results.ms["dem"] = median_ms(
+        lambda: tc.dem_without_overhangs(points, collapse=collapse, elevation=params), repeat
+    )
+    auto = tc.ElevationParams(RESOLUTION, discontinuity=DISCONTINUITY)
+    whole, _ = tc.dem_without_overhangs(points, collapse=collapse, elevation=auto)
+    results.dem_cells = f"{whole.geometry.size[0]} x {whole.geometry.size[1]}"
+    results.ms["dem_whole"] = median_ms(
+        lambda: tc.dem_without_overhangs(points, collapse=collapse, elevation=auto), repeat
+    )
+    return results
+
+
+# --------------------------------------------------------------------------------------------
+# Report
+# --------------------------------------------------------------------------------------------
+
+
+def cpu_model() -> str:
+    try:
+        output = subprocess.run(["lscpu"], capture_output=True, text=True, timeout=5, check=False).stdout
+    except (OSError, subprocess.SubprocessError):
+        output = ""
+    for line in output.splitlines():
+        if line.lower().startswith("model name"):
+            return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine() or "unknown"
+
+
+def print_header(args: argparse.Namespace) -> None:
+    print("terracube elevation-map and terrain-classification benchmark")
+    print(
+        f"  machine : {cpu_model()}, {os.cpu_count()} logical cores, {platform.system()} {platform.release()}"
+    )
+    print(
+        f"  software: python {platform.python_version()}, numpy {np.__version__}, terracube {tc.__version__}"
+    )
+    print(f"  date    : {datetime.datetime.now().isoformat(timespec='seconds')}")
+    print(
+        f"  map     : {SIZE[0] * RESOLUTION:g} x {SIZE[1] * RESOLUTION:g} m at {RESOLUTION} m, "
+        f"origin {ORIGIN}, {SIZE[0]} x {SIZE[1]} = {SIZE[0] * SIZE[1]:,} cells; "
+        f"discontinuity gap > {DISCONTINUITY} m"
+    )
+    print(f"  classes : Table 1, sensor_height = {SENSOR_HEIGHT} m; ground 0.2 m, std-dev 0.1 m, robot 0.7 m")
+    print(f"  timing  : single-threaded, median of {args.repeat} runs after 1 warm-up, milliseconds;")
+    print("            ratio = numpy time / C++ time")
+    print(f"  data    : {args.data_dir}{'  (--quick: every 4th point)' if args.quick else ''}")
+
+
+ROWS = (
+    ("map", "build_elevation_map (6 layers)", "cpp_map", "numpy_map"),
+    ("classify", "classify_terrain", "cpp_classify", "numpy_classify"),
+    ("total", "map + classify", "cpp_total", "numpy_total"),
+)
+
+
+def print_results(scan: Scan, results: Results, quick: bool) -> None:
+    points = scan.points
+    layout = "contiguous" if points.flags.c_contiguous else "strided"
+    note = f"  ({scan.note})" if scan.note else ""
+    print(f"\n{scan.name}: N = {len(points):,} points ({points.dtype}, {layout}){note}")
+    print(
+        f"  {results.points_in_map:,} points fall in the map; {results.occupied:,} of {SIZE[0] * SIZE[1]:,} "
+        "cells hold data"
+    )
+    counts = ", ".join(f"{c.name.lower()} {n:,}" for c, n in results.class_counts.items())
+    print(f"  classes: {counts}")
+    print(
+        "  checks: count/min/max equal, mean/std_dev within 1e-5 m, discontinuity, relative_height and "
+        "classes equal: OK"
+    )
+    print(f"\n  {'step':<32} {'C++ ms':>9} {'numpy ms':>10} {'numpy/C++':>10}")
+    ms = results.ms
+    for _, label, cpp, numpy in ROWS:
+        print(f"  {label:<32} {ms[cpp]:>9.2f} {ms[numpy]:>10.2f} {ms[numpy] / ms[cpp]:>9.1f}x")
+
+    print("\n  for information (C++ only):")
+    extras = (
+        ("collapse_overhangs", ms["collapse"]),
+        (f"dem_without_overhangs, same {SIZE[0]} x {SIZE[1]} map", ms["dem"]),
+        (f"dem_without_overhangs, whole crop ({results.dem_cells} cells)", ms["dem_whole"]),
+    )
+    for label, value in extras:
+        print(f"  {label:<58} {value:>9.2f} ms")
+    print(
+        f"    (edge {DEM_EDGE} m, sigma {DEM_SIGMA}, crop {DEM_CROP}: "
+        f"{results.dem_overhang:,} points are overhang)"
+    )
+
+    ratio = ms["numpy_total"] / ms["cpp_total"]
+    verdict = "MET" if ratio >= TARGET_RATIO else "NOT MET"
+    print("\nTarget (reported, not asserted):")
+    quick_note = " (--quick: smaller input)" if quick else ""
+    print(f"  C++ total at least {TARGET_RATIO:g}x faster than numpy: {verdict} ({ratio:.1f}x){quick_note}")
+    print(
+        f"  reference: the terrain-classification paper reports about {PAPER_CLASSIFY_MS:.0f} ms for "
+        f"classification alone; C++ classify here {ms['cpp_classify']:.2f} ms"
+    )
+
+
+def print_markdown(scan: Scan, results: Results) -> None:
+    ms = results.ms
+    print(f"\n{scan.name}, N = {len(scan.points):,}, {SIZE[0]} x {SIZE[1]} cells at {RESOLUTION} m\n")
+    print("| step | C++ ms | numpy ms | numpy / C++ |")
+    print("|---|---:|---:|---:|")
+    for _, label, cpp, numpy in ROWS:
+        print(f"| {label} | {ms[cpp]:.2f} | {ms[numpy]:.2f} | {ms[numpy] / ms[cpp]:.1f}x |")
+    print(f"| dem_without_overhangs (same map) | {ms['dem']:.2f} | | |")
+
+
+# --------------------------------------------------------------------------------------------
+# Main
+# --------------------------------------------------------------------------------------------
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument(
+        "--repeat", type=int, default=None, help="timed runs per step (default 7, 3 with --quick)"
+    )
+    parser.add_argument("--quick", action="store_true", help="smoke run on every 4th point")
+    parser.add_argument(
+        "--data-dir",
+        type=Path,
+        default=None,
+        help="data folder (default $TERRACUBE_DATA_DIR, <repo>/../shared/data, /work/shared/data)",
+    )
+    parser.add_argument("--markdown", action="store_true", help="also print a Markdown table")
+    args = parser.parse_args(argv)
+    if args.repeat is None:
+        args.repeat = 3 if args.quick else 7
+    if args.repeat < 1:
+        parser.error("--repeat must be at least 1")
+    if args.data_dir is None:
+        args.data_dir = default_data_dir()
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    print_header(args)
+    self_test(trials=10 if args.quick else 40)
+    print("  self-test: numpy == C++ (layers and classes) on seeded random clouds: OK")
+    scan = load_scan(args.data_dir, args.quick)
+    results = measure(scan, args.repeat)
+    print_results(scan, results, args.quick)
+    if args.markdown:
+        print_markdown(scan, results)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
