@@ -299,11 +299,32 @@ OverhangFreeMap overhang_free_impl(const PointsView<Scalar>& points, const Colla
   const ElevationMap overhangs = build_impl(points, params, &out.collapse.overhang);
   const Layer& lowest_overhang = overhangs.get("min");
   const Layer& top = out.map.get("max");
-  Layer clearance = Layer::Constant(top.rows(), top.cols(), std::numeric_limits<float>::quiet_NaN());
+  // The ground under an overhang: the highest kept point below the cell's lowest overhang point.
+  // (A map cell can straddle two cube columns, so a kept wall may rise above an overhang that its
+  // neighbouring column collapsed; measuring from it would give a negative clearance.)
+  constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+  Layer under = Layer::Constant(top.rows(), top.cols(), kNaN);
+  const MapGeometry& geometry = out.map.geometry();
+  detail::visit_leveled(points, params.transform, params.crop, [&](const auto& cloud) {
+    Eigen::Vector3d p;
+    for (std::size_t row = 0; row < cloud.size(); ++row) {
+      if (!kept[row] || cloud.map(row, p) != 0) continue;
+      const auto index = geometry.index_of(p.head<2>());
+      if (!index) continue;
+      const float overhang = lowest_overhang(index->x(), index->y());
+      if (std::isnan(overhang) || !(p.z() < overhang)) continue;
+      float& highest = under(index->x(), index->y());
+      if (std::isnan(highest) || p.z() > highest) highest = static_cast<float>(p.z());
+    }
+  });
+  Layer clearance = Layer::Constant(top.rows(), top.cols(), kNaN);
   for (Eigen::Index k = 0; k < top.size(); ++k) {
-    if (std::isnan(top.data()[k])) continue;
-    clearance.data()[k] = std::isnan(lowest_overhang.data()[k]) ? std::numeric_limits<float>::infinity()
-                                                                : lowest_overhang.data()[k] - top.data()[k];
+    if (std::isnan(top.data()[k])) continue;  // no kept point: unknown
+    if (std::isnan(lowest_overhang.data()[k])) {
+      clearance.data()[k] = std::numeric_limits<float>::infinity();
+    } else if (!std::isnan(under.data()[k])) {
+      clearance.data()[k] = lowest_overhang.data()[k] - under.data()[k];
+    }
   }
   out.map.add("overhang_min", lowest_overhang);
   out.map.add("clearance", std::move(clearance));

@@ -809,10 +809,22 @@ TEST(OverhangFreeMap, LayersAreTheElevationMapOfTheKeptPointsOnTheSameGeometry) 
     }
     int finite = 0, infinite = 0;
     for (const auto& [cell, z] : kept_cells) {
-      const float top = static_cast<float>(*std::max_element(z.begin(), z.end()));
       const float lowest_overhang = overhang_min(cell.first, cell.second);
-      clearance(cell.first, cell.second) = std::isnan(lowest_overhang) ? kInf : lowest_overhang - top;
-      ++(std::isnan(lowest_overhang) ? infinite : finite);
+      if (std::isnan(lowest_overhang)) {
+        clearance(cell.first, cell.second) = kInf;
+        ++infinite;
+        continue;
+      }
+      // The ground under the overhang: the highest kept point below the lowest overhang point.
+      double under = -std::numeric_limits<double>::infinity();
+      for (const double height : z) {
+        if (height < lowest_overhang) under = std::max(under, height);
+      }
+      if (std::isfinite(under)) {
+        clearance(cell.first, cell.second) = lowest_overhang - static_cast<float>(under);
+        EXPECT_GT(clearance(cell.first, cell.second), 0.0F);
+        ++finite;
+      }
     }
     EXPECT_GT(finite, 0);
     EXPECT_GT(infinite, 0);
@@ -820,6 +832,24 @@ TEST(OverhangFreeMap, LayersAreTheElevationMapOfTheKeptPointsOnTheSameGeometry) 
     expect_same_layer(result.map.get("clearance"), clearance, "clearance");
     expect_same_layer(result.map.get("step"), step_layer(result.map.get("max")), "step");
   }
+}
+
+TEST(OverhangFreeMap, ClearanceIsNeverNegativeWhenAMapCellStraddlesTwoCubeColumns) {
+  // One 1 m map cell over two 0.5 m cube columns: column A has ground at 0 and a collapsed canopy
+  // at 3; column B is a wall from 0 to 3.5 (kept). The free height under the canopy is measured
+  // from the highest kept point below it (the wall at 2.75), not from the wall's top (3.5).
+  std::vector<Eigen::Vector3d> points = {{0.0, 0.0, 0.0}, {0.0, 0.0, 3.0}};
+  for (int k = 0; k <= 14; ++k) points.emplace_back(0.6, 0.0, 0.25 * k);
+  CollapseParams collapse;
+  collapse.edge_m = 0.5;
+  collapse.sigma = 2;
+  ElevationParams elevation;
+  elevation.resolution_m = 1.0;
+  const OverhangFreeMap result = build_overhang_free_map(PointsView<double>(points), collapse, elevation);
+  ASSERT_EQ(result.collapse.num_overhang, 1U);
+  ASSERT_EQ(result.map.geometry().size.x(), 1);
+  EXPECT_FLOAT_EQ(result.map.get("max")(0, 0), 3.5F);
+  EXPECT_FLOAT_EQ(result.map.get("clearance")(0, 0), 0.25F);
 }
 
 TEST(OverhangFreeMap, GroundAndCanopyInOneCellGiveTheirVerticalDistanceAsClearance) {

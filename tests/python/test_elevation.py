@@ -499,14 +499,26 @@ def reference_step(height: np.ndarray) -> np.ndarray:
     return np.where(np.isnan(height), np.float32(np.nan), largest).astype(np.float32)
 
 
-def assert_clearance_and_step(elevation_map: tc.ElevationMap, overhang_min: np.ndarray) -> None:
+def assert_clearance_and_step(elevation_map: tc.ElevationMap, overhang_min: np.ndarray, kept_xyz) -> None:
+    """clearance = lowest overhang point - highest kept point below it (NaN when none is below),
+    +inf where a cell with kept points has no overhang, NaN where it has no kept point."""
     top = elevation_map["max"]
     np.testing.assert_array_equal(elevation_map["overhang_min"], overhang_min)
+    g = elevation_map.geometry
+    kept_xyz = np.asarray(kept_xyz, dtype=np.float64)
+    i = np.floor((kept_xyz[:, 0] - g.origin[0]) / g.resolution).astype(np.int64)
+    j = np.floor((kept_xyz[:, 1] - g.origin[1]) / g.resolution).astype(np.int64)
+    inside = (i >= 0) & (j >= 0) & (i < g.size[0]) & (j < g.size[1])
+    i, j, z = i[inside], j[inside], kept_xyz[inside, 2]
+    below = z < overhang_min[i, j]  # False where there is no overhang (NaN)
+    under = np.full(top.shape, -np.inf)
+    np.maximum.at(under, (i[below], j[below]), z[below])
     kept = ~np.isnan(top)
-    both = kept & ~np.isnan(overhang_min)
     expected = np.full(top.shape, np.nan, dtype=np.float32)
-    expected[kept] = np.inf
-    expected[both] = overhang_min[both] - top[both]
+    expected[kept & np.isnan(overhang_min)] = np.inf
+    has_under = kept & ~np.isnan(overhang_min) & np.isfinite(under)
+    expected[has_under] = overhang_min[has_under] - under[has_under].astype(np.float32)
+    assert np.all(expected[has_under] > 0)
     np.testing.assert_array_equal(elevation_map["clearance"], expected)
     np.testing.assert_array_equal(elevation_map["step"], reference_step(top))
 
@@ -525,7 +537,7 @@ def test_dem_without_overhangs_is_the_map_of_the_kept_points_on_the_geometry_of_
     reference = reference_layers(cloud, 0.25, g.origin, g.size, use=~result.overhang)
     assert_layers_match(elevation_map, reference)
     overhangs = reference_layers(cloud, 0.25, g.origin, g.size, use=result.overhang)
-    assert_clearance_and_step(elevation_map, overhangs.min.astype(np.float32))
+    assert_clearance_and_step(elevation_map, overhangs.min.astype(np.float32), cloud[~result.overhang])
     clearance = elevation_map["clearance"]
     assert np.isfinite(clearance).any() and np.isposinf(clearance).any()
 
@@ -559,7 +571,10 @@ def test_dem_without_overhangs_uses_the_collapse_transform_and_crop():
     kept = same_frame(~result.overhang)
     for name in LAYERS:
         np.testing.assert_array_equal(elevation_map[name], kept[name], err_msg=name)
-    assert_clearance_and_step(elevation_map, same_frame(result.overhang)["min"])
+    leveled = cloud[~result.overhang] @ np.asarray(transform)[:3, :3].T + np.asarray(transform)[:3, 3]
+    box = np.asarray(crop, dtype=np.float64)
+    leveled = leveled[np.all((leveled >= box[0]) & (leveled <= box[1]), axis=1)]
+    assert_clearance_and_step(elevation_map, same_frame(result.overhang)["min"], leveled)
 
 
 def test_dem_without_overhangs_keeps_a_fixed_extent():
@@ -571,7 +586,7 @@ def test_dem_without_overhangs_keeps_a_fixed_extent():
     reference = reference_layers(cloud, 0.5, (2.0, 2.0), (10, 6), use=~result.overhang)
     assert_layers_match(elevation_map, reference)
     overhangs = reference_layers(cloud, 0.5, (2.0, 2.0), (10, 6), use=result.overhang)
-    assert_clearance_and_step(elevation_map, overhangs.min.astype(np.float32))
+    assert_clearance_and_step(elevation_map, overhangs.min.astype(np.float32), cloud[~result.overhang])
 
 
 def test_dem_without_overhangs_hand_built_clearance_is_exact():
@@ -631,7 +646,7 @@ def test_dem_without_overhangs_on_kitti_frame0_matches_the_map_of_kept_points(sh
     reference = reference_layers(xyz, 0.2, (-30.0, -30.0), (300, 300), use=keep & in_crop)
     assert_layers_match(elevation_map, reference)
     overhangs = reference_layers(xyz, 0.2, (-30.0, -30.0), (300, 300), use=result.overhang & in_crop)
-    assert_clearance_and_step(elevation_map, overhangs.min.astype(np.float32))
+    assert_clearance_and_step(elevation_map, overhangs.min.astype(np.float32), xyz[keep & in_crop])
 
 
 # --------------------------------------------------------------------------------------------

@@ -94,8 +94,9 @@ ElevationMap build_elevation_map(const PointsView<double>& points, const Elevati
 
 /// The collapsible-cubes paper's "DEM without overhangs" plus planner layers:
 /// collapse_overhangs, then build_elevation_map from the points it kept, then
-///  - "clearance": from the top of the kept points to the lowest overhang point above them [m],
-///    +inf where the cell has no overhang, NaN where it has no kept point;
+///  - "clearance": from the highest kept point below the cell's lowest overhang point up to that
+///    point [m] (the free height under the overhang, never negative), +inf where the cell has no
+///    overhang, NaN where it has no kept point (or none below the overhang);
 ///  - "step": the largest |max - max of a neighbour| over the 8 neighbours with data [m].
 /// The map is built in collapse's frame: its transform and crop replace elevation's. Build the raw
 /// DEM with the same ElevationParams (and that transform and crop) to compare.
