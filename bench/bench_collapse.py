@@ -41,23 +41,27 @@ else ``/work/shared/data``.
 from __future__ import annotations
 
 import argparse
-import datetime
-import os
-import platform
-import statistics
-import subprocess
 import sys
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import terracube as tc
-
-REPO_ROOT = Path(__file__).resolve().parent.parent
-SYNTHETIC_SEED = 20140708
-
+from _common import (
+    QUICK_STRIDE,
+    SYNTHETIC_SEED,
+    describe_points,
+    header_line,
+    load_xyzi_bin,
+    markdown_row,
+    markdown_rule,
+    median_ms,
+    parse_benchmark_args,
+    print_header,
+    print_target,
+    require,
+)
 
 # --------------------------------------------------------------------------------------------
 # Algorithm 1 in numpy
@@ -191,14 +195,14 @@ def self_test(trials: int = 60) -> None:
         occupied = np.unique(cubes.per_point)
         expected = reference_removed(occupied, cubes.num_columns, sigma)
         got = occupied[collapsed_among_sorted(occupied, cubes.num_columns, sigma)]
-        _require(np.array_equal(got, expected), f"self-test {trial}: prefix rule != literal loop")
+        require(np.array_equal(got, expected), f"self-test {trial}: prefix rule != literal loop")
         for dense in (True, False):
             _, removed, mask = numpy_collapse_cubes(points, edge, sigma, dense)
-            _require(np.array_equal(removed, expected), f"self-test {trial}: numpy R differs ({dense=})")
-            _require(np.array_equal(mask, np.isin(cubes.per_point, expected)), f"self-test {trial}: mask")
+            require(np.array_equal(removed, expected), f"self-test {trial}: numpy R differs ({dense=})")
+            require(np.array_equal(mask, np.isin(cubes.per_point, expected)), f"self-test {trial}: mask")
         result = tc.collapse_overhangs(points, edge, sigma)
-        _require(np.array_equal(result.removed_cubes, expected), f"self-test {trial}: C++ R differs")
-        _require(np.array_equal(result.overhang, mask), f"self-test {trial}: C++ mask differs")
+        require(np.array_equal(result.removed_cubes, expected), f"self-test {trial}: C++ R differs")
+        require(np.array_equal(result.overhang, mask), f"self-test {trial}: C++ mask differs")
     _check_sparse_path()
 
 
@@ -208,17 +212,11 @@ def _check_sparse_path() -> None:
     points = rng.uniform(0.0, 1.0, size=(2000, 3)) * np.array([4000.0, 4000.0, 10.0])
     points[:200] = rng.uniform(0.0, 3.0, size=(200, 3))  # a dense corner with real columns
     cubes = cube_indices(points, 0.5)
-    _require(not _use_dense(cubes), "sparse self-test must exercise the np.unique path")
+    require(not _use_dense(cubes), "sparse self-test must exercise the np.unique path")
     _, removed, mask = numpy_collapse_cubes(points, 0.5, 2)
     result = tc.collapse_overhangs(points, 0.5, 2)
-    _require(np.array_equal(removed, result.removed_cubes), "sparse self-test: R differs from C++")
-    _require(np.array_equal(mask, result.overhang), "sparse self-test: mask differs from C++")
-
-
-def _require(condition: bool, message: str) -> None:
-    """An assertion that survives ``python -O``."""
-    if not condition:
-        raise AssertionError(message)
+    require(np.array_equal(removed, result.removed_cubes), "sparse self-test: R differs from C++")
+    require(np.array_equal(mask, result.overhang), "sparse self-test: mask differs from C++")
 
 
 # --------------------------------------------------------------------------------------------
@@ -231,23 +229,6 @@ class Cloud:
     name: str
     points: np.ndarray | None  # None when the file is missing
     note: str = ""
-
-
-def default_data_dir() -> Path:
-    """$TERRACUBE_DATA_DIR, else <repo>/../shared/data, else /work/shared/data."""
-    env = os.environ.get("TERRACUBE_DATA_DIR")
-    if env:
-        return Path(env)
-    sibling = REPO_ROOT.parent / "shared" / "data"
-    return sibling if sibling.is_dir() else Path("/work/shared/data")
-
-
-QUICK_STRIDE = 4  # --quick keeps every 4th point of the files
-
-
-def load_xyzi_bin(path: Path) -> np.ndarray:
-    """A float32 x, y, z, intensity file as a strided (N, 3) view (no copy)."""
-    return np.fromfile(path, dtype=np.float32).reshape(-1, 4)[:, :3]
 
 
 def load_npz_xyz(path: Path) -> np.ndarray:
@@ -332,16 +313,6 @@ class Measurement:
     overhang_fraction: float = float("nan")
 
 
-def median_ms(fn: Callable[[], object], repeat: int) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times) * 1e3
-
-
 MAX_CHECKED_DENSE_CUBES = 1 << 28  # the check runs the dense numpy path too while it fits in 256 MB
 
 
@@ -354,8 +325,8 @@ def check_agreement(cloud: Cloud, edge: float, sigma: int, measurement: Measurem
     for dense in (True, False) if affordable else (False,):
         name = f"{cloud.name} (numpy {'dense' if dense else 'np.unique'} path)"
         occupied, removed, mask = numpy_collapse_cubes(points, edge, sigma, dense)
-        _require(np.array_equal(occupied, result.occupied_cubes), f"{name}: numpy L != C++ occupied_cubes")
-        _require(np.array_equal(removed, result.removed_cubes), f"{name}: numpy R != C++ removed_cubes")
+        require(np.array_equal(occupied, result.occupied_cubes), f"{name}: numpy L != C++ occupied_cubes")
+        require(np.array_equal(removed, result.removed_cubes), f"{name}: numpy R != C++ removed_cubes")
         _require_same_mask(name, "numpy", mask, result.overhang)
     try:
         octomap = tc.octomap_column_overhangs(points, edge, sigma)
@@ -401,33 +372,19 @@ def measure(cloud: Cloud, edge: float, sigma: int, repeat: int) -> Measurement:
 # --------------------------------------------------------------------------------------------
 
 
-def cpu_model() -> str:
-    try:
-        output = subprocess.run(["lscpu"], capture_output=True, text=True, timeout=5, check=False).stdout
-    except (OSError, subprocess.SubprocessError):
-        output = ""
-    for line in output.splitlines():
-        if line.lower().startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor() or platform.machine() or "unknown"
-
-
-def print_header(args: argparse.Namespace) -> None:
-    print("terracube overhang-removal benchmark")
-    print(
-        f"  machine : {cpu_model()}, {os.cpu_count()} logical cores, {platform.system()} {platform.release()}"
+def print_collapse_header(args: argparse.Namespace) -> None:
+    params = header_line(
+        "params",
+        f"edge={args.edge} m, sigma={args.sigma} cubes; point_gap cell={args.edge} m, "
+        f"min_gap={args.sigma * args.edge} m",
     )
-    print(
-        f"  software: python {platform.python_version()}, numpy {np.__version__}, terracube {tc.__version__}"
+    print_header(
+        "terracube overhang-removal benchmark",
+        [params],
+        "method time / collapse_overhangs time",
+        args,
+        "smaller inputs",
     )
-    print(f"  date    : {datetime.datetime.now().isoformat(timespec='seconds')}")
-    print(
-        f"  params  : edge={args.edge} m, sigma={args.sigma} cubes; point_gap cell={args.edge} m, "
-        f"min_gap={args.sigma * args.edge} m"
-    )
-    print(f"  timing  : single-threaded, median of {args.repeat} runs after 1 warm-up, milliseconds;")
-    print("            ratio = method time / collapse_overhangs time")
-    print(f"  data    : {args.data_dir}{'  (--quick: smaller inputs)' if args.quick else ''}")
 
 
 def _cell(measurement: Measurement, method: str) -> tuple[str, str]:
@@ -448,9 +405,8 @@ LABELS = {
 
 def print_measurement(measurement: Measurement) -> None:
     cloud = measurement.cloud
-    layout = "contiguous" if cloud.points.flags.c_contiguous else "strided"
     note = f"  {cloud.note}" if cloud.note else ""
-    print(f"\n{cloud.name}: N = {len(cloud.points):,} points ({cloud.points.dtype}, {layout}){note}")
+    print(f"\n{cloud.name}: {describe_points(cloud.points)}{note}")
     print(f"  {'method':<30} {'ms':>10} {'ratio':>9}")
     for method in METHODS:
         ms, ratio = _cell(measurement, method)
@@ -473,38 +429,26 @@ def print_targets(measurements: list[Measurement], quick: bool) -> None:
     numpy_ratios = [m.ms["numpy"] / m.ms["collapse"] for m in measurements]
     octomap_ratios = [m.ms["octomap"] / m.ms["collapse"] for m in measurements if m.ms.get("octomap")]
     unique_ratios = [m.ms["numpy_unique"] / m.ms["collapse"] for m in measurements]
-    _print_target("collapse vs numpy  >= 20x on every input", numpy_ratios, lambda r: r >= 20.0, "x")
-    _print_target("  (same vs the np.unique path only)", unique_ratios, lambda r: r >= 20.0, "x")
-    _print_target("collapse vs OctoMap >= 10x on every input", octomap_ratios, lambda r: r >= 10.0, "x")
+    print_target("collapse vs numpy  >= 20x on every input", numpy_ratios, lambda r: r >= 20.0, "x")
+    print_target("  (same vs the np.unique path only)", unique_ratios, lambda r: r >= 20.0, "x")
+    print_target("collapse vs OctoMap >= 10x on every input", octomap_ratios, lambda r: r >= 10.0, "x")
     synthetic = [m for m in measurements if m.cloud.name.startswith("synthetic")]
     label = "collapse <= 3 ms on the 500k synthetic cloud"
     if quick:
         print(f"  {label}: not measured (--quick uses 50k points)")
     else:
-        _print_target(label, [m.ms["collapse"] for m in synthetic], lambda t: t <= 3.0, " ms")
-
-
-def _print_target(label: str, values: list[float], ok: Callable[[float], bool], unit: str) -> None:
-    if not values:
-        print(f"  {label}: n/a")
-        return
-    verdict = "MET" if all(ok(v) for v in values) else "NOT MET"
-    shown = ", ".join(f"{v:.1f}{unit}" for v in values)
-    print(f"  {label}: {verdict} ({shown})")
+        print_target(label, [m.ms["collapse"] for m in synthetic], lambda t: t <= 3.0, " ms")
 
 
 def print_markdown(measurements: list[Measurement]) -> None:
     heads = ["point_gap", "OctoMap", "numpy", "numpy (np.unique)"]
-    print(
-        "\n| input | N | collapse ms | "
-        + " | ".join(f"{h} ms (ratio)" for h in heads)
-        + " | point_gap agreement |"
-    )
-    print("|---|---:|---:|" + "---:|" * len(heads) + "---:|")
+    columns = ["input", "N", "collapse ms", *(f"{h} ms (ratio)" for h in heads), "point_gap agreement"]
+    print("\n" + markdown_row(columns))
+    print(markdown_rule(len(columns) - 1))
     for m in measurements:
         cells = [f"{ms} ({ratio})" if ms != "n/a" else ms for ms, ratio in (_cell(m, x) for x in METHODS[1:])]
         row = [m.cloud.name, f"{len(m.cloud.points):,}", f"{m.ms['collapse']:.2f}", *cells]
-        print("| " + " | ".join(row) + f" | {m.point_gap_agreement:.2%} |")
+        print(markdown_row([*row, f"{m.point_gap_agreement:.2%}"]))
 
 
 # --------------------------------------------------------------------------------------------
@@ -512,34 +456,25 @@ def print_markdown(measurements: list[Measurement]) -> None:
 # --------------------------------------------------------------------------------------------
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument(
-        "--repeat", type=int, default=None, help="timed runs per method (default 7, 3 with --quick)"
-    )
-    parser.add_argument("--quick", action="store_true", help="smoke run on smaller inputs")
-    parser.add_argument(
-        "--data-dir",
-        type=Path,
-        default=None,
-        help="data folder (default $TERRACUBE_DATA_DIR, <repo>/../shared/data, /work/shared/data)",
-    )
+def _add_collapse_arguments(parser: argparse.ArgumentParser) -> None:
+    """--edge and --sigma (shown between --data-dir and --markdown)."""
     parser.add_argument("--edge", type=float, default=0.5, help="cube edge E in metres (default 0.5)")
     parser.add_argument("--sigma", type=int, default=2, help="sigma in cubes (default 2)")
-    parser.add_argument("--markdown", action="store_true", help="also print a Markdown table")
-    args = parser.parse_args(argv)
-    if args.repeat is None:
-        args.repeat = 3 if args.quick else 7
-    if args.repeat < 1:
-        parser.error("--repeat must be at least 1")
-    if args.data_dir is None:
-        args.data_dir = default_data_dir()
-    return args
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    return parse_benchmark_args(
+        __doc__.split("\n\n")[0],
+        argv,
+        repeat_unit="method",
+        quick_help="smoke run on smaller inputs",
+        add_arguments=_add_collapse_arguments,
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    print_header(args)
+    print_collapse_header(args)
     self_test(trials=20 if args.quick else 60)
     print("  self-test: vectorised column rule == literal Algorithm 1 loop == collapse_overhangs: OK")
     measurements = []

@@ -40,23 +40,26 @@ else ``/work/shared/data``. Without the KITTI file a seeded synthetic scan stand
 from __future__ import annotations
 
 import argparse
-import datetime
-import os
-import platform
-import statistics
-import subprocess
 import sys
-import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import terracube as tc
-
-REPO_ROOT = Path(__file__).resolve().parent.parent
-SYNTHETIC_SEED = 20140708
-QUICK_STRIDE = 4  # --quick keeps every 4th point
+from _common import (
+    QUICK_STRIDE,
+    SYNTHETIC_SEED,
+    describe_points,
+    header_line,
+    load_xyzi_bin,
+    markdown_row,
+    markdown_rule,
+    median_ms,
+    parse_benchmark_args,
+    print_header,
+    print_target,
+    require,
+)
 
 RESOLUTION = 0.1
 ORIGIN = (-20.0, -10.0)
@@ -201,12 +204,6 @@ def elevation_params(
 # --------------------------------------------------------------------------------------------
 
 
-def _require(condition: bool, message: str) -> None:
-    """An assert that survives ``python -O``."""
-    if not condition:
-        raise AssertionError(message)
-
-
 def _first_cells(mask: np.ndarray, limit: int = 5) -> str:
     return ", ".join(str(tuple(int(v) for v in index)) for index in np.argwhere(mask)[:limit])
 
@@ -225,16 +222,16 @@ def check_agreement(
     )
     for layer in LAYERS:
         got, want = cpp[layer], reference[layer]
-        _require(
+        require(
             got.shape == want.shape, f"{name}: layer {layer} is {got.shape} in C++, {want.shape} in numpy"
         )
         same_nan = np.isnan(got) == np.isnan(want)
-        _require(same_nan.all(), f"{name}: {layer}: empty cells differ at {_first_cells(~same_nan)}")
+        require(same_nan.all(), f"{name}: {layer}: empty cells differ at {_first_cells(~same_nan)}")
         if layer in ("mean", "std_dev"):
             bad = np.abs(np.nan_to_num(got) - np.nan_to_num(want)) > 1e-5
         else:
             bad = np.nan_to_num(got, nan=-1.0) != np.nan_to_num(want, nan=-1.0)
-        _require(
+        require(
             not bad.any(),
             f"{name}: {layer} differs on {int(bad.sum())} cells, e.g. {_first_cells(bad)}: "
             f"C++ {got[bad][:3]} vs numpy {want[bad][:3]}",
@@ -248,7 +245,7 @@ def check_agreement(
         terrain.robot_height,
     )
     bad = classes != expected
-    _require(
+    require(
         not bad.any(),
         f"{name}: classes differ on {int(bad.sum())} cells, e.g. {_first_cells(bad)}: "
         f"C++ {classes[bad][:5]} vs numpy {expected[bad][:5]}",
@@ -256,10 +253,10 @@ def check_agreement(
     same_height = (cpp["relative_height"] == relative) | (
         np.isnan(relative) & np.isnan(cpp["relative_height"])
     )
-    _require(same_height.all(), f"{name}: relative_height differs at {_first_cells(~same_height)}")
+    require(same_height.all(), f"{name}: relative_height differs at {_first_cells(~same_height)}")
     class_layer = np.where(expected == 0, np.nan, expected.astype(np.float32))
     same_layer = (cpp["class"] == class_layer) | (np.isnan(class_layer) & np.isnan(cpp["class"]))
-    _require(
+    require(
         same_layer.all(), f"{name}: the class layer differs from the classes at {_first_cells(~same_layer)}"
     )
     return cpp, classes
@@ -298,20 +295,6 @@ def self_test(trials: int = 40) -> None:
 # --------------------------------------------------------------------------------------------
 # Input
 # --------------------------------------------------------------------------------------------
-
-
-def default_data_dir() -> Path:
-    """$TERRACUBE_DATA_DIR, else <repo>/../shared/data, else /work/shared/data."""
-    env = os.environ.get("TERRACUBE_DATA_DIR")
-    if env:
-        return Path(env)
-    sibling = REPO_ROOT.parent / "shared" / "data"
-    return sibling if sibling.is_dir() else Path("/work/shared/data")
-
-
-def load_xyzi_bin(path: Path) -> np.ndarray:
-    """A float32 x, y, z, intensity file as a strided (N, 3) view (no copy)."""
-    return np.fromfile(path, dtype=np.float32).reshape(-1, 4)[:, :3]
 
 
 def synthetic_scan(num_points: int = 120_000, seed: int = SYNTHETIC_SEED) -> np.ndarray:
@@ -353,16 +336,6 @@ def load_scan(data_dir: Path, quick: bool) -> Scan:
 # --------------------------------------------------------------------------------------------
 # Timing
 # --------------------------------------------------------------------------------------------
-
-
-def median_ms(fn: Callable[[], object], repeat: int) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times) * 1e3
 
 
 @dataclass
@@ -416,35 +389,25 @@ def measure(scan: Scan, repeat: int) -> Results:
 # --------------------------------------------------------------------------------------------
 
 
-def cpu_model() -> str:
-    try:
-        output = subprocess.run(["lscpu"], capture_output=True, text=True, timeout=5, check=False).stdout
-    except (OSError, subprocess.SubprocessError):
-        output = ""
-    for line in output.splitlines():
-        if line.lower().startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor() or platform.machine() or "unknown"
-
-
-def print_header(args: argparse.Namespace) -> None:
-    print("terracube elevation-map and terrain-classification benchmark")
-    print(
-        f"  machine : {cpu_model()}, {os.cpu_count()} logical cores, {platform.system()} {platform.release()}"
+def print_elevation_header(args: argparse.Namespace) -> None:
+    details = [
+        header_line(
+            "map",
+            f"{SIZE[0] * RESOLUTION:g} x {SIZE[1] * RESOLUTION:g} m at {RESOLUTION} m, "
+            f"origin {ORIGIN}, {SIZE[0]} x {SIZE[1]} = {SIZE[0] * SIZE[1]:,} cells; "
+            f"discontinuity gap > {DISCONTINUITY} m",
+        ),
+        header_line(
+            "classes", f"Table 1, sensor_height = {SENSOR_HEIGHT} m; ground 0.2 m, std-dev 0.1 m, robot 0.7 m"
+        ),
+    ]
+    print_header(
+        "terracube elevation-map and terrain-classification benchmark",
+        details,
+        "numpy time / C++ time",
+        args,
+        "every 4th point",
     )
-    print(
-        f"  software: python {platform.python_version()}, numpy {np.__version__}, terracube {tc.__version__}"
-    )
-    print(f"  date    : {datetime.datetime.now().isoformat(timespec='seconds')}")
-    print(
-        f"  map     : {SIZE[0] * RESOLUTION:g} x {SIZE[1] * RESOLUTION:g} m at {RESOLUTION} m, "
-        f"origin {ORIGIN}, {SIZE[0]} x {SIZE[1]} = {SIZE[0] * SIZE[1]:,} cells; "
-        f"discontinuity gap > {DISCONTINUITY} m"
-    )
-    print(f"  classes : Table 1, sensor_height = {SENSOR_HEIGHT} m; ground 0.2 m, std-dev 0.1 m, robot 0.7 m")
-    print(f"  timing  : single-threaded, median of {args.repeat} runs after 1 warm-up, milliseconds;")
-    print("            ratio = numpy time / C++ time")
-    print(f"  data    : {args.data_dir}{'  (--quick: every 4th point)' if args.quick else ''}")
 
 
 ROWS = (
@@ -455,10 +418,8 @@ ROWS = (
 
 
 def print_results(scan: Scan, results: Results, quick: bool) -> None:
-    points = scan.points
-    layout = "contiguous" if points.flags.c_contiguous else "strided"
     note = f"  ({scan.note})" if scan.note else ""
-    print(f"\n{scan.name}: N = {len(points):,} points ({points.dtype}, {layout}){note}")
+    print(f"\n{scan.name}: {describe_points(scan.points)}{note}")
     print(
         f"  {results.points_in_map:,} points fall in the map; {results.occupied:,} of {SIZE[0] * SIZE[1]:,} "
         "cells hold data"
@@ -487,11 +448,14 @@ def print_results(scan: Scan, results: Results, quick: bool) -> None:
         f"{results.dem_overhang:,} points are overhang)"
     )
 
-    ratio = ms["numpy_total"] / ms["cpp_total"]
-    verdict = "MET" if ratio >= TARGET_RATIO else "NOT MET"
     print("\nTarget (reported, not asserted):")
-    quick_note = " (--quick: smaller input)" if quick else ""
-    print(f"  C++ total at least {TARGET_RATIO:g}x faster than numpy: {verdict} ({ratio:.1f}x){quick_note}")
+    print_target(
+        f"C++ total at least {TARGET_RATIO:g}x faster than numpy",
+        [ms["numpy_total"] / ms["cpp_total"]],
+        lambda ratio: ratio >= TARGET_RATIO,
+        "x",
+        " (--quick: smaller input)" if quick else "",
+    )
     print(
         f"  reference: the terrain-classification paper reports about {PAPER_CLASSIFY_MS:.0f} ms for "
         f"classification alone; C++ classify here {ms['cpp_classify']:.2f} ms"
@@ -501,11 +465,11 @@ def print_results(scan: Scan, results: Results, quick: bool) -> None:
 def print_markdown(scan: Scan, results: Results) -> None:
     ms = results.ms
     print(f"\n{scan.name}, N = {len(scan.points):,}, {SIZE[0]} x {SIZE[1]} cells at {RESOLUTION} m\n")
-    print("| step | C++ ms | numpy ms | numpy / C++ |")
-    print("|---|---:|---:|---:|")
+    print(markdown_row(["step", "C++ ms", "numpy ms", "numpy / C++"]))
+    print(markdown_rule(3))
     for _, label, cpp, numpy in ROWS:
-        print(f"| {label} | {ms[cpp]:.2f} | {ms[numpy]:.2f} | {ms[numpy] / ms[cpp]:.1f}x |")
-    print(f"| dem_without_overhangs (same map) | {ms['dem']:.2f} | | |")
+        print(markdown_row([label, f"{ms[cpp]:.2f}", f"{ms[numpy]:.2f}", f"{ms[numpy] / ms[cpp]:.1f}x"]))
+    print(markdown_row(["dem_without_overhangs (same map)", f"{ms['dem']:.2f}", "", ""]))
 
 
 # --------------------------------------------------------------------------------------------
@@ -514,31 +478,14 @@ def print_markdown(scan: Scan, results: Results) -> None:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument(
-        "--repeat", type=int, default=None, help="timed runs per step (default 7, 3 with --quick)"
+    return parse_benchmark_args(
+        __doc__.split("\n\n")[0], argv, repeat_unit="step", quick_help="smoke run on every 4th point"
     )
-    parser.add_argument("--quick", action="store_true", help="smoke run on every 4th point")
-    parser.add_argument(
-        "--data-dir",
-        type=Path,
-        default=None,
-        help="data folder (default $TERRACUBE_DATA_DIR, <repo>/../shared/data, /work/shared/data)",
-    )
-    parser.add_argument("--markdown", action="store_true", help="also print a Markdown table")
-    args = parser.parse_args(argv)
-    if args.repeat is None:
-        args.repeat = 3 if args.quick else 7
-    if args.repeat < 1:
-        parser.error("--repeat must be at least 1")
-    if args.data_dir is None:
-        args.data_dir = default_data_dir()
-    return args
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    print_header(args)
+    print_elevation_header(args)
     self_test(trials=10 if args.quick else 40)
     print("  self-test: numpy == C++ (layers and classes) on seeded random clouds: OK")
     scan = load_scan(args.data_dir, args.quick)

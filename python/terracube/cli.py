@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import typer
@@ -17,6 +20,53 @@ app = typer.Typer(
 
 _FORMATS = ("ply", "npz", "txt")
 
+_Crop = tuple[float, float, float, float, float, float]
+
+
+def _fail(message: str) -> typer.Exit:
+    """Print a red error message; the caller raises the returned Exit (code 2)."""
+    typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
+    return typer.Exit(2)
+
+
+@contextmanager
+def _exit_on_bad_input(name: str) -> Iterator[None]:
+    """Turn a ValueError or TypeError from the library into ``error: NAME: ...`` and exit code 2."""
+    try:
+        yield
+    except (ValueError, TypeError) as error:
+        raise _fail(f"{name}: {error}") from error
+
+
+def _read_points(input_path: Path):
+    """The points of ``input_path``; a missing or unreadable file exits with code 2."""
+    from .io import read_points
+
+    try:
+        return read_points(input_path)
+    except (ValueError, FileNotFoundError) as error:
+        raise _fail(str(error)) from error
+
+
+def _leveling(roll_deg: float, pitch_deg: float, crop: _Crop | None):
+    """The leveling transform of --roll and --pitch, and the --crop box as (min, max) or None."""
+    from . import leveling_transform
+
+    transform = leveling_transform(math.radians(roll_deg), math.radians(pitch_deg))
+    crop_box = None if crop is None else (crop[:3], crop[3:])
+    return transform, crop_box
+
+
+def _sigma(sigma: int | None, robot_height: float, edge: float) -> int:
+    """--sigma, or by default ceil(robot height / edge) cubes."""
+    from . import sigma_from_robot_height
+
+    return sigma_from_robot_height(robot_height, edge) if sigma is None else sigma
+
+
+def _elapsed_ms(start: float) -> float:
+    return 1e3 * (time.perf_counter() - start)
+
 
 def _run_collapse(
     points,
@@ -27,26 +77,21 @@ def _run_collapse(
     robot_height: float,
     roll_deg: float,
     pitch_deg: float,
-    crop: tuple[float, float, float, float, float, float] | None,
+    crop: _Crop | None,
     output_format: str,
     picture: bool,
 ) -> None:
-    from . import collapse_overhangs, leveling_transform, sigma_from_robot_height
+    from . import collapse_overhangs
     from .io import write_classified
 
     if output_format not in _FORMATS:
         raise typer.BadParameter(f"--format must be one of {', '.join(_FORMATS)}")
-    if sigma is None:
-        sigma = sigma_from_robot_height(robot_height, edge)
-    transform = leveling_transform(math.radians(roll_deg), math.radians(pitch_deg))
-    crop_box = None if crop is None else (crop[:3], crop[3:])
-    start = time.perf_counter()
-    try:
+    with _exit_on_bad_input(name):
+        sigma = _sigma(sigma, robot_height, edge)
+        transform, crop_box = _leveling(roll_deg, pitch_deg, crop)
+        start = time.perf_counter()
         result = collapse_overhangs(points, edge, sigma, transform=transform, crop=crop_box)
-    except (ValueError, TypeError) as error:
-        typer.secho(f"error: {name}: {error}", fg=typer.colors.RED, err=True)
-        raise typer.Exit(2) from error
-    elapsed_ms = 1e3 * (time.perf_counter() - start)
+    elapsed_ms = _elapsed_ms(start)
     grid = result.grid
     typer.echo(
         f"{name}: {result.num_overhang:,} of {result.num_points:,} points are overhang "
@@ -73,6 +118,8 @@ def _run_collapse(
         typer.echo(f"  picture: {png}")
 
 
+_INPUT = typer.Argument(..., help="Point cloud: .bin (KITTI), .npy, .npz, .txt/.xyz/.csv.")
+_OUTPUT_DIR = typer.Option(Path("terracube_out"), "--output-dir", "-o", help="Where to write.")
 _EDGE = typer.Option(0.5, "--edge", "-e", help="Cube edge E, metres.")
 _SIGMA = typer.Option(None, "--sigma", "-s", help="σ in cubes; default ceil(robot height / E).")
 _HEIGHT = typer.Option(1.0, "--robot-height", help="Robot height in metres, gives σ when --sigma is not set.")
@@ -85,25 +132,19 @@ _PNG = typer.Option(True, "--png/--no-png", help="Also write a picture.")
 
 @app.command()
 def collapse(
-    input_path: Path = typer.Argument(..., help="Point cloud: .bin (KITTI), .npy, .npz, .txt/.xyz/.csv."),
-    output_dir: Path = typer.Option(Path("terracube_out"), "--output-dir", "-o", help="Where to write."),
+    input_path: Path = _INPUT,
+    output_dir: Path = _OUTPUT_DIR,
     edge: float = _EDGE,
     sigma: int | None = _SIGMA,
     robot_height: float = _HEIGHT,
     roll: float = _ROLL,
     pitch: float = _PITCH,
-    crop: tuple[float, float, float, float, float, float] | None = _CROP,
+    crop: _Crop | None = _CROP,
     output_format: str = _FORMAT,
     png: bool = _PNG,
 ) -> None:
     """Remove overhangs (canopy, ceilings, bridge decks) from one scan with collapsible cubes."""
-    from .io import read_points
-
-    try:
-        points = read_points(input_path)
-    except (ValueError, FileNotFoundError) as error:
-        typer.secho(f"error: {error}", fg=typer.colors.RED, err=True)
-        raise typer.Exit(2) from error
+    points = _read_points(input_path)
     _run_collapse(
         points, input_path.stem, output_dir, edge, sigma, robot_height, roll, pitch, crop, output_format, png
     )
@@ -150,36 +191,52 @@ _SIZE = typer.Option(
 )
 
 
-def _fail(message: str) -> typer.Exit:
-    """Print a red error message; the caller raises the returned Exit (code 2)."""
-    typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
-    return typer.Exit(2)
+class _Frame(NamedTuple):
+    """Where a map is built: leveling transform, crop box and fixed extent (origin, size or None)."""
 
-
-def _read_points(input_path: Path):
-    from .io import read_points
-
-    try:
-        return read_points(input_path)
-    except (ValueError, FileNotFoundError) as error:
-        raise _fail(str(error)) from error
+    transform: np.ndarray
+    crop_box: tuple | None
+    origin: tuple[float, float] | None
+    size: tuple[int, int] | None
 
 
 def _frame(
     roll_deg: float,
     pitch_deg: float,
-    crop: tuple[float, float, float, float, float, float] | None,
+    crop: _Crop | None,
     origin: tuple[float, float] | None,
     size: tuple[int, int] | None,
-):
-    """The leveling transform, crop box and fixed extent (or None) from the command-line options."""
-    from . import leveling_transform
-
+) -> _Frame:
+    """The map frame from --roll, --pitch, --crop, --origin and --size (exit 2 unless both or
+    neither of --origin and --size are given)."""
     if (origin is None) != (size is None):
         raise _fail("give both --origin and --size for a fixed map extent, or neither")
-    transform = leveling_transform(math.radians(roll_deg), math.radians(pitch_deg))
-    crop_box = None if crop is None else (crop[:3], crop[3:])
-    return transform, crop_box, origin, size
+    return _Frame(*_leveling(roll_deg, pitch_deg, crop), origin, size)
+
+
+def _raw_map(points, resolution: float, frame: _Frame):
+    """The elevation map of all points in ``frame``."""
+    from . import build_elevation_map
+
+    return build_elevation_map(
+        points,
+        resolution,
+        transform=frame.transform,
+        crop=frame.crop_box,
+        origin=frame.origin,
+        size=frame.size,
+    )
+
+
+def _map_without_overhangs(points, resolution: float, edge: float, sigma: int, frame: _Frame, origin, size):
+    """The DEM without overhangs (collapsible cubes in ``frame``) on the extent ``origin``, ``size``."""
+    from . import CollapseParams, ElevationParams, dem_without_overhangs
+
+    return dem_without_overhangs(
+        points,
+        collapse=CollapseParams(edge, sigma, transform=frame.transform, crop=frame.crop_box),
+        elevation=ElevationParams(resolution, origin=origin, size=size),
+    )
 
 
 def _require_data(name: str, elevation_map) -> None:
@@ -187,21 +244,23 @@ def _require_data(name: str, elevation_map) -> None:
         raise _fail(f"{name}: no point falls inside the map; check --crop, --origin and --size")
 
 
-def _elapsed_ms(start: float) -> float:
-    return 1e3 * (time.perf_counter() - start)
+def _save_map(elevation_map, output_dir: Path, file_name: str) -> None:
+    """Create ``output_dir``, save the map there as ``file_name`` and print its path."""
+    output_dir.mkdir(parents=True, exist_ok=True)
+    typer.echo(f"  map: {elevation_map.save(output_dir / file_name)}")
 
 
 @app.command()
 def dem(
-    input_path: Path = typer.Argument(..., help="Point cloud: .bin (KITTI), .npy, .npz, .txt/.xyz/.csv."),
-    output_dir: Path = typer.Option(Path("terracube_out"), "--output-dir", "-o", help="Where to write."),
+    input_path: Path = _INPUT,
+    output_dir: Path = _OUTPUT_DIR,
     resolution: float = _RESOLUTION,
     edge: float = _EDGE,
     sigma: int | None = _SIGMA,
     robot_height: float = _HEIGHT,
     roll: float = _ROLL,
     pitch: float = _PITCH,
-    crop: tuple[float, float, float, float, float, float] | None = _CROP,
+    crop: _Crop | None = _CROP,
     origin: tuple[float, float] | None = _ORIGIN,
     size: tuple[int, int] | None = _SIZE,
 ) -> None:
@@ -210,37 +269,21 @@ def dem(
     Writes NAME_dem.npz (the DEM without overhangs, with clearance and step layers) and the pictures
     NAME_dem_comparison.png, NAME_clearance.png and NAME_step.png. Both DEMs share one geometry.
     """
-    from . import (
-        CollapseParams,
-        ElevationParams,
-        build_elevation_map,
-        dem_without_overhangs,
-        sigma_from_robot_height,
-    )
     from .viz import plot_dem_comparison, plot_layer
 
     points = _read_points(input_path)
     name = input_path.stem
-    transform, crop_box, origin, size = _frame(roll, pitch, crop, origin, size)
-    try:
-        if sigma is None:
-            sigma = sigma_from_robot_height(robot_height, edge)
+    frame = _frame(roll, pitch, crop, origin, size)
+    with _exit_on_bad_input(name):
+        sigma = _sigma(sigma, robot_height, edge)
         start = time.perf_counter()
-        raw = build_elevation_map(
-            points, resolution, transform=transform, crop=crop_box, origin=origin, size=size
-        )
+        raw = _raw_map(points, resolution, frame)
         raw_ms = _elapsed_ms(start)
         _require_data(name, raw)
         g = raw.geometry
         start = time.perf_counter()
-        clean, result = dem_without_overhangs(
-            points,
-            collapse=CollapseParams(edge, sigma, transform=transform, crop=crop_box),
-            elevation=ElevationParams(resolution, origin=g.origin, size=g.size),
-        )
+        clean, result = _map_without_overhangs(points, resolution, edge, sigma, frame, g.origin, g.size)
         clean_ms = _elapsed_ms(start)
-    except (ValueError, TypeError) as error:
-        raise _fail(f"{name}: {error}") from error
 
     before, after = raw["max"], clean["max"]
     lower = int(np.count_nonzero(np.isfinite(before) & np.isfinite(after) & (after < before)))
@@ -251,8 +294,7 @@ def dem(
         f"{result.num_points:,} points are overhang (edge {edge} m, sigma {sigma}); {lower:,} cells lower, "
         f"{emptied:,} emptied; raw DEM {raw_ms:.1f} ms, DEM without overhangs {clean_ms:.1f} ms"
     )
-    output_dir.mkdir(parents=True, exist_ok=True)
-    typer.echo(f"  map: {clean.save(output_dir / f'{name}_dem.npz')}")
+    _save_map(clean, output_dir, f"{name}_dem.npz")
     comparison = plot_dem_comparison(
         raw,
         clean,
@@ -284,8 +326,8 @@ _REFERENCES = ("sensor_height", "local_ground")
 
 @app.command()
 def classify(
-    input_path: Path = typer.Argument(..., help="Point cloud: .bin (KITTI), .npy, .npz, .txt/.xyz/.csv."),
-    output_dir: Path = typer.Option(Path("terracube_out"), "--output-dir", "-o", help="Where to write."),
+    input_path: Path = _INPUT,
+    output_dir: Path = _OUTPUT_DIR,
     resolution: float = _RESOLUTION,
     sensor_height: float = typer.Option(
         0.0, "--sensor-height", help="Sensor height above the ground in metres: the ground is z = -height."
@@ -310,7 +352,7 @@ def classify(
     ),
     roll: float = _ROLL,
     pitch: float = _PITCH,
-    crop: tuple[float, float, float, float, float, float] | None = _CROP,
+    crop: _Crop | None = _CROP,
     origin: tuple[float, float] | None = _ORIGIN,
     size: tuple[int, int] | None = _SIZE,
     remove_overhangs: bool = typer.Option(
@@ -328,23 +370,14 @@ def classify(
     Writes NAME_classes.npz (the map with class, relative_height and ground layers) and
     NAME_classes.png.
     """
-    from . import (
-        CollapseParams,
-        ElevationParams,
-        TerrainClass,
-        TerrainParams,
-        build_elevation_map,
-        classify_terrain,
-        dem_without_overhangs,
-        sigma_from_robot_height,
-    )
+    from . import TerrainClass, TerrainParams, classify_terrain
     from .viz import plot_terrain_classes
 
     if reference not in _REFERENCES:
         raise _fail(f"--reference must be one of {', '.join(_REFERENCES)}, got {reference!r}")
     points = _read_points(input_path)
     name = input_path.stem
-    transform, crop_box, origin, size = _frame(roll, pitch, crop, origin, size)
+    frame = _frame(roll, pitch, crop, origin, size)
     terrain = TerrainParams(
         ground_height=ground_height,
         std_dev=std_dev,
@@ -353,33 +386,26 @@ def classify(
         sensor_height=sensor_height,
         local_ground_radius=ground_radius,
     )
-    try:
+    with _exit_on_bad_input(name):
         terrain.to_core()  # checks the thresholds before the map is built
         start = time.perf_counter()
         if remove_overhangs:
-            if sigma is None:
-                sigma = sigma_from_robot_height(robot_height, edge)
-            elevation_map, result = dem_without_overhangs(
-                points,
-                collapse=CollapseParams(edge, sigma, transform=transform, crop=crop_box),
-                elevation=ElevationParams(resolution, origin=origin, size=size),
+            sigma = _sigma(sigma, robot_height, edge)
+            elevation_map, result = _map_without_overhangs(
+                points, resolution, edge, sigma, frame, frame.origin, frame.size
             )
             source = (
                 f"DEM without overhangs (edge {edge} m, sigma {sigma}; "
                 f"{result.num_overhang:,} overhang points)"
             )
         else:
-            elevation_map = build_elevation_map(
-                points, resolution, transform=transform, crop=crop_box, origin=origin, size=size
-            )
+            elevation_map = _raw_map(points, resolution, frame)
             source = "raw map"
         map_ms = _elapsed_ms(start)
         _require_data(name, elevation_map)
         start = time.perf_counter()
         classes = classify_terrain(elevation_map, terrain)
         classify_ms = _elapsed_ms(start)
-    except (ValueError, TypeError) as error:
-        raise _fail(f"{name}: {error}") from error
 
     g = elevation_map.geometry
     counts = np.bincount(classes.ravel(), minlength=len(TerrainClass))
@@ -397,8 +423,7 @@ def classify(
         count = int(counts[int(terrain_class)])
         share = f" ({count / known:.1%} of cells with data)" if terrain_class and known else ""
         typer.echo(f"  {terrain_class.name.lower().replace('_', ' '):<20} {count:>10,}{share}")
-    output_dir.mkdir(parents=True, exist_ok=True)
-    typer.echo(f"  map: {elevation_map.save(output_dir / f'{name}_classes.npz')}")
+    _save_map(elevation_map, output_dir, f"{name}_classes.npz")
     picture = plot_terrain_classes(
         elevation_map,
         classes,
