@@ -10,6 +10,7 @@
 #include <unordered_map>
 
 #include "cloud_frame.hpp"
+#include "quantize_kernels.hpp"
 
 namespace terracube {
 
@@ -95,6 +96,13 @@ void quantize_block(const Cloud& cloud, const CubeGrid& grid, bool all_used, std
     return ix + iy * ixmax + iz * layer;  // eq. (7)
   };
   if constexpr (Cloud::kPlain) {
+    const auto& view = cloud.view();
+    if (all_used && view.column_stride == 1 && (view.row_stride == 3 || view.row_stride == 4)) {
+      const detail::QuantizeConstants constants{x0, y0, z0, inverse_edge, ixmax, layer};
+      detail::quantize_rows(view.data + static_cast<std::ptrdiff_t>(begin) * view.row_stride, end - begin,
+                            static_cast<int>(view.row_stride), constants, out);
+      return;
+    }
     if (all_used) {
       for (std::size_t row = begin; row < end; ++row) {
         out[row - begin] = cube_of(cloud.raw(row, 0), cloud.raw(row, 1), cloud.raw(row, 2));

@@ -1,0 +1,22 @@
+// Private: eqs. (1)-(3) and (7) over contiguous rows of 3 or 4 scalars, dense path only (cube
+// counts below 2^31). Compiled twice, for baseline x86-64 and for AVX2, and picked at run time:
+// no -march flags are needed and the results are bit-identical (the same IEEE operations).
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+
+namespace terracube::detail {
+
+struct QuantizeConstants {
+  double x0, y0, z0;    ///< grid min corner [m]
+  double inverse_edge;  ///< 1 / E
+  std::uint32_t ixmax;  ///< cubes along x
+  std::uint32_t layer;  ///< ixmax * iymax
+};
+
+/// out[r] = I of row r, for `rows` rows of `stride` (3 or 4) scalars starting at `data`.
+void quantize_rows(const float* data, std::size_t rows, int stride, const QuantizeConstants& k, std::uint32_t* out);
+void quantize_rows(const double* data, std::size_t rows, int stride, const QuantizeConstants& k, std::uint32_t* out);
+
+}  // namespace terracube::detail
