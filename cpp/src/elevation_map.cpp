@@ -140,23 +140,6 @@ MapGeometry make_geometry(const ElevationParams& params, const detail::CloudExte
   return geometry;
 }
 
-/// Per-cell accumulators, one cache line per cell; sums are taken relative to the cell's first
-/// elevation so that the variance does not cancel for large absolute heights.
-struct alignas(64) CellAccumulator {
-  double shift = 0.0, sum = 0.0, sum_squares = 0.0;
-  double min = std::numeric_limits<double>::infinity();
-  double max = -std::numeric_limits<double>::infinity();
-  std::uint32_t count = 0;
-  void add(double z) {
-    if (count++ == 0) shift = z;
-    const double d = z - shift;
-    sum += d;
-    sum_squares += d * d;
-    min = std::min(min, z);
-    max = std::max(max, z);
-  }
-};
-
 template <typename Cloud>
 ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const std::vector<std::uint8_t>* use) {
   if (use && use->size() != cloud.size()) {
@@ -196,10 +179,10 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   const auto nx = static_cast<std::int64_t>(geometry.size.x());
   const auto ny = static_cast<std::int64_t>(geometry.size.y());
 
-  // Pass 2: cell of every point (row-major cell = i * ny + j), statistics.
+  // Pass 2: cell of every point (row-major cell = i * ny + j) and a histogram of the cells.
   constexpr std::uint32_t kOutside = std::numeric_limits<std::uint32_t>::max();
   std::vector<std::uint32_t> cell_of_point(cloud.size(), kOutside);
-  std::vector<CellAccumulator> stats(cells);
+  std::vector<std::size_t> offset(cells + 1, 0);
   for (std::size_t row = 0; row < cloud.size(); ++row) {
     if (!selected(row) || cloud.map(row, p) != 0) continue;
     // Divide (not multiply by 1/res) so that binning agrees with MapGeometry::index_of.
@@ -208,51 +191,53 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     if (!(fx >= 0.0 && fy >= 0.0 && fx < static_cast<double>(nx) && fy < static_cast<double>(ny))) continue;
     const auto cell = static_cast<std::size_t>(static_cast<std::int64_t>(fx) * ny + static_cast<std::int64_t>(fy));
     cell_of_point[row] = static_cast<std::uint32_t>(cell);
-    stats[cell].add(p.z());
+    ++offset[cell + 1];
   }
-
-  // Discontinuity: only cells whose elevations span more than the threshold can hold a gap; bucket
-  // their elevations by cell (counting sort) and sort each cell's few values.
-  std::vector<std::size_t> offset(cells + 1, 0);
-  for (std::size_t cell = 0; cell < cells; ++cell) {
-    const CellAccumulator& c = stats[cell];
-    const bool candidate = c.count > 1 && c.max - c.min > params.discontinuity_m;
-    offset[cell + 1] = offset[cell] + (candidate ? c.count : 0);
-  }
-  std::vector<double> sorted(offset[cells]);
+  // Pass 3: counting sort of the elevations by cell, so each cell's values are contiguous and the
+  // statistics below read memory in order (a small histogram instead of scattered accumulators).
+  for (std::size_t cell = 0; cell < cells; ++cell) offset[cell + 1] += offset[cell];
+  std::vector<double> heights(offset[cells]);
   {
     std::vector<std::size_t> next(offset.begin(), offset.end() - 1);
     for (std::size_t row = 0; row < cloud.size(); ++row) {
       const std::uint32_t cell = cell_of_point[row];
-      if (cell == kOutside || offset[cell] == offset[cell + 1]) continue;
+      if (cell == kOutside) continue;
       cloud.map(row, p);
-      sorted[next[cell_of_point[row]]++] = p.z();
+      heights[next[cell]++] = p.z();
     }
   }
 
   constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
   Layer count(nx, ny), min(nx, ny), max(nx, ny), mean(nx, ny), std_dev(nx, ny), discontinuity(nx, ny);
-  float* count_data = count.data();
   for (std::size_t cell = 0; cell < cells; ++cell) {
-    const CellAccumulator& c = stats[cell];
-    const std::uint32_t n = c.count;
-    count_data[cell] = static_cast<float>(n);
+    const std::size_t n = offset[cell + 1] - offset[cell];
+    count.data()[cell] = static_cast<float>(n);
     if (n == 0) {
       min.data()[cell] = max.data()[cell] = mean.data()[cell] = std_dev.data()[cell] = discontinuity.data()[cell] =
           kNaN;
       continue;
     }
-    const double average = c.sum / n;
-    const double variance = std::max(0.0, c.sum_squares / n - average * average);
-    min.data()[cell] = static_cast<float>(c.min);
-    max.data()[cell] = static_cast<float>(c.max);
-    mean.data()[cell] = static_cast<float>(c.shift + average);
-    std_dev.data()[cell] = static_cast<float>(std::sqrt(variance));
-    const auto begin = sorted.begin() + static_cast<std::ptrdiff_t>(offset[cell]);
-    const auto end = sorted.begin() + static_cast<std::ptrdiff_t>(offset[cell + 1]);
-    std::sort(begin, end);
+    double* begin = heights.data() + offset[cell];
+    double* end = heights.data() + offset[cell + 1];
+    double lowest = *begin, highest = *begin, sum = 0.0;
+    for (const double* z = begin; z < end; ++z) {
+      lowest = std::min(lowest, *z);
+      highest = std::max(highest, *z);
+      sum += *z;
+    }
+    const double average = sum / static_cast<double>(n);
+    double squares = 0.0;  // two-pass variance: no cancellation at large absolute heights
+    for (const double* z = begin; z < end; ++z) squares += (*z - average) * (*z - average);
+    min.data()[cell] = static_cast<float>(lowest);
+    max.data()[cell] = static_cast<float>(highest);
+    mean.data()[cell] = static_cast<float>(average);
+    std_dev.data()[cell] = static_cast<float>(std::sqrt(squares / static_cast<double>(n)));
+    // Only a cell spanning more than the threshold can hold a gap: sort just those.
     bool gap = false;
-    for (auto it = begin + 1; it < end && !gap; ++it) gap = *it - *(it - 1) > params.discontinuity_m;
+    if (highest - lowest > params.discontinuity_m) {
+      std::sort(begin, end);
+      for (const double* z = begin + 1; z < end && !gap; ++z) gap = *z - *(z - 1) > params.discontinuity_m;
+    }
     discontinuity.data()[cell] = gap ? 1.0F : 0.0F;
   }
   map.add("count", std::move(count));

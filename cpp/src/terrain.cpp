@@ -97,14 +97,14 @@ TerrainClassification classify_terrain(ElevationMap& map, const TerrainParams& p
            c == static_cast<std::uint8_t>(TerrainClass::kOverhangingObject) ||
            c == static_cast<std::uint8_t>(TerrainClass::kVerticalObject);
   };
-  const auto before_edges = out.classes;
+  // In place: a ground cell that becomes an edge is not an object, so it changes no other cell's test.
   for (Eigen::Index i = 0; i < nx; ++i) {
     for (Eigen::Index j = 0; j < ny; ++j) {
-      if (before_edges(i, j) != static_cast<std::uint8_t>(TerrainClass::kGround)) continue;
+      if (out.classes(i, j) != static_cast<std::uint8_t>(TerrainClass::kGround)) continue;
       bool beside = false;
       for (Eigen::Index a = std::max<Eigen::Index>(0, i - 1); a <= std::min(nx - 1, i + 1) && !beside; ++a) {
         for (Eigen::Index b = std::max<Eigen::Index>(0, j - 1); b <= std::min(ny - 1, j + 1) && !beside; ++b) {
-          beside = is_object(before_edges(a, b));
+          beside = is_object(out.classes(a, b));
         }
       }
       if (beside) out.classes(i, j) = static_cast<std::uint8_t>(TerrainClass::kHorizontalEdge);
