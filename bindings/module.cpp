@@ -7,6 +7,7 @@ namespace terracube::python {
 void bind_collapse(py::module_& m);
 void bind_baselines(py::module_& m);
 void bind_elevation(py::module_& m);
+void bind_fuzzy(py::module_& m);
 }  // namespace terracube::python
 
 PYBIND11_MODULE(_core, m) {
@@ -14,4 +15,5 @@ PYBIND11_MODULE(_core, m) {
   terracube::python::bind_collapse(m);
   terracube::python::bind_baselines(m);
   terracube::python::bind_elevation(m);
+  terracube::python::bind_fuzzy(m);
 }

@@ -22,6 +22,7 @@ from .elevation import (
     classify_terrain,
     dem_without_overhangs,
 )
+from .fuzzy import FuzzyElevationMap, FuzzyParams, fit_fuzzy_elevation_map
 
 __version__ = "0.1.0"
 
@@ -31,6 +32,8 @@ __all__ = [
     "CubeGrid",
     "ElevationMap",
     "ElevationParams",
+    "FuzzyElevationMap",
+    "FuzzyParams",
     "MapGeometry",
     "TERRAIN_COLORS",
     "TerrainClass",
@@ -38,6 +41,7 @@ __all__ = [
     "build_elevation_map",
     "classify_terrain",
     "dem_without_overhangs",
+    "fit_fuzzy_elevation_map",
     "PointGapParams",
     "collapse_overhangs",
     "leveling_transform",
