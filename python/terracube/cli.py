@@ -18,7 +18,7 @@ app = typer.Typer(
     add_completion=False,
 )
 
-_FORMATS = ("ply", "npz", "txt")
+_FORMATS = ("ply", "pcd", "las", "laz", "npz", "npy", "txt", "xyz")
 
 _Crop = tuple[float, float, float, float, float, float]
 
@@ -102,7 +102,10 @@ def _run_collapse(
     if result.num_cropped:
         typer.echo(f"  {result.num_cropped:,} points outside the crop box were left out")
     output_dir.mkdir(parents=True, exist_ok=True)
-    cloud_path = write_classified(output_dir / f"{name}_classified.{output_format}", points, result.overhang)
+    with _exit_on_bad_input(name):
+        cloud_path = write_classified(
+            output_dir / f"{name}_classified.{output_format}", points, result.overhang
+        )
     typer.echo(f"  classified cloud: {cloud_path}")
     if picture:
         from .viz import plot_overhangs
@@ -118,7 +121,9 @@ def _run_collapse(
         typer.echo(f"  picture: {png}")
 
 
-_INPUT = typer.Argument(..., help="Point cloud: .bin (KITTI), .npy, .npz, .txt/.xyz/.csv.")
+_INPUT = typer.Argument(
+    ..., help="Point cloud: .pcd, .ply, .las/.laz, .bin (KITTI), .npy, .npz, .txt/.xyz/.csv."
+)
 _OUTPUT_DIR = typer.Option(Path("terracube_out"), "--output-dir", "-o", help="Where to write.")
 _EDGE = typer.Option(0.5, "--edge", "-e", help="Cube edge E, metres.")
 _SIGMA = typer.Option(None, "--sigma", "-s", help="σ in cubes; default ceil(robot height / E).")
@@ -126,7 +131,12 @@ _HEIGHT = typer.Option(1.0, "--robot-height", help="Robot height in metres, give
 _ROLL = typer.Option(0.0, "--roll", help="Sensor roll in degrees, for leveling.")
 _PITCH = typer.Option(0.0, "--pitch", help="Sensor pitch in degrees, for leveling.")
 _CROP = typer.Option(None, "--crop", help="Crop box XMIN YMIN ZMIN XMAX YMAX ZMAX in metres, leveled frame.")
-_FORMAT = typer.Option("ply", "--format", "-f", help="Classified cloud format: ply, npz or txt.")
+_FORMAT = typer.Option(
+    "ply",
+    "--format",
+    "-f",
+    help="Classified cloud format: ply, pcd, las, laz (overhang as LAS class 64), npz, npy, txt or xyz.",
+)
 _PNG = typer.Option(True, "--png/--no-png", help="Also write a picture.")
 
 

@@ -1,14 +1,59 @@
-"""Reading point clouds and writing classified clouds."""
+"""Reading point clouds and writing classified clouds.
+
+Formats, chosen by the file suffix:
+
+======================  ====================================  =========================================
+suffix                  read                                  write (``write_classified``)
+======================  ====================================  =========================================
+``.pcd``                ascii, binary, binary_compressed      binary (``write_pcd``: any of the three)
+``.ply``                ascii and binary, through plyfile     binary, x y z + label + RGB colour
+``.las`` / ``.laz``     laspy (+ lazrs for LAZ)               LAS 1.4 point format 6, classification
+``.bin``                KITTI float32 rows x, y, z, intensity --
+``.npy``                (N, >=3) array                        (N, 4) x, y, z, label
+``.npz``                key ``xyz`` or ``points``             ``xyz`` + ``overhang`` or ``label``
+``.txt`` ``.xyz`` ...   whitespace/comma separated text       ``# x y z <label>`` header, one row each
+======================  ====================================  =========================================
+
+Every reader raises ``FileNotFoundError`` for a missing file and ``ValueError`` naming the file and the
+problem for a malformed, truncated or unknown one.
+"""
 
 from __future__ import annotations
 
+import re
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["read_points", "write_classified", "sample_scan_path", "load_sample_scan"]
+__all__ = [
+    "read_points",
+    "read_cloud",
+    "write_classified",
+    "write_pcd",
+    "sample_scan_path",
+    "load_sample_scan",
+    "OVERHANG_LAS_CLASS",
+    "RETAINED_LAS_CLASS",
+]
 
 PathLike = str | Path
+
+_TEXT_SUFFIXES = (".txt", ".xyz", ".csv", ".asc")
+_READ_SUFFIXES = (".pcd", ".ply", ".las", ".laz", ".bin", ".npy", ".npz", *_TEXT_SUFFIXES)
+WRITE_SUFFIXES = (".ply", ".pcd", ".las", ".laz", ".npz", ".npy", ".txt", ".xyz")
+
+#: LAS classification written for a retained point of an overhang mask: 1, "unclassified" (ASPRS).
+RETAINED_LAS_CLASS = 1
+#: LAS classification written for an overhang point: 64, the first "user definable" code of LAS 1.4
+#: (overhangs are canopy, ceilings and bridge decks alike, so no single ASPRS class fits).
+OVERHANG_LAS_CLASS = 64
+
+# Internal: problems found while parsing; turned into ValueError("<path>: <message>").
+
+
+class _FormatError(Exception):
+    pass
 
 
 def sample_scan_path() -> Path:
@@ -24,88 +69,589 @@ def load_sample_scan() -> np.ndarray:
 def read_points(path: PathLike) -> np.ndarray:
     """Read an (N, 3) array of x, y, z [m] from a point-cloud file.
 
-    Supported: KITTI-style ``.bin`` (float32 rows of x, y, z, intensity), ``.npy`` ((N, >=3)),
-    ``.npz`` (key ``xyz`` or ``points``, else the first array) and whitespace- or comma-separated
-    text (``.txt``, ``.xyz``, ``.csv``, ``.asc``; the first three columns). Raises ``ValueError``
-    naming the file for a malformed file and ``FileNotFoundError`` for a missing one.
+    Supported: PCD (``.pcd``; ascii, binary and binary_compressed), PLY (``.ply``), LAS/LAZ (``.las``,
+    ``.laz``; scaled coordinates as float64), KITTI-style ``.bin`` (float32 rows of x, y, z, intensity),
+    ``.npy`` ((N, >=3)), ``.npz`` (key ``xyz`` or ``points``, else the first array) and whitespace- or
+    comma-separated text (``.txt``, ``.xyz``, ``.csv``, ``.asc``; the first three columns). Every point
+    of the file is returned, in file order, including invalid returns a sensor may store as (0, 0, 0)
+    or NaN (organised PCD clouds). Raises ``ValueError`` naming the file for a malformed, truncated or
+    unknown file and ``FileNotFoundError`` for a missing one.
+    """
+    return read_cloud(path)["xyz"]
+
+
+def read_cloud(path: PathLike) -> dict[str, np.ndarray]:
+    """Read a point cloud with its per-point fields, as a dict of arrays of one length N.
+
+    Always holds ``"xyz"`` ((N, 3) float32 or float64). Other fields keep the file's names and dtypes:
+    PCD fields (``intensity``, ``ring``, ``label``, ...; a field with COUNT > 1 is (N, COUNT)), PLY
+    vertex properties, LAS dimensions (``intensity``, ``classification``, ``return_number``, extra
+    bytes ...), the ``.bin`` ``intensity``, the other arrays of an ``.npz`` of length N, the named
+    columns of a text file whose first line is a ``# x y z ...`` header, and the columns after the
+    third of an ``.npy`` as ``"extra"`` ((N, k - 3)).
+
+    ``"label"`` is added when the file holds a per-point label, the first of the fields ``label``,
+    ``overhang`` and ``classification``, except that a LAS file written from an overhang mask gives its
+    ``overhang`` extra dimension rather than the classification codes. So
+    ``read_cloud(write_classified(p, xyz, labels))["label"]`` equals ``labels`` (as uint8) for every
+    format but ``.npy``, where the label is ``"extra"[:, 0]``.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
     suffix = path.suffix.lower()
+    readers = {
+        ".pcd": _read_pcd,
+        ".ply": _read_ply,
+        ".las": _read_las,
+        ".laz": _read_las,
+        ".bin": _read_bin,
+        ".npy": _read_npy,
+        ".npz": _read_npz,
+    }
+    reader = readers.get(suffix, _read_text if suffix in _TEXT_SUFFIXES else None)
+    if reader is None:
+        raise ValueError(f"{path}: unknown point-cloud format {suffix!r} (use {', '.join(_READ_SUFFIXES)})")
     try:
-        if suffix == ".bin":
-            raw = np.fromfile(path, dtype=np.float32)
-            if raw.size % 4 != 0:
-                raise ValueError(
-                    f"{path}: {path.stat().st_size} bytes is not a whole number of float32 (x, y, z, i) rows"
+        fields = reader(path)
+    except ImportError:
+        raise
+    except _FormatError as error:
+        raise ValueError(f"{path}: {error}") from None
+    except MemoryError as error:
+        raise ValueError(
+            f"{path}: not a valid {suffix} file (its header asks for too much memory)"
+        ) from error
+    except Exception as error:  # any parser failure: a clear message, never a crash
+        raise ValueError(f"{path}: cannot read as {suffix}: {type(error).__name__}: {error}") from error
+    xyz = np.asarray(fields["xyz"])
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"{path}: expected an (N, >=3) array of points, got shape {xyz.shape}")
+    if xyz.dtype not in (np.float32, np.float64):
+        fields["xyz"] = xyz.astype(np.float64)
+    if "label" not in fields:
+        for name in ("overhang", "classification"):
+            if name in fields:
+                fields["label"] = (
+                    fields[name].astype(np.uint8) if fields[name].dtype == bool else fields[name]
                 )
-            return raw.reshape(-1, 4)[:, :3]
-        if suffix == ".npy":
-            points = np.load(path, allow_pickle=False)
-        elif suffix == ".npz":
-            with np.load(path, allow_pickle=False) as archive:
-                keys = list(archive.keys())
-                if not keys:
-                    raise ValueError(f"{path}: the archive holds no arrays")
-                key = next((k for k in ("xyz", "points") if k in archive), keys[0])
-                points = archive[key]
-        elif suffix in (".txt", ".xyz", ".csv", ".asc"):
-            delimiter = "," if suffix == ".csv" else None
-            points = np.loadtxt(path, delimiter=delimiter, ndmin=2, usecols=(0, 1, 2))
-        else:
-            raise ValueError(
-                f"{path}: unknown point-cloud format {suffix!r} (use .bin, .npy, .npz, .txt, .xyz, .csv)"
+                break
+    return fields
+
+
+# --------------------------------------------------------------------------------------------- readers
+
+
+def _read_bin(path: Path) -> dict[str, np.ndarray]:
+    raw = np.fromfile(path, dtype=np.float32)
+    if raw.size % 4 != 0:
+        raise _FormatError(f"{path.stat().st_size} bytes is not a whole number of float32 (x, y, z, i) rows")
+    rows = raw.reshape(-1, 4)
+    return {"xyz": rows[:, :3], "intensity": rows[:, 3]}
+
+
+def _check_points(array: np.ndarray) -> np.ndarray:
+    if array.ndim != 2 or array.shape[1] < 3:
+        raise _FormatError(f"expected an (N, >=3) array of points, got shape {array.shape}")
+    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
+        raise _FormatError(f"expected a numeric array of points, got dtype {array.dtype}")
+    return array
+
+
+def _read_npy(path: Path) -> dict[str, np.ndarray]:
+    array = _check_points(np.load(path, allow_pickle=False))
+    fields = {"xyz": array[:, :3]}
+    if array.shape[1] > 3:
+        fields["extra"] = array[:, 3:]
+    return fields
+
+
+def _read_npz(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path, allow_pickle=False) as archive:
+        keys = list(archive.keys())
+        if not keys:
+            raise _FormatError("the archive holds no arrays")
+        key = next((k for k in ("xyz", "points") if k in archive), keys[0])
+        points = _check_points(archive[key])
+        fields = {"xyz": points[:, :3]}
+        for name in keys:
+            if name != key:
+                value = archive[name]
+                if value.ndim >= 1 and value.shape[0] == points.shape[0]:
+                    fields[name] = value
+    return fields
+
+
+def _read_text(path: Path) -> dict[str, np.ndarray]:
+    delimiter = "," if path.suffix.lower() == ".csv" else None
+    with open(path, encoding="utf-8", errors="replace") as stream:
+        first = stream.readline()
+    names = first.lstrip("#").replace(",", " ").split() if first.startswith("#") else []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
+        table = np.loadtxt(path, delimiter=delimiter, ndmin=2)
+    if table.size == 0:
+        if names[:3] != ["x", "y", "z"]:
+            raise _FormatError("no points and no '# x y z ...' header")
+        table = np.zeros((0, len(names)))
+    _check_points(table)
+    fields = {"xyz": table[:, :3]}
+    if names[:3] == ["x", "y", "z"] and len(names) == table.shape[1]:
+        for column, name in enumerate(names[3:], start=3):
+            values = table[:, column]
+            if name in ("label", "overhang", "classification"):
+                if (
+                    np.any(values != np.round(values))
+                    or values.min(initial=0) < 0
+                    or values.max(initial=0) > 255
+                ):
+                    raise _FormatError(f"column {name!r} holds values that are not labels 0..255")
+                values = values.astype(np.uint8)
+            fields[name] = values
+    return fields
+
+
+def _read_ply(path: Path) -> dict[str, np.ndarray]:
+    from plyfile import PlyData
+
+    ply = PlyData.read(str(path))
+    if "vertex" not in ply:
+        raise _FormatError("no 'vertex' element")
+    vertex = ply["vertex"].data
+    names = vertex.dtype.names or ()
+    if not {"x", "y", "z"} <= set(names):
+        raise _FormatError(f"the vertex element has no x, y, z properties (has {', '.join(names)})")
+    dtype = np.float64 if any(vertex.dtype[n] == np.float64 for n in "xyz") else np.float32
+    fields = {"xyz": np.column_stack([vertex[n] for n in "xyz"]).astype(dtype, copy=False)}
+    for name in names:
+        if name not in ("x", "y", "z") and vertex.dtype[name].kind != "O":
+            fields[name] = np.asarray(vertex[name])
+    return fields
+
+
+def _read_las(path: Path) -> dict[str, np.ndarray]:
+    try:
+        import laspy
+    except ImportError as error:  # pragma: no cover - laspy is a dependency
+        raise ImportError("LAS/LAZ reading needs laspy and lazrs: pip install 'laspy[lazrs]'") from error
+    try:
+        with laspy.open(str(path)) as reader:
+            header = reader.header
+    except Exception as error:
+        raise _FormatError(f"not a valid LAS/LAZ file ({type(error).__name__}: {error})") from None
+    count = int(header.point_count)
+    if not header.are_points_compressed:
+        need = header.offset_to_point_data + count * header.point_format.size
+        size = path.stat().st_size
+        if size < need:
+            raise _FormatError(
+                f"truncated LAS: the header promises {count} points of {header.point_format.size} bytes "
+                f"from byte {header.offset_to_point_data} ({need} bytes), the file holds {size}"
             )
-    except (OSError, EOFError) as error:
-        raise ValueError(f"{path}: cannot read: {error}") from error
-    points = np.asarray(points)
-    if points.ndim != 2 or points.shape[1] < 3:
-        raise ValueError(f"{path}: expected an (N, >=3) array of points, got shape {points.shape}")
-    if points.dtype not in (np.float32, np.float64):
-        points = points.astype(np.float64)
-    return points[:, :3]
+    try:
+        las = laspy.read(str(path))
+    except Exception as error:
+        raise _FormatError(
+            f"truncated or corrupt LAS/LAZ point data ({type(error).__name__}: {error})"
+        ) from None
+    points = las.points
+    if len(points) != count:
+        raise _FormatError(f"truncated: the header promises {count} points, the file holds {len(points)}")
+    fields = {"xyz": np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])}
+    for name in ("intensity", "classification", "return_number", "number_of_returns", "gps_time"):
+        if name in points.point_format.dimension_names:
+            fields[name] = np.asarray(las[name])
+    for name in points.point_format.extra_dimension_names:
+        fields[name] = np.asarray(las[name])
+    if "overhang" in fields:
+        fields["label"] = fields["overhang"].astype(np.uint8)
+    elif "classification" in fields:
+        fields["classification"] = fields["classification"].astype(np.uint8)
+    return fields
 
 
-def write_classified(path: PathLike, points: np.ndarray, overhang: np.ndarray) -> Path:
-    """Write points with a per-point label (0 = retained, 1 = overhang).
+# PCD (Point Cloud Library), https://pointclouds.org/documentation/tutorials/pcd_file_format.html
 
-    The format follows the suffix: ``.ply`` (binary, float x y z, uchar ``overhang`` and an RGB
-    colour: retained grey, overhang red), ``.npz`` (``xyz`` and ``overhang``) or ``.txt``
-    (``x y z overhang`` per line).
+_PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8"}
+_PCD_TYPES.update({("U", n): f"u{n}" for n in (1, 2, 4, 8)})
+_PCD_TYPES.update({("I", n): f"i{n}" for n in (1, 2, 4, 8)})
+_PCD_ENCODINGS = ("ascii", "binary", "binary_compressed")
+_PCD_MAX_HEADER = 1 << 16
+
+
+def _parse_pcd_header(data: bytes) -> tuple[dict[str, list[str]], int]:
+    """The header entries of a PCD file and the offset of its data (just after the DATA line)."""
+    header: dict[str, list[str]] = {}
+    offset = 0
+    while True:
+        end = data.find(b"\n", offset)
+        if end < 0 or end - offset > _PCD_MAX_HEADER:
+            if "FIELDS" in header or "VERSION" in header:
+                raise _FormatError("truncated PCD header: no DATA line")
+            raise _FormatError("not a PCD file: no header")
+        line = data[offset:end].decode("ascii", errors="replace").strip()
+        offset = end + 1
+        if not line or line.startswith("#"):
+            continue
+        key, *values = line.split()
+        key = key.upper()
+        if key == "COLUMNS":  # PCD v0.5
+            key = "FIELDS"
+        if key not in (
+            "VERSION",
+            "FIELDS",
+            "SIZE",
+            "TYPE",
+            "COUNT",
+            "WIDTH",
+            "HEIGHT",
+            "VIEWPOINT",
+            "POINTS",
+            "DATA",
+        ):
+            raise _FormatError(f"not a PCD file: unexpected header line {line[:60]!r}")
+        header[key] = values
+        if key == "DATA":
+            return header, offset
+        if offset > _PCD_MAX_HEADER:
+            raise _FormatError("not a PCD file: header too long")
+
+
+def _pcd_layout(header: dict[str, list[str]]) -> tuple[list[str], list[np.dtype], list[int], int, str]:
+    """Field names, dtypes and counts, the number of points and the encoding of a PCD header."""
+    for key in ("FIELDS", "SIZE", "TYPE", "DATA"):
+        if key not in header or not header[key]:
+            raise _FormatError(f"PCD header has no {key} line")
+    names = header["FIELDS"]
+    sizes, types = header["SIZE"], [t.upper() for t in header["TYPE"]]
+    counts = header.get("COUNT", ["1"] * len(names))
+    if not len(names) == len(sizes) == len(types) == len(counts):
+        raise _FormatError(
+            f"PCD header: FIELDS, SIZE, TYPE and COUNT differ in length "
+            f"({len(names)}, {len(sizes)}, {len(types)}, {len(counts)})"
+        )
+    try:
+        sizes_i, counts_i = [int(s) for s in sizes], [int(c) for c in counts]
+        if "POINTS" in header:
+            points = int(header["POINTS"][0])
+        else:
+            points = int(header["WIDTH"][0]) * int(header.get("HEIGHT", ["1"])[0])
+    except (ValueError, KeyError, IndexError) as error:
+        raise _FormatError(f"PCD header: bad SIZE, COUNT, POINTS, WIDTH or HEIGHT ({error})") from None
+    dtypes = []
+    for name, kind, size, count in zip(names, types, sizes_i, counts_i, strict=True):
+        if (kind, size) not in _PCD_TYPES or count < 1:
+            raise _FormatError(
+                f"PCD header: field {name!r} has an unsupported TYPE/SIZE/COUNT {kind}{size}x{count}"
+            )
+        dtypes.append(np.dtype("<" + _PCD_TYPES[(kind, size)]))
+    if points < 0:
+        raise _FormatError(f"PCD header: negative POINTS {points}")
+    encoding = header["DATA"][0].lower()
+    if encoding not in _PCD_ENCODINGS:
+        raise _FormatError(
+            f"PCD header: unknown DATA encoding {encoding!r} (ascii, binary, binary_compressed)"
+        )
+    if not {"x", "y", "z"} <= set(names):
+        raise _FormatError(f"PCD has no x, y, z fields (has {', '.join(names)})")
+    return names, dtypes, counts_i, points, encoding
+
+
+def _read_pcd(path: Path) -> dict[str, np.ndarray]:
+    data = path.read_bytes()
+    header, offset = _parse_pcd_header(data)
+    names, dtypes, counts, points, encoding = _pcd_layout(header)
+    record = np.dtype(
+        [(n, d, (c,)) if c > 1 else (n, d) for n, d, c in zip(names, dtypes, counts, strict=True)]
+    )
+    body = memoryview(data)[offset:]
+    if encoding == "binary":
+        need = points * record.itemsize
+        if len(body) < need:
+            raise _FormatError(
+                f"truncated binary PCD: {points} points of {record.itemsize} bytes need {need} bytes "
+                f"of data, the file holds {len(body)}"
+            )
+        rows = np.frombuffer(body, dtype=record, count=points)
+        columns = {name: rows[name] for name in names}
+    elif encoding == "binary_compressed":
+        columns = _pcd_decompress(body, names, dtypes, counts, points)
+    else:
+        columns = _pcd_ascii(bytes(body), names, dtypes, counts, points)
+    fields = {"xyz": np.column_stack([columns[n] for n in "xyz"])}
+    if fields["xyz"].dtype not in (np.float32, np.float64):
+        fields["xyz"] = fields["xyz"].astype(np.float64)
+    fields.update({n: np.array(columns[n]) for n in names if n not in ("x", "y", "z")})
+    return fields
+
+
+def _pcd_decompress(body, names, dtypes, counts, points) -> dict[str, np.ndarray]:
+    import lzf
+
+    if len(body) < 8:
+        raise _FormatError("truncated binary_compressed PCD: no compressed-size header after DATA")
+    compressed, uncompressed = (int(v) for v in np.frombuffer(body, dtype="<u4", count=2))
+    need = points * sum(d.itemsize * c for d, c in zip(dtypes, counts, strict=True))
+    if uncompressed != need:
+        raise _FormatError(
+            f"binary_compressed PCD: the data header gives {uncompressed} uncompressed bytes, "
+            f"{points} points need {need}"
+        )
+    if len(body) - 8 < compressed:
+        raise _FormatError(
+            f"truncated binary_compressed PCD: {compressed} compressed bytes announced, "
+            f"the file holds {len(body) - 8}"
+        )
+    if need == 0:
+        raw = b""
+    else:
+        try:
+            raw = lzf.decompress(bytes(body[8 : 8 + compressed]), need)
+        except ValueError as error:
+            raise _FormatError(f"corrupt binary_compressed PCD data ({error})") from None
+        if raw is None or len(raw) != need:
+            got = 0 if raw is None else len(raw)
+            raise _FormatError(f"corrupt binary_compressed PCD data: {got} of {need} bytes decompressed")
+    columns, start = {}, 0
+    for name, dtype, count in zip(names, dtypes, counts, strict=True):
+        column = np.frombuffer(raw, dtype=dtype, count=points * count, offset=start)
+        columns[name] = column.reshape(points, count) if count > 1 else column
+        start += points * count * dtype.itemsize
+    return columns
+
+
+def _pcd_ascii(body: bytes, names, dtypes, counts, points) -> dict[str, np.ndarray]:
+    lines = [line for line in body.decode("ascii", errors="replace").splitlines() if line.strip()]
+    width = sum(counts)
+    if len(lines) < points:
+        raise _FormatError(f"truncated ascii PCD: {points} points announced, {len(lines)} rows found")
+    if points == 0:
+        table = np.zeros((0, width))
+    else:
+        try:
+            table = np.array([line.split() for line in lines[:points]], dtype=np.float64)
+        except ValueError as error:
+            raise _FormatError(f"ascii PCD: rows of unequal length or non-numbers ({error})") from None
+    if table.shape[1] != width:
+        raise _FormatError(f"ascii PCD: rows hold {table.shape[1]} values, the header says {width}")
+    columns, start = {}, 0
+    for name, dtype, count in zip(names, dtypes, counts, strict=True):
+        column = table[:, start : start + count].astype(dtype)
+        columns[name] = column if count > 1 else column[:, 0]
+        start += count
+    return columns
+
+
+# --------------------------------------------------------------------------------------------- writers
+
+
+def _lzf_literal(raw: bytes) -> bytes:
+    """LZF stream of literal runs only (for data LZF cannot shrink); any LZF decoder reads it."""
+    data = np.frombuffer(raw, dtype=np.uint8)
+    full, tail = divmod(data.size, 32)
+    chunks = np.empty((full, 33), dtype=np.uint8)
+    chunks[:, 0] = 31
+    chunks[:, 1:] = data[: full * 32].reshape(full, 32)
+    out = chunks.tobytes()
+    if tail:
+        out += bytes([tail - 1]) + data[full * 32 :].tobytes()
+    return out
+
+
+def write_pcd(path: PathLike, fields: dict[str, np.ndarray], encoding: str = "binary") -> Path:
+    """Write a PCD v0.7 file of named per-point fields (each (N,) or (N, COUNT), numeric).
+
+    ``fields`` must hold ``x``, ``y`` and ``z``, or ``xyz`` ((N, 3)), which is split into them.
+    ``encoding`` is ``ascii``, ``binary`` or ``binary_compressed`` (LZF, as PCL writes it). Booleans are
+    stored as U1. The cloud is unorganised (WIDTH = N, HEIGHT = 1).
+    """
+    path = Path(path)
+    if encoding not in _PCD_ENCODINGS:
+        raise ValueError(f"{path}: unknown PCD encoding {encoding!r} (use {', '.join(_PCD_ENCODINGS)})")
+    columns: dict[str, np.ndarray] = {}
+    for name, value in fields.items():
+        value = np.asarray(value)
+        if name == "xyz":
+            columns.update({axis: value[:, i] for i, axis in enumerate("xyz")})
+        else:
+            columns[name] = value.astype(np.uint8) if value.dtype == bool else value
+    if not {"x", "y", "z"} <= set(columns):
+        raise ValueError(f"{path}: a PCD needs x, y and z fields")
+    n = len(columns["x"])
+    names, types, sizes, counts = [], [], [], []
+    for name, value in columns.items():
+        if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
+            raise ValueError(f"{path}: {name!r} is not a valid PCD field name")
+        if value.shape[:1] != (n,) or value.ndim > 2:
+            raise ValueError(f"{path}: field {name!r} has shape {value.shape}, expected ({n},) or ({n}, k)")
+        kind = {"f": "F", "u": "U", "i": "I"}.get(value.dtype.kind)
+        if kind is None or (kind, value.dtype.itemsize) not in _PCD_TYPES:
+            raise ValueError(f"{path}: field {name!r} has dtype {value.dtype}, not storable in a PCD")
+        columns[name] = value.astype(value.dtype.newbyteorder("<"), copy=False)
+        names.append(name)
+        types.append(kind)
+        sizes.append(value.dtype.itemsize)
+        counts.append(1 if value.ndim == 1 else value.shape[1])
+    header = (
+        "# .PCD v0.7 - Point Cloud Data file format (written by terracube)\nVERSION 0.7\n"
+        f"FIELDS {' '.join(names)}\nSIZE {' '.join(map(str, sizes))}\nTYPE {' '.join(types)}\n"
+        f"COUNT {' '.join(map(str, counts))}\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
+        f"POINTS {n}\nDATA {encoding}\n"
+    ).encode("ascii")
+    if encoding == "binary":
+        record = np.dtype(
+            [
+                (nm, columns[nm].dtype, (c,)) if c > 1 else (nm, columns[nm].dtype)
+                for nm, c in zip(names, counts, strict=True)
+            ]
+        )
+        rows = np.empty(n, dtype=record)
+        for name in names:
+            rows[name] = columns[name]
+        body = rows.tobytes()
+    elif encoding == "binary_compressed":
+        import lzf
+
+        raw = b"".join(np.ascontiguousarray(columns[name]).tobytes() for name in names)
+        packed = (lzf.compress(raw) if raw else b"") or _lzf_literal(raw)
+        body = np.array([len(packed), len(raw)], dtype="<u4").tobytes() + packed
+    else:
+        formats = []
+        for name, count in zip(names, counts, strict=True):
+            kind = columns[name].dtype
+            fmt = "%.9g" if kind == np.float32 else "%.17g" if kind.kind == "f" else "%d"
+            formats += [fmt] * count
+        table = np.column_stack([columns[name].astype(object) for name in names]) if n else []
+        lines = [" ".join(f % v for f, v in zip(formats, row, strict=True)) for row in table]
+        body = ("\n".join(lines) + ("\n" if lines else "")).encode("ascii")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(header + body)
+    return path
+
+
+# A colour per class label for PLY (ASPRS-like where the codes are ASPRS; others cycle a palette).
+_PALETTE = np.array(
+    [
+        [150, 150, 150], [190, 190, 190], [160, 110, 60], [120, 200, 90], [60, 160, 60], [20, 110, 30],
+        [220, 60, 50], [255, 0, 255], [240, 200, 60], [40, 110, 230], [130, 80, 160], [90, 90, 90],
+        [250, 150, 30], [30, 200, 200], [200, 120, 200], [100, 60, 20],
+    ],
+    dtype=np.uint8,
+)  # fmt: skip
+
+
+def _label_colours(labels: np.ndarray, is_mask: bool) -> np.ndarray:
+    if is_mask:  # retained grey, overhang red
+        return np.where(labels[:, None] != 0, np.uint8([230, 30, 30]), np.uint8([150, 150, 150])).astype(
+            np.uint8
+        )
+    return _PALETTE[labels % len(_PALETTE)]
+
+
+def _las_scale(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Offsets and scales for LAS: 0.1 mm where the extent allows it (int32 range), else coarser."""
+    lo = np.floor(np.nanmin(points, axis=0)) if len(points) else np.zeros(3)
+    hi = np.nanmax(points, axis=0) if len(points) else np.zeros(3)
+    scale = np.full(3, 1e-4)
+    while np.any((hi - lo) / scale > 2**31 - 2):
+        scale = np.where((hi - lo) / scale > 2**31 - 2, scale * 10, scale)
+    return lo, scale
+
+
+def write_classified(path: PathLike, points: np.ndarray, labels: np.ndarray) -> Path:
+    """Write points with one label each: a bool overhang mask or uint8 classes (0..255).
+
+    The format follows the suffix; ``read_cloud`` gives the same labels back (``"label"``, uint8):
+
+    - ``.ply``: binary; float x y z (float64 if the points are), a uchar property ``overhang`` (mask)
+      or ``label`` (classes), and an RGB colour (mask: retained grey, overhang red).
+    - ``.pcd``: binary PCD v0.7; fields x y z (F4 or F8) and ``overhang`` (U1, mask) or ``label`` (U1).
+    - ``.las`` / ``.laz``: LAS 1.4, point format 6, coordinates at 0.1 mm (coarser only when the
+      extent exceeds the int32 range). Classes go into ``classification`` as they are (ASPRS codes
+      where the labels are). A mask writes ``classification`` 1 (``RETAINED_LAS_CLASS``, ASPRS
+      "unclassified") for retained and 64 (``OVERHANG_LAS_CLASS``, first user-definable code) for
+      overhang points, plus a uint8 extra dimension ``overhang`` that the reader prefers.
+    - ``.npz``: ``xyz`` and ``overhang`` (bool, mask) or ``label`` (uint8).
+    - ``.npy``: an (N, 4) array x, y, z, label in the points' float dtype.
+    - ``.txt`` / ``.xyz``: a ``# x y z overhang`` (or ``label``) header line, then ``x y z label``
+      rows (coordinates at 0.1 mm).
     """
     path = Path(path)
     points = np.asarray(points)
-    overhang = np.asarray(overhang, dtype=bool)
-    if points.ndim != 2 or points.shape[1] < 3 or overhang.shape != (points.shape[0],):
-        raise ValueError(f"need (N, 3) points and an (N,) mask, got {points.shape} and {overhang.shape}")
-    path.parent.mkdir(parents=True, exist_ok=True)
+    labels = np.asarray(labels)
+    if points.ndim != 2 or points.shape[1] < 3 or labels.shape != (points.shape[0],):
+        raise ValueError(f"{path}: need (N, 3) points and (N,) labels, got {points.shape} and {labels.shape}")
+    is_mask = labels.dtype == bool
+    if not is_mask:
+        if not np.issubdtype(labels.dtype, np.integer):
+            raise ValueError(
+                f"{path}: labels must be a bool mask or integers 0..255, got dtype {labels.dtype}"
+            )
+        if labels.size and (labels.min() < 0 or labels.max() > 255):
+            raise ValueError(f"{path}: labels must lie in 0..255, got {labels.min()}..{labels.max()}")
+    label_u8 = labels.astype(np.uint8)
+    name = "overhang" if is_mask else "label"
+    xyz = points[:, :3]
+    if xyz.dtype not in (np.float32, np.float64):
+        xyz = xyz.astype(np.float64)
     suffix = path.suffix.lower()
+    if suffix not in WRITE_SUFFIXES:
+        raise ValueError(f"{path}: unknown output format {suffix!r} (use {', '.join(WRITE_SUFFIXES)})")
+    path.parent.mkdir(parents=True, exist_ok=True)
     if suffix == ".ply":
         from plyfile import PlyData, PlyElement
 
+        kind = "f8" if xyz.dtype == np.float64 else "f4"
         vertex = np.empty(
-            points.shape[0],
+            len(xyz),
             dtype=[
-                ("x", "f4"),
-                ("y", "f4"),
-                ("z", "f4"),
-                ("overhang", "u1"),
+                ("x", kind),
+                ("y", kind),
+                ("z", kind),
+                (name, "u1"),
                 ("red", "u1"),
                 ("green", "u1"),
                 ("blue", "u1"),
             ],
         )
-        vertex["x"], vertex["y"], vertex["z"] = (points[:, i] for i in range(3))
-        vertex["overhang"] = overhang
-        vertex["red"] = np.where(overhang, 230, 150)
-        vertex["green"] = np.where(overhang, 30, 150)
-        vertex["blue"] = np.where(overhang, 30, 150)
+        vertex["x"], vertex["y"], vertex["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+        vertex[name] = label_u8
+        colours = _label_colours(label_u8, is_mask)
+        vertex["red"], vertex["green"], vertex["blue"] = colours[:, 0], colours[:, 1], colours[:, 2]
         PlyData([PlyElement.describe(vertex, "vertex")], text=False).write(str(path))
+    elif suffix == ".pcd":
+        write_pcd(path, {"xyz": xyz, name: label_u8}, encoding="binary")
+    elif suffix in (".las", ".laz"):
+        _write_las(path, xyz, label_u8, is_mask)
     elif suffix == ".npz":
-        np.savez_compressed(path, xyz=points[:, :3], overhang=overhang)
-    elif suffix == ".txt":
-        np.savetxt(path, np.column_stack([points[:, :3], overhang]), fmt=["%.4f", "%.4f", "%.4f", "%d"])
+        np.savez_compressed(path, xyz=xyz, **{name: labels.astype(bool) if is_mask else label_u8})
+    elif suffix == ".npy":
+        np.save(path, np.column_stack([xyz, label_u8.astype(xyz.dtype)]))
     else:
-        raise ValueError(f"{path}: unknown output format {suffix!r} (use .ply, .npz or .txt)")
+        with open(path, "w", encoding="ascii") as stream:
+            stream.write(f"# x y z {name}\n")
+            np.savetxt(stream, np.column_stack([xyz, label_u8]), fmt=["%.4f", "%.4f", "%.4f", "%d"])
     return path
+
+
+def _write_las(path: Path, xyz: np.ndarray, labels: np.ndarray, is_mask: bool) -> None:
+    try:
+        import laspy
+    except ImportError as error:  # pragma: no cover - laspy is a dependency
+        raise ImportError("LAS/LAZ writing needs laspy and lazrs: pip install 'laspy[lazrs]'") from error
+    if not np.all(np.isfinite(xyz)):
+        raise ValueError(f"{path}: LAS cannot store NaN or infinite coordinates; drop those points first")
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.offsets, header.scales = _las_scale(np.asarray(xyz, dtype=np.float64))
+    if is_mask:
+        header.add_extra_dim(
+            laspy.ExtraBytesParams(name="overhang", type=np.uint8, description="1 = overhang")
+        )
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    if is_mask:
+        las.classification = np.where(labels != 0, OVERHANG_LAS_CLASS, RETAINED_LAS_CLASS).astype(np.uint8)
+        las.overhang = labels
+    else:
+        las.classification = labels
+    las.write(str(path))
