@@ -8,6 +8,7 @@ void bind_collapse(py::module_& m);
 void bind_baselines(py::module_& m);
 void bind_elevation(py::module_& m);
 void bind_fuzzy(py::module_& m);
+void bind_icp(py::module_& m);
 }  // namespace terracube::python
 
 PYBIND11_MODULE(_core, m) {
@@ -16,4 +17,5 @@ PYBIND11_MODULE(_core, m) {
   terracube::python::bind_baselines(m);
   terracube::python::bind_elevation(m);
   terracube::python::bind_fuzzy(m);
+  terracube::python::bind_icp(m);
 }

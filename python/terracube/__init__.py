@@ -1,5 +1,6 @@
 """terracube: navigable 2.5D elevation maps from ground-robot 3D LiDAR scans."""
 
+from . import io
 from .collapse import (
     CollapseParams,
     CollapseResult,
@@ -23,11 +24,35 @@ from .elevation import (
     dem_without_overhangs,
 )
 from .fuzzy import FuzzyElevationMap, FuzzyParams, fit_fuzzy_elevation_map
+from .registration import (
+    DEFAULT_CLASS_WEIGHTS,
+    PclIcpParams,
+    RegistrationParams,
+    RegistrationResult,
+    StopReason,
+    has_pcl,
+    pcl_icp,
+    points_of_map,
+    register_maps,
+    register_maps_all_cells,
+    register_points,
+)
 
 __version__ = "0.1.0"
 
 __all__ = [
     "CollapseParams",
+    "DEFAULT_CLASS_WEIGHTS",
+    "PclIcpParams",
+    "RegistrationParams",
+    "RegistrationResult",
+    "StopReason",
+    "has_pcl",
+    "pcl_icp",
+    "points_of_map",
+    "register_maps",
+    "register_maps_all_cells",
+    "register_points",
     "CollapseResult",
     "CubeGrid",
     "ElevationMap",

@@ -1,0 +1,162 @@
+// Bindings for icp.hpp (and pcl_baseline.hpp when the PCL baseline was built).
+#include <pybind11/eigen.h>
+#include <pybind11/stl.h>
+#include <terracube/icp.hpp>
+
+#include <sstream>
+
+#include "points.hpp"
+
+#ifdef TERRACUBE_HAVE_PCL
+#include <terracube/pcl_baseline.hpp>
+#endif
+
+namespace terracube::python {
+
+namespace {
+
+/// (N, 3) points and an optional (N,) uint8 class array as ClassifiedPoints (one copy).
+ClassifiedPoints classified(const py::array& points, const std::optional<py::array>& classes, const char* name) {
+  ClassifiedPoints set;
+  with_points(points, name, [&](const auto& view) {
+    set.points.reserve(view.size);
+    for (std::size_t k = 0; k < view.size; ++k) {
+      const auto* row = view.data + static_cast<std::ptrdiff_t>(k) * view.row_stride;
+      set.points.emplace_back(static_cast<double>(row[0]), static_cast<double>(row[view.column_stride]),
+                              static_cast<double>(row[2 * view.column_stride]));
+    }
+    return 0;
+  });
+  if (classes) {
+    const auto labels = py::array_t<std::uint8_t, py::array::c_style | py::array::forcecast>::ensure(*classes);
+    if (!labels || labels.ndim() != 1 || static_cast<std::size_t>(labels.shape(0)) != set.size()) {
+      throw py::value_error(std::string(name) + " classes must be an (N,) uint8 array with one class per point");
+    }
+    set.classes.assign(labels.data(), labels.data() + set.size());
+  } else {
+    set.classes.assign(set.size(), std::uint8_t{0});
+  }
+  return set;
+}
+
+std::vector<Eigen::Vector3d> plain_points(const py::array& points, const char* name) {
+  return classified(points, std::nullopt, name).points;
+}
+
+}  // namespace
+
+void bind_icp(py::module_& m) {
+  py::enum_<StopReason>(m, "StopReason")
+      .value("converged", StopReason::kConverged)
+      .value("error_below_threshold", StopReason::kErrorBelowThreshold)
+      .value("max_iterations", StopReason::kMaxIterations)
+      .value("too_few_correspondences", StopReason::kTooFewCorrespondences)
+      .value("no_common_class", StopReason::kNoCommonClass)
+      .value("degenerate", StopReason::kDegenerate);
+
+  py::class_<RegistrationParams>(m, "RegistrationParams")
+      .def(py::init<>())
+      .def_readwrite("use_classes", &RegistrationParams::use_classes)
+      .def_readwrite("class_weights", &RegistrationParams::class_weights)
+      .def_readwrite("max_correspondence_distance_m", &RegistrationParams::max_correspondence_distance_m)
+      .def_readwrite("min_correspondence_distance_m", &RegistrationParams::min_correspondence_distance_m)
+      .def_readwrite("correspondence_distance_decay", &RegistrationParams::correspondence_distance_decay)
+      .def_readwrite("max_iterations", &RegistrationParams::max_iterations)
+      .def_readwrite("rotation_tolerance_rad", &RegistrationParams::rotation_tolerance_rad)
+      .def_readwrite("translation_tolerance_m", &RegistrationParams::translation_tolerance_m)
+      .def_readwrite("error_threshold_m", &RegistrationParams::error_threshold_m)
+      .def_readwrite("min_correspondences", &RegistrationParams::min_correspondences)
+      .def_readwrite("degeneracy_threshold", &RegistrationParams::degeneracy_threshold);
+
+  py::class_<RegistrationResult>(m, "RegistrationResult")
+      .def_readonly("transform", &RegistrationResult::transform, "(4, 4) source -> target")
+      .def_readonly("converged", &RegistrationResult::converged)
+      .def_readonly("reason", &RegistrationResult::reason)
+      .def_readonly("iterations", &RegistrationResult::iterations)
+      .def_readonly("rmse", &RegistrationResult::rmse_m, "weighted RMSE of the final correspondences [m]")
+      .def_readonly("correspondence_distance", &RegistrationResult::correspondence_distance_m)
+      .def_readonly("num_correspondences", &RegistrationResult::num_correspondences)
+      .def_readonly("correspondences_per_class", &RegistrationResult::correspondences_per_class)
+      .def_readonly("normal_matrix", &RegistrationResult::normal_matrix, "(6, 6) H of eq. (A6)")
+      .def_readonly("eigenvalues", &RegistrationResult::eigenvalues, "(6,) eigenvalues of H, ascending")
+      .def("__repr__", [](const RegistrationResult& r) {
+        std::ostringstream text;
+        text << "RegistrationResult(reason=" << to_string(r.reason) << ", iterations=" << r.iterations
+             << ", rmse=" << r.rmse_m << " m, correspondences=" << r.num_correspondences << ")";
+        return text.str();
+      });
+
+  m.def(
+      "register_points",
+      [](const py::array& source, const std::optional<py::array>& source_classes, const py::array& target,
+         const std::optional<py::array>& target_classes, const Eigen::Matrix4d& initial,
+         const RegistrationParams& params) {
+        const ClassifiedPoints s = classified(source, source_classes, "source");
+        const ClassifiedPoints t = classified(target, target_classes, "target");
+        py::gil_scoped_release release;
+        return register_points(s, t, initial, params);
+      },
+      py::arg("source"), py::arg("source_classes"), py::arg("target"), py::arg("target_classes"), py::arg("initial"),
+      py::arg("params"));
+  m.def(
+      "register_maps",
+      [](const ElevationMap& source, const ElevationMap& target, const Eigen::Matrix4d& initial,
+         const RegistrationParams& params) {
+        py::gil_scoped_release release;
+        return register_maps(source, target, initial, params);
+      },
+      py::arg("source"), py::arg("target"), py::arg("initial"), py::arg("params"));
+  m.def(
+      "points_of_map",
+      [](const ElevationMap& map) {
+        ClassifiedPoints set;
+        {
+          py::gil_scoped_release release;
+          set = points_of_map(map);
+        }
+        py::array_t<double> points({static_cast<py::ssize_t>(set.size()), py::ssize_t{3}});
+        auto out = points.mutable_unchecked<2>();
+        for (std::size_t k = 0; k < set.size(); ++k) {
+          for (int axis = 0; axis < 3; ++axis) out(static_cast<py::ssize_t>(k), axis) = set.points[k][axis];
+        }
+        py::array_t<std::uint8_t> classes(static_cast<py::ssize_t>(set.size()), set.classes.data());
+        return py::make_tuple(points, classes);
+      },
+      py::arg("map"), "((N, 3) float64 cell centres at max, (N,) uint8 classes)");
+
+#ifdef TERRACUBE_HAVE_PCL
+  m.attr("has_pcl") = true;
+  py::class_<PclIcpParams>(m, "PclIcpParams")
+      .def(py::init<>())
+      .def_readwrite("max_correspondence_distance_m", &PclIcpParams::max_correspondence_distance_m)
+      .def_readwrite("max_iterations", &PclIcpParams::max_iterations)
+      .def_readwrite("transformation_epsilon", &PclIcpParams::transformation_epsilon)
+      .def_readwrite("rotation_epsilon", &PclIcpParams::rotation_epsilon)
+      .def_readwrite("euclidean_fitness_epsilon", &PclIcpParams::euclidean_fitness_epsilon)
+      .def_readwrite("relative_mse_epsilon", &PclIcpParams::relative_mse_epsilon);
+  py::class_<PclIcpResult>(m, "PclIcpResult")
+      .def_readonly("transform", &PclIcpResult::transform)
+      .def_readonly("converged", &PclIcpResult::converged)
+      .def_readonly("fitness", &PclIcpResult::fitness_m2, "mean squared pair distance [m^2]")
+      .def_readonly("iterations", &PclIcpResult::iterations)
+      .def("__repr__", [](const PclIcpResult& r) {
+        std::ostringstream text;
+        text << "PclIcpResult(converged=" << (r.converged ? "True" : "False") << ", iterations=" << r.iterations
+             << ", fitness=" << r.fitness_m2 << " m^2)";
+        return text.str();
+      });
+  m.def(
+      "pcl_icp",
+      [](const py::array& source, const py::array& target, const Eigen::Matrix4d& initial, const PclIcpParams& params) {
+        const std::vector<Eigen::Vector3d> s = plain_points(source, "source");
+        const std::vector<Eigen::Vector3d> t = plain_points(target, "target");
+        py::gil_scoped_release release;
+        return pcl_icp(s, t, initial, params);
+      },
+      py::arg("source"), py::arg("target"), py::arg("initial"), py::arg("params"));
+#else
+  m.attr("has_pcl") = false;
+#endif
+}
+
+}  // namespace terracube::python

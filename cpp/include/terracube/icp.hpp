@@ -1,0 +1,148 @@
+// Class-weighted ICP between classified elevation maps (the terrain-classification paper,
+// sections 2.2 and 3.3 and its appendix): point-to-point ICP whose correspondences pair a source
+// cell only with the nearest target cell of the same terrain class, each class with its own
+// weight (eq. 4), ground taking no part. With classes off and unit weights it is the paper's
+// "conventional" ICP over all cells.
+#pragma once
+
+#include <Eigen/Core>
+#include <array>
+#include <cstddef>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "terracube/elevation_map.hpp"
+#include "terracube/terrain.hpp"
+
+namespace terracube {
+
+/// Number of TerrainClass values (unknown .. horizontal edge).
+inline constexpr std::size_t kNumTerrainClasses = 6;
+
+/// One weight per TerrainClass, indexed by its value.
+using ClassWeights = std::array<double, kNumTerrainClasses>;
+
+/// Table 2 of the classification paper: obstacle 0.8, overhanging 0.5, vertical 0.5, horizontal
+/// edge 0.8; unknown and ground 0 (they take no part).
+inline constexpr ClassWeights kDefaultClassWeights = {0.0, 0.0, 0.8, 0.5, 0.5, 0.8};
+
+/// A set of 3D points, each with a terrain class (the cells of a classified map).
+struct ClassifiedPoints {
+  std::vector<Eigen::Vector3d> points;  ///< [m]
+  std::vector<std::uint8_t> classes;    ///< TerrainClass values, one per point
+  std::size_t size() const { return points.size(); }
+};
+
+/// Every cell with data in "max" becomes the point (x centre, y centre, max) with the class of
+/// the "class" layer written by classify_terrain (unknown where that layer is NaN or absent).
+/// Throws std::out_of_range when the map has no "max" layer.
+ClassifiedPoints points_of_map(const ElevationMap& map);
+
+/// Parameters of register_maps / register_points; defaults follow the paper where it gives them.
+struct RegistrationParams {
+  /// true: a source point pairs only with target points of its class and carries its class's
+  /// weight (classes of weight 0 take no part). false: the conventional ICP, every point pairs
+  /// with the nearest target point of any class at unit weight.
+  bool use_classes = true;
+  ClassWeights class_weights = kDefaultClassWeights;  ///< eq. (4) weights, >= 0
+  /// Correspondences farther apart than this take no part [m]. At iteration k (from 0) the limit
+  /// is max(min_correspondence_distance_m, max_correspondence_distance_m * decay^k).
+  double max_correspondence_distance_m = 1.5;
+  double min_correspondence_distance_m = 0.3;
+  double correspondence_distance_decay = 0.85;  ///< in (0, 1]; 1 keeps the limit fixed
+  int max_iterations = 30;                      ///< >= 1
+  /// Stop (converged) when an update rotates less than this [rad] and moves less than
+  /// translation_tolerance_m [m].
+  double rotation_tolerance_rad = 5e-4;
+  double translation_tolerance_m = 5e-4;
+  /// Stop (converged) when the weighted RMSE of eq. (2)/(4) falls below this [m]; 0 disables it.
+  double error_threshold_m = 0.0;
+  std::size_t min_correspondences = 10;  ///< fewer: stop with kTooFewCorrespondences, >= 3
+  /// The 6x6 normal matrix is degenerate when its smallest eigenvalue divided by its largest is
+  /// below this; registration then stops with kDegenerate (keeping the last estimate) rather than
+  /// move along unconstrained directions. In [0, 1). Note: in point-to-point ICP the translation
+  /// block of H is sum(w) I, so H stays full rank for points on a plane (sliding along a flat road
+  /// shows only in the result, not in H); the test catches collinear or coincident points
+  /// (rotation about the line is free). The eigenvalues are reported either way.
+  double degeneracy_threshold = 1e-6;
+};
+
+/// Why registration stopped.
+enum class StopReason : std::uint8_t {
+  kConverged = 0,              ///< the update fell below both tolerances
+  kErrorBelowThreshold = 1,    ///< the weighted RMSE fell below error_threshold_m
+  kMaxIterations = 2,          ///< max_iterations updates without converging
+  kTooFewCorrespondences = 3,  ///< fewer than min_correspondences pairs within the distance
+  kNoCommonClass = 4,          ///< no class of non-zero weight has points in both sets
+  kDegenerate = 5,             ///< the normal matrix leaves some direction unconstrained
+};
+
+/// A short lower-case name ("converged", "max_iterations", ...).
+const char* to_string(StopReason reason);
+
+/// Outcome of a registration.
+struct RegistrationResult {
+  /// Maps source coordinates into the target frame: q ~ transform * p. On kDegenerate,
+  /// kTooFewCorrespondences and kNoCommonClass it is the last estimate before the failure.
+  Eigen::Matrix4d transform = Eigen::Matrix4d::Identity();
+  bool converged = false;  ///< reason is kConverged or kErrorBelowThreshold
+  StopReason reason = StopReason::kMaxIterations;
+  int iterations = 0;  ///< updates applied
+  /// sqrt(sum w_i |R p_i + t - q_i|^2 / sum w_i) over the correspondences at `transform` [m]
+  /// (eq. (2), weighted as eq. (4)); NaN without correspondences.
+  double rmse_m = 0.0;
+  double correspondence_distance_m = 0.0;  ///< the distance limit of the last pass [m]
+  std::size_t num_correspondences = 0;
+  std::array<std::size_t, kNumTerrainClasses> correspondences_per_class{};  ///< by source class
+  /// The weighted normal matrix H = sum w_i J_i^T J_i of eq. (A6) at `transform`, unknowns
+  /// (rotation [rad], translation [m]) about the correspondences' weighted source centroid.
+  Eigen::Matrix<double, 6, 6> normal_matrix = Eigen::Matrix<double, 6, 6>::Zero();
+  Eigen::Matrix<double, 6, 1> eigenvalues = Eigen::Matrix<double, 6, 1>::Zero();  ///< of H, ascending
+};
+
+/// Registers `source` onto `target` starting from `initial` (a rigid 4x4, e.g. odometry).
+/// Each iteration pairs every source point (moved by the current estimate) with its nearest
+/// target point within the current distance limit (of its class when use_classes), builds the
+/// linearised weighted normal equations of eq. (A6), solves them with LDLT and composes the
+/// update as an exact rotation (Rodrigues). Throws std::invalid_argument for invalid parameters,
+/// a non-finite or non-rigid `initial`, non-finite points or class values >= 6.
+RegistrationResult register_points(const ClassifiedPoints& source, const ClassifiedPoints& target,
+                                   const Eigen::Matrix4d& initial, const RegistrationParams& params = {});
+
+/// register_points on points_of_map(source) and points_of_map(target). With use_classes the maps
+/// need the "class" layer (classify_terrain); std::invalid_argument otherwise.
+RegistrationResult register_maps(const ElevationMap& source, const ElevationMap& target, const Eigen::Matrix4d& initial,
+                                 const RegistrationParams& params = {});
+
+/// The paper's conventional ICP: register_maps with use_classes = false (every cell, unit weight).
+RegistrationResult register_maps_all_cells(const ElevationMap& source, const ElevationMap& target,
+                                           const Eigen::Matrix4d& initial, RegistrationParams params = {});
+
+/// Exact nearest neighbour among a fixed set of 3D points (a compact k-d tree).
+class NearestNeighbor3d {
+ public:
+  NearestNeighbor3d() = default;
+  explicit NearestNeighbor3d(std::vector<Eigen::Vector3d> points);
+  /// Index (into the constructor's points) of the nearest point whose squared distance is at most
+  /// `max_squared_distance` (ties: any one), or -1. `squared_distance` receives that distance.
+  std::ptrdiff_t nearest(const Eigen::Vector3d& query, double max_squared_distance, double& squared_distance) const;
+  std::size_t size() const { return points_.size(); }
+  /// The constructor's point `index`.
+  const Eigen::Vector3d& point(std::size_t index) const { return points_[position_[index]]; }
+
+ private:
+  struct Node {
+    double split = 0.0;
+    std::uint32_t begin = 0, end = 0;  // leaf range in order_ (leaves only)
+    std::int32_t left = -1, right = -1;
+    std::int8_t axis = -1;  // -1: leaf
+  };
+  std::int32_t build(std::uint32_t begin, std::uint32_t end);
+  std::vector<Eigen::Vector3d> points_;  // in leaf order once built
+  std::vector<std::uint32_t> original_;  // constructor index of points_[k]
+  std::vector<std::uint32_t> position_;  // inverse of original_
+  std::vector<Node> nodes_;
+};
+
+}  // namespace terracube

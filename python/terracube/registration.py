@@ -1,0 +1,234 @@
+"""Class-weighted ICP between classified elevation maps, its all-cells baseline and PCL's ICP.
+
+The terrain-classification paper, sections 2.2 and 3.3 and its appendix: each cell with data is
+the point (x centre, y centre, max) carrying its terrain class; a source point pairs only with the
+nearest target point of its class, each class with the weight of eq. (4) (Table 2), ground taking
+no part. ``register_maps_all_cells`` is the paper's "conventional" ICP (every cell, unit weight);
+``pcl_icp`` runs ``pcl::IterativeClosestPoint`` on the same points.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import _core
+from .elevation import ElevationMap, TerrainClass
+
+__all__ = [
+    "DEFAULT_CLASS_WEIGHTS",
+    "PclIcpParams",
+    "RegistrationParams",
+    "RegistrationResult",
+    "StopReason",
+    "has_pcl",
+    "pcl_icp",
+    "points_of_map",
+    "register_maps",
+    "register_maps_all_cells",
+    "register_points",
+]
+
+StopReason = _core.StopReason
+RegistrationResult = _core.RegistrationResult
+
+#: Table 2 of the classification paper; classes not listed (unknown, ground) weigh 0.
+DEFAULT_CLASS_WEIGHTS: dict[TerrainClass, float] = {
+    TerrainClass.OBSTACLE: 0.8,
+    TerrainClass.OVERHANGING_OBJECT: 0.5,
+    TerrainClass.VERTICAL_OBJECT: 0.5,
+    TerrainClass.HORIZONTAL_EDGE: 0.8,
+}
+
+
+def has_pcl() -> bool:
+    """Whether this build includes PCL's ICP baseline (:func:`pcl_icp`)."""
+    return bool(_core.has_pcl)
+
+
+@dataclass
+class RegistrationParams:
+    """Parameters of :func:`register_maps`, mirroring ``terracube::RegistrationParams``.
+
+    Attributes
+    ----------
+    use_classes : bool
+        True: pair only within a class, weighted by ``class_weights``; False: the conventional
+        ICP (nearest cell of any class, unit weight).
+    class_weights : mapping TerrainClass -> float
+        Eq. (4) weights (>= 0); classes not given weigh 0 and take no part (Table 2 by default).
+    max_correspondence_distance, min_correspondence_distance : float
+        Pairs farther apart take no part [m]; at iteration k the limit is
+        ``max(min, max * decay**k)`` (1.5 m shrinking to 0.3 m).
+    correspondence_distance_decay : float
+        In (0, 1]; 1 keeps the limit fixed.
+    max_iterations : int
+        Updates at most.
+    rotation_tolerance, translation_tolerance : float
+        Converged when an update is smaller than both [rad], [m].
+    error_threshold : float
+        Converged when the weighted RMSE falls below this [m]; 0 disables it.
+    min_correspondences : int
+        Fewer pairs stop registration (reason ``too_few_correspondences``).
+    degeneracy_threshold : float
+        Smallest / largest eigenvalue of the 6x6 normal matrix below this stops registration
+        (reason ``degenerate``) instead of moving along unconstrained directions.
+    """
+
+    use_classes: bool = True
+    class_weights: Mapping[TerrainClass, float] = field(default_factory=lambda: dict(DEFAULT_CLASS_WEIGHTS))
+    max_correspondence_distance: float = 1.5
+    min_correspondence_distance: float = 0.3
+    correspondence_distance_decay: float = 0.85
+    max_iterations: int = 30
+    rotation_tolerance: float = 5e-4
+    translation_tolerance: float = 5e-4
+    error_threshold: float = 0.0
+    min_correspondences: int = 10
+    degeneracy_threshold: float = 1e-6
+
+    def to_core(self) -> _core.RegistrationParams:
+        params = _core.RegistrationParams()
+        params.use_classes = bool(self.use_classes)
+        weights = [0.0] * len(TerrainClass)
+        for name, weight in self.class_weights.items():
+            weights[int(TerrainClass(name))] = float(weight)
+        params.class_weights = weights
+        params.max_correspondence_distance_m = float(self.max_correspondence_distance)
+        params.min_correspondence_distance_m = float(self.min_correspondence_distance)
+        params.correspondence_distance_decay = float(self.correspondence_distance_decay)
+        params.max_iterations = int(self.max_iterations)
+        params.rotation_tolerance_rad = float(self.rotation_tolerance)
+        params.translation_tolerance_m = float(self.translation_tolerance)
+        params.error_threshold_m = float(self.error_threshold)
+        if int(self.min_correspondences) < 3:
+            raise ValueError(f"min_correspondences must be at least 3, got {self.min_correspondences}")
+        params.min_correspondences = int(self.min_correspondences)
+        params.degeneracy_threshold = float(self.degeneracy_threshold)
+        return params
+
+
+def _as_guess(initial) -> np.ndarray:
+    guess = np.eye(4) if initial is None else np.asarray(initial, dtype=np.float64)
+    if guess.shape != (4, 4):
+        raise ValueError(f"initial must be a 4x4 rigid transform, got shape {guess.shape}")
+    return guess
+
+
+def _core_map(elevation_map) -> _core.ElevationMap:
+    return elevation_map._core if isinstance(elevation_map, ElevationMap) else elevation_map
+
+
+def register_maps(
+    source: ElevationMap,
+    target: ElevationMap,
+    initial=None,
+    params: RegistrationParams | None = None,
+    **kwargs,
+) -> RegistrationResult:
+    """Class-weighted ICP of ``source`` onto ``target`` (both classified by :func:`classify_terrain`).
+
+    Parameters
+    ----------
+    source, target : ElevationMap
+        Maps with the ``max`` and ``class`` layers.
+    initial : (4, 4) array, optional
+        Rigid guess (odometry) of the source -> target transform; identity when None.
+    params : RegistrationParams, optional
+        Otherwise built from ``kwargs``.
+
+    Returns
+    -------
+    RegistrationResult
+        ``transform`` (4, 4), ``converged``, ``reason`` (:class:`StopReason`), ``iterations``,
+        ``rmse`` [m], ``num_correspondences``, ``correspondences_per_class`` (6 counts by class),
+        ``normal_matrix`` (6, 6) and its ``eigenvalues`` (6,), ascending.
+
+    Raises
+    ------
+    ValueError
+        Invalid parameters, a non-finite or non-rigid ``initial``, or a map without ``class``.
+    """
+    params = params or RegistrationParams(**kwargs)
+    return _core.register_maps(_core_map(source), _core_map(target), _as_guess(initial), params.to_core())
+
+
+def register_maps_all_cells(
+    source: ElevationMap,
+    target: ElevationMap,
+    initial=None,
+    params: RegistrationParams | None = None,
+    **kwargs,
+) -> RegistrationResult:
+    """The paper's conventional ICP: every cell with data, unit weight, any class.
+
+    Same arguments and result as :func:`register_maps`; ``use_classes`` is forced off.
+    """
+    params = params or RegistrationParams(**kwargs)
+    core = params.to_core()
+    core.use_classes = False
+    return _core.register_maps(_core_map(source), _core_map(target), _as_guess(initial), core)
+
+
+def register_points(
+    source,
+    target,
+    initial=None,
+    params: RegistrationParams | None = None,
+    *,
+    source_classes=None,
+    target_classes=None,
+    **kwargs,
+) -> RegistrationResult:
+    """The same ICP on (N, 3) point arrays with optional (N,) uint8 classes (unknown when None)."""
+    params = params or RegistrationParams(**kwargs)
+    return _core.register_points(
+        np.asarray(source),
+        source_classes,
+        np.asarray(target),
+        target_classes,
+        _as_guess(initial),
+        params.to_core(),
+    )
+
+
+def points_of_map(elevation_map: ElevationMap) -> tuple[np.ndarray, np.ndarray]:
+    """The registration's point set: (N, 3) float64 cell centres at ``max`` and (N,) uint8 classes."""
+    return _core.points_of_map(_core_map(elevation_map))
+
+
+@dataclass
+class PclIcpParams:
+    """Settings of ``pcl::IterativeClosestPoint`` (see ``terracube::PclIcpParams``)."""
+
+    max_correspondence_distance: float = 1.0
+    max_iterations: int = 30
+    transformation_epsilon: float = 1e-10
+    rotation_epsilon: float = 1.0 - 1e-10
+    euclidean_fitness_epsilon: float = 0.0
+    relative_mse_epsilon: float = 1e-5
+
+    def to_core(self):
+        if not has_pcl():
+            raise RuntimeError("this terracube build has no PCL baseline (configure with PCL installed)")
+        params = _core.PclIcpParams()
+        params.max_correspondence_distance_m = float(self.max_correspondence_distance)
+        params.max_iterations = int(self.max_iterations)
+        params.transformation_epsilon = float(self.transformation_epsilon)
+        params.rotation_epsilon = float(self.rotation_epsilon)
+        params.euclidean_fitness_epsilon = float(self.euclidean_fitness_epsilon)
+        params.relative_mse_epsilon = float(self.relative_mse_epsilon)
+        return params
+
+
+def pcl_icp(source, target, initial=None, params: PclIcpParams | None = None, **kwargs):
+    """PCL's point-to-point ICP (SVD estimation) on (N, 3) arrays; RuntimeError without PCL.
+
+    Returns a result with ``transform`` (4, 4), ``converged``, ``iterations`` and ``fitness``
+    (mean squared pair distance [m^2]).
+    """
+    params = params or PclIcpParams(**kwargs)
+    core = params.to_core()
+    return _core.pcl_icp(np.asarray(source), np.asarray(target), _as_guess(initial), core)

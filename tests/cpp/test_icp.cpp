@@ -1,0 +1,403 @@
+#include <gtest/gtest.h>
+#include <terracube/elevation_map.hpp>
+#include <terracube/icp.hpp>
+#include <terracube/terrain.hpp>
+
+#include <Eigen/Geometry>
+#include <cmath>
+#include <limits>
+#include <random>
+#include <stdexcept>
+#include <vector>
+
+#include "test_support.hpp"
+
+#ifdef TERRACUBE_HAVE_PCL
+#include <terracube/pcl_baseline.hpp>
+#endif
+
+namespace terracube {
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+constexpr double kSensorHeight = 1.73;
+
+Eigen::Matrix4d pose(double x, double y, double z, double yaw_deg, double pitch_deg = 0.0, double roll_deg = 0.0) {
+  Eigen::Matrix4d t = Eigen::Matrix4d::Identity();
+  t.topLeftCorner<3, 3>() = (Eigen::AngleAxisd(yaw_deg * kPi / 180.0, Eigen::Vector3d::UnitZ()) *
+                             Eigen::AngleAxisd(pitch_deg * kPi / 180.0, Eigen::Vector3d::UnitY()) *
+                             Eigen::AngleAxisd(roll_deg * kPi / 180.0, Eigen::Vector3d::UnitX()))
+                                .toRotationMatrix();
+  t.topRightCorner<3, 1>() = Eigen::Vector3d(x, y, z);
+  return t;
+}
+
+double translation_error(const Eigen::Matrix4d& estimate, const Eigen::Matrix4d& truth) {
+  return (estimate.topRightCorner<3, 1>() - truth.topRightCorner<3, 1>()).norm();
+}
+
+double rotation_error_deg(const Eigen::Matrix4d& estimate, const Eigen::Matrix4d& truth) {
+  const Eigen::Matrix3d delta = estimate.topLeftCorner<3, 3>().transpose() * truth.topLeftCorner<3, 3>();
+  return Eigen::AngleAxisd(delta).angle() * 180.0 / kPi;
+}
+
+std::vector<Eigen::Vector3d> transformed(const std::vector<Eigen::Vector3d>& points, const Eigen::Matrix4d& t) {
+  std::vector<Eigen::Vector3d> out;
+  out.reserve(points.size());
+  for (const Eigen::Vector3d& p : points) out.push_back(t.topLeftCorner<3, 3>() * p + t.topRightCorner<3, 1>());
+  return out;
+}
+
+/// A street in the world frame (ground z = 0): flat road, two building fronts with gaps, poles,
+/// parked boxes and a tree canopy on a trunk, sampled every `step_m`.
+std::vector<Eigen::Vector3d> street(double step_m) {
+  std::vector<Eigen::Vector3d> w;
+  for (double x = -35; x < 35; x += step_m) {
+    for (double y = -20; y < 20; y += step_m) w.emplace_back(x, y, 0.0);
+  }
+  for (double x = -35; x < 35; x += step_m) {
+    if (std::fmod(x + 35.0, 12.0) > 9.0) continue;  // gaps between the houses
+    for (double z = 0; z < 4.0 + 0.5 * std::sin(x); z += step_m) {
+      w.emplace_back(x, 9.0 + 0.1 * std::sin(0.7 * x), z);
+      w.emplace_back(x, -10.0, z);
+    }
+  }
+  for (double px : {-22.0, -9.0, 3.0, 14.5, 26.0}) {
+    for (double z = 0; z < 3.0; z += step_m) {
+      for (int k = 0; k < 8; ++k) {
+        w.emplace_back(px + 0.15 * std::cos(k * kPi / 4), 6.0 + 0.15 * std::sin(k * kPi / 4), z);
+      }
+    }
+  }
+  for (double cx : {-15.0, 7.0, 20.0}) {  // parked boxes 4 x 1.8 x 1.5 (tops only)
+    for (double x = cx; x < cx + 4.0; x += step_m) {
+      for (double y = -7.0; y < -5.2; y += step_m) w.emplace_back(x, y, 1.5 + 0.05 * (x - cx));
+    }
+  }
+  for (double x = -30; x < 30; x += step_m) {  // a kerb 0.3 m high (tops only): obstacle cells
+    if (std::fmod(x + 30.0, 10.0) < 7.0) w.emplace_back(x, -4.5, 0.3);
+  }
+  for (double x = -4; x < 0; x += step_m) {  // canopy over the road at 3.5 m, trunk at (-2, -3)
+    for (double y = -5; y < -1; y += step_m) w.emplace_back(x, y, 3.5 + 0.2 * std::cos(x + y));
+  }
+  for (double z = 0; z < 3.5; z += step_m) w.emplace_back(-2.0, -3.0, z);
+  return w;
+}
+
+/// The classified 2.5D map of the street seen from `sensor_in_world` (sensor 1.73 m above ground).
+ElevationMap street_map(const std::vector<Eigen::Vector3d>& world, const Eigen::Matrix4d& sensor_in_world,
+                        double resolution_m) {
+  const std::vector<Eigen::Vector3d> scan = transformed(world, sensor_in_world.inverse());
+  std::vector<double> flat;
+  flat.reserve(scan.size() * 3);
+  for (const Eigen::Vector3d& p : scan) flat.insert(flat.end(), {p.x(), p.y(), p.z()});
+  ElevationParams params;
+  params.resolution_m = resolution_m;
+  params.origin_m = Eigen::Vector2d(-20.0, -10.0);
+  params.size = CellIndex(static_cast<int>(40.0 / resolution_m), static_cast<int>(20.0 / resolution_m));
+  ElevationMap map = build_elevation_map(PointsView<double>(flat.data(), scan.size()), params);
+  TerrainParams terrain;
+  terrain.sensor_height_m = kSensorHeight;
+  classify_terrain(map, terrain);
+  return map;
+}
+
+ClassifiedPoints with_class(const std::vector<Eigen::Vector3d>& points, TerrainClass c) {
+  ClassifiedPoints set;
+  set.points = points;
+  set.classes.assign(points.size(), static_cast<std::uint8_t>(c));
+  return set;
+}
+
+// --- nearest neighbour ----------------------------------------------------------------------
+
+TEST(NearestNeighbor3d, MatchesBruteForceWithinTheDistanceLimit) {
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> u(-5.0, 5.0);
+  for (const std::size_t n : {std::size_t{0}, std::size_t{1}, std::size_t{9}, std::size_t{500}, std::size_t{3000}}) {
+    std::vector<Eigen::Vector3d> points;
+    for (std::size_t k = 0; k < n; ++k) points.emplace_back(u(rng), u(rng), 0.2 * u(rng));
+    if (n > 10) points.insert(points.end(), points.begin(), points.begin() + 10);  // duplicates
+    const NearestNeighbor3d index(points);
+    for (int q = 0; q < 400; ++q) {
+      const Eigen::Vector3d query(1.2 * u(rng), 1.2 * u(rng), 0.3 * u(rng));
+      const double limit = q % 2 == 0 ? 0.5 : 100.0;
+      double best = limit * limit;
+      std::ptrdiff_t brute = -1;
+      for (std::size_t k = 0; k < points.size(); ++k) {
+        const double d = (points[k] - query).squaredNorm();
+        if (d <= best) {
+          best = d;
+          brute = static_cast<std::ptrdiff_t>(k);
+        }
+      }
+      double found = -1.0;
+      const std::ptrdiff_t got = index.nearest(query, limit * limit, found);
+      ASSERT_EQ(got < 0, brute < 0) << "n=" << n << " query " << q;
+      if (got >= 0) {
+        EXPECT_EQ(found, best) << "n=" << n << " query " << q;  // ties may pick another index
+        EXPECT_EQ((index.point(static_cast<std::size_t>(got)) - query).squaredNorm(), best);
+        EXPECT_EQ(points[static_cast<std::size_t>(got)], index.point(static_cast<std::size_t>(got)));
+      }
+    }
+  }
+}
+
+// --- point sets with exact correspondences ------------------------------------------------------
+
+TEST(RegisterPoints, RecoversAKnownMotionAsAProperRotation) {
+  const std::vector<Eigen::Vector3d> scene = test::random_scene(3, 3000, 20.0);
+  const Eigen::Matrix4d truth = pose(0.3, -0.2, 0.05, 4.0, 1.0, -0.5);
+  RegistrationParams params;
+  params.use_classes = false;
+  params.max_iterations = 50;
+  const RegistrationResult result = register_points(with_class(scene, TerrainClass::kObstacle),
+                                                    with_class(transformed(scene, truth), TerrainClass::kObstacle),
+                                                    Eigen::Matrix4d::Identity(), params);
+  EXPECT_TRUE(result.converged) << to_string(result.reason);
+  EXPECT_EQ(result.reason, StopReason::kConverged);
+  EXPECT_LT(translation_error(result.transform, truth), 1e-6);
+  EXPECT_LT(rotation_error_deg(result.transform, truth), 1e-5);
+  const Eigen::Matrix3d r = result.transform.topLeftCorner<3, 3>();
+  EXPECT_TRUE((r.transpose() * r).isIdentity(1e-12));
+  EXPECT_NEAR(r.determinant(), 1.0, 1e-12);
+  EXPECT_EQ(result.transform.row(3), Eigen::RowVector4d(0, 0, 0, 1));
+  EXPECT_LT(result.rmse_m, 1e-6);
+  EXPECT_EQ(result.num_correspondences, scene.size());
+  EXPECT_GT(result.iterations, 1);
+  EXPECT_GT(result.eigenvalues(0), 0.0);
+  EXPECT_LE(result.eigenvalues(0), result.eigenvalues(5));
+}
+
+TEST(RegisterPoints, PairsOnlyWithinAClassAndSkipsGround) {
+  // Two interleaved classes whose nearest neighbours across classes would be wrong: obstacles on
+  // a coarse lattice and vertical objects offset by 0.25 m; plus ground that must not take part.
+  std::vector<Eigen::Vector3d> points;
+  std::vector<std::uint8_t> classes;
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<double> u(-0.05, 0.05);
+  for (int i = 0; i < 20; ++i) {
+    for (int j = 0; j < 20; ++j) {
+      const Eigen::Vector3d base(i * 1.0, j * 1.0, 0.3 * std::sin(i + 2.0 * j));
+      points.push_back(base + Eigen::Vector3d(u(rng), u(rng), 0.0));
+      classes.push_back(static_cast<std::uint8_t>(TerrainClass::kObstacle));
+      points.push_back(base + Eigen::Vector3d(0.25, 0.0, 1.0));
+      classes.push_back(static_cast<std::uint8_t>(TerrainClass::kVerticalObject));
+      points.push_back(base + Eigen::Vector3d(0.5, 0.5, -1.0));
+      classes.push_back(static_cast<std::uint8_t>(TerrainClass::kGround));
+    }
+  }
+  ClassifiedPoints source{points, classes};
+  const Eigen::Matrix4d truth = pose(0.2, 0.1, 0.0, 2.0);
+  ClassifiedPoints target{transformed(points, truth), classes};
+  RegistrationParams params;
+  params.max_correspondence_distance_m = 0.6;
+  params.min_correspondence_distance_m = 0.6;
+  params.max_iterations = 60;
+  const RegistrationResult result = register_points(source, target, Eigen::Matrix4d::Identity(), params);
+  EXPECT_TRUE(result.converged) << to_string(result.reason);
+  EXPECT_LT(translation_error(result.transform, truth), 1e-6);
+  EXPECT_LT(rotation_error_deg(result.transform, truth), 1e-5);
+  EXPECT_EQ(result.correspondences_per_class[static_cast<int>(TerrainClass::kGround)], 0U);
+  EXPECT_EQ(result.correspondences_per_class[static_cast<int>(TerrainClass::kObstacle)], 400U);
+  EXPECT_EQ(result.correspondences_per_class[static_cast<int>(TerrainClass::kVerticalObject)], 400U);
+  EXPECT_EQ(result.num_correspondences, 800U);
+}
+
+TEST(RegisterPoints, ErrorThresholdStopsEarly) {
+  const std::vector<Eigen::Vector3d> scene = test::random_scene(5, 1000, 10.0);
+  RegistrationParams params;
+  params.use_classes = false;
+  params.error_threshold_m = 1e-3;
+  const RegistrationResult result = register_points(
+      with_class(scene, TerrainClass::kGround), with_class(scene, TerrainClass::kGround), pose(0.01, 0, 0, 0), params);
+  EXPECT_TRUE(result.converged);
+  EXPECT_EQ(result.reason, StopReason::kErrorBelowThreshold);
+}
+
+// --- bad input ----------------------------------------------------------------------------------
+
+TEST(RegisterPoints, NoClassInCommonSaysSo) {
+  const std::vector<Eigen::Vector3d> scene = test::random_scene(1, 200, 10.0);
+  const RegistrationResult result =
+      register_points(with_class(scene, TerrainClass::kObstacle), with_class(scene, TerrainClass::kVerticalObject),
+                      Eigen::Matrix4d::Identity());
+  EXPECT_FALSE(result.converged);
+  EXPECT_EQ(result.reason, StopReason::kNoCommonClass);
+  EXPECT_EQ(result.transform, Eigen::Matrix4d::Identity());
+  // Ground alone has weight 0: nothing in common either.
+  EXPECT_EQ(register_points(with_class(scene, TerrainClass::kGround), with_class(scene, TerrainClass::kGround),
+                            Eigen::Matrix4d::Identity())
+                .reason,
+            StopReason::kNoCommonClass);
+}
+
+TEST(RegisterPoints, TooFewCorrespondencesAndEmptySetsSaySo) {
+  const std::vector<Eigen::Vector3d> scene = test::random_scene(2, 200, 10.0);
+  RegistrationParams params;
+  params.use_classes = false;
+  // Target 50 m away: no pair within the distance.
+  const RegistrationResult far = register_points(
+      with_class(scene, TerrainClass::kObstacle),
+      with_class(transformed(scene, pose(50, 0, 0, 0)), TerrainClass::kObstacle), Eigen::Matrix4d::Identity(), params);
+  EXPECT_FALSE(far.converged);
+  EXPECT_EQ(far.reason, StopReason::kTooFewCorrespondences);
+  EXPECT_EQ(far.num_correspondences, 0U);
+  EXPECT_TRUE(std::isnan(far.rmse_m));
+  const RegistrationResult empty = register_points(ClassifiedPoints{}, with_class(scene, TerrainClass::kObstacle),
+                                                   Eigen::Matrix4d::Identity(), params);
+  EXPECT_FALSE(empty.converged);
+  EXPECT_EQ(empty.reason, StopReason::kTooFewCorrespondences);
+}
+
+TEST(RegisterPoints, CollinearPointsAreDegenerate) {
+  std::vector<Eigen::Vector3d> line;
+  for (int k = 0; k < 100; ++k) line.emplace_back(0.1 * k, 0.0, 0.0);
+  RegistrationParams params;
+  params.use_classes = false;
+  const RegistrationResult result =
+      register_points(with_class(line, TerrainClass::kObstacle), with_class(line, TerrainClass::kObstacle),
+                      pose(0.02, 0, 0, 0), params);
+  EXPECT_FALSE(result.converged);
+  EXPECT_EQ(result.reason, StopReason::kDegenerate);
+  EXPECT_LT(result.eigenvalues(0), 1e-6 * result.eigenvalues(5));  // rotation about the line is free
+  EXPECT_EQ(result.iterations, 0);
+}
+
+TEST(RegisterPoints, RejectsBadGuessesParametersAndPoints) {
+  const ClassifiedPoints set = with_class(test::random_scene(4, 100, 5.0), TerrainClass::kObstacle);
+  Eigen::Matrix4d nan_guess = Eigen::Matrix4d::Identity();
+  nan_guess(0, 3) = std::numeric_limits<double>::quiet_NaN();
+  EXPECT_THROW(register_points(set, set, nan_guess), std::invalid_argument);
+  Eigen::Matrix4d scaled = Eigen::Matrix4d::Identity();
+  scaled(0, 0) = 1.1;
+  EXPECT_THROW(register_points(set, set, scaled), std::invalid_argument);
+  Eigen::Matrix4d mirrored = Eigen::Matrix4d::Identity();
+  mirrored(2, 2) = -1.0;
+  EXPECT_THROW(register_points(set, set, mirrored), std::invalid_argument);
+
+  const auto rejects = [&](auto change) {
+    RegistrationParams params;
+    change(params);
+    EXPECT_THROW(register_points(set, set, Eigen::Matrix4d::Identity(), params), std::invalid_argument);
+  };
+  rejects([](RegistrationParams& p) { p.max_correspondence_distance_m = 0.0; });
+  rejects([](RegistrationParams& p) { p.min_correspondence_distance_m = 5.0; });
+  rejects([](RegistrationParams& p) { p.correspondence_distance_decay = 0.0; });
+  rejects([](RegistrationParams& p) { p.max_iterations = 0; });
+  rejects([](RegistrationParams& p) { p.class_weights[2] = -1.0; });
+  rejects([](RegistrationParams& p) { p.class_weights[3] = std::numeric_limits<double>::quiet_NaN(); });
+  rejects([](RegistrationParams& p) { p.min_correspondences = 2; });
+  rejects([](RegistrationParams& p) { p.degeneracy_threshold = 1.0; });
+
+  ClassifiedPoints bad = set;
+  bad.points[3].y() = std::numeric_limits<double>::infinity();
+  EXPECT_THROW(register_points(bad, set, Eigen::Matrix4d::Identity()), std::invalid_argument);
+  bad = set;
+  bad.classes[0] = 6;
+  EXPECT_THROW(register_points(set, bad, Eigen::Matrix4d::Identity()), std::invalid_argument);
+  bad = set;
+  bad.classes.pop_back();
+  EXPECT_THROW(register_points(bad, set, Eigen::Matrix4d::Identity()), std::invalid_argument);
+}
+
+// --- classified maps ----------------------------------------------------------------------------
+
+TEST(RegisterMaps, PointsOfMapAreCellCentresAtTheHighestElevationWithTheirClass) {
+  MapGeometry geometry;
+  geometry.resolution_m = 0.5;
+  geometry.origin_m = Eigen::Vector2d(-1.0, 2.0);
+  geometry.size = CellIndex(3, 2);
+  ElevationMap map(geometry);
+  map.add("max");
+  map.add("class");
+  map.get("max")(1, 0) = 0.25F;
+  map.get("class")(1, 0) = 4.0F;
+  map.get("max")(2, 1) = -1.5F;  // class NaN -> unknown
+  const ClassifiedPoints set = points_of_map(map);
+  ASSERT_EQ(set.size(), 2U);
+  EXPECT_EQ(set.points[0], Eigen::Vector3d(-0.25, 2.25, 0.25));
+  EXPECT_EQ(set.classes[0], 4);
+  EXPECT_EQ(set.points[1], Eigen::Vector3d(0.25, 2.75, -1.5));
+  EXPECT_EQ(set.classes[1], 0);
+  ElevationMap no_class(geometry);
+  no_class.add("max", 1.0F);
+  EXPECT_THROW(register_maps(no_class, no_class, Eigen::Matrix4d::Identity()), std::invalid_argument);
+  EXPECT_NO_THROW(register_maps_all_cells(no_class, no_class, Eigen::Matrix4d::Identity()));
+  EXPECT_THROW(points_of_map(ElevationMap(geometry)), std::out_of_range);
+}
+
+TEST(RegisterMaps, RecoverThreeMetresAndTwentyDegreesFromAPerturbedGuess) {
+  const std::vector<Eigen::Vector3d> world = street(0.1);
+  const Eigen::Matrix4d source_pose = pose(-1.0, 0.0, kSensorHeight, -10.0);
+  const Eigen::Matrix4d target_pose = pose(1.95, 0.5, kSensorHeight, 10.0);
+  const Eigen::Matrix4d truth = target_pose.inverse() * source_pose;  // source -> target
+  ASSERT_NEAR(truth.block(0, 3, 3, 1).norm(), 3.0, 0.1);
+  const Eigen::Matrix4d identity = Eigen::Matrix4d::Identity();
+  ASSERT_NEAR(rotation_error_deg(truth, identity), 20.0, 1e-9);
+  const ElevationMap source = street_map(world, source_pose, 0.2);
+  const ElevationMap target = street_map(world, target_pose, 0.2);
+  const Eigen::Matrix4d guess = pose(0.25, -0.15, 0.05, 3.0, 0.5, -0.5) * truth;
+
+  const RegistrationResult weighted = register_maps(source, target, guess);
+  const RegistrationResult all_cells = register_maps_all_cells(source, target, guess);
+  EXPECT_TRUE(weighted.converged) << to_string(weighted.reason);
+  EXPECT_LT(translation_error(weighted.transform, truth), 0.1);
+  EXPECT_LT(rotation_error_deg(weighted.transform, truth), 0.5);
+  // The conventional ICP is dominated by the flat road (it slides along it): loose bounds only,
+  // and the class-weighted ICP must do better.
+  EXPECT_LT(translation_error(all_cells.transform, truth), 1.0);
+  EXPECT_LT(translation_error(weighted.transform, truth), translation_error(all_cells.transform, truth));
+  for (const TerrainClass c : {TerrainClass::kObstacle, TerrainClass::kOverhangingObject, TerrainClass::kVerticalObject,
+                               TerrainClass::kHorizontalEdge}) {
+    EXPECT_GT(weighted.correspondences_per_class[static_cast<int>(c)], 0U) << static_cast<int>(c);
+  }
+  EXPECT_EQ(weighted.correspondences_per_class[static_cast<int>(TerrainClass::kGround)], 0U);
+  EXPECT_GT(all_cells.correspondences_per_class[static_cast<int>(TerrainClass::kGround)], 0U);
+  EXPECT_GT(all_cells.num_correspondences, weighted.num_correspondences);
+}
+
+#ifdef TERRACUBE_HAVE_PCL
+TEST(RegisterPoints, AgreesWithPclIcpWithClassesOffAndUnitWeights) {
+  const std::vector<Eigen::Vector3d> source = test::random_scene(21, 3000, 20.0);
+  // The target is another sample of the same scene, moved: no exact pairs, one common minimum.
+  const Eigen::Matrix4d motion = pose(0.15, -0.1, 0.02, 2.0, 0.3, -0.2);
+  const std::vector<Eigen::Vector3d> target = transformed(test::random_scene(22, 3000, 20.0), motion);
+  RegistrationParams params;
+  params.use_classes = false;
+  params.max_correspondence_distance_m = 0.6;
+  params.min_correspondence_distance_m = 0.6;
+  params.max_iterations = 100;
+  params.rotation_tolerance_rad = 1e-9;
+  params.translation_tolerance_m = 1e-9;
+  const RegistrationResult ours =
+      register_points(with_class(source, TerrainClass::kObstacle), with_class(target, TerrainClass::kObstacle),
+                      Eigen::Matrix4d::Identity(), params);
+  PclIcpParams pcl_params;
+  pcl_params.max_correspondence_distance_m = 0.6;
+  pcl_params.max_iterations = 100;
+  pcl_params.transformation_epsilon = 1e-18;
+  pcl_params.rotation_epsilon = 1.0 - 1e-15;
+  pcl_params.relative_mse_epsilon = 1e-15;
+  const PclIcpResult theirs = pcl_icp(source, target, Eigen::Matrix4d::Identity(), pcl_params);
+  EXPECT_TRUE(ours.converged) << to_string(ours.reason);
+  EXPECT_LT(translation_error(ours.transform, theirs.transform), 1e-3);
+  EXPECT_LT(rotation_error_deg(ours.transform, theirs.transform), 0.05);
+  std::cout << "terracube vs PCL: " << translation_error(ours.transform, theirs.transform) * 1e3 << " mm, "
+            << rotation_error_deg(ours.transform, theirs.transform) << " deg; iterations " << ours.iterations << " vs "
+            << theirs.iterations << "\n";
+}
+
+TEST(PclIcp, RejectsEmptyAndNonFiniteInput) {
+  const std::vector<Eigen::Vector3d> points = test::random_scene(1, 50, 5.0);
+  EXPECT_THROW(pcl_icp({}, points, Eigen::Matrix4d::Identity()), std::invalid_argument);
+  std::vector<Eigen::Vector3d> bad = points;
+  bad[0].x() = std::numeric_limits<double>::quiet_NaN();
+  EXPECT_THROW(pcl_icp(points, bad, Eigen::Matrix4d::Identity()), std::invalid_argument);
+  Eigen::Matrix4d scaled = Eigen::Matrix4d::Identity() * 2.0;
+  EXPECT_THROW(pcl_icp(points, points, scaled), std::invalid_argument);
+}
+#endif
+
+}  // namespace
+}  // namespace terracube
