@@ -41,6 +41,7 @@ from .registration import (
 __version__ = "0.1.0"
 
 __all__ = [
+    "io",
     "CollapseParams",
     "DEFAULT_CLASS_WEIGHTS",
     "PclIcpParams",
