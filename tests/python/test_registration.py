@@ -11,7 +11,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import terracube as tc
-from scipy.spatial.transform import Rotation
 
 SENSOR_HEIGHT = 1.73
 TC = tc.TerrainClass
@@ -20,8 +19,12 @@ TC = tc.TerrainClass
 def pose(
     x: float, y: float, z: float, yaw_deg: float, pitch_deg: float = 0.0, roll_deg: float = 0.0
 ) -> np.ndarray:
+    yaw, pitch, roll = np.radians([yaw_deg, pitch_deg, roll_deg])
+    rz = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    ry = np.array([[np.cos(pitch), 0, np.sin(pitch)], [0, 1, 0], [-np.sin(pitch), 0, np.cos(pitch)]])
+    rx = np.array([[1, 0, 0], [0, np.cos(roll), -np.sin(roll)], [0, np.sin(roll), np.cos(roll)]])
     t = np.eye(4)
-    t[:3, :3] = Rotation.from_euler("ZYX", [yaw_deg, pitch_deg, roll_deg], degrees=True).as_matrix()
+    t[:3, :3] = rz @ ry @ rx  # intrinsic Z-Y-X (yaw, pitch, roll)
     t[:3, 3] = (x, y, z)
     return t
 
