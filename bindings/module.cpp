@@ -9,6 +9,10 @@ void bind_baselines(py::module_& m);
 void bind_elevation(py::module_& m);
 void bind_fuzzy(py::module_& m);
 void bind_icp(py::module_& m);
+void bind_simulation(py::module_& m);
+void bind_evaluation(py::module_& m);
+void bind_pose_graph(py::module_& m);
+void bind_mapper(py::module_& m);
 }  // namespace terracube::python
 
 PYBIND11_MODULE(_core, m) {
@@ -18,4 +22,8 @@ PYBIND11_MODULE(_core, m) {
   terracube::python::bind_elevation(m);
   terracube::python::bind_fuzzy(m);
   terracube::python::bind_icp(m);
+  terracube::python::bind_simulation(m);
+  terracube::python::bind_evaluation(m);
+  terracube::python::bind_pose_graph(m);
+  terracube::python::bind_mapper(m);
 }

@@ -1,0 +1,1 @@
+// placeholder: mapper (being written)

@@ -1,0 +1,1 @@
+// placeholder: pose_graph (being written)

@@ -1,0 +1,2 @@
+#include <gtest/gtest.h>
+// placeholder: tests for mapper (being written)
