@@ -1,1 +1,640 @@
-// placeholder: mapper (being written)
+// Mapper: local classified elevation maps chained by class-weighted ICP into a global elevation
+// map, with loop closing on a Ceres pose graph (the classification paper, sections 3.3 and 4).
+#include "terracube/mapper.hpp"
+
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <array>
+#include <chrono>
+#include <cmath>
+#include <limits>
+#include <optional>
+#include <stdexcept>
+#include <string>
+#include <unordered_map>
+
+#include "terracube/collapse.hpp"
+#include "terracube/pose_graph.hpp"
+
+namespace terracube {
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+double ms_since(Clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+}
+
+constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+
+void check_positive(double value, const char* name) {
+  if (!(value > 0.0) || !std::isfinite(value)) {
+    throw std::invalid_argument(std::string("MapperParams.") + name + " must be a finite value > 0, got " +
+                                std::to_string(value));
+  }
+}
+
+void check_params(const MapperParams& p) {
+  check_positive(p.keyframe_distance_m, "keyframe_distance_m");
+  check_positive(p.keyframe_rotation_rad, "keyframe_rotation_rad");
+  check_positive(p.resolution_m, "resolution_m");
+  check_positive(p.local_map_size_m, "local_map_size_m");
+  check_positive(p.discontinuity_m, "discontinuity_m");
+  check_positive(p.max_correction_m, "max_correction_m");
+  check_positive(p.max_correction_rad, "max_correction_rad");
+  check_positive(p.registration_sigma_m, "registration_sigma_m");
+  check_positive(p.registration_sigma_rad, "registration_sigma_rad");
+  check_positive(p.odometry_sigma_m_per_m, "odometry_sigma_m_per_m");
+  check_positive(p.odometry_sigma_rad_per_m, "odometry_sigma_rad_per_m");
+  check_positive(p.loop_search_radius_m, "loop_search_radius_m");
+  check_positive(p.loop_max_rmse_m, "loop_max_rmse_m");
+  if (!(p.loop_min_inlier_ratio >= 0.0 && p.loop_min_inlier_ratio <= 1.0)) {
+    throw std::invalid_argument("MapperParams.loop_min_inlier_ratio must lie in [0, 1]");
+  }
+  check_positive(p.loop_search_window_m, "loop_search_window_m");
+  if (!(p.loop_yaw_search_rad >= 0.0) || !std::isfinite(p.loop_yaw_search_rad)) {
+    throw std::invalid_argument("MapperParams.loop_yaw_search_rad must be finite and >= 0");
+  }
+  if (p.loop_yaw_hypotheses < 1) throw std::invalid_argument("MapperParams.loop_yaw_hypotheses must be >= 1");
+  if (!(p.min_range_m >= 0.0) || !std::isfinite(p.min_range_m)) {
+    throw std::invalid_argument("MapperParams.min_range_m must be finite and >= 0");
+  }
+  if (!(p.loop_min_travel_m >= 0.0) || !std::isfinite(p.loop_min_travel_m)) {
+    throw std::invalid_argument("MapperParams.loop_min_travel_m must be finite and >= 0");
+  }
+  if (!(p.loop_min_overlap >= 0.0 && p.loop_min_overlap <= 1.0)) {
+    throw std::invalid_argument("MapperParams.loop_min_overlap must lie in [0, 1]");
+  }
+  if (p.loop_max_candidates < 1) throw std::invalid_argument("MapperParams.loop_max_candidates must be >= 1");
+  if (p.pose_graph_iterations < 1) throw std::invalid_argument("MapperParams.pose_graph_iterations must be >= 1");
+  const double cells = std::ceil(p.local_map_size_m / p.resolution_m);
+  if (cells > 8192.0) {
+    throw std::invalid_argument("MapperParams: local_map_size_m / resolution_m = " + std::to_string(cells) +
+                                " cells per side (at most 8192)");
+  }
+}
+
+void check_pose(const Eigen::Matrix4d& pose) {
+  if (!pose.allFinite()) throw std::invalid_argument("odometry pose contains NaN or Inf");
+  const Eigen::Matrix3d r = pose.topLeftCorner<3, 3>();
+  if ((r * r.transpose() - Eigen::Matrix3d::Identity()).norm() > 1e-6 || std::abs(r.determinant() - 1.0) > 1e-6 ||
+      (pose.row(3) - Eigen::RowVector4d(0, 0, 0, 1)).norm() > 1e-9) {
+    throw std::invalid_argument(
+        "odometry pose is not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)");
+  }
+}
+
+Eigen::Matrix4d inverse_rigid(const Eigen::Matrix4d& t) {
+  Eigen::Matrix4d inv = Eigen::Matrix4d::Identity();
+  inv.topLeftCorner<3, 3>() = t.topLeftCorner<3, 3>().transpose();
+  inv.topRightCorner<3, 1>() = -inv.topLeftCorner<3, 3>() * t.topRightCorner<3, 1>();
+  return inv;
+}
+
+double rotation_angle(const Eigen::Matrix4d& t) {
+  const double c = std::clamp((t.topLeftCorner<3, 3>().trace() - 1.0) * 0.5, -1.0, 1.0);
+  return std::acos(c);
+}
+
+/// Splits world <- sensor into world <- L (yaw and translation only) and L <- sensor (roll, pitch).
+void split_leveling(const Eigen::Matrix4d& world_sensor, Eigen::Matrix4d& world_level, Eigen::Matrix4d& level_sensor) {
+  const Eigen::Matrix3d r = world_sensor.topLeftCorner<3, 3>();
+  // r = Rz(yaw) Ry(pitch) Rx(roll).
+  const double yaw = std::atan2(r(1, 0), r(0, 0));
+  const double pitch = std::asin(std::clamp(-r(2, 0), -1.0, 1.0));
+  const double roll = std::atan2(r(2, 1), r(2, 2));
+  level_sensor = leveling_transform(roll, pitch);
+  world_level = Eigen::Matrix4d::Identity();
+  world_level.topLeftCorner<3, 3>() = Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  world_level.topRightCorner<3, 1>() = world_sensor.topRightCorner<3, 1>();
+}
+
+/// One cell of a local map, kept for fusion and rebuilds.
+struct CellSample {
+  float x, y;  // cell centre in the keyframe's leveled frame [m]
+  float z_min, z_max, z_mean, z_std;
+  std::uint32_t count;
+  std::uint8_t discontinuous;
+};
+
+struct Keyframe {
+  std::size_t scan_index = 0;
+  Eigen::Matrix4d odometry = Eigen::Matrix4d::Identity();        // world <- sensor, as given
+  Eigen::Matrix4d level_sensor = Eigen::Matrix4d::Identity();    // L <- sensor
+  Eigen::Matrix4d odometry_level = Eigen::Matrix4d::Identity();  // odometry world <- L
+  Eigen::Matrix4d estimate = Eigen::Matrix4d::Identity();        // estimated world <- L
+  double path_m = 0.0;                                           // odometry path length up to it
+  ElevationMap map;                                              // local classified map
+  ClassifiedPoints points;                                       // its cells as ICP points
+  std::vector<CellSample> cells;
+};
+
+struct Edge {
+  std::size_t from, to;
+  Eigen::Matrix4d relative;           // L_from <- L_to
+  Eigen::Matrix<double, 6, 1> sigma;  // translation xyz [m], rotation xyz [rad]
+  bool loop;
+};
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------
+// TiledElevationMap
+
+struct TiledElevationMap::Impl {
+  struct Tile {
+    static constexpr int kCells = TiledElevationMap::kTileCells * TiledElevationMap::kTileCells;
+    std::array<std::uint32_t, kCells> count{};
+    std::array<float, kCells> min, max;
+    std::array<double, kCells> sum{}, sum_squares{};
+    std::array<std::uint8_t, kCells> discontinuous{};
+    Tile() {
+      min.fill(std::numeric_limits<float>::infinity());
+      max.fill(-std::numeric_limits<float>::infinity());
+    }
+  };
+  static std::int64_t key(std::int64_t tx, std::int64_t ty) { return (tx << 32) ^ (ty & 0xffffffffLL); }
+  std::unordered_map<std::int64_t, std::unique_ptr<Tile>> tiles;
+};
+
+TiledElevationMap::TiledElevationMap(double resolution_m) : resolution_m_(resolution_m), impl_(new Impl) {
+  check_positive(resolution_m, "resolution_m");
+}
+TiledElevationMap::~TiledElevationMap() = default;
+TiledElevationMap::TiledElevationMap(TiledElevationMap&&) noexcept = default;
+TiledElevationMap& TiledElevationMap::operator=(TiledElevationMap&&) noexcept = default;
+
+void TiledElevationMap::clear() { impl_->tiles.clear(); }
+std::size_t TiledElevationMap::num_tiles() const { return impl_->tiles.size(); }
+std::size_t TiledElevationMap::memory_bytes() const { return impl_->tiles.size() * sizeof(Impl::Tile); }
+
+void TiledElevationMap::fuse(double x, double y, float z_min, float z_max, float z_mean, float z_std,
+                             std::uint32_t count, bool discontinuous) {
+  const auto ci = static_cast<std::int64_t>(std::floor(x / resolution_m_));
+  const auto cj = static_cast<std::int64_t>(std::floor(y / resolution_m_));
+  const std::int64_t n = kTileCells;
+  const std::int64_t tx = ci >= 0 ? ci / n : -((-ci - 1) / n) - 1;
+  const std::int64_t ty = cj >= 0 ? cj / n : -((-cj - 1) / n) - 1;
+  auto& slot = impl_->tiles[Impl::key(tx, ty)];
+  if (!slot) slot = std::make_unique<Impl::Tile>();
+  Impl::Tile& tile = *slot;
+  const auto k = static_cast<std::size_t>((ci - tx * n) * n + (cj - ty * n));
+  tile.count[k] += count;
+  tile.min[k] = std::min(tile.min[k], z_min);
+  tile.max[k] = std::max(tile.max[k], z_max);
+  // Sums of the points' elevations and squares, recovered from each sample's mean and std-dev.
+  const double c = count;
+  tile.sum[k] += c * z_mean;
+  tile.sum_squares[k] += c * (static_cast<double>(z_std) * z_std + static_cast<double>(z_mean) * z_mean);
+  tile.discontinuous[k] |= static_cast<std::uint8_t>(discontinuous);
+}
+
+ElevationMap TiledElevationMap::to_map(std::size_t max_cells) const {
+  MapGeometry geometry;
+  geometry.resolution_m = resolution_m_;
+  if (impl_->tiles.empty()) {
+    ElevationMap empty(geometry);
+    for (const char* name : {"count", "min", "max", "mean", "std_dev", "discontinuity"}) empty.add(name);
+    return empty;
+  }
+  std::int64_t tx0 = std::numeric_limits<std::int64_t>::max(), ty0 = tx0;
+  std::int64_t tx1 = std::numeric_limits<std::int64_t>::min(), ty1 = tx1;
+  for (const auto& [key, tile] : impl_->tiles) {
+    const std::int64_t tx = key >> 32;
+    const auto ty = static_cast<std::int64_t>(static_cast<std::int32_t>(key & 0xffffffffLL));
+    tx0 = std::min(tx0, tx), tx1 = std::max(tx1, tx), ty0 = std::min(ty0, ty), ty1 = std::max(ty1, ty);
+  }
+  const std::int64_t n = kTileCells;
+  const std::int64_t nx = (tx1 - tx0 + 1) * n, ny = (ty1 - ty0 + 1) * n;
+  if (static_cast<double>(nx) * static_cast<double>(ny) > static_cast<double>(max_cells)) {
+    throw std::length_error("global map of " + std::to_string(nx) + " x " + std::to_string(ny) +
+                            " cells exceeds max_cells = " + std::to_string(max_cells));
+  }
+  geometry.origin_m = Eigen::Vector2d(static_cast<double>(tx0 * n), static_cast<double>(ty0 * n)) * resolution_m_;
+  geometry.size = CellIndex(static_cast<int>(nx), static_cast<int>(ny));
+  ElevationMap map(geometry);
+  for (const char* name : {"count", "min", "max", "mean", "std_dev", "discontinuity"}) map.add(name);
+  map.get("count").setZero();
+  Layer& count = map.get("count");
+  Layer& min = map.get("min");
+  Layer& max = map.get("max");
+  Layer& mean = map.get("mean");
+  Layer& std_dev = map.get("std_dev");
+  Layer& discontinuity = map.get("discontinuity");
+  for (const auto& [key, tile] : impl_->tiles) {
+    const std::int64_t tx = key >> 32;
+    const auto ty = static_cast<std::int64_t>(static_cast<std::int32_t>(key & 0xffffffffLL));
+    for (std::int64_t a = 0; a < n; ++a) {
+      for (std::int64_t b = 0; b < n; ++b) {
+        const auto k = static_cast<std::size_t>(a * n + b);
+        if (tile->count[k] == 0) continue;
+        const auto i = static_cast<Eigen::Index>((tx - tx0) * n + a);
+        const auto j = static_cast<Eigen::Index>((ty - ty0) * n + b);
+        const double c = tile->count[k];
+        const double m = tile->sum[k] / c;
+        count(i, j) = static_cast<float>(c);
+        min(i, j) = tile->min[k];
+        max(i, j) = tile->max[k];
+        mean(i, j) = static_cast<float>(m);
+        std_dev(i, j) = static_cast<float>(std::sqrt(std::max(0.0, tile->sum_squares[k] / c - m * m)));
+        discontinuity(i, j) = tile->discontinuous[k];
+      }
+    }
+  }
+  return map;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Mapper
+
+struct Mapper::Impl {
+  MapperParams params;
+  std::vector<Keyframe> keyframes;
+  std::vector<Edge> edges;  // steps (k-1 -> k) and loops
+  std::vector<LoopClosure> loops;
+  TiledElevationMap global;
+  MapperTimings timings;
+  std::size_t scans = 0;
+  double path_m = 0.0;
+  Eigen::Matrix4d last_odometry = Eigen::Matrix4d::Identity();
+  bool have_last = false;
+
+  explicit Impl(const MapperParams& p) : params(p), global(p.resolution_m) {}
+
+  template <typename Scalar>
+  ScanReport add(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry);
+  template <typename Scalar>
+  ScanReport add_checked(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry);
+  template <typename Scalar>
+  void build_local_map(const PointsView<Scalar>& points, Keyframe& keyframe);
+  void fuse(const Keyframe& keyframe);
+  void rebuild();
+  std::size_t close_loops(std::size_t k);
+  Eigen::Matrix4d coarse_alignment(const Keyframe& current, const Keyframe& other, const Eigen::Matrix4d& guess) const;
+  void optimize();
+};
+
+template <typename Scalar>
+void Mapper::Impl::build_local_map(const PointsView<Scalar>& points, Keyframe& keyframe) {
+  auto start = Clock::now();
+  ElevationParams elevation;
+  elevation.resolution_m = params.resolution_m;
+  const int cells = static_cast<int>(std::ceil(params.local_map_size_m / params.resolution_m));
+  elevation.size = CellIndex(cells, cells);
+  elevation.origin_m = Eigen::Vector2d::Constant(-0.5 * cells * params.resolution_m);
+  elevation.discontinuity_m = params.discontinuity_m;
+  elevation.transform = keyframe.level_sensor;
+  std::vector<std::uint8_t> use;
+  if (params.min_range_m > 0.0) {
+    use.resize(points.size);
+    const double min_squared = params.min_range_m * params.min_range_m;
+    for (std::size_t i = 0; i < points.size; ++i) {
+      const Eigen::Vector3d p = points.point(i);
+      if (!p.allFinite()) {
+        throw std::invalid_argument("scan point " + std::to_string(i) + " is NaN or Inf (of " +
+                                    std::to_string(points.size) + " points)");
+      }
+      use[i] = p.squaredNorm() >= min_squared;
+    }
+  }
+  keyframe.map = build_elevation_map(points, elevation, use.empty() ? nullptr : &use);
+  timings.map_building_ms += ms_since(start);
+
+  start = Clock::now();
+  TerrainParams terrain = params.terrain;
+  classify_terrain(keyframe.map, terrain);
+  keyframe.points = points_of_map(keyframe.map);
+  timings.classification_ms += ms_since(start);
+
+  const MapGeometry& g = keyframe.map.geometry();
+  const Layer& count = keyframe.map.get("count");
+  const Layer& min = keyframe.map.get("min");
+  const Layer& max = keyframe.map.get("max");
+  const Layer& mean = keyframe.map.get("mean");
+  const Layer& std_dev = keyframe.map.get("std_dev");
+  const Layer& discontinuity = keyframe.map.get("discontinuity");
+  keyframe.cells.clear();
+  for (Eigen::Index i = 0; i < count.rows(); ++i) {
+    for (Eigen::Index j = 0; j < count.cols(); ++j) {
+      if (!(count(i, j) > 0.0f)) continue;
+      const Eigen::Vector2d c = g.position_of(CellIndex(static_cast<int>(i), static_cast<int>(j)));
+      keyframe.cells.push_back({static_cast<float>(c.x()), static_cast<float>(c.y()), min(i, j), max(i, j), mean(i, j),
+                                std_dev(i, j), static_cast<std::uint32_t>(count(i, j)),
+                                static_cast<std::uint8_t>(discontinuity(i, j) > 0.5f)});
+    }
+  }
+}
+
+void Mapper::Impl::fuse(const Keyframe& keyframe) {
+  const Eigen::Matrix3d r = keyframe.estimate.topLeftCorner<3, 3>();
+  const Eigen::Vector3d t = keyframe.estimate.topRightCorner<3, 1>();
+  for (const CellSample& cell : keyframe.cells) {
+    // The cell's column through (x, y): its world position at the mean elevation; the other
+    // elevations move along the frame's z axis (a leveled frame's is vertical up to ICP's tilt).
+    const Eigen::Vector3d at_mean = r * Eigen::Vector3d(cell.x, cell.y, cell.z_mean) + t;
+    const double up = r(2, 2);
+    global.fuse(at_mean.x(), at_mean.y(), static_cast<float>(at_mean.z() + up * (cell.z_min - cell.z_mean)),
+                static_cast<float>(at_mean.z() + up * (cell.z_max - cell.z_mean)), static_cast<float>(at_mean.z()),
+                cell.z_std, cell.count, cell.discontinuous != 0);
+  }
+}
+
+void Mapper::Impl::rebuild() {
+  global.clear();
+  for (const Keyframe& keyframe : keyframes) fuse(keyframe);
+}
+
+template <typename Scalar>
+ScanReport Mapper::Impl::add(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry) {
+  check_pose(odometry);
+  // Bad points throw from the map building below: leave the mapper as it was before this scan.
+  struct Rollback {
+    Impl& impl;
+    std::size_t scans, keyframes, edges;
+    double path;
+    Eigen::Matrix4d last;
+    bool have_last, done = false;
+    ~Rollback() {
+      if (done) return;
+      impl.scans = scans, impl.timings.scans = scans, impl.path_m = path, impl.last_odometry = last;
+      impl.have_last = have_last;
+      impl.keyframes.resize(keyframes), impl.edges.resize(edges), impl.timings.keyframes = keyframes;
+    }
+  } rollback{*this, scans, keyframes.size(), edges.size(), path_m, last_odometry, have_last};
+  ScanReport report = add_checked(points, odometry);
+  rollback.done = true;
+  return report;
+}
+
+template <typename Scalar>
+ScanReport Mapper::Impl::add_checked(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry) {
+  ScanReport report;
+  const std::size_t scan_index = scans++;
+  timings.scans = scans;
+  if (have_last) {
+    path_m += (odometry.topRightCorner<3, 1>() - last_odometry.topRightCorner<3, 1>()).norm();
+  }
+  last_odometry = odometry;
+  have_last = true;
+
+  if (!keyframes.empty()) {
+    const Keyframe& last = keyframes.back();
+    const Eigen::Matrix4d motion = inverse_rigid(last.odometry) * odometry;
+    const bool moved = path_m - last.path_m >= params.keyframe_distance_m;
+    const bool turned = rotation_angle(motion) >= params.keyframe_rotation_rad;
+    if (!moved && !turned) return report;
+  }
+
+  Keyframe keyframe;
+  keyframe.scan_index = scan_index;
+  keyframe.odometry = odometry;
+  keyframe.path_m = path_m;
+  split_leveling(odometry, keyframe.odometry_level, keyframe.level_sensor);
+  build_local_map(points, keyframe);
+
+  report.keyframe = true;
+  report.index = static_cast<std::ptrdiff_t>(keyframes.size());
+  if (keyframes.empty()) {
+    keyframe.estimate = keyframe.odometry_level;
+  } else {
+    const Keyframe& previous = keyframes.back();
+    // Odometry's motion between the leveled frames: the initial guess of the registration.
+    const Eigen::Matrix4d guess = inverse_rigid(previous.odometry_level) * keyframe.odometry_level;
+    Eigen::Matrix4d step = guess;
+    const double travelled = std::max(keyframe.path_m - previous.path_m, 0.1);
+    Eigen::Matrix<double, 6, 1> sigma;
+    sigma << Eigen::Vector3d::Constant(params.odometry_sigma_m_per_m * travelled),
+        Eigen::Vector3d::Constant(params.odometry_sigma_rad_per_m * travelled);
+    if (params.use_registration) {
+      const auto start = Clock::now();
+      report.registration = register_points(keyframe.points, previous.points, guess, params.registration);
+      timings.registration_ms += ms_since(start);
+      const RegistrationResult& r = report.registration;
+      const bool usable = r.converged || r.reason == StopReason::kMaxIterations;
+      const Eigen::Matrix4d correction = inverse_rigid(guess) * r.transform;
+      if (usable && correction.topRightCorner<3, 1>().norm() <= params.max_correction_m &&
+          rotation_angle(correction) <= params.max_correction_rad) {
+        step = r.transform;
+        report.registered = true;
+        sigma << Eigen::Vector3d::Constant(params.registration_sigma_m),
+            Eigen::Vector3d::Constant(params.registration_sigma_rad);
+      }
+    }
+    keyframe.estimate = previous.estimate * step;
+    edges.push_back({keyframes.size() - 1, keyframes.size(), step, sigma, false});
+  }
+  keyframes.push_back(std::move(keyframe));
+  timings.keyframes = keyframes.size();
+
+  auto start = Clock::now();
+  fuse(keyframes.back());
+  timings.fusion_ms += ms_since(start);
+
+  if (params.loop_closing) {
+    start = Clock::now();
+    report.loops_closed = close_loops(keyframes.size() - 1);
+    if (report.loops_closed > 0) optimize();
+    timings.loop_closing_ms += ms_since(start);
+  }
+  return report;
+}
+
+std::size_t Mapper::Impl::close_loops(std::size_t k) {
+  const Keyframe& current = keyframes[k];
+  const Eigen::Vector3d position = current.estimate.topRightCorner<3, 1>();
+  // Candidates: far enough along the path, near in space; nearest first.
+  std::vector<std::pair<double, std::size_t>> candidates;
+  for (std::size_t j = 0; j < k; ++j) {
+    if (current.path_m - keyframes[j].path_m < params.loop_min_travel_m) continue;
+    const double distance = (keyframes[j].estimate.topRightCorner<3, 1>() - position).norm();
+    if (distance <= params.loop_search_radius_m) candidates.emplace_back(distance, j);
+  }
+  std::sort(candidates.begin(), candidates.end());
+  std::size_t closed = 0;
+  int tried = 0;
+  for (const auto& [distance, j] : candidates) {
+    if (tried >= params.loop_max_candidates) break;
+    const Keyframe& other = keyframes[j];
+    const Eigen::Matrix4d guess = inverse_rigid(other.estimate) * current.estimate;  // L_j <- L_k
+    // Overlap: the share of the current map's cells that land on cells with data in the other map.
+    const MapGeometry& g = other.map.geometry();
+    const Layer& other_count = other.map.get("count");
+    std::size_t hits = 0;
+    for (const CellSample& cell : current.cells) {
+      const Eigen::Vector3d p =
+          guess.topLeftCorner<3, 3>() * Eigen::Vector3d(cell.x, cell.y, cell.z_mean) + guess.topRightCorner<3, 1>();
+      const auto index = g.index_of(p.head<2>());
+      if (index && other_count(index->x(), index->y()) > 0.0f) ++hits;
+    }
+    const double overlap = current.cells.empty() ? 0.0 : static_cast<double>(hits) / current.cells.size();
+    if (overlap < params.loop_min_overlap) continue;
+    ++tried;
+    const Eigen::Matrix4d start = coarse_alignment(current, other, guess);
+    RegistrationParams registration = params.registration;
+    std::size_t weighted = 0;  // source cells that can take part
+    for (const std::uint8_t c : current.points.classes) {
+      weighted += !registration.use_classes || registration.class_weights[c] > 0.0;
+    }
+    const double min_pairs = std::max<double>(static_cast<double>(params.registration.min_correspondences),
+                                              params.loop_min_inlier_ratio * static_cast<double>(weighted));
+    std::optional<RegistrationResult> best = register_points(current.points, other.points, start, registration);
+    const RegistrationResult& r0 = *best;
+    const bool usable = r0.converged || r0.reason == StopReason::kMaxIterations;
+    if (!usable || !(r0.rmse_m <= params.loop_max_rmse_m) || static_cast<double>(r0.num_correspondences) < min_pairs) {
+      best.reset();
+    }
+    if (!best) continue;
+    const RegistrationResult& r = *best;
+    Eigen::Matrix<double, 6, 1> sigma;
+    sigma << Eigen::Vector3d::Constant(params.registration_sigma_m),
+        Eigen::Vector3d::Constant(params.registration_sigma_rad);
+    edges.push_back({j, k, r.transform, sigma, true});
+    loops.push_back({j, k, r.transform, r.rmse_m, overlap});
+    ++closed;
+  }
+  return closed;
+}
+
+Eigen::Matrix4d Mapper::Impl::coarse_alignment(const Keyframe& current, const Keyframe& other,
+                                               const Eigen::Matrix4d& guess) const {
+  // Correlative search (in the manner of Olson's real-time correlative scan matching) over yaw
+  // offsets and a translation window: the score of a hypothesis is the number of the current map's
+  // non-ground cells that land on a non-ground cell (dilated by one) of the other map. The best one
+  // seeds the ICP, so drifted estimates several metres off still converge.
+  const MapGeometry& g = other.map.geometry();
+  const Layer& classes = other.map.get("class");
+  const int nx = g.size.x(), ny = g.size.y();
+  std::vector<std::uint8_t> occupied(static_cast<std::size_t>(nx) * ny, 0);
+  for (int i = 0; i < nx; ++i) {
+    for (int j = 0; j < ny; ++j) {
+      const float c = classes(i, j);
+      if (!(c > 1.5f)) continue;  // unknown (NaN) and ground take no part
+      for (int di = -1; di <= 1; ++di) {
+        for (int dj = -1; dj <= 1; ++dj) {
+          const int a = i + di, b = j + dj;
+          if (a >= 0 && a < nx && b >= 0 && b < ny) occupied[static_cast<std::size_t>(a) * ny + b] = 1;
+        }
+      }
+    }
+  }
+  std::vector<Eigen::Vector2d> source;
+  for (std::size_t k = 0; k < current.points.size(); ++k) {
+    if (current.points.classes[k] > 1) source.push_back(current.points.points[k].head<2>());
+  }
+  if (source.empty()) return guess;
+  const double res = g.resolution_m;
+  const int window = static_cast<int>(std::ceil(params.loop_search_window_m / res));
+  const int stride = 2;  // translation step: two cells
+  const int hypotheses = params.loop_yaw_hypotheses;
+  long best_score = -1;
+  Eigen::Matrix4d best = guess;
+  std::vector<std::pair<int, int>> cells(source.size());
+  for (int h = 0; h < hypotheses; ++h) {
+    const double yaw = hypotheses == 1 ? 0.0 : params.loop_yaw_search_rad * (2.0 * h / (hypotheses - 1) - 1.0);
+    Eigen::Matrix4d turned = guess;
+    turned.topLeftCorner<3, 3>() =
+        guess.topLeftCorner<3, 3>() * Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+    const Eigen::Matrix2d r = turned.topLeftCorner<2, 2>();
+    const Eigen::Vector2d t = turned.topRightCorner<2, 1>();
+    for (std::size_t k = 0; k < source.size(); ++k) {
+      const Eigen::Vector2d p = (r * source[k] + t - g.origin_m) / res;
+      cells[k] = {static_cast<int>(std::floor(p.x())), static_cast<int>(std::floor(p.y()))};
+    }
+    for (int dx = -window; dx <= window; dx += stride) {
+      for (int dy = -window; dy <= window; dy += stride) {
+        long score = 0;
+        for (const auto& [ci, cj] : cells) {
+          const int a = ci + dx, b = cj + dy;
+          score += a >= 0 && a < nx && b >= 0 && b < ny && occupied[static_cast<std::size_t>(a) * ny + b];
+        }
+        // Ties keep the hypothesis nearest the estimate (visited first only by chance): prefer it explicitly.
+        const bool nearer = score == best_score && (dx == 0 && dy == 0 && yaw == 0.0);
+        if (score > best_score || nearer) {
+          best_score = score;
+          best = turned;
+          best(0, 3) += dx * res;
+          best(1, 3) += dy * res;
+        }
+      }
+    }
+  }
+  return best;
+}
+
+void Mapper::Impl::optimize() {
+  if (loops.empty() || keyframes.size() < 2) return;
+  std::vector<Eigen::Matrix4d> poses;
+  poses.reserve(keyframes.size());
+  for (const Keyframe& keyframe : keyframes) poses.push_back(keyframe.estimate);
+  std::vector<PoseGraphEdge> graph;
+  graph.reserve(edges.size());
+  for (const Edge& edge : edges) {
+    PoseGraphEdge e;
+    e.from = edge.from;
+    e.to = edge.to;
+    e.measurement = edge.relative;
+    e.information = edge.sigma.cwiseAbs2().cwiseInverse().asDiagonal();
+    e.robust = edge.loop;
+    graph.push_back(e);
+  }
+  PoseGraphParams pose_graph;
+  pose_graph.max_iterations = params.pose_graph_iterations;
+  const PoseGraphResult result = optimize_pose_graph(poses, graph, pose_graph);
+  for (std::size_t k = 0; k < keyframes.size(); ++k) keyframes[k].estimate = result.poses[k];
+  const auto start = Clock::now();
+  rebuild();
+  timings.fusion_ms += ms_since(start);
+}
+
+Mapper::Mapper(const MapperParams& params) {
+  check_params(params);
+  impl_ = std::make_unique<Impl>(params);
+}
+Mapper::~Mapper() = default;
+Mapper::Mapper(Mapper&&) noexcept = default;
+Mapper& Mapper::operator=(Mapper&&) noexcept = default;
+
+const MapperParams& Mapper::params() const { return impl_->params; }
+ScanReport Mapper::add_scan(const PointsView<float>& points, const Eigen::Matrix4d& odometry_pose) {
+  return impl_->add(points, odometry_pose);
+}
+ScanReport Mapper::add_scan(const PointsView<double>& points, const Eigen::Matrix4d& odometry_pose) {
+  return impl_->add(points, odometry_pose);
+}
+std::size_t Mapper::num_keyframes() const { return impl_->keyframes.size(); }
+
+std::vector<Eigen::Matrix4d> Mapper::keyframe_poses() const {
+  std::vector<Eigen::Matrix4d> poses;
+  for (const Keyframe& k : impl_->keyframes) poses.push_back(k.estimate * k.level_sensor);
+  return poses;
+}
+std::vector<Eigen::Matrix4d> Mapper::keyframe_odometry() const {
+  std::vector<Eigen::Matrix4d> poses;
+  for (const Keyframe& k : impl_->keyframes) poses.push_back(k.odometry);
+  return poses;
+}
+std::vector<std::size_t> Mapper::keyframe_scan_indices() const {
+  std::vector<std::size_t> indices;
+  for (const Keyframe& k : impl_->keyframes) indices.push_back(k.scan_index);
+  return indices;
+}
+const std::vector<LoopClosure>& Mapper::loop_closures() const { return impl_->loops; }
+const MapperTimings& Mapper::timings() const { return impl_->timings; }
+
+const ElevationMap& Mapper::local_map(std::size_t k) const {
+  if (k >= impl_->keyframes.size()) {
+    throw std::out_of_range("keyframe " + std::to_string(k) + " does not exist (" +
+                            std::to_string(impl_->keyframes.size()) + " keyframes)");
+  }
+  return impl_->keyframes[k].map;
+}
+
+ElevationMap Mapper::global_map(bool classify) const {
+  ElevationMap map = impl_->global.to_map();
+  if (classify && map.geometry().num_cells() > 0) classify_terrain(map, impl_->params.terrain);
+  return map;
+}
+const TiledElevationMap& Mapper::tiles() const { return impl_->global; }
+void Mapper::optimize() { impl_->optimize(); }
+
+}  // namespace terracube

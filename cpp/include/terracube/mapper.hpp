@@ -1,0 +1,188 @@
+// Global elevation maps from scan sequences (the terrain-classification paper, sections 3.3 and 4):
+// every ~3 m of travel a local classified elevation map is built from the scan, registered to the
+// previous local map by the class-weighted ICP (odometry as the initial guess) and fused into a
+// global elevation map that grows with the area covered. Revisits are detected (pose proximity,
+// then map overlap), registered, and the pose graph is optimised with Ceres; the global map is then
+// rebuilt from the corrected keyframe poses.
+#pragma once
+
+#include <Eigen/Core>
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <vector>
+
+#include "terracube/cube_grid.hpp"
+#include "terracube/elevation_map.hpp"
+#include "terracube/icp.hpp"
+#include "terracube/terrain.hpp"
+
+namespace terracube {
+
+/// Parameters of the Mapper. Frames: scans arrive in the sensor frame with an odometry pose
+/// world <- sensor; each keyframe's local map lives in its leveled frame L (origin at the sensor,
+/// z up along gravity as odometry's roll and pitch give it, x along the sensor's heading).
+struct MapperParams {
+  /// A new local map every this much travel [m] (the paper: about 3 m). > 0.
+  double keyframe_distance_m = 3.0;
+  /// A new local map also when odometry turned by this much since the last one [rad]. > 0.
+  double keyframe_rotation_rad = 0.5;
+
+  /// Local maps: cell size [m] (also the global map's) and the square extent centred on the sensor [m].
+  double resolution_m = 0.2;
+  double local_map_size_m = 40.0;
+  /// Points closer to the sensor than this take no part (the robot itself) [m]. >= 0.
+  double min_range_m = 0.5;
+  /// Discontinuity threshold of the elevations within a cell [m] (the paper: 1 m).
+  double discontinuity_m = 1.0;
+  /// Table 1 thresholds. The default measures heights from the local ground (lowest elevations around
+  /// the cell), which keeps classes right on slopes; the paper's sensor-height reference is available.
+  TerrainParams terrain = [] {
+    TerrainParams t;
+    t.reference = GroundReference::kLocalGround;
+    return t;
+  }();
+
+  /// false: chain local maps by odometry alone (no scan matching): a baseline.
+  bool use_registration = true;
+  RegistrationParams registration;
+  /// A registration is rejected (odometry is used for that step) when it did not converge within the
+  /// iteration limit for a reason other than kMaxIterations, or when it moves the odometry guess by more
+  /// than these [m], [rad].
+  double max_correction_m = 1.5;
+  double max_correction_rad = 0.15;
+  /// Standard deviations that weight the pose-graph edges (information = 1 / sigma^2):
+  /// registered steps, odometry-only steps (per metre travelled, at least `odometry_sigma_min`) and loops.
+  double registration_sigma_m = 0.05;
+  double registration_sigma_rad = 0.005;
+  double odometry_sigma_m_per_m = 0.05;
+  double odometry_sigma_rad_per_m = 0.01;
+
+  /// Loop closing (independent of use_registration, so drifting odometry alone can be corrected):
+  /// a keyframe is a candidate when its estimated position lies within
+  /// loop_search_radius_m of the new keyframe and at least loop_min_travel_m of path separates them;
+  /// then at least loop_min_overlap of the new local map's cells must land on cells of the candidate's.
+  bool loop_closing = true;
+  double loop_search_radius_m = 10.0;
+  double loop_min_travel_m = 30.0;
+  double loop_min_overlap = 0.3;
+  /// At most this many candidates (the nearest first) are registered per keyframe.
+  int loop_max_candidates = 2;
+  /// Loop registrations start from drifted estimates: a correlative search over yaw offsets
+  /// (loop_yaw_hypotheses spread evenly over +-loop_yaw_search_rad; 1 = the estimate's yaw only) and
+  /// translations within +-loop_search_window_m (two-cell steps) maximises the number of non-ground
+  /// cells that land on non-ground cells of the candidate; the ICP starts from the best hypothesis.
+  double loop_search_window_m = 6.0;
+  double loop_yaw_search_rad = 0.15;
+  int loop_yaw_hypotheses = 13;
+  /// A loop registration is accepted when it converged (or hit the iteration limit) with a weighted RMSE
+  /// below this [m] and at least registration.min_correspondences pairs.
+  double loop_max_rmse_m = 0.2;
+  /// ... and when at least this share of the new map's weighted cells found a correspondence.
+  double loop_min_inlier_ratio = 0.3;
+  /// Ceres iterations for the pose graph.
+  int pose_graph_iterations = 50;
+};
+
+/// What happened to one scan given to Mapper::add_scan.
+struct ScanReport {
+  bool keyframe = false;            ///< a local map was built from this scan
+  std::ptrdiff_t index = -1;        ///< its keyframe index, or -1
+  bool registered = false;          ///< the step was scan-matched (false: odometry was used)
+  RegistrationResult registration;  ///< of the step to the previous keyframe (when tried)
+  std::size_t loops_closed = 0;     ///< loop edges added by this keyframe
+};
+
+/// A loop edge between two keyframes.
+struct LoopClosure {
+  std::size_t from = 0, to = 0;                            ///< keyframe indices, from < to
+  Eigen::Matrix4d relative = Eigen::Matrix4d::Identity();  ///< L_from <- L_to
+  double rmse_m = 0.0;
+  double overlap = 0.0;
+};
+
+/// Milliseconds spent per stage, summed over all scans so far.
+struct MapperTimings {
+  double map_building_ms = 0.0;  ///< leveling + elevation map layers
+  double classification_ms = 0.0;
+  double registration_ms = 0.0;  ///< step registrations
+  double fusion_ms = 0.0;        ///< into the global map (including rebuilds)
+  double loop_closing_ms = 0.0;  ///< candidate search, loop registrations, pose graph
+  std::size_t scans = 0;
+  std::size_t keyframes = 0;
+};
+
+/// The global elevation map: square tiles allocated as cells are first touched, so its memory grows
+/// with the area covered. Per cell: count, min, max (the paper's "highest elevation"), the sums
+/// that give mean (the DEM) and std-dev, and the discontinuity flag (any fused local cell had one).
+class TiledElevationMap {
+ public:
+  static constexpr int kTileCells = 64;  ///< cells along each tile side
+
+  explicit TiledElevationMap(double resolution_m = 0.2);
+  ~TiledElevationMap();
+  TiledElevationMap(TiledElevationMap&&) noexcept;
+  TiledElevationMap& operator=(TiledElevationMap&&) noexcept;
+  double resolution_m() const { return resolution_m_; }
+  void clear();
+  /// Fuses one local cell sample at world position (x, y).
+  void fuse(double x, double y, float z_min, float z_max, float z_mean, float z_std, std::uint32_t count,
+            bool discontinuous);
+  std::size_t num_tiles() const;
+  std::size_t memory_bytes() const;
+  /// A dense map over the tiles' bounding box with layers count, min, max, mean, std_dev and
+  /// discontinuity (NaN where no data). Throws std::length_error beyond max_cells.
+  ElevationMap to_map(std::size_t max_cells = std::size_t{1} << 26) const;
+
+ private:
+  double resolution_m_;
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+/// Chains scans into a global elevation map (see the file comment).
+class Mapper {
+ public:
+  explicit Mapper(const MapperParams& params = {});
+  ~Mapper();
+  Mapper(Mapper&&) noexcept;
+  Mapper& operator=(Mapper&&) noexcept;
+
+  const MapperParams& params() const;
+
+  /// Feeds one scan (points in the sensor frame) with its odometry pose (world <- sensor, rigid).
+  /// Builds a keyframe when the robot moved keyframe_distance_m (or turned keyframe_rotation_rad)
+  /// since the last one; the first scan is always a keyframe. Throws std::invalid_argument for a
+  /// non-finite or non-rigid pose and for NaN/Inf points.
+  ScanReport add_scan(const PointsView<float>& points, const Eigen::Matrix4d& odometry_pose);
+  ScanReport add_scan(const PointsView<double>& points, const Eigen::Matrix4d& odometry_pose);
+
+  std::size_t num_keyframes() const;
+  /// Estimated world <- sensor pose of every keyframe (after loop closing when it happened).
+  std::vector<Eigen::Matrix4d> keyframe_poses() const;
+  /// Odometry world <- sensor pose of every keyframe, as given.
+  std::vector<Eigen::Matrix4d> keyframe_odometry() const;
+  /// Index (count of add_scan calls before it) of the scan each keyframe was built from.
+  std::vector<std::size_t> keyframe_scan_indices() const;
+  const std::vector<LoopClosure>& loop_closures() const;
+  const MapperTimings& timings() const;
+
+  /// The local classified map of keyframe k, in its leveled frame (layers of build_elevation_map
+  /// plus classify_terrain's).
+  const ElevationMap& local_map(std::size_t k) const;
+  /// The global map with layers count, min, max (highest elevation), mean (DEM), std_dev,
+  /// discontinuity and, when `classify`, the classes of classify_terrain (local ground reference).
+  ElevationMap global_map(bool classify = true) const;
+  const TiledElevationMap& tiles() const;
+
+  /// Optimises the pose graph (steps + loop edges) with Ceres and rebuilds the global map from the
+  /// corrected poses. Called by add_scan whenever a loop is closed; a no-op without loop edges.
+  void optimize();
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace terracube

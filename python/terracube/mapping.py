@@ -1,0 +1,233 @@
+"""Global elevation maps from scan sequences: the SLAM half of the terrain-classification paper.
+
+Every ``keyframe_distance`` metres of travel (about 3 m in the paper) the :class:`Mapper` builds a
+local classified elevation map from the scan (leveled by odometry's roll and pitch), registers it
+to the previous local map with the class-weighted ICP (:func:`terracube.register_maps`'s core,
+odometry as the initial guess) and fuses it into a global elevation map that grows with the area
+covered: highest elevation per cell as in the paper, plus the mean DEM, std-dev, discontinuity and
+the classes. Revisits are detected by pose proximity and then map overlap, registered, and the
+pose graph is optimised with Ceres; the global map is then rebuilt from the corrected poses.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import _core
+from .elevation import ElevationMap, TerrainParams
+from .registration import RegistrationParams
+
+__all__ = ["Mapper", "MapperParams", "MapperTimings", "ScanReport", "LoopClosure", "run_mapper"]
+
+ScanReport = _core.ScanReport
+LoopClosure = _core.LoopClosure
+MapperTimings = _core.MapperTimings
+
+
+@dataclass
+class MapperParams:
+    """Parameters of :class:`Mapper`, mirroring ``terracube::MapperParams``.
+
+    Attributes
+    ----------
+    keyframe_distance : float
+        A new local map every this much odometry travel [m] (the paper: about 3 m).
+    keyframe_rotation : float
+        ... or when odometry turned this much since the last one [rad].
+    resolution : float
+        Cell size of the local and global maps [m].
+    local_map_size : float
+        Side of the square local map centred on the sensor [m].
+    min_range : float
+        Points nearer the sensor take no part (the robot itself) [m].
+    discontinuity : float
+        Gap between sorted elevations that flags a cell discontinuous [m] (the paper: 1 m).
+    terrain : TerrainParams
+        Table 1 thresholds; heights are measured from the local ground by default (slopes).
+    use_registration : bool
+        False chains local maps by odometry alone (a baseline).
+    registration : RegistrationParams
+        The class-weighted ICP (Table 2 weights by default).
+    max_correction, max_correction_rot : float
+        A step registration that moves odometry's guess further [m], [rad] is rejected (odometry
+        is used for that step).
+    registration_sigma, registration_sigma_rot : float
+        Standard deviations of registered steps and loop edges in the pose graph [m], [rad].
+    odometry_sigma_per_m, odometry_sigma_rot_per_m : float
+        ... of odometry-only steps, per metre travelled.
+    loop_closing : bool
+        Detect revisits and optimise the pose graph with Ceres.
+    loop_search_radius : float
+        Candidates lie within this distance of the new keyframe's estimated position [m].
+    loop_min_travel : float
+        ... and at least this much path before it [m].
+    loop_min_overlap : float
+        Share of the new local map's cells that must land on cells of the candidate's map.
+    loop_max_candidates : int
+        Candidates registered per keyframe, nearest first.
+    loop_search_window, loop_yaw_search, loop_yaw_hypotheses : float, float, int
+        Loop registrations start from drifted estimates: a correlative search over
+        ``loop_yaw_hypotheses`` yaw offsets within +-``loop_yaw_search`` [rad] and translations within
+        +-``loop_search_window`` [m] picks the start with the most non-ground cells landing on
+        non-ground cells of the candidate map; the ICP refines it.
+    loop_max_rmse : float
+        A loop registration is accepted below this weighted RMSE [m] ...
+    loop_min_inlier_ratio : float
+        ... when this share of the new map's weighted cells found a correspondence.
+    pose_graph_iterations : int
+        Ceres iterations.
+    """
+
+    keyframe_distance: float = 3.0
+    keyframe_rotation: float = 0.5
+    resolution: float = 0.2
+    local_map_size: float = 40.0
+    min_range: float = 0.5
+    discontinuity: float = 1.0
+    terrain: TerrainParams = field(default_factory=lambda: TerrainParams(reference="local_ground"))
+    use_registration: bool = True
+    registration: RegistrationParams = field(default_factory=RegistrationParams)
+    max_correction: float = 1.5
+    max_correction_rot: float = 0.15
+    registration_sigma: float = 0.05
+    registration_sigma_rot: float = 0.005
+    odometry_sigma_per_m: float = 0.05
+    odometry_sigma_rot_per_m: float = 0.01
+    loop_closing: bool = True
+    loop_search_radius: float = 10.0
+    loop_min_travel: float = 30.0
+    loop_min_overlap: float = 0.3
+    loop_max_candidates: int = 2
+    loop_search_window: float = 6.0
+    loop_yaw_search: float = 0.15
+    loop_yaw_hypotheses: int = 13
+    loop_max_rmse: float = 0.2
+    loop_min_inlier_ratio: float = 0.3
+    pose_graph_iterations: int = 50
+
+    def to_core(self) -> _core.MapperParams:
+        params = _core.MapperParams()
+        params.keyframe_distance_m = float(self.keyframe_distance)
+        params.keyframe_rotation_rad = float(self.keyframe_rotation)
+        params.resolution_m = float(self.resolution)
+        params.local_map_size_m = float(self.local_map_size)
+        params.min_range_m = float(self.min_range)
+        params.discontinuity_m = float(self.discontinuity)
+        params.terrain = self.terrain.to_core()
+        params.use_registration = bool(self.use_registration)
+        params.registration = self.registration.to_core()
+        params.max_correction_m = float(self.max_correction)
+        params.max_correction_rad = float(self.max_correction_rot)
+        params.registration_sigma_m = float(self.registration_sigma)
+        params.registration_sigma_rad = float(self.registration_sigma_rot)
+        params.odometry_sigma_m_per_m = float(self.odometry_sigma_per_m)
+        params.odometry_sigma_rad_per_m = float(self.odometry_sigma_rot_per_m)
+        params.loop_closing = bool(self.loop_closing)
+        params.loop_search_radius_m = float(self.loop_search_radius)
+        params.loop_min_travel_m = float(self.loop_min_travel)
+        params.loop_min_overlap = float(self.loop_min_overlap)
+        params.loop_max_candidates = int(self.loop_max_candidates)
+        params.loop_search_window_m = float(self.loop_search_window)
+        params.loop_yaw_search_rad = float(self.loop_yaw_search)
+        params.loop_yaw_hypotheses = int(self.loop_yaw_hypotheses)
+        params.loop_max_rmse_m = float(self.loop_max_rmse)
+        params.loop_min_inlier_ratio = float(self.loop_min_inlier_ratio)
+        params.pose_graph_iterations = int(self.pose_graph_iterations)
+        return params
+
+
+class Mapper:
+    """Chains scans into a global elevation map (see the module docstring).
+
+    >>> mapper = Mapper(MapperParams(keyframe_distance=3.0))
+    >>> for points, pose in zip(scans, odometry):   # (N, 3) sensor-frame points, (4, 4) world <- sensor
+    ...     mapper.add_scan(points, pose)
+    >>> dem = mapper.global_map()                    # ElevationMap: max, mean, std_dev, class, ...
+    >>> poses = mapper.keyframe_poses()              # (K, 4, 4)
+    """
+
+    def __init__(self, params: MapperParams | None = None, **kwargs):
+        self.params = params or MapperParams(**kwargs)
+        self._core = _core.Mapper(self.params.to_core())
+
+    def add_scan(self, points, pose) -> ScanReport:
+        """Feeds one scan: ``points`` (N, 3) float32/float64 in the sensor frame, ``pose`` its (4, 4)
+        odometry world <- sensor. Returns what happened (keyframe, registration, loops closed)."""
+        return self._core.add_scan(points, np.asarray(pose, dtype=np.float64))
+
+    def __len__(self) -> int:
+        return int(self._core.num_keyframes)
+
+    @property
+    def num_keyframes(self) -> int:
+        return int(self._core.num_keyframes)
+
+    def keyframe_poses(self) -> np.ndarray:
+        """Estimated world <- sensor pose of every keyframe, (K, 4, 4)."""
+        return self._core.keyframe_poses()
+
+    def keyframe_odometry(self) -> np.ndarray:
+        """Odometry world <- sensor pose of every keyframe as given, (K, 4, 4)."""
+        return self._core.keyframe_odometry()
+
+    def keyframe_scan_indices(self) -> np.ndarray:
+        """Index of the scan (in add_scan order) each keyframe was built from."""
+        return np.asarray(self._core.keyframe_scan_indices(), dtype=np.int64)
+
+    @property
+    def loop_closures(self) -> list[LoopClosure]:
+        return list(self._core.loop_closures)
+
+    @property
+    def timings(self) -> MapperTimings:
+        """Milliseconds per stage summed over all scans: map building, classification,
+        registration, fusion, loop closing."""
+        return self._core.timings
+
+    @property
+    def global_memory_bytes(self) -> int:
+        """Bytes held by the global map's tiles (grows with the area covered)."""
+        return int(self._core.global_memory_bytes)
+
+    def local_map(self, k: int) -> ElevationMap:
+        """Keyframe ``k``'s local classified map in its leveled frame."""
+        try:
+            return ElevationMap(self._core.local_map(int(k)))
+        except IndexError as error:
+            raise IndexError(str(error)) from None
+
+    def global_map(self, classify: bool = True) -> ElevationMap:
+        """The global elevation map over the area covered so far: layers count, min, max (highest
+        elevation), mean (DEM), std_dev, discontinuity and, with ``classify``, class,
+        relative_height and ground."""
+        return ElevationMap(self._core.global_map(bool(classify)))
+
+    def optimize(self) -> None:
+        """Optimises the pose graph now and rebuilds the global map (add_scan does this whenever it
+        closes a loop)."""
+        self._core.optimize()
+
+
+def run_mapper(
+    scans: Iterable[np.ndarray],
+    poses: Iterable[np.ndarray],
+    params: MapperParams | None = None,
+    progress: bool = False,
+    total: int | None = None,
+) -> Mapper:
+    """Feeds ``scans`` with their odometry ``poses`` to a new :class:`Mapper` and returns it.
+
+    ``progress`` shows a tqdm bar (``total`` scans if known).
+    """
+    mapper = Mapper(params)
+    pairs = zip(scans, poses, strict=False)
+    if progress:
+        from tqdm import tqdm
+
+        pairs = tqdm(pairs, total=total, unit="scan", desc="mapping")
+    for points, pose in pairs:
+        mapper.add_scan(points, pose)
+    return mapper
