@@ -381,8 +381,22 @@ def _type_name(hint: Any) -> str:
     if origin in (typing.Union, types.UnionType):
         return " or ".join(_type_name(a) for a in typing.get_args(hint))
     if origin is not None and isinstance(origin, type) and issubclass(origin, Mapping):
+        args = typing.get_args(hint)
+        if len(args) == 2:
+            return f"a mapping of {_type_name(args[0])} to {_plural(args[1])}"
         return "a mapping"
-    return "a list"
+    return "a list" + (f" of {_plural(typing.get_args(hint)[0])}" if typing.get_args(hint) else "")
+
+
+def _plural(hint: Any) -> str:
+    names = {int: "whole numbers", float: "numbers", str: "strings", bool: "true/false values"}
+    if hint in names:
+        return names[hint]
+    origin = typing.get_origin(hint)
+    if origin is not None and isinstance(origin, type) and issubclass(origin, Sequence):
+        args = typing.get_args(hint)
+        return "lists" + (f" of {_plural(args[0])}" if args else "")
+    return "values"
 
 
 class _Mismatch(Exception):
