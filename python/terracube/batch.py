@@ -123,12 +123,10 @@ def _client(scheduler: str | None, workers: int | None, processes: bool):
         raise ImportError("batch processing needs Dask: pip install 'dask[distributed]'") from error
     if scheduler is not None:
         return Client(scheduler), None
+    # Worker processes talk over TCP on the loopback interface only; threads use in-process transport.
+    where = {"host": "127.0.0.1"} if processes else {}
     cluster = LocalCluster(
-        n_workers=workers,
-        threads_per_worker=1,
-        processes=processes,
-        host="127.0.0.1",
-        dashboard_address=None,
+        n_workers=workers, threads_per_worker=1, processes=processes, dashboard_address=None, **where
     )
     return Client(cluster), cluster
 
