@@ -13,8 +13,8 @@ import pytest
 from terracube.io import (
     OVERHANG_LAS_CLASS,
     RETAINED_LAS_CLASS,
-    WRITE_SUFFIXES,
     TERRAIN_LAS_CLASSES,
+    WRITE_SUFFIXES,
     read_cloud,
     read_points,
     write_classified,
