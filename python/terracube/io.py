@@ -8,7 +8,8 @@ suffix                  read                                  write (``write_cla
 ``.pcd``                ascii, binary, binary_compressed      binary (``write_pcd``: any of the three)
 ``.ply``                ascii and binary, through plyfile     binary, x y z + label + RGB colour
 ``.las`` / ``.laz``     laspy (+ lazrs for LAZ)               LAS 1.4 point format 6, classification
-``.bin``                KITTI float32 rows x, y, z, intensity --
+``.bin``                KITTI float32 rows x, y, z, intensity float32 rows (``write_kitti_bin``) + a
+                        (+ a SemanticKITTI ``.label`` beside)  SemanticKITTI-style ``.label`` file
 ``.npy``                (N, >=3) array                        (N, 4) x, y, z, label
 ``.npz``                key ``xyz`` or ``points``             ``xyz`` + ``overhang`` or ``label``
 ``.txt`` ``.xyz`` ...   whitespace/comma separated text       ``# x y z <label>`` header, one row each
@@ -31,6 +32,8 @@ __all__ = [
     "read_cloud",
     "write_classified",
     "write_pcd",
+    "write_kitti_bin",
+    "TERRAIN_LAS_CLASSES",
     "sample_scan_path",
     "load_sample_scan",
     "OVERHANG_LAS_CLASS",
@@ -41,13 +44,18 @@ PathLike = str | Path
 
 _TEXT_SUFFIXES = (".txt", ".xyz", ".csv", ".asc")
 _READ_SUFFIXES = (".pcd", ".ply", ".las", ".laz", ".bin", ".npy", ".npz", *_TEXT_SUFFIXES)
-WRITE_SUFFIXES = (".ply", ".pcd", ".las", ".laz", ".npz", ".npy", ".txt", ".xyz")
+WRITE_SUFFIXES = (".ply", ".pcd", ".las", ".laz", ".bin", ".npz", ".npy", ".txt", ".xyz")
 
 #: LAS classification written for a retained point of an overhang mask: 1, "unclassified" (ASPRS).
 RETAINED_LAS_CLASS = 1
 #: LAS classification written for an overhang point: 64, the first "user definable" code of LAS 1.4
 #: (overhangs are canopy, ceilings and bridge decks alike, so no single ASPRS class fits).
 OVERHANG_LAS_CLASS = 64
+#: LAS classification of each terrain class (``terracube.TerrainClass``) for ``write_classified(...,
+#: las_classes=TERRAIN_LAS_CLASSES)``: unknown -> 1 ("unclassified"), ground -> 2 (ASPRS "ground"), the
+#: others to user-definable codes 65..68 (obstacle, overhanging object, vertical object, horizontal
+#: edge), since no ASPRS class means the same. The raw class is kept in a ``label`` extra dimension.
+TERRAIN_LAS_CLASSES = {0: 1, 1: 2, 2: 65, 3: 66, 4: 67, 5: 68}
 
 # Internal: problems found while parsing; turned into ValueError("<path>: <message>").
 
@@ -147,7 +155,20 @@ def _read_bin(path: Path) -> dict[str, np.ndarray]:
     if raw.size % 4 != 0:
         raise _FormatError(f"{path.stat().st_size} bytes is not a whole number of float32 (x, y, z, i) rows")
     rows = raw.reshape(-1, 4)
-    return {"xyz": rows[:, :3], "intensity": rows[:, 3]}
+    fields = {"xyz": rows[:, :3], "intensity": rows[:, 3]}
+    label_path = path.with_suffix(".label")
+    if label_path.is_file():  # a SemanticKITTI label file beside the scan: uint32, class in the low 16 bits
+        values = np.fromfile(label_path, dtype=np.uint32)
+        if label_path.stat().st_size != 4 * len(rows):
+            raise _FormatError(
+                f"the label file {label_path.name} holds {label_path.stat().st_size} bytes, "
+                f"{len(rows)} points need {4 * len(rows)} (one uint32 each)"
+            )
+        semantic = values & np.uint32(0xFFFF)
+        fields["semantic"] = semantic
+        if semantic.size == 0 or semantic.max() <= 255:
+            fields["label"] = semantic.astype(np.uint8)
+    return fields
 
 
 def _check_points(array: np.ndarray) -> np.ndarray:
@@ -558,7 +579,34 @@ def _las_scale(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return lo, scale
 
 
-def write_classified(path: PathLike, points: np.ndarray, labels: np.ndarray) -> Path:
+def write_kitti_bin(path: PathLike, points: np.ndarray, intensity: np.ndarray | None = None) -> Path:
+    """Write a KITTI-style ``.bin``: float32 rows x, y, z, intensity (0 when ``intensity`` is None).
+
+    Coordinates are stored as float32 whatever the input dtype (the format has no other).
+    """
+    path = Path(path)
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] < 3:
+        raise ValueError(f"{path}: need (N, 3) points, got shape {points.shape}")
+    rows = np.zeros((points.shape[0], 4), dtype="<f4")
+    rows[:, :3] = points[:, :3]
+    if intensity is not None:
+        intensity = np.asarray(intensity)
+        if intensity.shape != (points.shape[0],):
+            raise ValueError(f"{path}: need ({points.shape[0]},) intensities, got shape {intensity.shape}")
+        rows[:, 3] = intensity
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rows.tofile(path)
+    return path
+
+
+def write_classified(
+    path: PathLike,
+    points: np.ndarray,
+    labels: np.ndarray,
+    *,
+    las_classes: dict[int, int] | None = None,
+) -> Path:
     """Write points with one label each: a bool overhang mask or uint8 classes (0..255).
 
     The format follows the suffix; ``read_cloud`` gives the same labels back (``"label"``, uint8):
@@ -570,7 +618,11 @@ def write_classified(path: PathLike, points: np.ndarray, labels: np.ndarray) -> 
       extent exceeds the int32 range). Classes go into ``classification`` as they are (ASPRS codes
       where the labels are). A mask writes ``classification`` 1 (``RETAINED_LAS_CLASS``, ASPRS
       "unclassified") for retained and 64 (``OVERHANG_LAS_CLASS``, first user-definable code) for
-      overhang points, plus a uint8 extra dimension ``overhang`` that the reader prefers.
+      overhang points, plus a uint8 extra dimension ``overhang`` that the reader prefers. With
+      ``las_classes`` (label -> LAS code, e.g. :data:`TERRAIN_LAS_CLASSES`) classes are written as
+      those codes, and the labels themselves in a uint8 extra dimension ``label``.
+    - ``.bin``: KITTI float32 rows x, y, z, 0 (coordinates as float32) and, beside it, a
+      SemanticKITTI-style ``.label`` file of uint32 labels (the overhang mask as 0/1).
     - ``.npz``: ``xyz`` and ``overhang`` (bool, mask) or ``label`` (uint8).
     - ``.npy``: an (N, 4) array x, y, z, label in the points' float dtype.
     - ``.txt`` / ``.xyz``: a ``# x y z overhang`` (or ``label``) header line, then ``x y z label``
@@ -622,7 +674,10 @@ def write_classified(path: PathLike, points: np.ndarray, labels: np.ndarray) -> 
     elif suffix == ".pcd":
         write_pcd(path, {"xyz": xyz, name: label_u8}, encoding="binary")
     elif suffix in (".las", ".laz"):
-        _write_las(path, xyz, label_u8, is_mask)
+        _write_las(path, xyz, label_u8, is_mask, las_classes)
+    elif suffix == ".bin":
+        write_kitti_bin(path, xyz)
+        label_u8.astype("<u4").tofile(path.with_suffix(".label"))
     elif suffix == ".npz":
         np.savez_compressed(path, xyz=xyz, **{name: labels.astype(bool) if is_mask else label_u8})
     elif suffix == ".npy":
@@ -634,7 +689,9 @@ def write_classified(path: PathLike, points: np.ndarray, labels: np.ndarray) -> 
     return path
 
 
-def _write_las(path: Path, xyz: np.ndarray, labels: np.ndarray, is_mask: bool) -> None:
+def _write_las(
+    path: Path, xyz: np.ndarray, labels: np.ndarray, is_mask: bool, las_classes: dict[int, int] | None
+) -> None:
     try:
         import laspy
     except ImportError as error:  # pragma: no cover - laspy is a dependency
@@ -643,15 +700,31 @@ def _write_las(path: Path, xyz: np.ndarray, labels: np.ndarray, is_mask: bool) -
         raise ValueError(f"{path}: LAS cannot store NaN or infinite coordinates; drop those points first")
     header = laspy.LasHeader(point_format=6, version="1.4")
     header.offsets, header.scales = _las_scale(np.asarray(xyz, dtype=np.float64))
+    codes = None
+    if las_classes is not None and not is_mask:
+        lookup = np.full(256, RETAINED_LAS_CLASS, dtype=np.uint8)
+        for label, code in las_classes.items():
+            if not (0 <= int(label) <= 255 and 0 <= int(code) <= 255):
+                raise ValueError(f"{path}: las_classes maps {label} -> {code}; both must lie in 0..255")
+            lookup[int(label)] = int(code)
+        missing = np.setdiff1d(np.unique(labels), list(las_classes))
+        if missing.size:
+            raise ValueError(f"{path}: las_classes has no LAS code for the labels {missing.tolist()}")
+        codes = lookup[labels]
     if is_mask:
         header.add_extra_dim(
             laspy.ExtraBytesParams(name="overhang", type=np.uint8, description="1 = overhang")
         )
+    elif codes is not None:
+        header.add_extra_dim(laspy.ExtraBytesParams(name="label", type=np.uint8, description="class label"))
     las = laspy.LasData(header)
     las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     if is_mask:
         las.classification = np.where(labels != 0, OVERHANG_LAS_CLASS, RETAINED_LAS_CLASS).astype(np.uint8)
         las.overhang = labels
+    elif codes is not None:
+        las.classification = codes
+        las.label = labels
     else:
         las.classification = labels
     las.write(str(path))

@@ -95,3 +95,265 @@ def test_a_bad_edge_exits_with_code_2(runner, tmp_path):
     result = runner.invoke(app, ["collapse", str(path), "-o", str(tmp_path), "--edge", "-1"])
     assert result.exit_code == 2
     assert "edge" in result.output
+
+
+# --------------------------------------------------------------------------------------------
+# register, fem, view, classified clouds, GeoTIFF, the console script
+# --------------------------------------------------------------------------------------------
+
+
+def _rigid_errors(estimate, truth):
+    delta = estimate[:3, :3].T @ truth[:3, :3]
+    angle = np.degrees(np.arccos(np.clip((np.trace(delta) - 1.0) / 2.0, -1.0, 1.0)))
+    return float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3])), float(angle)
+
+
+@pytest.fixture(scope="module")
+def street_scans(tmp_path_factory):
+    """The registration tests' street seen from two poses 3 m and 20 degrees apart, as .npy scans."""
+    from test_registration import SENSOR_HEIGHT, apply, pose, street
+
+    folder = tmp_path_factory.mktemp("street")
+    world = street()
+    source_pose = pose(-1.0, 0.0, SENSOR_HEIGHT, -10.0)
+    target_pose = pose(1.95, 0.5, SENSOR_HEIGHT, 10.0)
+    truth = np.linalg.inv(target_pose) @ source_pose
+    np.save(folder / "source.npy", apply(np.linalg.inv(source_pose), world))
+    np.save(folder / "target.npy", apply(np.linalg.inv(target_pose), world))
+    return folder, truth, SENSOR_HEIGHT
+
+
+def test_register_recovers_a_known_motion_and_writes_json_and_txt(runner, tmp_path, street_scans):
+    import json
+
+    folder, truth, sensor_height = street_scans
+    yaw = np.degrees(np.arctan2(truth[1, 0], truth[0, 0]))
+    guess = f"{truth[0, 3] + 0.3},{truth[1, 3] - 0.2},{yaw + 3.0}"  # the truth perturbed (odometry)
+    args = ["register", str(folder / "source.npy"), str(folder / "target.npy"), "-r", "0.2"]
+    args += ["--sensor-height", str(sensor_height), "--initial", guess]
+    result = runner.invoke(app, [*args, "--output", str(tmp_path / "r.json")])
+    assert result.exit_code == 0, result.output
+    record = json.loads((tmp_path / "r.json").read_text())
+    estimate = np.array(record["transform"])
+    translation_error, rotation_error = _rigid_errors(estimate, truth)
+    # within one 0.2 m cell and half a degree (whole-scan maps, no fixed extent as in test_registration)
+    assert translation_error < 0.2 and rotation_error < 0.5, (translation_error, rotation_error)
+    assert record["converged"] and record["reason"] == "converged"
+    # the same as the library on the same maps
+    maps = []
+    for name in ("source", "target"):
+        elevation_map = tc.build_elevation_map(np.load(folder / f"{name}.npy"), 0.2)
+        tc.classify_terrain(elevation_map, sensor_height=sensor_height)
+        maps.append(elevation_map)
+    from terracube.cli import parse_initial
+
+    direct = tc.register_maps(maps[0], maps[1], parse_initial(guess))
+    np.testing.assert_array_equal(estimate, direct.transform)
+    assert record["iterations"] == direct.iterations and record["rmse"] == direct.rmse
+    counts = list(direct.correspondences_per_class)
+    assert record["correspondences_per_class"]["obstacle"] == counts[int(tc.TerrainClass.OBSTACLE)]
+    assert record["correspondences_per_class"]["ground"] == 0  # ground takes no part (Table 2)
+    for text in ("converged: yes (converged)", "RMSE:", "correspondences per class:", "transform:"):
+        assert text in result.output
+    result = runner.invoke(app, [*args, "--method", "all-cells", "--output", str(tmp_path / "r.txt")])
+    assert result.exit_code == 0, result.output
+    all_cells = tc.register_maps_all_cells(maps[0], maps[1], parse_initial(guess))
+    np.testing.assert_allclose(np.loadtxt(tmp_path / "r.txt"), all_cells.transform, rtol=0, atol=1e-11)
+
+
+def test_register_with_pcl_or_a_clear_message(runner, tmp_path, street_scans):
+    folder, truth, sensor_height = street_scans
+    args = ["register", str(folder / "source.npy"), str(folder / "target.npy"), "-r", "0.2", "-m", "pcl"]
+    initial = tmp_path / "guess.txt"
+    np.savetxt(initial, truth[:3])  # KITTI-style 3x4
+    result = runner.invoke(app, [*args, "--sensor-height", str(sensor_height), "-i", str(initial)])
+    if not tc.has_pcl():
+        assert result.exit_code == 2 and "PCL" in result.output
+        return
+    assert result.exit_code == 0, result.output
+    assert "fitness:" in result.output and "iterations:" in result.output
+
+
+def test_initial_guesses_from_files_and_x_y_yaw(tmp_path):
+    import json
+
+    from terracube.cli import parse_initial
+
+    c, s = np.cos(np.radians(30.0)), np.sin(np.radians(30.0))
+    expected = np.array([[c, -s, 0, 1.5], [s, c, 0, -2.0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    np.testing.assert_allclose(parse_initial("1.5,-2,30"), expected, atol=1e-15)
+    np.testing.assert_allclose(parse_initial("1.5 -2 30"), expected, atol=1e-15)
+    np.savetxt(tmp_path / "m.txt", expected)
+    np.testing.assert_array_equal(parse_initial(str(tmp_path / "m.txt")), expected)
+    (tmp_path / "m.json").write_text(json.dumps({"transform": expected.tolist()}))
+    np.testing.assert_array_equal(parse_initial(str(tmp_path / "m.json")), expected)
+    np.testing.assert_array_equal(parse_initial(None), np.eye(4))
+    (tmp_path / "bad.txt").write_text("1 2 3\n4 5 6\n")
+    with pytest.raises(ValueError, match=r"bad\.txt: expected a finite 4x4"):
+        parse_initial(str(tmp_path / "bad.txt"))
+    with pytest.raises(ValueError, match="neither a file nor x,y,yaw"):
+        parse_initial("1,2")
+
+
+def test_register_refuses_an_unknown_method_and_a_bad_output_suffix(runner, tmp_path, street_scans):
+    folder, _, _ = street_scans
+    pair = [str(folder / "source.npy"), str(folder / "target.npy")]
+    result = runner.invoke(app, ["register", *pair, "-m", "ndt"])
+    assert result.exit_code == 2 and "--method must be one of classes, all-cells, pcl" in result.output
+    result = runner.invoke(app, ["register", *pair, "--output", str(tmp_path / "r.csv")])
+    assert result.exit_code == 2 and "use a .json or .txt file" in result.output
+
+
+def test_fem_writes_the_fuzzy_layers_the_library_computes_and_pictures(runner, tmp_path):
+    path, points = _scan(tmp_path)
+    out = tmp_path / "fem"
+    result = runner.invoke(
+        app, ["fem", str(path), "-o", str(out), "-r", "0.5", "--rules", "6", "5", "--epochs", "3"]
+    )
+    assert result.exit_code == 0, result.output
+    saved = tc.ElevationMap.load(out / "scan_fem.npz")
+    dem, collapse = tc.dem_without_overhangs(points, 0.5, 2, 0.5)
+    fem = tc.fit_fuzzy_elevation_map(
+        points.astype(np.float64), rules_x=6, rules_y=5, epochs=3, use=~collapse.overhang
+    )
+    fem.to_layer(dem, 3.0)
+    for layer in ("fem", "fem_confidence", "max"):
+        np.testing.assert_array_equal(saved[layer], dem[layer], err_msg=layer)
+    # the ground is flat at z = 0 under the canopy (removed): the surface stays near it but at the wall
+    assert np.nanmedian(np.abs(saved["fem"])) < 0.1
+    assert "30 rules (41 parameters)" in result.output
+    for picture in ("fem", "fem_confidence"):
+        assert (out / f"scan_{picture}.png").read_bytes()[:8] == PNG_MAGIC
+
+
+def test_classify_writes_each_point_with_the_class_of_its_cell(runner, tmp_path):
+    path, points = _scan(tmp_path)
+    out = tmp_path / "classes"
+    result = runner.invoke(app, ["classify", str(path), "-o", str(out), "-r", "0.5", "-f", "las", "--no-png"])
+    assert result.exit_code == 0, result.output
+    from terracube.io import TERRAIN_LAS_CLASSES, read_cloud
+
+    cloud = read_cloud(out / "scan_classes.las")
+    raw = tc.build_elevation_map(points, 0.5)
+    classes = tc.classify_terrain(raw)
+    # reference: the cell of every 7th point by MapGeometry.index_of, one point at a time
+    for k in range(0, len(points), 7):
+        i, j = raw.geometry.index_of(float(points[k, 0]), float(points[k, 1]))
+        assert cloud["label"][k] == classes[i, j], k
+    np.testing.assert_array_equal(cloud["classification"], [TERRAIN_LAS_CLASSES[c] for c in cloud["label"]])
+    assert set(np.unique(cloud["label"])) >= {1, 3}  # ground and the canopy's overhanging cells
+
+
+def test_dem_geotiff_holds_the_max_layer_north_up(runner, tmp_path):
+    rasterio = pytest.importorskip("rasterio")
+    path, _ = _scan(tmp_path)
+    out = tmp_path / "dem"
+    result = runner.invoke(app, ["dem", str(path), "-o", str(out), "-r", "0.5", "--geotiff", "--no-png"])
+    assert result.exit_code == 0, result.output
+    saved = tc.ElevationMap.load(out / "scan_dem.npz")
+    with rasterio.open(out / "scan_dem_max.tif") as tif:
+        band = tif.read(1)
+        g = saved.geometry
+        assert tif.transform.c == g.origin[0] and tif.transform.a == g.resolution
+    np.testing.assert_array_equal(band, saved["max"].T[::-1, :])
+
+
+def test_collapse_writes_a_kitti_bin_with_a_label_file(runner, tmp_path):
+    path, points = _scan(tmp_path)
+    result = runner.invoke(app, ["collapse", str(path), "-o", str(tmp_path), "-f", "bin", "--no-png"])
+    assert result.exit_code == 0, result.output
+    labels = np.fromfile(tmp_path / "scan_classified.label", np.uint32)
+    np.testing.assert_array_equal(labels, tc.collapse_overhangs(points, 0.5, 2).overhang)
+    np.testing.assert_array_equal(
+        np.fromfile(tmp_path / "scan_classified.bin", np.float32).reshape(-1, 4)[:, :3], points
+    )
+
+
+def test_view_draws_one_picture_per_map_layer_and_three_for_a_scan(runner, tmp_path):
+    path, _ = _scan(tmp_path)
+    assert (
+        runner.invoke(app, ["classify", str(path), "-o", str(tmp_path), "-r", "0.5", "--no-cloud"]).exit_code
+        == 0
+    )
+    result = runner.invoke(app, ["view", str(tmp_path / "scan_classes.npz"), "-o", str(tmp_path / "v")])
+    assert result.exit_code == 0, result.output
+    layers = tc.ElevationMap.load(tmp_path / "scan_classes.npz").layers
+    assert sorted(p.name for p in (tmp_path / "v").iterdir()) == sorted(
+        f"scan_classes_{n}.png" for n in layers
+    )
+    result = runner.invoke(
+        app, ["view", str(tmp_path / "scan_classes.npz"), "-o", str(tmp_path), "-l", "height"]
+    )
+    assert result.exit_code == 2 and "no layer height" in result.output
+    result = runner.invoke(app, ["view", str(path), "-o", str(tmp_path / "s"), "-r", "0.5"])
+    assert result.exit_code == 0, result.output
+    for picture in ("overhangs", "max", "classes"):
+        assert (tmp_path / "s" / f"scan_{picture}.png").read_bytes()[:8] == PNG_MAGIC
+
+
+def test_view_3d_without_rerun_names_the_extra_to_install(runner, tmp_path, monkeypatch):
+    import sys
+
+    path, _ = _scan(tmp_path)
+    monkeypatch.setitem(sys.modules, "rerun", None)  # import rerun now raises ImportError
+    result = runner.invoke(
+        app, ["view", str(path), "-o", str(tmp_path), "--no-png", "--3d", "--save", "x.rrd"]
+    )
+    assert result.exit_code == 2
+    assert 'pip install "terracube[viewer]"' in result.output
+    result = runner.invoke(app, ["view", str(path), "--save", "x.rrd"])
+    assert result.exit_code == 2 and "give --3d too" in result.output
+
+
+def test_view_3d_saves_a_rerun_recording(runner, tmp_path):
+    pytest.importorskip("rerun", reason="the viewer extra (rerun-sdk) is not installed")
+    path, _ = _scan(tmp_path)
+    recording = tmp_path / "scan.rrd"
+    result = runner.invoke(
+        app, ["view", str(path), "-o", str(tmp_path), "--no-png", "--3d", "--save", str(recording)]
+    )
+    assert result.exit_code == 0, result.output
+    assert recording.stat().st_size > 1000
+
+
+@pytest.mark.parametrize(
+    "relative", ["ouster128/ouster128_000000.pcd", "als_classified/laspy_wkt_geotiff_ground_veg_building.las"]
+)
+@pytest.mark.parametrize("command", ["collapse", "dem", "classify", "fem", "view"])
+def test_a_truncated_real_pcd_or_las_exits_2_naming_the_file(
+    runner, tmp_path, shared_data, relative, command
+):
+    data = shared_data.path(relative).read_bytes()
+    path = tmp_path / f"cut_{command}{relative[-4:]}"
+    path.write_bytes(data[: len(data) // 2])
+    result = runner.invoke(app, [command, str(path), "-o", str(tmp_path)])
+    assert result.exit_code == 2
+    assert path.name in result.output and "truncated" in result.output
+
+
+def test_the_console_script_runs_as_a_subprocess(tmp_path):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import yaml
+
+    env = dict(os.environ)
+    repo = Path(__file__).resolve().parents[2]
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(repo / "python"), env.get("PYTHONPATH")]))
+    path, points = _scan(tmp_path)
+    run = [sys.executable, "-m", "terracube"]
+    help_text = subprocess.run([*run, "--help"], capture_output=True, text=True, env=env, timeout=120)
+    assert help_text.returncode == 0
+    for command in ("collapse", "dem", "classify", "fem", "register", "view", "config", "batch"):
+        assert command in help_text.stdout
+    printed = subprocess.run([*run, "config"], capture_output=True, text=True, env=env, timeout=120)
+    assert printed.returncode == 0 and yaml.safe_load(printed.stdout)["collapse"]["edge"] == 0.5
+    done = subprocess.run(
+        [*run, "collapse", str(path), "-o", str(tmp_path / "o"), "-f", "npz", "--no-png"],
+        capture_output=True, text=True, env=env, timeout=120,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    expected = tc.collapse_overhangs(points, 0.5, 2).overhang
+    np.testing.assert_array_equal(np.load(tmp_path / "o" / "scan_classified.npz")["overhang"], expected)

@@ -13,10 +13,12 @@ import pytest
 from terracube.io import (
     OVERHANG_LAS_CLASS,
     RETAINED_LAS_CLASS,
+    TERRAIN_LAS_CLASSES,
     WRITE_SUFFIXES,
     read_cloud,
     read_points,
     write_classified,
+    write_kitti_bin,
     write_pcd,
 )
 
@@ -159,6 +161,9 @@ def test_write_then_read_gives_the_same_points_and_labels(tmp_path, scans, scan,
     cloud = read_cloud(path)
     if suffix in (".las", ".laz", ".txt", ".xyz"):  # stored at 0.1 mm
         np.testing.assert_allclose(cloud["xyz"], points, rtol=0, atol=5.1e-5)
+    elif suffix == ".bin":  # KITTI rows are float32 whatever the input
+        assert cloud["xyz"].dtype == np.float32
+        np.testing.assert_array_equal(cloud["xyz"], points.astype(np.float32))
     else:  # stored in the points' own float dtype
         assert cloud["xyz"].dtype == points.dtype
         np.testing.assert_array_equal(cloud["xyz"], points)
@@ -187,6 +192,54 @@ def test_las_codes_of_an_overhang_mask_and_of_classes(tmp_path):
     cloud = read_cloud(write_classified(tmp_path / "classes.laz", points, classes))
     np.testing.assert_array_equal(cloud["classification"], classes)
     np.testing.assert_array_equal(cloud["label"], classes)
+
+
+def test_terrain_classes_go_to_las_as_their_codes_and_come_back_as_labels(tmp_path):
+    points = np.arange(18, dtype=np.float64).reshape(6, 3)
+    classes = np.array([0, 1, 2, 3, 4, 5], dtype=np.uint8)
+    cloud = read_cloud(write_classified(tmp_path / "t.laz", points, classes, las_classes=TERRAIN_LAS_CLASSES))
+    # ASPRS: 1 unclassified, 2 ground; 65..68 user-definable (hand-written table of the docs)
+    np.testing.assert_array_equal(cloud["classification"], [1, 2, 65, 66, 67, 68])
+    np.testing.assert_array_equal(cloud["label"], classes)
+    with pytest.raises(ValueError, match=r"t2\.las: las_classes has no LAS code for the labels \[7\]"):
+        write_classified(tmp_path / "t2.las", points[:2], np.uint8([1, 7]), las_classes=TERRAIN_LAS_CLASSES)
+
+
+def test_kitti_bin_round_trips_the_real_scan_with_its_intensity(tmp_path, shared_data):
+    xyzi = shared_data.kitti_xyzi(0)
+    path = write_kitti_bin(tmp_path / "copy.bin", xyzi[:, :3], xyzi[:, 3])
+    assert path.read_bytes() == shared_data.path("kitti_seq00/velodyne/000000.bin").read_bytes()
+    cloud = read_cloud(path)
+    np.testing.assert_array_equal(cloud["xyz"], xyzi[:, :3])
+    np.testing.assert_array_equal(cloud["intensity"], xyzi[:, 3])
+    assert "label" not in cloud
+
+
+def test_kitti_bin_labels_live_in_a_semantic_kitti_label_file(tmp_path, shared_data):
+    xyzi = shared_data.kitti_xyzi(0)
+    semantic = shared_data.kitti_labels(0)
+    path = write_classified(tmp_path / "scan.bin", xyzi[:, :3], semantic.astype(np.uint8))
+    # the .label file is what SemanticKITTI tools read: uint32 per point, class in the low 16 bits
+    np.testing.assert_array_equal(np.fromfile(tmp_path / "scan.label", np.uint32), semantic)
+    cloud = read_cloud(path)
+    np.testing.assert_array_equal(cloud["label"], semantic)
+    np.testing.assert_array_equal(cloud["intensity"], np.zeros(len(xyzi), np.float32))
+
+
+def test_a_label_file_of_the_wrong_length_names_both_files(tmp_path):
+    write_kitti_bin(tmp_path / "scan.bin", np.zeros((5, 3), np.float32))
+    np.zeros(4, np.uint32).tofile(tmp_path / "scan.label")
+    with pytest.raises(
+        ValueError, match=r"scan\.bin: the label file scan\.label holds 16 bytes, 5 points need 20"
+    ):
+        read_cloud(tmp_path / "scan.bin")
+
+
+def test_kitti_bin_writer_refuses_wrong_shapes(tmp_path):
+    with pytest.raises(ValueError, match=r"x\.bin: need \(N, 3\) points"):
+        write_kitti_bin(tmp_path / "x.bin", np.zeros(6))
+    with pytest.raises(ValueError, match=r"x\.bin: need \(2,\) intensities"):
+        write_kitti_bin(tmp_path / "x.bin", np.zeros((2, 3)), np.zeros(3))
 
 
 def test_ply_and_npz_keep_the_overhang_field_name_for_masks(tmp_path):

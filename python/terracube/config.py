@@ -1,0 +1,575 @@
+"""Every stage's parameters in one YAML file: commented defaults, loading with clear errors.
+
+A configuration is one section per registered parameter dataclass (``frame``, ``collapse``,
+``elevation``, ``terrain``, ``fuzzy``, ``registration``, ``pcl_icp``). ``default_config()`` holds
+the defaults, :func:`dump_config` writes them as commented YAML (the comments come from each
+dataclass's numpy-style ``Attributes`` docstring) and :func:`load_config` merges a YAML file over
+the defaults: a file gives only the keys it changes.
+
+A later stage registers its parameters with one line, e.g.::
+
+    register_section("mapper", MapperParams, "Mapper: chaining classified maps into one.")
+
+Example
+-------
+>>> config = load_config("robot.yaml")        # unknown sections or keys and wrong types: ConfigError
+>>> config.collapse.edge
+0.25
+>>> config = config.replace("collapse", sigma=4)
+>>> print(dump_config(config))
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import difflib
+import enum
+import inspect
+import math
+import textwrap
+import types
+import typing
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "Config",
+    "ConfigError",
+    "FrameParams",
+    "Section",
+    "SECTIONS",
+    "default_config",
+    "dump_config",
+    "load_config",
+    "register_section",
+]
+
+
+class ConfigError(ValueError):
+    """A configuration file that cannot be used; the message names the file, section and key."""
+
+
+@dataclass
+class FrameParams:
+    """The sensor frame every stage works in: leveling and an optional crop box.
+
+    The leveling transform R = Ry(pitch) Rx(roll) (``terracube.leveling_transform``) and the crop box
+    are handed to collapsible cubes and to the elevation map alike, so the overhang mask, the DEM and
+    the classes of one scan share one frame.
+
+    Attributes
+    ----------
+    roll_deg : float
+        Sensor roll [deg], for leveling (0).
+    pitch_deg : float
+        Sensor pitch [deg], for leveling (0).
+    crop : ((xmin, ymin, zmin), (xmax, ymax, zmax)) or None
+        Axis-aligned box [m] in the leveled frame; points outside take no part. None keeps every point.
+    """
+
+    roll_deg: float = 0.0
+    pitch_deg: float = 0.0
+    crop: Sequence[Sequence[float]] | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("roll_deg", "pitch_deg"):
+            if not math.isfinite(float(getattr(self, name))):
+                raise ValueError(f"{name} must be a finite angle [deg], got {getattr(self, name)!r}")
+        if self.crop is not None:
+            box = np.asarray(self.crop, dtype=np.float64)
+            if box.shape != (2, 3) or not np.all(np.isfinite(box)):
+                raise ValueError(
+                    f"crop must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] in metres, got {self.crop!r}"
+                )
+            if np.any(box[0] > box[1]):
+                raise ValueError(
+                    f"crop: the min corner {box[0].tolist()} exceeds the max corner {box[1].tolist()}"
+                )
+
+    def transform(self) -> np.ndarray:
+        """The 4x4 leveling transform of ``roll_deg`` and ``pitch_deg``."""
+        from .collapse import leveling_transform
+
+        return leveling_transform(math.radians(self.roll_deg), math.radians(self.pitch_deg))
+
+    def crop_box(self) -> tuple[tuple[float, ...], tuple[float, ...]] | None:
+        """The crop box as ((xmin, ymin, zmin), (xmax, ymax, zmax)) or None."""
+        if self.crop is None:
+            return None
+        return tuple(float(v) for v in self.crop[0]), tuple(float(v) for v in self.crop[1])
+
+
+# ------------------------------------------------------------------------------------------ sections
+
+
+@dataclass(frozen=True)
+class Section:
+    """One section of the configuration: its YAML name, parameter dataclass and description.
+
+    ``excluded`` fields are not read from or written to YAML (they keep the dataclass default), with
+    ``excluded_reason`` telling a user who sets one where the value belongs instead.
+    """
+
+    name: str
+    params_type: type
+    description: str
+    excluded: tuple[str, ...] = ()
+    excluded_reason: str = ""
+
+    def fields(self) -> list[dataclasses.Field]:
+        return [f for f in dataclasses.fields(self.params_type) if f.name not in self.excluded]
+
+
+#: The registered sections, in YAML order.
+SECTIONS: dict[str, Section] = {}
+
+
+def register_section(
+    name: str,
+    params_type: type,
+    description: str,
+    *,
+    excluded: Sequence[str] = (),
+    excluded_reason: str = "",
+) -> Section:
+    """Add a section ``name`` holding the dataclass ``params_type`` (whose fields all have defaults).
+
+    Field types understood in YAML: bool, int, float, str, enums (by lower-case name), ``X | None``,
+    sequences and mappings of these (enum keys by lower-case name). Field docs for the YAML comments
+    come from the dataclass's ``Attributes`` docstring section.
+    """
+    if not dataclasses.is_dataclass(params_type):
+        raise TypeError(f"section {name!r}: {params_type!r} is not a dataclass")
+    if name in SECTIONS:
+        raise ValueError(f"section {name!r} is already registered")
+    params_type()  # every field needs a default
+    section = Section(name, params_type, description, tuple(excluded), excluded_reason)
+    SECTIONS[name] = section
+    return section
+
+
+def _register_defaults() -> None:
+    from .collapse import CollapseParams
+    from .elevation import ElevationParams, TerrainParams
+    from .fuzzy import FuzzyParams
+    from .registration import PclIcpParams, RegistrationParams
+
+    frame_reason = "set the leveling and crop box in the 'frame' section (roll_deg, pitch_deg, crop)"
+    register_section(
+        "frame", FrameParams, "The sensor frame of every stage: leveling (roll, pitch) and a crop box."
+    )
+    register_section(
+        "collapse",
+        CollapseParams,
+        "Collapsible cubes overhang removal (Reina et al. 2014, Algorithm 1).",
+        excluded=("transform", "crop"),
+        excluded_reason=frame_reason,
+    )
+    register_section(
+        "elevation",
+        ElevationParams,
+        "Elevation map: cell size, optional fixed extent (origin and size together).",
+        excluded=("transform", "crop"),
+        excluded_reason=frame_reason,
+    )
+    register_section(
+        "terrain", TerrainParams, "Terrain classes of the map cells (classification paper, Table 1)."
+    )
+    register_section(
+        "fuzzy",
+        FuzzyParams,
+        "Fuzzy elevation map: Takagi-Sugeno surface identified by ANFIS hybrid learning.",
+    )
+    register_section(
+        "registration",
+        RegistrationParams,
+        "Class-weighted ICP between classified maps (eq. (4) weights, Table 2).",
+    )
+    register_section("pcl_icp", PclIcpParams, "PCL's point-to-point ICP baseline (register --method pcl).")
+
+
+# ------------------------------------------------------------------------------------------ the config
+
+
+class Config:
+    """One parameter object per section, reachable as ``config.collapse`` or ``config["collapse"]``.
+
+    Equal configurations compare equal; :meth:`replace` gives a copy with some fields changed.
+    """
+
+    def __init__(self, sections: Mapping[str, Any] | None = None):
+        values = {name: section.params_type() for name, section in SECTIONS.items()}
+        for name, params in (sections or {}).items():
+            if name not in SECTIONS:
+                raise KeyError(f"unknown section {name!r} (known: {', '.join(SECTIONS)})")
+            if not isinstance(params, SECTIONS[name].params_type):
+                raise TypeError(f"section {name!r} needs a {SECTIONS[name].params_type.__name__}")
+            values[name] = params
+        object.__setattr__(self, "_sections", values)
+
+    def __reduce__(self):  # pickles (for Dask workers) through the constructor
+        return (Config, (dict(self._sections),))
+
+    def __getattr__(self, name: str) -> Any:
+        sections = object.__getattribute__(self, "_sections")
+        if name in sections:
+            return sections[name]
+        raise AttributeError(f"no configuration section {name!r} (known: {', '.join(sections)})")
+
+    def __getitem__(self, name: str) -> Any:
+        return self._sections[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._sections)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Config):
+            return NotImplemented
+        return set(self) == set(other) and all(_same(self[name], other[name]) for name in self._sections)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError("Config is immutable: use config.replace(section, field=value)")
+
+    def replace(self, section: str, **changes: Any) -> Config:
+        """A copy with the given fields of ``section`` changed; ``None`` values are ignored."""
+        if section not in self._sections:
+            raise KeyError(f"unknown section {section!r} (known: {', '.join(self._sections)})")
+        changes = {k: v for k, v in changes.items() if v is not None}
+        sections = dict(self._sections)
+        sections[section] = dataclasses.replace(self._sections[section], **changes)
+        return Config(sections)
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """Plain YAML-ready values (lists, numbers, strings, None) of every section and field."""
+        return {
+            name: {f.name: _plain(getattr(self[name], f.name)) for f in SECTIONS[name].fields()}
+            for name in self._sections
+        }
+
+    def __repr__(self) -> str:
+        return "Config(" + ", ".join(f"{name}={self[name]!r}" for name in self._sections) + ")"
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Dataclass equality that also copes with numpy array fields."""
+    if dataclasses.is_dataclass(a) and dataclasses.is_dataclass(b):
+        if type(a) is not type(b):
+            return False
+        return all(_same(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a))
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return a is not None and b is not None and np.array_equal(np.asarray(a), np.asarray(b))
+    return _plain(a) == _plain(b)
+
+
+def default_config() -> Config:
+    """Every registered section at its dataclass defaults."""
+    return Config()
+
+
+# ------------------------------------------------------------------------------------------ YAML out
+
+
+def _plain(value: Any) -> Any:
+    """A value as YAML-native data: enums by lower-case name, tuples and arrays as lists."""
+    if isinstance(value, enum.Enum):
+        return value.name.lower()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Mapping):
+        return {_plain(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def _field_docs(params_type: type) -> dict[str, str]:
+    """Field descriptions from the ``Attributes`` section of a numpy-style class docstring."""
+    doc = inspect.getdoc(params_type) or ""
+    lines = doc.splitlines()
+    try:
+        start = next(i for i, line in enumerate(lines) if line.strip() == "Attributes") + 2
+    except StopIteration:
+        return {}
+    docs: dict[str, str] = {}
+    names: list[str] = []
+    text: list[str] = []
+
+    def flush() -> None:
+        for name in names:
+            docs[name] = " ".join(text).strip()
+
+    for line in lines[start:]:
+        if line and not line.startswith(" "):
+            if set(line.strip()) <= {"-"}:  # an underline: the next docstring section began
+                names = []
+                break
+            flush()
+            names = [n.strip() for n in line.split(" : ")[0].split(",")]
+            text = []
+        elif line.strip():
+            text.append(line.strip())
+    flush()
+    return docs
+
+
+def _yaml_value(key: str, value: Any) -> list[str]:
+    import yaml
+
+    if isinstance(value, Mapping) and value:
+        text = yaml.safe_dump({key: value}, default_flow_style=False, sort_keys=False)
+    else:
+        text = yaml.safe_dump({key: value}, default_flow_style=True, sort_keys=False, width=1000)
+        text = text.strip()
+        if text.startswith("{") and text.endswith("}"):  # flow style wraps the whole mapping
+            text = text[1:-1]
+    return text.rstrip("\n").splitlines()
+
+
+def dump_config(config: Config | None = None) -> str:
+    """The configuration (defaults when None) as YAML with a comment on every section and key.
+
+    ``load_config`` of the text gives back an equal :class:`Config`.
+    """
+    config = config or default_config()
+    values = config.to_dict()
+    out = [
+        "# terracube configuration: every stage's parameters, here at their defaults.",
+        "# Use it with `terracube <stage> --config FILE`; options given on the command line win.",
+        "# A file needs only the keys it changes: the others keep their defaults.",
+    ]
+    for name, section in SECTIONS.items():
+        out.append("")
+        out.extend(
+            textwrap.wrap(
+                f"{name}: {section.description}", 100, initial_indent="# ", subsequent_indent="#   "
+            )
+        )
+        if section.excluded:
+            out.append(f"#   ({', '.join(section.excluded)}: {section.excluded_reason})")
+        out.append(f"{name}:")
+        docs = _field_docs(section.params_type)
+        previous = None
+        for f in section.fields():
+            doc = docs.get(f.name)
+            if doc and doc != previous:  # a doc shared by several fields is written once, above the first
+                out.extend(textwrap.wrap(doc, 98, initial_indent="  # ", subsequent_indent="  # "))
+            previous = doc
+            out.extend("  " + line for line in _yaml_value(f.name, values[name][f.name]))
+    return "\n".join(out) + "\n"
+
+
+# ------------------------------------------------------------------------------------------ YAML in
+
+
+def _type_name(hint: Any) -> str:
+    if hint is type(None):
+        return "null"
+    if isinstance(hint, type):
+        if issubclass(hint, enum.Enum):
+            return "one of " + ", ".join(m.name.lower() for m in hint)
+        return {bool: "true or false", int: "a whole number", float: "a number", str: "a string"}.get(
+            hint, hint.__name__
+        )
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_type_name(a) for a in typing.get_args(hint))
+    if origin is not None and isinstance(origin, type) and issubclass(origin, Mapping):
+        args = typing.get_args(hint)
+        if len(args) == 2:
+            return f"a mapping of {_type_name(args[0])} to {_plural(args[1])}"
+        return "a mapping"
+    return "a list" + (f" of {_plural(typing.get_args(hint)[0])}" if typing.get_args(hint) else "")
+
+
+def _plural(hint: Any) -> str:
+    names = {int: "whole numbers", float: "numbers", str: "strings", bool: "true/false values"}
+    if hint in names:
+        return names[hint]
+    origin = typing.get_origin(hint)
+    if origin is not None and isinstance(origin, type) and issubclass(origin, Sequence):
+        args = typing.get_args(hint)
+        return "lists" + (f" of {_plural(args[0])}" if args else "")
+    return "values"
+
+
+class _Mismatch(Exception):
+    """A YAML value that does not fit a field's type."""
+
+
+def _coerce(value: Any, hint: Any) -> Any:
+    """``value`` (from YAML) as the type ``hint``; _Mismatch when it does not fit."""
+    if hint is Any:
+        return value
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        arms = typing.get_args(hint)
+        if value is None:
+            if type(None) in arms:
+                return None
+            raise _Mismatch
+        for arm in arms:
+            if arm is type(None):
+                continue
+            try:
+                return _coerce(value, arm)
+            except _Mismatch:
+                pass
+        raise _Mismatch
+    if hint is np.ndarray:
+        return _coerce(value, list)
+    if hint is bool:
+        if isinstance(value, bool):
+            return value
+        raise _Mismatch
+    if hint is int:
+        if isinstance(value, bool):
+            raise _Mismatch
+        if isinstance(value, int):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        raise _Mismatch
+    if hint is float:
+        if isinstance(value, bool):
+            raise _Mismatch
+        if isinstance(value, (int, float)):
+            return float(value)
+        if isinstance(value, str):  # YAML 1.1 reads 1e-4 (no dot) as a string
+            try:
+                return float(value)
+            except ValueError:
+                raise _Mismatch from None
+        raise _Mismatch
+    if hint is str:
+        if isinstance(value, str):
+            return value
+        raise _Mismatch
+    if isinstance(hint, type) and issubclass(hint, enum.Enum):
+        if isinstance(value, str) and value.upper() in hint.__members__:
+            return hint[value.upper()]
+        if isinstance(value, int) and not isinstance(value, bool):
+            try:
+                return hint(value)
+            except ValueError:
+                raise _Mismatch from None
+        raise _Mismatch
+    args = typing.get_args(hint)
+    if origin is not None and isinstance(origin, type) and issubclass(origin, Mapping):
+        if not isinstance(value, Mapping):
+            raise _Mismatch
+        key_hint, value_hint = args if len(args) == 2 else (Any, Any)
+        return {_coerce(k, key_hint): _coerce(v, value_hint) for k, v in value.items()}
+    if hint in (list, tuple) or (
+        origin is not None and isinstance(origin, type) and issubclass(origin, Sequence)
+    ):
+        if not isinstance(value, list):
+            raise _Mismatch
+        if origin is tuple and args and args[-1] is not Ellipsis:  # fixed length
+            if len(value) != len(args):
+                raise _Mismatch
+            return [_coerce(v, a) for v, a in zip(value, args, strict=True)]
+        item_hint = args[0] if args else Any
+        if item_hint is Any:  # a plain list or array: numbers or nested lists of numbers
+            return [_coerce(v, list if isinstance(v, list) else float) for v in value]
+        return [_coerce(v, item_hint) for v in value]
+    raise _Mismatch
+
+
+def _read_yaml(path: Path) -> Any:
+    import yaml
+
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such configuration file")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        raise ConfigError(f"{path}: cannot read the configuration file: {error}") from error
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        where = getattr(error, "problem_mark", None)
+        line = f" at line {where.line + 1}, column {where.column + 1}" if where is not None else ""
+        problem = getattr(error, "problem", None) or str(error)
+        raise ConfigError(f"{path}: not valid YAML{line}: {problem}") from error
+
+
+def _unknown(kind: str, name: Any, known: Sequence[str]) -> str:
+    close = difflib.get_close_matches(str(name), list(known), n=1)
+    hint = f"; did you mean {close[0]!r}?" if close else ""
+    return f"unknown {kind} {name!r}{hint} (known: {', '.join(known)})"
+
+
+def config_from_dict(data: Any, source: str = "<dict>", base: Config | None = None) -> Config:
+    """Merge a nested mapping ``{section: {key: value}}`` over ``base`` (the defaults when None).
+
+    ``source`` names the origin of ``data`` in error messages (the file path for :func:`load_config`).
+    """
+    config = base or default_config()
+    if data is None:
+        return config
+    if not isinstance(data, Mapping):
+        raise ConfigError(
+            f"{source}: expected a mapping of sections (e.g. 'collapse:'), got {type(data).__name__}"
+        )
+    sections = {name: copy.deepcopy(config[name]) for name in config}
+    for name, values in data.items():
+        if name not in SECTIONS:
+            raise ConfigError(f"{source}: {_unknown('section', name, list(SECTIONS))}")
+        section = SECTIONS[name]
+        if values is None:
+            continue
+        if not isinstance(values, Mapping):
+            raise ConfigError(
+                f"{source}: section {name!r} must be a mapping of keys, "
+                f"got {type(values).__name__} {values!r}"
+            )
+        hints = typing.get_type_hints(section.params_type)
+        known = [f.name for f in section.fields()]
+        changes = {}
+        for key, value in values.items():
+            if key in section.excluded:
+                raise ConfigError(
+                    f"{source}: key {key!r} is not read in section {name!r}: {section.excluded_reason}"
+                )
+            if key not in known:
+                raise ConfigError(f"{source}: {_unknown(f'key in section {name!r}', key, known)}")
+            try:
+                changes[key] = _coerce(value, hints[key])
+            except _Mismatch:
+                raise ConfigError(
+                    f"{source}: {name}.{key} must be {_type_name(hints[key])}, "
+                    f"got {value!r} ({type(value).__name__})"
+                ) from None
+        try:
+            params = dataclasses.replace(sections[name], **changes)
+            check = getattr(params, "to_core", None)
+            if check is not None:
+                check()
+        except (ValueError, TypeError, KeyError) as error:
+            raise ConfigError(f"{source}: section {name!r}: {error}") from error
+        except RuntimeError:  # e.g. the PCL baseline absent from this build: checked when used
+            pass
+        sections[name] = params
+    return Config(sections)
+
+
+def load_config(path: str | Path | None) -> Config:
+    """The defaults with the YAML file ``path`` merged over them (just the defaults when None).
+
+    Raises :class:`ConfigError` (a ValueError) naming the file for a missing file, invalid YAML, an
+    unknown section or key, a value of the wrong type or one the parameters refuse.
+    """
+    if path is None:
+        return default_config()
+    path = Path(path)
+    return config_from_dict(_read_yaml(path), str(path))
+
+
+_register_defaults()

@@ -1,0 +1,181 @@
+"""Batch processing with Dask: a folder of three small scans and one corrupt file.
+
+Each good file's outputs equal the single-file API's; the corrupt file is reported with its name
+and problem while the others finish; the command exits 1. Local clusters are small (1-2 workers).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import terracube as tc
+from terracube.batch import FileRecord, expand_inputs, format_summary, run_batch
+from terracube.cli import app
+from terracube.config import default_config
+from terracube.io import read_cloud, write_classified, write_pcd
+from typer.testing import CliRunner
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def _scene(seed: int) -> np.ndarray:
+    """Ground, a canopy 3 m up and a wall; a different sample per seed."""
+    rng = np.random.default_rng(seed)
+    ground = np.c_[rng.uniform(0, 8, (3000, 2)), rng.normal(0, 0.02, 3000)]
+    canopy = np.c_[rng.uniform(2, 4, (400, 2)), rng.uniform(3.0, 3.3, 400)]
+    wall = np.c_[np.full(300, 7.0), rng.uniform(0, 8, 300), rng.uniform(0, 2.0, 300)]
+    return np.vstack([ground, canopy, wall]).astype(np.float32)
+
+
+@pytest.fixture
+def scan_folder(tmp_path):
+    """scan_a.npy, scan_b.pcd, scan_c.laz and broken.pcd (a binary PCD cut in half)."""
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    scans = {"scan_a": _scene(1), "scan_b": _scene(2), "scan_c": _scene(3).astype(np.float64)}
+    np.save(folder / "scan_a.npy", scans["scan_a"])
+    write_pcd(folder / "scan_b.pcd", {"xyz": scans["scan_b"]})
+    write_classified(folder / "scan_c.laz", scans["scan_c"], np.zeros(len(scans["scan_c"]), np.uint8))
+    scans["scan_c"] = read_cloud(folder / "scan_c.laz")["xyz"]  # as stored, at 0.1 mm
+    data = write_pcd(tmp_path / "whole.pcd", {"xyz": _scene(4)}).read_bytes()
+    (folder / "broken.pcd").write_bytes(data[: len(data) // 2])
+    (folder / "notes.md").write_text("not a scan")  # ignored: not a point-cloud suffix
+    return folder, scans
+
+
+def _check_dem_outputs(out: Path, scans: dict[str, np.ndarray]) -> None:
+    for name, points in scans.items():
+        saved = tc.ElevationMap.load(out / f"{name}_dem.npz")
+        expected, _ = tc.dem_without_overhangs(points, 0.5, 2, 0.25)
+        for layer in ("count", "max", "clearance"):
+            np.testing.assert_array_equal(saved[layer], expected[layer], err_msg=f"{name} {layer}")
+
+
+def test_run_batch_processes_the_good_files_and_reports_the_corrupt_one(tmp_path, scan_folder):
+    folder, scans = scan_folder
+    config = default_config().replace("elevation", resolution=0.25)
+    out = tmp_path / "out"
+    records = run_batch(
+        "dem",
+        [folder],
+        out,
+        config=config,
+        options={"png": False},
+        workers=2,
+        processes=False,
+        progress=False,
+    )
+    assert [Path(r.path).name for r in records] == ["broken.pcd", "scan_a.npy", "scan_b.pcd", "scan_c.laz"]
+    broken, *good = records
+    assert broken.status == "failed" and not broken.ok and broken.outputs == []
+    assert "broken.pcd: truncated binary PCD" in broken.error
+    for record, (name, points) in zip(good, scans.items(), strict=True):
+        assert record.ok, record.error
+        assert record.points == len(points)
+        assert [Path(p).name for p in record.outputs] == [f"{name}_dem.npz"]
+        assert record.seconds > 0
+    _check_dem_outputs(out, scans)
+
+
+def test_a_glob_and_files_are_expanded_in_order_without_duplicates(scan_folder):
+    folder, _ = scan_folder
+    found = expand_inputs([str(folder / "scan_*"), folder / "scan_a.npy", str(folder / "broken.pcd")])
+    assert [p.name for p in found] == ["scan_a.npy", "scan_b.pcd", "scan_c.laz", "broken.pcd"]
+    assert [p.name for p in expand_inputs([folder])] == [
+        "broken.pcd",
+        "scan_a.npy",
+        "scan_b.pcd",
+        "scan_c.laz",
+    ]
+    with pytest.raises(ValueError, match=r"nothing\.pcd: no such file or folder"):
+        expand_inputs([folder / "nothing.pcd"])
+    with pytest.raises(ValueError, match=r"\*\.las: the pattern matches no file"):
+        expand_inputs([str(folder / "*.las")])
+    empty = folder / "empty"
+    empty.mkdir()
+    with pytest.raises(ValueError, match="the folder holds no scan"):
+        expand_inputs([empty])
+
+
+def test_run_batch_refuses_an_unknown_stage_before_starting_a_cluster(tmp_path, scan_folder):
+    with pytest.raises(ValueError, match="unknown stage 'register'"):
+        run_batch("register", [scan_folder[0]], tmp_path)
+    with pytest.raises(ValueError, match="workers must be at least 1"):
+        run_batch("dem", [scan_folder[0]], tmp_path, workers=0)
+
+
+def test_the_summary_table_lists_every_file_and_the_failure_in_full():
+    records = [
+        FileRecord("a/scan_a.npy", "dem", "ok", 3700, 0.5, ["out/scan_a_dem.npz"]),
+        FileRecord(
+            "a/broken.pcd",
+            "dem",
+            "failed",
+            None,
+            0.01,
+            error="a/broken.pcd: truncated binary PCD " + "x" * 80,
+        ),
+    ]
+    lines = format_summary(records).splitlines()
+    assert lines[0].split() == ["file", "points", "status", "seconds", "outputs"]
+    assert lines[2].split() == ["scan_a.npy", "3,700", "ok", "0.50", "scan_a_dem.npz"]
+    assert lines[3].split()[:4] == ["broken.pcd", "-", "failed", "0.01"] and lines[3].endswith("...")
+    assert lines[4] == "failed: " + records[1].error
+    assert lines[5] == "1 of 2 files ok, 1 failed; 3,700 points; 0.51 s of work"
+
+
+def test_terracube_batch_collapse_as_a_user_runs_it(tmp_path, scan_folder):
+    folder, scans = scan_folder
+    out = tmp_path / "out"
+    result = CliRunner().invoke(
+        app,
+        ["batch", "collapse", str(folder), "--out", str(out), "--workers", "2", "--threads", "-f", "npz"],
+    )
+    assert result.exit_code == 1, result.output  # one file failed
+    assert "broken.pcd" in result.output and "failed" in result.output
+    assert "3 of 4 files ok, 1 failed" in result.output
+    for name, points in scans.items():
+        saved = np.load(out / f"{name}_classified.npz")
+        np.testing.assert_array_equal(saved["overhang"], tc.collapse_overhangs(points, 0.5, 2).overhang)
+        assert (out / f"{name}_overhangs.png").stat().st_size > 10_000
+
+
+def test_terracube_batch_with_only_good_files_exits_0_and_bad_arguments_exit_2(tmp_path, scan_folder):
+    folder, _ = scan_folder
+    runner = CliRunner()
+    good = [str(folder / "scan_a.npy"), str(folder / "scan_b.pcd")]
+    result = runner.invoke(app, ["batch", "classify", *good, "--out", str(tmp_path), "-w", "1", "--threads"])
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "scan_b_classes.npz").is_file() and (tmp_path / "scan_b_classes.ply").is_file()
+    result = runner.invoke(app, ["batch", "view", *good, "--out", str(tmp_path)])
+    assert result.exit_code == 2 and "batch runs collapse, dem, classify, fem" in result.output
+    result = runner.invoke(app, ["batch", "dem", str(folder / "nope*.pcd"), "--out", str(tmp_path)])
+    assert result.exit_code == 2 and "matches no file" in result.output
+
+
+def test_the_console_script_runs_a_batch_on_local_worker_processes(tmp_path, scan_folder):
+    """A real subprocess of ``python -m terracube``, with a LocalCluster of one worker process."""
+    folder, scans = scan_folder
+    config = tmp_path / "fine.yaml"
+    config.write_text("elevation:\n  resolution: 0.25\n")
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT / "python"), env.get("PYTHONPATH")]))
+    out = tmp_path / "out"
+    completed = subprocess.run(
+        [sys.executable, "-m", "terracube", "batch", "dem", str(folder), "--out", str(out), "-w", "1",
+         "-c", str(config), "--no-png"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )  # fmt: skip
+    assert completed.returncode == 1, completed.stderr
+    assert "3 of 4 files ok, 1 failed" in completed.stdout
+    assert "broken.pcd: truncated binary PCD" in completed.stdout
+    assert "1 of 4 files failed" in completed.stderr
+    _check_dem_outputs(out, scans)
