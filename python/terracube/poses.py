@@ -1,0 +1,180 @@
+"""Pose files: the KITTI odometry format and the TUM RGB-D format.
+
+KITTI: one pose per line, the 12 numbers of the 3x4 row-major matrix ``[R | t]`` (the last row
+``0 0 0 1`` is implied). TUM: ``timestamp tx ty tz qx qy qz qw`` per line, ``#`` starts a
+comment line. Poses are (K, 4, 4) float64 arrays of rigid sensor-to-world transforms. Malformed
+lines raise ``ValueError`` naming the file and the line number.
+"""
+
+from __future__ import annotations
+
+import math
+from os import PathLike
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "matrix_from_quaternion",
+    "quaternion_from_matrix",
+    "read_kitti_poses",
+    "read_tum_poses",
+    "write_kitti_poses",
+    "write_tum_poses",
+]
+
+#: Largest |R^T R - I| entry accepted from a file (files hold 6-7 significant digits).
+_ORTHONORMALITY_TOLERANCE = 1e-4
+
+
+def _numbers(path: Path, number: int, line: str, expected: int, what: str) -> list[float]:
+    fields = line.split()
+    if len(fields) != expected:
+        raise ValueError(f"{path}, line {number}: expected {expected} numbers ({what}), got {len(fields)}")
+    values = []
+    for field in fields:
+        try:
+            value = float(field)
+        except ValueError:
+            raise ValueError(f"{path}, line {number}: cannot read {field!r} as a number") from None
+        if not math.isfinite(value):
+            raise ValueError(f"{path}, line {number}: {field!r} is not a finite number")
+        values.append(value)
+    return values
+
+
+def _check_rotation(path: Path, number: int, rotation: np.ndarray) -> None:
+    deviation = np.abs(rotation.T @ rotation - np.eye(3)).max()
+    if deviation > _ORTHONORMALITY_TOLERANCE or np.linalg.det(rotation) < 0.0:
+        raise ValueError(
+            f"{path}, line {number}: the 3x3 block is not a rotation (|R^T R - I| = {deviation:.3g})"
+        )
+
+
+def read_kitti_poses(path: str | PathLike) -> np.ndarray:
+    """Reads a KITTI pose file into a (K, 4, 4) float64 array; blank lines are skipped.
+
+    Raises
+    ------
+    ValueError
+        A line without exactly 12 finite numbers, a 3x3 block that is not a rotation, or no pose.
+    """
+    path = Path(path)
+    poses = []
+    with path.open("r", encoding="utf-8") as file:
+        for number, line in enumerate(file, start=1):
+            if not line.strip():
+                continue
+            values = _numbers(path, number, line, 12, "a 3x4 row-major pose")
+            pose = np.eye(4)
+            pose[:3, :] = np.reshape(values, (3, 4))
+            _check_rotation(path, number, pose[:3, :3])
+            poses.append(pose)
+    if not poses:
+        raise ValueError(f"{path} holds no poses")
+    return np.stack(poses)
+
+
+def matrix_from_quaternion(quaternion) -> np.ndarray:
+    """The 3x3 rotation of a quaternion given as (qx, qy, qz, qw) (normalised here; not zero)."""
+    x, y, z, w = np.asarray(quaternion, dtype=np.float64)
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
+    if not norm > 0.0 or not math.isfinite(norm):
+        raise ValueError(f"quaternion {quaternion} has no direction (zero or non-finite norm)")
+    x, y, z, w = x / norm, y / norm, z / norm, w / norm
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def quaternion_from_matrix(rotation) -> np.ndarray:
+    """The unit quaternion (qx, qy, qz, qw) of a 3x3 rotation, with qw >= 0.
+
+    Shepperd's method: the largest of the four squared components is taken from the diagonal and
+    the others from the off-diagonal sums, which keeps the division well conditioned.
+    """
+    r = np.asarray(rotation, dtype=np.float64)
+    trace = r[0, 0] + r[1, 1] + r[2, 2]
+    candidates = [trace, r[0, 0], r[1, 1], r[2, 2]]
+    largest = int(np.argmax(candidates))
+    if largest == 0:
+        s = 2.0 * math.sqrt(1.0 + trace)
+        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, 0.25 * s]
+    elif largest == 1:
+        s = 2.0 * math.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
+        q = [0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s]
+    elif largest == 2:
+        s = 2.0 * math.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
+        q = [(r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s]
+    else:
+        s = 2.0 * math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
+        q = [(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s, (r[1, 0] - r[0, 1]) / s]
+    q = np.asarray(q)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0.0 else q
+
+
+def read_tum_poses(path: str | PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Reads a TUM trajectory: ((K,) timestamps [s], (K, 4, 4) poses). ``#`` lines and blank lines
+    are skipped; quaternions are normalised.
+
+    Raises
+    ------
+    ValueError
+        A line without exactly 8 finite numbers, a zero quaternion, or no pose.
+    """
+    path = Path(path)
+    stamps, poses = [], []
+    with path.open("r", encoding="utf-8") as file:
+        for number, line in enumerate(file, start=1):
+            stripped = line.strip()
+            if not stripped or stripped.startswith("#"):
+                continue
+            values = _numbers(path, number, stripped, 8, "timestamp tx ty tz qx qy qz qw")
+            pose = np.eye(4)
+            try:
+                pose[:3, :3] = matrix_from_quaternion(values[4:8])
+            except ValueError as error:
+                raise ValueError(f"{path}, line {number}: {error}") from None
+            pose[:3, 3] = values[1:4]
+            stamps.append(values[0])
+            poses.append(pose)
+    if not poses:
+        raise ValueError(f"{path} holds no poses")
+    return np.asarray(stamps), np.stack(poses)
+
+
+def _as_poses(poses) -> np.ndarray:
+    array = np.asarray(poses, dtype=np.float64)
+    if array.ndim != 3 or array.shape[1:] not in ((4, 4), (3, 4)):
+        raise ValueError(f"poses must be a (K, 4, 4) or (K, 3, 4) array, got shape {array.shape}")
+    if not np.isfinite(array).all():
+        raise ValueError("poses contain NaN or Inf")
+    return array
+
+
+def write_kitti_poses(path: str | PathLike, poses) -> None:
+    """Writes (K, 4, 4) or (K, 3, 4) poses as a KITTI pose file (shortest exact decimals)."""
+    array = _as_poses(poses)
+    with Path(path).open("w", encoding="utf-8") as file:
+        for pose in array:
+            file.write(" ".join(repr(float(v)) for v in pose[:3, :].ravel()) + "\n")
+
+
+def write_tum_poses(path: str | PathLike, timestamps, poses) -> None:
+    """Writes poses with their timestamps [s] as a TUM trajectory (qw >= 0)."""
+    array = _as_poses(poses)
+    stamps = np.asarray(timestamps, dtype=np.float64)
+    if stamps.shape != (array.shape[0],):
+        raise ValueError(f"need one timestamp per pose: {stamps.shape} timestamps for {array.shape[0]} poses")
+    if not np.isfinite(stamps).all():
+        raise ValueError("timestamps contain NaN or Inf")
+    with Path(path).open("w", encoding="utf-8") as file:
+        file.write("# timestamp tx ty tz qx qy qz qw\n")
+        for stamp, pose in zip(stamps, array, strict=True):
+            values = [stamp, *pose[:3, 3], *quaternion_from_matrix(pose[:3, :3])]
+            file.write(" ".join(repr(float(v)) for v in values) + "\n")
