@@ -1112,6 +1112,186 @@ def view(
 # ------------------------------------------------------------------------------------------ config, batch
 
 
+# ------------------------------------------------------------------------------------------ map
+
+
+def _mapper_params(cfg):
+    """MapperParams of the config: the mapper section plus the terrain and registration sections. The
+    terrain section's paper default (heights from the sensor) becomes the local ground for maps
+    chained over slopes, unless the file set a reference."""
+    import dataclasses
+
+    from .config import default_config
+
+    terrain = cfg.terrain
+    if terrain.reference == default_config().terrain.reference:
+        terrain = dataclasses.replace(terrain, reference="local_ground")
+    return dataclasses.replace(cfg.mapper, terrain=terrain, registration=cfg.registration)
+
+
+@app.command("map")
+def map_command(
+    scans: Path = typer.Argument(
+        ...,
+        help="Directory of scans (any readable format, sorted by name) or one glob pattern.",
+        show_default=False,
+    ),
+    poses: Path = typer.Option(
+        ..., "--poses", "-p", help="Odometry poses: KITTI (12 numbers a line) or TUM.", show_default=False
+    ),
+    pose_format: str = typer.Option(
+        "auto", "--pose-format", help="kitti, tum or auto (by the column count)."
+    ),
+    calib: Path | None = typer.Option(
+        None,
+        "--calib",
+        help="KITTI calib.txt: turns camera poses into Velodyne poses (default: calib.txt beside --poses "
+        "for KITTI poses, if present).",
+        show_default=False,
+    ),
+    output_dir: Path = _OUTPUT_DIR,
+    config: Path | None = _CONFIG,
+    keyframe_distance: float | None = typer.Option(
+        None,
+        "--keyframe-distance",
+        help=_help("Travel between local maps [m].", "mapper", "keyframe_distance"),
+        show_default=False,
+    ),
+    resolution: float | None = typer.Option(
+        None, "--resolution", help=_help("Cell size [m].", "mapper", "resolution"), show_default=False
+    ),
+    loop_closing: bool | None = typer.Option(
+        None,
+        "--loop-closing/--no-loop-closing",
+        help="Close loops with Ceres [config mapper.loop_closing].",
+        show_default=False,
+    ),
+    registration: bool | None = typer.Option(
+        None,
+        "--registration/--odometry-only",
+        help="Scan-match every step, or chain by odometry alone [config mapper.use_registration].",
+        show_default=False,
+    ),
+    limit: int | None = typer.Option(None, "--limit", help="Use the first N scans only.", show_default=False),
+    ground_truth: Path | None = typer.Option(
+        None,
+        "--ground-truth",
+        help="Poses to evaluate against (same format and calibration as --poses): prints ATE.",
+        show_default=False,
+    ),
+    png: bool = _PNG,
+) -> None:
+    """Build a global elevation map from a sequence of scans and odometry poses.
+
+    Every ~3 m a local classified map is registered to the previous one (class-weighted ICP, odometry
+    as the guess) and fused; revisits are registered and the pose graph optimised with Ceres. Writes
+    global_map.npz (layers count, min, max, mean, std_dev, discontinuity, class), global_max.png,
+    global_classes.png, and the keyframe trajectory as trajectory_kitti.txt and trajectory_tum.txt
+    (Velodyne frame when a calibration was used).
+    """
+    from tqdm import tqdm
+
+    from .mapping import (
+        Mapper,
+        detect_pose_format,
+        match_scans_to_poses,
+        read_kitti_calibration,
+        read_pose_file,
+    )
+    from .poses import write_kitti_poses, write_tum_poses
+
+    cfg = _config(
+        config,
+        mapper={
+            "keyframe_distance": keyframe_distance,
+            "resolution": resolution,
+            "loop_closing": loop_closing,
+            "use_registration": registration,
+        },
+    )
+    if scans.is_dir():
+        files = sorted(p for p in scans.iterdir() if p.is_file() and not p.name.startswith("."))
+    else:
+        from .batch import expand_inputs
+
+        try:
+            files = expand_inputs([str(scans)])
+        except (ValueError, FileNotFoundError) as error:
+            raise _fail(str(error)) from error
+    from .io import _READ_SUFFIXES
+
+    files = [f for f in files if f.suffix.lower() in _READ_SUFFIXES]
+    if limit is not None:
+        files = files[: max(limit, 0)]
+    if not files:
+        raise _fail(f"{scans}: no scans found")
+    if not poses.is_file():
+        raise _fail(f"{poses}: no such pose file")
+    with _exit_on_bad_input():
+        if pose_format == "auto":
+            pose_format = detect_pose_format(poses)
+        if calib is None and pose_format == "kitti" and (poses.parent / "calib.txt").is_file():
+            calib = poses.parent / "calib.txt"
+        calibration = read_kitti_calibration(calib) if calib is not None else None
+        stamps, odometry = read_pose_file(poses, pose_format, calibration)
+        indices = match_scans_to_poses(files, len(odometry))
+        mapper = Mapper(_mapper_params(cfg))
+    if calibration is not None:
+        typer.echo(f"calibration: {calib} (camera poses -> Velodyne)")
+    start = time.perf_counter()
+    for path, index in tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="mapping"):
+        points = _read_points(path)
+        with _exit_on_bad_input(str(path)):
+            mapper.add_scan(points, odometry[index])
+    seconds = time.perf_counter() - start
+    with _exit_on_bad_input("global map"):
+        dem = mapper.global_map()
+    output_dir.mkdir(parents=True, exist_ok=True)
+    written = [dem.save(output_dir / "global_map.npz")]
+    keyframes = mapper.keyframe_poses()
+    key_scans = [indices[k] for k in mapper.keyframe_scan_indices()]
+    write_kitti_poses(output_dir / "trajectory_kitti.txt", keyframes)
+    write_tum_poses(output_dir / "trajectory_tum.txt", stamps[key_scans], keyframes)
+    written += [output_dir / "trajectory_kitti.txt", output_dir / "trajectory_tum.txt"]
+    if png and dem.geometry.num_cells > 0:
+        from .viz import plot_layer, plot_terrain_classes
+
+        written.append(plot_layer(dem, "max", output_dir / "global_max.png", title="highest elevation [m]"))
+        classes = np.nan_to_num(dem["class"], nan=0).astype(np.uint8)
+        written.append(
+            plot_terrain_classes(dem, classes, output_dir / "global_classes.png", title="terrain classes")
+        )
+    t = mapper.timings
+    typer.echo(
+        f"{len(files)} scans, {len(mapper)} keyframes, {len(mapper.loop_closures)} loop closures "
+        f"in {seconds:.2f} s ({len(files) / seconds:.1f} scans/s incl. reading)"
+    )
+    typer.echo(
+        f"time [ms]: map building {t.map_building_ms:.0f}, classification {t.classification_ms:.0f}, "
+        f"registration {t.registration_ms:.0f}, fusion {t.fusion_ms:.0f}, "
+        f"loop closing {t.loop_closing_ms:.0f}"
+    )
+    g = dem.geometry
+    typer.echo(
+        f"global map: {int(g.size[0])} x {int(g.size[1])} cells at {g.resolution} m, "
+        f"{int(np.isfinite(dem['max']).sum())} with data, "
+        f"{mapper.global_memory_bytes / 2**20:.1f} MiB of tiles"
+    )
+    if ground_truth is not None:
+        from .evaluation import absolute_trajectory_error
+
+        with _exit_on_bad_input(str(ground_truth)):
+            _, truth = read_pose_file(ground_truth, pose_format, calibration)
+            key_truth = truth[key_scans]
+            estimate = absolute_trajectory_error(keyframes, key_truth, "first_pose").translation
+            odom = absolute_trajectory_error(mapper.keyframe_odometry(), key_truth, "first_pose").translation
+        typer.echo(
+            f"ATE (first pose aligned): mapper RMSE {estimate.rmse:.3f} m, odometry RMSE {odom.rmse:.3f} m"
+        )
+    for path in written:
+        typer.echo(f"written: {path}")
+
+
 @app.command("config")
 def config_command(
     output: Path | None = typer.Option(

@@ -191,6 +191,15 @@ def _register_defaults() -> None:
         "Class-weighted ICP between classified maps (eq. (4) weights, Table 2).",
     )
     register_section("pcl_icp", PclIcpParams, "PCL's point-to-point ICP baseline (register --method pcl).")
+    from .mapping import MapperParams
+
+    register_section(
+        "mapper",
+        MapperParams,
+        "Mapper (terracube map): local maps every ~3 m chained by weighted ICP, loops closed with Ceres.",
+        excluded=("terrain", "registration"),
+        excluded_reason="the mapper takes them from the 'terrain' and 'registration' sections",
+    )
 
 
 # ------------------------------------------------------------------------------------------ the config

@@ -231,3 +231,81 @@ def run_mapper(
     for points, pose in pairs:
         mapper.add_scan(points, pose)
     return mapper
+
+
+# ------------------------------------------------------------------------------------------ sequences
+
+
+def read_kitti_calibration(path) -> np.ndarray:
+    """The 4x4 ``Tr`` (Velodyne -> left camera) of a KITTI ``calib.txt``."""
+    from pathlib import Path
+
+    path = Path(path)
+    for number, line in enumerate(path.read_text().splitlines(), start=1):
+        key, _, values = line.partition(":")
+        if key.strip() == "Tr":
+            try:
+                numbers = np.array(values.split(), dtype=np.float64)
+            except ValueError:
+                raise ValueError(f"{path}, line {number}: Tr must be 12 numbers") from None
+            if numbers.shape != (12,) or not np.isfinite(numbers).all():
+                raise ValueError(f"{path}, line {number}: Tr must be 12 finite numbers, got {numbers.size}")
+            return np.vstack([numbers.reshape(3, 4), [0.0, 0.0, 0.0, 1.0]])
+    raise ValueError(f"{path}: no 'Tr:' line (the Velodyne-to-camera calibration)")
+
+
+def detect_pose_format(path) -> str:
+    """``kitti`` or ``tum`` by the count of numbers on the first pose line (12 or 8)."""
+    from pathlib import Path
+
+    path = Path(path)
+    with path.open("r", encoding="utf-8") as file:
+        first = next((ln for ln in file if ln.strip() and not ln.lstrip().startswith("#")), "")
+    pose_format = {12: "kitti", 8: "tum"}.get(len(first.split()))
+    if pose_format is None:
+        raise ValueError(
+            f"{path}: cannot tell the pose format from its first line ({len(first.split())} numbers; "
+            "KITTI has 12, TUM 8): pass --pose-format"
+        )
+    return pose_format
+
+
+def read_pose_file(path, pose_format: str = "auto", calibration=None) -> tuple[np.ndarray, np.ndarray]:
+    """Reads odometry poses: ((K,) timestamps or indices, (K, 4, 4) world <- sensor).
+
+    ``pose_format`` is ``kitti`` (12 numbers per line), ``tum`` (timestamp tx ty tz qx qy qz qw) or
+    ``auto`` (by the count of numbers on the first pose line). KITTI poses are the left camera's: with
+    ``calibration`` (the 4x4 ``Tr`` of :func:`read_kitti_calibration`) they become the Velodyne's,
+    ``inv(Tr) @ P @ Tr``.
+    """
+    from pathlib import Path
+
+    from .poses import read_kitti_poses, read_tum_poses
+
+    path = Path(path)
+    if pose_format == "auto":
+        pose_format = detect_pose_format(path)
+    if pose_format == "kitti":
+        poses = read_kitti_poses(path)
+        stamps = np.arange(len(poses), dtype=np.float64)
+    elif pose_format == "tum":
+        stamps, poses = read_tum_poses(path)
+    else:
+        raise ValueError(f"pose format must be kitti, tum or auto, got {pose_format!r}")
+    if calibration is not None:
+        if pose_format != "kitti":
+            raise ValueError(f"{path}: a KITTI calibration applies to KITTI (camera) poses only")
+        tr = np.asarray(calibration, dtype=np.float64)
+        poses = np.linalg.inv(tr) @ poses @ tr
+    return stamps, poses
+
+
+def match_scans_to_poses(scans: list, num_poses: int) -> list[int]:
+    """Pose index of each scan file: its number when every stem is numeric (KITTI's 000123.bin),
+    otherwise its position in sorted order. Raises ValueError naming a scan without a pose."""
+    stems = [s.stem for s in scans]
+    indices = [int(s) for s in stems] if all(s.isdigit() for s in stems) else list(range(len(scans)))
+    for scan, index in zip(scans, indices, strict=True):
+        if index >= num_poses:
+            raise ValueError(f"{scan}: no pose for it (pose index {index}, the pose file has {num_poses})")
+    return indices

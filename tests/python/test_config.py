@@ -21,6 +21,7 @@ from terracube.config import (
     load_config,
     register_section,
 )
+from terracube.mapping import MapperParams
 from typer.testing import CliRunner
 
 EXPECTED_SECTIONS = {
@@ -31,6 +32,7 @@ EXPECTED_SECTIONS = {
     "fuzzy": tc.FuzzyParams,
     "registration": tc.RegistrationParams,
     "pcl_icp": tc.PclIcpParams,
+    "mapper": MapperParams,
 }
 
 
@@ -56,6 +58,8 @@ def test_the_dumped_yaml_holds_every_field_but_the_frame_ones_and_a_comment_per_
         fields = {f.name for f in dataclasses.fields(params_type)}
         if name in ("collapse", "elevation"):  # transform and crop come from the frame section
             fields -= {"transform", "crop"}
+        if name == "mapper":  # from the terrain and registration sections
+            fields -= {"terrain", "registration"}
         assert set(data[name]) == fields, name
         assert f"\n# {name}: " in text
     # the comments are the dataclasses' own attribute docs
@@ -148,8 +152,8 @@ def test_a_missing_file_is_a_config_error_naming_it(tmp_path):
 
 def test_one_more_section_registers_with_one_line(tmp_path):
     @dataclass
-    class MapperParams:
-        """Test stand-in for the mapper's parameters.
+    class PlannerParams:
+        """Test stand-in for a later stage's parameters.
 
         Attributes
         ----------
@@ -163,17 +167,17 @@ def test_one_more_section_registers_with_one_line(tmp_path):
         loop_closing: bool = True
 
     try:
-        register_section("mapper", MapperParams, "Mapper: chaining classified maps.")
+        register_section("planner", PlannerParams, "Planner: chaining classified maps.")
         text = dump_config()
-        assert "# mapper: Mapper: chaining classified maps.\nmapper:\n" in text
+        assert "# planner: Planner: chaining classified maps.\nplanner:\n" in text
         assert "  # A new keyframe every this many metres.\n  keyframe_distance: 2.0\n" in text
-        config = load_config(_write(tmp_path, "mapper:\n  keyframe_distance: 5\n"))
-        assert config.mapper == MapperParams(keyframe_distance=5.0)
+        config = load_config(_write(tmp_path, "planner:\n  keyframe_distance: 5\n"))
+        assert config.planner == PlannerParams(keyframe_distance=5.0)
         assert load_config(_write(tmp_path, text, "all.yaml")) == default_config()
         with pytest.raises(ValueError, match="already registered"):
-            register_section("mapper", MapperParams, "again")
+            register_section("planner", PlannerParams, "again")
     finally:
-        SECTIONS.pop("mapper", None)
+        SECTIONS.pop("planner", None)
 
 
 def test_replace_ignores_none_and_the_config_is_immutable_and_picklable():
