@@ -121,6 +121,19 @@ TEST(AbsoluteTrajectoryError, RigidAlignmentRecoversAKnownTransform) {
   EXPECT_LT(ate.rotation.max, 1e-6);
 }
 
+TEST(RigidAlignment, OnePointIsATranslationAndMismatchedSetsThrow) {
+  const Eigen::Matrix4d one = rigid_alignment({Eigen::Vector3d(1, 2, 3)}, {Eigen::Vector3d(4, 4, 4)});
+  EXPECT_TRUE(Eigen::Matrix3d(one.block(0, 0, 3, 3)).isIdentity(0.0));
+  EXPECT_EQ(Eigen::Vector3d(one.topRightCorner<3, 1>()), Eigen::Vector3d(3, 2, 1));
+  EXPECT_THROW(rigid_alignment({}, {}), std::invalid_argument);
+  EXPECT_THROW(rigid_alignment({Eigen::Vector3d::Zero()}, {}), std::invalid_argument);
+  // A single pose under kRigid: moved onto the truth by translation only.
+  const AbsoluteTrajectoryError ate =
+      absolute_trajectory_error({pose(1, 2, 3, 30)}, {pose(4, 4, 4, 0)}, TrajectoryAlignment::kRigid);
+  EXPECT_NEAR(ate.translation.max, 0.0, 1e-12);
+  EXPECT_NEAR(ate.rotation.max, 30.0, 1e-9);
+}
+
 TEST(RigidAlignment, IsALeastSquaresMinimumOnNoisyPoints) {
   // Independent check: the cost rises under every small rotation or translation of the result.
   std::mt19937 rng(5);
