@@ -1,6 +1,6 @@
 """terracube: navigable 2.5D elevation maps from ground-robot 3D LiDAR scans."""
 
-from . import io
+from . import config, evaluation, io, pose_graph, poses
 from .collapse import (
     CollapseParams,
     CollapseResult,
@@ -23,7 +23,10 @@ from .elevation import (
     classify_terrain,
     dem_without_overhangs,
 )
+from .evaluation import absolute_trajectory_error, compare_region_layouts, relative_pose_error
 from .fuzzy import FuzzyElevationMap, FuzzyParams, fit_fuzzy_elevation_map
+from .mapping import LoopClosure, Mapper, MapperParams, ScanReport, run_mapper
+from .pose_graph import PoseGraphEdge, PoseGraphParams, optimize_pose_graph
 from .registration import (
     DEFAULT_CLASS_WEIGHTS,
     PclIcpParams,
@@ -41,7 +44,22 @@ from .registration import (
 __version__ = "0.1.0"
 
 __all__ = [
+    "config",
+    "evaluation",
     "io",
+    "pose_graph",
+    "poses",
+    "absolute_trajectory_error",
+    "compare_region_layouts",
+    "relative_pose_error",
+    "LoopClosure",
+    "Mapper",
+    "MapperParams",
+    "ScanReport",
+    "run_mapper",
+    "PoseGraphEdge",
+    "PoseGraphParams",
+    "optimize_pose_graph",
     "CollapseParams",
     "DEFAULT_CLASS_WEIGHTS",
     "PclIcpParams",
