@@ -1,6 +1,6 @@
 """terracube: navigable 2.5D elevation maps from ground-robot 3D LiDAR scans."""
 
-from . import config, evaluation, io, pose_graph, poses
+from . import config, evaluation, io, pose_graph, poses, simulation
 from .collapse import (
     CollapseParams,
     CollapseResult,
@@ -49,6 +49,7 @@ __all__ = [
     "io",
     "pose_graph",
     "poses",
+    "simulation",
     "absolute_trajectory_error",
     "compare_region_layouts",
     "relative_pose_error",
