@@ -7,6 +7,7 @@
 #include <array>
 #include <chrono>
 #include <cmath>
+#include <deque>
 #include <limits>
 #include <optional>
 #include <stdexcept>
@@ -52,6 +53,8 @@ void check_params(const MapperParams& p) {
     throw std::invalid_argument("MapperParams.loop_min_inlier_ratio must lie in [0, 1]");
   }
   check_positive(p.loop_search_window_m, "loop_search_window_m");
+  check_positive(p.overlap_block_m, "overlap_block_m");
+  if (p.max_scans_per_local_map < 1) throw std::invalid_argument("MapperParams.max_scans_per_local_map must be >= 1");
   if (!(p.loop_yaw_search_rad >= 0.0) || !std::isfinite(p.loop_yaw_search_rad)) {
     throw std::invalid_argument("MapperParams.loop_yaw_search_rad must be finite and >= 0");
   }
@@ -124,9 +127,15 @@ struct Keyframe {
   Eigen::Matrix4d odometry_level = Eigen::Matrix4d::Identity();  // odometry world <- L
   Eigen::Matrix4d estimate = Eigen::Matrix4d::Identity();        // estimated world <- L
   double path_m = 0.0;                                           // odometry path length up to it
+  std::size_t num_points = 0, num_scans = 0;                     // that built the local map
   ElevationMap map;                                              // local classified map
   ClassifiedPoints points;                                       // its cells as ICP points
   std::vector<CellSample> cells;
+};
+
+struct BufferedScan {
+  std::vector<float> xyz;  // x, y, z, x, y, z, ... in the sensor frame
+  Eigen::Matrix4d odometry;
 };
 
 struct Edge {
@@ -258,6 +267,8 @@ struct Mapper::Impl {
   double path_m = 0.0;
   Eigen::Matrix4d last_odometry = Eigen::Matrix4d::Identity();
   bool have_last = false;
+  /// Scans since the previous keyframe (the newest last), points beyond min_range in the sensor frame.
+  std::deque<BufferedScan> pending;
 
   explicit Impl(const MapperParams& p) : params(p), global(p.resolution_m) {}
 
@@ -265,8 +276,9 @@ struct Mapper::Impl {
   ScanReport add(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry);
   template <typename Scalar>
   ScanReport add_checked(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry);
+  void build_local_map(Keyframe& keyframe);
   template <typename Scalar>
-  void build_local_map(const PointsView<Scalar>& points, Keyframe& keyframe);
+  void buffer_scan(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry);
   void fuse(const Keyframe& keyframe);
   void rebuild();
   std::size_t close_loops(std::size_t k);
@@ -274,8 +286,7 @@ struct Mapper::Impl {
   void optimize();
 };
 
-template <typename Scalar>
-void Mapper::Impl::build_local_map(const PointsView<Scalar>& points, Keyframe& keyframe) {
+void Mapper::Impl::build_local_map(Keyframe& keyframe) {
   auto start = Clock::now();
   ElevationParams elevation;
   elevation.resolution_m = params.resolution_m;
@@ -283,21 +294,25 @@ void Mapper::Impl::build_local_map(const PointsView<Scalar>& points, Keyframe& k
   elevation.size = CellIndex(cells, cells);
   elevation.origin_m = Eigen::Vector2d::Constant(-0.5 * cells * params.resolution_m);
   elevation.discontinuity_m = params.discontinuity_m;
-  elevation.transform = keyframe.level_sensor;
-  std::vector<std::uint8_t> use;
-  if (params.min_range_m > 0.0) {
-    use.resize(points.size);
-    const double min_squared = params.min_range_m * params.min_range_m;
-    for (std::size_t i = 0; i < points.size; ++i) {
-      const Eigen::Vector3d p = points.point(i);
-      if (!p.allFinite()) {
-        throw std::invalid_argument("scan point " + std::to_string(i) + " is NaN or Inf (of " +
-                                    std::to_string(points.size) + " points)");
-      }
-      use[i] = p.squaredNorm() >= min_squared;
+  // The keyframe's own scan and the buffered scans since the previous keyframe, moved into the
+  // keyframe's leveled frame L by odometry (locally accurate): a denser local map than one scan.
+  const Eigen::Matrix4d level_world = inverse_rigid(keyframe.odometry_level);
+  std::size_t total = 0;
+  for (const BufferedScan& scan : pending) total += scan.xyz.size() / 3;
+  std::vector<float> leveled;
+  leveled.reserve(3 * total);
+  for (const BufferedScan& scan : pending) {
+    const Eigen::Matrix4d t = level_world * scan.odometry;
+    const Eigen::Matrix3f r = t.topLeftCorner<3, 3>().cast<float>();
+    const Eigen::Vector3f o = t.topRightCorner<3, 1>().cast<float>();
+    for (std::size_t i = 0; i + 2 < scan.xyz.size(); i += 3) {
+      const Eigen::Vector3f q = r * Eigen::Vector3f(scan.xyz[i], scan.xyz[i + 1], scan.xyz[i + 2]) + o;
+      leveled.insert(leveled.end(), {q.x(), q.y(), q.z()});
     }
   }
-  keyframe.map = build_elevation_map(points, elevation, use.empty() ? nullptr : &use);
+  keyframe.num_points = leveled.size() / 3;
+  keyframe.num_scans = pending.size();
+  keyframe.map = build_elevation_map(PointsView<float>(leveled.data(), leveled.size() / 3), elevation);
   timings.map_building_ms += ms_since(start);
 
   start = Clock::now();
@@ -367,8 +382,30 @@ ScanReport Mapper::Impl::add(const PointsView<Scalar>& points, const Eigen::Matr
 }
 
 template <typename Scalar>
+void Mapper::Impl::buffer_scan(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry) {
+  BufferedScan scan;
+  scan.odometry = odometry;
+  scan.xyz.reserve(3 * points.size);
+  const double min_squared = params.min_range_m * params.min_range_m;
+  for (std::size_t i = 0; i < points.size; ++i) {
+    const Eigen::Vector3d p = points.point(i);
+    if (!p.allFinite()) {
+      throw std::invalid_argument("scan point " + std::to_string(i) + " is NaN or Inf (of " +
+                                  std::to_string(points.size) + " points)");
+    }
+    if (p.squaredNorm() < min_squared) continue;
+    scan.xyz.insert(scan.xyz.end(), {static_cast<float>(p.x()), static_cast<float>(p.y()), static_cast<float>(p.z())});
+  }
+  while (!pending.empty() && pending.size() >= static_cast<std::size_t>(params.max_scans_per_local_map)) {
+    pending.pop_front();
+  }
+  pending.push_back(std::move(scan));
+}
+
+template <typename Scalar>
 ScanReport Mapper::Impl::add_checked(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry) {
   ScanReport report;
+  buffer_scan(points, odometry);  // throws on NaN/Inf before anything changes
   const std::size_t scan_index = scans++;
   timings.scans = scans;
   if (have_last) {
@@ -390,7 +427,8 @@ ScanReport Mapper::Impl::add_checked(const PointsView<Scalar>& points, const Eig
   keyframe.odometry = odometry;
   keyframe.path_m = path_m;
   split_leveling(odometry, keyframe.odometry_level, keyframe.level_sensor);
-  build_local_map(points, keyframe);
+  build_local_map(keyframe);
+  pending.clear();
 
   report.keyframe = true;
   report.index = static_cast<std::ptrdiff_t>(keyframes.size());
@@ -456,15 +494,24 @@ std::size_t Mapper::Impl::close_loops(std::size_t k) {
     if (tried >= params.loop_max_candidates) break;
     const Keyframe& other = keyframes[j];
     const Eigen::Matrix4d guess = inverse_rigid(other.estimate) * current.estimate;  // L_j <- L_k
-    // Overlap: the share of the current map's cells that land on cells with data in the other map.
+    // Overlap: the share of the current map's cells that land in blocks of overlap_block_m with data
+    // in the other map (blocks, not cells: sparse scans sample different cells of the same ground).
     const MapGeometry& g = other.map.geometry();
     const Layer& other_count = other.map.get("count");
+    const int per_block = std::max(1, static_cast<int>(std::lround(params.overlap_block_m / g.resolution_m)));
+    const int bx = (g.size.x() + per_block - 1) / per_block, by = (g.size.y() + per_block - 1) / per_block;
+    std::vector<std::uint8_t> blocks(static_cast<std::size_t>(bx) * by, 0);
+    for (int i = 0; i < g.size.x(); ++i) {
+      for (int j = 0; j < g.size.y(); ++j) {
+        if (other_count(i, j) > 0.0f) blocks[static_cast<std::size_t>(i / per_block) * by + j / per_block] = 1;
+      }
+    }
     std::size_t hits = 0;
     for (const CellSample& cell : current.cells) {
       const Eigen::Vector3d p =
           guess.topLeftCorner<3, 3>() * Eigen::Vector3d(cell.x, cell.y, cell.z_mean) + guess.topRightCorner<3, 1>();
       const auto index = g.index_of(p.head<2>());
-      if (index && other_count(index->x(), index->y()) > 0.0f) ++hits;
+      if (index && blocks[static_cast<std::size_t>(index->x() / per_block) * by + index->y() / per_block]) ++hits;
     }
     const double overlap = current.cells.empty() ? 0.0 : static_cast<double>(hits) / current.cells.size();
     if (overlap < params.loop_min_overlap) continue;

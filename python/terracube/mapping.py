@@ -41,6 +41,9 @@ class MapperParams:
         Cell size of the local and global maps [m].
     local_map_size : float
         Side of the square local map centred on the sensor [m].
+    max_scans_per_local_map : int
+        A local map holds the keyframe's scan and the scans since the previous keyframe (at most this
+        many, the newest), moved into the keyframe's leveled frame by odometry; 1: one scan alone.
     min_range : float
         Points nearer the sensor take no part (the robot itself) [m].
     discontinuity : float
@@ -65,7 +68,9 @@ class MapperParams:
     loop_min_travel : float
         ... and at least this much path before it [m].
     loop_min_overlap : float
-        Share of the new local map's cells that must land on cells of the candidate's map.
+        Share of the new local map's cells that must land on blocks with data of the candidate's map.
+    overlap_block : float
+        Block size for the overlap [m] (sparse scans sample different cells of one surface).
     loop_max_candidates : int
         Candidates registered per keyframe, nearest first.
     loop_search_window, loop_yaw_search, loop_yaw_hypotheses : float, float, int
@@ -85,6 +90,7 @@ class MapperParams:
     keyframe_rotation: float = 0.5
     resolution: float = 0.2
     local_map_size: float = 40.0
+    max_scans_per_local_map: int = 1
     min_range: float = 0.5
     discontinuity: float = 1.0
     terrain: TerrainParams = field(default_factory=lambda: TerrainParams(reference="local_ground"))
@@ -100,6 +106,7 @@ class MapperParams:
     loop_search_radius: float = 10.0
     loop_min_travel: float = 30.0
     loop_min_overlap: float = 0.3
+    overlap_block: float = 1.0
     loop_max_candidates: int = 2
     loop_search_window: float = 6.0
     loop_yaw_search: float = 0.15
@@ -114,6 +121,7 @@ class MapperParams:
         params.keyframe_rotation_rad = float(self.keyframe_rotation)
         params.resolution_m = float(self.resolution)
         params.local_map_size_m = float(self.local_map_size)
+        params.max_scans_per_local_map = int(self.max_scans_per_local_map)
         params.min_range_m = float(self.min_range)
         params.discontinuity_m = float(self.discontinuity)
         params.terrain = self.terrain.to_core()
@@ -129,6 +137,7 @@ class MapperParams:
         params.loop_search_radius_m = float(self.loop_search_radius)
         params.loop_min_travel_m = float(self.loop_min_travel)
         params.loop_min_overlap = float(self.loop_min_overlap)
+        params.overlap_block_m = float(self.overlap_block)
         params.loop_max_candidates = int(self.loop_max_candidates)
         params.loop_search_window_m = float(self.loop_search_window)
         params.loop_yaw_search_rad = float(self.loop_yaw_search)

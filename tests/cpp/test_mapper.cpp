@@ -216,6 +216,49 @@ TEST(Mapper, OneScanOnAGridAlignedPoseEqualsTheElevationMapOfTheWorldPoints) {
   EXPECT_GT(cells, 5000u);
 }
 
+TEST(Mapper, AccumulatedLocalMapsHoldTheScansSinceThePreviousKeyframe) {
+  const auto world = world_cloud(5);
+  MapperParams params;
+  params.min_range_m = 0.0;
+  params.keyframe_distance_m = 2.0;
+  params.max_scans_per_local_map = 2;
+  params.use_registration = false;
+  params.loop_closing = false;
+  Mapper mapper(params);
+  std::vector<std::vector<Eigen::Vector3f>> scans;
+  for (int k = 0; k < 3; ++k) {  // scans at x = 0, 1, 2: keyframes at 0 (alone) and 2 (with scan 1)
+    const Eigen::Matrix4d pose = pose_xyyaw(1.0 * k, 0.0, 1.8, 0.0);
+    scans.push_back(scan_of(world, pose, 8.0));
+    mapper.add_scan(PointsView<float>(scans.back().data()->data(), scans.back().size()), pose);
+  }
+  ASSERT_EQ(mapper.num_keyframes(), 2u);
+  // Reference: scans 1 and 2 moved into keyframe 1's leveled frame (the sensor at x = 2), binned.
+  std::vector<Eigen::Vector3d> points;
+  for (int k = 1; k < 3; ++k) {
+    for (const auto& p : scans[k]) points.push_back(p.cast<double>() + Eigen::Vector3d(k - 2.0, 0, 0));
+  }
+  const ElevationMap& local = mapper.local_map(1);
+  ElevationParams elevation;
+  elevation.resolution_m = params.resolution_m;
+  elevation.origin_m = local.geometry().origin_m;
+  elevation.size = local.geometry().size;
+  const ElevationMap reference = build_elevation_map(PointsView<double>(points), elevation);
+  EXPECT_EQ(local.get("count"), reference.get("count"));
+  EXPECT_GT(local.get("count").sum(), static_cast<float>(scans[2].size()));
+  for (int i = 0; i < local.geometry().size.x(); ++i) {
+    for (int j = 0; j < local.geometry().size.y(); ++j) {
+      if (reference.get("count")(i, j) > 0) EXPECT_NEAR(local.get("max")(i, j), reference.get("max")(i, j), 1e-5);
+    }
+  }
+  // max_scans_per_local_map = 1: keyframe 1 holds its own scan only.
+  params.max_scans_per_local_map = 1;
+  Mapper single(params);
+  for (int k = 0; k < 3; ++k) {
+    single.add_scan(PointsView<float>(scans[k].data()->data(), scans[k].size()), pose_xyyaw(1.0 * k, 0.0, 1.8, 0.0));
+  }
+  EXPECT_EQ(single.local_map(1).get("count").sum(), static_cast<float>(scans[2].size()));
+}
+
 TEST(Mapper, KeyframesEveryKeyframeDistanceOfTravel) {
   MapperParams params;
   params.use_registration = false;
@@ -320,6 +363,9 @@ TEST(Mapper, BadInputIsRejected) {
   EXPECT_THROW(Mapper{bad}, std::invalid_argument);
   bad = MapperParams{};
   bad.local_map_size_m = 1e6;
+  EXPECT_THROW(Mapper{bad}, std::invalid_argument);
+  bad = MapperParams{};
+  bad.max_scans_per_local_map = 0;
   EXPECT_THROW(Mapper{bad}, std::invalid_argument);
   bad = MapperParams{};
   bad.loop_min_overlap = 1.5;

@@ -32,6 +32,12 @@ struct MapperParams {
   /// Local maps: cell size [m] (also the global map's) and the square extent centred on the sensor [m].
   double resolution_m = 0.2;
   double local_map_size_m = 40.0;
+  /// A local map is built from the keyframe's scan and the scans since the previous keyframe (at most
+  /// this many scans in all, the newest), moved into the keyframe's leveled frame by odometry. Denser
+  /// maps from sparse scanners, but odometry's drift within a keyframe distorts them (measured on the
+  /// test world with 0.23 deg/m of yaw drift: chaining error 0.02 m with 1 scan, 0.5 m with 3).
+  /// 1 (default): the keyframe's scan alone, as in the paper.
+  int max_scans_per_local_map = 1;
   /// Points closer to the sensor than this take no part (the robot itself) [m]. >= 0.
   double min_range_m = 0.5;
   /// Discontinuity threshold of the elevations within a cell [m] (the paper: 1 m).
@@ -67,6 +73,8 @@ struct MapperParams {
   double loop_search_radius_m = 10.0;
   double loop_min_travel_m = 30.0;
   double loop_min_overlap = 0.3;
+  /// Overlap is counted on blocks of this size [m] (sparse scans sample different cells of one surface).
+  double overlap_block_m = 1.0;
   /// At most this many candidates (the nearest first) are registered per keyframe.
   int loop_max_candidates = 2;
   /// Loop registrations start from drifted estimates: a correlative search over yaw offsets
