@@ -1,0 +1,211 @@
+"""Benchmark the Mapper: scans per second for the whole pipeline, the time split, and accuracy.
+
+What is measured
+----------------
+- KITTI-size scans: KITTI odometry seq 00 frames 0-5 (~124k points each, real) with the ground
+  truth (T_wv = inv(Tr) P Tr) as odometry, fed to a new Mapper ``--repeat`` times. Two settings:
+  every scan a keyframe (``keyframe_distance = 0.01`` m: the whole pipeline -- leveling, map layers,
+  classes, weighted ICP, fusion -- on every scan, the worst case) and the paper's ~3 m keyframes.
+  Scans per second = scans / wall time of the add_scan calls (scans already in memory).
+  Baseline side by side: PCL's ICP (``pcl::IterativeClosestPoint``, SVD) on the same consecutive
+  local-map point sets, odometry as the guess, against the mapper's own registration step.
+- A synthetic loop (``terracube.simulation``): an HDL-64-like rotating LiDAR (64 channels,
+  2048 steps, ~KITTI-size scans) driving one lap of the loop scene (tunnel, bridge, ramp, trees,
+  buildings), a scan every metre, odometry with drift (yaw bias and random walk, 1 % scale error).
+  Scans are cast before timing. Three runs: odometry chaining only, chaining by weighted ICP, and
+  chaining plus loop closing (Ceres). Reported: scans per second, the time split, and the keyframe
+  ATE (first pose aligned) and RPE against the ground truth.
+
+Targets (reported, not asserted): at least 20 scans per second on one core for KITTI-size scans.
+
+Reproduce
+---------
+    python bench/bench_mapper.py              # full run, about two minutes
+    python bench/bench_mapper.py --quick      # fewer repeats, a shorter synthetic run
+    python bench/bench_mapper.py --markdown   # also print Markdown tables
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+import terracube as tc
+from _common import (
+    load_xyzi_bin,
+    markdown_row,
+    markdown_rule,
+    parse_benchmark_args,
+    print_header,
+    print_target,
+    require,
+)
+from terracube import simulation as sim
+from terracube.mapping import Mapper, MapperParams
+
+
+def kitti_world_velo(data_dir) -> np.ndarray:
+    calib = {}
+    for line in (data_dir / "kitti_seq00" / "calib.txt").read_text().splitlines():
+        key, _, values = line.partition(":")
+        calib[key.strip()] = np.array(values.split(), dtype=float)
+    tr = np.vstack([calib["Tr"].reshape(3, 4), [0, 0, 0, 1]])
+    poses = np.loadtxt(data_dir / "kitti_seq00" / "poses.txt").reshape(-1, 3, 4)
+    cam = np.concatenate([poses, np.tile([[[0, 0, 0, 1.0]]], (len(poses), 1, 1))], axis=1)
+    return np.linalg.inv(tr) @ cam @ tr
+
+
+def run(scans, poses, params: MapperParams) -> tuple[Mapper, float]:
+    """Feeds every scan; returns the mapper and the wall time of the add_scan calls [s]."""
+    mapper = Mapper(params)
+    start = time.perf_counter()
+    for points, pose in zip(scans, poses, strict=True):
+        mapper.add_scan(points, pose)
+    return mapper, time.perf_counter() - start
+
+
+def split(mapper: Mapper) -> str:
+    t = mapper.timings
+    k = max(t.keyframes, 1)
+    return (
+        f"per keyframe: map {t.map_building_ms / k:.1f}, classes {t.classification_ms / k:.1f}, "
+        f"ICP {t.registration_ms / k:.1f}, fusion {t.fusion_ms / k:.1f}, loops {t.loop_closing_ms / k:.1f} ms"
+    )
+
+
+def kitti_part(args, rows) -> list[float]:
+    frames = [
+        load_xyzi_bin(args.data_dir / "kitti_seq00" / "velodyne" / f"{k:06d}.bin")[:, :3] for k in range(6)
+    ]
+    truth = kitti_world_velo(args.data_dir)[:6]
+    print(f"\nKITTI seq 00 frames 0-5 ({np.mean([len(f) for f in frames]):.0f} points per scan, real)")
+    rates = []
+    for label, distance in (("every scan a keyframe", 0.01), ("keyframes every 3 m", 3.0)):
+        params = MapperParams(keyframe_distance=distance, loop_closing=False)
+        run(frames, truth, params)  # warm-up
+        timed = [run(frames, truth, params) for _ in range(args.repeat)]
+        seconds = sorted(s for _, s in timed)[len(timed) // 2]
+        mapper = timed[0][0]
+        rate = len(frames) / seconds
+        if distance < 1:
+            rates.append(rate)
+        print(
+            f"  {label:24s}: {rate:6.1f} scans/s ({1e3 * seconds / len(frames):.1f} ms per scan, "
+            f"{len(mapper)} keyframes); {split(mapper)}"
+        )
+        rows.append(["KITTI 0-5", label, f"{rate:.1f}", f"{1e3 * seconds / len(frames):.1f}", split(mapper)])
+
+    # Registration side by side with PCL's ICP on the same consecutive local maps.
+    params = MapperParams(keyframe_distance=0.01, loop_closing=False)
+    mapper, _ = run(frames, truth, params)
+    if tc.has_pcl():
+        ours, pcl = [], []
+        for k in range(1, len(frames)):
+            source, target = (tc.points_of_map(mapper.local_map(i)) for i in (k, k - 1))
+            guess = np.linalg.inv(mapper.keyframe_odometry()[k - 1]) @ mapper.keyframe_odometry()[k]
+            start = time.perf_counter()
+            tc.registration._core.register_points(
+                source[0], source[1], target[0], target[1], guess, params.registration.to_core()
+            )
+            ours.append(time.perf_counter() - start)
+            start = time.perf_counter()
+            tc.pcl_icp(source[0], target[0], guess)
+            pcl.append(time.perf_counter() - start)
+        o, p = 1e3 * np.median(ours), 1e3 * np.median(pcl)
+        print(
+            f"  registration step (median of {len(ours)}): weighted ICP {o:.1f} ms, PCL ICP {p:.1f} ms "
+            f"-> PCL / terracube = {p / o:.1f}x"
+        )
+    return rates
+
+
+def synthetic_part(args, rows) -> list[float]:
+    lidar = sim.RotatingLidar(
+        channels=64, steps_per_revolution=2048, vertical_fov_min=-24.8, vertical_fov_max=2.0, max_range=80.0
+    )
+    trajectory = sim.TrajectoryParams(
+        scan_spacing=1.0,
+        mount_height=1.73,
+        yaw_bias=1e-3,
+        yaw_random_walk=1e-3,
+        translation_scale_error=0.01,
+        seed=7,
+    )
+    sequence = sim.generate_sequence(sim.LoopSceneParams(), trajectory, lidar, seed=3)
+    count = len(sequence) if not args.quick else min(len(sequence), 120)
+    start = time.perf_counter()
+    scans = [sequence.scan(k).points for k in range(count)]
+    cast = time.perf_counter() - start
+    truth, odometry = sequence.poses[:count], sequence.odometry[:count]
+    print(
+        f"\nSynthetic loop: {count} scans 1 m apart, {np.mean([len(s) for s in scans]):.0f} points per scan "
+        f"(64 x 2048 rays; cast in {cast:.1f} s, not timed)"
+    )
+    rates = []
+    for label, params in (
+        ("odometry chaining", MapperParams(use_registration=False, loop_closing=False)),
+        ("weighted ICP chaining", MapperParams(loop_closing=False)),
+        ("ICP + loop closing", MapperParams()),
+    ):
+        mapper, seconds = run(scans, odometry, params)
+        keys = mapper.keyframe_scan_indices()
+        ate = tc.absolute_trajectory_error(mapper.keyframe_poses(), truth[keys], "first_pose").translation
+        odo = tc.absolute_trajectory_error(mapper.keyframe_odometry(), truth[keys], "first_pose").translation
+        rpe = tc.relative_pose_error(mapper.keyframe_poses(), truth[keys], lengths=[20.0, 50.0])
+        rate = count / seconds
+        rates.append(rate)
+        print(
+            f"  {label:22s}: {rate:6.1f} scans/s, {len(mapper)} keyframes, "
+            f"{len(mapper.loop_closures)} loops, "
+            f"ATE {ate.rmse:.2f} m (odometry {odo.rmse:.2f} m), RPE {rpe.translation_percent:.2f} % "
+            f"{rpe.rotation_deg_per_100m:.2f} deg/100 m; {split(mapper)}"
+        )
+        rows.append(
+            [
+                "synthetic loop",
+                label,
+                f"{rate:.1f}",
+                f"{1e3 * seconds / count:.1f}",
+                f"ATE {ate.rmse:.2f} m (odometry {odo.rmse:.2f} m)",
+            ]
+        )
+    return rates
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_benchmark_args(
+        __doc__.splitlines()[0], argv, repeat_unit="setting", quick_help="3 repeats, 120 synthetic scans"
+    )
+    require((args.data_dir / "kitti_seq00").is_dir(), f"no KITTI frames under {args.data_dir}")
+    print_header(
+        "terracube Mapper benchmark",
+        ["  pipeline: leveling, layers, classes, weighted ICP, fusion (+ loops), 0.2 m cells, 40 m maps"],
+        "PCL ICP time / terracube weighted ICP time on the same local maps",
+        args,
+        "fewer repeats, shorter synthetic run",
+    )
+    rows: list[list[str]] = []
+    kitti = kitti_part(args, rows)
+    synthetic = synthetic_part(args, rows)
+    print()
+    print_target(
+        "KITTI-size scans per second, every scan a keyframe (target >= 20)",
+        kitti,
+        lambda v: v >= 20,
+        " scans/s",
+    )
+    print_target(
+        "synthetic KITTI-size scans per second (target >= 20)", synthetic, lambda v: v >= 20, " scans/s"
+    )
+    if args.markdown:
+        print()
+        print(markdown_row(["data", "setting", "scans/s", "ms/scan", "notes"]))
+        print(markdown_rule(2))
+        for row in rows:
+            print(markdown_row(row))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
