@@ -35,7 +35,6 @@ import terracube as tc
 from _common import (
     load_xyzi_bin,
     markdown_row,
-    markdown_rule,
     parse_benchmark_args,
     print_header,
     print_target,
@@ -201,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.markdown:
         print()
         print(markdown_row(["data", "setting", "scans/s", "ms/scan", "notes"]))
-        print(markdown_rule(2))
+        print("|---|---|---:|---:|---|")
         for row in rows:
             print(markdown_row(row))
     return 0
