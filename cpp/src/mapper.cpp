@@ -99,6 +99,14 @@ double rotation_angle(const Eigen::Matrix4d& t) {
   return std::acos(c);
 }
 
+/// The transform with its rotation reduced to the rotation about z (yaw) it contains.
+Eigen::Matrix4d yaw_only(const Eigen::Matrix4d& t) {
+  Eigen::Matrix4d out = t;
+  const double yaw = std::atan2(t(1, 0), t(0, 0));
+  out.topLeftCorner<3, 3>() = Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  return out;
+}
+
 /// Splits world <- sensor into world <- L (yaw and translation only) and L <- sensor (roll, pitch).
 void split_leveling(const Eigen::Matrix4d& world_sensor, Eigen::Matrix4d& world_level, Eigen::Matrix4d& level_sensor) {
   const Eigen::Matrix3d r = world_sensor.topLeftCorner<3, 3>();
@@ -452,7 +460,7 @@ ScanReport Mapper::Impl::add_checked(const PointsView<Scalar>& points, const Eig
       const Eigen::Matrix4d correction = inverse_rigid(guess) * r.transform;
       if (usable && correction.topRightCorner<3, 1>().norm() <= params.max_correction_m &&
           rotation_angle(correction) <= params.max_correction_rad) {
-        step = r.transform;
+        step = params.yaw_only_registration ? yaw_only(r.transform) : r.transform;
         report.registered = true;
         sigma << Eigen::Vector3d::Constant(params.registration_sigma_m),
             Eigen::Vector3d::Constant(params.registration_sigma_rad);
@@ -535,8 +543,9 @@ std::size_t Mapper::Impl::close_loops(std::size_t k) {
     Eigen::Matrix<double, 6, 1> sigma;
     sigma << Eigen::Vector3d::Constant(params.registration_sigma_m),
         Eigen::Vector3d::Constant(params.registration_sigma_rad);
-    edges.push_back({j, k, r.transform, sigma, true});
-    loops.push_back({j, k, r.transform, r.rmse_m, overlap});
+    const Eigen::Matrix4d relative = params.yaw_only_registration ? yaw_only(r.transform) : r.transform;
+    edges.push_back({j, k, relative, sigma, true});
+    loops.push_back({j, k, relative, r.rmse_m, overlap});
     ++closed;
   }
   return closed;

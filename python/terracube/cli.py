@@ -1116,16 +1116,17 @@ def view(
 
 
 def _mapper_params(cfg):
-    """MapperParams of the config: the mapper section plus the terrain and registration sections. The
-    terrain section's paper default (heights from the sensor) becomes the local ground for maps
-    chained over slopes, unless the file set a reference."""
+    """MapperParams of the config: the mapper section plus the terrain and registration sections. An
+    untouched terrain section (the paper's sensor-height reference) gives way to the mapper's terrain
+    defaults (local ground, 1 m window) for maps chained over slopes."""
     import dataclasses
 
     from .config import default_config
+    from .mapping import MapperParams
 
     terrain = cfg.terrain
-    if terrain.reference == default_config().terrain.reference:
-        terrain = dataclasses.replace(terrain, reference="local_ground")
+    if terrain == default_config().terrain:  # untouched: the mapper's own terrain defaults
+        terrain = MapperParams().terrain
     return dataclasses.replace(cfg.mapper, terrain=terrain, registration=cfg.registration)
 
 

@@ -49,11 +49,17 @@ class MapperParams:
     discontinuity : float
         Gap between sorted elevations that flags a cell discontinuous [m] (the paper: 1 m).
     terrain : TerrainParams
-        Table 1 thresholds; heights are measured from the local ground by default (slopes).
+        Table 1 thresholds; heights are measured from the local ground by default (slopes), the
+        lowest elevation within 5 cells (1 m at 0.2 m: on a slope the window minimum lies
+        slope x radius below the cell, so a wider window calls ramps obstacles).
     use_registration : bool
         False chains local maps by odometry alone (a baseline).
     registration : RegistrationParams
         The class-weighted ICP (Table 2 weights by default).
+    yaw_only_registration : bool
+        Keep only the translation and yaw of each registration: local maps are leveled by odometry's
+        roll and pitch, so their relative rotation is a yaw (the ground-free ICP leaves roll and pitch
+        weakly constrained). False: the full 6-DOF result, as the paper.
     max_correction, max_correction_rot : float
         A step registration that moves odometry's guess further [m], [rad] is rejected (odometry
         is used for that step).
@@ -93,9 +99,12 @@ class MapperParams:
     max_scans_per_local_map: int = 1
     min_range: float = 0.5
     discontinuity: float = 1.0
-    terrain: TerrainParams = field(default_factory=lambda: TerrainParams(reference="local_ground"))
+    terrain: TerrainParams = field(
+        default_factory=lambda: TerrainParams(reference="local_ground", local_ground_radius=5)
+    )
     use_registration: bool = True
     registration: RegistrationParams = field(default_factory=RegistrationParams)
+    yaw_only_registration: bool = True
     max_correction: float = 1.5
     max_correction_rot: float = 0.15
     registration_sigma: float = 0.05
@@ -127,6 +136,7 @@ class MapperParams:
         params.terrain = self.terrain.to_core()
         params.use_registration = bool(self.use_registration)
         params.registration = self.registration.to_core()
+        params.yaw_only_registration = bool(self.yaw_only_registration)
         params.max_correction_m = float(self.max_correction)
         params.max_correction_rad = float(self.max_correction_rot)
         params.registration_sigma_m = float(self.registration_sigma)

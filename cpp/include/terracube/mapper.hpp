@@ -44,15 +44,23 @@ struct MapperParams {
   double discontinuity_m = 1.0;
   /// Table 1 thresholds. The default measures heights from the local ground (lowest elevations around
   /// the cell), which keeps classes right on slopes; the paper's sensor-height reference is available.
+  /// The window is 5 cells (1 m at 0.2 m, as terrain's 10 cells at 0.1 m): the window minimum lies
+  /// slope x radius below a cell on a slope, so a larger window calls ramps obstacles.
   TerrainParams terrain = [] {
     TerrainParams t;
     t.reference = GroundReference::kLocalGround;
+    t.local_ground_radius_cells = 5;
     return t;
   }();
 
   /// false: chain local maps by odometry alone (no scan matching): a baseline.
   bool use_registration = true;
   RegistrationParams registration;
+  /// Local maps live in leveled frames (odometry's roll and pitch, as from an IMU), so the motion
+  /// between two of them is a translation and a yaw: true keeps only those of the 6-DOF ICP result
+  /// (the ground takes no part in it, which leaves roll and pitch weakly constrained; their noise
+  /// would tilt the fused global map). false: the full 6-DOF result, as the paper.
+  bool yaw_only_registration = true;
   /// A registration is rejected (odometry is used for that step) when it did not converge within the
   /// iteration limit for a reason other than kMaxIterations, or when it moves the odometry guess by more
   /// than these [m], [rad].
