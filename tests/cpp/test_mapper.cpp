@@ -4,6 +4,7 @@
 #include <terracube/mapper.hpp>
 
 #include <Eigen/Geometry>
+#include <algorithm>
 #include <cmath>
 #include <map>
 #include <random>
@@ -303,6 +304,32 @@ TEST(Mapper, ChainingByRegistrationBeatsDriftingOdometry) {
   const MapperTimings& t = mapper.timings();
   EXPECT_EQ(t.keyframes, indices.size());
   EXPECT_EQ(t.scans, truth.size());
+}
+
+TEST(Mapper, YawOnlyStepsKeepOdometrysRollAndPitch) {
+  const auto world = world_cloud(6);
+  const auto truth = square_loop(1.0, 0);
+  auto run = [&](bool yaw_only) {
+    MapperParams params;
+    params.loop_closing = false;
+    params.yaw_only_registration = yaw_only;
+    Mapper mapper(params);
+    for (std::size_t k = 0; k < 20; ++k) {
+      const auto scan = scan_of(world, truth[k], 20.0);
+      mapper.add_scan(PointsView<float>(scan.data()->data(), scan.size()), truth[k]);
+    }
+    // Largest angle between a keyframe's estimated and odometry "up" (z) axes [rad].
+    double worst = 0.0;
+    const auto poses = mapper.keyframe_poses(), odometry = mapper.keyframe_odometry();
+    for (std::size_t k = 0; k < poses.size(); ++k) {
+      const Eigen::Vector3d up = poses[k].topLeftCorner<3, 3>().transpose() * Eigen::Vector3d::UnitZ();
+      const Eigen::Vector3d up_odometry = odometry[k].topLeftCorner<3, 3>().transpose() * Eigen::Vector3d::UnitZ();
+      worst = std::max(worst, std::acos(std::clamp(up.dot(up_odometry), -1.0, 1.0)));
+    }
+    return worst;
+  };
+  EXPECT_LT(run(true), 1e-7);   // gravity stays where odometry (the IMU) put it
+  EXPECT_GT(run(false), 1e-5);  // the 6-DOF ICP tilts the frames a little
 }
 
 TEST(Mapper, LoopClosingCutsTheErrorOfDriftingOdometry) {
