@@ -96,7 +96,7 @@ def kitti_part(args, rows) -> list[float]:
         rows.append(["KITTI 0-5", label, f"{rate:.1f}", f"{1e3 * seconds / len(frames):.1f}", split(mapper)])
 
     # Registration side by side with PCL's ICP on the same consecutive local maps.
-    params = MapperParams(keyframe_distance=0.01, loop_closing=False)
+    params = MapperParams(keyframe_distance=0.01, loop_closing=False, keep_local_maps=True)
     mapper, _ = run(frames, truth, params)
     if tc.has_pcl():
         ours, pcl = [], []

@@ -136,8 +136,9 @@ struct Keyframe {
   Eigen::Matrix4d estimate = Eigen::Matrix4d::Identity();        // estimated world <- L
   double path_m = 0.0;                                           // odometry path length up to it
   std::size_t num_points = 0, num_scans = 0;                     // that built the local map
-  ElevationMap map;                                              // local classified map
-  ClassifiedPoints points;                                       // its cells as ICP points
+  MapGeometry geometry;                                          // of the local map
+  ElevationMap map;         // local classified map: kept for the newest keyframe, or all with keep_local_maps
+  ClassifiedPoints points;  // its cells as ICP points
   std::vector<CellSample> cells;
 };
 
@@ -327,7 +328,19 @@ void Mapper::Impl::build_local_map(Keyframe& keyframe) {
   TerrainParams terrain = params.terrain;
   classify_terrain(keyframe.map, terrain);
   keyframe.points = points_of_map(keyframe.map);
+  if (params.registration.use_classes) {
+    // Classes of weight 0 (unknown, ground) never pair: keep only the cells that can.
+    ClassifiedPoints kept;
+    for (std::size_t i = 0; i < keyframe.points.size(); ++i) {
+      if (params.registration.class_weights[keyframe.points.classes[i]] > 0.0) {
+        kept.points.push_back(keyframe.points.points[i]);
+        kept.classes.push_back(keyframe.points.classes[i]);
+      }
+    }
+    keyframe.points = std::move(kept);
+  }
   timings.classification_ms += ms_since(start);
+  keyframe.geometry = keyframe.map.geometry();
 
   const MapGeometry& g = keyframe.map.geometry();
   const Layer& count = keyframe.map.get("count");
@@ -469,6 +482,7 @@ ScanReport Mapper::Impl::add_checked(const PointsView<Scalar>& points, const Eig
     keyframe.estimate = previous.estimate * step;
     edges.push_back({keyframes.size() - 1, keyframes.size(), step, sigma, false});
   }
+  if (!params.keep_local_maps && !keyframes.empty()) keyframes.back().map = ElevationMap();
   keyframes.push_back(std::move(keyframe));
   timings.keyframes = keyframes.size();
 
@@ -504,15 +518,13 @@ std::size_t Mapper::Impl::close_loops(std::size_t k) {
     const Eigen::Matrix4d guess = inverse_rigid(other.estimate) * current.estimate;  // L_j <- L_k
     // Overlap: the share of the current map's cells that land in blocks of overlap_block_m with data
     // in the other map (blocks, not cells: sparse scans sample different cells of the same ground).
-    const MapGeometry& g = other.map.geometry();
-    const Layer& other_count = other.map.get("count");
+    const MapGeometry& g = other.geometry;
     const int per_block = std::max(1, static_cast<int>(std::lround(params.overlap_block_m / g.resolution_m)));
     const int bx = (g.size.x() + per_block - 1) / per_block, by = (g.size.y() + per_block - 1) / per_block;
     std::vector<std::uint8_t> blocks(static_cast<std::size_t>(bx) * by, 0);
-    for (int i = 0; i < g.size.x(); ++i) {
-      for (int j = 0; j < g.size.y(); ++j) {
-        if (other_count(i, j) > 0.0f) blocks[static_cast<std::size_t>(i / per_block) * by + j / per_block] = 1;
-      }
+    for (const CellSample& cell : other.cells) {
+      const auto index = g.index_of(Eigen::Vector2d(cell.x, cell.y));
+      if (index) blocks[static_cast<std::size_t>(index->x() / per_block) * by + index->y() / per_block] = 1;
     }
     std::size_t hits = 0;
     for (const CellSample& cell : current.cells) {
@@ -557,19 +569,17 @@ Eigen::Matrix4d Mapper::Impl::coarse_alignment(const Keyframe& current, const Ke
   // offsets and a translation window: the score of a hypothesis is the number of the current map's
   // non-ground cells that land on a non-ground cell (dilated by one) of the other map. The best one
   // seeds the ICP, so drifted estimates several metres off still converge.
-  const MapGeometry& g = other.map.geometry();
-  const Layer& classes = other.map.get("class");
+  const MapGeometry& g = other.geometry;
   const int nx = g.size.x(), ny = g.size.y();
   std::vector<std::uint8_t> occupied(static_cast<std::size_t>(nx) * ny, 0);
-  for (int i = 0; i < nx; ++i) {
-    for (int j = 0; j < ny; ++j) {
-      const float c = classes(i, j);
-      if (!(c > 1.5f)) continue;  // unknown (NaN) and ground take no part
-      for (int di = -1; di <= 1; ++di) {
-        for (int dj = -1; dj <= 1; ++dj) {
-          const int a = i + di, b = j + dj;
-          if (a >= 0 && a < nx && b >= 0 && b < ny) occupied[static_cast<std::size_t>(a) * ny + b] = 1;
-        }
+  for (std::size_t k = 0; k < other.points.size(); ++k) {
+    if (other.points.classes[k] <= 1) continue;  // unknown and ground take no part
+    const auto index = g.index_of(other.points.points[k].head<2>());
+    if (!index) continue;
+    for (int di = -1; di <= 1; ++di) {
+      for (int dj = -1; dj <= 1; ++dj) {
+        const int a = index->x() + di, b = index->y() + dj;
+        if (a >= 0 && a < nx && b >= 0 && b < ny) occupied[static_cast<std::size_t>(a) * ny + b] = 1;
       }
     }
   }
@@ -681,6 +691,10 @@ const ElevationMap& Mapper::local_map(std::size_t k) const {
   if (k >= impl_->keyframes.size()) {
     throw std::out_of_range("keyframe " + std::to_string(k) + " does not exist (" +
                             std::to_string(impl_->keyframes.size()) + " keyframes)");
+  }
+  if (impl_->keyframes[k].map.layers().empty()) {
+    throw std::out_of_range("the local map of keyframe " + std::to_string(k) +
+                            " was not kept (only the newest is, unless MapperParams.keep_local_maps)");
   }
   return impl_->keyframes[k].map;
 }

@@ -44,6 +44,9 @@ class MapperParams:
     max_scans_per_local_map : int
         A local map holds the keyframe's scan and the scans since the previous keyframe (at most this
         many, the newest), moved into the keyframe's leveled frame by odometry; 1: one scan alone.
+    keep_local_maps : bool
+        Keep every keyframe's local map for :meth:`Mapper.local_map`; off, only the newest is kept
+        (memory per keyframe: its cells and the cells its class weights can pair).
     min_range : float
         Points nearer the sensor take no part (the robot itself) [m].
     discontinuity : float
@@ -97,6 +100,7 @@ class MapperParams:
     resolution: float = 0.2
     local_map_size: float = 40.0
     max_scans_per_local_map: int = 1
+    keep_local_maps: bool = False
     min_range: float = 0.5
     discontinuity: float = 1.0
     terrain: TerrainParams = field(
@@ -131,6 +135,7 @@ class MapperParams:
         params.resolution_m = float(self.resolution)
         params.local_map_size_m = float(self.local_map_size)
         params.max_scans_per_local_map = int(self.max_scans_per_local_map)
+        params.keep_local_maps = bool(self.keep_local_maps)
         params.min_range_m = float(self.min_range)
         params.discontinuity_m = float(self.discontinuity)
         params.terrain = self.terrain.to_core()
@@ -212,7 +217,8 @@ class Mapper:
         return int(self._core.global_memory_bytes)
 
     def local_map(self, k: int) -> ElevationMap:
-        """Keyframe ``k``'s local classified map in its leveled frame."""
+        """Keyframe ``k``'s local classified map in its leveled frame (IndexError unless it is the
+        newest keyframe or ``keep_local_maps`` is set)."""
         try:
             return ElevationMap(self._core.local_map(int(k)))
         except IndexError as error:

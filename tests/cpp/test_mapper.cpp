@@ -332,6 +332,29 @@ TEST(Mapper, YawOnlyStepsKeepOdometrysRollAndPitch) {
   EXPECT_GT(run(false), 1e-5);  // the 6-DOF ICP tilts the frames a little
 }
 
+TEST(Mapper, OnlyTheNewestLocalMapIsKeptUnlessAsked) {
+  const auto world = world_cloud(7);
+  const auto truth = square_loop(1.0, 0);
+  auto run = [&](bool keep) {
+    MapperParams params;
+    params.keep_local_maps = keep;
+    Mapper mapper(params);
+    for (std::size_t k = 0; k < 12; ++k) {
+      const auto scan = scan_of(world, truth[k], 20.0);
+      mapper.add_scan(PointsView<float>(scan.data()->data(), scan.size()), truth[k]);
+    }
+    return mapper;
+  };
+  const Mapper lean = run(false), full = run(true);
+  ASSERT_EQ(lean.num_keyframes(), 4u);
+  EXPECT_THROW(lean.local_map(0), std::out_of_range);
+  EXPECT_NO_THROW(lean.local_map(3));
+  for (std::size_t k = 0; k < 4; ++k) EXPECT_NO_THROW(full.local_map(k));
+  // Keeping the maps changes memory only.
+  const auto a = lean.keyframe_poses(), b = full.keyframe_poses();
+  for (std::size_t k = 0; k < a.size(); ++k) EXPECT_TRUE(a[k].isApprox(b[k], 1e-12));
+}
+
 TEST(Mapper, LoopClosingCutsTheErrorOfDriftingOdometry) {
   const auto world = world_cloud(4);
   const auto truth = square_loop(1.0, 12);  // one lap plus 12 m: the start is revisited

@@ -38,6 +38,9 @@ struct MapperParams {
   /// test world with 0.23 deg/m of yaw drift: chaining error 0.02 m with 1 scan, 0.5 m with 3).
   /// 1 (default): the keyframe's scan alone, as in the paper.
   int max_scans_per_local_map = 1;
+  /// Keep every keyframe's local map (all layers) for local_map(k). Off, only the newest is kept and
+  /// a keyframe holds its cells (about 28 bytes each) and the cells its class weights can pair.
+  bool keep_local_maps = false;
   /// Points closer to the sensor than this take no part (the robot itself) [m]. >= 0.
   double min_range_m = 0.5;
   /// Discontinuity threshold of the elevations within a cell [m] (the paper: 1 m).
@@ -185,7 +188,8 @@ class Mapper {
   const MapperTimings& timings() const;
 
   /// The local classified map of keyframe k, in its leveled frame (layers of build_elevation_map
-  /// plus classify_terrain's).
+  /// plus classify_terrain's). Only the newest keyframe's is kept unless keep_local_maps;
+  /// std::out_of_range otherwise.
   const ElevationMap& local_map(std::size_t k) const;
   /// The global map with layers count, min, max (highest elevation), mean (DEM), std_dev,
   /// discontinuity and, when `classify`, the classes of classify_terrain (local ground reference).
