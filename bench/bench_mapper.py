@@ -45,14 +45,11 @@ from terracube.mapping import Mapper, MapperParams
 
 
 def kitti_world_velo(data_dir) -> np.ndarray:
-    calib = {}
-    for line in (data_dir / "kitti_seq00" / "calib.txt").read_text().splitlines():
-        key, _, values = line.partition(":")
-        calib[key.strip()] = np.array(values.split(), dtype=float)
-    tr = np.vstack([calib["Tr"].reshape(3, 4), [0, 0, 0, 1]])
-    poses = np.loadtxt(data_dir / "kitti_seq00" / "poses.txt").reshape(-1, 3, 4)
-    cam = np.concatenate([poses, np.tile([[[0, 0, 0, 1.0]]], (len(poses), 1, 1))], axis=1)
-    return np.linalg.inv(tr) @ cam @ tr
+    """KITTI seq 00 ground truth as Velodyne poses, inv(Tr) P Tr (the library's pose-file reader)."""
+    from terracube.mapping import read_kitti_calibration, read_pose_file
+
+    folder = data_dir / "kitti_seq00"
+    return read_pose_file(folder / "poses.txt", "kitti", read_kitti_calibration(folder / "calib.txt"))[1]
 
 
 def run(scans, poses, params: MapperParams) -> tuple[Mapper, float]:

@@ -123,14 +123,11 @@ def test_chaining_on_a_synthetic_world_beats_drifting_odometry():
 
 
 def kitti_world_velo(root) -> np.ndarray:
-    calib = {}
-    for line in (root / "kitti_seq00" / "calib.txt").read_text().splitlines():
-        key, _, values = line.partition(":")
-        calib[key.strip()] = np.array(values.split(), dtype=float)
-    tr = np.vstack([calib["Tr"].reshape(3, 4), [0, 0, 0, 1]])
-    poses = np.loadtxt(root / "kitti_seq00" / "poses.txt").reshape(-1, 3, 4)
-    cam = np.concatenate([poses, np.tile([[[0, 0, 0, 1.0]]], (len(poses), 1, 1))], axis=1)
-    return np.linalg.inv(tr) @ cam @ tr
+    """KITTI seq 00 ground truth as Velodyne poses, inv(Tr) P Tr (the library's pose-file reader)."""
+    from terracube.mapping import read_kitti_calibration, read_pose_file
+
+    folder = root / "kitti_seq00"
+    return read_pose_file(folder / "poses.txt", "kitti", read_kitti_calibration(folder / "calib.txt"))[1]
 
 
 def test_kitti_frames_chain_closer_to_the_ground_truth_than_perturbed_odometry(shared_data):
