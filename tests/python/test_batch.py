@@ -20,7 +20,6 @@ from terracube.config import default_config
 from terracube.io import read_cloud, write_classified, write_pcd
 from typer.testing import CliRunner
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 def _scene(seed: int) -> np.ndarray:
@@ -164,7 +163,9 @@ def test_the_console_script_runs_a_batch_on_local_worker_processes(tmp_path, sca
     config = tmp_path / "fine.yaml"
     config.write_text("elevation:\n  resolution: 0.25\n")
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT / "python"), env.get("PYTHONPATH")]))
+    # The subprocess imports the same terracube as this test (installed, or a source tree with _core).
+    package_root = str(Path(tc.__file__).resolve().parents[1])
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [package_root, env.get("PYTHONPATH")]))
     out = tmp_path / "out"
     completed = subprocess.run(
         [sys.executable, "-m", "terracube", "batch", "dem", str(folder), "--out", str(out), "-w", "1",

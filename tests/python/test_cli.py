@@ -340,8 +340,9 @@ def test_the_console_script_runs_as_a_subprocess(tmp_path):
     import yaml
 
     env = dict(os.environ)
-    repo = Path(__file__).resolve().parents[2]
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(repo / "python"), env.get("PYTHONPATH")]))
+    # The subprocess imports the same terracube as this test (installed, or a source tree with _core).
+    package_root = str(Path(tc.__file__).resolve().parents[1])
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [package_root, env.get("PYTHONPATH")]))
     path, points = _scan(tmp_path)
     run = [sys.executable, "-m", "terracube"]
     help_text = subprocess.run([*run, "--help"], capture_output=True, text=True, env=env, timeout=120)
