@@ -66,7 +66,8 @@ void bind_icp(py::module_& m) {
       .def_readwrite("translation_tolerance_m", &RegistrationParams::translation_tolerance_m)
       .def_readwrite("error_threshold_m", &RegistrationParams::error_threshold_m)
       .def_readwrite("min_correspondences", &RegistrationParams::min_correspondences)
-      .def_readwrite("degeneracy_threshold", &RegistrationParams::degeneracy_threshold);
+      .def_readwrite("degeneracy_threshold", &RegistrationParams::degeneracy_threshold)
+      .def_readwrite("extrapolate", &RegistrationParams::extrapolate);
 
   py::class_<RegistrationResult>(m, "RegistrationResult")
       .def_readonly("transform", &RegistrationResult::transform, "(4, 4) source -> target")

@@ -69,7 +69,8 @@ Eigen::Matrix3d skew(const Eigen::Vector3d& v) {
   return m;
 }
 
-/// One correspondence pass: weighted sums of the normal equations about the source centroid.
+/// One correspondence pass: the weighted normal equations about the correspondences' weighted
+/// source centroid.
 struct Pass {
   Matrix6d normal = Matrix6d::Zero();
   Vector6d gradient = Vector6d::Zero();
@@ -82,100 +83,113 @@ struct Pass {
 
 class Registration {
  public:
-  Registration(const ClassifiedPoints& source, const ClassifiedPoints& target, const RegistrationParams& params)
-      : source_(source), params_(params) {
-    // One tree per class (or one for all): buckets of target points.
+  Registration(const ClassifiedPoints& source, const ClassifiedPoints& target, const RegistrationParams& params) {
+    // One grid per class (or one for all): buckets of target points.
     std::array<std::vector<Eigen::Vector3d>, kNumTerrainClasses> buckets;
     for (std::size_t k = 0; k < target.size(); ++k) {
       const std::size_t c = params.use_classes ? target.classes[k] : 0;
       if (!params.use_classes || params.class_weights[c] > 0.0) buckets[c].push_back(target.points[k]);
     }
     for (std::size_t c = 0; c < kNumTerrainClasses; ++c) {
-      if (!buckets[c].empty()) trees_[c] = NearestNeighbor3d(std::move(buckets[c]));
+      if (!buckets[c].empty()) grids_[c] = NearestNeighborGrid(std::move(buckets[c]));
     }
+    // The source points that can take part, gathered with their grid, class and weight.
     for (std::size_t k = 0; k < source.size(); ++k) {
-      const std::size_t tree = params.use_classes ? source.classes[k] : 0;
-      const double w = params.use_classes ? params.class_weights[tree] : 1.0;
-      if (w > 0.0 && trees_[tree].size() > 0) active_.push_back(static_cast<std::uint32_t>(k));
+      const std::uint8_t c = source.classes[k];
+      const std::uint8_t grid = params.use_classes ? c : 0;
+      const double w = params.use_classes ? params.class_weights[c] : 1.0;
+      if (w > 0.0 && grids_[grid].size() > 0) {
+        active_.push_back({source.points[k], w, grid, c});
+        reference_ += source.points[k];
+      }
     }
-    scratch_.resize(active_.size());
+    if (!active_.empty()) reference_ /= static_cast<double>(active_.size());
     hints_.assign(active_.size(), -1);
   }
 
   bool has_common_class() const { return !active_.empty(); }
 
-  /// Correspondences of the source moved by `transform`; sums about their weighted centroid.
+  /// Correspondences of the source moved by `transform`, each source point paired with its nearest
+  /// target point (of its class) within `max_distance`; one sweep accumulates the moments.
   Pass pass(const Eigen::Matrix4d& transform, double max_distance) {
     const Eigen::Matrix3d rotation = transform.topLeftCorner<3, 3>();
     const Eigen::Vector3d translation = transform.topRightCorner<3, 1>();
+    // Moments are taken about o, the moved centroid of the active source points, so that they
+    // stay well conditioned far from the origin.
+    const Eigen::Vector3d o = rotation * reference_ + translation;
     const double max_squared = max_distance * max_distance;
     Pass result;
-    // First sweep: pairs, weights, the weighted centroid and error.
+    double w_sum = 0.0, error = 0.0;
+    double sp[3] = {0, 0, 0}, sq[3] = {0, 0, 0}, spxq[3] = {0, 0, 0};
+    double spp[6] = {0, 0, 0, 0, 0, 0};  // xx xy xz yy yz zz
     std::size_t used = 0;
-    std::size_t slot = 0;
-    for (const std::uint32_t k : active_) {
-      const std::uint8_t c = source_.classes[k];
-      const std::size_t tree = params_.use_classes ? c : 0;
-      const double w = params_.use_classes ? params_.class_weights[c] : 1.0;
-      const Eigen::Vector3d p = rotation * source_.points[k] + translation;
-      // Last pass's partner, if still within the limit, bounds the search: far fewer nodes are
+    for (std::size_t slot = 0; slot < active_.size(); ++slot) {
+      const Active& a = active_[slot];
+      const NearestNeighborGrid& grid = grids_[a.grid];
+      const Eigen::Vector3d moved = rotation * a.point + translation;
+      // Last pass's partner, if still within the limit, bounds the search: fewer buckets are
       // visited and the result is still the exact nearest.
       double bound = max_squared;
-      std::int64_t& hint = hints_[slot++];
+      std::int64_t& hint = hints_[slot];
       if (hint >= 0) {
-        const double d = (trees_[tree].point(static_cast<std::size_t>(hint)) - p).squaredNorm();
+        const double d = (grid.point(static_cast<std::size_t>(hint)) - moved).squaredNorm();
         if (d <= bound) bound = d;
       }
       double squared = 0.0;
-      const std::ptrdiff_t nearest = trees_[tree].nearest(p, bound, squared);
+      const std::ptrdiff_t nearest = grid.nearest(moved, bound, squared);
       hint = nearest;
       if (nearest < 0) continue;
-      scratch_[used++] = {p, trees_[tree].point(static_cast<std::size_t>(nearest)), w};
-      result.weight_sum += w;
-      result.weighted_squared_error += w * squared;
-      result.centroid += w * p;
-      ++result.per_class[c];
+      const Eigen::Vector3d p = moved - o;
+      const Eigen::Vector3d q = grid.point(static_cast<std::size_t>(nearest)) - o;
+      const double w = a.weight;
+      ++used;
+      ++result.per_class[a.terrain_class];
+      w_sum += w;
+      error += w * squared;
+      const double wx = w * p.x(), wy = w * p.y(), wz = w * p.z();
+      sp[0] += wx, sp[1] += wy, sp[2] += wz;
+      sq[0] += w * q.x(), sq[1] += w * q.y(), sq[2] += w * q.z();
+      spp[0] += wx * p.x(), spp[1] += wx * p.y(), spp[2] += wx * p.z();
+      spp[3] += wy * p.y(), spp[4] += wy * p.z(), spp[5] += wz * p.z();
+      spxq[0] += wy * q.z() - wz * q.y();
+      spxq[1] += wz * q.x() - wx * q.z();
+      spxq[2] += wx * q.y() - wy * q.x();
     }
     result.count = used;
+    result.weight_sum = w_sum;
+    result.weighted_squared_error = error;
     if (used == 0) return result;
-    result.centroid /= result.weight_sum;
-    // Second sweep: eq. (A6) with per-class weights (eq. 4). Unknowns x = (omega, t) about the
-    // centroid; residual r_i = p_i + omega x p_i + t - q_i, so J_i = [-[p_i]x, I] and
-    // H = sum w J^T J, g = sum w J^T (q - p).
-    Eigen::Matrix3d rot_rot = Eigen::Matrix3d::Zero();
-    Eigen::Vector3d weighted_p = Eigen::Vector3d::Zero();
-    Eigen::Vector3d g_rot = Eigen::Vector3d::Zero();
-    Eigen::Vector3d g_trans = Eigen::Vector3d::Zero();
-    for (std::size_t k = 0; k < used; ++k) {
-      const Pair& pair = scratch_[k];
-      const Eigen::Vector3d p = pair.p - result.centroid;
-      const Eigen::Vector3d d = pair.q - pair.p;
-      // [p]x^T [p]x = |p|^2 I - p p^T
-      rot_rot += pair.w * (p.squaredNorm() * Eigen::Matrix3d::Identity() - p * p.transpose());
-      weighted_p += pair.w * p;
-      g_rot += pair.w * p.cross(d);  // (-[p]x)^T d = p x d
-      g_trans += pair.w * d;
-    }
-    const Eigen::Matrix3d rot_trans = skew(weighted_p);  // (-[p]x)^T I summed = [sum w p]x
-    result.normal.topLeftCorner<3, 3>() = rot_rot;
-    result.normal.topRightCorner<3, 3>() = rot_trans;
-    result.normal.bottomLeftCorner<3, 3>() = rot_trans.transpose();
-    result.normal.bottomRightCorner<3, 3>() = result.weight_sum * Eigen::Matrix3d::Identity();
-    result.gradient << g_rot, g_trans;
+    // Eq. (A6) with per-class weights (eq. 4). Unknowns x = (omega, t) about the weighted centroid
+    // c of the moved source points; residual r_i = p_i + omega x (p_i - c) + t - q_i, so
+    // J_i = [-[p_i - c]x, I], H = sum w J^T J and g = sum w J^T (q_i - p_i). From the moments
+    // (p, q relative to o, c = sum w p / W):
+    //   sum w [p - c]x^T [p - c]x = tr(C) I - C with C = sum w p p^T - W c c^T,
+    //   the rotation-translation block is [sum w (p - c)]x = 0,
+    //   g_rot = sum w (p - c) x (q - p) = sum w p x q - c x sum w q,  g_trans = sum w q - W c.
+    const Eigen::Vector3d c = Eigen::Vector3d(sp[0], sp[1], sp[2]) / w_sum;
+    Eigen::Matrix3d scatter;
+    scatter << spp[0], spp[1], spp[2], spp[1], spp[3], spp[4], spp[2], spp[4], spp[5];
+    scatter -= w_sum * c * c.transpose();
+    const Eigen::Vector3d weighted_q(sq[0], sq[1], sq[2]);
+    result.normal.setZero();
+    result.normal.topLeftCorner<3, 3>() = scatter.trace() * Eigen::Matrix3d::Identity() - scatter;
+    result.normal.bottomRightCorner<3, 3>() = w_sum * Eigen::Matrix3d::Identity();
+    result.gradient << Eigen::Vector3d(spxq[0], spxq[1], spxq[2]) - c.cross(weighted_q), weighted_q - w_sum * c;
+    result.centroid = c + o;
     return result;
   }
 
  private:
-  struct Pair {
-    Eigen::Vector3d p, q;
-    double w = 0.0;
+  struct Active {
+    Eigen::Vector3d point;  // source point [m]
+    double weight;          // eq. (4) weight of its class (1 without classes)
+    std::uint8_t grid;      // index into grids_
+    std::uint8_t terrain_class;
   };
-  const ClassifiedPoints& source_;
-  const RegistrationParams& params_;
-  std::array<NearestNeighbor3d, kNumTerrainClasses> trees_;
-  std::vector<std::uint32_t> active_;  // source points that can take part
-  std::vector<Pair> scratch_;
-  std::vector<std::int64_t> hints_;  // per active source point: its last partner in its tree, or -1
+  std::array<NearestNeighborGrid, kNumTerrainClasses> grids_;
+  std::vector<Active> active_;  // source points that can take part
+  Eigen::Vector3d reference_ = Eigen::Vector3d::Zero();
+  std::vector<std::int64_t> hints_;  // per active source point: its last partner in its grid, or -1
 };
 
 /// Rodrigues: the exact rotation exp([omega]x).
@@ -190,6 +204,18 @@ Eigen::Matrix3d rotation_of(const Eigen::Vector3d& omega) {
 Eigen::Matrix3d orthonormalised(const Eigen::Matrix3d& rotation) {
   return Eigen::Quaterniond(rotation).normalized().toRotationMatrix();
 }
+
+/// The rigid motion p -> R (p - c) + c + f t with R = exp(f [omega]x), for x = (omega, t).
+Eigen::Matrix4d update_about(const Eigen::Vector3d& c, const Vector6d& x, double f) {
+  const Eigen::Matrix3d rotation = rotation_of(f * x.head<3>());
+  Eigen::Matrix4d update = Eigen::Matrix4d::Identity();
+  update.topLeftCorner<3, 3>() = rotation;
+  update.topRightCorner<3, 1>() = c + f * x.tail<3>() - rotation * c;
+  return update;
+}
+
+constexpr double kCosExtrapolation = 0.98480775301220802;  // cos(10 degrees)
+constexpr double kMaxExtrapolation = 10.0;
 
 void fill(RegistrationResult& result, const Pass& pass, double distance) {
   result.num_correspondences = pass.count;
@@ -264,6 +290,11 @@ RegistrationResult register_points(const ClassifiedPoints& source, const Classif
 
   Eigen::Matrix4d transform = initial;
   double distance = params.max_correspondence_distance_m;
+  // Extrapolation state: the last update as a 6-vector, the pivot and the length scale.
+  Vector6d previous_step = Vector6d::Zero();
+  bool has_previous_step = false;
+  Eigen::Vector3d pivot = Eigen::Vector3d::Zero();
+  double radius = 1.0;
   for (int iteration = 0;; ++iteration) {
     distance =
         std::max(params.min_correspondence_distance_m,
@@ -289,18 +320,45 @@ RegistrationResult register_points(const ClassifiedPoints& source, const Classif
       result.reason = StopReason::kMaxIterations;
       return result;
     }
+    if (iteration == 0) {
+      pivot = pass.centroid;
+      // rms distance of the correspondences from their centroid: trace of the rotation block / 2W
+      radius = std::sqrt(std::max(pass.normal.topLeftCorner<3, 3>().trace() / (2.0 * pass.weight_sum), 1e-12));
+    }
     const Vector6d x = pass.normal.ldlt().solve(pass.gradient);
     if (!x.allFinite()) {
       result.reason = StopReason::kDegenerate;
       return result;
     }
     // The update about the centroid c: p -> R (p - c) + c + t, composed exactly (no small-angle matrix).
-    const Eigen::Matrix3d rotation = rotation_of(x.head<3>());
-    Eigen::Matrix4d update = Eigen::Matrix4d::Identity();
-    update.topLeftCorner<3, 3>() = rotation;
-    update.topRightCorner<3, 1>() = pass.centroid + x.tail<3>() - rotation * pass.centroid;
-    transform = update * transform;
+    transform = update_about(pass.centroid, x, 1.0) * transform;
     transform.topLeftCorner<3, 3>() = orthonormalised(transform.topLeftCorner<3, 3>());
+    if (params.extrapolate) {
+      // Besl and McKay's accelerated ICP (1992, sec. IV-C), in its geometric-series form: when two
+      // successive updates point the same way (within 10 degrees) and shrink by a ratio rho, the
+      // remaining steps sum to about rho / (1 - rho) times the last one; take them at once (at most
+      // kMaxExtrapolation times the step), then start a new pair. Updates are compared as
+      // (rotation * rms radius, motion of the first centroid) so that both parts weigh alike.
+      const Eigen::Vector3d pivot_motion =
+          rotation_of(x.head<3>()) * (pivot - pass.centroid) + pass.centroid + x.tail<3>() - pivot;
+      Vector6d step;
+      step << x.head<3>() * radius, pivot_motion;
+      if (has_previous_step) {
+        const double norm = step.norm(), previous_norm = previous_step.norm();
+        const double rho = previous_norm > 0.0 ? norm / previous_norm : 1.0;
+        if (rho < 1.0 && step.dot(previous_step) > kCosExtrapolation * norm * previous_norm) {
+          const double factor = std::min(rho / (1.0 - rho), kMaxExtrapolation);
+          transform = update_about(pass.centroid, x, factor) * transform;
+          transform.topLeftCorner<3, 3>() = orthonormalised(transform.topLeftCorner<3, 3>());
+          has_previous_step = false;
+        } else {
+          previous_step = step;
+        }
+      } else {
+        previous_step = step;
+        has_previous_step = true;
+      }
+    }
     if (x.head<3>().norm() < params.rotation_tolerance_rad && x.tail<3>().norm() < params.translation_tolerance_m) {
       // Converged: report the statistics at the final estimate.
       const Pass last = registration.pass(transform, distance);
@@ -419,6 +477,128 @@ std::ptrdiff_t NearestNeighbor3d::nearest(const Eigen::Vector3d& query, double m
     return static_cast<std::ptrdiff_t>(original_[static_cast<std::size_t>(best)]);
   }
   return -1;
+}
+
+// --- 2D bucket grid -------------------------------------------------------------------------
+
+namespace {
+// Slack on the pruning bounds [buckets]: a point whose bucket was computed with rounding on the
+// other side of a boundary is still examined, so the search stays exact.
+constexpr double kBucketSlack = 1e-6;
+}  // namespace
+
+NearestNeighborGrid::NearestNeighborGrid(std::vector<Eigen::Vector3d> points, double bucket_size_m) {
+  if (points.size() >= std::numeric_limits<std::uint32_t>::max()) {
+    throw std::invalid_argument("too many points for the nearest-neighbour grid");
+  }
+  if (!(bucket_size_m >= 0.0 && std::isfinite(bucket_size_m))) {
+    throw std::invalid_argument("nearest-neighbour grid bucket size must be finite and >= 0 [m]");
+  }
+  for (std::size_t k = 0; k < points.size(); ++k) {
+    if (!points[k].allFinite()) {
+      throw std::invalid_argument("nearest-neighbour grid point " + std::to_string(k) + " is NaN or Inf");
+    }
+  }
+  const std::size_t n = points.size();
+  if (n == 0) return;
+  Eigen::Vector2d low = points[0].head<2>(), high = low;
+  for (const Eigen::Vector3d& p : points) {
+    low = low.cwiseMin(p.head<2>());
+    high = high.cwiseMax(p.head<2>());
+  }
+  const Eigen::Vector2d extent = high - low;
+  if (bucket_size_m == 0.0) {
+    // Half the mean spacing over the box (about four buckets per point); a line of points (zero
+    // area) gets a quarter of its spacing; a single column one bucket.
+    const auto count = static_cast<double>(n);
+    bucket_size_m = std::max(0.5 * std::sqrt(extent.x() * extent.y() / count), extent.maxCoeff() / (4.0 * count));
+    if (!(bucket_size_m > 0.0)) bucket_size_m = 1.0;
+  }
+  const double columns = std::floor(extent.x() / bucket_size_m) + 1.0;
+  const double rows = std::floor(extent.y() / bucket_size_m) + 1.0;
+  if (columns * rows > static_cast<double>(std::numeric_limits<std::int32_t>::max())) {
+    throw std::invalid_argument("nearest-neighbour grid bucket size " + std::to_string(bucket_size_m) +
+                                " m gives more than 2^31 buckets over the points' extent");
+  }
+  bucket_size_m_ = bucket_size_m;
+  inverse_bucket_size_ = 1.0 / bucket_size_m;
+  origin_ = low;
+  columns_ = static_cast<std::int64_t>(columns);
+  rows_ = static_cast<std::int64_t>(rows);
+  // Counting sort of the points by bucket.
+  const auto bucket_of = [&](const Eigen::Vector3d& p) {
+    const auto column = std::min(columns_ - 1, static_cast<std::int64_t>((p.x() - low.x()) * inverse_bucket_size_));
+    const auto row = std::min(rows_ - 1, static_cast<std::int64_t>((p.y() - low.y()) * inverse_bucket_size_));
+    return static_cast<std::size_t>(row * columns_ + column);
+  };
+  start_.assign(static_cast<std::size_t>(columns_ * rows_) + 1, 0);
+  std::vector<std::uint32_t> bucket(n);
+  for (std::size_t k = 0; k < n; ++k) {
+    bucket[k] = static_cast<std::uint32_t>(bucket_of(points[k]));
+    ++start_[bucket[k] + 1];
+  }
+  std::partial_sum(start_.begin(), start_.end(), start_.begin());
+  std::vector<std::uint32_t> next(start_.begin(), start_.end() - 1);
+  points_.resize(n);
+  original_.resize(n);
+  position_.resize(n);
+  for (std::size_t k = 0; k < n; ++k) {
+    const std::uint32_t slot = next[bucket[k]]++;
+    points_[slot] = points[k];
+    original_[slot] = static_cast<std::uint32_t>(k);
+    position_[k] = slot;
+  }
+}
+
+std::ptrdiff_t NearestNeighborGrid::nearest(const Eigen::Vector3d& query, double max_squared_distance,
+                                            double& squared_distance) const {
+  if (points_.empty()) return -1;
+  double best = max_squared_distance;
+  std::ptrdiff_t found = -1;
+  // The query in bucket units (it may lie outside the grid).
+  const double u = (query.x() - origin_.x()) * inverse_bucket_size_;
+  const double v = (query.y() - origin_.y()) * inverse_bucket_size_;
+  const double bucket_squared = bucket_size_m_ * bucket_size_m_;
+  const double last_column = static_cast<double>(columns_ - 1);
+  // Scans the buckets of `row` whose x range can hold a point within `best`, given that every
+  // point of the row is at least `gap` buckets away in y. Points of consecutive buckets are
+  // contiguous, so the scan is one loop.
+  const auto scan_row = [&](std::int64_t row, double gap) {
+    const double reach_squared = best / bucket_squared - gap * gap;
+    if (reach_squared < 0.0) return;
+    const double reach = std::sqrt(reach_squared) + kBucketSlack;
+    const double low = u - reach, high = u + reach;
+    if (high < 0.0 || low >= static_cast<double>(columns_)) return;
+    // Truncation of a non-negative value is floor.
+    const std::size_t first = low <= 0.0 ? 0 : static_cast<std::size_t>(low);
+    const std::size_t last =
+        high >= last_column ? static_cast<std::size_t>(columns_ - 1) : static_cast<std::size_t>(high);
+    const std::size_t base = static_cast<std::size_t>(row * columns_);
+    const std::uint32_t end = start_[base + last + 1];
+    for (std::uint32_t k = start_[base + first]; k < end; ++k) {
+      const double d = (points_[k] - query).squaredNorm();
+      if (d <= best) {
+        best = d;
+        found = static_cast<std::ptrdiff_t>(k);
+      }
+    }
+  };
+  const auto row_of_query = static_cast<std::int64_t>(std::floor(std::clamp(v, -1.0, static_cast<double>(rows_))));
+  // Upward from the query's row (gap 0 within it), then downward; a row whose gap alone exceeds
+  // the best distance ends its direction.
+  for (std::int64_t row = std::max<std::int64_t>(row_of_query, 0); row < rows_; ++row) {
+    const double gap = std::max(0.0, static_cast<double>(row) - v - kBucketSlack);
+    if (gap * gap * bucket_squared > best) break;
+    scan_row(row, gap);
+  }
+  for (std::int64_t row = std::min(row_of_query - 1, rows_ - 1); row >= 0; --row) {
+    const double gap = std::max(0.0, v - static_cast<double>(row + 1) - kBucketSlack);
+    if (gap * gap * bucket_squared > best) break;
+    scan_row(row, gap);
+  }
+  if (found < 0) return -1;
+  squared_distance = best;
+  return static_cast<std::ptrdiff_t>(original_[static_cast<std::size_t>(found)]);
 }
 
 }  // namespace terracube

@@ -75,6 +75,10 @@ class RegistrationParams:
     degeneracy_threshold : float
         Smallest / largest eigenvalue of the 6x6 normal matrix below this stops registration
         (reason ``degenerate``) instead of moving along unconstrained directions.
+    extrapolate : bool
+        Opt-in acceleration after Besl and McKay: when two successive updates point the same way
+        and shrink, jump ahead along them (at most 10 steps). Unguarded: it can overshoot into
+        another minimum, so False (the plain iteration) is the default.
     """
 
     use_classes: bool = True
@@ -88,6 +92,7 @@ class RegistrationParams:
     error_threshold: float = 0.0
     min_correspondences: int = 10
     degeneracy_threshold: float = 1e-6
+    extrapolate: bool = False
 
     def to_core(self) -> _core.RegistrationParams:
         params = _core.RegistrationParams()
@@ -107,6 +112,7 @@ class RegistrationParams:
             raise ValueError(f"min_correspondences must be at least 3, got {self.min_correspondences}")
         params.min_correspondences = int(self.min_correspondences)
         params.degeneracy_threshold = float(self.degeneracy_threshold)
+        params.extrapolate = bool(self.extrapolate)
         return params
 
 

@@ -5,9 +5,11 @@
 
 #include <Eigen/Geometry>
 #include <cmath>
+#include <iostream>
 #include <limits>
 #include <random>
 #include <stdexcept>
+#include <utility>
 #include <vector>
 
 #include "test_support.hpp"
@@ -141,6 +143,117 @@ TEST(NearestNeighbor3d, MatchesBruteForceWithinTheDistanceLimit) {
       }
     }
   }
+}
+
+/// Brute-force nearest within the limit: (index or -1, squared distance).
+std::pair<std::ptrdiff_t, double> brute_nearest(const std::vector<Eigen::Vector3d>& points,
+                                                const Eigen::Vector3d& query, double limit_squared) {
+  double best = limit_squared;
+  std::ptrdiff_t index = -1;
+  for (std::size_t k = 0; k < points.size(); ++k) {
+    const double d = (points[k] - query).squaredNorm();
+    if (d <= best) {
+      best = d;
+      index = static_cast<std::ptrdiff_t>(k);
+    }
+  }
+  return {index, best};
+}
+
+void expect_grid_matches_brute_force(const std::vector<Eigen::Vector3d>& points, const NearestNeighborGrid& grid,
+                                     const std::vector<Eigen::Vector3d>& queries, double limit, const char* what) {
+  for (std::size_t q = 0; q < queries.size(); ++q) {
+    const auto [brute, best] = brute_nearest(points, queries[q], limit * limit);
+    double found = -1.0;
+    const std::ptrdiff_t got = grid.nearest(queries[q], limit * limit, found);
+    ASSERT_EQ(got < 0, brute < 0) << what << " query " << q << " limit " << limit;
+    if (got >= 0) {
+      EXPECT_EQ(found, best) << what << " query " << q;  // ties may pick another index
+      EXPECT_EQ((points[static_cast<std::size_t>(got)] - queries[q]).squaredNorm(), best) << what << " query " << q;
+      EXPECT_EQ(grid.point(static_cast<std::size_t>(got)), points[static_cast<std::size_t>(got)]);
+    }
+  }
+}
+
+TEST(NearestNeighborGrid, MatchesBruteForceOnRandomPointsForAnyBucketSize) {
+  std::mt19937 rng(17);
+  std::uniform_real_distribution<double> u(-5.0, 5.0);
+  for (const std::size_t n : {std::size_t{0}, std::size_t{1}, std::size_t{9}, std::size_t{500}, std::size_t{3000}}) {
+    std::vector<Eigen::Vector3d> points;
+    for (std::size_t k = 0; k < n; ++k) points.emplace_back(u(rng), 0.5 * u(rng), 0.3 * u(rng));
+    if (n > 10) points.insert(points.end(), points.begin(), points.begin() + 10);  // duplicates
+    std::vector<Eigen::Vector3d> queries;  // inside, around and far outside the points' box
+    for (int q = 0; q < 300; ++q) queries.emplace_back(1.5 * u(rng), 1.5 * u(rng), 0.5 * u(rng));
+    queries.emplace_back(1e4, -1e4, 0.0);
+    for (const double bucket : {0.0, 0.05, 0.7, 30.0}) {
+      const NearestNeighborGrid grid(points, bucket);
+      EXPECT_EQ(grid.size(), points.size());
+      for (const double limit : {0.05, 0.5, 100.0})
+        expect_grid_matches_brute_force(points, grid, queries, limit, "random");
+    }
+  }
+}
+
+TEST(NearestNeighborGrid, MatchesBruteForceOnColumnsLinesAndLattices) {
+  std::vector<Eigen::Vector3d> column, line, lattice;
+  for (int k = 0; k < 200; ++k) column.emplace_back(1.0, 2.0, 0.05 * k);  // one (x, y): zero extent
+  for (int k = 0; k < 200; ++k) line.emplace_back(0.1 * k, -3.0, std::sin(0.3 * k));
+  for (int i = 0; i < 40; ++i) {
+    for (int j = 0; j < 30; ++j) lattice.emplace_back(0.1 * i + 0.05, 0.1 * j + 0.05, 0.2 * std::cos(i + j));
+  }
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> u(-1.0, 5.0);
+  std::vector<Eigen::Vector3d> queries;
+  for (int q = 0; q < 300; ++q) queries.emplace_back(u(rng), u(rng) - 2.0, u(rng) - 1.0);
+  // Queries exactly on bucket boundaries (the lattice's cell edges).
+  for (int q = 0; q < 20; ++q) queries.emplace_back(0.1 * q, 0.1 * (q % 7), 0.0);
+  for (const auto* set : {&column, &line, &lattice}) {
+    for (const double bucket : {0.0, 0.1}) {
+      const NearestNeighborGrid grid(*set, bucket);
+      for (const double limit : {0.12, 0.6, 50.0}) expect_grid_matches_brute_force(*set, grid, queries, limit, "shape");
+    }
+  }
+}
+
+TEST(NearestNeighborGrid, MatchesBruteForceOnARealKittiMap) {
+  const auto root = test::shared_data_dir();
+  if (!root) GTEST_SKIP() << "no shared data";
+  const test::XyziScan scan = test::read_xyzi_bin(*root + "/kitti_seq00/velodyne/000000.bin");
+  ElevationParams params;
+  params.resolution_m = 0.1;
+  params.origin_m = Eigen::Vector2d(-20.0, -10.0);
+  params.size = CellIndex(400, 200);
+  ElevationMap map = build_elevation_map(scan.xyz(), params);
+  TerrainParams terrain;
+  terrain.sensor_height_m = kSensorHeight;
+  classify_terrain(map, terrain);
+  const ClassifiedPoints cells = points_of_map(map);
+  std::vector<Eigen::Vector3d> vertical;  // one class, as register_points indexes them
+  for (std::size_t k = 0; k < cells.size(); ++k) {
+    if (cells.classes[k] == static_cast<std::uint8_t>(TerrainClass::kVerticalObject))
+      vertical.push_back(cells.points[k]);
+  }
+  ASSERT_GT(vertical.size(), 500U);
+  // Queries: the cells moved by a small motion (as in ICP), plus points of every other class.
+  const std::vector<Eigen::Vector3d> moved = transformed(cells.points, pose(0.37, -0.21, 0.04, 1.5, 0.5, -0.3));
+  std::vector<Eigen::Vector3d> queries;
+  for (std::size_t k = 0; k < moved.size(); k += 17) queries.push_back(moved[k]);
+  const NearestNeighborGrid grid(vertical);
+  for (const double limit : {0.3, 1.5}) expect_grid_matches_brute_force(vertical, grid, queries, limit, "kitti");
+  const NearestNeighborGrid all_cells(cells.points);
+  std::vector<Eigen::Vector3d> few(queries.begin(), queries.begin() + 300);
+  expect_grid_matches_brute_force(cells.points, all_cells, few, 1.5, "kitti all cells");
+}
+
+TEST(NearestNeighborGrid, RejectsNonFinitePointsAndBadBucketSizes) {
+  std::vector<Eigen::Vector3d> points = {{0, 0, 0}, {1, 1, 1}};
+  EXPECT_THROW(NearestNeighborGrid(points, -0.1), std::invalid_argument);
+  EXPECT_THROW(NearestNeighborGrid(points, std::numeric_limits<double>::infinity()), std::invalid_argument);
+  EXPECT_THROW(NearestNeighborGrid({{0, 0, 0}, {1e9, 1e9, 0}}, 1e-3), std::invalid_argument);  // too many buckets
+  points[1].z() = std::numeric_limits<double>::quiet_NaN();
+  EXPECT_THROW(NearestNeighborGrid{points}, std::invalid_argument);
+  double d = 0.0;
+  EXPECT_EQ(NearestNeighborGrid().nearest(Eigen::Vector3d::Zero(), 1.0, d), -1);
 }
 
 // --- point sets with exact correspondences ------------------------------------------------------
@@ -355,6 +468,79 @@ TEST(RegisterMaps, RecoverThreeMetresAndTwentyDegreesFromAPerturbedGuess) {
   EXPECT_EQ(weighted.correspondences_per_class[static_cast<int>(TerrainClass::kGround)], 0U);
   EXPECT_GT(all_cells.correspondences_per_class[static_cast<int>(TerrainClass::kGround)], 0U);
   EXPECT_GT(all_cells.num_correspondences, weighted.num_correspondences);
+}
+
+TEST(RegisterMaps, NormalEquationsEqualANaiveSumOverBruteForcePairs) {
+  // The one-sweep moments against eq. (A6) summed pair by pair, with brute-force partners of the
+  // same class at the final estimate and limit.
+  const std::vector<Eigen::Vector3d> world = street(0.1);
+  const Eigen::Matrix4d source_pose = pose(-1.0, 0.0, kSensorHeight, -10.0);
+  const Eigen::Matrix4d target_pose = pose(1.95, 0.5, kSensorHeight, 10.0);
+  const ClassifiedPoints source = points_of_map(street_map(world, source_pose, 0.2));
+  const ClassifiedPoints target = points_of_map(street_map(world, target_pose, 0.2));
+  const Eigen::Matrix4d guess = pose(0.25, -0.15, 0.05, 3.0, 0.5, -0.5) * target_pose.inverse() * source_pose;
+  const RegistrationParams params;
+  const RegistrationResult result = register_points(source, target, guess, params);
+  ASSERT_TRUE(result.converged) << to_string(result.reason);
+  const double limit = result.correspondence_distance_m;
+  std::vector<Eigen::Vector3d> p, q;
+  std::vector<double> w;
+  for (std::size_t k = 0; k < source.size(); ++k) {
+    const double weight = params.class_weights[source.classes[k]];
+    if (weight == 0.0) continue;
+    const Eigen::Vector3d moved =
+        result.transform.topLeftCorner<3, 3>() * source.points[k] + result.transform.topRightCorner<3, 1>();
+    std::vector<Eigen::Vector3d> same_class;
+    for (std::size_t j = 0; j < target.size(); ++j) {
+      if (target.classes[j] == source.classes[k]) same_class.push_back(target.points[j]);
+    }
+    const auto [index, squared] = brute_nearest(same_class, moved, limit * limit);
+    if (index < 0) continue;
+    p.push_back(moved);
+    q.push_back(same_class[static_cast<std::size_t>(index)]);
+    w.push_back(weight);
+  }
+  ASSERT_EQ(p.size(), result.num_correspondences);
+  double w_sum = 0.0, error = 0.0;
+  Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
+  for (std::size_t k = 0; k < p.size(); ++k) {
+    w_sum += w[k];
+    centroid += w[k] * p[k];
+    error += w[k] * (p[k] - q[k]).squaredNorm();
+  }
+  centroid /= w_sum;
+  Eigen::Matrix<double, 6, 6> naive = Eigen::Matrix<double, 6, 6>::Zero();
+  for (std::size_t k = 0; k < p.size(); ++k) {
+    Eigen::Matrix<double, 3, 6> jacobian;  // d(residual)/d(omega, t) about the centroid
+    const Eigen::Vector3d r = p[k] - centroid;
+    jacobian.leftCols<3>() << 0.0, r.z(), -r.y(), -r.z(), 0.0, r.x(), r.y(), -r.x(), 0.0;  // -[r]x
+    jacobian.rightCols<3>().setIdentity();
+    naive += w[k] * jacobian.transpose() * jacobian;
+  }
+  EXPECT_LT((result.normal_matrix - naive).cwiseAbs().maxCoeff(), 1e-9 * naive.cwiseAbs().maxCoeff());
+  EXPECT_NEAR(result.rmse_m, std::sqrt(error / w_sum), 1e-12);
+}
+
+TEST(RegisterPoints, ExtrapolationReachesTheSameAnswerInFewerIterations) {
+  const std::vector<Eigen::Vector3d> scene = test::random_scene(9, 3000, 20.0);
+  const Eigen::Matrix4d truth = pose(0.4, -0.3, 0.05, 5.0, 1.0, -0.5);
+  RegistrationParams params;
+  params.use_classes = false;
+  params.max_iterations = 200;
+  params.rotation_tolerance_rad = 1e-9;
+  params.translation_tolerance_m = 1e-9;
+  const ClassifiedPoints source = with_class(scene, TerrainClass::kObstacle);
+  const ClassifiedPoints target = with_class(transformed(scene, truth), TerrainClass::kObstacle);
+  params.extrapolate = false;
+  const RegistrationResult plain = register_points(source, target, Eigen::Matrix4d::Identity(), params);
+  params.extrapolate = true;
+  const RegistrationResult accelerated = register_points(source, target, Eigen::Matrix4d::Identity(), params);
+  ASSERT_TRUE(plain.converged && accelerated.converged);
+  EXPECT_LT(translation_error(plain.transform, truth), 1e-6);
+  EXPECT_LT(translation_error(accelerated.transform, truth), 1e-6);
+  EXPECT_LT(rotation_error_deg(accelerated.transform, truth), 1e-5);
+  EXPECT_LT(accelerated.iterations, plain.iterations);
+  std::cout << "iterations: plain " << plain.iterations << ", extrapolated " << accelerated.iterations << "\n";
 }
 
 #ifdef TERRACUBE_HAVE_PCL

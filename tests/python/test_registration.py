@@ -110,6 +110,7 @@ def test_params_mirror_the_cpp_defaults():
         "error_threshold_m",
         "min_correspondences",
         "degeneracy_threshold",
+        "extrapolate",
     ):
         assert getattr(core, name) == getattr(default, name), name
     assert list(core.class_weights) == list(default.class_weights) == [0.0, 0.0, 0.8, 0.5, 0.5, 0.8]

@@ -66,6 +66,12 @@ struct RegistrationParams {
   /// shows only in the result, not in H); the test catches collinear or coincident points
   /// (rotation about the line is free). The eigenvalues are reported either way.
   double degeneracy_threshold = 1e-6;
+  /// Opt-in acceleration after Besl and McKay (the ICP paper, sec. IV-C): when two successive
+  /// updates point the same way and shrink, jump ahead along them by the geometric series'
+  /// remainder (at most 10 steps). Fewer iterations where point-to-point ICP crawls, but with no
+  /// guard against overshooting it can settle in another minimum (seen on random scenes), so the
+  /// plain iteration (false) is the default.
+  bool extrapolate = false;
 };
 
 /// Why registration stopped.
@@ -119,7 +125,8 @@ RegistrationResult register_maps(const ElevationMap& source, const ElevationMap&
 RegistrationResult register_maps_all_cells(const ElevationMap& source, const ElevationMap& target,
                                            const Eigen::Matrix4d& initial, RegistrationParams params = {});
 
-/// Exact nearest neighbour among a fixed set of 3D points (a compact k-d tree).
+/// Exact nearest neighbour among a fixed set of 3D points (a compact k-d tree). Kept as a general
+/// index; register_points uses NearestNeighborGrid, which is faster on map cells.
 class NearestNeighbor3d {
  public:
   NearestNeighbor3d() = default;
@@ -143,6 +150,38 @@ class NearestNeighbor3d {
   std::vector<std::uint32_t> original_;  // constructor index of points_[k]
   std::vector<std::uint32_t> position_;  // inverse of original_
   std::vector<Node> nodes_;
+};
+
+/// Exact nearest neighbour (3D Euclidean) among a fixed set of points bucketed on a 2D (x, y)
+/// grid: suited to the cells of 2.5D maps, where a column holds one or a few points. A query
+/// scans whole rows of buckets (contiguous memory) outward from its own row, each row only as
+/// wide as the best distance so far allows, and stops when a row's y gap alone exceeds it; every
+/// point within the limit that could be nearer is examined, so the answer is exact whatever the
+/// data (tall 3D columns only make it slower). Used by register_points for every class.
+class NearestNeighborGrid {
+ public:
+  NearestNeighborGrid() = default;
+  /// `bucket_size_m` > 0 sets the bucket edge [m]; 0 picks half the mean point spacing over the
+  /// points' (x, y) bounding box (about four buckets per point). Throws std::invalid_argument for
+  /// non-finite points, a negative or non-finite bucket size, or a grid of more than 2^31 buckets.
+  explicit NearestNeighborGrid(std::vector<Eigen::Vector3d> points, double bucket_size_m = 0.0);
+  /// Index (into the constructor's points) of the nearest point whose squared distance is at most
+  /// `max_squared_distance` (ties: any one), or -1. `squared_distance` receives that distance.
+  std::ptrdiff_t nearest(const Eigen::Vector3d& query, double max_squared_distance, double& squared_distance) const;
+  std::size_t size() const { return points_.size(); }
+  /// The constructor's point `index`.
+  const Eigen::Vector3d& point(std::size_t index) const { return points_[position_[index]]; }
+  double bucket_size_m() const { return bucket_size_m_; }
+
+ private:
+  double bucket_size_m_ = 1.0;
+  double inverse_bucket_size_ = 1.0;
+  Eigen::Vector2d origin_ = Eigen::Vector2d::Zero();  // lower corner of bucket (0, 0) [m]
+  std::int64_t columns_ = 0, rows_ = 0;               // buckets along x, along y
+  std::vector<std::uint32_t> start_;                  // bucket b = row * columns_ + column: [start_[b], start_[b+1])
+  std::vector<Eigen::Vector3d> points_;               // in bucket order
+  std::vector<std::uint32_t> original_;               // constructor index of points_[k]
+  std::vector<std::uint32_t> position_;               // inverse of original_
 };
 
 }  // namespace terracube
