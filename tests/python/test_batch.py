@@ -21,7 +21,6 @@ from terracube.io import read_cloud, write_classified, write_pcd
 from typer.testing import CliRunner
 
 
-
 def _scene(seed: int) -> np.ndarray:
     """Ground, a canopy 3 m up and a wall; a different sample per seed."""
     rng = np.random.default_rng(seed)
