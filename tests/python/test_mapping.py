@@ -143,8 +143,8 @@ def test_kitti_frames_chain_closer_to_the_ground_truth_than_perturbed_odometry(s
     assert len(mapper) == 6
     odom_error = np.linalg.norm(mapper.keyframe_odometry()[:, :3, 3] - truth[:, :3, 3], axis=1)
     error = np.linalg.norm(mapper.keyframe_poses()[:, :3, 3] - truth[:, :3, 3], axis=1)
-    # KITTI scans are not de-skewed (the car moves ~0.86 m during one sweep): the ICP lands about
-    # 0.1 m short per frame (see test_registration), so the error grows by 0.09-0.17 m per frame
+    # On these KITTI frames every scan matcher (PCL's on the raw scans too) lands ~0.1 m from the
+    # ground truth per frame (see the README's registration section), so the error grows by 0.09-0.17 m per frame
     # (measured: 0.17, 0.34, 0.45, 0.55, 0.65 m over frames 1-5) while this odometry's grows by
     # 0.22-0.26 m per frame (1.18 m at frame 5).
     assert error[-1] < 0.6 * odom_error[-1], (error, odom_error)
@@ -216,7 +216,7 @@ def test_map_command_on_kitti_frames_with_kitti_and_tum_poses(shared_data, tmp_p
     trajectory = read_kitti_poses(out / "trajectory_kitti.txt")
     truth = kitti_world_velo(shared_data.root)
     assert trajectory.shape == (6, 4, 4)
-    # Odometry is the ground truth here: the mapper stays within the KITTI skew bias of it.
+    # Odometry is the ground truth here: the mapper stays within the KITTI scan-matching floor of it.
     assert np.linalg.norm(trajectory[-1, :3, 3] - truth[5, :3, 3]) < 0.7
     dem = tc.ElevationMap.load(out / "global_map.npz")
     assert {"max", "mean", "class"} <= set(dem.layers)
