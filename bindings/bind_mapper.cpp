@@ -67,7 +67,8 @@ void bind_mapper(py::module_& m) {
       .def_readwrite("loop_yaw_hypotheses", &MapperParams::loop_yaw_hypotheses)
       .def_readwrite("loop_max_rmse_m", &MapperParams::loop_max_rmse_m)
       .def_readwrite("loop_min_inlier_ratio", &MapperParams::loop_min_inlier_ratio)
-      .def_readwrite("pose_graph_iterations", &MapperParams::pose_graph_iterations);
+      .def_readwrite("pose_graph_iterations", &MapperParams::pose_graph_iterations)
+      .def_readwrite("optimize_interval_keyframes", &MapperParams::optimize_interval_keyframes);
 
   py::class_<ScanReport>(m, "ScanReport")
       .def_readonly("keyframe", &ScanReport::keyframe)
@@ -114,6 +115,7 @@ void bind_mapper(py::module_& m) {
           },
           py::arg("points"), py::arg("pose"))
       .def_property_readonly("num_keyframes", &Mapper::num_keyframes)
+      .def_property_readonly("pending_loops", &Mapper::pending_loops)
       .def("keyframe_poses", [](const Mapper& mapper) { return pose_array(mapper.keyframe_poses()); })
       .def("keyframe_odometry", [](const Mapper& mapper) { return pose_array(mapper.keyframe_odometry()); })
       .def("keyframe_scan_indices", &Mapper::keyframe_scan_indices)

@@ -69,6 +69,9 @@ void check_params(const MapperParams& p) {
     throw std::invalid_argument("MapperParams.loop_min_overlap must lie in [0, 1]");
   }
   if (p.loop_max_candidates < 1) throw std::invalid_argument("MapperParams.loop_max_candidates must be >= 1");
+  if (p.optimize_interval_keyframes < 1) {
+    throw std::invalid_argument("MapperParams.optimize_interval_keyframes must be >= 1");
+  }
   if (p.pose_graph_iterations < 1) throw std::invalid_argument("MapperParams.pose_graph_iterations must be >= 1");
   const double cells = std::ceil(p.local_map_size_m / p.resolution_m);
   if (cells > 8192.0) {
@@ -278,6 +281,8 @@ struct Mapper::Impl {
   bool have_last = false;
   /// Scans since the previous keyframe (the newest last), points beyond min_range in the sensor frame.
   std::deque<BufferedScan> pending;
+  std::size_t pending_loops = 0;  // loop edges added since the last optimisation
+  std::size_t optimized_at = 0;   // keyframe count at the last optimisation
 
   explicit Impl(const MapperParams& p) : params(p), global(p.resolution_m) {}
 
@@ -493,7 +498,13 @@ ScanReport Mapper::Impl::add_checked(const PointsView<Scalar>& points, const Eig
   if (params.loop_closing) {
     start = Clock::now();
     report.loops_closed = close_loops(keyframes.size() - 1);
-    if (report.loops_closed > 0) optimize();
+    pending_loops += report.loops_closed;
+    // While a revisit keeps closing loops, optimise (and rebuild the map) at most every
+    // optimize_interval_keyframes keyframes; optimize() applies the rest.
+    if (pending_loops > 0 &&
+        keyframes.size() - optimized_at >= static_cast<std::size_t>(params.optimize_interval_keyframes)) {
+      optimize();
+    }
     timings.loop_closing_ms += ms_since(start);
   }
   return report;
@@ -628,6 +639,8 @@ Eigen::Matrix4d Mapper::Impl::coarse_alignment(const Keyframe& current, const Ke
 }
 
 void Mapper::Impl::optimize() {
+  pending_loops = 0;
+  optimized_at = keyframes.size();
   if (loops.empty() || keyframes.size() < 2) return;
   std::vector<Eigen::Matrix4d> poses;
   poses.reserve(keyframes.size());
@@ -668,6 +681,7 @@ ScanReport Mapper::add_scan(const PointsView<double>& points, const Eigen::Matri
   return impl_->add(points, odometry_pose);
 }
 std::size_t Mapper::num_keyframes() const { return impl_->keyframes.size(); }
+std::size_t Mapper::pending_loops() const { return impl_->pending_loops; }
 
 std::vector<Eigen::Matrix4d> Mapper::keyframe_poses() const {
   std::vector<Eigen::Matrix4d> poses;

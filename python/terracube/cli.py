@@ -1244,6 +1244,8 @@ def map_command(
         points = _read_points(path)
         with _exit_on_bad_input(str(path)):
             mapper.add_scan(points, odometry[index])
+    if mapper.pending_loops:
+        mapper.optimize()
     seconds = time.perf_counter() - start
     with _exit_on_bad_input("global map"):
         dem = mapper.global_map()

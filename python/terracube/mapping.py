@@ -93,6 +93,10 @@ class MapperParams:
         ... when this share of the new map's weighted cells found a correspondence.
     pose_graph_iterations : int
         Ceres iterations.
+    optimize_interval_keyframes : int
+        While a revisit keeps closing loops, the pose graph is optimised (and the global map rebuilt)
+        at most once per this many keyframes; :meth:`Mapper.optimize` applies loops still pending
+        (:func:`run_mapper` and ``terracube map`` call it after the last scan).
     """
 
     keyframe_distance: float = 3.0
@@ -127,6 +131,7 @@ class MapperParams:
     loop_max_rmse: float = 0.2
     loop_min_inlier_ratio: float = 0.3
     pose_graph_iterations: int = 50
+    optimize_interval_keyframes: int = 5
 
     def to_core(self) -> _core.MapperParams:
         params = _core.MapperParams()
@@ -160,6 +165,7 @@ class MapperParams:
         params.loop_max_rmse_m = float(self.loop_max_rmse)
         params.loop_min_inlier_ratio = float(self.loop_min_inlier_ratio)
         params.pose_graph_iterations = int(self.pose_graph_iterations)
+        params.optimize_interval_keyframes = int(self.optimize_interval_keyframes)
         return params
 
 
@@ -230,9 +236,14 @@ class Mapper:
         relative_height and ground."""
         return ElevationMap(self._core.global_map(bool(classify)))
 
+    @property
+    def pending_loops(self) -> int:
+        """Loop edges added since the last pose-graph optimisation."""
+        return int(self._core.pending_loops)
+
     def optimize(self) -> None:
-        """Optimises the pose graph now and rebuilds the global map (add_scan does this whenever it
-        closes a loop)."""
+        """Optimises the pose graph now and rebuilds the global map. add_scan does this when it
+        closes loops, at most every ``optimize_interval_keyframes``; call it after the last scan."""
         self._core.optimize()
 
 
@@ -243,7 +254,8 @@ def run_mapper(
     progress: bool = False,
     total: int | None = None,
 ) -> Mapper:
-    """Feeds ``scans`` with their odometry ``poses`` to a new :class:`Mapper` and returns it.
+    """Feeds ``scans`` with their odometry ``poses`` to a new :class:`Mapper`, applies loops still
+    pending (:meth:`Mapper.optimize`) and returns it.
 
     ``progress`` shows a tqdm bar (``total`` scans if known).
     """
@@ -255,6 +267,8 @@ def run_mapper(
         pairs = tqdm(pairs, total=total, unit="scan", desc="mapping")
     for points, pose in pairs:
         mapper.add_scan(points, pose)
+    if mapper.pending_loops:
+        mapper.optimize()
     return mapper
 
 

@@ -144,9 +144,9 @@ def test_kitti_frames_chain_closer_to_the_ground_truth_than_perturbed_odometry(s
     odom_error = np.linalg.norm(mapper.keyframe_odometry()[:, :3, 3] - truth[:, :3, 3], axis=1)
     error = np.linalg.norm(mapper.keyframe_poses()[:, :3, 3] - truth[:, :3, 3], axis=1)
     # On these KITTI frames every scan matcher (PCL's on the raw scans too) lands ~0.1 m from the
-    # ground truth per frame (see the README's registration section), so the error grows by 0.09-0.17 m per frame
-    # (measured: 0.17, 0.34, 0.45, 0.55, 0.65 m over frames 1-5) while this odometry's grows by
-    # 0.22-0.26 m per frame (1.18 m at frame 5).
+    # ground truth per frame (see the README's registration section), so the error grows by
+    # 0.09-0.17 m per frame (measured: 0.17, 0.34, 0.45, 0.55, 0.65 m over frames 1-5) while this
+    # odometry's grows by 0.22-0.26 m per frame (1.18 m at frame 5).
     assert error[-1] < 0.6 * odom_error[-1], (error, odom_error)
     assert np.all(np.diff(error) < 0.2), error
     dem = mapper.global_map()
@@ -346,3 +346,22 @@ def test_chaining_on_a_straight_synthetic_run_drifts_less_than_a_stated_bound():
     far = distance > 10.0
     assert np.all(error[far] <= 0.06 * distance[far]), np.max(error[far] / distance[far])
     assert error[-1] < 0.75 * odometry_error[-1], (error[-1], odometry_error[-1])
+
+
+def test_pending_loops_wait_for_the_interval_and_optimize_applies_them(loop_sequence):
+    sequence, scans = loop_sequence
+    mapper = Mapper(MapperParams(use_registration=False, optimize_interval_keyframes=1000))
+    for points, pose in zip(scans, sequence.odometry, strict=True):
+        mapper.add_scan(points, pose)
+    assert mapper.pending_loops == len(mapper.loop_closures) > 0  # nothing optimised yet
+    before, odometry_ate = keyframe_ate(mapper, sequence.poses)
+    assert before == pytest.approx(odometry_ate)
+    mapper.optimize()
+    assert mapper.pending_loops == 0
+    after, _ = keyframe_ate(mapper, sequence.poses)
+    # The same loops applied once at the end as run_mapper's every-5-keyframes schedule gives.
+    scheduled, _ = keyframe_ate(
+        run_mapper(scans, sequence.odometry, MapperParams(use_registration=False)), sequence.poses
+    )
+    assert after < odometry_ate / 3.0
+    assert after == pytest.approx(scheduled, rel=0.2)

@@ -102,6 +102,10 @@ struct MapperParams {
   double loop_min_inlier_ratio = 0.3;
   /// Ceres iterations for the pose graph.
   int pose_graph_iterations = 50;
+  /// While a revisit keeps closing loops, the pose graph is optimised (and the global map rebuilt,
+  /// both O(keyframes)) at most once per this many keyframes; Mapper::optimize() applies loops
+  /// still pending (call it after the last scan). 1: after every new loop.
+  int optimize_interval_keyframes = 5;
 };
 
 /// What happened to one scan given to Mapper::add_scan.
@@ -178,6 +182,8 @@ class Mapper {
   ScanReport add_scan(const PointsView<double>& points, const Eigen::Matrix4d& odometry_pose);
 
   std::size_t num_keyframes() const;
+  /// Loop edges added since the last pose-graph optimisation (see optimize_interval_keyframes).
+  std::size_t pending_loops() const;
   /// Estimated world <- sensor pose of every keyframe (after loop closing when it happened).
   std::vector<Eigen::Matrix4d> keyframe_poses() const;
   /// Odometry world <- sensor pose of every keyframe, as given.
@@ -197,7 +203,9 @@ class Mapper {
   const TiledElevationMap& tiles() const;
 
   /// Optimises the pose graph (steps + loop edges) with Ceres and rebuilds the global map from the
-  /// corrected poses. Called by add_scan whenever a loop is closed; a no-op without loop edges.
+  /// corrected poses. add_scan calls it when it closes loops (at most every
+  /// optimize_interval_keyframes); call it after the last scan for loops still pending. A no-op
+  /// without loop edges.
   void optimize();
 
  private:
