@@ -65,15 +65,15 @@ float smallest_float_at_least(double threshold) {
 
 }  // namespace
 
-TerrainClassification classify_terrain(ElevationMap& map, const TerrainParams& params) {
+TerrainClasses classify_terrain_layers(ElevationMap& map, const TerrainParams& params) {
   check_terrain_params(params);
   map.get("max");  // throws std::out_of_range naming a missing input layer before any is added
   map.get("std_dev");
   map.get("discontinuity");
   if (params.reference == GroundReference::kLocalGround) map.get("min");
   // Results go straight into the map's layers (reused in place when the map was classified
-  // before: fresh 320 kB buffers per call cost page faults), then are copied out. Adding layers
-  // can move them, so every reference is taken after the last add.
+  // before: fresh 320 kB buffers per call cost page faults). Adding layers can move them, so every
+  // reference is taken after the last add.
   for (const char* name : {"class", "relative_height", "ground"}) {
     if (!map.exists(name)) map.add(name);
   }
@@ -93,8 +93,7 @@ TerrainClassification classify_terrain(ElevationMap& map, const TerrainParams& p
     ground = window_min(map.get("min"), params.local_ground_radius_cells);
   }
   relative_height = highest - ground;  // NaN stays NaN
-  TerrainClassification out;
-  out.classes.resize(nx, ny);
+  TerrainClasses out(nx, ny);
 
   // Table 1. The thresholds are doubles (a 0.7 m threshold means 0.7, not float(0.7) =
   // 0.69999999); for a float v, v < t exactly when v < the smallest float >= t, so the per-cell
@@ -105,7 +104,7 @@ TerrainClassification classify_terrain(ElevationMap& map, const TerrainParams& p
   const float* height = relative_height.data();
   const float* deviation = spread.data();
   const float* flag = gap.data();
-  std::uint8_t* classes = out.classes.data();
+  std::uint8_t* classes = out.data();
   // kObject marks obstacle, overhanging and vertical cells for the edge pass below.
   constexpr std::uint8_t kUnknown = static_cast<std::uint8_t>(TerrainClass::kUnknown);
   constexpr std::uint8_t kGround = static_cast<std::uint8_t>(TerrainClass::kGround);
@@ -163,8 +162,14 @@ TerrainClassification classify_terrain(ElevationMap& map, const TerrainParams& p
     bits |= classes[k] == kUnknown ? 0x7fc00000U : 0U;
     std::memcpy(class_layer.data() + k, &bits, sizeof bits);
   }
-  out.relative_height = relative_height;
-  out.ground = ground;
+  return out;
+}
+
+TerrainClassification classify_terrain(ElevationMap& map, const TerrainParams& params) {
+  TerrainClassification out;
+  out.classes = classify_terrain_layers(map, params);
+  out.relative_height = map.get("relative_height");
+  out.ground = map.get("ground");
   return out;
 }
 

@@ -392,6 +392,25 @@ TEST(TerrainVsNaive, ClassifyingTheSameMapTwiceGivesTheSameResultAndLayers) {
                                                     "relative_height", "ground"}));
 }
 
+TEST(TerrainVsNaive, ClassifyTerrainLayersGivesTheClassesAndLayersOfClassifyTerrain) {
+  TerrainParams params;
+  params.sensor_height_m = 0.4;
+  for (const GroundReference reference : {GroundReference::kSensorHeight, GroundReference::kLocalGround}) {
+    params.reference = reference;
+    ElevationMap full = random_threshold_map(7, 23, 19, params);
+    ElevationMap light = full;
+    const TerrainClassification expected = classify_terrain(full, params);
+    const TerrainClasses classes = classify_terrain_layers(light, params);
+    EXPECT_EQ(classes, expected.classes);
+    EXPECT_EQ(light.layers(), full.layers());
+    EXPECT_EQ(light.get("ground"), expected.ground);
+    const Layer& relative = light.get("relative_height");
+    EXPECT_EQ(relative.array().isNaN().matrix(), expected.relative_height.array().isNaN().matrix());
+    EXPECT_EQ(relative.array().isNaN().select(0.0F, relative.array()).matrix(),
+              expected.relative_height.array().isNaN().select(0.0F, expected.relative_height.array()).matrix());
+  }
+}
+
 // --- ground reference ---------------------------------------------------------------------------
 
 TEST(TerrainReference, SensorHeightGivesAConstantGroundLayer) {
