@@ -17,7 +17,7 @@ discontinuity flag -- one np.lexsort by (cell, z) plus np.diff over the points o
 only (a gap longer than the threshold needs max - min longer than it); np.where plus shifted
 slices for the classes and the horizontal edges. The previous numpy baseline sorted every point
 (:func:`numpy_elevation_map_full_sort`, one np.lexsort over all points for min, max and the gaps);
-it is about twice as slow, still checked and timed, and shown for information only: the ratios and
+it is 2.5-4x slower here, still checked and timed, and shown for information only: the ratios and
 the target are against the faster formulation.
 
 Each step is timed with ``time.perf_counter`` (one warm-up call, then the median of ``--repeat``
