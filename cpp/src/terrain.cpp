@@ -25,31 +25,44 @@ void check_terrain_params(const TerrainParams& params) {
   if (params.local_ground_radius_cells < 0) throw std::invalid_argument("local ground radius must be >= 0 cells");
 }
 
-/// Lowest value within `radius` cells (a square window), ignoring NaN: a separable min filter.
+/// Running minimum of a line of `n` values (`stride` apart) over windows [k - r, k + r] clipped to
+/// the line, in O(1) per value whatever r (van Herk 1992; Gil and Werman 1993): cut the line,
+/// padded with r infinities each side, into blocks of w = 2r + 1; a window then spans the tail of
+/// one block and the head of the next, so its minimum is min(suffix minimum at its first value,
+/// prefix minimum at its last). `prefix` and `suffix` hold n + 2r values each.
+void running_min(const float* in, float* out, Eigen::Index n, Eigen::Index stride, Eigen::Index r,
+                 std::vector<float>& prefix, std::vector<float>& suffix) {
+  constexpr float kInf = std::numeric_limits<float>::infinity();
+  const Eigen::Index padded = n + 2 * r;
+  const Eigen::Index w = 2 * r + 1;
+  const auto value = [&](Eigen::Index k) { return k < r || k >= r + n ? kInf : in[(k - r) * stride]; };
+  for (Eigen::Index k = 0; k < padded; ++k) {
+    prefix[k] = k % w == 0 ? value(k) : std::min(prefix[k - 1], value(k));
+  }
+  for (Eigen::Index k = padded - 1; k >= 0; --k) {
+    suffix[k] = k % w == w - 1 || k == padded - 1 ? value(k) : std::min(suffix[k + 1], value(k));
+  }
+  for (Eigen::Index j = 0; j < n; ++j) out[j * stride] = std::min(suffix[j], prefix[j + w - 1]);
+}
+
+/// Lowest value within `radius` cells (a square window), ignoring NaN; NaN where the window holds
+/// no value. Separable: running minima along j, then along i, each O(1) per cell.
 Layer window_min(const Layer& layer, int radius) {
   constexpr float kInf = std::numeric_limits<float>::infinity();
   const Eigen::Index nx = layer.rows();
   const Eigen::Index ny = layer.cols();
+  // A radius of max(nx, ny) already spans the whole map: larger ones change nothing.
+  const Eigen::Index r = std::min<Eigen::Index>(radius, std::max(nx, ny));
+  Layer values = layer.array().isNaN().select(kInf, layer.array()).matrix();
   Layer along_y(nx, ny);
-  for (Eigen::Index i = 0; i < nx; ++i) {
-    for (Eigen::Index j = 0; j < ny; ++j) {
-      float lowest = kInf;
-      for (Eigen::Index b = std::max<Eigen::Index>(0, j - radius); b <= std::min(ny - 1, j + radius); ++b) {
-        const float v = layer(i, b);
-        if (!std::isnan(v)) lowest = std::min(lowest, v);
-      }
-      along_y(i, j) = lowest;
-    }
-  }
+  std::vector<float> prefix(static_cast<std::size_t>(std::max(nx, ny) + 2 * r));
+  std::vector<float> suffix(prefix.size());
+  for (Eigen::Index i = 0; i < nx; ++i)
+    running_min(values.data() + i * ny, along_y.data() + i * ny, ny, 1, r, prefix, suffix);
   Layer out(nx, ny);
-  for (Eigen::Index i = 0; i < nx; ++i) {
-    for (Eigen::Index j = 0; j < ny; ++j) {
-      float lowest = kInf;
-      for (Eigen::Index a = std::max<Eigen::Index>(0, i - radius); a <= std::min(nx - 1, i + radius); ++a) {
-        lowest = std::min(lowest, along_y(a, j));
-      }
-      out(i, j) = lowest == kInf ? std::numeric_limits<float>::quiet_NaN() : lowest;
-    }
+  for (Eigen::Index j = 0; j < ny; ++j) running_min(along_y.data() + j, out.data() + j, nx, ny, r, prefix, suffix);
+  for (Eigen::Index k = 0; k < out.size(); ++k) {
+    if (out.data()[k] == kInf) out.data()[k] = std::numeric_limits<float>::quiet_NaN();
   }
   return out;
 }

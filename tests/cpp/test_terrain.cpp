@@ -411,6 +411,50 @@ TEST(TerrainVsNaive, ClassifyTerrainLayersGivesTheClassesAndLayersOfClassifyTerr
   }
 }
 
+TEST(TerrainReference, LocalGroundEqualsANaiveWindowMinimumForAnyRadiusAndShape) {
+  // The O(1)-per-cell running minimum against a direct scan of every window (NaN = empty).
+  const std::vector<std::pair<int, int>> shapes = {{1, 1}, {1, 12}, {12, 1}, {5, 7}, {31, 17}};
+  std::mt19937 rng(5);
+  for (const auto& [nx, ny] : shapes) {
+    for (const int radius : {0, 1, 2, 3, 6, 40, std::numeric_limits<int>::max()}) {
+      SCOPED_TRACE(std::to_string(nx) + " x " + std::to_string(ny) + ", radius " + std::to_string(radius));
+      ElevationMap map = uniform_map(nx, ny, 0.0F, 0.0F);
+      Layer& lowest = map.get("min");
+      for (int i = 0; i < nx; ++i) {
+        for (int j = 0; j < ny; ++j) {
+          if (rng() % 4 == 0) {
+            clear_cell(map, i, j);
+          } else {
+            lowest(i, j) = static_cast<float>(static_cast<int>(rng() % 2001) - 1000) / 64.0F;
+            map.get("max")(i, j) = lowest(i, j) + 0.5F;
+          }
+        }
+      }
+      TerrainParams params = exact_params();
+      params.reference = GroundReference::kLocalGround;
+      params.local_ground_radius_cells = radius;
+      const Layer ground = classify_terrain(map, params).ground;
+      for (int i = 0; i < nx; ++i) {
+        for (int j = 0; j < ny; ++j) {
+          float expected = std::numeric_limits<float>::infinity();
+          for (long a = std::max<long>(0, i - static_cast<long>(radius));
+               a <= std::min<long>(nx - 1, i + static_cast<long>(radius)); ++a) {
+            for (long b = std::max<long>(0, j - static_cast<long>(radius));
+                 b <= std::min<long>(ny - 1, j + static_cast<long>(radius)); ++b) {
+              if (!std::isnan(lowest(a, b))) expected = std::min(expected, lowest(a, b));
+            }
+          }
+          if (std::isinf(expected)) {
+            EXPECT_TRUE(std::isnan(ground(i, j))) << "cell (" << i << ", " << j << ")";
+          } else {
+            EXPECT_EQ(ground(i, j), expected) << "cell (" << i << ", " << j << ")";
+          }
+        }
+      }
+    }
+  }
+}
+
 // --- ground reference ---------------------------------------------------------------------------
 
 TEST(TerrainReference, SensorHeightGivesAConstantGroundLayer) {
