@@ -4,6 +4,7 @@
 #include <terracube/elevation_map.hpp>
 #include <terracube/terrain.hpp>
 
+#include <memory>
 #include <sstream>
 
 #include "points.hpp"
@@ -154,12 +155,17 @@ void bind_elevation(py::module_& m) {
   m.def(
       "classify_terrain",
       [](ElevationMap& map, const TerrainParams& params) {
-        TerrainClassification result;
+        auto classes = std::make_unique<TerrainClasses>();
         {
           py::gil_scoped_release release;
-          result = classify_terrain(map, params);
+          *classes = classify_terrain_layers(map, params);
         }
-        return py::array_t<std::uint8_t>({result.classes.rows(), result.classes.cols()}, result.classes.data());
+        // The array owns the classes (no copy).
+        const py::ssize_t rows = classes->rows();
+        const py::ssize_t cols = classes->cols();
+        std::uint8_t* data = classes->data();
+        py::capsule owner(classes.release(), [](void* p) { delete static_cast<TerrainClasses*>(p); });
+        return py::array_t<std::uint8_t>({rows, cols}, data, owner);
       },
       py::arg("map"), py::arg("params"), "(nx, ny) uint8 classes; adds class, relative_height, ground layers");
   m.def("step_layer", [](const py::array_t<float, py::array::c_style | py::array::forcecast>& height) {

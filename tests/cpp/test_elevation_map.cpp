@@ -11,6 +11,7 @@
 #include <random>
 #include <stdexcept>
 #include <string>
+#include <thread>
 #include <utility>
 #include <vector>
 
@@ -431,6 +432,132 @@ TEST(BuildElevationMap, PointsAreBinnedIntoTheCellThatIndexOfNames) {
     expected((*index)(0), (*index)(1)) += 1.0F;
   }
   expect_same_layer(map.get("count"), expected, "count");
+}
+
+// --- fast paths: binning by multiplication, the wide-cell filter of the gap test, scratch reuse ----
+
+TEST(BuildElevationMapFastPaths, PointsOnAndWithinRoundingOfCellBordersAreBinnedByTheDivisionFormula) {
+  // The binning estimates (p - origin) / res by a multiplication and divides only near whole
+  // numbers; points on borders and a few ulps either side must land where the division puts them.
+  for (const double resolution : {0.1, 0.05, 0.3, 1.0 / 3.0, 0.7, 0.25}) {
+    for (const Eigen::Vector2d& origin : {Eigen::Vector2d(0.0, 0.0), Eigen::Vector2d(-20.0, -10.0),
+                                          Eigen::Vector2d(3.7, -0.1), Eigen::Vector2d(1e4 + 0.3, -2e4)}) {
+      SCOPED_TRACE("resolution " + std::to_string(resolution) + ", origin " + std::to_string(origin.x()));
+      const CellIndex size(37, 23);
+      std::vector<Eigen::Vector3d> points;
+      for (int k = -2; k <= 39; ++k) {
+        const double border_x = origin.x() + k * resolution;
+        const double border_y = origin.y() + (k % 25) * resolution;
+        for (const double dx : {-2e-9, 0.0, 2e-9}) {
+          for (int ulps = -3; ulps <= 3; ++ulps) {
+            double x = border_x + dx;
+            double y = border_y - dx;
+            for (int u = 0; u < std::abs(ulps); ++u) {
+              x = std::nextafter(x, ulps > 0 ? 1e300 : -1e300);
+              y = std::nextafter(y, ulps > 0 ? -1e300 : 1e300);
+            }
+            points.emplace_back(x, y, 0.01 * k);
+          }
+        }
+      }
+      const ElevationParams params = fixed_extent(resolution, origin, size);
+      const ElevationMap map = build_elevation_map(PointsView<double>(points), params);
+      expect_matches_naive(map, points, params.discontinuity_m);
+    }
+  }
+}
+
+TEST(BuildElevationMapFastPaths, WideCellFilterAtTheThresholdAgreesWithHandComputedFlags) {
+  // One cell per case (threshold 1 m, all values exact in binary). Only cells whose range exceeds
+  // the threshold are sorted; the rest are 0 without looking for gaps.
+  struct Case {
+    std::vector<double> z;
+    float flag;
+    const char* what;
+  };
+  const std::vector<Case> cases = {
+      {{0.0, 0.5, 0.25}, 0.0F, "narrow cell"},
+      {{0.0, 1.0}, 0.0F, "range exactly the threshold: not wide, and its gap is not longer"},
+      {{1.0, 0.5, 0.0}, 0.0F, "range exactly the threshold, three values"},
+      {{0.0, 0.5, 1.5}, 0.0F, "wide (range 1.5) without a gap over 1"},
+      {{1.5, 0.0, 0.5, 1.0}, 0.0F, "wide, steps of 0.5"},
+      {{0.0, 1.0, 1.5}, 0.0F, "wide, a gap exactly the threshold"},
+      {{2.0, 0.0, 1.0}, 0.0F, "wide, two gaps exactly the threshold"},
+      {{0.0, static_cast<double>(std::nextafter(1.0F, 2.0F)), 1.5}, 1.0F, "wide, a gap one float ulp over"},
+      {{5.0, 0.0, 0.25, 0.5}, 1.0F, "wide, the gap at the top"},
+      {{-3.0, 0.0, 0.25, 0.5}, 1.0F, "wide, the gap at the bottom"},
+      {{7.0}, 0.0F, "one point"},
+  };
+  std::vector<Eigen::Vector3d> points;
+  for (std::size_t c = 0; c < cases.size(); ++c) {
+    for (const double z : cases[c].z) points.emplace_back(c + 0.5, 0.5, z);
+  }
+  const ElevationParams params = fixed_extent(1.0, {0.0, 0.0}, CellIndex(static_cast<int>(cases.size()) + 1, 1));
+  for (const bool as_float : {false, true}) {
+    const std::vector<float> floats = as_floats(points, 3);
+    const ElevationMap map = as_float ? build_elevation_map(PointsView<float>(floats.data(), points.size()), params)
+                                      : build_elevation_map(PointsView<double>(points), params);
+    for (std::size_t c = 0; c < cases.size(); ++c) {
+      EXPECT_EQ(map.get("discontinuity")(static_cast<int>(c), 0), cases[c].flag)
+          << cases[c].what << (as_float ? " (float view)" : " (double view)");
+    }
+    EXPECT_TRUE(std::isnan(map.get("discontinuity")(static_cast<int>(cases.size()), 0))) << "the empty cell";
+    expect_matches_naive(map, as_float ? rounded_to_float(points) : points, params.discontinuity_m);
+  }
+}
+
+TEST(BuildElevationMapFastPaths, TransformedCloudsKeepDoubleHeightsForTheWideCellFilter) {
+  // With a transform the heights are doubles: a range of 1 + 1e-12 m is wide and holds a gap just
+  // over 1 m that float heights would round away.
+  const std::vector<Eigen::Vector3d> points = {
+      {0.5, 0.5, 10.0}, {0.5, 0.5, 11.0 + 1e-12}, {1.5, 0.5, 10.0}, {1.5, 0.5, 11.0}};
+  ElevationParams params = fixed_extent(1.0, {0.0, 0.0}, {2, 1});
+  params.transform.topRightCorner<3, 1>() = Eigen::Vector3d(0.0, 0.0, -10.0);
+  std::vector<Eigen::Vector3d> moved;
+  for (const Eigen::Vector3d& p : points) moved.push_back(p + Eigen::Vector3d(0.0, 0.0, -10.0));
+  const ElevationMap map = build_elevation_map(PointsView<double>(points), params);
+  EXPECT_EQ(map.get("discontinuity")(0, 0), 1.0F);
+  EXPECT_EQ(map.get("discontinuity")(1, 0), 0.0F);
+  expect_matches_naive(map, moved, params.discontinuity_m);
+}
+
+TEST(BuildElevationMapFastPaths, ScratchBuffersReusedAcrossCallsOfDifferentSizesLeaveNoTrace) {
+  // build_elevation_map keeps per-thread scratch buffers: a large map, a small one and the large
+  // one again must each equal a build on a fresh thread.
+  const auto large = test::random_scene(41, 8000, 9.0);
+  const auto small = test::random_scene(42, 300, 2.0);
+  ElevationParams large_params;
+  large_params.resolution_m = 0.1;
+  ElevationParams small_params = fixed_extent(0.5, {-1.0, -1.0}, {3, 5});
+  const ElevationMap first = build_elevation_map(PointsView<double>(large), large_params);
+  const ElevationMap second = build_elevation_map(PointsView<double>(small), small_params);
+  const ElevationMap third = build_elevation_map(PointsView<double>(large), large_params);
+  expect_same_statistics(first, third);
+  expect_matches_naive(second, small, small_params.discontinuity_m);
+  std::optional<ElevationMap> on_fresh_thread;
+  std::thread([&] { on_fresh_thread = build_elevation_map(PointsView<double>(large), large_params); }).join();
+  expect_same_statistics(*on_fresh_thread, first);
+  expect_matches_naive(first, large, large_params.discontinuity_m);
+}
+
+TEST(BuildElevationMapFastPaths, ConcurrentCallsOnTwoThreadsGiveTheSerialResults) {
+  const auto a = test::random_scene(51, 6000, 8.0);
+  const auto b = test::random_scene(52, 5000, 6.0);
+  ElevationParams params;
+  params.resolution_m = 0.2;
+  const ElevationMap serial_a = build_elevation_map(PointsView<double>(a), params);
+  const ElevationMap serial_b = build_elevation_map(PointsView<double>(b), params);
+  std::vector<ElevationMap> from_a(20), from_b(20);
+  std::thread first([&] {
+    for (auto& map : from_a) map = build_elevation_map(PointsView<double>(a), params);
+  });
+  std::thread second([&] {
+    for (auto& map : from_b) map = build_elevation_map(PointsView<double>(b), params);
+  });
+  first.join();
+  second.join();
+  for (const auto& map : from_a) expect_same_statistics(map, serial_a);
+  for (const auto& map : from_b) expect_same_statistics(map, serial_b);
 }
 
 // --- build_elevation_map against the naive reference ----------------------------------------------

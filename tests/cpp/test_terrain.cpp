@@ -9,9 +9,11 @@
 #include <iostream>
 #include <limits>
 #include <map>
+#include <random>
 #include <set>
 #include <stdexcept>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "test_support.hpp"
@@ -245,6 +247,212 @@ TEST(TerrainEdges, OnlyGroundBecomesEdgeNeverAnotherClass) {
   set_cell(map, 0, 1, 2.0F, 0.75F);                  // vertical
   set_cell(map, 0, 2, 0.0F, 0.0F, 1.0F);             // overhanging
   EXPECT_EQ(letters(classify_terrain(map, exact_params())), (std::vector<std::string>{"ovho"}));
+}
+
+// --- the vectorised passes against a naive per-cell reference ----------------------------------
+
+/// Table 1 and the edge rule written out cell by cell, comparing in double as the paper's
+/// thresholds are given: the independent reference for the float, branch-free implementation.
+Eigen::Matrix<std::uint8_t, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> naive_classes(
+    const ElevationMap& map, const TerrainParams& params) {
+  const Layer& max = map.get("max");
+  const Layer& std_dev = map.get("std_dev");
+  const Layer& gap = map.get("discontinuity");
+  const float ground = static_cast<float>(-params.sensor_height_m);
+  Eigen::Matrix<std::uint8_t, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> classes(max.rows(), max.cols());
+  for (Eigen::Index i = 0; i < max.rows(); ++i) {
+    for (Eigen::Index j = 0; j < max.cols(); ++j) {
+      const float relative = max(i, j) - ground;
+      TerrainClass c = TerrainClass::kUnknown;
+      if (std::isnan(relative)) {
+        c = TerrainClass::kUnknown;
+      } else if (gap(i, j) == 1.0F) {
+        c = TerrainClass::kOverhangingObject;
+      } else {
+        const double h = relative;
+        const bool small = static_cast<double>(std_dev(i, j)) < params.std_dev_m;
+        if (h < params.ground_height_m) {
+          c = small ? TerrainClass::kGround : TerrainClass::kObstacle;
+        } else if (h < params.robot_height_m) {
+          c = TerrainClass::kObstacle;
+        } else {
+          c = small ? TerrainClass::kObstacle : TerrainClass::kVerticalObject;
+        }
+      }
+      classes(i, j) = static_cast<std::uint8_t>(c);
+    }
+  }
+  auto result = classes;
+  for (Eigen::Index i = 0; i < max.rows(); ++i) {
+    for (Eigen::Index j = 0; j < max.cols(); ++j) {
+      if (classes(i, j) != static_cast<std::uint8_t>(TerrainClass::kGround)) continue;
+      for (Eigen::Index di = -1; di <= 1; ++di) {
+        for (Eigen::Index dj = -1; dj <= 1; ++dj) {
+          const Eigen::Index a = i + di;
+          const Eigen::Index b = j + dj;
+          if (a < 0 || b < 0 || a >= max.rows() || b >= max.cols()) continue;
+          const std::uint8_t other = classes(a, b);
+          if (other == 2 || other == 3 || other == 4) {
+            result(i, j) = static_cast<std::uint8_t>(TerrainClass::kHorizontalEdge);
+          }
+        }
+      }
+    }
+  }
+  return result;
+}
+
+/// A seeded random map whose heights and spreads sit on and next to the float neighbours of the
+/// (not float-representable) thresholds, with empty and discontinuous cells.
+/// `sparse`: mostly smooth ground with scattered object cells, so that edges come from single
+/// neighbours on every side.
+ElevationMap random_threshold_map(std::uint32_t seed, int nx, int ny, const TerrainParams& params,
+                                  bool sparse = false) {
+  std::mt19937 rng(seed);
+  const auto near = [&](double threshold) {
+    float v = static_cast<float>(threshold);
+    const int steps = static_cast<int>(rng() % 7) - 3;  // -3 .. 3 floats away
+    for (int k = 0; k < std::abs(steps); ++k) {
+      v = std::nextafter(v,
+                         steps > 0 ? std::numeric_limits<float>::infinity() : -std::numeric_limits<float>::infinity());
+    }
+    return v;
+  };
+  const float ground = static_cast<float>(-params.sensor_height_m);
+  ElevationMap map = uniform_map(nx, ny, 0.0F, 0.0F);
+  for (int i = 0; i < nx; ++i) {
+    for (int j = 0; j < ny; ++j) {
+      const unsigned kind = rng() % 10;
+      if (kind == 0) {
+        clear_cell(map, i, j);
+        continue;
+      }
+      if (sparse && rng() % 8 != 0) {  // plain ground: low and smooth
+        set_cell(map, i, j, ground, 0.0F);
+        continue;
+      }
+      const double target =
+          kind < 4 ? params.ground_height_m : (kind < 7 ? params.robot_height_m : 0.01 * (rng() % 300));
+      // max chosen so that max - ground lands on a float near the target height
+      const float max = near(target) + ground;
+      const float spread = rng() % 2 ? near(params.std_dev_m) : 0.001F * static_cast<float>(rng() % 400);
+      set_cell(map, i, j, max, spread, rng() % 15 == 0 ? 1.0F : 0.0F);
+    }
+  }
+  return map;
+}
+
+TEST(TerrainVsNaive, RandomMapsWithValuesAtTheFloatNeighboursOfTheThresholds) {
+  TerrainParams params;  // the paper's 0.2, 0.1 and 0.7 m: none is a float
+  const std::vector<std::pair<int, int>> shapes = {{1, 1}, {1, 9}, {9, 1}, {2, 2}, {7, 13}, {40, 33}};
+  std::uint32_t seed = 1;
+  for (const auto& [nx, ny] : shapes) {
+    for (int repeat = 0; repeat < 4; ++repeat, ++seed) {
+      // Sensor height 0: relative heights are exactly the floats next to the thresholds.
+      params.sensor_height_m = repeat % 2 == 0 ? 0.0 : 1.73;
+      SCOPED_TRACE("map " + std::to_string(nx) + " x " + std::to_string(ny) + ", seed " + std::to_string(seed));
+      ElevationMap map = random_threshold_map(seed, nx, ny, params, repeat >= 2);
+      const auto expected = naive_classes(map, params);
+      const TerrainClassification result = classify_terrain(map, params);
+      ASSERT_EQ(result.classes.rows(), nx);
+      ASSERT_EQ(result.classes.cols(), ny);
+      int mismatches = 0;
+      for (int i = 0; i < nx; ++i) {
+        for (int j = 0; j < ny; ++j) {
+          if (result.classes(i, j) != expected(i, j) && ++mismatches <= 5) {
+            ADD_FAILURE() << "cell (" << i << ", " << j << "): " << int(result.classes(i, j)) << " vs naive "
+                          << int(expected(i, j)) << ", max " << map.get("max")(i, j) << ", std "
+                          << map.get("std_dev")(i, j);
+          }
+          const float layer = map.get("class")(i, j);
+          if (expected(i, j) == 0) {
+            EXPECT_TRUE(std::isnan(layer));
+          } else {
+            EXPECT_EQ(layer, static_cast<float>(expected(i, j)));
+          }
+        }
+      }
+    }
+  }
+}
+
+TEST(TerrainVsNaive, ClassifyingTheSameMapTwiceGivesTheSameResultAndLayers) {
+  TerrainParams params;
+  params.sensor_height_m = 1.73;
+  ElevationMap map = random_threshold_map(99, 20, 17, params);
+  const TerrainClassification first = classify_terrain(map, params);
+  const Layer class_layer = map.get("class");
+  const TerrainClassification second = classify_terrain(map, params);  // layers now reused in place
+  EXPECT_EQ(first.classes, second.classes);
+  EXPECT_EQ(map.get("class").array().isNaN().matrix(), class_layer.array().isNaN().matrix());
+  EXPECT_EQ(map.get("class").array().isNaN().select(0.0F, map.get("class").array()).matrix(),
+            class_layer.array().isNaN().select(0.0F, class_layer.array()).matrix());
+  EXPECT_EQ(map.get("ground"), second.ground);
+  EXPECT_EQ(map.layers(), (std::vector<std::string>{"count", "min", "max", "mean", "std_dev", "discontinuity", "class",
+                                                    "relative_height", "ground"}));
+}
+
+TEST(TerrainVsNaive, ClassifyTerrainLayersGivesTheClassesAndLayersOfClassifyTerrain) {
+  TerrainParams params;
+  params.sensor_height_m = 0.4;
+  for (const GroundReference reference : {GroundReference::kSensorHeight, GroundReference::kLocalGround}) {
+    params.reference = reference;
+    ElevationMap full = random_threshold_map(7, 23, 19, params);
+    ElevationMap light = full;
+    const TerrainClassification expected = classify_terrain(full, params);
+    const TerrainClasses classes = classify_terrain_layers(light, params);
+    EXPECT_EQ(classes, expected.classes);
+    EXPECT_EQ(light.layers(), full.layers());
+    EXPECT_EQ(light.get("ground"), expected.ground);
+    const Layer& relative = light.get("relative_height");
+    EXPECT_EQ(relative.array().isNaN().matrix(), expected.relative_height.array().isNaN().matrix());
+    EXPECT_EQ(relative.array().isNaN().select(0.0F, relative.array()).matrix(),
+              expected.relative_height.array().isNaN().select(0.0F, expected.relative_height.array()).matrix());
+  }
+}
+
+TEST(TerrainReference, LocalGroundEqualsANaiveWindowMinimumForAnyRadiusAndShape) {
+  // The O(1)-per-cell running minimum against a direct scan of every window (NaN = empty).
+  const std::vector<std::pair<int, int>> shapes = {{1, 1}, {1, 12}, {12, 1}, {5, 7}, {31, 17}};
+  std::mt19937 rng(5);
+  for (const auto& [nx, ny] : shapes) {
+    for (const int radius : {0, 1, 2, 3, 6, 40, std::numeric_limits<int>::max()}) {
+      SCOPED_TRACE(std::to_string(nx) + " x " + std::to_string(ny) + ", radius " + std::to_string(radius));
+      ElevationMap map = uniform_map(nx, ny, 0.0F, 0.0F);
+      Layer& lowest = map.get("min");
+      for (int i = 0; i < nx; ++i) {
+        for (int j = 0; j < ny; ++j) {
+          if (rng() % 4 == 0) {
+            clear_cell(map, i, j);
+          } else {
+            lowest(i, j) = static_cast<float>(static_cast<int>(rng() % 2001) - 1000) / 64.0F;
+            map.get("max")(i, j) = lowest(i, j) + 0.5F;
+          }
+        }
+      }
+      TerrainParams params = exact_params();
+      params.reference = GroundReference::kLocalGround;
+      params.local_ground_radius_cells = radius;
+      const Layer ground = classify_terrain(map, params).ground;
+      for (int i = 0; i < nx; ++i) {
+        for (int j = 0; j < ny; ++j) {
+          float expected = std::numeric_limits<float>::infinity();
+          for (long a = std::max<long>(0, i - static_cast<long>(radius));
+               a <= std::min<long>(nx - 1, i + static_cast<long>(radius)); ++a) {
+            for (long b = std::max<long>(0, j - static_cast<long>(radius));
+                 b <= std::min<long>(ny - 1, j + static_cast<long>(radius)); ++b) {
+              if (!std::isnan(lowest(a, b))) expected = std::min(expected, lowest(a, b));
+            }
+          }
+          if (std::isinf(expected)) {
+            EXPECT_TRUE(std::isnan(ground(i, j))) << "cell (" << i << ", " << j << ")";
+          } else {
+            EXPECT_EQ(ground(i, j), expected) << "cell (" << i << ", " << j << ")";
+          }
+        }
+      }
+    }
+  }
 }
 
 // --- ground reference ---------------------------------------------------------------------------

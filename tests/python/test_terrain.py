@@ -302,6 +302,22 @@ def test_classifying_twice_gives_the_same_classes_and_layers():
     np.testing.assert_array_equal(elevation_map["class"], first_layer)
 
 
+def test_classes_own_their_memory_and_outlive_the_map():
+    # The classes array takes over the C++ buffer (no copy); it must stay valid and unchanged
+    # once the map is gone and other maps reuse the freed memory.
+    rng = np.random.default_rng(12)
+    elevation_map = hand_map(rng.integers(0, 32, (30, 17)) / 16, rng.integers(0, 16, (30, 17)) / 16)
+    classes = tc.classify_terrain(elevation_map, **EXACT)
+    copy = classes.copy()
+    del elevation_map
+    for _ in range(3):
+        other = hand_map(rng.integers(0, 32, (30, 17)) / 16)
+        tc.classify_terrain(other, **EXACT)
+    np.testing.assert_array_equal(classes, copy)
+    classes[0, 0] = 5  # writeable, like any numpy array
+    assert classes[0, 0] == 5
+
+
 def test_a_map_without_the_needed_layers_cannot_be_classified():
     elevation_map = tc.ElevationMap.empty(0.5, (0.0, 0.0), (2, 2))
     elevation_map["max"] = np.zeros((2, 2))

@@ -83,10 +83,14 @@ struct ElevationParams {
   std::size_t max_cells = std::size_t{1} << 26;
 };
 
-/// Builds the map in O(N + cells) plus a per-cell sort of the elevations for the discontinuity
-/// flag. Layers: "count" (0 for empty), "min", "max", "mean" (the DEM), "std_dev" (population),
-/// "discontinuity" (1 or 0); NaN where a cell holds no point. Points outside the map are ignored.
-/// `use` (optional, one flag per point) selects the points that take part.
+/// Builds the map in O(N + cells): one pass over the points for count, sum, min and max, a second
+/// for the two-pass variance, and a sort of the elevations of only those cells whose max - min
+/// exceeds the discontinuity threshold (no other cell can hold a longer gap). Layers: "count" (0
+/// for empty), "min", "max", "mean" (the DEM), "std_dev" (population), "discontinuity" (1 or 0);
+/// NaN where a cell holds no point. Points outside the map are ignored. `use` (optional, one flag
+/// per point) selects the points that take part. Thread-safe; each calling thread keeps its
+/// scratch buffers (about 4 N + 24 cells bytes, released after a call needing over 32 MB) for the
+/// next call, as fresh buffers would cost a page fault per 4 kB.
 ElevationMap build_elevation_map(const PointsView<float>& points, const ElevationParams& params,
                                  const std::vector<std::uint8_t>* use = nullptr);
 ElevationMap build_elevation_map(const PointsView<double>& points, const ElevationParams& params,

@@ -37,9 +37,12 @@ struct TerrainParams {
   int local_ground_radius_cells = 10;  ///< window half-size for kLocalGround
 };
 
+/// Per-cell classes (TerrainClass values), rows along x as the map's layers.
+using TerrainClasses = Eigen::Matrix<std::uint8_t, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+
 /// Classes and the relative height they were decided on.
 struct TerrainClassification {
-  Eigen::Matrix<std::uint8_t, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> classes;
+  TerrainClasses classes;
   Layer relative_height;  ///< "max" minus the ground reference [m], NaN where empty
   Layer ground;           ///< the ground reference per cell [m]
 };
@@ -52,6 +55,13 @@ struct TerrainClassification {
 /// then a ground cell with an obstacle, overhanging or vertical neighbour (8-neighbourhood)
 /// becomes a horizontal edge. Empty cells are unknown. Adds the layers "class" (the class as a
 /// float, NaN for unknown), "relative_height" and "ground" to the map.
+/// O(cells), branch-free and vectorised (the relative-height and spread tests run on floats
+/// against the smallest float at or above each double threshold, which decides exactly as a
+/// double comparison would); the layers are overwritten in place when they exist.
 TerrainClassification classify_terrain(ElevationMap& map, const TerrainParams& params = {});
+
+/// classify_terrain without copying relative_height and ground out of the map: the classes only
+/// (the map gets the same layers).
+TerrainClasses classify_terrain_layers(ElevationMap& map, const TerrainParams& params = {});
 
 }  // namespace terracube
