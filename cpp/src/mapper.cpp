@@ -331,7 +331,7 @@ void Mapper::Impl::build_local_map(Keyframe& keyframe) {
 
   start = Clock::now();
   TerrainParams terrain = params.terrain;
-  classify_terrain(keyframe.map, terrain);
+  classify_terrain_layers(keyframe.map, terrain);
   keyframe.points = points_of_map(keyframe.map);
   if (params.registration.use_classes) {
     // Classes of weight 0 (unknown, ground) never pair: keep only the cells that can.
@@ -715,7 +715,7 @@ const ElevationMap& Mapper::local_map(std::size_t k) const {
 
 ElevationMap Mapper::global_map(bool classify) const {
   ElevationMap map = impl_->global.to_map();
-  if (classify && map.geometry().num_cells() > 0) classify_terrain(map, impl_->params.terrain);
+  if (classify && map.geometry().num_cells() > 0) classify_terrain_layers(map, impl_->params.terrain);
   return map;
 }
 const TiledElevationMap& Mapper::tiles() const { return impl_->global; }
