@@ -26,8 +26,9 @@ import typer
 app = typer.Typer(
     help="Navigable 2.5D elevation maps from ground-robot 3D LiDAR scans.\n\n"
     "Stages: collapse (overhang removal), dem (elevation map), classify (terrain classes), "
-    "fem (fuzzy elevation map), register (ICP between two scans), view (pictures, 3D); "
-    "batch runs a stage over many scans with Dask; config prints every parameter as YAML.",
+    "fem (fuzzy elevation map), register (ICP between two scans), map (global elevation map and "
+    "trajectory from a scan sequence with odometry), view (pictures, 3D); batch runs a stage over "
+    "many scans with Dask; config prints every parameter as YAML.",
     no_args_is_help=True,
     add_completion=False,
 )
