@@ -174,8 +174,15 @@ struct TiledElevationMap::Impl {
       max.fill(-std::numeric_limits<float>::infinity());
     }
   };
-  static std::int64_t key(std::int64_t tx, std::int64_t ty) { return (tx << 32) ^ (ty & 0xffffffffLL); }
-  std::unordered_map<std::int64_t, std::unique_ptr<Tile>> tiles;
+  // Tile coordinates (32-bit each, checked in fuse) packed into one key, without signed shifts.
+  static std::uint64_t key(std::int64_t tx, std::int64_t ty) {
+    return (static_cast<std::uint64_t>(static_cast<std::uint32_t>(tx)) << 32) | static_cast<std::uint32_t>(ty);
+  }
+  static std::int64_t tile_x(std::uint64_t key) {
+    return static_cast<std::int32_t>(static_cast<std::uint32_t>(key >> 32));
+  }
+  static std::int64_t tile_y(std::uint64_t key) { return static_cast<std::int32_t>(static_cast<std::uint32_t>(key)); }
+  std::unordered_map<std::uint64_t, std::unique_ptr<Tile>> tiles;
 };
 
 TiledElevationMap::TiledElevationMap(double resolution_m) : resolution_m_(resolution_m), impl_(new Impl) {
@@ -191,6 +198,12 @@ std::size_t TiledElevationMap::memory_bytes() const { return impl_->tiles.size()
 
 void TiledElevationMap::fuse(double x, double y, float z_min, float z_max, float z_mean, float z_std,
                              std::uint32_t count, bool discontinuous) {
+  // Tile coordinates must fit 32 bits: |x|, |y| below 2^31 tiles (2.7e10 m at 0.2 m cells).
+  const double limit = 2147483647.0 * kTileCells * resolution_m_;
+  if (!(std::abs(x) < limit && std::abs(y) < limit)) {
+    throw std::invalid_argument("global map position (" + std::to_string(x) + ", " + std::to_string(y) +
+                                ") is NaN or beyond the map's range");
+  }
   const auto ci = static_cast<std::int64_t>(std::floor(x / resolution_m_));
   const auto cj = static_cast<std::int64_t>(std::floor(y / resolution_m_));
   const std::int64_t n = kTileCells;
@@ -221,8 +234,7 @@ ElevationMap TiledElevationMap::to_map(std::size_t max_cells) const {
   std::int64_t tx0 = std::numeric_limits<std::int64_t>::max(), ty0 = tx0;
   std::int64_t tx1 = std::numeric_limits<std::int64_t>::min(), ty1 = tx1;
   for (const auto& [key, tile] : impl_->tiles) {
-    const std::int64_t tx = key >> 32;
-    const auto ty = static_cast<std::int64_t>(static_cast<std::int32_t>(key & 0xffffffffLL));
+    const std::int64_t tx = Impl::tile_x(key), ty = Impl::tile_y(key);
     tx0 = std::min(tx0, tx), tx1 = std::max(tx1, tx), ty0 = std::min(ty0, ty), ty1 = std::max(ty1, ty);
   }
   const std::int64_t n = kTileCells;
@@ -243,8 +255,7 @@ ElevationMap TiledElevationMap::to_map(std::size_t max_cells) const {
   Layer& std_dev = map.get("std_dev");
   Layer& discontinuity = map.get("discontinuity");
   for (const auto& [key, tile] : impl_->tiles) {
-    const std::int64_t tx = key >> 32;
-    const auto ty = static_cast<std::int64_t>(static_cast<std::int32_t>(key & 0xffffffffLL));
+    const std::int64_t tx = Impl::tile_x(key), ty = Impl::tile_y(key);
     for (std::int64_t a = 0; a < n; ++a) {
       for (std::int64_t b = 0; b < n; ++b) {
         const auto k = static_cast<std::size_t>(a * n + b);

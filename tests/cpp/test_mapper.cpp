@@ -248,7 +248,9 @@ TEST(Mapper, AccumulatedLocalMapsHoldTheScansSinceThePreviousKeyframe) {
   EXPECT_GT(local.get("count").sum(), static_cast<float>(scans[2].size()));
   for (int i = 0; i < local.geometry().size.x(); ++i) {
     for (int j = 0; j < local.geometry().size.y(); ++j) {
-      if (reference.get("count")(i, j) > 0) EXPECT_NEAR(local.get("max")(i, j), reference.get("max")(i, j), 1e-5);
+      if (reference.get("count")(i, j) > 0) {
+        EXPECT_NEAR(local.get("max")(i, j), reference.get("max")(i, j), 1e-5);
+      }
     }
   }
   // max_scans_per_local_map = 1: keyframe 1 holds its own scan only.

@@ -434,6 +434,7 @@ TEST(TerrainReference, LocalGroundEqualsANaiveWindowMinimumForAnyRadiusAndShape)
       params.reference = GroundReference::kLocalGround;
       params.local_ground_radius_cells = radius;
       const Layer ground = classify_terrain(map, params).ground;
+      const Layer& minimum = map.get("min");  // classify_terrain adds layers: `lowest` may dangle
       for (int i = 0; i < nx; ++i) {
         for (int j = 0; j < ny; ++j) {
           float expected = std::numeric_limits<float>::infinity();
@@ -441,7 +442,7 @@ TEST(TerrainReference, LocalGroundEqualsANaiveWindowMinimumForAnyRadiusAndShape)
                a <= std::min<long>(nx - 1, i + static_cast<long>(radius)); ++a) {
             for (long b = std::max<long>(0, j - static_cast<long>(radius));
                  b <= std::min<long>(ny - 1, j + static_cast<long>(radius)); ++b) {
-              if (!std::isnan(lowest(a, b))) expected = std::min(expected, lowest(a, b));
+              if (!std::isnan(minimum(a, b))) expected = std::min(expected, minimum(a, b));
             }
           }
           if (std::isinf(expected)) {
