@@ -116,6 +116,17 @@ void quantize_block(const Cloud& cloud, const CubeGrid& grid, bool all_used, std
   }
 }
 
+/// The dense path's buffers, one set per thread (shared by every cloud type).
+struct DenseScratch {
+  std::vector<std::uint64_t> occupancy;  // V
+  std::vector<std::uint32_t> cubes;      // I of every point
+};
+
+DenseScratch& dense_scratch() {
+  thread_local DenseScratch scratch;
+  return scratch;
+}
+
 /// Dense path: V is a bit vector over all cubes, M a vector over all columns.
 template <typename Cloud>
 void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseResult& result) {
@@ -123,14 +134,26 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
   const bool all_used = result.num_used == cloud.size();
   // V, plus one all-ones word: rows that take no part point at it and are never overhang.
   const std::size_t words = static_cast<std::size_t>((grid.num_cubes() + 63) / 64);
-  std::vector<std::uint64_t> occupancy(words + 1, 0);
-  occupancy[words] = ~std::uint64_t{0};
+  // Scratch kept per thread: in a long-running process a fresh multi-megabyte buffer costs a page
+  // fault per 4 kB on every call. They hold at most the largest cloud seen (4 bytes per point) and
+  // V within dense_budget_bytes.
+  DenseScratch& scratch = dense_scratch();
+  std::vector<std::uint64_t>& occupancy = scratch.occupancy;
+  occupancy.assign(words + 1, 0);
   const auto no_cube = static_cast<std::uint32_t>(words * 64);
-  std::vector<std::uint32_t> cubes(cloud.size());
+  if (scratch.cubes.size() < cloud.size()) scratch.cubes.resize(cloud.size());
+  std::uint32_t* cubes = scratch.cubes.data();
 
-  // Algorithm 1, lines 1-4: one O(N) pass sets V.
-  quantize_block(cloud, grid, all_used, no_cube, 0, cloud.size(), cubes.data());
-  for (const std::uint32_t cube : cubes) occupancy[cube >> 6] |= std::uint64_t{1} << (cube & 63);
+  // Algorithm 1, lines 1-4: one O(N) pass sets V, in blocks whose cube indices are still in L1
+  // when their bits are set.
+  constexpr std::size_t kBlock = 2048;
+  for (std::size_t begin = 0; begin < cloud.size(); begin += kBlock) {
+    const std::size_t end = std::min(cloud.size(), begin + kBlock);
+    quantize_block(cloud, grid, all_used, no_cube, begin, end, cubes + begin);
+    for (std::size_t row = begin; row < end; ++row) {
+      occupancy[cubes[row] >> 6] |= std::uint64_t{1} << (cubes[row] & 63);
+    }
+  }
   occupancy[words] = ~std::uint64_t{0};
 
   // L sorted: reading V in index order is a bucket sort of L, O(|V| / 64 + |L|).

@@ -1,5 +1,5 @@
-// Private: the bounding box of a plain (N, 3) or (N, 4) row-major cloud with packed SSE2 min/max.
-// Not installed. Falls back to nothing (returns false) where SSE2 is unavailable.
+// Private: the bounding box of a plain (N, 3) or (N, 4) row-major cloud with packed min/max: AVX2
+// (quantize_kernels.cpp) when the CPU has it, else SSE2. Not installed. Returns false where neither applies.
 #pragma once
 
 #include <cstddef>
@@ -7,6 +7,7 @@
 #include <limits>
 #include <type_traits>
 
+#include "quantize_kernels.hpp"
 #include "terracube/cube_grid.hpp"
 
 #if defined(__SSE2__)
@@ -109,12 +110,17 @@ bool packed_extent_kernel(const Scalar* data, std::size_t rows, double* min, dou
 }
 #endif
 
-/// Bounding box of a row-major view with 3 or 4 scalars per row, packed. Returns false when the
+/// Bounding box of a row-major view with 3 or 4 scalars per row, packed (AVX2 when the CPU has it,
+/// else SSE2). Returns false when the
 /// layout is not one of those (or SSE2 is missing), or when a coordinate is NaN/Inf; `handled`
 /// tells the two apart.
 template <typename Scalar>
 bool packed_extent(const PointsView<Scalar>& view, double* min, double* max, bool& handled) {
   handled = false;
+  if (view.column_stride == 1 && (view.row_stride == 3 || view.row_stride == 4)) {
+    const bool finite = extent_rows(view.data, view.size, static_cast<int>(view.row_stride), min, max, handled);
+    if (handled) return finite;  // the AVX2 kernel ran
+  }
 #if defined(__SSE2__)
   constexpr double kInf = std::numeric_limits<double>::infinity();
   for (int axis = 0; axis < 3; ++axis) {

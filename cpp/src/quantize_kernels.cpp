@@ -1,5 +1,12 @@
 #include "quantize_kernels.hpp"
 
+#include <limits>
+#include <type_traits>
+
+#if defined(__x86_64__) && defined(__GNUC__)
+#include <immintrin.h>
+#endif
+
 // No FMA target and ISO C++ (-ffp-contract=off): (x - x0) * (1/E) + 0.5 must round twice, exactly
 // as the definition in cube_grid.hpp and every reference implementation computes it.
 
@@ -46,6 +53,96 @@ __attribute__((target("avx2"))) void quantize_avx2(const Scalar* data, std::size
   }
 }
 
+// The AVX2 vector of a scalar type.
+template <typename Scalar>
+struct Avx2Vector;
+template <>
+struct Avx2Vector<double> {
+  using type = __m256d;
+};
+template <>
+struct Avx2Vector<float> {
+  using type = __m256;
+};
+
+/// The bounding box with AVX2: the rows repeat a lane pattern every kPeriod scalars (x y z x | y z
+/// x y | z x y z for three doubles per row), so each accumulator sees fixed axes and no shuffles
+/// are needed. kAcc independent accumulators hide the latency of min/max. NaN is caught by an
+/// unordered compare per lane, Inf afterwards by a bound at +-inf.
+template <typename Scalar, int kStride>
+__attribute__((target("avx2"))) bool extent_avx2(const Scalar* data, std::size_t rows, double* min, double* max) {
+  constexpr bool kDouble = std::is_same_v<Scalar, double>;
+  using Vector = typename Avx2Vector<Scalar>::type;
+  constexpr int kLanes = 32 / static_cast<int>(sizeof(Scalar));
+  constexpr int kPeriod = kStride == 3 ? 3 * kLanes : kLanes;  // lcm(kLanes, kStride)
+  constexpr int kVectors = kPeriod / kLanes;
+  constexpr int kUnroll = kVectors == 3 ? 2 : 4;
+  constexpr int kAcc = kVectors * kUnroll;
+  constexpr std::size_t kRowsPerStep = static_cast<std::size_t>(kPeriod * kUnroll / kStride);
+  constexpr Scalar kInf = std::numeric_limits<Scalar>::infinity();
+  Vector lo[kAcc], hi[kAcc], bad[kAcc];
+  for (int a = 0; a < kAcc; ++a) {
+    if constexpr (kDouble) {
+      lo[a] = _mm256_set1_pd(kInf);
+      hi[a] = _mm256_set1_pd(-kInf);
+      bad[a] = _mm256_setzero_pd();
+    } else {
+      lo[a] = _mm256_set1_ps(kInf);
+      hi[a] = _mm256_set1_ps(-kInf);
+      bad[a] = _mm256_setzero_ps();
+    }
+  }
+  const std::size_t steps = rows / kRowsPerStep;
+  const Scalar* p = data;
+  for (std::size_t step = 0; step < steps; ++step, p += kPeriod * kUnroll) {
+    for (int a = 0; a < kAcc; ++a) {
+      if constexpr (kDouble) {
+        const __m256d x = _mm256_loadu_pd(p + a * kLanes);
+        lo[a] = _mm256_min_pd(x, lo[a]);  // a NaN x keeps lo: NaN is caught by `bad`
+        hi[a] = _mm256_max_pd(x, hi[a]);
+        bad[a] = _mm256_or_pd(bad[a], _mm256_cmp_pd(x, x, _CMP_UNORD_Q));
+      } else {
+        const __m256 x = _mm256_loadu_ps(p + a * kLanes);
+        lo[a] = _mm256_min_ps(x, lo[a]);
+        hi[a] = _mm256_max_ps(x, hi[a]);
+        bad[a] = _mm256_or_ps(bad[a], _mm256_cmp_ps(x, x, _CMP_UNORD_Q));
+      }
+    }
+  }
+  Scalar lo_s[kAcc * kLanes], hi_s[kAcc * kLanes], bad_s[kAcc * kLanes];
+  for (int a = 0; a < kAcc; ++a) {
+    if constexpr (kDouble) {
+      _mm256_storeu_pd(lo_s + a * kLanes, lo[a]);
+      _mm256_storeu_pd(hi_s + a * kLanes, hi[a]);
+      _mm256_storeu_pd(bad_s + a * kLanes, bad[a]);
+    } else {
+      _mm256_storeu_ps(lo_s + a * kLanes, lo[a]);
+      _mm256_storeu_ps(hi_s + a * kLanes, hi[a]);
+      _mm256_storeu_ps(bad_s + a * kLanes, bad[a]);
+    }
+  }
+  for (int k = 0; k < kAcc * kLanes; ++k) {
+    const int axis = (k % kPeriod) % kStride;    // accumulator a holds period positions (a % kVectors) * kLanes + lane
+    if (axis >= 3) continue;                     // the fourth value of a row (intensity) is not a coordinate
+    if (!(bad_s[k] == Scalar(0))) return false;  // an all-ones lane: a NaN went through it
+    min[axis] = lo_s[k] < min[axis] ? static_cast<double>(lo_s[k]) : min[axis];
+    max[axis] = hi_s[k] > max[axis] ? static_cast<double>(hi_s[k]) : max[axis];
+  }
+  for (std::size_t row = steps * kRowsPerStep; row < rows; ++row) {
+    for (int axis = 0; axis < 3; ++axis) {
+      const auto v = static_cast<double>(data[row * kStride + static_cast<std::size_t>(axis)]);
+      if (!(v - v == 0.0)) return false;
+      min[axis] = v < min[axis] ? v : min[axis];
+      max[axis] = v > max[axis] ? v : max[axis];
+    }
+  }
+  constexpr double kInfinity = std::numeric_limits<double>::infinity();
+  for (int axis = 0; axis < 3; ++axis) {
+    if (min[axis] == -kInfinity || max[axis] == kInfinity) return false;
+  }
+  return true;
+}
+
 bool has_avx2() {
   static const bool supported = __builtin_cpu_supports("avx2");
   return supported;
@@ -63,7 +160,36 @@ void dispatch(const Scalar* data, std::size_t rows, int stride, const QuantizeCo
   quantize_default(data, rows, stride, k, out);
 }
 
+template <typename Scalar>
+bool extent_dispatch(const Scalar* data, std::size_t rows, int stride, double* min, double* max, bool& handled) {
+  handled = false;
+  constexpr double kInf = std::numeric_limits<double>::infinity();
+  for (int axis = 0; axis < 3; ++axis) {
+    min[axis] = kInf;
+    max[axis] = -kInf;
+  }
+#if defined(TERRACUBE_HAVE_AVX2_KERNELS)
+  if (has_avx2() && (stride == 3 || stride == 4)) {
+    handled = true;
+    return stride == 3 ? extent_avx2<Scalar, 3>(data, rows, min, max) : extent_avx2<Scalar, 4>(data, rows, min, max);
+  }
+#else
+  (void)data;
+  (void)rows;
+  (void)stride;
+#endif
+  return false;
+}
+
 }  // namespace
+
+bool extent_rows(const float* data, std::size_t rows, int stride, double* min, double* max, bool& handled) {
+  return extent_dispatch(data, rows, stride, min, max, handled);
+}
+
+bool extent_rows(const double* data, std::size_t rows, int stride, double* min, double* max, bool& handled) {
+  return extent_dispatch(data, rows, stride, min, max, handled);
+}
 
 void quantize_rows(const float* data, std::size_t rows, int stride, const QuantizeConstants& k, std::uint32_t* out) {
   dispatch(data, rows, stride, k, out);

@@ -1,6 +1,7 @@
-// Private: eqs. (1)-(3) and (7) over contiguous rows of 3 or 4 scalars, dense path only (cube
-// counts below 2^31). Compiled twice, for baseline x86-64 and for AVX2, and picked at run time:
-// no -march flags are needed and the results are bit-identical (the same IEEE operations).
+// Private: the two passes of the dense CBC path over contiguous rows of 3 or 4 scalars: the
+// bounding box (eqs. 1-3 need xmin, ymin, zmin) and eqs. (1)-(3) and (7) (cube counts below 2^31). Compiled twice, for
+// baseline x86-64 and for AVX2, and picked at run time: no -march flags are needed and the results are bit-identical
+// (the same IEEE operations).
 #pragma once
 
 #include <cstddef>
@@ -18,5 +19,11 @@ struct QuantizeConstants {
 /// out[r] = I of row r, for `rows` rows of `stride` (3 or 4) scalars starting at `data`.
 void quantize_rows(const float* data, std::size_t rows, int stride, const QuantizeConstants& k, std::uint32_t* out);
 void quantize_rows(const double* data, std::size_t rows, int stride, const QuantizeConstants& k, std::uint32_t* out);
+
+/// Bounding box of `rows` rows of `stride` (3 or 4) scalars (the fourth is ignored) with AVX2, when
+/// the CPU has it: sets `handled` and returns false when an x, y or z is NaN/Inf. Leaves `handled`
+/// false without AVX2 (the caller then takes the SSE2 kernel in packed_extent.hpp).
+bool extent_rows(const float* data, std::size_t rows, int stride, double* min, double* max, bool& handled);
+bool extent_rows(const double* data, std::size_t rows, int stride, double* min, double* max, bool& handled);
 
 }  // namespace terracube::detail

@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <random>
 #include <set>
 
 #include "test_support.hpp"
@@ -290,6 +291,69 @@ TEST(CollapseBadInput, NanAndInfRowsAreCountedInTheError) {
               std::string::npos)
         << error.what();
   }
+}
+
+// The bounding box and the non-finite check run in packed kernels (AVX2 or SSE2) over rows of 3
+// or 4 float/double scalars, with a scalar tail: every layout, sizes around the vector periods, and
+// a NaN/Inf in every row and axis position of small clouds. Compared with the naive box (the grid's
+// min corner and counts) and the row count of the error.
+template <typename Scalar>
+void check_packed_extent_layouts() {
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> coordinate(-30.0, 30.0);
+  const Scalar bad_values[] = {std::numeric_limits<Scalar>::quiet_NaN(), std::numeric_limits<Scalar>::infinity(),
+                               -std::numeric_limits<Scalar>::infinity()};
+  for (const int stride : {3, 4}) {
+    for (const std::size_t n : {1, 2, 3, 5, 7, 8, 9, 15, 16, 17, 23, 24, 25, 31, 33, 47, 48, 49, 97, 1001}) {
+      std::vector<Scalar> rows(n * static_cast<std::size_t>(stride));
+      for (Scalar& v : rows) v = static_cast<Scalar>(coordinate(rng));
+      if (stride == 4) {
+        for (std::size_t r = 0; r < n; r += 3) rows[4 * r + 3] = std::numeric_limits<Scalar>::quiet_NaN();
+      }
+      std::vector<Eigen::Vector3d> points(n);
+      for (std::size_t r = 0; r < n; ++r) {
+        for (int a = 0; a < 3; ++a) points[r][a] = static_cast<double>(rows[r * static_cast<std::size_t>(stride) + a]);
+      }
+      CollapseParams params;
+      params.edge_m = 0.25;
+      const PointsView<Scalar> view(rows.data(), n, stride);
+      // An intensity column full of NaN is not a coordinate: no error, the naive box.
+      const CollapseResult result = collapse_overhangs(view, params);
+      const NaiveResult naive = naive_algorithm1(points, params.edge_m, params.sigma);
+      EXPECT_EQ(result.overhang, naive.overhang) << "stride " << stride << " n " << n;
+      EXPECT_EQ(result.occupied_cubes, naive.occupied) << "stride " << stride << " n " << n;
+      for (int a = 0; a < 3; ++a) {
+        double lo = points[0][a];
+        for (const auto& p : points) lo = std::min(lo, p[a]);
+        EXPECT_EQ(result.grid.min_corner[a], lo) << "stride " << stride << " n " << n << " axis " << a;
+      }
+      const std::size_t positions = n <= 49 ? n : 3;
+      for (std::size_t k = 0; k < positions; ++k) {
+        const std::size_t row = n <= 49 ? k : (k == 0 ? 0 : k == 1 ? n / 2 : n - 1);
+        for (int axis = 0; axis < 3; ++axis) {
+          for (const Scalar bad : bad_values) {
+            std::vector<Scalar> broken = rows;
+            broken[row * static_cast<std::size_t>(stride) + static_cast<std::size_t>(axis)] = bad;
+            const PointsView<Scalar> broken_view(broken.data(), n, stride);
+            try {
+              collapse_overhangs(broken_view, params);
+              ADD_FAILURE() << "no error for " << bad << " at row " << row << " axis " << axis << ", stride " << stride
+                            << ", n " << n;
+            } catch (const std::invalid_argument& error) {
+              const std::string expected = "1 of " + std::to_string(n) +
+                                           " point rows contain NaN or Inf (first at row " + std::to_string(row) + ")";
+              EXPECT_NE(std::string(error.what()).find(expected), std::string::npos) << error.what();
+            }
+          }
+        }
+      }
+    }
+  }
+}
+
+TEST(CollapseBadInput, PackedExtentKernelsFindEveryNonFiniteCoordinateAndTheNaiveBox) {
+  check_packed_extent_layouts<float>();
+  check_packed_extent_layouts<double>();
 }
 
 TEST(CollapseBadInput, NanRowsCanBeDroppedAndReported) {
