@@ -120,6 +120,7 @@ void quantize_block(const Cloud& cloud, const CubeGrid& grid, bool all_used, std
 struct DenseScratch {
   std::vector<std::uint64_t> occupancy;  // V
   std::vector<std::uint32_t> cubes;      // I of every point
+  std::vector<std::uint8_t> removed;     // a byte per cube of R, for small grids
 };
 
 DenseScratch& dense_scratch() {
@@ -158,6 +159,11 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
 
   // L sorted: reading V in index order is a bucket sort of L, O(|V| / 64 + |L|).
   std::vector<std::int64_t>& occupied = result.occupied_cubes;
+  std::size_t num_occupied = 0;
+  for (std::size_t word = 0; word < words; ++word) {
+    num_occupied += static_cast<std::size_t>(__builtin_popcountll(occupancy[word]));
+  }
+  occupied.reserve(num_occupied);
   for (std::size_t word = 0; word < words; ++word) {
     for (std::uint64_t bits = occupancy[word]; bits != 0; bits &= bits - 1) {
       occupied.push_back(static_cast<std::int64_t>(word * 64 + static_cast<std::size_t>(__builtin_ctzll(bits))));
@@ -171,18 +177,35 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
       [&ground](std::int64_t column) -> std::int32_t& { return ground[static_cast<std::size_t>(column)]; },
       result.removed_cubes);
 
-  // Points in R's cubes are overhang: clear R's bits in V, then a point is overhang when its
-  // cube's bit is gone.
-  for (const std::int64_t cube : result.removed_cubes) {
-    occupancy[static_cast<std::size_t>(cube >> 6)] &= ~(std::uint64_t{1} << (cube & 63));
-  }
+  // Points in R's cubes are overhang. Plain local pointers below: a byte store may alias anything,
+  // so through the vectors the compiler would reload their data pointers on every row.
   std::size_t count = 0;
-  std::uint8_t* overhang = result.overhang.data();
-  for (std::size_t row = 0; row < cloud.size(); ++row) {
-    const std::uint32_t cube = cubes[row];
-    const auto removed = static_cast<std::uint8_t>(((occupancy[cube >> 6] >> (cube & 63)) & 1U) ^ 1U);
-    overhang[row] = removed;
-    count += removed;
+  std::uint8_t* const overhang = result.overhang.data();
+  const std::size_t rows = cloud.size();
+  if (static_cast<std::size_t>(grid.num_cubes()) <= 2 * rows) {
+    // A byte per cube (no more bytes than two per point): one load per point, no bit arithmetic.
+    // Rows that take no part point at no_cube, past the last cube, which is never removed.
+    std::vector<std::uint8_t>& removed_map = scratch.removed;
+    removed_map.assign(static_cast<std::size_t>(no_cube) + 1, 0);
+    for (const std::int64_t cube : result.removed_cubes) removed_map[static_cast<std::size_t>(cube)] = 1;
+    const std::uint8_t* const removed = removed_map.data();
+    for (std::size_t row = 0; row < rows; ++row) {
+      const std::uint8_t flag = removed[cubes[row]];
+      overhang[row] = flag;
+      count += flag;
+    }
+  } else {
+    // Clear R's bits in V: a point is overhang when its cube's bit is gone.
+    for (const std::int64_t cube : result.removed_cubes) {
+      occupancy[static_cast<std::size_t>(cube >> 6)] &= ~(std::uint64_t{1} << (cube & 63));
+    }
+    const std::uint64_t* const bits = occupancy.data();
+    for (std::size_t row = 0; row < rows; ++row) {
+      const std::uint32_t cube = cubes[row];
+      const auto flag = static_cast<std::uint8_t>(((bits[cube >> 6] >> (cube & 63)) & 1U) ^ 1U);
+      overhang[row] = flag;
+      count += flag;
+    }
   }
   result.num_overhang = count;
 }
@@ -279,10 +302,11 @@ void collapse_sparse(const Cloud& cloud, const CollapseParams& params, CollapseR
   std::vector<std::uint8_t> removed_slot(occupancy.capacity(), 0);
   for (const std::int64_t cube : result.removed_cubes) removed_slot[occupancy.find(cube)] = 1;
   std::size_t count = 0;
+  std::uint8_t* const overhang = result.overhang.data();
   for (std::size_t row = 0; row < cloud.size(); ++row) {
     const std::int64_t cube = cube_of_point[row];
     const std::uint8_t removed = cube < 0 ? 0 : removed_slot[occupancy.find(cube)];
-    result.overhang[row] = removed;
+    overhang[row] = removed;
     count += removed;
   }
   result.num_overhang = count;

@@ -246,6 +246,14 @@ TEST(CollapsePreprocessing, CropBoxExcludesPointsAndTheyAreNeverOverhang) {
   EXPECT_EQ(result.num_cropped, 2U);
   EXPECT_EQ(result.num_used, 2U);
   EXPECT_EQ(result.grid.ixmax, 1);  // the grid covers only the cropped cloud
+
+  // The same with a cube far up the crop box: 1,000 cubes for 5 points (V's bits, not a byte per
+  // cube, decide the mask; the tiny grid above took the byte map).
+  const std::vector<Eigen::Vector3d> spread = {{0, 0, 0}, {0, 0, 5}, {50, 0, 0}, {50, 0, 5}, {9, 9, 9}};
+  const CollapseResult spread_result = collapse_overhangs(spread, params);
+  EXPECT_EQ(spread_result.grid.num_cubes(), 1000);
+  EXPECT_EQ(spread_result.overhang, (std::vector<std::uint8_t>{0, 1, 0, 0, 0}));
+  EXPECT_EQ(spread_result.num_cropped, 2U);
 }
 
 // --- storage ----------------------------------------------------------------------------------
