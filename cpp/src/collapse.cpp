@@ -20,12 +20,26 @@ namespace {
 /// layers bottom-up, so every column is seen bottom-up too. ground_of(column) is M: the layer iz
 /// of the column's current ground cube, -1 for none. An occupied cube separated from the ground
 /// by fewer than σ empty cubes becomes the new ground; otherwise it is collapsed into R.
+template <typename F>
+void for_each_column(const std::vector<std::int64_t>& occupied, std::int64_t num_columns, F&& f) {
+  // L is sorted, so the layer only grows: one division per layer instead of one per cube.
+  std::int64_t layer = 0;
+  std::int64_t layer_start = 0;
+  std::int64_t next_layer_start = 0;
+  for (const std::int64_t cube : occupied) {
+    if (cube >= next_layer_start) {
+      layer = cube / num_columns;
+      layer_start = layer * num_columns;
+      next_layer_start = layer_start + num_columns;  // at most the cube count, which fits int64
+    }
+    f(cube, cube - layer_start, layer);
+  }
+}
+
 template <typename GroundOf>
 void sweep_columns(const std::vector<std::int64_t>& occupied, std::int64_t num_columns, int sigma, GroundOf&& ground_of,
                    std::vector<std::int64_t>& removed) {
-  for (const std::int64_t cube : occupied) {
-    const std::int64_t column = cube % num_columns;
-    const std::int64_t layer = cube / num_columns;
+  for_each_column(occupied, num_columns, [&](std::int64_t cube, std::int64_t column, std::int64_t layer) {
     auto& ground = ground_of(column);
     const std::int64_t empty_between = layer - ground - 1;
     if (ground < 0 || empty_between < sigma) {
@@ -33,7 +47,7 @@ void sweep_columns(const std::vector<std::int64_t>& occupied, std::int64_t num_c
     } else {
       removed.push_back(cube);
     }
-  }
+  });
 }
 
 struct GridQuantizer {
@@ -116,11 +130,25 @@ void quantize_block(const Cloud& cloud, const CubeGrid& grid, bool all_used, std
   }
 }
 
-/// The dense path's buffers, one set per thread (shared by every cloud type).
+/// The dense path's buffers, one set per thread (shared by every cloud type): in a long-running
+/// process a fresh multi-megabyte buffer costs a page fault per 4 kB on every call. V, its summary
+/// and M keep their values between calls (all clear, all clear, all -1) and each call restores
+/// only what it touched, O(|L|), so a large sparse grid costs no clearing. A call that throws
+/// drops them all; buffers over kKeepBytes are dropped after the call.
 struct DenseScratch {
-  std::vector<std::uint64_t> occupancy;  // V
+  std::vector<std::uint64_t> occupancy;  // V, plus a word for rows that take no part
+  std::vector<std::uint64_t> summary;    // a bit per word of V: the word is non-zero
+  std::vector<std::int32_t> ground;      // M; layers fit 32 bits on the dense path
   std::vector<std::uint32_t> cubes;      // I of every point
+  std::vector<std::uint32_t> words;      // the non-zero words of V, in order
   std::vector<std::uint8_t> removed;     // a byte per cube of R, for small grids
+
+  static constexpr std::size_t kKeepBytes = std::size_t{64} << 20;
+
+  std::size_t bytes() const {
+    return occupancy.capacity() * 8 + summary.capacity() * 8 + ground.capacity() * 4 + cubes.capacity() * 4 +
+           words.capacity() * 4 + removed.capacity();
+  }
 };
 
 DenseScratch& dense_scratch() {
@@ -128,63 +156,107 @@ DenseScratch& dense_scratch() {
   return scratch;
 }
 
+/// Drops the scratch unless dismissed: the invariants of V, the summary and M may be broken.
+struct ScratchGuard {
+  DenseScratch& scratch;
+  bool dismissed = false;
+  ~ScratchGuard() {
+    if (!dismissed || scratch.bytes() > DenseScratch::kKeepBytes) scratch = DenseScratch{};
+  }
+};
+
 /// Dense path: V is a bit vector over all cubes, M a vector over all columns.
 template <typename Cloud>
 void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseResult& result) {
   const CubeGrid& grid = result.grid;
   const bool all_used = result.num_used == cloud.size();
-  // V, plus one all-ones word: rows that take no part point at it and are never overhang.
+  const std::size_t rows = cloud.size();
   const std::size_t words = static_cast<std::size_t>((grid.num_cubes() + 63) / 64);
-  // Scratch kept per thread: in a long-running process a fresh multi-megabyte buffer costs a page
-  // fault per 4 kB on every call. They hold at most the largest cloud seen (4 bytes per point) and
-  // V within dense_budget_bytes.
-  DenseScratch& scratch = dense_scratch();
-  std::vector<std::uint64_t>& occupancy = scratch.occupancy;
-  occupancy.assign(words + 1, 0);
+  const auto num_columns = static_cast<std::size_t>(grid.num_columns());
+  // Rows that take no part get no_cube, the first bit of the extra word after V.
   const auto no_cube = static_cast<std::uint32_t>(words * 64);
-  if (scratch.cubes.size() < cloud.size()) scratch.cubes.resize(cloud.size());
-  std::uint32_t* cubes = scratch.cubes.data();
+  // A summary of V pays off when V has more words than the cloud has points (a sparse grid):
+  // then L is read from the non-zero words only.
+  const bool summarise = words > rows;
+  const std::size_t summary_words = words / 64 + 1;
+
+  DenseScratch& scratch = dense_scratch();
+  ScratchGuard guard{scratch};
+  if (scratch.occupancy.size() < words + 1) scratch.occupancy.resize(words + 1, 0);
+  if (summarise && scratch.summary.size() < summary_words) scratch.summary.resize(summary_words, 0);
+  if (scratch.ground.size() < num_columns) scratch.ground.resize(num_columns, -1);
+  if (scratch.cubes.size() < rows) scratch.cubes.resize(rows);
+  std::uint64_t* const occupancy = scratch.occupancy.data();
+  std::uint64_t* const summary = scratch.summary.data();
+  std::uint32_t* const cubes = scratch.cubes.data();
 
   // Algorithm 1, lines 1-4: one O(N) pass sets V, in blocks whose cube indices are still in L1
   // when their bits are set.
   constexpr std::size_t kBlock = 2048;
-  for (std::size_t begin = 0; begin < cloud.size(); begin += kBlock) {
-    const std::size_t end = std::min(cloud.size(), begin + kBlock);
+  for (std::size_t begin = 0; begin < rows; begin += kBlock) {
+    const std::size_t end = std::min(rows, begin + kBlock);
     quantize_block(cloud, grid, all_used, no_cube, begin, end, cubes + begin);
-    for (std::size_t row = begin; row < end; ++row) {
-      occupancy[cubes[row] >> 6] |= std::uint64_t{1} << (cubes[row] & 63);
+    if (summarise) {
+      for (std::size_t row = begin; row < end; ++row) {
+        const std::uint32_t cube = cubes[row];
+        occupancy[cube >> 6] |= std::uint64_t{1} << (cube & 63);
+        summary[cube >> 12] |= std::uint64_t{1} << ((cube >> 6) & 63);
+      }
+    } else {
+      for (std::size_t row = begin; row < end; ++row) {
+        occupancy[cubes[row] >> 6] |= std::uint64_t{1} << (cubes[row] & 63);
+      }
     }
   }
-  occupancy[words] = ~std::uint64_t{0};
 
-  // L sorted: reading V in index order is a bucket sort of L, O(|V| / 64 + |L|).
-  std::vector<std::int64_t>& occupied = result.occupied_cubes;
+  // L sorted: reading V in index order is a bucket sort of L, O(|V| / 64 + |L|) (or O(|V| / 4096
+  // + |L|) through the summary).
+  std::vector<std::uint32_t>& nonzero = scratch.words;
+  nonzero.clear();
   std::size_t num_occupied = 0;
-  for (std::size_t word = 0; word < words; ++word) {
-    num_occupied += static_cast<std::size_t>(__builtin_popcountll(occupancy[word]));
+  if (summarise) {
+    for (std::size_t s = 0; s < summary_words; ++s) {
+      for (std::uint64_t bits = summary[s]; bits != 0; bits &= bits - 1) {
+        const std::size_t word = s * 64 + static_cast<std::size_t>(__builtin_ctzll(bits));
+        if (word >= words) continue;  // the word of rows that take no part
+        nonzero.push_back(static_cast<std::uint32_t>(word));
+        num_occupied += static_cast<std::size_t>(__builtin_popcountll(occupancy[word]));
+      }
+      summary[s] = 0;  // restored
+    }
+  } else {
+    for (std::size_t word = 0; word < words; ++word) {
+      if (occupancy[word] == 0) continue;
+      nonzero.push_back(static_cast<std::uint32_t>(word));
+      num_occupied += static_cast<std::size_t>(__builtin_popcountll(occupancy[word]));
+    }
   }
+  std::vector<std::int64_t>& occupied = result.occupied_cubes;
   occupied.reserve(num_occupied);
-  for (std::size_t word = 0; word < words; ++word) {
+  for (const std::uint32_t word : nonzero) {
     for (std::uint64_t bits = occupancy[word]; bits != 0; bits &= bits - 1) {
-      occupied.push_back(static_cast<std::int64_t>(word * 64 + static_cast<std::size_t>(__builtin_ctzll(bits))));
+      occupied.push_back(
+          static_cast<std::int64_t>(std::size_t{word} * 64 + static_cast<std::size_t>(__builtin_ctzll(bits))));
     }
   }
 
-  // M; layers fit 32 bits on the dense path (fewer than 2^31 cubes).
-  std::vector<std::int32_t> ground(static_cast<std::size_t>(grid.num_columns()), -1);
+  // Lines 5-15 with M, then M restored to -1 on the columns L touched.
+  std::int32_t* const ground = scratch.ground.data();
   sweep_columns(
       occupied, grid.num_columns(), params.sigma,
-      [&ground](std::int64_t column) -> std::int32_t& { return ground[static_cast<std::size_t>(column)]; },
+      [ground](std::int64_t column) -> std::int32_t& { return ground[static_cast<std::size_t>(column)]; },
       result.removed_cubes);
+  for_each_column(occupied, grid.num_columns(), [ground](std::int64_t, std::int64_t column, std::int64_t) {
+    ground[static_cast<std::size_t>(column)] = -1;
+  });
 
-  // Points in R's cubes are overhang. Plain local pointers below: a byte store may alias anything,
-  // so through the vectors the compiler would reload their data pointers on every row.
+  // Points in R's cubes are overhang. Plain local pointers: a byte store may alias anything, so
+  // through the vectors the compiler would reload their data pointers on every row.
   std::size_t count = 0;
   std::uint8_t* const overhang = result.overhang.data();
-  const std::size_t rows = cloud.size();
   if (static_cast<std::size_t>(grid.num_cubes()) <= 2 * rows) {
     // A byte per cube (no more bytes than two per point): one load per point, no bit arithmetic.
-    // Rows that take no part point at no_cube, past the last cube, which is never removed.
+    // no_cube lies past the last cube and is never removed.
     std::vector<std::uint8_t>& removed_map = scratch.removed;
     removed_map.assign(static_cast<std::size_t>(no_cube) + 1, 0);
     for (const std::int64_t cube : result.removed_cubes) removed_map[static_cast<std::size_t>(cube)] = 1;
@@ -195,19 +267,25 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
       count += flag;
     }
   } else {
-    // Clear R's bits in V: a point is overhang when its cube's bit is gone.
+    // Clear R's bits in V: a point is overhang when its cube's bit is gone. The extra word is all
+    // ones, so no_cube is never overhang.
     for (const std::int64_t cube : result.removed_cubes) {
       occupancy[static_cast<std::size_t>(cube >> 6)] &= ~(std::uint64_t{1} << (cube & 63));
     }
-    const std::uint64_t* const bits = occupancy.data();
+    occupancy[words] = ~std::uint64_t{0};
     for (std::size_t row = 0; row < rows; ++row) {
       const std::uint32_t cube = cubes[row];
-      const auto flag = static_cast<std::uint8_t>(((bits[cube >> 6] >> (cube & 63)) & 1U) ^ 1U);
+      const auto flag = static_cast<std::uint8_t>(((occupancy[cube >> 6] >> (cube & 63)) & 1U) ^ 1U);
       overhang[row] = flag;
       count += flag;
     }
   }
   result.num_overhang = count;
+
+  // V restored to all clear.
+  for (const std::uint32_t word : nonzero) occupancy[word] = 0;
+  occupancy[words] = 0;
+  guard.dismissed = true;
 }
 
 /// An insert-only open-addressing hash set of cube indices that grows with the number of distinct

@@ -185,6 +185,20 @@ TEST(CollapseVsNaive, RandomScenesAreIdenticalForEveryStorage) {
   }
 }
 
+TEST(CollapseVsNaive, ConsecutiveCallsOnGridsOfEverySizeShareNoState) {
+  // The dense path keeps V, its summary and M per thread and restores them after each call:
+  // alternate sparse-looking grids (V larger than the cloud: the summary path), dense small grids
+  // (the byte map) and an empty-looking tall grid, each checked against the naive Algorithm 1.
+  for (std::uint32_t round = 0; round < 6; ++round) {
+    SCOPED_TRACE("round " + std::to_string(round));
+    auto spread = test::random_scene(100 + round, 400, 40.0);  // ~160^3 cubes at 0.25 m: 64k words
+    expect_same_as_naive(spread, 0.25, 1 + static_cast<int>(round % 3));
+    expect_same_as_naive(test::random_scene(200 + round, 5000, 3.0), 0.5, 2);  // few cubes, many points
+    spread.push_back({0.0, 0.0, 500.0});                                       // a tall, almost empty grid
+    expect_same_as_naive(spread, 0.5, 2);
+  }
+}
+
 TEST(CollapseVsNaive, TinyAndDegenerateClouds) {
   expect_same_as_naive({{1, 2, 3}}, 0.5, 2);
   expect_same_as_naive({{1, 2, 3}, {1, 2, 3}, {1, 2, 3}}, 0.5, 2);                   // duplicates
