@@ -215,8 +215,9 @@ struct BinningConstants {
 /// outside, else kSlow (NaN/Inf, or an estimate within the margin of a border; the caller
 /// re-bins those rows with the exact formula).
 template <typename Scalar, int kStride>
-inline __attribute__((always_inline)) void bin_rows_body(const Scalar* data, std::size_t rows, const BinningConstants& k,
-                                                         std::uint32_t* out) {
+inline __attribute__((always_inline)) bool bin_rows_body(const Scalar* data, std::size_t rows,
+                                                         const BinningConstants& k, std::uint32_t* out) {
+  bool any_slow = false;
   constexpr double kMargin = 1.0 / 65536.0;
   const double origin_x = k.origin_x, origin_y = k.origin_y, inverse = k.inverse;
   const double upper_x = k.upper_x, upper_y = k.upper_y;
@@ -250,17 +251,14 @@ inline __attribute__((always_inline)) void bin_rows_body(const Scalar* data, std
     const bool decided = clear_x & clear_y & in_x & in_y & finite;
     const auto cell = static_cast<std::uint32_t>(i) * static_cast<std::uint32_t>(ny) + static_cast<std::uint32_t>(j);
     out[r] = decided ? cell : (outside & finite ? kOutside : kSlow);
+    any_slow |= out[r] == kSlow;
   }
+  return any_slow;
 }
 
 template <typename Scalar>
-void bin_rows_default(const Scalar* data, std::size_t rows, int stride, const BinningConstants& k,
-                      std::uint32_t* out) {
-  if (stride == 3) {
-    bin_rows_body<Scalar, 3>(data, rows, k, out);
-  } else {
-    bin_rows_body<Scalar, 4>(data, rows, k, out);
-  }
+bool bin_rows_default(const Scalar* data, std::size_t rows, int stride, const BinningConstants& k, std::uint32_t* out) {
+  return stride == 3 ? bin_rows_body<Scalar, 3>(data, rows, k, out) : bin_rows_body<Scalar, 4>(data, rows, k, out);
 }
 
 #if defined(__x86_64__) && defined(__GNUC__)
@@ -268,7 +266,7 @@ void bin_rows_default(const Scalar* data, std::size_t rows, int stride, const Bi
 /// bin_rows_body for float rows, four at a time in AVX2 doubles: the same operations in the same
 /// order (no FMA target, so every product and sum rounds as in the scalar code).
 template <int kStride>
-__attribute__((target("avx2"))) void bin_float_rows_avx2(const float* data, std::size_t rows, const BinningConstants& k,
+__attribute__((target("avx2"))) bool bin_float_rows_avx2(const float* data, std::size_t rows, const BinningConstants& k,
                                                          std::uint32_t* out) {
   const __m256d origin_x = _mm256_set1_pd(k.origin_x), origin_y = _mm256_set1_pd(k.origin_y);
   const __m256d inverse = _mm256_set1_pd(k.inverse);
@@ -281,6 +279,7 @@ __attribute__((target("avx2"))) void bin_float_rows_avx2(const float* data, std:
   // row is left to the scalar tail.
   const std::size_t vector_rows = kStride == 4 ? rows : (rows > 0 ? rows - 1 : 0);
   std::size_t r = 0;
+  int slow = 0;
   for (; r + 4 <= vector_rows; r += 4) {
     const float* p = data + r * kStride;
     __m128 x4 = _mm_loadu_ps(p);
@@ -289,13 +288,14 @@ __attribute__((target("avx2"))) void bin_float_rows_avx2(const float* data, std:
     __m128 w4 = _mm_loadu_ps(p + 3 * kStride);
     _MM_TRANSPOSE4_PS(x4, y4, z4, w4);  // now the x, y, z (and 4th) values of the 4 rows
     const __m256d x = _mm256_cvtps_pd(x4), y = _mm256_cvtps_pd(y4), z = _mm256_cvtps_pd(z4);
-    const __m256d residue =
-        _mm256_add_pd(_mm256_add_pd(_mm256_sub_pd(x, x), _mm256_sub_pd(y, y)), _mm256_sub_pd(z, z));
+    const __m256d residue = _mm256_add_pd(_mm256_add_pd(_mm256_sub_pd(x, x), _mm256_sub_pd(y, y)), _mm256_sub_pd(z, z));
     const int finite = _mm256_movemask_pd(_mm256_cmp_pd(residue, zero, _CMP_EQ_OQ));
     const __m256d ex = _mm256_mul_pd(_mm256_sub_pd(x, origin_x), inverse);
     const __m256d ey = _mm256_mul_pd(_mm256_sub_pd(y, origin_y), inverse);
-    const __m256d near_x = _mm256_and_pd(_mm256_cmp_pd(ex, minus_one, _CMP_GT_OQ), _mm256_cmp_pd(ex, upper_x, _CMP_LT_OQ));
-    const __m256d near_y = _mm256_and_pd(_mm256_cmp_pd(ey, minus_one, _CMP_GT_OQ), _mm256_cmp_pd(ey, upper_y, _CMP_LT_OQ));
+    const __m256d near_x =
+        _mm256_and_pd(_mm256_cmp_pd(ex, minus_one, _CMP_GT_OQ), _mm256_cmp_pd(ex, upper_x, _CMP_LT_OQ));
+    const __m256d near_y =
+        _mm256_and_pd(_mm256_cmp_pd(ey, minus_one, _CMP_GT_OQ), _mm256_cmp_pd(ey, upper_y, _CMP_LT_OQ));
     const __m256d sx = _mm256_blendv_pd(half, _mm256_add_pd(ex, one), near_x);
     const __m256d sy = _mm256_blendv_pd(half, _mm256_add_pd(ey, one), near_y);
     const __m128i wx = _mm256_cvttpd_epi32(sx);
@@ -308,14 +308,15 @@ __attribute__((target("avx2"))) void bin_float_rows_avx2(const float* data, std:
         _mm256_and_pd(_mm256_cmp_pd(fy, margin, _CMP_GT_OQ), _mm256_cmp_pd(fy, one_minus_margin, _CMP_LT_OQ)));
     const __m128i i = _mm_add_epi32(wx, minus_one_i);
     const __m128i j = _mm_add_epi32(wy, minus_one_i);
-    const int in_x = _mm_movemask_ps(
-        _mm_castsi128_ps(_mm_and_si128(_mm_cmpgt_epi32(i, minus_one_i), _mm_cmpgt_epi32(nx, i))));
-    const int in_y = _mm_movemask_ps(
-        _mm_castsi128_ps(_mm_and_si128(_mm_cmpgt_epi32(j, minus_one_i), _mm_cmpgt_epi32(ny, j))));
+    const int in_x =
+        _mm_movemask_ps(_mm_castsi128_ps(_mm_and_si128(_mm_cmpgt_epi32(i, minus_one_i), _mm_cmpgt_epi32(nx, i))));
+    const int in_y =
+        _mm_movemask_ps(_mm_castsi128_ps(_mm_and_si128(_mm_cmpgt_epi32(j, minus_one_i), _mm_cmpgt_epi32(ny, j))));
     const int near = _mm256_movemask_pd(_mm256_and_pd(near_x, near_y));
     const int decided = clear_x & clear_y & in_x & in_y & finite;
     const int outside = (~near | (clear_x & ~in_x) | (clear_y & ~in_y)) & finite & 0xF;
     const __m128i cell = _mm_add_epi32(_mm_mullo_epi32(i, ny), j);
+    slow |= ~(decided | outside) & 0xF;
     if (decided == 0xF) {
       _mm_storeu_si128(reinterpret_cast<__m128i*>(out + r), cell);
     } else if (outside == 0xF) {
@@ -328,19 +329,15 @@ __attribute__((target("avx2"))) void bin_float_rows_avx2(const float* data, std:
       }
     }
   }
-  bin_rows_body<float, kStride>(data + r * kStride, rows - r, k, out + r);
+  return bin_rows_body<float, kStride>(data + r * kStride, rows - r, k, out + r) || slow != 0;
 }
 
 template <typename Scalar>
-void bin_rows_avx2(const Scalar* data, std::size_t rows, int stride, const BinningConstants& k, std::uint32_t* out) {
+bool bin_rows_avx2(const Scalar* data, std::size_t rows, int stride, const BinningConstants& k, std::uint32_t* out) {
   if constexpr (std::is_same_v<Scalar, float>) {
-    if (stride == 3) {
-      bin_float_rows_avx2<3>(data, rows, k, out);
-    } else {
-      bin_float_rows_avx2<4>(data, rows, k, out);
-    }
+    return stride == 3 ? bin_float_rows_avx2<3>(data, rows, k, out) : bin_float_rows_avx2<4>(data, rows, k, out);
   } else {
-    bin_rows_default(data, rows, stride, k, out);
+    return bin_rows_default(data, rows, stride, k, out);
   }
 }
 
@@ -352,14 +349,12 @@ bool has_avx2() {
 
 /// bin_rows_body for rows 3 or 4 scalars apart (x y z, or x y z intensity), AVX2 when the CPU has it.
 template <typename Scalar>
-void bin_rows(const Scalar* data, std::size_t rows, int stride, const BinningConstants& k, std::uint32_t* out) {
+/// Returns whether any row got kSlow.
+bool bin_rows(const Scalar* data, std::size_t rows, int stride, const BinningConstants& k, std::uint32_t* out) {
 #if defined(TERRACUBE_HAVE_AVX2_BINNING)
-  if (has_avx2()) {
-    bin_rows_avx2(data, rows, stride, k, out);
-    return;
-  }
+  if (has_avx2()) return bin_rows_avx2(data, rows, stride, k, out);
 #endif
-  bin_rows_default(data, rows, stride, k, out);
+  return bin_rows_default(data, rows, stride, k, out);
 }
 
 /// Running statistics of one cell. Heights are accumulated relative to the cell's first height
@@ -382,7 +377,7 @@ struct CellStatistics {
 /// every call -- only the cells a call touched are reset -- so a call costs O(points + occupied
 /// cells) beyond writing the layers. Buffers over kKeepBytes are released after the call.
 struct BuildScratch {
-  std::vector<std::uint32_t> cell_of_point, wide_cells, slot;
+  std::vector<std::uint32_t> cell_of_point, run_cell, run_start, wide_cells, slot;
   std::vector<std::uint64_t> occupied, wide;  // one bit per cell
   std::vector<CellStatistics<float>> statistics_float;
   std::vector<CellStatistics<double>> statistics_double;
@@ -401,7 +396,8 @@ struct BuildScratch {
   }
 
   void release_if_large() {
-    const std::size_t bytes = 4 * (cell_of_point.capacity() + wide_cells.capacity() + slot.capacity()) +
+    const std::size_t bytes = 4 * (cell_of_point.capacity() + run_cell.capacity() + run_start.capacity() +
+                                   wide_cells.capacity() + slot.capacity()) +
                               8 * (occupied.capacity() + wide.capacity()) +
                               sizeof(CellStatistics<float>) * statistics_float.capacity() +
                               sizeof(CellStatistics<double>) * statistics_double.capacity() +
@@ -514,12 +510,8 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     constexpr std::int64_t kLargest = std::int64_t{1} << 30;  // cells + 2 must fit the kernel's int32
     kernel = use == nullptr && view.column_stride == 1 && (view.row_stride == 3 || view.row_stride == 4) &&
              nx < kLargest && ny < kLargest;
-    constants = {geometry.origin_m.x(),
-                 geometry.origin_m.y(),
-                 1.0 / geometry.resolution_m,
-                 static_cast<double>(nx) + 1.0,
-                 static_cast<double>(ny) + 1.0,
-                 static_cast<std::int32_t>(nx),
+    constants = {geometry.origin_m.x(),         geometry.origin_m.y(),         1.0 / geometry.resolution_m,
+                 static_cast<double>(nx) + 1.0, static_cast<double>(ny) + 1.0, static_cast<std::int32_t>(nx),
                  static_cast<std::int32_t>(ny)};
   }
   const auto height = [&](std::size_t row) {
@@ -532,7 +524,15 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   };
   // Consecutive rows of a scan often share a cell: a run of them is summed in registers and
   // added to the cell's statistics once (summing straight into memory would chain every row's
-  // additions through a store and a load). A cell's first row sets its shift.
+  // additions through a store and a load). A cell's first row sets its shift. The runs (cell and
+  // first row; rows outside the map do not end a run) are kept for the gap test below.
+  if (scratch.run_cell.size() < cloud.size()) {
+    scratch.run_cell.resize(cloud.size());
+    scratch.run_start.resize(cloud.size());
+  }
+  std::uint32_t* run_cell = scratch.run_cell.data();
+  std::uint32_t* run_start = scratch.run_start.data();
+  std::size_t num_runs = 0;
   CellStatistics<Height>* statistics_data = statistics.data();
   std::uint64_t* occupied = scratch.occupied.data();
   constexpr Height kInfinity = std::numeric_limits<Height>::infinity();
@@ -550,12 +550,13 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     s.highest = highest > s.highest ? highest : s.highest;
   };
   constexpr std::size_t kBlock = 1024;
+  constexpr std::size_t kPrefetchRows = 16;
   for (std::size_t begin = 0; begin < cloud.size(); begin += kBlock) {
     const std::size_t end = std::min(cloud.size(), begin + kBlock);
     if (kernel) {
-      bin_rows(view.data + static_cast<std::ptrdiff_t>(begin) * view.row_stride, end - begin,
-               static_cast<int>(view.row_stride), constants, codes + begin);
-      for (std::size_t row = begin; row < end; ++row) {
+      const bool any_slow = bin_rows(view.data + static_cast<std::ptrdiff_t>(begin) * view.row_stride, end - begin,
+                                     static_cast<int>(view.row_stride), constants, codes + begin);
+      for (std::size_t row = begin; any_slow && row < end; ++row) {
         if (codes[row] == kSlow) bin_row(row);  // rare: NaN/Inf rows and cell borders
       }
     } else {
@@ -569,6 +570,12 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
       if (cell != current) {
         flush();
         current = cell;
+        run_cell[num_runs] = cell;
+        run_start[num_runs++] = static_cast<std::uint32_t>(row);
+        // The statistics (32 bytes a cell) outgrow the L2 cache: fetch the cell of a later row
+        // ahead of its run (an outside code fetches cell 0; prefetches never fault).
+        const std::uint32_t ahead = codes[std::min(row + kPrefetchRows, end - 1)];
+        __builtin_prefetch(statistics_data + (ahead < kSlow ? ahead : 0), 1);
         CellStatistics<Height>& s = statistics_data[cell];
         if (s.count == 0) {
           s.first = z;
@@ -641,10 +648,14 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     heights.resize(offset.back());
     std::vector<std::size_t>& next = scratch.next;
     next.assign(offset.begin(), offset.end() - 1);
-    for (std::size_t row = 0; row < cloud.size(); ++row) {
-      const std::uint32_t cell = codes[row];
-      if (cell == kOutside || ((wide[cell / 64] >> (cell % 64)) & 1) == 0) continue;
-      heights[next[slot[cell]]++] = height(row);
+    for (std::size_t run = 0; run < num_runs; ++run) {
+      const std::uint32_t cell = run_cell[run];
+      if (((wide[cell / 64] >> (cell % 64)) & 1) == 0) continue;
+      const std::size_t end = run + 1 < num_runs ? run_start[run + 1] : cloud.size();
+      std::size_t& place = next[slot[cell]];
+      for (std::size_t row = run_start[run]; row < end; ++row) {
+        if (codes[row] == cell) heights[place++] = height(row);
+      }
     }
     for (std::size_t k = 0; k < num_wide; ++k) {
       double* begin = heights.data() + offset[k];
