@@ -373,11 +373,13 @@ struct CellStatistics {
 
 /// Per-thread scratch buffers of build_map, kept between calls: a fresh multi-megabyte buffer
 /// costs a page fault per 4 kB page on first touch, which on a fresh map would take longer than
-/// the whole computation. The per-cell buffers (statistics, bitmaps, `slot`) are left clean after
-/// every call -- only the cells a call touched are reset -- so a call costs O(points + occupied
-/// cells) beyond writing the layers. Buffers over kKeepBytes are released after the call.
+/// the whole computation. The per-cell buffers (`place`, the bitmaps, `slot`) are left clean
+/// after every call -- only the cells a call touched are reset -- so a call costs O(points +
+/// occupied cells) beyond writing the layers; the statistics are kept only for occupied cells, in
+/// the order the points reach them. Buffers over kKeepBytes are released after the call.
 struct BuildScratch {
   std::vector<std::uint32_t> cell_of_point, run_cell, run_start, wide_cells, slot;
+  std::vector<std::uint32_t> place;           // per cell: its entry in the statistics, or kOutside
   std::vector<std::uint64_t> occupied, wide;  // one bit per cell
   std::vector<CellStatistics<float>> statistics_float;
   std::vector<CellStatistics<double>> statistics_double;
@@ -397,7 +399,7 @@ struct BuildScratch {
 
   void release_if_large() {
     const std::size_t bytes = 4 * (cell_of_point.capacity() + run_cell.capacity() + run_start.capacity() +
-                                   wide_cells.capacity() + slot.capacity()) +
+                                   wide_cells.capacity() + slot.capacity() + place.capacity()) +
                               8 * (occupied.capacity() + wide.capacity()) +
                               sizeof(CellStatistics<float>) * statistics_float.capacity() +
                               sizeof(CellStatistics<double>) * statistics_double.capacity() +
@@ -458,20 +460,20 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   using Height = std::conditional_t<ExactFloatHeights<Cloud>::value, float, double>;
   BuildScratch& scratch = thread_scratch();
   std::vector<CellStatistics<Height>>& statistics = scratch.statistics<Height>();
-  // New entries are empty, old ones were left clean.
-  if (statistics.size() < cells) statistics.resize(cells);
+  // One entry per occupied cell, written when a point first reaches it.
+  if (statistics.size() < std::min(cells, cloud.size())) statistics.resize(std::min(cells, cloud.size()));
+  if (scratch.place.size() < cells) scratch.place.resize(cells, kOutside);  // old entries were left clean
   if (scratch.occupied.size() < words) scratch.occupied.resize(words, 0);
   if (scratch.wide.size() < words) scratch.wide.resize(words, 0);
   // Leaves the per-cell buffers clean whatever happens (on success the layer pass has already
   // reset the occupied cells), then releases oversized buffers.
   struct CleanOnExit {
     BuildScratch& scratch;
-    std::vector<CellStatistics<Height>>& statistics;
     std::size_t words;
     ~CleanOnExit() {
       for (std::size_t w = 0; w < words; ++w) {
         for (std::uint64_t bits = scratch.occupied[w]; bits != 0; bits &= bits - 1) {
-          statistics[w * 64 + static_cast<std::size_t>(__builtin_ctzll(bits))] = CellStatistics<Height>();
+          scratch.place[w * 64 + static_cast<std::size_t>(__builtin_ctzll(bits))] = kOutside;
         }
         scratch.occupied[w] = 0;
       }
@@ -482,7 +484,7 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
       scratch.wide_cells.clear();
       scratch.release_if_large();
     }
-  } clean_on_exit{scratch, statistics, words};
+  } clean_on_exit{scratch, words};
 
   // Pass 2, in blocks of rows that stay in the L1 cache: the cell code of every row (row-major
   // cell = i * ny + j), then count, min, max and the shifted sums of the block's rows.
@@ -534,15 +536,18 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   std::uint32_t* run_start = scratch.run_start.data();
   std::size_t num_runs = 0;
   CellStatistics<Height>* statistics_data = statistics.data();
+  std::uint32_t* place = scratch.place.data();
+  std::uint32_t num_occupied = 0;
   std::uint64_t* occupied = scratch.occupied.data();
   constexpr Height kInfinity = std::numeric_limits<Height>::infinity();
-  std::uint32_t current = kOutside;
+  std::uint32_t current = kOutside;  // the run's cell
+  std::uint32_t entry = 0;           // and its statistics
   Height shift = 0, lowest = kInfinity, highest = -kInfinity;
   double sum = 0.0, squares = 0.0;
   std::uint32_t run = 0;
   const auto flush = [&] {
     if (current == kOutside) return;
-    CellStatistics<Height>& s = statistics_data[current];
+    CellStatistics<Height>& s = statistics_data[entry];
     s.count += run;
     s.sum += sum;
     s.squares += squares;
@@ -572,16 +577,20 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
         current = cell;
         run_cell[num_runs] = cell;
         run_start[num_runs++] = static_cast<std::uint32_t>(row);
-        // The statistics (32 bytes a cell) outgrow the L2 cache: fetch the cell of a later row
-        // ahead of its run (an outside code fetches cell 0; prefetches never fault).
+        // Fetch the cell of a later row ahead of its run (an outside code fetches cell 0;
+        // prefetches never fault).
         const std::uint32_t ahead = codes[std::min(row + kPrefetchRows, end - 1)];
-        __builtin_prefetch(statistics_data + (ahead < kSlow ? ahead : 0), 1);
-        CellStatistics<Height>& s = statistics_data[cell];
-        if (s.count == 0) {
+        __builtin_prefetch(place + (ahead < kSlow ? ahead : 0), 1);
+        std::uint32_t& cell_place = place[cell];
+        if (cell_place == kOutside) {  // the cell's first point
+          cell_place = num_occupied++;
+          CellStatistics<Height>& s = statistics_data[cell_place];
+          s = CellStatistics<Height>();
           s.first = z;
           occupied[cell / 64] |= std::uint64_t{1} << (cell % 64);
         }
-        shift = s.first;
+        entry = cell_place;
+        shift = statistics_data[entry].first;
         lowest = kInfinity;
         highest = -kInfinity;
         sum = squares = 0.0;
@@ -599,7 +608,7 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   if (fixed_extent && extent.num_non_finite > 0 && !params.drop_non_finite) throw_non_finite(extent);
 
   // The layers, written in cell order 64 cells at a time: empty, then the occupied cells'
-  // statistics (which are reset for the next call).
+  // statistics (their places are reset for the next call).
   // Discontinuity: only a cell whose elevations span more than the threshold can hold a gap
   // longer than it (rounding is monotonic, so this holds for the computed differences too). Those
   // (few) "wide" cells have their elevations gathered below and sorted; the others get 0.
@@ -618,7 +627,9 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     }
     for (std::uint64_t bits = occupied[w]; bits != 0; bits &= bits - 1) {
       const std::size_t cell = base + static_cast<std::size_t>(__builtin_ctzll(bits));
-      CellStatistics<Height>& s = statistics_data[cell];
+      std::uint32_t& cell_place = place[cell];
+      const CellStatistics<Height>& s = statistics_data[cell_place];
+      cell_place = kOutside;
       const double n = static_cast<double>(s.count);
       const double offset_of_mean = s.sum / n;
       // The population variance from the shifted sums; rounding can leave it just below 0.
@@ -634,7 +645,6 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
         offset.push_back(offset.back() + s.count);
         wide[w] |= std::uint64_t{1} << (cell % 64);
       }
-      s = CellStatistics<Height>();
     }
     occupied[w] = 0;
   }
