@@ -478,7 +478,7 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
         scratch.occupied[w] = 0;
       }
       for (const std::uint32_t cell : scratch.wide_cells) {
-        scratch.slot[cell] = kOutside;
+        if (cell < scratch.slot.size()) scratch.slot[cell] = kOutside;  // set only after slot has grown
         scratch.wide[cell / 64] = 0;
       }
       scratch.wide_cells.clear();
