@@ -8,8 +8,8 @@
 #include <type_traits>
 #include <vector>
 
-#if defined(__SSE2__)
-#include <emmintrin.h>
+#if defined(__x86_64__) && defined(__GNUC__)
+#include <immintrin.h>
 #endif
 
 #include "cloud_frame.hpp"
@@ -197,31 +197,213 @@ struct ExactFloatHeights : std::false_type {};
 template <bool kCrop>
 struct ExactFloatHeights<detail::LeveledCloud<float, false, kCrop>> : std::true_type {};
 
-/// values[k] = sqrt(values[k]) for values that are >= 0 or NaN. Packed SSE2 square roots where
-/// available: std::sqrt's errno handling keeps compilers from vectorising the plain loop.
-void square_roots(double* values, std::size_t n) {
-  std::size_t k = 0;
-#if defined(__SSE2__)
-  for (; k + 2 <= n; k += 2) _mm_storeu_pd(values + k, _mm_sqrt_pd(_mm_loadu_pd(values + k)));
-#endif
-  for (; k < n; ++k) values[k] = std::sqrt(values[k]);
+/// Cell codes of the first pass over the points (cells themselves are below kSlow).
+constexpr std::uint32_t kOutside = std::numeric_limits<std::uint32_t>::max();
+/// The row needs the checking path: NaN/Inf, or a coordinate within rounding of a cell border.
+constexpr std::uint32_t kSlow = kOutside - 1;
+
+/// Constants of the binning kernel: AxisBinning's estimate for both axes at once.
+struct BinningConstants {
+  double origin_x, origin_y, inverse;  // inverse = 1 / resolution
+  double upper_x, upper_y;             // cells + 1 along x and y
+  std::int32_t nx, ny;
+};
+
+/// The cell code of each row of a plain (untransformed, uncropped) cloud with rows `kStride`
+/// scalars apart: the cell when AxisBinning's estimate decides it on both axes (the same
+/// arithmetic, without branches so that it vectorises), kOutside when an axis puts the row
+/// outside, else kSlow (NaN/Inf, or an estimate within the margin of a border; the caller
+/// re-bins those rows with the exact formula).
+template <typename Scalar, int kStride>
+inline __attribute__((always_inline)) bool bin_rows_body(const Scalar* data, std::size_t rows,
+                                                         const BinningConstants& k, std::uint32_t* out) {
+  bool any_slow = false;
+  constexpr double kMargin = 1.0 / 65536.0;
+  const double origin_x = k.origin_x, origin_y = k.origin_y, inverse = k.inverse;
+  const double upper_x = k.upper_x, upper_y = k.upper_y;
+  const std::int32_t nx = k.nx, ny = k.ny;
+  for (std::size_t r = 0; r < rows; ++r) {
+    const Scalar* p = data + r * kStride;
+    const double x = static_cast<double>(p[0]);
+    const double y = static_cast<double>(p[1]);
+    const double z = static_cast<double>(p[2]);
+    // Comparisons combine with & and |, not && and ||: no branches, so the loop vectorises.
+    const bool finite = (x - x) + (y - y) + (z - z) == 0.0;
+    const double ex = (x - origin_x) * inverse;
+    const double ey = (y - origin_y) * inverse;
+    const bool near_x = (ex > -1.0) & (ex < upper_x);  // else outside by about a cell or more (or NaN)
+    const bool near_y = (ey > -1.0) & (ey < upper_y);
+    // estimate + 1 lies in (0, cells + 2) where near: truncation is floor there (0.5 elsewhere,
+    // a defined conversion whose result is not used).
+    const double sx = near_x ? ex + 1.0 : 0.5;
+    const double sy = near_y ? ey + 1.0 : 0.5;
+    const auto wx = static_cast<std::int32_t>(sx);
+    const auto wy = static_cast<std::int32_t>(sy);
+    const double fx = sx - static_cast<double>(wx);
+    const double fy = sy - static_cast<double>(wy);
+    const bool clear_x = (fx > kMargin) & (fx < 1.0 - kMargin);
+    const bool clear_y = (fy > kMargin) & (fy < 1.0 - kMargin);
+    const std::int32_t i = wx - 1;  // >= -1
+    const std::int32_t j = wy - 1;
+    const bool in_x = (i >= 0) & (i < nx);
+    const bool in_y = (j >= 0) & (j < ny);
+    const bool outside = !near_x | !near_y | (clear_x & !in_x) | (clear_y & !in_y);
+    const bool decided = clear_x & clear_y & in_x & in_y & finite;
+    const auto cell = static_cast<std::uint32_t>(i) * static_cast<std::uint32_t>(ny) + static_cast<std::uint32_t>(j);
+    out[r] = decided ? cell : (outside & finite ? kOutside : kSlow);
+    any_slow |= out[r] == kSlow;
+  }
+  return any_slow;
 }
+
+template <typename Scalar>
+bool bin_rows_default(const Scalar* data, std::size_t rows, int stride, const BinningConstants& k, std::uint32_t* out) {
+  return stride == 3 ? bin_rows_body<Scalar, 3>(data, rows, k, out) : bin_rows_body<Scalar, 4>(data, rows, k, out);
+}
+
+#if defined(__x86_64__) && defined(__GNUC__)
+#define TERRACUBE_HAVE_AVX2_BINNING 1
+/// bin_rows_body for float rows, four at a time in AVX2 doubles: the same operations in the same
+/// order (no FMA target, so every product and sum rounds as in the scalar code).
+template <int kStride>
+__attribute__((target("avx2"))) bool bin_float_rows_avx2(const float* data, std::size_t rows, const BinningConstants& k,
+                                                         std::uint32_t* out) {
+  const __m256d origin_x = _mm256_set1_pd(k.origin_x), origin_y = _mm256_set1_pd(k.origin_y);
+  const __m256d inverse = _mm256_set1_pd(k.inverse);
+  const __m256d upper_x = _mm256_set1_pd(k.upper_x), upper_y = _mm256_set1_pd(k.upper_y);
+  const __m256d minus_one = _mm256_set1_pd(-1.0), one = _mm256_set1_pd(1.0), half = _mm256_set1_pd(0.5);
+  const __m256d zero = _mm256_setzero_pd();
+  const __m256d margin = _mm256_set1_pd(1.0 / 65536.0), one_minus_margin = _mm256_set1_pd(1.0 - 1.0 / 65536.0);
+  const __m128i minus_one_i = _mm_set1_epi32(-1), nx = _mm_set1_epi32(k.nx), ny = _mm_set1_epi32(k.ny);
+  // A 16-byte load at row r reads up to data[r * kStride + 3]: with 3 scalars a row, the last
+  // row is left to the scalar tail.
+  const std::size_t vector_rows = kStride == 4 ? rows : (rows > 0 ? rows - 1 : 0);
+  std::size_t r = 0;
+  int slow = 0;
+  for (; r + 4 <= vector_rows; r += 4) {
+    const float* p = data + r * kStride;
+    __m128 x4 = _mm_loadu_ps(p);
+    __m128 y4 = _mm_loadu_ps(p + kStride);
+    __m128 z4 = _mm_loadu_ps(p + 2 * kStride);
+    __m128 w4 = _mm_loadu_ps(p + 3 * kStride);
+    _MM_TRANSPOSE4_PS(x4, y4, z4, w4);  // now the x, y, z (and 4th) values of the 4 rows
+    const __m256d x = _mm256_cvtps_pd(x4), y = _mm256_cvtps_pd(y4), z = _mm256_cvtps_pd(z4);
+    const __m256d residue = _mm256_add_pd(_mm256_add_pd(_mm256_sub_pd(x, x), _mm256_sub_pd(y, y)), _mm256_sub_pd(z, z));
+    const int finite = _mm256_movemask_pd(_mm256_cmp_pd(residue, zero, _CMP_EQ_OQ));
+    const __m256d ex = _mm256_mul_pd(_mm256_sub_pd(x, origin_x), inverse);
+    const __m256d ey = _mm256_mul_pd(_mm256_sub_pd(y, origin_y), inverse);
+    const __m256d near_x =
+        _mm256_and_pd(_mm256_cmp_pd(ex, minus_one, _CMP_GT_OQ), _mm256_cmp_pd(ex, upper_x, _CMP_LT_OQ));
+    const __m256d near_y =
+        _mm256_and_pd(_mm256_cmp_pd(ey, minus_one, _CMP_GT_OQ), _mm256_cmp_pd(ey, upper_y, _CMP_LT_OQ));
+    const __m256d sx = _mm256_blendv_pd(half, _mm256_add_pd(ex, one), near_x);
+    const __m256d sy = _mm256_blendv_pd(half, _mm256_add_pd(ey, one), near_y);
+    const __m128i wx = _mm256_cvttpd_epi32(sx);
+    const __m128i wy = _mm256_cvttpd_epi32(sy);
+    const __m256d fx = _mm256_sub_pd(sx, _mm256_cvtepi32_pd(wx));
+    const __m256d fy = _mm256_sub_pd(sy, _mm256_cvtepi32_pd(wy));
+    const int clear_x = _mm256_movemask_pd(
+        _mm256_and_pd(_mm256_cmp_pd(fx, margin, _CMP_GT_OQ), _mm256_cmp_pd(fx, one_minus_margin, _CMP_LT_OQ)));
+    const int clear_y = _mm256_movemask_pd(
+        _mm256_and_pd(_mm256_cmp_pd(fy, margin, _CMP_GT_OQ), _mm256_cmp_pd(fy, one_minus_margin, _CMP_LT_OQ)));
+    const __m128i i = _mm_add_epi32(wx, minus_one_i);
+    const __m128i j = _mm_add_epi32(wy, minus_one_i);
+    const int in_x =
+        _mm_movemask_ps(_mm_castsi128_ps(_mm_and_si128(_mm_cmpgt_epi32(i, minus_one_i), _mm_cmpgt_epi32(nx, i))));
+    const int in_y =
+        _mm_movemask_ps(_mm_castsi128_ps(_mm_and_si128(_mm_cmpgt_epi32(j, minus_one_i), _mm_cmpgt_epi32(ny, j))));
+    const int near = _mm256_movemask_pd(_mm256_and_pd(near_x, near_y));
+    const int decided = clear_x & clear_y & in_x & in_y & finite;
+    const int outside = (~near | (clear_x & ~in_x) | (clear_y & ~in_y)) & finite & 0xF;
+    const __m128i cell = _mm_add_epi32(_mm_mullo_epi32(i, ny), j);
+    slow |= ~(decided | outside) & 0xF;
+    if (decided == 0xF) {
+      _mm_storeu_si128(reinterpret_cast<__m128i*>(out + r), cell);
+    } else if (outside == 0xF) {
+      _mm_storeu_si128(reinterpret_cast<__m128i*>(out + r), _mm_set1_epi32(-1));  // kOutside
+    } else {
+      alignas(16) std::uint32_t cells[4];
+      _mm_store_si128(reinterpret_cast<__m128i*>(cells), cell);
+      for (int lane = 0; lane < 4; ++lane) {
+        out[r + lane] = (decided >> lane) & 1 ? cells[lane] : ((outside >> lane) & 1 ? kOutside : kSlow);
+      }
+    }
+  }
+  return bin_rows_body<float, kStride>(data + r * kStride, rows - r, k, out + r) || slow != 0;
+}
+
+template <typename Scalar>
+bool bin_rows_avx2(const Scalar* data, std::size_t rows, int stride, const BinningConstants& k, std::uint32_t* out) {
+  if constexpr (std::is_same_v<Scalar, float>) {
+    return stride == 3 ? bin_float_rows_avx2<3>(data, rows, k, out) : bin_float_rows_avx2<4>(data, rows, k, out);
+  } else {
+    return bin_rows_default(data, rows, stride, k, out);
+  }
+}
+
+bool has_avx2() {
+  static const bool supported = __builtin_cpu_supports("avx2");
+  return supported;
+}
+#endif
+
+/// bin_rows_body for rows 3 or 4 scalars apart (x y z, or x y z intensity), AVX2 when the CPU has it.
+template <typename Scalar>
+/// Returns whether any row got kSlow.
+bool bin_rows(const Scalar* data, std::size_t rows, int stride, const BinningConstants& k, std::uint32_t* out) {
+#if defined(TERRACUBE_HAVE_AVX2_BINNING)
+  if (has_avx2()) return bin_rows_avx2(data, rows, stride, k, out);
+#endif
+  return bin_rows_default(data, rows, stride, k, out);
+}
+
+/// Running statistics of one cell. Heights are accumulated relative to the cell's first height
+/// (a shifted one-pass variance: with `first` one of the samples, (first - mean)^2 <= n var, so
+/// sum(d^2) - sum(d)^2 / n loses at most about n ulps of the variance to cancellation, where the
+/// plain sums of z and z^2 lose everything at large absolute heights).
+template <typename Height>
+struct CellStatistics {
+  Height first = 0;
+  Height lowest = std::numeric_limits<Height>::infinity();
+  Height highest = -std::numeric_limits<Height>::infinity();
+  std::uint32_t count = 0;
+  double sum = 0.0;      ///< sum of (z - first)
+  double squares = 0.0;  ///< sum of (z - first)^2
+};
 
 /// Per-thread scratch buffers of build_map, kept between calls: a fresh multi-megabyte buffer
 /// costs a page fault per 4 kB page on first touch, which on a fresh map would take longer than
-/// the whole computation. Buffers over kKeepBytes are released after the call.
+/// the whole computation. The per-cell buffers (`place`, the bitmaps, `slot`) are left clean
+/// after every call -- only the cells a call touched are reset -- so a call costs O(points +
+/// occupied cells) beyond writing the layers; the statistics are kept only for occupied cells, in
+/// the order the points reach them. Buffers over kKeepBytes are released after the call.
 struct BuildScratch {
-  std::vector<std::uint32_t> cell_of_point, count, wide_cells, slot;
-  std::vector<double> sum, squares, heights, lowest, highest;
+  std::vector<std::uint32_t> cell_of_point, run_cell, run_start, wide_cells, slot;
+  std::vector<std::uint32_t> place;           // per cell: its entry in the statistics, or kOutside
+  std::vector<std::uint64_t> occupied, wide;  // one bit per cell
+  std::vector<CellStatistics<float>> statistics_float;
+  std::vector<CellStatistics<double>> statistics_double;
+  std::vector<double> heights;
   std::vector<std::size_t> offset, next;
 
   static constexpr std::size_t kKeepBytes = std::size_t{32} << 20;
 
+  template <typename Height>
+  std::vector<CellStatistics<Height>>& statistics() {
+    if constexpr (std::is_same_v<Height, float>) {
+      return statistics_float;
+    } else {
+      return statistics_double;
+    }
+  }
+
   void release_if_large() {
-    const std::size_t bytes =
-        4 * (cell_of_point.capacity() + count.capacity() + wide_cells.capacity() + slot.capacity()) +
-        8 * (sum.capacity() + squares.capacity() + heights.capacity() + lowest.capacity() + highest.capacity() +
-             offset.capacity() + next.capacity());
+    const std::size_t bytes = 4 * (cell_of_point.capacity() + run_cell.capacity() + run_start.capacity() +
+                                   wide_cells.capacity() + slot.capacity() + place.capacity()) +
+                              8 * (occupied.capacity() + wide.capacity()) +
+                              sizeof(CellStatistics<float>) * statistics_float.capacity() +
+                              sizeof(CellStatistics<double>) * statistics_double.capacity() +
+                              8 * (heights.capacity() + offset.capacity() + next.capacity());
     if (bytes > kKeepBytes) *this = BuildScratch();
   }
 };
@@ -269,153 +451,235 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   const std::size_t cells = geometry.num_cells();
   const auto nx = static_cast<std::int64_t>(geometry.size.x());
   const auto ny = static_cast<std::int64_t>(geometry.size.y());
-
-  constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
-  constexpr double kInfinity = std::numeric_limits<double>::infinity();
-  Layer count_layer(nx, ny), min(nx, ny), max(nx, ny), mean_layer(nx, ny), std_dev(nx, ny), discontinuity(nx, ny);
+  if (cells >= kSlow) throw std::invalid_argument("build_elevation_map handles maps of fewer than 2^32 - 2 cells");
+  const std::size_t words = (cells + 63) / 64;
 
   // Heights are exact floats when a float cloud is not transformed: then min and max are
-  // accumulated in the float layers themselves. Otherwise in doubles, rounded at the end (rounding
-  // is monotonic, so float(min z) = min float(z) either way).
+  // accumulated as floats. Otherwise in doubles, rounded at the end (rounding is monotonic, so
+  // float(min z) = min float(z) either way) -- the wide-cell test below needs the double range.
   using Height = std::conditional_t<ExactFloatHeights<Cloud>::value, float, double>;
   BuildScratch& scratch = thread_scratch();
-  struct ReleaseOnExit {
+  std::vector<CellStatistics<Height>>& statistics = scratch.statistics<Height>();
+  // One entry per occupied cell, written when a point first reaches it.
+  if (statistics.size() < std::min(cells, cloud.size())) statistics.resize(std::min(cells, cloud.size()));
+  if (scratch.place.size() < cells) scratch.place.resize(cells, kOutside);  // old entries were left clean
+  if (scratch.occupied.size() < words) scratch.occupied.resize(words, 0);
+  if (scratch.wide.size() < words) scratch.wide.resize(words, 0);
+  // Leaves the per-cell buffers clean whatever happens (on success the layer pass has already
+  // reset the occupied cells), then releases oversized buffers.
+  struct CleanOnExit {
     BuildScratch& scratch;
-    ~ReleaseOnExit() { scratch.release_if_large(); }
-  } release_on_exit{scratch};
-  std::vector<double>& lowest_store = scratch.lowest;
-  std::vector<double>& highest_store = scratch.highest;
-  Height* lowest = nullptr;
-  Height* highest = nullptr;
-  if constexpr (std::is_same_v<Height, float>) {
-    lowest = min.data();
-    highest = max.data();
-  } else {
-    lowest_store.resize(cells);
-    highest_store.resize(cells);
-    lowest = lowest_store.data();
-    highest = highest_store.data();
-  }
-  std::fill(lowest, lowest + cells, static_cast<Height>(kInfinity));
-  std::fill(highest, highest + cells, static_cast<Height>(-kInfinity));
+    std::size_t words;
+    ~CleanOnExit() {
+      for (std::size_t w = 0; w < words; ++w) {
+        for (std::uint64_t bits = scratch.occupied[w]; bits != 0; bits &= bits - 1) {
+          scratch.place[w * 64 + static_cast<std::size_t>(__builtin_ctzll(bits))] = kOutside;
+        }
+        scratch.occupied[w] = 0;
+      }
+      for (const std::uint32_t cell : scratch.wide_cells) {
+        if (cell < scratch.slot.size()) scratch.slot[cell] = kOutside;  // set only after slot has grown
+        scratch.wide[cell / 64] = 0;
+      }
+      scratch.wide_cells.clear();
+      scratch.release_if_large();
+    }
+  } clean_on_exit{scratch, words};
 
-  // Pass 2, one sweep over the points: cell of every point (row-major cell = i * ny + j) and the
-  // per-cell count, sum, min and max, accumulated in place (structure of arrays, so that the
-  // per-cell sweeps below vectorise).
-  constexpr std::uint32_t kOutside = std::numeric_limits<std::uint32_t>::max();
+  // Pass 2, in blocks of rows that stay in the L1 cache: the cell code of every row (row-major
+  // cell = i * ny + j), then count, min, max and the shifted sums of the block's rows.
   std::vector<std::uint32_t>& cell_of_point = scratch.cell_of_point;
-  std::vector<std::uint32_t>& count = scratch.count;
-  std::vector<double>& sum = scratch.sum;
   cell_of_point.resize(cloud.size());
-  count.assign(cells, 0);
-  sum.assign(cells, 0.0);
+  std::uint32_t* codes = cell_of_point.data();
   const AxisBinning along_x(geometry.origin_m.x(), geometry.resolution_m, nx);
   const AxisBinning along_y(geometry.origin_m.y(), geometry.resolution_m, ny);
-  for (std::size_t row = 0; row < cloud.size(); ++row) {
-    cell_of_point[row] = kOutside;
-    if (!selected(row)) continue;
+  const auto bin_row = [&](std::size_t row) {  // the checking path of one row
+    codes[row] = kOutside;
+    if (!selected(row)) return;
     const int status = cloud.map(row, p);
     if (status != 0) {
       if (status == 1 && extent.num_non_finite++ == 0) extent.first_non_finite_row = row;
-      continue;
+      return;
     }
     const std::int64_t i = along_x(p.x());
     const std::int64_t j = along_y(p.y());
-    if (i < 0 || j < 0) continue;
-    const auto cell = static_cast<std::size_t>(i * ny + j);
-    cell_of_point[row] = static_cast<std::uint32_t>(cell);
-    const auto z = static_cast<Height>(p.z());
-    ++count[cell];
-    sum[cell] += p.z();
-    lowest[cell] = z < lowest[cell] ? z : lowest[cell];
-    highest[cell] = z > highest[cell] ? z : highest[cell];
+    if (i >= 0 && j >= 0) codes[row] = static_cast<std::uint32_t>(i * ny + j);
+  };
+  const auto& view = cloud.view();
+  bool kernel = false;  // plain rows of 3 or 4 scalars: the branch-free (vectorised) binning
+  BinningConstants constants{};
+  if constexpr (Cloud::kPlain) {
+    constexpr std::int64_t kLargest = std::int64_t{1} << 30;  // cells + 2 must fit the kernel's int32
+    kernel = use == nullptr && view.column_stride == 1 && (view.row_stride == 3 || view.row_stride == 4) &&
+             nx < kLargest && ny < kLargest;
+    constants = {geometry.origin_m.x(),         geometry.origin_m.y(),         1.0 / geometry.resolution_m,
+                 static_cast<double>(nx) + 1.0, static_cast<double>(ny) + 1.0, static_cast<std::int32_t>(nx),
+                 static_cast<std::int32_t>(ny)};
   }
+  const auto height = [&](std::size_t row) {
+    if constexpr (Cloud::kPlain) {
+      return cloud.raw(row, 2);
+    } else {
+      cloud.map_unchecked(row, p);
+      return p.z();
+    }
+  };
+  // Consecutive rows of a scan often share a cell: a run of them is summed in registers and
+  // added to the cell's statistics once (summing straight into memory would chain every row's
+  // additions through a store and a load). A cell's first row sets its shift. The runs (cell and
+  // first row; rows outside the map do not end a run) are kept for the gap test below.
+  if (scratch.run_cell.size() < cloud.size()) {
+    scratch.run_cell.resize(cloud.size());
+    scratch.run_start.resize(cloud.size());
+  }
+  std::uint32_t* run_cell = scratch.run_cell.data();
+  std::uint32_t* run_start = scratch.run_start.data();
+  std::size_t num_runs = 0;
+  CellStatistics<Height>* statistics_data = statistics.data();
+  std::uint32_t* place = scratch.place.data();
+  std::uint32_t num_occupied = 0;
+  std::uint64_t* occupied = scratch.occupied.data();
+  constexpr Height kInfinity = std::numeric_limits<Height>::infinity();
+  std::uint32_t current = kOutside;  // the run's cell
+  std::uint32_t entry = 0;           // and its statistics
+  Height shift = 0, lowest = kInfinity, highest = -kInfinity;
+  double sum = 0.0, squares = 0.0;
+  std::uint32_t run = 0;
+  const auto flush = [&] {
+    if (current == kOutside) return;
+    CellStatistics<Height>& s = statistics_data[entry];
+    s.count += run;
+    s.sum += sum;
+    s.squares += squares;
+    s.lowest = lowest < s.lowest ? lowest : s.lowest;
+    s.highest = highest > s.highest ? highest : s.highest;
+  };
+  constexpr std::size_t kBlock = 1024;
+  constexpr std::size_t kPrefetchRows = 16;
+  for (std::size_t begin = 0; begin < cloud.size(); begin += kBlock) {
+    const std::size_t end = std::min(cloud.size(), begin + kBlock);
+    if (kernel) {
+      const bool any_slow = bin_rows(view.data + static_cast<std::ptrdiff_t>(begin) * view.row_stride, end - begin,
+                                     static_cast<int>(view.row_stride), constants, codes + begin);
+      for (std::size_t row = begin; any_slow && row < end; ++row) {
+        if (codes[row] == kSlow) bin_row(row);  // rare: NaN/Inf rows and cell borders
+      }
+    } else {
+      for (std::size_t row = begin; row < end; ++row) bin_row(row);
+    }
+    for (std::size_t row = begin; row < end; ++row) {
+      const std::uint32_t cell = codes[row];
+      if (cell == kOutside) continue;
+      const double z_double = height(row);
+      const auto z = static_cast<Height>(z_double);
+      if (cell != current) {
+        flush();
+        current = cell;
+        run_cell[num_runs] = cell;
+        run_start[num_runs++] = static_cast<std::uint32_t>(row);
+        // Fetch the cell of a later row ahead of its run (an outside code fetches cell 0;
+        // prefetches never fault).
+        const std::uint32_t ahead = codes[std::min(row + kPrefetchRows, end - 1)];
+        __builtin_prefetch(place + (ahead < kSlow ? ahead : 0), 1);
+        std::uint32_t& cell_place = place[cell];
+        if (cell_place == kOutside) {  // the cell's first point
+          cell_place = num_occupied++;
+          CellStatistics<Height>& s = statistics_data[cell_place];
+          s = CellStatistics<Height>();
+          s.first = z;
+          occupied[cell / 64] |= std::uint64_t{1} << (cell % 64);
+        }
+        entry = cell_place;
+        shift = statistics_data[entry].first;
+        lowest = kInfinity;
+        highest = -kInfinity;
+        sum = squares = 0.0;
+        run = 0;
+      }
+      const double d = z_double - static_cast<double>(shift);
+      sum += d;
+      squares += d * d;
+      lowest = z < lowest ? z : lowest;
+      highest = z > highest ? z : highest;
+      ++run;
+    }
+  }
+  flush();
   if (fixed_extent && extent.num_non_finite > 0 && !params.drop_non_finite) throw_non_finite(extent);
 
+  // The layers, written in cell order 64 cells at a time: empty, then the occupied cells'
+  // statistics (their places are reset for the next call).
   // Discontinuity: only a cell whose elevations span more than the threshold can hold a gap
   // longer than it (rounding is monotonic, so this holds for the computed differences too). Those
-  // (few) "wide" cells have their elevations gathered in pass 3 and sorted; the others get 0.
-  std::size_t num_wide = 0;  // counted first by a loop that vectorises
-  const auto wide = [&](std::size_t cell) {
-    return std::isgreater(static_cast<double>(highest[cell]) - static_cast<double>(lowest[cell]),
-                          params.discontinuity_m);  // false for empty cells: -inf - inf
-  };
-  for (std::size_t cell = 0; cell < cells; ++cell) num_wide += wide(cell);
-  std::vector<std::uint32_t>& wide_cells = scratch.wide_cells;  // cell of each wide cell
-  std::vector<std::uint32_t>& slot = scratch.slot;              // per cell: its place in wide_cells, or kOutside
-  std::vector<std::size_t>& offset = scratch.offset;            // the wide cells' elevations, counting-sorted by cell
-  std::vector<double>& heights = scratch.heights;
-  wide_cells.clear();
-  if (num_wide > 0) {
-    wide_cells.reserve(num_wide);
-    for (std::size_t cell = 0; cell < cells; ++cell) {
-      if (wide(cell)) wide_cells.push_back(static_cast<std::uint32_t>(cell));
+  // (few) "wide" cells have their elevations gathered below and sorted; the others get 0.
+  constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+  Layer count_layer(nx, ny), min(nx, ny), max(nx, ny), mean(nx, ny), std_dev(nx, ny), discontinuity(nx, ny);
+  std::vector<std::uint32_t>& wide_cells = scratch.wide_cells;
+  std::vector<std::size_t>& offset = scratch.offset;  // the wide cells' elevations, counting-sorted by cell
+  offset.assign(1, 0);
+  std::uint64_t* wide = scratch.wide.data();
+  for (std::size_t w = 0; w < words; ++w) {
+    const std::size_t base = w * 64;
+    const std::size_t length = std::min<std::size_t>(64, cells - base);
+    std::fill_n(count_layer.data() + base, length, 0.0F);
+    for (float* layer : {min.data(), max.data(), mean.data(), std_dev.data(), discontinuity.data()}) {
+      std::fill_n(layer + base, length, kNaN);
     }
-    slot.assign(cells, kOutside);
-    offset.assign(num_wide + 1, 0);
-    for (std::size_t k = 0; k < num_wide; ++k) {
-      slot[wide_cells[k]] = static_cast<std::uint32_t>(k);
-      offset[k + 1] = offset[k] + count[wide_cells[k]];
+    for (std::uint64_t bits = occupied[w]; bits != 0; bits &= bits - 1) {
+      const std::size_t cell = base + static_cast<std::size_t>(__builtin_ctzll(bits));
+      std::uint32_t& cell_place = place[cell];
+      const CellStatistics<Height>& s = statistics_data[cell_place];
+      cell_place = kOutside;
+      const double n = static_cast<double>(s.count);
+      const double offset_of_mean = s.sum / n;
+      // The population variance from the shifted sums; rounding can leave it just below 0.
+      const double variance = std::max((s.squares - s.sum * offset_of_mean) / n, 0.0);
+      count_layer.data()[cell] = static_cast<float>(s.count);
+      min.data()[cell] = static_cast<float>(s.lowest);
+      max.data()[cell] = static_cast<float>(s.highest);
+      mean.data()[cell] = static_cast<float>(static_cast<double>(s.first) + offset_of_mean);
+      std_dev.data()[cell] = static_cast<float>(std::sqrt(variance));
+      discontinuity.data()[cell] = 0.0F;
+      if (std::isgreater(static_cast<double>(s.highest) - static_cast<double>(s.lowest), params.discontinuity_m)) {
+        wide_cells.push_back(static_cast<std::uint32_t>(cell));
+        offset.push_back(offset.back() + s.count);
+        wide[w] |= std::uint64_t{1} << (cell % 64);
+      }
     }
-    heights.resize(offset.back());
+    occupied[w] = 0;
   }
 
-  // Means, then pass 3: the two-pass variance (no cancellation at large absolute heights; the sums
-  // run in point order, as numpy's bincount does) and the wide cells' elevations.
-  std::vector<double>& mean = sum;  // in place
-  for (std::size_t cell = 0; cell < cells; ++cell) mean[cell] /= static_cast<double>(count[cell]);
-  std::vector<double>& squares = scratch.squares;
-  squares.assign(cells, 0.0);
-  if (num_wide == 0) {
-    for (std::size_t row = 0; row < cloud.size(); ++row) {
-      const std::uint32_t cell = cell_of_point[row];
-      if (cell == kOutside) continue;
-      cloud.map_unchecked(row, p);
-      const double deviation = p.z() - mean[cell];
-      squares[cell] += deviation * deviation;
-    }
-  } else {
+  const std::size_t num_wide = wide_cells.size();
+  if (num_wide > 0) {
+    std::vector<std::uint32_t>& slot = scratch.slot;  // per cell: its place in wide_cells, or kOutside
+    if (slot.size() < cells) slot.resize(cells, kOutside);
+    for (std::size_t k = 0; k < num_wide; ++k) slot[wide_cells[k]] = static_cast<std::uint32_t>(k);
+    std::vector<double>& heights = scratch.heights;
+    heights.resize(offset.back());
     std::vector<std::size_t>& next = scratch.next;
     next.assign(offset.begin(), offset.end() - 1);
-    for (std::size_t row = 0; row < cloud.size(); ++row) {
-      const std::uint32_t cell = cell_of_point[row];
-      if (cell == kOutside) continue;
-      cloud.map_unchecked(row, p);
-      const double deviation = p.z() - mean[cell];
-      squares[cell] += deviation * deviation;
-      if (slot[cell] != kOutside) heights[next[slot[cell]]++] = p.z();
+    for (std::size_t run = 0; run < num_runs; ++run) {
+      const std::uint32_t cell = run_cell[run];
+      if (((wide[cell / 64] >> (cell % 64)) & 1) == 0) continue;
+      const std::size_t end = run + 1 < num_runs ? run_start[run + 1] : cloud.size();
+      std::size_t& place = next[slot[cell]];
+      for (std::size_t row = run_start[run]; row < end; ++row) {
+        if (codes[row] == cell) heights[place++] = height(row);
+      }
     }
-  }
-
-  // The layers, NaN where a cell is empty; simple loops that vectorise (the conversions happen
-  // unconditionally, so the NaN choices are plain selects).
-  for (std::size_t cell = 0; cell < cells; ++cell) {
-    const bool empty = count[cell] == 0;
-    const float lo = static_cast<float>(lowest[cell]);
-    const float hi = static_cast<float>(highest[cell]);
-    count_layer.data()[cell] = static_cast<float>(count[cell]);
-    min.data()[cell] = empty ? kNaN : lo;
-    max.data()[cell] = empty ? kNaN : hi;
-    discontinuity.data()[cell] = empty ? kNaN : 0.0F;
-  }
-  for (std::size_t cell = 0; cell < cells; ++cell) {
-    mean_layer.data()[cell] = static_cast<float>(mean[cell]);  // 0 / 0 = NaN when empty
-    squares[cell] /= static_cast<double>(count[cell]);         // the variance, NaN when empty
-  }
-  square_roots(squares.data(), cells);
-  for (std::size_t cell = 0; cell < cells; ++cell) std_dev.data()[cell] = static_cast<float>(squares[cell]);
-  for (std::size_t k = 0; k < num_wide; ++k) {
-    double* begin = heights.data() + offset[k];
-    double* end = heights.data() + offset[k + 1];
-    std::sort(begin, end);
-    bool gap = false;
-    for (const double* z = begin + 1; z < end && !gap; ++z) gap = *z - *(z - 1) > params.discontinuity_m;
-    discontinuity.data()[wide_cells[k]] = gap ? 1.0F : 0.0F;
+    for (std::size_t k = 0; k < num_wide; ++k) {
+      double* begin = heights.data() + offset[k];
+      double* end = heights.data() + offset[k + 1];
+      std::sort(begin, end);
+      bool gap = false;
+      for (const double* z = begin + 1; z < end && !gap; ++z) gap = *z - *(z - 1) > params.discontinuity_m;
+      discontinuity.data()[wide_cells[k]] = gap ? 1.0F : 0.0F;
+    }
   }
   map.add("count", std::move(count_layer));
   map.add("min", std::move(min));
   map.add("max", std::move(max));
-  map.add("mean", std::move(mean_layer));
+  map.add("mean", std::move(mean));
   map.add("std_dev", std::move(std_dev));
   map.add("discontinuity", std::move(discontinuity));
   return map;

@@ -95,8 +95,11 @@ NaiveCells naive_cells(const std::vector<Eigen::Vector3d>& points, const MapGeom
   return cells;
 }
 
-bool within_relative(float actual, double expected, double relative) {
-  return std::abs(static_cast<double>(actual) - expected) <= relative * std::abs(expected);
+/// |actual - expected| <= relative |expected|, plus the rounding noise of a double computation on
+/// values of magnitude `scale` (the reference's own: its two-pass std-dev of equal values can be
+/// 1e-18 where the exact answer, 0, is what the map reports).
+bool within_relative(float actual, double expected, double relative, double scale = 0.0) {
+  return std::abs(static_cast<double>(actual) - expected) <= relative * std::abs(expected) + 1e-12 * scale;
 }
 
 /// Every layer of `map` against the naive per-cell lists of elevations.
@@ -143,7 +146,9 @@ void expect_matches_naive(const ElevationMap& map, const std::vector<Eigen::Vect
       ASSERT_EQ(min(i, j), static_cast<float>(z.front()));
       ASSERT_EQ(max(i, j), static_cast<float>(z.back()));
       ASSERT_TRUE(within_relative(mean(i, j), average, 1e-5)) << mean(i, j) << " vs " << average;
-      ASSERT_TRUE(within_relative(std_dev(i, j), population_std, 1e-5)) << std_dev(i, j) << " vs " << population_std;
+      const double scale = std::max(std::abs(z.front()), std::abs(z.back()));
+      ASSERT_TRUE(within_relative(std_dev(i, j), population_std, 1e-5, scale))
+          << std_dev(i, j) << " vs " << population_std;
       ASSERT_EQ(discontinuity(i, j), gap ? 1.0F : 0.0F);
     }
   }
@@ -558,6 +563,119 @@ TEST(BuildElevationMapFastPaths, ConcurrentCallsOnTwoThreadsGiveTheSerialResults
   second.join();
   for (const auto& map : from_a) expect_same_statistics(map, serial_a);
   for (const auto& map : from_b) expect_same_statistics(map, serial_b);
+}
+
+TEST(BuildElevationMapFastPaths, FloatRowsOnAndNearCellBordersOfEveryTailLengthAreBinnedByTheDivisionFormula) {
+  // Float rows of 3 and 4 scalars take the branch-free (AVX2 where available) binning, four rows
+  // at a time plus a scalar tail. Rows on every cell border along x or y and a float ulp either
+  // side (among them rows where multiplying by 1 / resolution floors differently from dividing,
+  // which the kernel must hand to the division), rows outside by less than a cell, NaN/Inf rows
+  // (dropped on request), and every cloud length from 1 to 13 rows, against the naive reference.
+  const double resolution = 0.1;
+  const CellIndex size(40, 20);
+  int multiplication_differs = 0;  // rows the estimate alone would bin wrongly (origin 3.7 has some)
+  for (const Eigen::Vector2d& origin : {Eigen::Vector2d(-2.0, -1.0), Eigen::Vector2d(3.7, 3.7)}) {
+    SCOPED_TRACE("origin " + std::to_string(origin.x()));
+    std::mt19937 random(7);
+    std::uniform_real_distribution<double> unit(0.0, 1.0), height(-1.0, 3.0);
+    std::vector<Eigen::Vector3d> pool;
+    for (int axis = 0; axis < 2; ++axis) {
+      for (int k = -1; k <= size[axis] + 1; ++k) {
+        const auto border = static_cast<float>(origin[axis] + k * resolution);
+        for (const float v : {std::nextafter(border, -1e30F), border, std::nextafter(border, 1e30F)}) {
+          Eigen::Vector3d p(origin.x() + unit(random) * size.x() * resolution,
+                            origin.y() + unit(random) * size.y() * resolution, height(random));
+          p = p.cast<float>().cast<double>();
+          p[axis] = v;
+          const double offset = p[axis] - origin[axis];
+          multiplication_differs += std::floor(offset / resolution) != std::floor(offset * (1.0 / resolution));
+          pool.push_back(p);
+        }
+      }
+    }
+    ElevationParams params = fixed_extent(resolution, origin, size);
+    params.drop_non_finite = true;
+    constexpr double kNaNd = std::numeric_limits<double>::quiet_NaN();
+    std::vector<std::pair<std::size_t, std::size_t>> slices = {{0, pool.size()}};  // (start, length)
+    for (std::size_t length = 1; length <= 13; ++length) {
+      for (std::size_t start = length; start + length <= pool.size(); start += 41) slices.emplace_back(start, length);
+    }
+    for (const auto& [start, length] : slices) {
+      std::vector<Eigen::Vector3d> points(pool.begin() + static_cast<std::ptrdiff_t>(start),
+                                          pool.begin() + static_cast<std::ptrdiff_t>(start + length));
+      std::vector<Eigen::Vector3d> with_bad = points;
+      with_bad[length / 2].y() = length % 2 ? kNaNd : std::numeric_limits<double>::infinity();
+      std::vector<Eigen::Vector3d> finite = points;
+      finite.erase(finite.begin() + static_cast<std::ptrdiff_t>(length / 2));
+      for (const int stride : {3, 4}) {
+        SCOPED_TRACE("length " + std::to_string(length) + ", start " + std::to_string(start) + ", stride " +
+                     std::to_string(stride));
+        const std::vector<float> rows = as_floats(points, stride);
+        expect_matches_naive(build_elevation_map(PointsView<float>(rows.data(), points.size(), stride, 1), params),
+                             points, 1.0);
+        const std::vector<float> bad_rows = as_floats(with_bad, stride);
+        expect_matches_naive(
+            build_elevation_map(PointsView<float>(bad_rows.data(), with_bad.size(), stride, 1), params), finite, 1.0);
+      }
+    }
+  }
+  EXPECT_GT(multiplication_differs, 0) << "the pools must hold rows that only the division bins right";
+}
+
+TEST(BuildElevationMapFastPaths, RunsOfACellBrokenByOutsideRowsAndOtherCellsKeepEveryElevation) {
+  // Consecutive rows of one cell are summed as a run, and the gap test gathers elevations run by
+  // run: rows outside the map inside a run, a cell that comes back after another, and a gap that
+  // only appears with the rows of a later run.
+  const std::vector<Eigen::Vector3d> points = {{0.5, 0.5, 0.0}, {9.0, 9.0, 50.0}, {0.5, 0.5, 0.25}, {1.5, 0.5, 4.0},
+                                               {0.5, 0.5, 0.5}, {-3.0, 0.5, 9.0}, {0.5, 0.5, 2.0},  {1.5, 0.5, 4.5},
+                                               {9.0, 0.5, 1.0}, {1.5, 0.5, 5.0},  {0.5, 0.5, 2.25}, {1.5, 0.5, 3.0}};
+  const ElevationParams params = fixed_extent(1.0, {0.0, 0.0}, {2, 1});
+  for (const bool as_float : {false, true}) {
+    SCOPED_TRACE(as_float ? "float view" : "double view");
+    const std::vector<float> floats = as_floats(points, 4);
+    const ElevationMap map = as_float
+                                 ? build_elevation_map(PointsView<float>(floats.data(), points.size(), 4, 1), params)
+                                 : build_elevation_map(PointsView<double>(points), params);
+    // Cell (0, 0): 0, 0.25, 0.5, 2, 2.25 -> a gap of 1.5 m; cell (1, 0): 3, 4, 4.5, 5 -> none.
+    EXPECT_EQ(map.get("count")(0, 0), 5.0F);
+    EXPECT_EQ(map.get("discontinuity")(0, 0), 1.0F);
+    EXPECT_EQ(map.get("count")(1, 0), 4.0F);
+    EXPECT_EQ(map.get("discontinuity")(1, 0), 0.0F);
+    expect_matches_naive(map, points, params.discontinuity_m);
+  }
+}
+
+TEST(BuildElevationMapFastPaths, ACallThatThrowsOnNaNRowsLeavesNoTraceForTheNextCall) {
+  // With a fixed extent the NaN check ends the pass that has already summed the finite rows: the
+  // per-thread statistics must be cleaned all the same.
+  const auto points = test::random_scene(61, 3000, 4.0);
+  std::vector<Eigen::Vector3d> with_nan = points;
+  with_nan[1500].z() = std::numeric_limits<double>::quiet_NaN();
+  const ElevationParams params = fixed_extent(0.2, {-4.0, -4.0}, {40, 40});
+  for (const int stride : {3, 4}) {
+    const std::vector<float> rows = as_floats(with_nan, stride);
+    EXPECT_THROW(build_elevation_map(PointsView<float>(rows.data(), with_nan.size(), stride, 1), params),
+                 std::invalid_argument);
+    EXPECT_THROW(build_elevation_map(PointsView<double>(with_nan), params), std::invalid_argument);
+    expect_matches_naive(build_elevation_map(PointsView<double>(points), params), points, params.discontinuity_m);
+    const std::vector<float> clean = as_floats(points, stride);
+    expect_matches_naive(build_elevation_map(PointsView<float>(clean.data(), points.size(), stride, 1), params),
+                         rounded_to_float(points), params.discontinuity_m);
+  }
+}
+
+TEST(BuildElevationMapFastPaths, ShiftedOnePassVarianceIsAccurateFarFromZeroAndAfterAnOutlyingFirstPoint) {
+  // The std-dev is accumulated relative to each cell's first elevation. Large absolute heights
+  // (1e7 m, spread 1 mm) and a first elevation 100 m from the other 2000 (spread 1 mm) must still
+  // give the two-pass value of the naive reference to 1e-5 relative.
+  std::vector<Eigen::Vector3d> points;
+  for (int k = 0; k < 500; ++k) points.emplace_back(0.5, 0.5, 1e7 + 1e-3 * (k % 7));
+  points.emplace_back(1.5, 0.5, 100.0);
+  for (int k = 0; k < 2000; ++k) points.emplace_back(1.5, 0.5, 1e-3 * (k % 5));
+  const ElevationParams params = fixed_extent(1.0, {0.0, 0.0}, {2, 1});
+  const ElevationMap map = build_elevation_map(PointsView<double>(points), params);
+  expect_matches_naive(map, points, params.discontinuity_m);
+  EXPECT_GT(map.get("std_dev")(0, 0), 0.0F);
 }
 
 // --- build_elevation_map against the naive reference ----------------------------------------------

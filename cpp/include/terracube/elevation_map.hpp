@@ -83,14 +83,16 @@ struct ElevationParams {
   std::size_t max_cells = std::size_t{1} << 26;
 };
 
-/// Builds the map in O(N + cells): one pass over the points for count, sum, min and max, a second
-/// for the two-pass variance, and a sort of the elevations of only those cells whose max - min
-/// exceeds the discontinuity threshold (no other cell can hold a longer gap). Layers: "count" (0
-/// for empty), "min", "max", "mean" (the DEM), "std_dev" (population), "discontinuity" (1 or 0);
-/// NaN where a cell holds no point. Points outside the map are ignored. `use` (optional, one flag
-/// per point) selects the points that take part. Thread-safe; each calling thread keeps its
-/// scratch buffers (about 4 N + 24 cells bytes, released after a call needing over 32 MB) for the
-/// next call, as fresh buffers would cost a page fault per 4 kB.
+/// Builds the map in O(N + cells): one pass over the points for count, min, max and the sums of z
+/// and z^2 shifted by each cell's first elevation (a one-pass variance that stays accurate at large
+/// absolute heights), one pass over the cells for the layers, and a sort of the elevations of only
+/// those cells whose max - min exceeds the discontinuity threshold (no other cell can hold a longer
+/// gap). Layers: "count" (0 for empty), "min", "max", "mean" (the DEM), "std_dev" (population),
+/// "discontinuity" (1 or 0); NaN where a cell holds no point. Points outside the map are ignored.
+/// `use` (optional, one flag per point) selects the points that take part. Thread-safe; each
+/// calling thread keeps its scratch buffers (about 12 N + 32 min(N, cells) + 9 cells bytes,
+/// released after a call needing over 32 MB) for the next call, as fresh buffers would cost a
+/// page fault per 4 kB.
 ElevationMap build_elevation_map(const PointsView<float>& points, const ElevationParams& params,
                                  const std::vector<std::uint8_t>* use = nullptr);
 ElevationMap build_elevation_map(const PointsView<double>& points, const ElevationParams& params,
