@@ -321,6 +321,10 @@ ClassifiedPoints points_of_map(const ElevationMap& map) {
   const Layer* classes = map.exists("class") ? &map.get("class") : nullptr;
   const MapGeometry& geometry = map.geometry();
   ClassifiedPoints set;
+  const auto count =
+      static_cast<std::size_t>(highest.unaryExpr([](float z) { return std::isfinite(z) ? 1 : 0; }).sum());
+  set.points.reserve(count);
+  set.classes.reserve(count);
   for (Eigen::Index i = 0; i < highest.rows(); ++i) {
     for (Eigen::Index j = 0; j < highest.cols(); ++j) {
       const float z = highest(i, j);
