@@ -67,13 +67,18 @@ void bind_icp(py::module_& m) {
       .def_readwrite("error_threshold_m", &RegistrationParams::error_threshold_m)
       .def_readwrite("min_correspondences", &RegistrationParams::min_correspondences)
       .def_readwrite("degeneracy_threshold", &RegistrationParams::degeneracy_threshold)
-      .def_readwrite("extrapolate", &RegistrationParams::extrapolate);
+      .def_readwrite("extrapolate", &RegistrationParams::extrapolate)
+      .def_readwrite("coarse_subsample", &RegistrationParams::coarse_subsample)
+      .def_readwrite("coarse_until_motion_m", &RegistrationParams::coarse_until_motion_m);
 
   py::class_<RegistrationResult>(m, "RegistrationResult")
       .def_readonly("transform", &RegistrationResult::transform, "(4, 4) source -> target")
       .def_readonly("converged", &RegistrationResult::converged)
       .def_readonly("reason", &RegistrationResult::reason)
       .def_readonly("iterations", &RegistrationResult::iterations)
+      .def_readonly("passes", &RegistrationResult::passes,
+                    "correspondence passes: one per iteration, one more per extrapolation tried")
+      .def_readonly("extrapolations", &RegistrationResult::extrapolations, "extrapolated jumps kept by the guard")
       .def_readonly("rmse", &RegistrationResult::rmse_m, "weighted RMSE of the final correspondences [m]")
       .def_readonly("correspondence_distance", &RegistrationResult::correspondence_distance_m)
       .def_readonly("num_correspondences", &RegistrationResult::num_correspondences)
@@ -83,7 +88,8 @@ void bind_icp(py::module_& m) {
       .def("__repr__", [](const RegistrationResult& r) {
         std::ostringstream text;
         text << "RegistrationResult(reason=" << to_string(r.reason) << ", iterations=" << r.iterations
-             << ", rmse=" << r.rmse_m << " m, correspondences=" << r.num_correspondences << ")";
+             << ", passes=" << r.passes << ", rmse=" << r.rmse_m << " m, correspondences=" << r.num_correspondences
+             << ")";
         return text.str();
       });
 

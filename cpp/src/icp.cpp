@@ -17,6 +17,9 @@ namespace terracube {
 namespace {
 
 constexpr std::uint32_t kLeafSize = 8;
+// Rounding allowance of the nearest-neighbour certificates [m]: far above the error of the
+// distances (about 1e-15 m at map scale), far below any distance that matters.
+constexpr double kCertificateSlack = 1e-9;
 
 using Matrix6d = Eigen::Matrix<double, 6, 6>;
 using Vector6d = Eigen::Matrix<double, 6, 1>;
@@ -37,6 +40,10 @@ void check_registration_params(const RegistrationParams& p) {
   if (!non_negative(p.rotation_tolerance_rad) || !non_negative(p.translation_tolerance_m) ||
       !non_negative(p.error_threshold_m)) {
     throw std::invalid_argument("tolerances and the error threshold must be finite and >= 0");
+  }
+  if (p.coarse_subsample < 1) throw std::invalid_argument("coarse subsample must be at least 1");
+  if (!non_negative(p.coarse_until_motion_m)) {
+    throw std::invalid_argument("coarse-until motion must be finite and >= 0 [m]");
   }
   if (p.min_correspondences < 3) throw std::invalid_argument("min correspondences must be at least 3");
   if (!(p.degeneracy_threshold >= 0.0 && p.degeneracy_threshold < 1.0)) {
@@ -100,18 +107,29 @@ class Registration {
       const double w = params.use_classes ? params.class_weights[c] : 1.0;
       if (w > 0.0 && grids_[grid].size() > 0) {
         active_.push_back({source.points[k], w, grid, c});
+        total_weight_ += w;
         reference_ += source.points[k];
       }
     }
     if (!active_.empty()) reference_ /= static_cast<double>(active_.size());
-    hints_.assign(active_.size(), -1);
+    certificates_.resize(active_.size());
+    certificate_reach_ = params.min_correspondence_distance_m;
   }
 
   bool has_common_class() const { return !active_.empty(); }
+  std::size_t active_size() const { return active_.size(); }
+
+  /// The eq. (4) error of a pass truncated at `max_distance`: sum over the active source points of
+  /// w min(d^2, max_distance^2), d the distance to the nearest target point of the class. A proper
+  /// objective to compare poses with (unlike the RMSE, it does not fall when pairs drop out).
+  double truncated_error(const Pass& pass, double max_distance) const {
+    return pass.weighted_squared_error + (total_weight_ - pass.weight_sum) * max_distance * max_distance;
+  }
 
   /// Correspondences of the source moved by `transform`, each source point paired with its nearest
-  /// target point (of its class) within `max_distance`; one sweep accumulates the moments.
-  Pass pass(const Eigen::Matrix4d& transform, double max_distance) {
+  /// target point (of its class) within `max_distance`; one sweep accumulates the moments. With
+  /// `stride` > 1 only every stride-th active point takes part (the coarse iterations).
+  Pass pass(const Eigen::Matrix4d& transform, double max_distance, std::size_t stride = 1) {
     const Eigen::Matrix3d rotation = transform.topLeftCorner<3, 3>();
     const Eigen::Vector3d translation = transform.topRightCorner<3, 1>();
     // Moments are taken about o, the moved centroid of the active source points, so that they
@@ -123,24 +141,33 @@ class Registration {
     double sp[3] = {0, 0, 0}, sq[3] = {0, 0, 0}, spxq[3] = {0, 0, 0};
     double spp[6] = {0, 0, 0, 0, 0, 0};  // xx xy xz yy yz zz
     std::size_t used = 0;
-    for (std::size_t slot = 0; slot < active_.size(); ++slot) {
+    for (std::size_t slot = 0; slot < active_.size(); slot += stride) {
       const Active& a = active_[slot];
-      const NearestNeighborGrid& grid = grids_[a.grid];
       const Eigen::Vector3d moved = rotation * a.point + translation;
-      // Last pass's partner, if still within the limit, bounds the search: fewer buckets are
-      // visited and the result is still the exact nearest.
-      double bound = max_squared;
-      std::int64_t& hint = hints_[slot];
-      if (hint >= 0) {
-        const double d = (grid.point(static_cast<std::size_t>(hint)) - moved).squaredNorm();
-        if (d <= bound) bound = d;
-      }
+      // The last search from `anchor` found the candidates (its two nearest target points) and
+      // nothing else nearer than `clearance`. The moved query is `shift` from the anchor, so by the
+      // triangle inequality the nearer candidate is still the nearest point while its distance is
+      // at most clearance - shift; likewise nothing lies within the limit while the limit is below
+      // clearance - shift (no candidate). Otherwise search again.
+      Certificate& cached = certificates_[slot];
+      const double margin = cached.clearance - (moved - cached.anchor).norm() - kCertificateSlack;
       double squared = 0.0;
-      const std::ptrdiff_t nearest = grid.nearest(moved, bound, squared);
-      hint = nearest;
-      if (nearest < 0) continue;
+      int nearer = 0;
+      if (cached.index[0] >= 0) {
+        squared = (moved - cached.candidate[0]).squaredNorm();
+        if (cached.index[1] >= 0) {
+          const double other = (moved - cached.candidate[1]).squaredNorm();
+          if (other < squared) squared = other, nearer = 1;
+        }
+        if (!(margin >= 0.0 && squared <= margin * margin))
+          nearer = search(a.grid, moved, max_squared, cached, squared);
+      } else if (!(margin > max_distance)) {
+        nearer = search(a.grid, moved, max_squared, cached, squared);
+      }
+      if (cached.index[0] < 0 || squared > max_squared) continue;
+      const Eigen::Vector3d& partner = cached.candidate[nearer];
       const Eigen::Vector3d p = moved - o;
-      const Eigen::Vector3d q = grid.point(static_cast<std::size_t>(nearest)) - o;
+      const Eigen::Vector3d q = partner - o;
       const double w = a.weight;
       ++used;
       ++result.per_class[a.terrain_class];
@@ -186,10 +213,45 @@ class Registration {
     std::uint8_t grid;      // index into grids_
     std::uint8_t terrain_class;
   };
+  /// Per active source point, what its last search proved (see pass()).
+  struct Certificate {
+    Eigen::Vector3d anchor = Eigen::Vector3d::Zero();  // the query of the last search
+    std::array<Eigen::Vector3d, 2> candidate;          // its two nearest target points (index >= 0)
+    double clearance = -1.0;                           // every other target point is at least this far from anchor [m]
+    std::array<std::ptrdiff_t, 2> index = {-1, -1};    // grid indices of the candidates, -1: none
+  };
+
+  /// A fresh search from `moved` within the limit; records its certificate and returns which
+  /// candidate is the nearest (0), with its squared distance in `squared`.
+  int search(std::uint8_t grid_index, const Eigen::Vector3d& moved, double max_squared, Certificate& cached,
+             double& squared) const {
+    const NearestNeighborGrid& grid = grids_[grid_index];
+    // The two nearest within a reach of at most certificate_reach_ (a wider search costs more and
+    // a wider certificate is rarely needed); nothing there: the plain nearest within the limit,
+    // whose certificate (clearance = its own distance) holds for no motion.
+    std::array<double, 2> distances{};
+    const double reach_squared = std::min(max_squared, certificate_reach_ * certificate_reach_);
+    double others = reach_squared;
+    grid.nearest_two(moved, reach_squared, cached.index, distances, others);
+    if (cached.index[0] < 0 && reach_squared < max_squared) {
+      cached.index[0] = grid.nearest(moved, max_squared, distances[0]);
+      others = cached.index[0] >= 0 ? distances[0] : max_squared;
+    }
+    cached.anchor = moved;
+    cached.clearance = std::sqrt(others);
+    for (int k = 0; k < 2; ++k) {
+      if (cached.index[k] >= 0) cached.candidate[k] = grid.point(static_cast<std::size_t>(cached.index[k]));
+    }
+    squared = distances[0];
+    return 0;
+  }
+
   std::array<NearestNeighborGrid, kNumTerrainClasses> grids_;
   std::vector<Active> active_;  // source points that can take part
   Eigen::Vector3d reference_ = Eigen::Vector3d::Zero();
-  std::vector<std::int64_t> hints_;  // per active source point: its last partner in its grid, or -1
+  double total_weight_ = 0.0;              // of the active source points
+  double certificate_reach_ = 0.0;         // widest search for a certificate [m]
+  std::vector<Certificate> certificates_;  // one per active source point
 };
 
 /// Rodrigues: the exact rotation exp([omega]x).
@@ -216,6 +278,8 @@ Eigen::Matrix4d update_about(const Eigen::Vector3d& c, const Vector6d& x, double
 
 constexpr double kCosExtrapolation = 0.98480775301220802;  // cos(10 degrees)
 constexpr double kMaxExtrapolation = 10.0;
+// Coarse iterations only when the subsample keeps at least this many source points.
+constexpr std::size_t kMinCoarsePoints = 500;
 
 void fill(RegistrationResult& result, const Pass& pass, double distance) {
   result.num_correspondences = pass.count;
@@ -257,6 +321,10 @@ ClassifiedPoints points_of_map(const ElevationMap& map) {
   const Layer* classes = map.exists("class") ? &map.get("class") : nullptr;
   const MapGeometry& geometry = map.geometry();
   ClassifiedPoints set;
+  const auto count =
+      static_cast<std::size_t>(highest.unaryExpr([](float z) { return std::isfinite(z) ? 1 : 0; }).sum());
+  set.points.reserve(count);
+  set.classes.reserve(count);
   for (Eigen::Index i = 0; i < highest.rows(); ++i) {
     for (Eigen::Index j = 0; j < highest.cols(); ++j) {
       const float z = highest(i, j);
@@ -288,55 +356,80 @@ RegistrationResult register_points(const ClassifiedPoints& source, const Classif
     return result;
   }
 
+  // The distance limit of iteration k (from 0).
+  const auto limit_of = [&](int iteration) {
+    return std::max(params.min_correspondence_distance_m,
+                    params.max_correspondence_distance_m * std::pow(params.correspondence_distance_decay, iteration));
+  };
   Eigen::Matrix4d transform = initial;
-  double distance = params.max_correspondence_distance_m;
+  double distance = limit_of(0);
+  // Coarse to fine: the first iterations use every coarse_subsample-th source point, until an
+  // update moves the points less than coarse_until_motion_m (or registration would stop).
+  auto stride = static_cast<std::size_t>(params.coarse_subsample);
+  if (registration.active_size() / stride < kMinCoarsePoints) stride = 1;
+  Pass pass = registration.pass(transform, distance, stride);
+  int passes = 1;
+  int extrapolations = 0;
   // Extrapolation state: the last update as a 6-vector, the pivot and the length scale.
   Vector6d previous_step = Vector6d::Zero();
   bool has_previous_step = false;
   Eigen::Vector3d pivot = Eigen::Vector3d::Zero();
   double radius = 1.0;
+  const auto finish = [&](StopReason reason) {
+    result.reason = reason;
+    result.converged = reason == StopReason::kConverged || reason == StopReason::kErrorBelowThreshold;
+    result.passes = passes;
+    result.extrapolations = extrapolations;
+    return result;
+  };
   for (int iteration = 0;; ++iteration) {
-    distance =
-        std::max(params.min_correspondence_distance_m,
-                 params.max_correspondence_distance_m * std::pow(params.correspondence_distance_decay, iteration));
-    const Pass pass = registration.pass(transform, distance);
+    // `pass` holds the correspondences at `transform` within `distance`.
     result.transform = transform;
     result.iterations = iteration;
     fill(result, pass, distance);
+    StopReason stop = StopReason::kConverged;  // kConverged: go on
     if (pass.count < params.min_correspondences) {
-      result.reason = StopReason::kTooFewCorrespondences;
-      return result;
+      stop = StopReason::kTooFewCorrespondences;
+    } else if (result.rmse_m < params.error_threshold_m) {
+      stop = StopReason::kErrorBelowThreshold;
+    } else if (result.eigenvalues(0) <= params.degeneracy_threshold * result.eigenvalues(5)) {
+      stop = StopReason::kDegenerate;
+    } else if (iteration == params.max_iterations) {
+      stop = StopReason::kMaxIterations;
     }
-    if (result.rmse_m < params.error_threshold_m) {
-      result.reason = StopReason::kErrorBelowThreshold;
-      result.converged = true;
-      return result;
-    }
-    if (result.eigenvalues(0) <= params.degeneracy_threshold * result.eigenvalues(5)) {
-      result.reason = StopReason::kDegenerate;
-      return result;
-    }
-    if (iteration == params.max_iterations) {
-      result.reason = StopReason::kMaxIterations;
-      return result;
+    if (stop != StopReason::kConverged) {
+      if (stride == 1) return finish(stop);
+      // Decide on all the points: redo this pass in full.
+      stride = 1;
+      pass = registration.pass(transform, distance);
+      ++passes;
+      --iteration;
+      continue;
     }
     if (iteration == 0) {
       pivot = pass.centroid;
       // rms distance of the correspondences from their centroid: trace of the rotation block / 2W
       radius = std::sqrt(std::max(pass.normal.topLeftCorner<3, 3>().trace() / (2.0 * pass.weight_sum), 1e-12));
     }
+    // Eq. (A6): H x = g, solved by LDLT.
     const Vector6d x = pass.normal.ldlt().solve(pass.gradient);
-    if (!x.allFinite()) {
-      result.reason = StopReason::kDegenerate;
-      return result;
-    }
+    if (!x.allFinite()) return finish(StopReason::kDegenerate);
     // The update about the centroid c: p -> R (p - c) + c + t, composed exactly (no small-angle matrix).
-    transform = update_about(pass.centroid, x, 1.0) * transform;
-    transform.topLeftCorner<3, 3>() = orthonormalised(transform.topLeftCorner<3, 3>());
-    if (params.extrapolate) {
+    Eigen::Matrix4d plain = update_about(pass.centroid, x, 1.0) * transform;
+    plain.topLeftCorner<3, 3>() = orthonormalised(plain.topLeftCorner<3, 3>());
+    const double next_distance = limit_of(iteration + 1);
+    bool evaluated = false;  // `pass` already holds the correspondences at the new transform
+    const bool coarse = stride > 1;
+    const bool leave_coarse = coarse && x.tail<3>().norm() + x.head<3>().norm() * radius < params.coarse_until_motion_m;
+    if (leave_coarse) {
+      stride = 1;
+      has_previous_step = false;  // the objective changes: start a new pair of updates
+    }
+    // Extrapolation only on the fine iterations: on the subsample it was seen to converge early.
+    if (params.extrapolate && !coarse) {
       // Besl and McKay's accelerated ICP (1992, sec. IV-C), in its geometric-series form: when two
       // successive updates point the same way (within 10 degrees) and shrink by a ratio rho, the
-      // remaining steps sum to about rho / (1 - rho) times the last one; take them at once (at most
+      // remaining steps sum to about rho / (1 - rho) times the last one; try them at once (at most
       // kMaxExtrapolation times the step), then start a new pair. Updates are compared as
       // (rotation * rms radius, motion of the first centroid) so that both parts weigh alike.
       const Eigen::Vector3d pivot_motion =
@@ -347,9 +440,25 @@ RegistrationResult register_points(const ClassifiedPoints& source, const Classif
         const double norm = step.norm(), previous_norm = previous_step.norm();
         const double rho = previous_norm > 0.0 ? norm / previous_norm : 1.0;
         if (rho < 1.0 && step.dot(previous_step) > kCosExtrapolation * norm * previous_norm) {
+          // Guard (a departure from Besl and McKay): keep the jump only if the eq. (4) error it
+          // reaches, truncated at the next limit, is no larger than the plain step's.
           const double factor = std::min(rho / (1.0 - rho), kMaxExtrapolation);
-          transform = update_about(pass.centroid, x, factor) * transform;
-          transform.topLeftCorner<3, 3>() = orthonormalised(transform.topLeftCorner<3, 3>());
+          Eigen::Matrix4d jumped = update_about(pass.centroid, x, factor) * plain;
+          jumped.topLeftCorner<3, 3>() = orthonormalised(jumped.topLeftCorner<3, 3>());
+          // The plain step first: the search certificates are then anchored at the jump, which
+          // is kept more often than not.
+          Pass at_plain = registration.pass(plain, next_distance);
+          Pass at_jump = registration.pass(jumped, next_distance);
+          passes += 2;
+          if (registration.truncated_error(at_jump, next_distance) <=
+              registration.truncated_error(at_plain, next_distance)) {
+            plain = jumped;
+            pass = std::move(at_jump);
+            ++extrapolations;
+          } else {
+            pass = std::move(at_plain);
+          }
+          evaluated = true;
           has_previous_step = false;
         } else {
           previous_step = step;
@@ -359,15 +468,19 @@ RegistrationResult register_points(const ClassifiedPoints& source, const Classif
         has_previous_step = true;
       }
     }
-    if (x.head<3>().norm() < params.rotation_tolerance_rad && x.tail<3>().norm() < params.translation_tolerance_m) {
+    transform = plain;
+    distance = next_distance;
+    if (!evaluated) {
+      pass = registration.pass(transform, distance, stride);
+      ++passes;
+    }
+    if (!coarse && x.head<3>().norm() < params.rotation_tolerance_rad &&
+        x.tail<3>().norm() < params.translation_tolerance_m) {
       // Converged: report the statistics at the final estimate.
-      const Pass last = registration.pass(transform, distance);
       result.transform = transform;
       result.iterations = iteration + 1;
-      if (last.count > 0) fill(result, last, distance);
-      result.reason = StopReason::kConverged;
-      result.converged = true;
-      return result;
+      if (pass.count > 0) fill(result, pass, distance);
+      return finish(StopReason::kConverged);
     }
   }
 }
@@ -552,19 +665,46 @@ NearestNeighborGrid::NearestNeighborGrid(std::vector<Eigen::Vector3d> points, do
 
 std::ptrdiff_t NearestNeighborGrid::nearest(const Eigen::Vector3d& query, double max_squared_distance,
                                             double& squared_distance) const {
-  if (points_.empty()) return -1;
-  double best = max_squared_distance;
-  std::ptrdiff_t found = -1;
+  std::ptrdiff_t found[1] = {-1};
+  double best[1];
+  search<1, false>(query, max_squared_distance, found, best);
+  if (found[0] < 0) return -1;
+  squared_distance = best[0];
+  return found[0];
+}
+
+std::ptrdiff_t NearestNeighborGrid::nearest_two(const Eigen::Vector3d& query, double max_squared_distance,
+                                                std::array<std::ptrdiff_t, 2>& indices,
+                                                std::array<double, 2>& squared_distances,
+                                                double& others_squared_distance) const {
+  std::ptrdiff_t found[2] = {-1, -1};
+  double best[3];
+  search<2, true>(query, max_squared_distance, found, best);
+  indices = {found[0], found[1]};
+  squared_distances = {best[0], best[1]};
+  others_squared_distance = best[2];
+  return found[0];
+}
+
+template <int kKeep, bool kBound>
+void NearestNeighborGrid::search(const Eigen::Vector3d& query, double max_squared_distance, std::ptrdiff_t* found,
+                                 double* best) const {
+  constexpr int kLast = kBound ? kKeep : kKeep - 1;  // best[kLast] is the pruning distance
+  for (int k = 0; k <= kLast; ++k) best[k] = max_squared_distance;
+  for (int k = 0; k < kKeep; ++k) found[k] = -1;
+  if (points_.empty()) return;
+  // Pruning uses the largest distance kept: every point nearer than it is examined.
+  double& prune = best[kLast];
   // The query in bucket units (it may lie outside the grid).
   const double u = (query.x() - origin_.x()) * inverse_bucket_size_;
   const double v = (query.y() - origin_.y()) * inverse_bucket_size_;
   const double bucket_squared = bucket_size_m_ * bucket_size_m_;
   const double last_column = static_cast<double>(columns_ - 1);
-  // Scans the buckets of `row` whose x range can hold a point within `best`, given that every
+  // Scans the buckets of `row` whose x range can hold a point within `prune`, given that every
   // point of the row is at least `gap` buckets away in y. Points of consecutive buckets are
   // contiguous, so the scan is one loop.
   const auto scan_row = [&](std::int64_t row, double gap) {
-    const double reach_squared = best / bucket_squared - gap * gap;
+    const double reach_squared = prune / bucket_squared - gap * gap;
     if (reach_squared < 0.0) return;
     const double reach = std::sqrt(reach_squared) + kBucketSlack;
     const double low = u - reach, high = u + reach;
@@ -577,28 +717,34 @@ std::ptrdiff_t NearestNeighborGrid::nearest(const Eigen::Vector3d& query, double
     const std::uint32_t end = start_[base + last + 1];
     for (std::uint32_t k = start_[base + first]; k < end; ++k) {
       const double d = (points_[k] - query).squaredNorm();
-      if (d <= best) {
-        best = d;
-        found = static_cast<std::ptrdiff_t>(k);
+      if (d > prune) continue;
+      // Insert into the sorted best[] (the nearest first); ties keep the earlier point first.
+      int slot = kLast;
+      while (slot > 0 && d <= best[slot - 1]) {
+        best[slot] = best[slot - 1];
+        if (slot < kKeep) found[slot] = found[slot - 1];
+        --slot;
       }
+      best[slot] = d;
+      if (slot < kKeep) found[slot] = static_cast<std::ptrdiff_t>(k);
     }
   };
   const auto row_of_query = static_cast<std::int64_t>(std::floor(std::clamp(v, -1.0, static_cast<double>(rows_))));
   // Upward from the query's row (gap 0 within it), then downward; a row whose gap alone exceeds
-  // the best distance ends its direction.
+  // the pruning distance ends its direction.
   for (std::int64_t row = std::max<std::int64_t>(row_of_query, 0); row < rows_; ++row) {
     const double gap = std::max(0.0, static_cast<double>(row) - v - kBucketSlack);
-    if (gap * gap * bucket_squared > best) break;
+    if (gap * gap * bucket_squared > prune) break;
     scan_row(row, gap);
   }
   for (std::int64_t row = std::min(row_of_query - 1, rows_ - 1); row >= 0; --row) {
     const double gap = std::max(0.0, v - static_cast<double>(row + 1) - kBucketSlack);
-    if (gap * gap * bucket_squared > best) break;
+    if (gap * gap * bucket_squared > prune) break;
     scan_row(row, gap);
   }
-  if (found < 0) return -1;
-  squared_distance = best;
-  return static_cast<std::ptrdiff_t>(original_[static_cast<std::size_t>(found)]);
+  for (int k = 0; k < kKeep; ++k) {
+    if (found[k] >= 0) found[k] = static_cast<std::ptrdiff_t>(original_[static_cast<std::size_t>(found[k])]);
+  }
 }
 
 }  // namespace terracube

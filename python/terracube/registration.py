@@ -76,9 +76,16 @@ class RegistrationParams:
         Smallest / largest eigenvalue of the 6x6 normal matrix below this stops registration
         (reason ``degenerate``) instead of moving along unconstrained directions.
     extrapolate : bool
-        Opt-in acceleration after Besl and McKay: when two successive updates point the same way
-        and shrink, jump ahead along them (at most 10 steps). Unguarded: it can overshoot into
-        another minimum, so False (the plain iteration) is the default.
+        Guarded acceleration after Besl and McKay (not in the paper): when two successive updates
+        point the same way and shrink, try a jump along them (at most 10 steps) and keep it only if
+        the eq. (4) error truncated at the next distance limit is no larger than after the plain
+        step (both evaluated: one more correspondence pass per try). False: the plain iteration.
+    coarse_subsample : int
+        Coarse to fine (not in the paper): the first iterations pair only every n-th source point
+        (>= 1; 1 disables it; off when fewer than 500 points would remain) ...
+    coarse_until_motion : float
+        ... until an update moves the points less than this (|t| + |omega| * rms radius) [m].
+        Stopping decisions and the final estimate always use every point.
     """
 
     use_classes: bool = True
@@ -92,7 +99,9 @@ class RegistrationParams:
     error_threshold: float = 0.0
     min_correspondences: int = 10
     degeneracy_threshold: float = 1e-6
-    extrapolate: bool = False
+    extrapolate: bool = True
+    coarse_subsample: int = 4
+    coarse_until_motion: float = 0.05
 
     def to_core(self) -> _core.RegistrationParams:
         params = _core.RegistrationParams()
@@ -113,6 +122,10 @@ class RegistrationParams:
         params.min_correspondences = int(self.min_correspondences)
         params.degeneracy_threshold = float(self.degeneracy_threshold)
         params.extrapolate = bool(self.extrapolate)
+        if int(self.coarse_subsample) < 1:
+            raise ValueError(f"coarse_subsample must be at least 1, got {self.coarse_subsample}")
+        params.coarse_subsample = int(self.coarse_subsample)
+        params.coarse_until_motion_m = float(self.coarse_until_motion)
         return params
 
 
@@ -149,6 +162,7 @@ def register_maps(
     -------
     RegistrationResult
         ``transform`` (4, 4), ``converged``, ``reason`` (:class:`StopReason`), ``iterations``,
+        ``passes`` (correspondence passes), ``extrapolations`` (jumps kept by the guard),
         ``rmse`` [m], ``num_correspondences``, ``correspondences_per_class`` (6 counts by class),
         ``normal_matrix`` (6, 6) and its ``eigenvalues`` (6,), ascending.
 

@@ -3,7 +3,10 @@
 #include <terracube/icp.hpp>
 #include <terracube/terrain.hpp>
 
+#include <Eigen/Cholesky>
 #include <Eigen/Geometry>
+#include <algorithm>
+#include <array>
 #include <cmath>
 #include <iostream>
 #include <limits>
@@ -175,6 +178,37 @@ void expect_grid_matches_brute_force(const std::vector<Eigen::Vector3d>& points,
   }
 }
 
+/// nearest_two against a brute-force sort: the two nearest distances and the bound on the rest.
+void expect_two_nearest_match_brute_force(const std::vector<Eigen::Vector3d>& points, const NearestNeighborGrid& grid,
+                                          const std::vector<Eigen::Vector3d>& queries, double limit, const char* what) {
+  const double limit_squared = limit * limit;
+  for (std::size_t q = 0; q < queries.size(); ++q) {
+    std::vector<double> within;  // squared distances within the limit, ascending
+    for (const Eigen::Vector3d& p : points) {
+      const double d = (p - queries[q]).squaredNorm();
+      if (d <= limit_squared) within.push_back(d);
+    }
+    std::sort(within.begin(), within.end());
+    std::array<std::ptrdiff_t, 2> indices{};
+    std::array<double, 2> squared{};
+    double others = -1.0;
+    EXPECT_EQ(grid.nearest_two(queries[q], limit_squared, indices, squared, others), indices[0]);
+    for (std::size_t k = 0; k < 2; ++k) {
+      ASSERT_EQ(indices[k] >= 0, within.size() > k) << what << " query " << q << " rank " << k;
+      if (indices[k] < 0) {
+        EXPECT_EQ(squared[k], limit_squared);
+        continue;
+      }
+      EXPECT_EQ(squared[k], within[k]) << what << " query " << q << " rank " << k;
+      EXPECT_EQ((points[static_cast<std::size_t>(indices[k])] - queries[q]).squaredNorm(), within[k]);
+    }
+    if (indices[0] >= 0 && indices[1] >= 0) {
+      EXPECT_NE(indices[0], indices[1]);
+    }
+    EXPECT_EQ(others, within.size() > 2 ? within[2] : limit_squared) << what << " query " << q;
+  }
+}
+
 TEST(NearestNeighborGrid, MatchesBruteForceOnRandomPointsForAnyBucketSize) {
   std::mt19937 rng(17);
   std::uniform_real_distribution<double> u(-5.0, 5.0);
@@ -188,8 +222,10 @@ TEST(NearestNeighborGrid, MatchesBruteForceOnRandomPointsForAnyBucketSize) {
     for (const double bucket : {0.0, 0.05, 0.7, 30.0}) {
       const NearestNeighborGrid grid(points, bucket);
       EXPECT_EQ(grid.size(), points.size());
-      for (const double limit : {0.05, 0.5, 100.0})
+      for (const double limit : {0.05, 0.5, 100.0}) {
         expect_grid_matches_brute_force(points, grid, queries, limit, "random");
+        expect_two_nearest_match_brute_force(points, grid, queries, limit, "random");
+      }
     }
   }
 }
@@ -210,7 +246,10 @@ TEST(NearestNeighborGrid, MatchesBruteForceOnColumnsLinesAndLattices) {
   for (const auto* set : {&column, &line, &lattice}) {
     for (const double bucket : {0.0, 0.1}) {
       const NearestNeighborGrid grid(*set, bucket);
-      for (const double limit : {0.12, 0.6, 50.0}) expect_grid_matches_brute_force(*set, grid, queries, limit, "shape");
+      for (const double limit : {0.12, 0.6, 50.0}) {
+        expect_grid_matches_brute_force(*set, grid, queries, limit, "shape");
+        expect_two_nearest_match_brute_force(*set, grid, queries, limit, "shape");
+      }
     }
   }
 }
@@ -239,7 +278,10 @@ TEST(NearestNeighborGrid, MatchesBruteForceOnARealKittiMap) {
   std::vector<Eigen::Vector3d> queries;
   for (std::size_t k = 0; k < moved.size(); k += 17) queries.push_back(moved[k]);
   const NearestNeighborGrid grid(vertical);
-  for (const double limit : {0.3, 1.5}) expect_grid_matches_brute_force(vertical, grid, queries, limit, "kitti");
+  for (const double limit : {0.3, 1.5}) {
+    expect_grid_matches_brute_force(vertical, grid, queries, limit, "kitti");
+    expect_two_nearest_match_brute_force(vertical, grid, queries, limit, "kitti");
+  }
   const NearestNeighborGrid all_cells(cells.points);
   std::vector<Eigen::Vector3d> few(queries.begin(), queries.begin() + 300);
   expect_grid_matches_brute_force(cells.points, all_cells, few, 1.5, "kitti all cells");
@@ -402,6 +444,9 @@ TEST(RegisterPoints, RejectsBadGuessesParametersAndPoints) {
   rejects([](RegistrationParams& p) { p.class_weights[3] = std::numeric_limits<double>::quiet_NaN(); });
   rejects([](RegistrationParams& p) { p.min_correspondences = 2; });
   rejects([](RegistrationParams& p) { p.degeneracy_threshold = 1.0; });
+  rejects([](RegistrationParams& p) { p.coarse_subsample = 0; });
+  rejects([](RegistrationParams& p) { p.coarse_until_motion_m = -0.1; });
+  rejects([](RegistrationParams& p) { p.coarse_until_motion_m = std::numeric_limits<double>::infinity(); });
 
   ClassifiedPoints bad = set;
   bad.points[3].y() = std::numeric_limits<double>::infinity();
@@ -541,6 +586,156 @@ TEST(RegisterPoints, ExtrapolationReachesTheSameAnswerInFewerIterations) {
   EXPECT_LT(rotation_error_deg(accelerated.transform, truth), 1e-5);
   EXPECT_LT(accelerated.iterations, plain.iterations);
   std::cout << "iterations: plain " << plain.iterations << ", extrapolated " << accelerated.iterations << "\n";
+}
+
+/// Brute-force reference for one ICP step: same-class partners within `limit` at `transform`,
+/// eq. (A6) summed pair by pair about the weighted centroid, solved by LDLT, applied as an exact
+/// rotation about the centroid; and the truncated eq. (4) error sum w min(d^2, limit^2).
+struct NaiveIcp {
+  NaiveIcp(const ClassifiedPoints& source_points, const ClassifiedPoints& target_points,
+           const RegistrationParams& registration_params)
+      : source(source_points), params(registration_params) {
+    for (std::size_t j = 0; j < target_points.size(); ++j) {
+      target_by_class[target_points.classes[j]].push_back(target_points.points[j]);
+    }
+  }
+  const ClassifiedPoints& source;
+  const RegistrationParams& params;
+  std::array<std::vector<Eigen::Vector3d>, kNumTerrainClasses> target_by_class;
+
+  /// visit(moved point, partner or nullptr, weight, min(d^2, limit^2)) per source point taking part.
+  template <class Visit>
+  void each_pair(const Eigen::Matrix4d& transform, double limit, Visit visit) const {
+    for (std::size_t k = 0; k < source.size(); ++k) {
+      const double w = params.class_weights[source.classes[k]];
+      const std::vector<Eigen::Vector3d>& candidates = target_by_class[source.classes[k]];
+      if (w == 0.0 || candidates.empty()) continue;
+      const Eigen::Vector3d moved =
+          transform.topLeftCorner<3, 3>() * source.points[k] + transform.topRightCorner<3, 1>();
+      double best = limit * limit;
+      const Eigen::Vector3d* partner = nullptr;
+      for (const Eigen::Vector3d& q : candidates) {
+        const double d = (q - moved).squaredNorm();
+        if (d <= best) best = d, partner = &q;
+      }
+      visit(moved, partner, w, best);
+    }
+  }
+  double truncated_error(const Eigen::Matrix4d& transform, double limit) const {
+    double error = 0.0;
+    each_pair(transform, limit, [&](const Eigen::Vector3d&, const Eigen::Vector3d*, double w, double best) {
+      error += w * best;  // best stays limit^2 without a partner
+    });
+    return error;
+  }
+  Eigen::Matrix4d plain_step(const Eigen::Matrix4d& transform, double limit) const {
+    std::vector<Eigen::Vector3d> p, q;
+    std::vector<double> w;
+    each_pair(transform, limit,
+              [&](const Eigen::Vector3d& moved, const Eigen::Vector3d* partner, double weight, double) {
+                if (partner == nullptr) return;
+                p.push_back(moved);
+                q.push_back(*partner);
+                w.push_back(weight);
+              });
+    double w_sum = 0.0;
+    Eigen::Vector3d c = Eigen::Vector3d::Zero();
+    for (std::size_t k = 0; k < p.size(); ++k) w_sum += w[k], c += w[k] * p[k];
+    c /= w_sum;
+    Eigen::Matrix<double, 6, 6> h = Eigen::Matrix<double, 6, 6>::Zero();
+    Eigen::Matrix<double, 6, 1> g = Eigen::Matrix<double, 6, 1>::Zero();
+    for (std::size_t k = 0; k < p.size(); ++k) {
+      const Eigen::Vector3d r = p[k] - c;
+      Eigen::Matrix<double, 3, 6> jacobian;
+      jacobian.leftCols<3>() << 0.0, r.z(), -r.y(), -r.z(), 0.0, r.x(), r.y(), -r.x(), 0.0;  // -[r]x
+      jacobian.rightCols<3>().setIdentity();
+      h += w[k] * jacobian.transpose() * jacobian;
+      g += w[k] * jacobian.transpose() * (q[k] - p[k]);
+    }
+    const Eigen::Matrix<double, 6, 1> x = h.ldlt().solve(g);
+    const Eigen::Vector3d omega = x.head<3>();
+    const Eigen::Matrix3d rotation = Eigen::AngleAxisd(omega.norm(), omega.normalized()).toRotationMatrix();
+    Eigen::Matrix4d update = Eigen::Matrix4d::Identity();
+    update.topLeftCorner<3, 3>() = rotation;
+    update.topRightCorner<3, 1>() = c + x.tail<3>() - rotation * c;
+    return update * transform;
+  }
+};
+
+TEST(RegisterMaps, GuardedExtrapolationNeverEndsAStepAboveThePlainStepsError) {
+  // Step by step (a run stopped after n updates continues the run stopped after n - 1): each
+  // update must reach an eq. (4) error, truncated at the next limit, no larger than the plain
+  // step computed here by brute force; where no jump was kept it must be that plain step.
+  const std::vector<Eigen::Vector3d> world = street(0.1);
+  const Eigen::Matrix4d source_pose = pose(-1.0, 0.0, kSensorHeight, -10.0);
+  const Eigen::Matrix4d target_pose = pose(1.95, 0.5, kSensorHeight, 10.0);
+  const ClassifiedPoints source = points_of_map(street_map(world, source_pose, 0.2));
+  const ClassifiedPoints target = points_of_map(street_map(world, target_pose, 0.2));
+  const Eigen::Matrix4d guess = pose(0.25, -0.15, 0.05, 3.0, 0.5, -0.5) * target_pose.inverse() * source_pose;
+  RegistrationParams params;
+  params.coarse_subsample = 1;  // the guard compares errors over all the points
+  params.extrapolate = true;
+  const NaiveIcp naive{source, target, params};
+  Eigen::Matrix4d previous = guess;  // the estimate after n - 1 updates and its pass's limit
+  double previous_limit = params.max_correspondence_distance_m;
+  int previous_jumps = 0;
+  int jumps = 0;
+  for (int n = 1; n <= 30; ++n) {
+    params.max_iterations = n;
+    const RegistrationResult result = register_points(source, target, guess, params);
+    ASSERT_EQ(result.iterations, n);
+    const Eigen::Matrix4d plain = naive.plain_step(previous, previous_limit);
+    const double limit = result.correspondence_distance_m;
+    const double reached = naive.truncated_error(result.transform, limit);
+    const double plain_error = naive.truncated_error(plain, limit);
+    EXPECT_LE(reached, plain_error * (1.0 + 1e-12)) << "update " << n;
+    if (result.extrapolations == previous_jumps) {
+      EXPECT_LT((result.transform - plain).cwiseAbs().maxCoeff(), 1e-9) << "update " << n;
+    } else {
+      ++jumps;
+      EXPECT_EQ(result.extrapolations, previous_jumps + 1);
+      EXPECT_GT((result.transform - plain).cwiseAbs().maxCoeff(), 1e-6) << "update " << n;
+      EXPECT_LT(reached, plain_error) << "update " << n;
+    }
+    if (result.reason == StopReason::kConverged) break;
+    previous = result.transform;
+    previous_limit = limit;
+    previous_jumps = result.extrapolations;
+  }
+  EXPECT_GT(jumps, 0);  // the guard was exercised on a kept jump
+}
+
+TEST(RegisterPoints, CoarseToFineReachesTheExactMotionAndReportsAllPoints) {
+  // Exact correspondences and a known motion: subsampled first iterations or not, the answer is
+  // the motion, and the final statistics count every point.
+  const std::vector<Eigen::Vector3d> scene = test::random_scene(31, 4000, 20.0);
+  const Eigen::Matrix4d truth = pose(0.35, -0.25, 0.05, 4.0, 1.0, -0.5);
+  const ClassifiedPoints source = with_class(scene, TerrainClass::kObstacle);
+  const ClassifiedPoints target = with_class(transformed(scene, truth), TerrainClass::kObstacle);
+  RegistrationParams params;
+  params.use_classes = false;
+  params.max_iterations = 100;
+  params.rotation_tolerance_rad = 1e-9;
+  params.translation_tolerance_m = 1e-9;
+  for (const int subsample : {1, 4, 16}) {
+    params.coarse_subsample = subsample;
+    const RegistrationResult result = register_points(source, target, Eigen::Matrix4d::Identity(), params);
+    ASSERT_TRUE(result.converged) << subsample << " " << to_string(result.reason);
+    EXPECT_LT(translation_error(result.transform, truth), 1e-6) << subsample;
+    EXPECT_LT(rotation_error_deg(result.transform, truth), 1e-5) << subsample;
+    EXPECT_EQ(result.num_correspondences, scene.size()) << subsample;
+  }
+  // max_iterations reached while still coarse: the reported pass covers every point.
+  params.coarse_subsample = 4;
+  params.max_iterations = 1;
+  const RegistrationResult early = register_points(source, target, Eigen::Matrix4d::Identity(), params);
+  EXPECT_EQ(early.reason, StopReason::kMaxIterations);
+  const NaiveIcp naive{source, target, params};
+  std::size_t pairs = 0;
+  naive.each_pair(
+      early.transform, early.correspondence_distance_m,
+      [&](const Eigen::Vector3d&, const Eigen::Vector3d* partner, double, double) { pairs += partner != nullptr; });
+  EXPECT_EQ(early.num_correspondences, pairs);
 }
 
 #ifdef TERRACUBE_HAVE_PCL

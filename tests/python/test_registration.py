@@ -111,6 +111,8 @@ def test_params_mirror_the_cpp_defaults():
         "min_correspondences",
         "degeneracy_threshold",
         "extrapolate",
+        "coarse_subsample",
+        "coarse_until_motion_m",
     ):
         assert getattr(core, name) == getattr(default, name), name
     assert list(core.class_weights) == list(default.class_weights) == [0.0, 0.0, 0.8, 0.5, 0.5, 0.8]
@@ -140,6 +142,24 @@ def test_weighted_icp_recovers_three_metres_and_twenty_degrees(street_pair):
     np.testing.assert_allclose(np.linalg.eigvalsh(result.normal_matrix), result.eigenvalues, rtol=1e-9)
     assert 0.0 < result.rmse < 0.2
     assert "converged" in repr(result)
+
+
+def test_passes_count_one_per_iteration_plus_the_extrapolations_tried(street_pair):
+    source, target, truth, guess = street_pair
+    # The plain iteration of the paper: one pass at the guess, then one after each update.
+    plain = tc.register_maps(source, target, guess, extrapolate=False, coarse_subsample=1)
+    assert plain.converged, plain
+    assert plain.passes == plain.iterations + 1
+    assert plain.extrapolations == 0
+    # The defaults (guarded extrapolation, coarse to fine) need fewer updates and get at least as
+    # close: the plain iteration crawls along the street and stops on a small update 6 cm short.
+    fast = tc.register_maps(source, target, guess)
+    assert fast.converged, fast
+    assert fast.passes >= fast.iterations + 1
+    assert fast.iterations < plain.iterations
+    assert fast.rmse <= plain.rmse
+    assert errors(fast.transform, truth)[0] <= errors(plain.transform, truth)[0]
+    assert errors(fast.transform, truth)[0] < 0.03
 
 
 def test_weighted_icp_beats_the_all_cells_icp_where_ground_dominates(street_pair):
@@ -208,6 +228,10 @@ def test_bad_guesses_and_parameters_raise_value_error(street_pair):
         tc.register_maps(source, target, np.eye(4), correspondence_distance_decay=1.5)
     with pytest.raises(ValueError, match="weights"):
         tc.register_maps(source, target, np.eye(4), class_weights={TC.OBSTACLE: -1.0})
+    with pytest.raises(ValueError, match="coarse_subsample"):
+        tc.register_maps(source, target, np.eye(4), coarse_subsample=0)
+    with pytest.raises(ValueError, match="coarse"):
+        tc.register_maps(source, target, np.eye(4), coarse_until_motion=-1.0)
     unclassified = tc.build_elevation_map(np.random.default_rng(0).uniform(0, 5, (100, 3)), 0.5)
     with pytest.raises(ValueError, match="classify_terrain"):
         tc.register_maps(unclassified, unclassified)

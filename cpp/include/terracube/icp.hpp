@@ -66,12 +66,19 @@ struct RegistrationParams {
   /// shows only in the result, not in H); the test catches collinear or coincident points
   /// (rotation about the line is free). The eigenvalues are reported either way.
   double degeneracy_threshold = 1e-6;
-  /// Opt-in acceleration after Besl and McKay (the ICP paper, sec. IV-C): when two successive
-  /// updates point the same way and shrink, jump ahead along them by the geometric series'
-  /// remainder (at most 10 steps). Fewer iterations where point-to-point ICP crawls, but with no
-  /// guard against overshooting it can settle in another minimum (seen on random scenes), so the
-  /// plain iteration (false) is the default.
-  bool extrapolate = false;
+  /// Acceleration after Besl and McKay (the ICP paper, sec. IV-C), guarded (not in either
+  /// paper): when two successive updates point the same way and shrink, try a jump along them by
+  /// the geometric series' remainder (at most 10 steps) and keep it only if the eq. (4) error
+  /// truncated at the next distance limit, sum w min(d^2, limit^2) over the source points that
+  /// take part, is no larger there than after the plain step (both are evaluated, so a try costs
+  /// one more correspondence pass). false: the plain iteration of the paper.
+  bool extrapolate = true;
+  /// Coarse to fine (not in the paper): the first iterations pair only every n-th source point
+  /// (>= 1; 1 disables it; also off when fewer than 500 points would remain), until an update
+  /// moves the points by less than coarse_until_motion_m (|t| + |omega| * rms radius) [m]. Every
+  /// stopping decision and the final estimate use all the points.
+  int coarse_subsample = 4;
+  double coarse_until_motion_m = 0.05;
 };
 
 /// Why registration stopped.
@@ -95,6 +102,10 @@ struct RegistrationResult {
   bool converged = false;  ///< reason is kConverged or kErrorBelowThreshold
   StopReason reason = StopReason::kMaxIterations;
   int iterations = 0;  ///< updates applied
+  /// Correspondence passes (nearest-neighbour sweeps over the source): one per iteration, plus one
+  /// more for each extrapolation tried (both the jump and the plain step are evaluated).
+  int passes = 0;
+  int extrapolations = 0;  ///< extrapolated jumps accepted by the guard
   /// sqrt(sum w_i |R p_i + t - q_i|^2 / sum w_i) over the correspondences at `transform` [m]
   /// (eq. (2), weighted as eq. (4)); NaN without correspondences.
   double rmse_m = 0.0;
@@ -168,12 +179,27 @@ class NearestNeighborGrid {
   /// Index (into the constructor's points) of the nearest point whose squared distance is at most
   /// `max_squared_distance` (ties: any one), or -1. `squared_distance` receives that distance.
   std::ptrdiff_t nearest(const Eigen::Vector3d& query, double max_squared_distance, double& squared_distance) const;
+  /// The two nearest points within the limit and a bound on all the others: `indices` receives
+  /// the nearest and the second-nearest (-1 where there is none), `squared_distances` their squared
+  /// distances (`max_squared_distance` where there is none) and `others_squared_distance` a value
+  /// that every other point's squared distance reaches: the third-nearest's, or
+  /// `max_squared_distance` when no third point lies within the limit. Ties: any order. Returns
+  /// indices[0]. register_points uses the bound to prove that a moved query keeps its nearest
+  /// point among the two without searching again.
+  std::ptrdiff_t nearest_two(const Eigen::Vector3d& query, double max_squared_distance,
+                             std::array<std::ptrdiff_t, 2>& indices, std::array<double, 2>& squared_distances,
+                             double& others_squared_distance) const;
   std::size_t size() const { return points_.size(); }
   /// The constructor's point `index`.
   const Eigen::Vector3d& point(std::size_t index) const { return points_[position_[index]]; }
   double bucket_size_m() const { return bucket_size_m_; }
 
  private:
+  /// The search behind nearest() (kKeep 1) and nearest_two() (kKeep 2, kBound): best[] holds the
+  /// kKeep (+ 1 with kBound) smallest squared distances, found[] the indices of the first kKeep.
+  template <int kKeep, bool kBound>
+  void search(const Eigen::Vector3d& query, double max_squared_distance, std::ptrdiff_t* found, double* best) const;
+
   double bucket_size_m_ = 1.0;
   double inverse_bucket_size_ = 1.0;
   Eigen::Vector2d origin_ = Eigen::Vector2d::Zero();  // lower corner of bucket (0, 0) [m]
