@@ -142,12 +142,13 @@ struct DenseScratch {
   std::vector<std::uint32_t> cubes;      // I of every point
   std::vector<std::uint32_t> words;      // the non-zero words of V, in order
   std::vector<std::uint8_t> removed;     // a byte per cube of R, for small grids
+  std::vector<std::int64_t> collapsed;   // R while it grows (the result gets an exact copy)
 
   static constexpr std::size_t kKeepBytes = std::size_t{64} << 20;
 
   std::size_t bytes() const {
     return occupancy.capacity() * 8 + summary.capacity() * 8 + ground.capacity() * 4 + cubes.capacity() * 4 +
-           words.capacity() * 4 + removed.capacity();
+           words.capacity() * 4 + removed.capacity() + collapsed.capacity() * 8;
   }
 };
 
@@ -241,11 +242,15 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
   }
 
   // Lines 5-15 with M, then M restored to -1 on the columns L touched.
+  // R grows in scratch and is copied once at its final size: growing the result's own vector
+  // would touch (and page-fault) about twice the memory.
   std::int32_t* const ground = scratch.ground.data();
+  scratch.collapsed.clear();
   sweep_columns(
       occupied, grid.num_columns(), params.sigma,
       [ground](std::int64_t column) -> std::int32_t& { return ground[static_cast<std::size_t>(column)]; },
-      result.removed_cubes);
+      scratch.collapsed);
+  result.removed_cubes.assign(scratch.collapsed.begin(), scratch.collapsed.end());
   for_each_column(occupied, grid.num_columns(), [ground](std::int64_t, std::int64_t column, std::int64_t) {
     ground[static_cast<std::size_t>(column)] = -1;
   });
