@@ -297,6 +297,24 @@ TEST(ElevationMapLayers, AddGetExistsAndLayersInInsertionOrder) {
   EXPECT_EQ(const_map.get("mid")(0, 0), 42.0F);
 }
 
+TEST(ElevationMapLayers, ReferencesStayValidWhenLayersAreAdded) {
+  // Like grid_map: a layer reference taken before more layers are added still reads (and writes)
+  // that layer (under ASan a moved-from layer would be a use after free).
+  MapGeometry geometry;
+  geometry.size = {3, 2};
+  ElevationMap map(geometry);
+  map.add("first", 1.5F);
+  Layer& first = map.get("first");
+  const float* data = first.data();
+  for (int k = 0; k < 40; ++k) map.add("extra_" + std::to_string(k), static_cast<float>(k));
+  EXPECT_EQ(&first, &map.get("first"));
+  EXPECT_EQ(first.data(), data);
+  first(2, 1) = -4.0F;
+  EXPECT_EQ(map.get("first")(2, 1), -4.0F);
+  EXPECT_EQ(map.get("first")(0, 0), 1.5F);
+  EXPECT_EQ(map.get("extra_39")(1, 1), 39.0F);
+}
+
 TEST(ElevationMapLayers, OverwritingKeepsThePlaceInTheOrder) {
   ElevationMap map(example_geometry());
   map.add("a", 1.0F);

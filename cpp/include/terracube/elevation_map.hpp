@@ -7,6 +7,7 @@
 #include <Eigen/Core>
 #include <cstddef>
 #include <cstdint>
+#include <deque>
 #include <limits>
 #include <optional>
 #include <string>
@@ -54,7 +55,8 @@ class ElevationMap {
   /// Adds (or overwrites) a layer; throws std::invalid_argument when its size is not the map's.
   void add(const std::string& name, Layer data);
   bool exists(const std::string& name) const;
-  /// Throws std::out_of_range naming the missing layer and the ones there are.
+  /// Throws std::out_of_range naming the missing layer and the ones there are. The reference stays
+  /// valid while the map lives, whatever layers are added later.
   const Layer& get(const std::string& name) const;
   Layer& get(const std::string& name);
   /// Layer names in the order they were added.
@@ -62,7 +64,8 @@ class ElevationMap {
 
  private:
   MapGeometry geometry_;
-  std::vector<std::pair<std::string, Layer>> layers_;
+  // A deque: adding a layer never moves the others, so references from get() stay valid.
+  std::deque<std::pair<std::string, Layer>> layers_;
 };
 
 /// Parameters of build_elevation_map.
