@@ -98,15 +98,7 @@ bool packed_extent_kernel(const Scalar* data, std::size_t rows, double* min, dou
     min[axis] = lo_s[k] < min[axis] ? static_cast<double>(lo_s[k]) : min[axis];
     max[axis] = hi_s[k] > max[axis] ? static_cast<double>(hi_s[k]) : max[axis];
   }
-  for (std::size_t row = periods * kRowsPerPeriod; row < rows; ++row) {
-    for (int axis = 0; axis < 3; ++axis) {
-      const auto v = static_cast<double>(data[row * kStride + static_cast<std::size_t>(axis)]);
-      if (!(v - v == 0.0)) return false;
-      min[axis] = v < min[axis] ? v : min[axis];
-      max[axis] = v > max[axis] ? v : max[axis];
-    }
-  }
-  return true;
+  return extent_tail<Scalar, kStride>(data, periods * kRowsPerPeriod, rows, min, max);
 }
 #endif
 

@@ -20,6 +20,21 @@ struct QuantizeConstants {
 void quantize_rows(const float* data, std::size_t rows, int stride, const QuantizeConstants& k, std::uint32_t* out);
 void quantize_rows(const double* data, std::size_t rows, int stride, const QuantizeConstants& k, std::uint32_t* out);
 
+/// The scalar part of both bounding-box kernels: rows [first, rows) of kStride scalars folded
+/// into min/max; false at the first NaN/Inf coordinate.
+template <typename Scalar, int kStride>
+inline bool extent_tail(const Scalar* data, std::size_t first, std::size_t rows, double* min, double* max) {
+  for (std::size_t row = first; row < rows; ++row) {
+    for (int axis = 0; axis < 3; ++axis) {
+      const auto v = static_cast<double>(data[row * kStride + static_cast<std::size_t>(axis)]);
+      if (!(v - v == 0.0)) return false;
+      min[axis] = v < min[axis] ? v : min[axis];
+      max[axis] = v > max[axis] ? v : max[axis];
+    }
+  }
+  return true;
+}
+
 /// Bounding box of `rows` rows of `stride` (3 or 4) scalars (the fourth is ignored) with AVX2, when
 /// the CPU has it: sets `handled` and returns false when an x, y or z is NaN/Inf. Leaves `handled`
 /// false without AVX2 (the caller then takes the SSE2 kernel in packed_extent.hpp).

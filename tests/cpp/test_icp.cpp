@@ -515,15 +515,28 @@ TEST(RegisterMaps, RecoverThreeMetresAndTwentyDegreesFromAPerturbedGuess) {
   EXPECT_GT(all_cells.num_correspondences, weighted.num_correspondences);
 }
 
-TEST(RegisterMaps, NormalEquationsEqualANaiveSumOverBruteForcePairs) {
-  // The one-sweep moments against eq. (A6) summed pair by pair, with brute-force partners of the
-  // same class at the final estimate and limit.
+/// The street seen from the paper's two poses (3 m and 20 degrees apart) as 0.2 m cell points,
+/// and a guess 0.3 m / 3 degrees off the truth.
+struct StreetPair {
+  ClassifiedPoints source, target;
+  Eigen::Matrix4d guess;
+};
+
+StreetPair street_pair() {
   const std::vector<Eigen::Vector3d> world = street(0.1);
   const Eigen::Matrix4d source_pose = pose(-1.0, 0.0, kSensorHeight, -10.0);
   const Eigen::Matrix4d target_pose = pose(1.95, 0.5, kSensorHeight, 10.0);
-  const ClassifiedPoints source = points_of_map(street_map(world, source_pose, 0.2));
-  const ClassifiedPoints target = points_of_map(street_map(world, target_pose, 0.2));
-  const Eigen::Matrix4d guess = pose(0.25, -0.15, 0.05, 3.0, 0.5, -0.5) * target_pose.inverse() * source_pose;
+  return {points_of_map(street_map(world, source_pose, 0.2)), points_of_map(street_map(world, target_pose, 0.2)),
+          pose(0.25, -0.15, 0.05, 3.0, 0.5, -0.5) * target_pose.inverse() * source_pose};
+}
+
+TEST(RegisterMaps, NormalEquationsEqualANaiveSumOverBruteForcePairs) {
+  // The one-sweep moments against eq. (A6) summed pair by pair, with brute-force partners of the
+  // same class at the final estimate and limit.
+  const StreetPair pair = street_pair();
+  const ClassifiedPoints& source = pair.source;
+  const ClassifiedPoints& target = pair.target;
+  const Eigen::Matrix4d& guess = pair.guess;
   const RegistrationParams params;
   const RegistrationResult result = register_points(source, target, guess, params);
   ASSERT_TRUE(result.converged) << to_string(result.reason);
@@ -666,12 +679,10 @@ TEST(RegisterMaps, GuardedExtrapolationNeverEndsAStepAboveThePlainStepsError) {
   // Step by step (a run stopped after n updates continues the run stopped after n - 1): each
   // update must reach an eq. (4) error, truncated at the next limit, no larger than the plain
   // step computed here by brute force; where no jump was kept it must be that plain step.
-  const std::vector<Eigen::Vector3d> world = street(0.1);
-  const Eigen::Matrix4d source_pose = pose(-1.0, 0.0, kSensorHeight, -10.0);
-  const Eigen::Matrix4d target_pose = pose(1.95, 0.5, kSensorHeight, 10.0);
-  const ClassifiedPoints source = points_of_map(street_map(world, source_pose, 0.2));
-  const ClassifiedPoints target = points_of_map(street_map(world, target_pose, 0.2));
-  const Eigen::Matrix4d guess = pose(0.25, -0.15, 0.05, 3.0, 0.5, -0.5) * target_pose.inverse() * source_pose;
+  const StreetPair pair = street_pair();
+  const ClassifiedPoints& source = pair.source;
+  const ClassifiedPoints& target = pair.target;
+  const Eigen::Matrix4d& guess = pair.guess;
   RegistrationParams params;
   params.coarse_subsample = 1;  // the guard compares errors over all the points
   params.extrapolate = true;
