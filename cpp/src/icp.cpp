@@ -20,6 +20,9 @@ constexpr std::uint32_t kLeafSize = 8;
 // Rounding allowance of the nearest-neighbour certificates [m]: far above the error of the
 // distances (about 1e-15 m at map scale), far below any distance that matters.
 constexpr double kCertificateSlack = 1e-9;
+// A search that finds nothing within the certificate reach looks this many times the distance
+// limit far (see Registration::search).
+constexpr double kEmptyReach = 1.5;
 
 using Matrix6d = Eigen::Matrix<double, 6, 6>;
 using Vector6d = Eigen::Matrix<double, 6, 1>;
@@ -227,15 +230,26 @@ class Registration {
              double& squared) const {
     const NearestNeighborGrid& grid = grids_[grid_index];
     // The two nearest within a reach of at most certificate_reach_ (a wider search costs more and
-    // a wider certificate is rarely needed); nothing there: the plain nearest within the limit,
-    // whose certificate (clearance = its own distance) holds for no motion.
+    // a wider certificate is rarely needed); nothing there: the plain nearest within
+    // kEmptyReach times the limit. A partner found so (beyond the reach, within the limit) has a
+    // certificate that holds for no motion (clearance = its own distance).
     std::array<double, 2> distances{};
     const double reach_squared = std::min(max_squared, certificate_reach_ * certificate_reach_);
     double others = reach_squared;
     grid.nearest_two(moved, reach_squared, cached.index, distances, others);
-    if (cached.index[0] < 0 && reach_squared < max_squared) {
-      cached.index[0] = grid.nearest(moved, max_squared, distances[0]);
-      others = cached.index[0] >= 0 ? distances[0] : max_squared;
+    if (cached.index[0] < 0) {
+      // Nothing within the reach: the nearest within kEmptyReach times the limit. Beyond the
+      // limit it is no partner, but its distance still certifies "nothing within the limit"
+      // for a motion of up to its distance minus the limit (without it a point with no partner
+      // would search again on every pass once the limit has shrunk to the reach).
+      const double wide_squared = max_squared * (kEmptyReach * kEmptyReach);
+      double nearest_squared = wide_squared;
+      const std::ptrdiff_t index = grid.nearest(moved, wide_squared, nearest_squared);
+      if (index >= 0 && nearest_squared <= max_squared) {
+        cached.index[0] = index;
+        distances[0] = nearest_squared;
+      }
+      others = nearest_squared;
     }
     cached.anchor = moved;
     cached.clearance = std::sqrt(others);
@@ -318,22 +332,27 @@ const char* to_string(StopReason reason) {
 
 ClassifiedPoints points_of_map(const ElevationMap& map) {
   const Layer& highest = map.get("max");
-  const Layer* classes = map.exists("class") ? &map.get("class") : nullptr;
+  const float* classes = map.exists("class") ? map.get("class").data() : nullptr;
   const MapGeometry& geometry = map.geometry();
+  const auto rows = static_cast<std::size_t>(highest.rows()), cols = static_cast<std::size_t>(highest.cols());
+  const float* z = highest.data();  // row-major: cell (i, j) at i * cols + j
+  std::size_t count = 0;
+  for (std::size_t cell = 0; cell < rows * cols; ++cell) count += std::isfinite(z[cell]) ? 1 : 0;
   ClassifiedPoints set;
-  const auto count =
-      static_cast<std::size_t>(highest.unaryExpr([](float z) { return std::isfinite(z) ? 1 : 0; }).sum());
   set.points.reserve(count);
   set.classes.reserve(count);
-  for (Eigen::Index i = 0; i < highest.rows(); ++i) {
-    for (Eigen::Index j = 0; j < highest.cols(); ++j) {
-      const float z = highest(i, j);
-      if (!std::isfinite(z)) continue;
-      const Eigen::Vector2d xy = geometry.position_of({static_cast<int>(i), static_cast<int>(j)});
-      set.points.emplace_back(xy.x(), xy.y(), static_cast<double>(z));
-      float c = classes ? (*classes)(i, j) : 0.0F;
-      if (!(c >= 0.0F && c < static_cast<float>(kNumTerrainClasses))) c = 0.0F;  // NaN: unknown
-      set.classes.push_back(static_cast<std::uint8_t>(c));
+  // The cell centres of MapGeometry::position_of, one coordinate at a time.
+  std::vector<double> ys(cols);
+  for (std::size_t j = 0; j < cols; ++j) {
+    ys[j] = geometry.origin_m.y() + (static_cast<double>(j) + 0.5) * geometry.resolution_m;
+  }
+  for (std::size_t i = 0; i < rows; ++i) {
+    const double x = geometry.origin_m.x() + (static_cast<double>(i) + 0.5) * geometry.resolution_m;
+    for (std::size_t j = 0, cell = i * cols; j < cols; ++j, ++cell) {
+      if (!std::isfinite(z[cell])) continue;
+      set.points.emplace_back(x, ys[j], static_cast<double>(z[cell]));
+      const float c = classes ? classes[cell] : 0.0F;  // NaN or out of range: unknown
+      set.classes.push_back(c >= 0.0F && c < static_cast<float>(kNumTerrainClasses) ? static_cast<std::uint8_t>(c) : 0);
     }
   }
   return set;
