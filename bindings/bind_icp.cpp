@@ -161,6 +161,15 @@ void bind_icp(py::module_& m) {
         return pcl_icp(s, t, initial, params);
       },
       py::arg("source"), py::arg("target"), py::arg("initial"), py::arg("params"));
+  m.def(
+      "pcl_gicp",
+      [](const py::array& source, const py::array& target, const Eigen::Matrix4d& initial, const PclIcpParams& params) {
+        const std::vector<Eigen::Vector3d> s = plain_points(source, "source");
+        const std::vector<Eigen::Vector3d> t = plain_points(target, "target");
+        py::gil_scoped_release release;
+        return pcl_gicp(s, t, initial, params);
+      },
+      py::arg("source"), py::arg("target"), py::arg("initial"), py::arg("params"));
 #else
   m.attr("has_pcl") = false;
 #endif

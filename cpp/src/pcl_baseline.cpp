@@ -2,8 +2,10 @@
 #include "terracube/pcl_baseline.hpp"
 
 #include <pcl/point_types.h>
+#include <pcl/registration/gicp.h>
 #include <pcl/registration/icp.h>
 
+#include <algorithm>
 #include <cmath>
 #include <stdexcept>
 #include <string>
@@ -25,38 +27,63 @@ pcl::PointCloud<pcl::PointXYZ>::Ptr to_cloud(const std::vector<Eigen::Vector3d>&
   return cloud;
 }
 
-/// pcl::IterativeClosestPoint does not expose its iteration count in PCL 1.13.
-class CountingIcp : public pcl::IterativeClosestPoint<pcl::PointXYZ, pcl::PointXYZ> {
+/// PCL 1.13 exposes neither registration's iteration count.
+template <typename Registration>
+class Counting : public Registration {
  public:
-  int iterations() const { return nr_iterations_; }
+  int iterations() const { return this->nr_iterations_; }
 };
 
-}  // namespace
-
-PclIcpResult pcl_icp(const std::vector<Eigen::Vector3d>& source, const std::vector<Eigen::Vector3d>& target,
-                     const Eigen::Matrix4d& initial, const PclIcpParams& params) {
+void check(const Eigen::Matrix4d& initial, const PclIcpParams& params) {
   detail::check_rigid_transform(initial, "initial transform");
   if (!(params.max_correspondence_distance_m > 0.0) || !std::isfinite(params.max_correspondence_distance_m) ||
       params.max_iterations < 1) {
     throw std::invalid_argument("PCL ICP needs a positive max correspondence distance and at least 1 iteration");
   }
-  CountingIcp icp;
-  icp.setInputSource(to_cloud(source, "source"));
-  icp.setInputTarget(to_cloud(target, "target"));
+}
+
+template <typename Registration>
+PclIcpResult run(Counting<Registration>& icp, const Eigen::Matrix4d& initial, const PclIcpParams& params) {
   icp.setMaxCorrespondenceDistance(params.max_correspondence_distance_m);
   icp.setMaximumIterations(params.max_iterations);
   icp.setTransformationEpsilon(params.transformation_epsilon);
   icp.setTransformationRotationEpsilon(params.rotation_epsilon);
   icp.setEuclideanFitnessEpsilon(params.euclidean_fitness_epsilon);
-  icp.getConvergeCriteria()->setRelativeMSE(params.relative_mse_epsilon);
   pcl::PointCloud<pcl::PointXYZ> aligned;
   icp.align(aligned, initial.cast<float>());
   PclIcpResult result;
-  result.transform = icp.getFinalTransformation().cast<double>();
+  result.transform = icp.getFinalTransformation().template cast<double>();
   result.converged = icp.hasConverged();
   result.fitness_m2 = icp.getFitnessScore(params.max_correspondence_distance_m);
   result.iterations = icp.iterations();
   return result;
+}
+
+}  // namespace
+
+PclIcpResult pcl_icp(const std::vector<Eigen::Vector3d>& source, const std::vector<Eigen::Vector3d>& target,
+                     const Eigen::Matrix4d& initial, const PclIcpParams& params) {
+  check(initial, params);
+  Counting<pcl::IterativeClosestPoint<pcl::PointXYZ, pcl::PointXYZ>> icp;
+  icp.setInputSource(to_cloud(source, "source"));
+  icp.setInputTarget(to_cloud(target, "target"));
+  icp.getConvergeCriteria()->setRelativeMSE(params.relative_mse_epsilon);
+  return run(icp, initial, params);
+}
+
+PclIcpResult pcl_gicp(const std::vector<Eigen::Vector3d>& source, const std::vector<Eigen::Vector3d>& target,
+                      const Eigen::Matrix4d& initial, const PclIcpParams& params) {
+  check(initial, params);
+  Counting<pcl::GeneralizedIterativeClosestPoint<pcl::PointXYZ, pcl::PointXYZ>> icp;
+  icp.setInputSource(to_cloud(source, "source"));
+  icp.setInputTarget(to_cloud(target, "target"));
+  // GICP stops on its own test: every rotation-matrix entry moves less than its rotation
+  // epsilon and every translation entry less than the transformation epsilon. The same
+  // thresholds as pcl_icp's: the angle of the cosine, the square root of the squared translation.
+  icp.setRotationEpsilon(std::acos(std::clamp(params.rotation_epsilon, -1.0, 1.0)));
+  PclIcpParams gicp = params;
+  gicp.transformation_epsilon = std::sqrt(std::max(params.transformation_epsilon, 0.0));
+  return run(icp, initial, gicp);
 }
 
 }  // namespace terracube

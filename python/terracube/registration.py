@@ -4,7 +4,7 @@ The terrain-classification paper, sections 2.2 and 3.3 and its appendix: each ce
 the point (x centre, y centre, max) carrying its terrain class; a source point pairs only with the
 nearest target point of its class, each class with the weight of eq. (4) (Table 2), ground taking
 no part. ``register_maps_all_cells`` is the paper's "conventional" ICP (every cell, unit weight);
-``pcl_icp`` runs ``pcl::IterativeClosestPoint`` on the same points.
+``pcl_icp`` runs ``pcl::IterativeClosestPoint`` on the same points (``pcl_gicp`` PCL's GICP).
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ __all__ = [
     "RegistrationResult",
     "StopReason",
     "has_pcl",
+    "pcl_gicp",
     "pcl_icp",
     "points_of_map",
     "register_maps",
@@ -252,3 +253,13 @@ def pcl_icp(source, target, initial=None, params: PclIcpParams | None = None, **
     params = params or PclIcpParams(**kwargs)
     core = params.to_core()
     return _core.pcl_icp(np.asarray(source), np.asarray(target), _as_guess(initial), core)
+
+
+def pcl_gicp(source, target, initial=None, params: PclIcpParams | None = None, **kwargs):
+    """PCL's generalized ICP (plane-to-plane, Segal et al. 2009) on (N, 3) arrays, same settings
+    and result as :func:`pcl_icp` (``relative_mse_epsilon`` does not apply); RuntimeError
+    without PCL. Not a method of the papers: a dense scan matcher for reference.
+    """
+    params = params or PclIcpParams(**kwargs)
+    core = params.to_core()
+    return _core.pcl_gicp(np.asarray(source), np.asarray(target), _as_guess(initial), core)

@@ -782,12 +782,28 @@ TEST(RegisterPoints, AgreesWithPclIcpWithClassesOffAndUnitWeights) {
 
 TEST(PclIcp, RejectsEmptyAndNonFiniteInput) {
   const std::vector<Eigen::Vector3d> points = test::random_scene(1, 50, 5.0);
-  EXPECT_THROW(pcl_icp({}, points, Eigen::Matrix4d::Identity()), std::invalid_argument);
   std::vector<Eigen::Vector3d> bad = points;
   bad[0].x() = std::numeric_limits<double>::quiet_NaN();
-  EXPECT_THROW(pcl_icp(points, bad, Eigen::Matrix4d::Identity()), std::invalid_argument);
   Eigen::Matrix4d scaled = Eigen::Matrix4d::Identity() * 2.0;
-  EXPECT_THROW(pcl_icp(points, points, scaled), std::invalid_argument);
+  for (const auto& method : {pcl_icp, pcl_gicp}) {
+    EXPECT_THROW(method({}, points, Eigen::Matrix4d::Identity(), {}), std::invalid_argument);
+    EXPECT_THROW(method(points, bad, Eigen::Matrix4d::Identity(), {}), std::invalid_argument);
+    EXPECT_THROW(method(points, points, scaled, {}), std::invalid_argument);
+  }
+}
+
+TEST(PclGicp, RecoversAKnownMotionOfTheSameScene) {
+  // The target is the source moved: the minimum is the motion itself.
+  const std::vector<Eigen::Vector3d> source = test::random_scene(23, 12000, 20.0);
+  const Eigen::Matrix4d motion = pose(0.2, -0.1, 0.03, 2.0, 0.4, -0.3);
+  PclIcpParams params;
+  params.max_iterations = 60;
+  params.transformation_epsilon = 1e-12;
+  const PclIcpResult result = pcl_gicp(source, transformed(source, motion), Eigen::Matrix4d::Identity(), params);
+  EXPECT_TRUE(result.converged);
+  EXPECT_GT(result.iterations, 0);
+  EXPECT_LT(translation_error(result.transform, motion), 5e-3);
+  EXPECT_LT(rotation_error_deg(result.transform, motion), 0.05);
 }
 #endif
 

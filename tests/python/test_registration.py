@@ -209,6 +209,27 @@ def test_unit_weight_icp_matches_pcl_within_a_millimetre():
     assert translation < 1e-3 and rotation < 0.05
 
 
+@pytest.mark.skipif(not tc.has_pcl(), reason="built without the PCL baseline")
+def test_pcl_gicp_recovers_the_motion_of_a_moved_copy_from_float32():
+    # A dense structured scene (ground, walls) and an exact moved copy: the minimum is the motion.
+    rng = np.random.default_rng(5)
+    x, y = rng.uniform(0, 20, 12000), rng.uniform(0, 20, 12000)
+    z = 0.3 * np.sin(0.4 * x) + 0.2 * np.cos(0.3 * y)
+    wall = rng.uniform(0, 1, x.size) > 0.7
+    along_y = wall & (rng.uniform(0, 1, x.size) > 0.5)
+    x[wall & ~along_y] = np.round(x[wall & ~along_y] / 5.0) * 5.0
+    y[along_y] = np.round(y[along_y] / 7.0) * 7.0
+    z[wall] += rng.uniform(0, 3, wall.sum())
+    source = np.column_stack([x, y, z])
+    motion = pose(0.2, -0.1, 0.03, 2.0, 0.4, -0.3)
+    result = tc.pcl_gicp(source.astype(np.float32), apply(motion, source), max_iterations=60)
+    assert result.converged and result.iterations > 0
+    translation, rotation = errors(result.transform, motion)
+    assert translation < 5e-3 and rotation < 0.05
+    with pytest.raises(ValueError):
+        tc.pcl_gicp(np.empty((0, 3)), source)
+
+
 # --------------------------------------------------------------------------------------------
 # Bad input
 # --------------------------------------------------------------------------------------------

@@ -1,5 +1,5 @@
-// PCL's pcl::IterativeClosestPoint on terracube point sets: the external baseline that the
-// registration tests and benchmarks compare against. No PCL type appears here, so including
+// PCL's pcl::IterativeClosestPoint (and GICP) on terracube point sets: the external baselines
+// that the registration tests and benchmarks compare against. No PCL type appears here, so including
 // this header never needs PCL; the library target terracube::pcl_baseline links PCL privately
 // and exists only when CMake found PCL (TERRACUBE_WITH_PCL). Build tree only: neither the target
 // nor this header is installed.
@@ -33,5 +33,13 @@ struct PclIcpResult {
 /// input, a non-rigid `initial` or invalid parameters.
 PclIcpResult pcl_icp(const std::vector<Eigen::Vector3d>& source, const std::vector<Eigen::Vector3d>& target,
                      const Eigen::Matrix4d& initial, const PclIcpParams& params = {});
+
+/// pcl::GeneralizedIterativeClosestPoint<PointXYZ, PointXYZ> (Segal et al. 2009: plane-to-plane,
+/// each point's covariance from its 20 nearest neighbours) with the same settings, its own stopping
+/// test mapped onto them: rotation-matrix entries moving less than acos(rotation_epsilon) and
+/// translation entries less than sqrt(transformation_epsilon) (the relative MSE does not apply). Not one of the papers'
+/// methods: a strong dense scan matcher, used by the benchmarks to tell what raw scans allow. Same errors as pcl_icp.
+PclIcpResult pcl_gicp(const std::vector<Eigen::Vector3d>& source, const std::vector<Eigen::Vector3d>& target,
+                      const Eigen::Matrix4d& initial, const PclIcpParams& params = {});
 
 }  // namespace terracube
