@@ -330,14 +330,29 @@ const char* to_string(StopReason reason) {
   return "unknown";
 }
 
-ClassifiedPoints points_of_map(const ElevationMap& map) {
+namespace {
+
+/// The cells of points_of_map, only those of classes with a positive weight when `weights` is
+/// given; `cells_with_data` receives the number of all cells with data.
+ClassifiedPoints cells_of_map(const ElevationMap& map, const ClassWeights* weights, std::size_t& cells_with_data) {
   const Layer& highest = map.get("max");
   const float* classes = map.exists("class") ? map.get("class").data() : nullptr;
   const MapGeometry& geometry = map.geometry();
   const auto rows = static_cast<std::size_t>(highest.rows()), cols = static_cast<std::size_t>(highest.cols());
   const float* z = highest.data();  // row-major: cell (i, j) at i * cols + j
+  const auto class_of = [&](std::size_t cell) -> std::uint8_t {
+    const float c = classes ? classes[cell] : 0.0F;  // NaN or out of range: unknown
+    return c >= 0.0F && c < static_cast<float>(kNumTerrainClasses) ? static_cast<std::uint8_t>(c) : 0;
+  };
+  const auto takes_part = [&](std::size_t cell) {
+    return std::isfinite(z[cell]) && (weights == nullptr || (*weights)[class_of(cell)] > 0.0);
+  };
   std::size_t count = 0;
-  for (std::size_t cell = 0; cell < rows * cols; ++cell) count += std::isfinite(z[cell]) ? 1 : 0;
+  cells_with_data = 0;
+  for (std::size_t cell = 0; cell < rows * cols; ++cell) {
+    cells_with_data += std::isfinite(z[cell]) ? 1 : 0;
+    count += takes_part(cell) ? 1 : 0;
+  }
   ClassifiedPoints set;
   set.points.reserve(count);
   set.classes.reserve(count);
@@ -349,13 +364,24 @@ ClassifiedPoints points_of_map(const ElevationMap& map) {
   for (std::size_t i = 0; i < rows; ++i) {
     const double x = geometry.origin_m.x() + (static_cast<double>(i) + 0.5) * geometry.resolution_m;
     for (std::size_t j = 0, cell = i * cols; j < cols; ++j, ++cell) {
-      if (!std::isfinite(z[cell])) continue;
+      if (!takes_part(cell)) continue;
       set.points.emplace_back(x, ys[j], static_cast<double>(z[cell]));
-      const float c = classes ? classes[cell] : 0.0F;  // NaN or out of range: unknown
-      set.classes.push_back(c >= 0.0F && c < static_cast<float>(kNumTerrainClasses) ? static_cast<std::uint8_t>(c) : 0);
+      set.classes.push_back(class_of(cell));
     }
   }
   return set;
+}
+
+/// register_points after the checks; `*_empty`: whether the source (target) has no point at all.
+RegistrationResult register_checked(const ClassifiedPoints& source, const ClassifiedPoints& target,
+                                    const Eigen::Matrix4d& initial, const RegistrationParams& params, bool source_empty,
+                                    bool target_empty);
+
+}  // namespace
+
+ClassifiedPoints points_of_map(const ElevationMap& map) {
+  std::size_t cells_with_data = 0;
+  return cells_of_map(map, nullptr, cells_with_data);
 }
 
 RegistrationResult register_points(const ClassifiedPoints& source, const ClassifiedPoints& target,
@@ -364,13 +390,19 @@ RegistrationResult register_points(const ClassifiedPoints& source, const Classif
   detail::check_rigid_transform(initial, "initial transform");
   check_points(source, "source");
   check_points(target, "target");
+  return register_checked(source, target, initial, params, source.size() == 0, target.size() == 0);
+}
 
+namespace {
+
+RegistrationResult register_checked(const ClassifiedPoints& source, const ClassifiedPoints& target,
+                                    const Eigen::Matrix4d& initial, const RegistrationParams& params, bool source_empty,
+                                    bool target_empty) {
   RegistrationResult result;
   result.transform = initial;
   Registration registration(source, target, params);
   if (!registration.has_common_class()) {
-    result.reason =
-        source.size() == 0 || target.size() == 0 ? StopReason::kTooFewCorrespondences : StopReason::kNoCommonClass;
+    result.reason = source_empty || target_empty ? StopReason::kTooFewCorrespondences : StopReason::kNoCommonClass;
     result.rmse_m = std::numeric_limits<double>::quiet_NaN();
     return result;
   }
@@ -504,13 +536,24 @@ RegistrationResult register_points(const ClassifiedPoints& source, const Classif
   }
 }
 
+}  // namespace
+
 RegistrationResult register_maps(const ElevationMap& source, const ElevationMap& target, const Eigen::Matrix4d& initial,
                                  const RegistrationParams& params) {
   if (params.use_classes && (!source.exists("class") || !target.exists("class"))) {
     throw std::invalid_argument(
         "class-weighted registration needs the \"class\" layer in both maps: run classify_terrain first");
   }
-  return register_points(points_of_map(source), points_of_map(target), initial, params);
+  check_registration_params(params);
+  detail::check_rigid_transform(initial, "initial transform");
+  // Only the cells that can take part (with classes, those of classes with a positive weight):
+  // Registration would drop the others anyway, and on a map mostly of ground they are most of
+  // its cells. The map's points are finite with valid classes by construction.
+  const ClassWeights* weights = params.use_classes ? &params.class_weights : nullptr;
+  std::size_t source_cells = 0, target_cells = 0;
+  const ClassifiedPoints source_points = cells_of_map(source, weights, source_cells);
+  const ClassifiedPoints target_points = cells_of_map(target, weights, target_cells);
+  return register_checked(source_points, target_points, initial, params, source_cells == 0, target_cells == 0);
 }
 
 RegistrationResult register_maps_all_cells(const ElevationMap& source, const ElevationMap& target,

@@ -530,6 +530,45 @@ StreetPair street_pair() {
           pose(0.25, -0.15, 0.05, 3.0, 0.5, -0.5) * target_pose.inverse() * source_pose};
 }
 
+TEST(RegisterMaps, SameResultAsRegisterPointsOnAllTheMapsPoints) {
+  // register_maps passes only the cells that can take part; the result must not change.
+  const std::vector<Eigen::Vector3d> world = street(0.1);
+  const Eigen::Matrix4d source_pose = pose(-1.0, 0.0, kSensorHeight, -10.0);
+  const Eigen::Matrix4d target_pose = pose(1.95, 0.5, kSensorHeight, 10.0);
+  const ElevationMap source = street_map(world, source_pose, 0.2);
+  const ElevationMap target = street_map(world, target_pose, 0.2);
+  const Eigen::Matrix4d guess = pose(0.25, -0.15, 0.05, 3.0, 0.5, -0.5) * target_pose.inverse() * source_pose;
+  for (const bool use_classes : {true, false}) {
+    RegistrationParams params;
+    params.use_classes = use_classes;
+    const RegistrationResult maps = register_maps(source, target, guess, params);
+    const RegistrationResult points = register_points(points_of_map(source), points_of_map(target), guess, params);
+    EXPECT_EQ(maps.transform, points.transform) << "use_classes " << use_classes;
+    EXPECT_EQ(maps.iterations, points.iterations);
+    EXPECT_EQ(maps.passes, points.passes);
+    EXPECT_EQ(maps.num_correspondences, points.num_correspondences);
+    EXPECT_EQ(maps.normal_matrix, points.normal_matrix);
+  }
+}
+
+TEST(RegisterMaps, MapsWithoutAWeightedClassOrWithoutDataSaySo) {
+  MapGeometry geometry;
+  geometry.resolution_m = 0.5;
+  geometry.size = CellIndex(20, 20);
+  ElevationMap ground_only(geometry), empty(geometry);
+  ground_only.add("max", 0.0F);
+  ground_only.add("class", static_cast<float>(TerrainClass::kGround));
+  empty.add("max");
+  empty.add("class");
+  const Eigen::Matrix4d identity = Eigen::Matrix4d::Identity();
+  EXPECT_EQ(register_maps(ground_only, ground_only, identity).reason, StopReason::kNoCommonClass);
+  EXPECT_EQ(register_maps(empty, ground_only, identity).reason, StopReason::kTooFewCorrespondences);
+  EXPECT_EQ(register_maps(ground_only, empty, identity).reason, StopReason::kTooFewCorrespondences);
+  // Without classes every cell takes part: ground against ground is a plane, degenerate or not,
+  // but never "no common class".
+  EXPECT_NE(register_maps_all_cells(ground_only, ground_only, identity).reason, StopReason::kNoCommonClass);
+}
+
 TEST(RegisterMaps, NormalEquationsEqualANaiveSumOverBruteForcePairs) {
   // The one-sweep moments against eq. (A6) summed pair by pair, with brute-force partners of the
   // same class at the final estimate and limit.

@@ -127,8 +127,10 @@ struct RegistrationResult {
 RegistrationResult register_points(const ClassifiedPoints& source, const ClassifiedPoints& target,
                                    const Eigen::Matrix4d& initial, const RegistrationParams& params = {});
 
-/// register_points on points_of_map(source) and points_of_map(target). With use_classes the maps
-/// need the "class" layer (classify_terrain); std::invalid_argument otherwise.
+/// register_points on points_of_map(source) and points_of_map(target), with the same result; only
+/// the cells that can take part are turned into points (with use_classes, those of classes with a
+/// positive weight: ground, usually most of a map, is skipped). With use_classes the maps need the
+/// "class" layer (classify_terrain); std::invalid_argument otherwise.
 RegistrationResult register_maps(const ElevationMap& source, const ElevationMap& target, const Eigen::Matrix4d& initial,
                                  const RegistrationParams& params = {});
 
