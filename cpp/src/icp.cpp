@@ -340,35 +340,42 @@ ClassifiedPoints cells_of_map(const ElevationMap& map, const ClassWeights* weigh
   const MapGeometry& geometry = map.geometry();
   const auto rows = static_cast<std::size_t>(highest.rows()), cols = static_cast<std::size_t>(highest.cols());
   const float* z = highest.data();  // row-major: cell (i, j) at i * cols + j
+  std::array<std::uint8_t, kNumTerrainClasses> keep{};
+  for (std::size_t c = 0; c < kNumTerrainClasses; ++c) keep[c] = weights == nullptr || (*weights)[c] > 0.0 ? 1 : 0;
+  // Branch-free per cell (classes follow no pattern a branch predictor could learn).
   const auto class_of = [&](std::size_t cell) -> std::uint8_t {
     const float c = classes ? classes[cell] : 0.0F;  // NaN or out of range: unknown
     return c >= 0.0F && c < static_cast<float>(kNumTerrainClasses) ? static_cast<std::uint8_t>(c) : 0;
   };
-  const auto takes_part = [&](std::size_t cell) {
-    return std::isfinite(z[cell]) && (weights == nullptr || (*weights)[class_of(cell)] > 0.0);
+  const auto takes_part = [&](std::size_t cell) -> std::size_t {
+    return static_cast<std::size_t>(std::isfinite(z[cell])) & keep[class_of(cell)];
   };
-  std::size_t count = 0;
-  cells_with_data = 0;
-  for (std::size_t cell = 0; cell < rows * cols; ++cell) {
-    cells_with_data += std::isfinite(z[cell]) ? 1 : 0;
-    count += takes_part(cell) ? 1 : 0;
-  }
   ClassifiedPoints set;
-  set.points.reserve(count);
-  set.classes.reserve(count);
   // The cell centres of MapGeometry::position_of, one coordinate at a time.
   std::vector<double> ys(cols);
   for (std::size_t j = 0; j < cols; ++j) {
     ys[j] = geometry.origin_m.y() + (static_cast<double>(j) + 0.5) * geometry.resolution_m;
   }
+  // One pass over the layers: every cell is written to the next free slot, which advances only
+  // for a cell that takes part (no branch); room for a whole row is made before each row.
+  std::size_t next = 0;
+  cells_with_data = 0;
   for (std::size_t i = 0; i < rows; ++i) {
+    if (set.points.size() < next + cols) {
+      const std::size_t size = std::max(2 * set.points.size(), next + cols);
+      set.points.resize(size);
+      set.classes.resize(size);
+    }
     const double x = geometry.origin_m.x() + (static_cast<double>(i) + 0.5) * geometry.resolution_m;
     for (std::size_t j = 0, cell = i * cols; j < cols; ++j, ++cell) {
-      if (!takes_part(cell)) continue;
-      set.points.emplace_back(x, ys[j], static_cast<double>(z[cell]));
-      set.classes.push_back(class_of(cell));
+      set.points[next] = Eigen::Vector3d(x, ys[j], static_cast<double>(z[cell]));
+      set.classes[next] = class_of(cell);
+      cells_with_data += static_cast<std::size_t>(std::isfinite(z[cell]));
+      next += takes_part(cell);
     }
   }
+  set.points.resize(next);
+  set.classes.resize(next);
   return set;
 }
 
