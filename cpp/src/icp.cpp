@@ -342,7 +342,6 @@ ClassifiedPoints cells_of_map(const ElevationMap& map, const ClassWeights* weigh
   const float* z = highest.data();  // row-major: cell (i, j) at i * cols + j
   std::array<std::uint8_t, kNumTerrainClasses> keep{};
   for (std::size_t c = 0; c < kNumTerrainClasses; ++c) keep[c] = weights == nullptr || (*weights)[c] > 0.0 ? 1 : 0;
-  // Branch-free per cell (classes follow no pattern a branch predictor could learn).
   const auto class_of = [&](std::size_t cell) -> std::uint8_t {
     const float c = classes ? classes[cell] : 0.0F;  // NaN or out of range: unknown
     return c >= 0.0F && c < static_cast<float>(kNumTerrainClasses) ? static_cast<std::uint8_t>(c) : 0;
@@ -356,8 +355,8 @@ ClassifiedPoints cells_of_map(const ElevationMap& map, const ClassWeights* weigh
   for (std::size_t j = 0; j < cols; ++j) {
     ys[j] = geometry.origin_m.y() + (static_cast<double>(j) + 0.5) * geometry.resolution_m;
   }
-  // One pass over the layers: every cell is written to the next free slot, which advances only
-  // for a cell that takes part (no branch); room for a whole row is made before each row.
+  // One pass over the layers (they are read once; room for a whole row is made before each row).
+  // The cells that take part are a minority on most maps, so the branch is well predicted.
   std::size_t next = 0;
   cells_with_data = 0;
   for (std::size_t i = 0; i < rows; ++i) {
@@ -368,10 +367,11 @@ ClassifiedPoints cells_of_map(const ElevationMap& map, const ClassWeights* weigh
     }
     const double x = geometry.origin_m.x() + (static_cast<double>(i) + 0.5) * geometry.resolution_m;
     for (std::size_t j = 0, cell = i * cols; j < cols; ++j, ++cell) {
+      cells_with_data += static_cast<std::size_t>(std::isfinite(z[cell]));
+      if (!takes_part(cell)) continue;
       set.points[next] = Eigen::Vector3d(x, ys[j], static_cast<double>(z[cell]));
       set.classes[next] = class_of(cell);
-      cells_with_data += static_cast<std::size_t>(std::isfinite(z[cell]));
-      next += takes_part(cell);
+      ++next;
     }
   }
   set.points.resize(next);
