@@ -4,6 +4,8 @@
 #include <terracube/icp.hpp>
 
 #include <sstream>
+#include <utility>
+#include <vector>
 
 #include "points.hpp"
 
@@ -152,24 +154,22 @@ void bind_icp(py::module_& m) {
              << ", fitness=" << r.fitness_m2 << " m^2)";
         return text.str();
       });
-  m.def(
-      "pcl_icp",
-      [](const py::array& source, const py::array& target, const Eigen::Matrix4d& initial, const PclIcpParams& params) {
-        const std::vector<Eigen::Vector3d> s = plain_points(source, "source");
-        const std::vector<Eigen::Vector3d> t = plain_points(target, "target");
-        py::gil_scoped_release release;
-        return pcl_icp(s, t, initial, params);
-      },
-      py::arg("source"), py::arg("target"), py::arg("initial"), py::arg("params"));
-  m.def(
-      "pcl_gicp",
-      [](const py::array& source, const py::array& target, const Eigen::Matrix4d& initial, const PclIcpParams& params) {
-        const std::vector<Eigen::Vector3d> s = plain_points(source, "source");
-        const std::vector<Eigen::Vector3d> t = plain_points(target, "target");
-        py::gil_scoped_release release;
-        return pcl_gicp(s, t, initial, params);
-      },
-      py::arg("source"), py::arg("target"), py::arg("initial"), py::arg("params"));
+  // pcl_icp and pcl_gicp: the same arguments and result.
+  using PclMethod = PclIcpResult (*)(const std::vector<Eigen::Vector3d>&, const std::vector<Eigen::Vector3d>&,
+                                     const Eigen::Matrix4d&, const PclIcpParams&);
+  for (const auto& [name, method] : {std::pair<const char*, PclMethod>{"pcl_icp", &pcl_icp},
+                                     std::pair<const char*, PclMethod>{"pcl_gicp", &pcl_gicp}}) {
+    m.def(
+        name,
+        [method = method](const py::array& source, const py::array& target, const Eigen::Matrix4d& initial,
+                          const PclIcpParams& params) {
+          const std::vector<Eigen::Vector3d> s = plain_points(source, "source");
+          const std::vector<Eigen::Vector3d> t = plain_points(target, "target");
+          py::gil_scoped_release release;
+          return method(s, t, initial, params);
+        },
+        py::arg("source"), py::arg("target"), py::arg("initial"), py::arg("params"));
+  }
 #else
   m.attr("has_pcl") = false;
 #endif
