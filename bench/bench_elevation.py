@@ -32,7 +32,13 @@ elevation, numpy's the two-pass formula), discontinuity, relative height and cla
 same check first runs on small seeded random clouds (float32 and float64, points outside the map,
 points on cell borders, vertical gaps) as a self-test. The speed target (C++ total at least 15x
 faster than numpy) is reported as MET / NOT MET, never asserted. The time the Python wrapper spends
-turning the parameter dataclasses into the C++ structs is printed too.
+turning the parameter dataclasses into the C++ structs is printed too. "map + classify, refilling a
+map" is the same C++ step refilling one map (``out=``, its layers' buffers reused; checked equal to a
+fresh map first), as a loop over scans would; numpy makes its arrays anew (the target is judged on
+the fresh C++ map). The minor page faults per map + classify call are counted too (getrusage): a
+refilled map takes none, whatever the state of the allocator, while a fresh one takes one per 4 kB
+of its nine 320 kB layers when the allocator has just returned that memory to the system (about
+670 per call in a loop of terracube calls alone) and none when it has kept it.
 
 Reproduce
 ---------
@@ -47,7 +53,10 @@ else ``/work/shared/data``. Without the KITTI file a seeded synthetic scan stand
 from __future__ import annotations
 
 import argparse
+import json
+import subprocess
 import sys
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -410,11 +419,55 @@ def load_scan(data_dir: Path, quick: bool) -> Scan:
 @dataclass
 class Results:
     ms: dict = field(default_factory=dict)  # step -> median ms
+    faults: dict = field(default_factory=dict)  # "fresh" / "refill" / "numpy" -> page faults per call
+    loop: dict = field(default_factory=dict)  # in a fresh process: "fresh" / "refill" -> [ms, faults]
     class_counts: dict = field(default_factory=dict)
     occupied: int = 0
     points_in_map: int = 0
     dem_cells: str = ""
     dem_overhang: int = 0
+
+
+def page_faults(call, calls: int = 20) -> float:
+    """Minor page faults per call of ``call`` (after one warm-up), from getrusage; NaN without it."""
+    try:
+        import resource
+    except ImportError:  # not on POSIX
+        return float("nan")
+    call()
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(calls):
+        call()
+    return (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / calls
+
+
+def loop_child(points_path: str, repeat: int) -> None:
+    """Run in a fresh process: map + classify calls only (fresh, then refilling one map), printed
+    as JSON {"fresh": [ms, faults], "refill": [ms, faults]}."""
+    points = np.load(points_path, mmap_mode=None)
+    params = elevation_params()
+    terrain = tc.TerrainParams(sensor_height=SENSOR_HEIGHT)
+    reused = cpp_map(points, params)
+    calls = {
+        "fresh": lambda: cpp_classify(cpp_map(points, params), terrain),
+        "refill": lambda: cpp_classify(tc.build_elevation_map(points, params=params, out=reused), terrain),
+    }
+    print(json.dumps({name: [median_ms(call, repeat), page_faults(call)] for name, call in calls.items()}))
+
+
+def measure_loop(points: np.ndarray, repeat: int) -> dict:
+    """loop_child in a fresh Python process (whose heap numpy's large arrays have not grown)."""
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "points.npy"
+        np.save(path, points)
+        code = (
+            f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
+            f"import bench_elevation; bench_elevation.loop_child({str(path)!r}, {repeat})"
+        )
+        output = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=600
+        ).stdout
+    return json.loads(output.strip().splitlines()[-1])
 
 
 def measure(scan: Scan, repeat: int) -> Results:
@@ -431,6 +484,25 @@ def measure(scan: Scan, repeat: int) -> Results:
     results.ms["cpp_map"] = median_ms(lambda: cpp_map(points, params), repeat)
     results.ms["cpp_classify"] = median_ms(lambda: cpp_classify(elevation_map, terrain), repeat)
     results.ms["cpp_total"] = median_ms(lambda: cpp_classify(cpp_map(points, params), terrain), repeat)
+    # A loop that refills one map (out=) reuses its layers' buffers: no allocation once warm.
+    reused = cpp_map(points, params)
+    refilled_classes = cpp_classify(tc.build_elevation_map(points, params=params, out=reused), terrain)
+    require(np.array_equal(refilled_classes, classes), "refilled map: classes differ from a fresh map's")
+    for name in elevation_map.layers:
+        require(
+            np.array_equal(reused[name], elevation_map[name], equal_nan=True),
+            f"refilled map: layer {name} differs from a fresh map's",
+        )
+    results.ms["cpp_total_refill"] = median_ms(
+        lambda: cpp_classify(tc.build_elevation_map(points, params=params, out=reused), terrain), repeat
+    )
+    # Page faults per call (a count, unlike times not disturbed by other load on the machine).
+    results.faults["fresh"] = page_faults(lambda: cpp_classify(cpp_map(points, params), terrain))
+    results.faults["refill"] = page_faults(
+        lambda: cpp_classify(tc.build_elevation_map(points, params=params, out=reused), terrain)
+    )
+    results.faults["numpy"] = page_faults(lambda: numpy_classify(numpy_elevation_map(points)))
+    results.loop = measure_loop(points, repeat)
     results.ms["numpy_map"] = median_ms(lambda: numpy_elevation_map(points), repeat)
     results.ms["numpy_classify"] = median_ms(lambda: numpy_classify(numpy_layers), repeat)
     results.ms["numpy_total"] = median_ms(lambda: numpy_classify(numpy_elevation_map(points)), repeat)
@@ -486,6 +558,7 @@ ROWS = (
     ("map", "build_elevation_map (6 layers)", "cpp_map", "numpy_map"),
     ("classify", "classify_terrain", "cpp_classify", "numpy_classify"),
     ("total", "map + classify", "cpp_total", "numpy_total"),
+    ("refill", "map + classify, refilling a map", "cpp_total_refill", "numpy_total"),
 )
 
 
@@ -510,6 +583,17 @@ def print_results(scan: Scan, results: Results, quick: bool) -> None:
     print(
         f"  (the previous numpy map, one lexsort of every point: {full_sort:.2f} ms, "
         f"{full_sort / ms['cpp_map']:.1f}x the C++ map; not the baseline)"
+    )
+
+    faults = results.faults
+    print(
+        f"  page faults per map + classify call: C++ fresh map {faults['fresh']:.0f}, "
+        f"C++ refilled map {faults['refill']:.0f}, numpy {faults['numpy']:.0f}"
+    )
+    (fresh_ms, fresh_faults), (refill_ms, refill_faults) = results.loop["fresh"], results.loop["refill"]
+    print(
+        f"  in a fresh process of terracube calls only: map + classify {fresh_ms:.2f} ms "
+        f"({fresh_faults:.0f} page faults per call), refilling a map {refill_ms:.2f} ms ({refill_faults:.0f})"
     )
 
     print("\n  for information:")
@@ -550,6 +634,16 @@ def print_markdown(scan: Scan, results: Results) -> None:
     full_sort = ms["numpy_full_sort_map"]
     print(markdown_row(["numpy map with a full lexsort (previous baseline)", "", f"{full_sort:.2f}", ""]))
     print(markdown_row(["dem_without_overhangs (same map)", f"{ms['dem']:.2f}", "", ""]))
+    faults = results.faults
+    print(
+        f"\nPage faults per map + classify call: C++ fresh map {faults['fresh']:.0f}, "
+        f"C++ refilled map {faults['refill']:.0f}, numpy {faults['numpy']:.0f}"
+    )
+    (fresh_ms, fresh_faults), (refill_ms, refill_faults) = results.loop["fresh"], results.loop["refill"]
+    print(
+        f"In a fresh process of terracube calls only: map + classify {fresh_ms:.2f} ms "
+        f"({fresh_faults:.0f} page faults per call), refilling a map {refill_ms:.2f} ms ({refill_faults:.0f})"
+    )
 
 
 # --------------------------------------------------------------------------------------------

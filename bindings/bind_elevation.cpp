@@ -125,6 +125,18 @@ void bind_elevation(py::module_& m) {
         });
       },
       py::arg("points"), py::arg("params"), py::arg("use") = py::none());
+  m.def(
+      "build_elevation_map_into",
+      [](ElevationMap& map, const py::array& points, const ElevationParams& params,
+         const std::optional<py::array_t<bool, py::array::c_style | py::array::forcecast>>& use) {
+        with_points(points, "points", [&](const auto& view) {
+          const std::vector<std::uint8_t> flags = selection(use, view.size);
+          py::gil_scoped_release release;
+          build_elevation_map_into(map, view, params, use ? &flags : nullptr);
+          return 0;
+        });
+      },
+      py::arg("map"), py::arg("points"), py::arg("params"), py::arg("use") = py::none());
 
   py::class_<OverhangFreeMap>(m, "OverhangFreeMap")
       .def_readonly("map", &OverhangFreeMap::map)

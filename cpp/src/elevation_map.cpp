@@ -1,6 +1,7 @@
 #include "terracube/elevation_map.hpp"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdlib>
 #include <limits>
@@ -28,6 +29,21 @@ ElevationMap::ElevationMap(const MapGeometry& geometry) : geometry_(geometry) {
     throw std::invalid_argument("map resolution must be a positive finite length in metres");
   }
   if ((geometry.size < 0).any()) throw std::invalid_argument("map size must not be negative");
+}
+
+void ElevationMap::set_geometry(const MapGeometry& geometry) {
+  if (!(geometry.resolution_m > 0.0) || !std::isfinite(geometry.resolution_m)) {
+    throw std::invalid_argument("map resolution must be a positive finite length in metres");
+  }
+  if (!geometry.origin_m.allFinite()) throw std::invalid_argument("map origin must be finite");
+  if ((geometry.size < 0).any()) throw std::invalid_argument("map size must not be negative");
+  if (!layers_.empty() && (geometry.size != geometry_.size).any()) {
+    throw std::invalid_argument("the map's layers are " + std::to_string(geometry_.size.x()) + " x " +
+                                std::to_string(geometry_.size.y()) + " cells; a geometry of " +
+                                std::to_string(geometry.size.x()) + " x " + std::to_string(geometry.size.y()) +
+                                " cells would need new layers");
+  }
+  geometry_ = geometry;
 }
 
 void ElevationMap::add(const std::string& name, float value) {
@@ -416,8 +432,19 @@ BuildScratch& thread_scratch() {
   return scratch;
 }
 
+/// A layer's buffer, written through data() like a Layer.
+struct LayerView {
+  float* pointer;
+  float* data() const { return pointer; }
+};
+
+/// The layers build_map writes, in the order a fresh map gets them.
+constexpr std::array<const char*, 6> kBuiltLayers = {"count", "min", "max", "mean", "std_dev", "discontinuity"};
+
+/// Builds into `*into` (see build_elevation_map_into) when given, else into the returned map.
 template <typename Cloud>
-ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const std::vector<std::uint8_t>* use) {
+ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const std::vector<std::uint8_t>* use,
+                       ElevationMap* into) {
   if (use && use->size() != cloud.size()) {
     throw std::invalid_argument("the point selection has " + std::to_string(use->size()) + " flags for " +
                                 std::to_string(cloud.size()) + " points");
@@ -449,8 +476,13 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     }
     if (extent.num_non_finite > 0 && !params.drop_non_finite) throw_non_finite(extent);
   }
-  ElevationMap map(make_geometry(params, extent));
-  const MapGeometry& geometry = map.geometry();
+  const MapGeometry geometry = make_geometry(params, extent);
+  if (into != nullptr && !into->layers().empty() && (into->geometry().size != geometry.size).any()) {
+    throw std::invalid_argument("cannot refill a map of " + std::to_string(into->geometry().size.x()) + " x " +
+                                std::to_string(into->geometry().size.y()) + " cells with a build of " +
+                                std::to_string(geometry.size.x()) + " x " + std::to_string(geometry.size.y()) +
+                                " cells: give a fixed extent (origin and size) of the map's size");
+  }
   const std::size_t cells = geometry.num_cells();
   const auto nx = static_cast<std::int64_t>(geometry.size.x());
   const auto ny = static_cast<std::int64_t>(geometry.size.y());
@@ -616,7 +648,27 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   // longer than it (rounding is monotonic, so this holds for the computed differences too). Those
   // (few) "wide" cells have their elevations gathered below and sorted; the others get 0.
   constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
-  Layer count_layer(nx, ny), min(nx, ny), max(nx, ny), mean(nx, ny), std_dev(nx, ny), discontinuity(nx, ny);
+  // The layers: the map's own buffers when refilling (in place, so that references to them stay
+  // valid and no page is touched for the first time), else fresh ones. Every cell is written.
+  ElevationMap fresh;
+  ElevationMap& map = into != nullptr ? *into : fresh;
+  if (into != nullptr) {
+    into->set_geometry(geometry);
+  } else {
+    fresh = ElevationMap(geometry);
+  }
+  std::array<float*, kBuiltLayers.size()> layer_data{};
+  for (std::size_t k = 0; k < kBuiltLayers.size(); ++k) {
+    if (!map.exists(kBuiltLayers[k])) map.add(kBuiltLayers[k], Layer(nx, ny));
+    layer_data[k] = map.get(kBuiltLayers[k]).data();
+  }
+  for (const std::string& name : map.layers()) {  // layers of an earlier use of the map: no data yet
+    if (std::find(kBuiltLayers.begin(), kBuiltLayers.end(), name) == kBuiltLayers.end()) {
+      map.get(name).setConstant(std::numeric_limits<float>::quiet_NaN());
+    }
+  }
+  const LayerView count_layer{layer_data[0]}, min{layer_data[1]}, max{layer_data[2]}, mean{layer_data[3]},
+      std_dev{layer_data[4]}, discontinuity{layer_data[5]};
   std::vector<std::uint32_t>& wide_cells = scratch.wide_cells;
   std::vector<std::size_t>& offset = scratch.offset;  // the wide cells' elevations, counting-sorted by cell
   offset.assign(1, 0);
@@ -679,25 +731,19 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
       discontinuity.data()[wide_cells[k]] = gap ? 1.0F : 0.0F;
     }
   }
-  map.add("count", std::move(count_layer));
-  map.add("min", std::move(min));
-  map.add("max", std::move(max));
-  map.add("mean", std::move(mean));
-  map.add("std_dev", std::move(std_dev));
-  map.add("discontinuity", std::move(discontinuity));
-  return map;
+  return fresh;
 }
 
 template <typename Scalar>
 ElevationMap build_impl(const PointsView<Scalar>& points, const ElevationParams& params,
-                        const std::vector<std::uint8_t>* use) {
+                        const std::vector<std::uint8_t>* use, ElevationMap* into = nullptr) {
   check_elevation_params(params);
   if (points.size > 0 && points.data == nullptr) throw std::invalid_argument("points view has no data");
   if (points.size >= std::numeric_limits<std::uint32_t>::max()) {
     throw std::invalid_argument("build_elevation_map handles fewer than 2^32 points per call");
   }
   return detail::visit_leveled(points, params.transform, params.crop,
-                               [&](const auto& cloud) { return build_map(cloud, params, use); });
+                               [&](const auto& cloud) { return build_map(cloud, params, use, into); });
 }
 
 template <typename Scalar>
@@ -765,6 +811,14 @@ ElevationMap build_elevation_map(const PointsView<float>& points, const Elevatio
 ElevationMap build_elevation_map(const PointsView<double>& points, const ElevationParams& params,
                                  const std::vector<std::uint8_t>* use) {
   return build_impl(points, params, use);
+}
+void build_elevation_map_into(ElevationMap& map, const PointsView<float>& points, const ElevationParams& params,
+                              const std::vector<std::uint8_t>* use) {
+  build_impl(points, params, use, &map);
+}
+void build_elevation_map_into(ElevationMap& map, const PointsView<double>& points, const ElevationParams& params,
+                              const std::vector<std::uint8_t>* use) {
+  build_impl(points, params, use, &map);
 }
 OverhangFreeMap build_overhang_free_map(const PointsView<float>& points, const CollapseParams& collapse,
                                         const ElevationParams& elevation) {

@@ -226,7 +226,13 @@ class ElevationParams:
 
 
 def build_elevation_map(
-    points, resolution: float = 0.1, *, use=None, params: ElevationParams | None = None, **kwargs
+    points,
+    resolution: float = 0.1,
+    *,
+    use=None,
+    params: ElevationParams | None = None,
+    out: ElevationMap | None = None,
+    **kwargs,
 ):
     """Per-cell layers from a cloud in O(N): count, min, max, mean (the DEM), std_dev, discontinuity.
 
@@ -237,10 +243,21 @@ def build_elevation_map(
         Cell edge [m]; other options as in :class:`ElevationParams` (``params`` overrides them).
     use : (N,) bool, optional
         Only these points take part.
+    out : ElevationMap, optional
+        Refill this map instead of making a new one, and return it: its layers' buffers are
+        reused (a loop that refills one map allocates nothing once warm), so arrays taken from
+        it earlier stay valid and show the new values. The build's size must be the map's (give
+        a fixed ``origin`` and ``size``); layers other than the six (``classify_terrain``'s, say)
+        are reset to NaN. ValueError on a size mismatch, leaving the map unchanged.
     """
     if params is None:
         params = ElevationParams(resolution, **kwargs)
     use_flags = None if use is None else np.asarray(use, dtype=bool)
+    if out is not None:
+        if not isinstance(out, ElevationMap):
+            raise TypeError(f"out must be an ElevationMap, not {type(out).__name__}")
+        _core.build_elevation_map_into(out._core, _as_points(points), params.to_core(), use_flags)
+        return out
     return ElevationMap(_core.build_elevation_map(_as_points(points), params.to_core(), use_flags))
 
 

@@ -868,6 +868,122 @@ TEST(BuildElevationMapTransform, CropBoxInTheTransformedFrameExcludesPoints) {
   expect_same_layer(lifted.get("max"), (Layer(1, 1) << 2.5).finished(), "max");
 }
 
+// --- refilling a map (build_elevation_map_into) --------------------------------------------------
+
+/// Every layer of `actual` equals that of `expected`, in the same order.
+void expect_same_layers(const ElevationMap& actual, const ElevationMap& expected) {
+  ASSERT_EQ(actual.layers(), expected.layers());
+  EXPECT_EQ(actual.geometry().origin_m, expected.geometry().origin_m);
+  EXPECT_EQ(actual.geometry().size.matrix(), expected.geometry().size.matrix());
+  for (const std::string& name : expected.layers()) expect_same_layer(actual.get(name), expected.get(name), name);
+}
+
+TEST(BuildElevationMapInto, RefillingGivesTheFreshBuildInTheSameBuffersAndResetsOtherLayers) {
+  const ElevationParams params = fixed_extent(0.25, {-2.0, -3.0}, {40, 36});
+  ElevationMap map = build_elevation_map(PointsView<double>(test::random_scene(61, 3000, 8.0)), params);
+  map.add("extra", 3.0F);  // a layer of an earlier use (classify_terrain's, say)
+  std::map<std::string, const float*> buffers;
+  for (const std::string& name : map.layers()) buffers[name] = map.get(name).data();
+  const Layer& mean = map.get("mean");
+  const std::vector<std::string> order = map.layers();
+  for (std::uint32_t seed = 62; seed <= 65; ++seed) {
+    SCOPED_TRACE("seed " + std::to_string(seed));
+    // Denser and sparser scenes than the first, through every kind of view and a selection.
+    const auto points = rounded_to_float(test::random_scene(seed, 1000 * (seed - 60), 4.0 + seed - 60));
+    std::vector<std::uint8_t> use(points.size());
+    std::vector<Eigen::Vector3d> selected;
+    for (std::size_t row = 0; row < points.size(); ++row) {
+      use[row] = static_cast<std::uint8_t>(row % 4 != 1);
+      if (use[row] != 0) selected.push_back(points[row]);
+    }
+    const std::vector<float> strided = as_floats(points, 4);
+    switch (seed % 3) {
+      case 0:
+        build_elevation_map_into(map, PointsView<double>(points), params);
+        break;
+      case 1:
+        build_elevation_map_into(map, PointsView<float>(strided.data(), points.size(), 4, 1), params);
+        break;
+      default:
+        build_elevation_map_into(map, PointsView<double>(points), params, &use);
+    }
+    const auto& expected_points = seed % 3 == 2 ? selected : points;
+    const ElevationMap fresh = build_elevation_map(PointsView<double>(expected_points), params);
+    expect_same_statistics(map, fresh);
+    ElevationMap statistics(map.geometry());  // the six layers alone, for the naive check
+    for (const std::string& name : kStatisticLayers) statistics.add(name, map.get(name));
+    expect_matches_naive(statistics, expected_points, params.discontinuity_m);
+    EXPECT_EQ(map.layers(), order);
+    for (const std::string& name : map.layers()) EXPECT_EQ(map.get(name).data(), buffers[name]) << name;
+    EXPECT_TRUE(map.get("extra").array().isNaN().all()) << "a layer the build does not write holds no data";
+    expect_same_layer(mean, fresh.get("mean"), "a reference taken before the refill");
+  }
+}
+
+TEST(BuildElevationMapInto, AMapWithoutLayersTakesAnyGeometryThenKeepsItsSize) {
+  const auto first = test::random_scene(71, 2000, 6.0);
+  const auto wider = test::random_scene(72, 2000, 9.0);
+  ElevationParams automatic;
+  automatic.resolution_m = 0.2;
+  ElevationMap map;
+  build_elevation_map_into(map, PointsView<double>(first), automatic);
+  expect_same_layers(map, build_elevation_map(PointsView<double>(first), automatic));
+  // Another auto extent of another size would need new layers: refused, the map unchanged.
+  const ElevationMap before = map;
+  ASSERT_NE(build_elevation_map(PointsView<double>(wider), automatic).geometry().size.matrix(),
+            map.geometry().size.matrix());
+  expect_throw_with<std::invalid_argument>([&] { build_elevation_map_into(map, PointsView<double>(wider), automatic); },
+                                           {"cannot refill a map of", "fixed extent"});
+  expect_same_layers(map, before);
+  // The same size elsewhere moves the map.
+  const ElevationParams moved = fixed_extent(0.2, {-5.5, 2.25}, before.geometry().size);
+  build_elevation_map_into(map, PointsView<double>(wider), moved);
+  expect_same_layers(map, build_elevation_map(PointsView<double>(wider), moved));
+}
+
+TEST(BuildElevationMapInto, AFailedRefillLeavesTheMapUnchanged) {
+  const ElevationParams params = fixed_extent(0.5, {0.0, 0.0}, {4, 4});
+  ElevationMap map = build_elevation_map(PointsView<double>(test::random_scene(81, 500, 2.0)), params);
+  const ElevationMap before = map;
+  const std::vector<Eigen::Vector3d> with_nan = {{0.5, 0.5, 1.0}, {NAN, 0.5, 0.0}};
+  expect_throw_with<std::invalid_argument>([&] { build_elevation_map_into(map, PointsView<double>(with_nan), params); },
+                                           {"1 of 2 point rows contain NaN or Inf"});
+  expect_same_layers(map, before);
+  const std::vector<std::uint8_t> short_use = {1};
+  EXPECT_THROW(build_elevation_map_into(map, PointsView<double>(with_nan), params, &short_use), std::invalid_argument);
+  expect_same_layers(map, before);
+}
+
+TEST(ElevationMapLayers, SetGeometryMovesTheMapAndKeepsItsLayers) {
+  MapGeometry geometry;
+  geometry.resolution_m = 0.5;
+  geometry.size = CellIndex(3, 2);
+  ElevationMap map(geometry);
+  map.add("z", 1.5F);
+  const float* buffer = map.get("z").data();
+  geometry.origin_m = Eigen::Vector2d(10.0, -4.0);
+  geometry.resolution_m = 0.25;
+  map.set_geometry(geometry);
+  EXPECT_EQ(map.geometry().origin_m, Eigen::Vector2d(10.0, -4.0));
+  EXPECT_EQ(map.geometry().resolution_m, 0.25);
+  EXPECT_EQ(map.get("z").data(), buffer);
+  EXPECT_TRUE((map.get("z").array() == 1.5F).all());
+  geometry.size = CellIndex(2, 3);
+  expect_throw_with<std::invalid_argument>([&] { map.set_geometry(geometry); }, {"3 x 2 cells", "2 x 3 cells"});
+  geometry.size = CellIndex(3, 2);
+  geometry.resolution_m = 0.0;
+  EXPECT_THROW(map.set_geometry(geometry), std::invalid_argument);
+  geometry.resolution_m = 1.0;
+  geometry.origin_m.x() = std::numeric_limits<double>::infinity();
+  EXPECT_THROW(map.set_geometry(geometry), std::invalid_argument);
+  EXPECT_EQ(map.geometry().resolution_m, 0.25) << "a refused geometry leaves the map as it was";
+  ElevationMap empty;
+  geometry.origin_m.x() = 0.0;
+  geometry.size = CellIndex(7, 7);
+  empty.set_geometry(geometry);  // no layers: any size
+  EXPECT_EQ(empty.geometry().size.matrix(), CellIndex(7, 7).matrix());
+}
+
 // --- bad input ----------------------------------------------------------------------------------
 
 TEST(BuildElevationMapBadInput, NanAndInfRowsThrowWithTheirCount) {

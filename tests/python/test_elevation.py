@@ -177,6 +177,65 @@ def test_use_selects_the_points_that_take_part():
     assert_layers_match(elevation_map, reference_layers(cloud, 0.1, origin, size, 0.3, use=use))
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_out_refills_the_map_in_place_with_the_fresh_builds_layers(dtype):
+    origin, size, resolution, gap = (-2.0, -1.0), (50, 40), 0.1, 0.3
+    elevation_map = tc.build_elevation_map(
+        random_cloud(5), resolution, origin=origin, size=size, discontinuity=gap
+    )
+    tc.classify_terrain(elevation_map, sensor_height=1.0)
+    views = {name: elevation_map[name] for name in elevation_map.layers}
+    layers = elevation_map.layers
+    for seed, use in ((6, None), (7, np.random.default_rng(7).random(18_000) < 0.5)):
+        cloud = layout(random_cloud(seed, 18_000).astype(dtype), "xyzi")
+        use = None if use is None else use[: len(cloud)]
+        returned = tc.build_elevation_map(
+            cloud, resolution, origin=origin, size=size, discontinuity=gap, use=use, out=elevation_map
+        )
+        assert returned is elevation_map
+        assert elevation_map.layers == layers
+        assert_layers_match(elevation_map, reference_layers(cloud, resolution, origin, size, gap, use=use))
+        # Arrays taken before the refill share the buffers: they show the new values.
+        for name in ("count", "mean", "discontinuity"):
+            np.testing.assert_array_equal(views[name], elevation_map[name])
+        # classify_terrain's layers hold no data until the map is classified again.
+        for name in ("class", "relative_height", "ground"):
+            assert np.isnan(views[name]).all(), name
+        fresh = tc.build_elevation_map(
+            cloud, resolution, origin=origin, size=size, discontinuity=gap, use=use
+        )
+        np.testing.assert_array_equal(
+            tc.classify_terrain(elevation_map, sensor_height=1.0),
+            tc.classify_terrain(fresh, sensor_height=1.0),
+        )
+        np.testing.assert_array_equal(views["class"], fresh["class"])
+
+
+def test_out_of_another_size_raises_value_error_and_leaves_the_map_unchanged():
+    cloud = random_cloud(8)
+    elevation_map = tc.build_elevation_map(cloud, 0.1, origin=(-2.0, -1.0), size=(50, 40))
+    before = {name: elevation_map[name].copy() for name in elevation_map.layers}
+    with pytest.raises(
+        ValueError, match="cannot refill a map of 50 x 40 cells with a build of 51 x 40 cells"
+    ):
+        tc.build_elevation_map(cloud, 0.1, origin=(-2.0, -1.0), size=(51, 40), out=elevation_map)
+    with pytest.raises(ValueError, match="cannot refill"):
+        tc.build_elevation_map(cloud, 0.1, out=elevation_map)  # the auto extent is another size
+    with pytest.raises(ValueError, match="NaN or Inf"):
+        tc.build_elevation_map(
+            np.vstack([cloud, [np.nan, 0.0, 0.0]]), 0.1, origin=(-2.0, -1.0), size=(50, 40), out=elevation_map
+        )
+    with pytest.raises(TypeError, match="out must be an ElevationMap"):
+        tc.build_elevation_map(cloud, 0.1, origin=(-2.0, -1.0), size=(50, 40), out=np.zeros((50, 40)))
+    np.testing.assert_array_equal(elevation_map.geometry.size, (50, 40))
+    for name, values in before.items():
+        np.testing.assert_array_equal(elevation_map[name], values)
+    # The same size at another origin moves the map.
+    moved = tc.build_elevation_map(cloud, 0.1, origin=(-3.0, -2.0), size=(50, 40), out=elevation_map)
+    np.testing.assert_array_equal(moved.geometry.origin, (-3.0, -2.0))
+    assert_layers_match(moved, reference_layers(cloud, 0.1, (-3.0, -2.0), (50, 40)))
+
+
 def test_large_absolute_heights_keep_a_small_std_dev_accurate():
     # UTM-like heights: 6.4e6 m plus centimetre noise. A naive sum-of-squares in float64 would
     # lose the variance entirely (6.4e6**2 = 4e13, the variance is 1e-4).

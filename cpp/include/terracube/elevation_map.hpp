@@ -50,6 +50,10 @@ class ElevationMap {
   explicit ElevationMap(const MapGeometry& geometry);
 
   const MapGeometry& geometry() const { return geometry_; }
+  /// Moves the map to `geometry` without touching its layers' values (as grid_map's
+  /// setPosition): references to the layers stay valid. The size must stay the same unless the
+  /// map has no layers; throws std::invalid_argument otherwise or on an invalid geometry.
+  void set_geometry(const MapGeometry& geometry);
   /// Adds (or overwrites) a layer filled with `value`.
   void add(const std::string& name, float value = std::numeric_limits<float>::quiet_NaN());
   /// Adds (or overwrites) a layer; throws std::invalid_argument when its size is not the map's.
@@ -100,6 +104,18 @@ ElevationMap build_elevation_map(const PointsView<float>& points, const Elevatio
                                  const std::vector<std::uint8_t>* use = nullptr);
 ElevationMap build_elevation_map(const PointsView<double>& points, const ElevationParams& params,
                                  const std::vector<std::uint8_t>* use = nullptr);
+
+/// build_elevation_map into an existing map, reusing its layers' buffers: a loop that refills one
+/// map allocates nothing once warm, and references to its layers (and numpy views) stay valid
+/// and see the new values. The map takes the build's geometry, whose size must be the map's
+/// unless the map has no layers (so give a fixed extent); the six layers are overwritten and any
+/// other layer (classify_terrain's, say, which a new classification refills in place) is reset
+/// to NaN. Throws as build_elevation_map, and std::invalid_argument on a size mismatch, in which
+/// cases the map is left unchanged.
+void build_elevation_map_into(ElevationMap& map, const PointsView<float>& points, const ElevationParams& params,
+                              const std::vector<std::uint8_t>* use = nullptr);
+void build_elevation_map_into(ElevationMap& map, const PointsView<double>& points, const ElevationParams& params,
+                              const std::vector<std::uint8_t>* use = nullptr);
 
 /// The collapsible-cubes paper's "DEM without overhangs" plus planner layers:
 /// collapse_overhangs, then build_elevation_map from the points it kept, then
