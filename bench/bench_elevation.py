@@ -562,6 +562,22 @@ ROWS = (
 )
 
 
+def allocation_rows(results: Results) -> list[tuple[str, float, float]]:
+    """(label, ms, page faults per call) of map + classify, fresh and refilled, in and out of here."""
+    (loop_fresh_ms, loop_fresh_faults), (loop_refill_ms, loop_refill_faults) = (
+        results.loop["fresh"],
+        results.loop["refill"],
+    )
+    ms, faults = results.ms, results.faults
+    return [
+        ("C++ fresh map, in a process of terracube calls only", loop_fresh_ms, loop_fresh_faults),
+        ("C++ refilling one map, same process", loop_refill_ms, loop_refill_faults),
+        ("C++ fresh map, in this process", ms["cpp_total"], faults["fresh"]),
+        ("C++ refilling one map, in this process", ms["cpp_total_refill"], faults["refill"]),
+        ("numpy, in this process", ms["numpy_total"], faults["numpy"]),
+    ]
+
+
 def print_results(scan: Scan, results: Results, quick: bool) -> None:
     note = f"  ({scan.note})" if scan.note else ""
     print(f"\n{scan.name}: {describe_points(scan.points)}{note}")
@@ -585,16 +601,9 @@ def print_results(scan: Scan, results: Results, quick: bool) -> None:
         f"{full_sort / ms['cpp_map']:.1f}x the C++ map; not the baseline)"
     )
 
-    faults = results.faults
-    print(
-        f"  page faults per map + classify call: C++ fresh map {faults['fresh']:.0f}, "
-        f"C++ refilled map {faults['refill']:.0f}, numpy {faults['numpy']:.0f}"
-    )
-    (fresh_ms, fresh_faults), (refill_ms, refill_faults) = results.loop["fresh"], results.loop["refill"]
-    print(
-        f"  in a fresh process of terracube calls only: map + classify {fresh_ms:.2f} ms "
-        f"({fresh_faults:.0f} page faults per call), refilling a map {refill_ms:.2f} ms ({refill_faults:.0f})"
-    )
+    print(f"\n  {'map + classify: allocation':<54} {'ms':>6} {'page faults / call':>19}")
+    for label, value, faults in allocation_rows(results):
+        print(f"  {label:<54} {value:>6.2f} {faults:>19.0f}")
 
     print("\n  for information:")
     extras = (
@@ -634,16 +643,11 @@ def print_markdown(scan: Scan, results: Results) -> None:
     full_sort = ms["numpy_full_sort_map"]
     print(markdown_row(["numpy map with a full lexsort (previous baseline)", "", f"{full_sort:.2f}", ""]))
     print(markdown_row(["dem_without_overhangs (same map)", f"{ms['dem']:.2f}", "", ""]))
-    faults = results.faults
-    print(
-        f"\nPage faults per map + classify call: C++ fresh map {faults['fresh']:.0f}, "
-        f"C++ refilled map {faults['refill']:.0f}, numpy {faults['numpy']:.0f}"
-    )
-    (fresh_ms, fresh_faults), (refill_ms, refill_faults) = results.loop["fresh"], results.loop["refill"]
-    print(
-        f"In a fresh process of terracube calls only: map + classify {fresh_ms:.2f} ms "
-        f"({fresh_faults:.0f} page faults per call), refilling a map {refill_ms:.2f} ms ({refill_faults:.0f})"
-    )
+    print()
+    print(markdown_row(["map + classify", "ms", "page faults per call"]))
+    print(markdown_rule(2))
+    for label, value, faults in allocation_rows(results):
+        print(markdown_row([label, f"{value:.2f}", f"{faults:.0f}"]))
 
 
 # --------------------------------------------------------------------------------------------
