@@ -27,10 +27,14 @@ template <typename Scalar, bool kTransform, bool kCrop>
 class LeveledCloud {
  public:
   LeveledCloud(const PointsView<Scalar>& points, const Eigen::Matrix4d& transform, const std::optional<CropBox>& crop)
-      : points_(points),
-        rotation_(transform.topLeftCorner<3, 3>()),
-        translation_(transform.topRightCorner<3, 1>()),
-        crop_(crop ? *crop : CropBox{}) {}
+      : points_(points) {
+    for (int i = 0; i < 3; ++i) {
+      for (int j = 0; j < 3; ++j) rotation_[3 * i + j] = transform(i, j);
+      translation_[i] = transform(i, 3);
+      crop_min_[i] = crop ? crop->min[i] : -std::numeric_limits<double>::infinity();
+      crop_max_[i] = crop ? crop->max[i] : std::numeric_limits<double>::infinity();
+    }
+  }
 
   /// Neither a transform nor a crop: every finite row takes part unchanged.
   static constexpr bool kPlain = !kTransform && !kCrop;
@@ -48,13 +52,8 @@ class LeveledCloud {
   /// Writes the leveled point of `row` to `out` without any check: for rows known to take part.
   void map_unchecked(std::size_t row, Eigen::Vector3d& out) const {
     const Scalar* p = points_.data + static_cast<std::ptrdiff_t>(row) * points_.row_stride;
-    const Eigen::Vector3d in(static_cast<double>(p[0]), static_cast<double>(p[points_.column_stride]),
-                             static_cast<double>(p[2 * points_.column_stride]));
-    if constexpr (kTransform) {
-      out = rotation_ * in + translation_;
-    } else {
-      out = in;
-    }
+    level(static_cast<double>(p[0]), static_cast<double>(p[points_.column_stride]),
+          static_cast<double>(p[2 * points_.column_stride]), out.data());
   }
 
   /// Writes the leveled point of `row` to `out`; returns 0 when it takes part, 1 when it is
@@ -66,22 +65,33 @@ class LeveledCloud {
     const double z = static_cast<double>(p[2 * points_.column_stride]);
     // x - x is 0 for finite x and NaN for NaN/Inf: one test for all three coordinates.
     if (!((x - x) + (y - y) + (z - z) == 0.0)) return 1;
-    if constexpr (kTransform) {
-      out = rotation_ * Eigen::Vector3d(x, y, z) + translation_;
-    } else {
-      out = {x, y, z};
-    }
+    double* q = out.data();
+    level(x, y, z, q);
     if constexpr (kCrop) {
-      if ((out.array() < crop_.min.array()).any() || (out.array() > crop_.max.array()).any()) return 2;
+      const bool inside = (q[0] >= crop_min_[0]) & (q[1] >= crop_min_[1]) & (q[2] >= crop_min_[2]) &
+                          (q[0] <= crop_max_[0]) & (q[1] <= crop_max_[1]) & (q[2] <= crop_max_[2]);
+      if (!inside) return 2;
     }
     return 0;
   }
 
  private:
+  /// The leveled point, in plain doubles: q_i = ((r_i0 x + r_i1 y) + r_i2 z) + t_i, the one
+  /// definition every path (collapse, maps, baselines) uses.
+  void level(double x, double y, double z, double* q) const {
+    if constexpr (kTransform) {
+      for (int i = 0; i < 3; ++i) {
+        q[i] = rotation_[3 * i] * x + rotation_[3 * i + 1] * y + rotation_[3 * i + 2] * z + translation_[i];
+      }
+    } else {
+      q[0] = x, q[1] = y, q[2] = z;
+    }
+  }
+
   PointsView<Scalar> points_;
-  Eigen::Matrix3d rotation_;
-  Eigen::Vector3d translation_;
-  CropBox crop_;
+  double rotation_[9];  // row-major
+  double translation_[3];
+  double crop_min_[3], crop_max_[3];  // +-inf without a crop box
 };
 
 /// Calls f(cloud) with the LeveledCloud specialisation that `transform` and `crop` need.
@@ -158,6 +168,14 @@ bool try_fast_extent(const Cloud& cloud, CloudExtent& extent) {
   return true;
 }
 
+/// Throws the std::invalid_argument of NaN/Inf rows: how many of how many, and the first.
+[[noreturn]] inline void throw_non_finite_rows(std::size_t num_non_finite, std::size_t num_rows,
+                                               std::size_t first_row) {
+  throw std::invalid_argument(std::to_string(num_non_finite) + " of " + std::to_string(num_rows) +
+                              " point rows contain NaN or Inf (first at row " + std::to_string(first_row) +
+                              "); clean the cloud or set drop_non_finite=True to drop them");
+}
+
 template <typename Cloud>
 CloudExtent measure_extent(const Cloud& cloud, bool drop_non_finite) {
   CloudExtent extent;
@@ -187,10 +205,7 @@ CloudExtent measure_extent(const Cloud& cloud, bool drop_non_finite) {
   extent.min = {min_x, min_y, min_z};
   extent.max = {max_x, max_y, max_z};
   if (extent.num_non_finite > 0 && !drop_non_finite) {
-    throw std::invalid_argument(std::to_string(extent.num_non_finite) + " of " + std::to_string(cloud.size()) +
-                                " point rows contain NaN or Inf (first at row " +
-                                std::to_string(extent.first_non_finite_row) +
-                                "); clean the cloud or set drop_non_finite=True to drop them");
+    throw_non_finite_rows(extent.num_non_finite, cloud.size(), extent.first_non_finite_row);
   }
   return extent;
 }

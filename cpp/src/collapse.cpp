@@ -395,6 +395,21 @@ void collapse_sparse(const Cloud& cloud, const CollapseParams& params, CollapseR
   result.num_overhang = count;
 }
 
+/// The leveled points inside the crop box, packed x y z, with the input row of each: kept per
+/// thread between calls (fresh buffers would cost a page fault per 4 kB).
+struct LeveledScratch {
+  std::vector<double> xyz;
+  std::vector<std::uint32_t> rows;
+  static constexpr std::size_t kKeepBytes = std::size_t{64} << 20;
+};
+
+LeveledScratch& leveled_scratch() {
+  thread_local LeveledScratch scratch;
+  return scratch;
+}
+
+CollapseResult collapse_plain_or_leveled(const PointsView<double>& points, const CollapseParams& params);
+
 template <typename Scalar>
 CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapseParams& params) {
   detail::check_collapse_params(params);
@@ -406,6 +421,58 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
   result.overhang.assign(points.size, 0);
   result.grid.edge_m = params.edge_m;
   result.storage_used = params.storage == CubeStorage::kSparse ? CubeStorage::kSparse : CubeStorage::kDense;
+
+  const bool leveled = !params.transform.isIdentity(0.0) || params.crop.has_value();
+  if (leveled && points.size < std::numeric_limits<std::uint32_t>::max()) {
+    // A transform or a crop: level the points that take part into a packed buffer once (the same
+    // LeveledCloud::map as the per-row path, so the same doubles), then run the plain path --
+    // branch-free extent and quantisation kernels -- on it and scatter its mask back. The
+    // per-row path would level every row twice (extent, then cubes) in scalar code.
+    LeveledScratch& scratch = leveled_scratch();
+    if (scratch.rows.size() < points.size) {
+      scratch.xyz.resize(3 * points.size);
+      scratch.rows.resize(points.size);
+    }
+    double* xyz = scratch.xyz.data();
+    std::uint32_t* rows = scratch.rows.data();
+    std::size_t num_inside = 0;
+    detail::CloudExtent counts;
+    detail::visit_leveled(points, params.transform, params.crop, [&](const auto& cloud) {
+      Eigen::Vector3d p;
+      for (std::size_t row = 0; row < cloud.size(); ++row) {
+        const int status = cloud.map(row, p);
+        // Written whatever the status; only a row that takes part advances the count.
+        std::copy_n(p.data(), 3, xyz + 3 * num_inside);
+        rows[num_inside] = static_cast<std::uint32_t>(row);
+        num_inside += status == 0 ? 1 : 0;
+        if (status == 1) {
+          if (counts.num_non_finite++ == 0) counts.first_non_finite_row = row;
+        } else if (status == 2) {
+          ++counts.num_cropped;
+        }
+      }
+    });
+    if (counts.num_non_finite > 0 && !params.drop_non_finite) {
+      detail::throw_non_finite_rows(counts.num_non_finite, points.size, counts.first_non_finite_row);
+    }
+    CollapseParams plain = params;
+    plain.transform = Eigen::Matrix4d::Identity();
+    plain.crop.reset();
+    CollapseResult packed = collapse_plain_or_leveled(PointsView<double>(xyz, num_inside, 3, 1), plain);
+    for (std::size_t k = 0; k < num_inside; ++k) result.overhang[rows[k]] = packed.overhang[k];
+    result.grid = packed.grid;
+    result.occupied_cubes = std::move(packed.occupied_cubes);
+    result.removed_cubes = std::move(packed.removed_cubes);
+    result.num_used = packed.num_used;
+    result.num_cropped = counts.num_cropped;
+    result.num_dropped_non_finite = counts.num_non_finite;
+    result.num_overhang = packed.num_overhang;
+    result.storage_used = packed.storage_used;
+    if (8 * scratch.xyz.capacity() + 4 * scratch.rows.capacity() > LeveledScratch::kKeepBytes) {
+      scratch = LeveledScratch{};
+    }
+    return result;
+  }
 
   detail::visit_leveled(points, params.transform, params.crop, [&](const auto& cloud) {
     const detail::CloudExtent extent = detail::measure_extent(cloud, params.drop_non_finite);
@@ -422,6 +489,10 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
     }
   });
   return result;
+}
+
+CollapseResult collapse_plain_or_leveled(const PointsView<double>& points, const CollapseParams& params) {
+  return collapse_impl(points, params);
 }
 
 }  // namespace

@@ -270,6 +270,92 @@ TEST(CollapsePreprocessing, CropBoxExcludesPointsAndTheyAreNeverOverhang) {
   EXPECT_EQ(spread_result.num_cropped, 2U);
 }
 
+TEST(CollapsePreprocessing, LeveledCroppedCloudsWithDroppedRowsMatchTheNaiveAlgorithmOnTheLeveledPoints) {
+  // The transform and the crop, applied here point by point (R p + t in doubles, as documented),
+  // then the naive Algorithm 1 on the points inside the box: every storage, float and double
+  // views, NaN/Inf rows dropped. Their mask, scattered back to the input rows, is the answer.
+  for (std::uint32_t seed = 301; seed <= 306; ++seed) {
+    SCOPED_TRACE("seed " + std::to_string(seed));
+    auto points = test::random_scene(seed, 4000, 6.0 + seed % 4);
+    points[17] = Eigen::Vector3d(std::numeric_limits<double>::quiet_NaN(), 0.0, 0.0);
+    points[500] = Eigen::Vector3d(0.0, std::numeric_limits<double>::infinity(), 0.0);
+    Eigen::Matrix4d transform = leveling_transform(0.01 * (seed % 5), -0.02 * (seed % 3));
+    transform.topRightCorner<3, 1>() = Eigen::Vector3d(0.3 * seed, -1.25, 0.5);
+    const CropBox crop{{-2.0 + 0.3 * seed, -4.0, -1.0}, {0.3 * seed + 5.0, 3.0, 4.0}};
+    std::vector<Eigen::Vector3d> inside;
+    std::vector<std::size_t> rows;
+    std::size_t cropped = 0;
+    for (std::size_t row = 0; row < points.size(); ++row) {
+      if (!points[row].allFinite()) continue;
+      const Eigen::Vector3d p = transform.topLeftCorner<3, 3>() * points[row] + transform.topRightCorner<3, 1>();
+      if ((p.array() < crop.min.array()).any() || (p.array() > crop.max.array()).any()) {
+        ++cropped;
+        continue;
+      }
+      inside.push_back(p);
+      rows.push_back(row);
+    }
+    ASSERT_GT(cropped, 100U) << "the box must cut the scene";
+    const NaiveResult naive = naive_algorithm1(inside, 0.5, 2);
+    std::vector<std::uint8_t> expected(points.size(), 0);
+    for (std::size_t k = 0; k < rows.size(); ++k) expected[rows[k]] = naive.overhang[k];
+    ASSERT_GT(std::count(expected.begin(), expected.end(), 1), 0) << "the scene must keep overhangs";
+    const std::vector<float> floats = [&] {
+      std::vector<float> packed;
+      for (const auto& p : points) packed.insert(packed.end(), {float(p.x()), float(p.y()), float(p.z())});
+      return packed;
+    }();
+    for (const CubeStorage storage : {CubeStorage::kDense, CubeStorage::kSparse}) {
+      CollapseParams params;
+      params.edge_m = 0.5;
+      params.sigma = 2;
+      params.transform = transform;
+      params.crop = crop;
+      params.drop_non_finite = true;
+      params.storage = storage;
+      const CollapseResult result = collapse_overhangs(points, params);
+      EXPECT_EQ(result.overhang, expected);
+      EXPECT_EQ(result.occupied_cubes, naive.occupied);
+      EXPECT_EQ(result.removed_cubes, naive.removed);
+      EXPECT_EQ(result.num_points, points.size());
+      EXPECT_EQ(result.num_used, inside.size());
+      EXPECT_EQ(result.num_cropped, cropped);
+      EXPECT_EQ(result.num_dropped_non_finite, 2U);
+      EXPECT_EQ(result.num_overhang, static_cast<std::size_t>(std::count(expected.begin(), expected.end(), 1)));
+      EXPECT_EQ(result.storage_used, storage);
+      // float rows: the naive reference on the float coordinates gives the same masks.
+      const CollapseResult from_floats = collapse_overhangs(PointsView<float>(floats.data(), points.size()), params);
+      std::vector<Eigen::Vector3d> float_inside;
+      std::vector<std::size_t> float_rows;
+      for (std::size_t row = 0; row < points.size(); ++row) {
+        const Eigen::Vector3d q(floats[3 * row], floats[3 * row + 1], floats[3 * row + 2]);
+        if (!q.allFinite()) continue;
+        const Eigen::Vector3d p = transform.topLeftCorner<3, 3>() * q + transform.topRightCorner<3, 1>();
+        if ((p.array() < crop.min.array()).any() || (p.array() > crop.max.array()).any()) continue;
+        float_inside.push_back(p);
+        float_rows.push_back(row);
+      }
+      const NaiveResult float_naive = naive_algorithm1(float_inside, 0.5, 2);
+      std::vector<std::uint8_t> float_expected(points.size(), 0);
+      for (std::size_t k = 0; k < float_rows.size(); ++k) float_expected[float_rows[k]] = float_naive.overhang[k];
+      EXPECT_EQ(from_floats.overhang, float_expected);
+      EXPECT_EQ(from_floats.removed_cubes, float_naive.removed);
+    }
+    // Without dropping, the NaN/Inf rows are named, whatever the transform and crop.
+    CollapseParams strict;
+    strict.transform = transform;
+    strict.crop = crop;
+    try {
+      collapse_overhangs(points, strict);
+      ADD_FAILURE() << "expected std::invalid_argument";
+    } catch (const std::invalid_argument& error) {
+      EXPECT_NE(std::string(error.what()).find("2 of 4000 point rows contain NaN or Inf (first at row 17)"),
+                std::string::npos)
+          << error.what();
+    }
+  }
+}
+
 // --- storage ----------------------------------------------------------------------------------
 
 TEST(CollapseStorage, TenKilometreCloudAtFiveCentimetresStaysSparseAndExact) {
