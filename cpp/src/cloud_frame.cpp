@@ -6,6 +6,16 @@
 
 namespace terracube::detail {
 
+PackedRows& packed_rows_scratch() {
+  thread_local PackedRows scratch;
+  return scratch;
+}
+
+void release_packed_rows_if_large() {
+  PackedRows& scratch = packed_rows_scratch();
+  if (8 * scratch.xyz.capacity() + 4 * scratch.rows.capacity() > (std::size_t{64} << 20)) scratch = PackedRows{};
+}
+
 void check_rigid_transform(const Eigen::Matrix4d& transform, const char* what) {
   if (!transform.allFinite()) {
     throw std::invalid_argument(std::string(what) + " contains NaN or Inf");

@@ -11,6 +11,7 @@
 #include <optional>
 #include <stdexcept>
 #include <string>
+#include <vector>
 
 #include "packed_extent.hpp"
 #include "terracube/collapse.hpp"
@@ -115,6 +116,83 @@ struct CloudExtent {
   std::size_t num_cropped = 0;
 };
 
+/// Throws the std::invalid_argument of NaN/Inf rows: how many of how many, and the first.
+[[noreturn]] inline void throw_non_finite_rows(std::size_t num_non_finite, std::size_t num_rows,
+                                               std::size_t first_row) {
+  throw std::invalid_argument(std::to_string(num_non_finite) + " of " + std::to_string(num_rows) +
+                              " point rows contain NaN or Inf (first at row " + std::to_string(first_row) +
+                              "); clean the cloud or set drop_non_finite=True to drop them");
+}
+
+/// The rows of a cloud that take part once leveled and cropped, packed x y z in doubles, with the
+/// input row of each: the plain (branch-free) paths then run on view(), and whatever they find
+/// per row goes back to rows[k]. Leveling once costs less than leveling row by row in every pass.
+struct PackedRows {
+  std::vector<double> xyz;          // 3 per row, the first `size` rows valid
+  std::vector<std::uint32_t> rows;  // input row of each
+  std::size_t size = 0;
+  std::size_t num_non_finite = 0;  // selected rows with NaN/Inf
+  std::size_t first_non_finite_row = 0;
+  std::size_t num_cropped = 0;  // selected finite rows outside the crop box
+  PointsView<double> view() const { return PointsView<double>(xyz.data(), size, 3, 1); }
+};
+
+/// The calling thread's PackedRows, kept between calls (fresh buffers cost a page fault per
+/// 4 kB); release_packed_rows_if_large() drops them after a call that needed over 64 MB.
+PackedRows& packed_rows_scratch();
+void release_packed_rows_if_large();
+
+/// Fills `out` with the rows of `points` selected by `use` (all when null) that are finite and,
+/// leveled by `transform`, inside `crop`. NaN/Inf rows throw unless `drop_non_finite`.
+/// Needs points.size < 2^32.
+template <typename Scalar>
+void pack_leveled(const PointsView<Scalar>& points, const Eigen::Matrix4d& transform,
+                  const std::optional<CropBox>& crop, bool drop_non_finite, const std::vector<std::uint8_t>* use,
+                  PackedRows& out) {
+  if (out.rows.size() < points.size) {
+    out.xyz.resize(3 * points.size);
+    out.rows.resize(points.size);
+  }
+  out.size = out.num_non_finite = out.first_non_finite_row = out.num_cropped = 0;
+  double* xyz = out.xyz.data();
+  std::uint32_t* rows = out.rows.data();
+  std::size_t size = 0;
+  visit_leveled(points, transform, crop, [&](const auto& cloud) {
+    Eigen::Vector3d p;
+    for (std::size_t row = 0; row < cloud.size(); ++row) {
+      if (use != nullptr && (*use)[row] == 0) continue;
+      const int status = cloud.map(row, p);
+      // Written whatever the status; only a row that takes part advances the count.
+      std::copy_n(p.data(), 3, xyz + 3 * size);
+      rows[size] = static_cast<std::uint32_t>(row);
+      size += status == 0 ? 1 : 0;
+      if (status == 1) {
+        if (out.num_non_finite++ == 0) out.first_non_finite_row = row;
+      } else if (status == 2) {
+        ++out.num_cropped;
+      }
+    }
+  });
+  out.size = size;
+  if (out.num_non_finite > 0 && !drop_non_finite) {
+    throw_non_finite_rows(out.num_non_finite, points.size, out.first_non_finite_row);
+  }
+}
+
+/// The result of collapse_overhangs on packed.view() as the result for the input rows: `result`
+/// (num_points and an all-zero overhang mask of the input's size) receives the rest.
+inline void unpack_collapse(CollapseResult packed, const PackedRows& rows, CollapseResult& result) {
+  for (std::size_t k = 0; k < rows.size; ++k) result.overhang[rows.rows[k]] = packed.overhang[k];
+  result.grid = packed.grid;
+  result.occupied_cubes = std::move(packed.occupied_cubes);
+  result.removed_cubes = std::move(packed.removed_cubes);
+  result.num_used = packed.num_used;
+  result.num_cropped = rows.num_cropped;
+  result.num_dropped_non_finite = rows.num_non_finite;
+  result.num_overhang = packed.num_overhang;
+  result.storage_used = packed.storage_used;
+}
+
 /// First pass: bounding box of the used points (eqs. 1-3 need xmin, ymin, zmin) and counts.
 /// Throws std::invalid_argument on NaN/Inf rows unless drop_non_finite.
 /// Bounding box of a plain cloud without per-row branches: two interleaved accumulator sets
@@ -166,14 +244,6 @@ bool try_fast_extent(const Cloud& cloud, CloudExtent& extent) {
   }
   extent.num_used = n;
   return true;
-}
-
-/// Throws the std::invalid_argument of NaN/Inf rows: how many of how many, and the first.
-[[noreturn]] inline void throw_non_finite_rows(std::size_t num_non_finite, std::size_t num_rows,
-                                               std::size_t first_row) {
-  throw std::invalid_argument(std::to_string(num_non_finite) + " of " + std::to_string(num_rows) +
-                              " point rows contain NaN or Inf (first at row " + std::to_string(first_row) +
-                              "); clean the cloud or set drop_non_finite=True to drop them");
 }
 
 template <typename Cloud>

@@ -395,19 +395,6 @@ void collapse_sparse(const Cloud& cloud, const CollapseParams& params, CollapseR
   result.num_overhang = count;
 }
 
-/// The leveled points inside the crop box, packed x y z, with the input row of each: kept per
-/// thread between calls (fresh buffers would cost a page fault per 4 kB).
-struct LeveledScratch {
-  std::vector<double> xyz;
-  std::vector<std::uint32_t> rows;
-  static constexpr std::size_t kKeepBytes = std::size_t{64} << 20;
-};
-
-LeveledScratch& leveled_scratch() {
-  thread_local LeveledScratch scratch;
-  return scratch;
-}
-
 CollapseResult collapse_plain_or_leveled(const PointsView<double>& points, const CollapseParams& params);
 
 template <typename Scalar>
@@ -428,49 +415,14 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
     // LeveledCloud::map as the per-row path, so the same doubles), then run the plain path --
     // branch-free extent and quantisation kernels -- on it and scatter its mask back. The
     // per-row path would level every row twice (extent, then cubes) in scalar code.
-    LeveledScratch& scratch = leveled_scratch();
-    if (scratch.rows.size() < points.size) {
-      scratch.xyz.resize(3 * points.size);
-      scratch.rows.resize(points.size);
-    }
-    double* xyz = scratch.xyz.data();
-    std::uint32_t* rows = scratch.rows.data();
-    std::size_t num_inside = 0;
-    detail::CloudExtent counts;
-    detail::visit_leveled(points, params.transform, params.crop, [&](const auto& cloud) {
-      Eigen::Vector3d p;
-      for (std::size_t row = 0; row < cloud.size(); ++row) {
-        const int status = cloud.map(row, p);
-        // Written whatever the status; only a row that takes part advances the count.
-        std::copy_n(p.data(), 3, xyz + 3 * num_inside);
-        rows[num_inside] = static_cast<std::uint32_t>(row);
-        num_inside += status == 0 ? 1 : 0;
-        if (status == 1) {
-          if (counts.num_non_finite++ == 0) counts.first_non_finite_row = row;
-        } else if (status == 2) {
-          ++counts.num_cropped;
-        }
-      }
-    });
-    if (counts.num_non_finite > 0 && !params.drop_non_finite) {
-      detail::throw_non_finite_rows(counts.num_non_finite, points.size, counts.first_non_finite_row);
-    }
+    detail::PackedRows& packed_rows = detail::packed_rows_scratch();
+    detail::pack_leveled(points, params.transform, params.crop, params.drop_non_finite, nullptr, packed_rows);
     CollapseParams plain = params;
     plain.transform = Eigen::Matrix4d::Identity();
     plain.crop.reset();
-    CollapseResult packed = collapse_plain_or_leveled(PointsView<double>(xyz, num_inside, 3, 1), plain);
-    for (std::size_t k = 0; k < num_inside; ++k) result.overhang[rows[k]] = packed.overhang[k];
-    result.grid = packed.grid;
-    result.occupied_cubes = std::move(packed.occupied_cubes);
-    result.removed_cubes = std::move(packed.removed_cubes);
-    result.num_used = packed.num_used;
-    result.num_cropped = counts.num_cropped;
-    result.num_dropped_non_finite = counts.num_non_finite;
-    result.num_overhang = packed.num_overhang;
-    result.storage_used = packed.storage_used;
-    if (8 * scratch.xyz.capacity() + 4 * scratch.rows.capacity() > LeveledScratch::kKeepBytes) {
-      scratch = LeveledScratch{};
-    }
+    CollapseResult packed = collapse_plain_or_leveled(packed_rows.view(), plain);
+    detail::unpack_collapse(std::move(packed), packed_rows, result);
+    detail::release_packed_rows_if_large();
     return result;
   }
 

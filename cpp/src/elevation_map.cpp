@@ -545,8 +545,11 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   BinningConstants constants{};
   if constexpr (Cloud::kPlain) {
     constexpr std::int64_t kLargest = std::int64_t{1} << 30;  // cells + 2 must fit the kernel's int32
-    kernel = use == nullptr && view.column_stride == 1 && (view.row_stride == 3 || view.row_stride == 4) &&
-             nx < kLargest && ny < kLargest;
+    // With a selection the kernel bins every row and the unselected ones are dropped after: worth
+    // it for float rows (the AVX2 kernel), not for double rows (whose kernel is scalar code).
+    using Scalar = std::remove_cv_t<std::remove_pointer_t<decltype(view.data)>>;
+    kernel = (use == nullptr || std::is_same_v<Scalar, float>)&&view.column_stride == 1 &&
+             (view.row_stride == 3 || view.row_stride == 4) && nx < kLargest && ny < kLargest;
     constants = {geometry.origin_m.x(),         geometry.origin_m.y(),         1.0 / geometry.resolution_m,
                  static_cast<double>(nx) + 1.0, static_cast<double>(ny) + 1.0, static_cast<std::int32_t>(nx),
                  static_cast<std::int32_t>(ny)};
@@ -596,6 +599,10 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     if (kernel) {
       const bool any_slow = bin_rows(view.data + static_cast<std::ptrdiff_t>(begin) * view.row_stride, end - begin,
                                      static_cast<int>(view.row_stride), constants, codes + begin);
+      if (use != nullptr) {  // rows not selected take no part (nor count as NaN/Inf)
+        const std::uint8_t* flags = use->data();
+        for (std::size_t row = begin; row < end; ++row) codes[row] = flags[row] != 0 ? codes[row] : kOutside;
+      }
       for (std::size_t row = begin; any_slow && row < end; ++row) {
         if (codes[row] == kSlow) bin_row(row);  // rare: NaN/Inf rows and cell borders
       }
@@ -742,6 +749,24 @@ ElevationMap build_impl(const PointsView<Scalar>& points, const ElevationParams&
   if (points.size >= std::numeric_limits<std::uint32_t>::max()) {
     throw std::invalid_argument("build_elevation_map handles fewer than 2^32 points per call");
   }
+  if (!params.transform.isIdentity(0.0) || params.crop.has_value()) {
+    // A transform or a crop: level the selected rows that take part into a packed buffer once,
+    // then build from it on the plain path (branch-free binning; the per-row path would level
+    // every row in scalar code, and twice where it reads heights).
+    if (use && use->size() != points.size) {
+      throw std::invalid_argument("the point selection has " + std::to_string(use->size()) + " flags for " +
+                                  std::to_string(points.size) + " points");
+    }
+    detail::PackedRows& packed = detail::packed_rows_scratch();
+    detail::pack_leveled(points, params.transform, params.crop, params.drop_non_finite, use, packed);
+    ElevationParams plain = params;
+    plain.transform = Eigen::Matrix4d::Identity();
+    plain.crop.reset();
+    ElevationMap map = build_map(
+        detail::LeveledCloud<double, false, false>(packed.view(), plain.transform, std::nullopt), plain, nullptr, into);
+    detail::release_packed_rows_if_large();
+    return map;
+  }
   return detail::visit_leveled(points, params.transform, params.crop,
                                [&](const auto& cloud) { return build_map(cloud, params, use, into); });
 }
@@ -749,6 +774,28 @@ ElevationMap build_impl(const PointsView<Scalar>& points, const ElevationParams&
 template <typename Scalar>
 OverhangFreeMap overhang_free_impl(const PointsView<Scalar>& points, const CollapseParams& collapse,
                                    const ElevationParams& elevation) {
+  if (!collapse.transform.isIdentity(0.0) || collapse.crop.has_value()) {
+    // Level the rows that take part once; collapse, the maps and the clearance pass then all run
+    // on the packed points (the plain paths), and the overhang mask goes back to the input rows.
+    detail::check_collapse_params(collapse);
+    if (points.size > 0 && points.data == nullptr) throw std::invalid_argument("points view has no data");
+    if (points.size >= std::numeric_limits<std::uint32_t>::max()) {
+      throw std::invalid_argument("build_overhang_free_map handles fewer than 2^32 points per call");
+    }
+    detail::PackedRows& packed = detail::packed_rows_scratch();
+    detail::pack_leveled(points, collapse.transform, collapse.crop, collapse.drop_non_finite, nullptr, packed);
+    CollapseParams plain = collapse;
+    plain.transform = Eigen::Matrix4d::Identity();
+    plain.crop.reset();
+    OverhangFreeMap inner = overhang_free_impl(packed.view(), plain, elevation);
+    OverhangFreeMap out;
+    out.map = std::move(inner.map);
+    out.collapse.num_points = points.size;
+    out.collapse.overhang.assign(points.size, 0);
+    detail::unpack_collapse(std::move(inner.collapse), packed, out.collapse);
+    detail::release_packed_rows_if_large();
+    return out;
+  }
   OverhangFreeMap out;
   out.collapse = collapse_overhangs(points, collapse);
   ElevationParams params = elevation;
@@ -766,24 +813,45 @@ OverhangFreeMap overhang_free_impl(const PointsView<Scalar>& points, const Colla
     }
   }
   out.map = build_impl(points, params, &kept);
-  const ElevationMap overhangs = build_impl(points, params, &out.collapse.overhang);
-  const Layer& lowest_overhang = overhangs.get("min");
   const Layer& top = out.map.get("max");
-  // The ground under an overhang: the highest kept point below the cell's lowest overhang point.
-  // (A map cell can straddle two cube columns, so a kept wall may rise above an overhang that its
-  // neighbouring column collapsed; measuring from it would give a negative clearance.)
   constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
-  Layer under = Layer::Constant(top.rows(), top.cols(), kNaN);
   const MapGeometry& geometry = out.map.geometry();
+  // The cell of a point as build_elevation_map and MapGeometry::index_of bin it ((p - origin) /
+  // resolution, floored, half-open bounds), written out on doubles; none when outside.
+  const double origin_x = geometry.origin_m.x(), origin_y = geometry.origin_m.y();
+  const double resolution = geometry.resolution_m;
+  const auto size_x = static_cast<double>(geometry.size.x()), size_y = static_cast<double>(geometry.size.y());
+  const auto columns = static_cast<std::size_t>(geometry.size.y());
+  const auto cell_of = [&](const Eigen::Vector3d& p, std::size_t& cell) {
+    const double fx = (p.x() - origin_x) / resolution;
+    const double fy = (p.y() - origin_y) / resolution;
+    if (!(fx >= 0.0 && fy >= 0.0 && fx < size_x && fy < size_y)) return false;
+    cell = static_cast<std::size_t>(fx) * columns + static_cast<std::size_t>(fy);
+    return true;
+  };
+  // The lowest overhang point of each cell (the "min" layer of the overhang points' map: rounding
+  // is monotonic, so the least rounded height is the rounded least height), then the ground under
+  // it: the highest kept point below it. (A map cell can straddle two cube columns, so a kept
+  // wall may rise above an overhang that its neighbouring column collapsed; measuring from it
+  // would give a negative clearance.)
+  Layer lowest_overhang = Layer::Constant(top.rows(), top.cols(), kNaN);
+  Layer under = Layer::Constant(top.rows(), top.cols(), kNaN);
+  float* lowest = lowest_overhang.data();
+  float* highest_under = under.data();
+  const std::vector<std::uint8_t>& overhang = out.collapse.overhang;
   detail::visit_leveled(points, params.transform, params.crop, [&](const auto& cloud) {
     Eigen::Vector3d p;
+    std::size_t cell = 0;
     for (std::size_t row = 0; row < cloud.size(); ++row) {
-      if (!kept[row] || cloud.map(row, p) != 0) continue;
-      const auto index = geometry.index_of(p.head<2>());
-      if (!index) continue;
-      const float overhang = lowest_overhang(index->x(), index->y());
-      if (std::isnan(overhang) || !(p.z() < overhang)) continue;
-      float& highest = under(index->x(), index->y());
+      if (!overhang[row] || cloud.map(row, p) != 0 || !cell_of(p, cell)) continue;
+      const auto z = static_cast<float>(p.z());
+      if (std::isnan(lowest[cell]) || z < lowest[cell]) lowest[cell] = z;
+    }
+    for (std::size_t row = 0; row < cloud.size(); ++row) {
+      if (!kept[row] || cloud.map(row, p) != 0 || !cell_of(p, cell)) continue;
+      const float above = lowest[cell];
+      if (std::isnan(above) || !(p.z() < above)) continue;
+      float& highest = highest_under[cell];
       if (std::isnan(highest) || p.z() > highest) highest = static_cast<float>(p.z());
     }
   });

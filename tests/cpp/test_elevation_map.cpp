@@ -786,6 +786,41 @@ TEST(BuildElevationMapSelection, UseSelectsThePointsThatTakePart) {
   }
 }
 
+TEST(BuildElevationMapSelection, FloatRowsWithASelectionTakeTheKernelAndSkipUnselectedNaNRows) {
+  // Float rows of 3 and 4 scalars are binned by the branch-free kernel even with a selection;
+  // unselected rows, NaN ones among them, take no part; a selected NaN row is still an error.
+  auto points = rounded_to_float(test::random_scene(33, 6000, 8.0));
+  for (std::size_t row = 0; row < 40; ++row) {  // rows on cell borders (x = 0.25 k) and just beside
+    points[row].x() = 0.25 * static_cast<double>(row % 20) + (row < 20 ? 0.0 : 1e-7);
+  }
+  points[77] = Eigen::Vector3d(std::numeric_limits<double>::quiet_NaN(), 1.0, 1.0);
+  std::vector<std::uint8_t> use(points.size());
+  std::vector<Eigen::Vector3d> selected;
+  for (std::size_t row = 0; row < points.size(); ++row) {
+    use[row] = static_cast<std::uint8_t>(row % 7 != 3 && row != 77);
+    if (use[row] != 0) selected.push_back(points[row]);
+  }
+  for (const int stride : {3, 4}) {
+    SCOPED_TRACE("stride " + std::to_string(stride));
+    const std::vector<float> rows = as_floats(points, stride);
+    const PointsView<float> view(rows.data(), points.size(), stride, 1);
+    for (const bool fixed : {false, true}) {
+      ElevationParams params = fixed ? fixed_extent(0.25, {0.5, -1.0}, {20, 24}) : ElevationParams{};
+      params.resolution_m = 0.25;
+      const ElevationMap map = build_elevation_map(view, params, &use);
+      expect_matches_naive(map, selected, params.discontinuity_m);
+      expect_same_statistics(map, build_elevation_map(PointsView<double>(selected), params));
+    }
+    use[77] = 1;
+    expect_throw_with<std::invalid_argument>(
+        [&] {
+          build_elevation_map(view, fixed_extent(0.25, {0, 0}, {4, 4}), &use);
+        },
+        {"1 of 6000 point rows contain NaN or Inf (first at row 77)"});
+    use[77] = 0;
+  }
+}
+
 TEST(BuildElevationMapSelection, AutoExtentFollowsOnlyTheSelectedPoints) {
   const std::vector<Eigen::Vector3d> points = {{0.25, 0.25, 0.0}, {10.0, 10.0, 0.0}, {0.75, 0.25, 1.0}};
   const std::vector<std::uint8_t> use = {1, 0, 1};
@@ -982,6 +1017,69 @@ TEST(ElevationMapLayers, SetGeometryMovesTheMapAndKeepsItsLayers) {
   geometry.size = CellIndex(7, 7);
   empty.set_geometry(geometry);  // no layers: any size
   EXPECT_EQ(empty.geometry().size.matrix(), CellIndex(7, 7).matrix());
+}
+
+/// The rows of `points` that are finite and, leveled by `transform` (R p + t), inside `crop`:
+/// the leveled points and their input rows, computed here point by point.
+struct LeveledByHand {
+  std::vector<Eigen::Vector3d> points;
+  std::vector<std::size_t> rows;
+};
+LeveledByHand level_by_hand(const std::vector<Eigen::Vector3d>& points, const Eigen::Matrix4d& transform,
+                            const CropBox& crop, const std::vector<std::uint8_t>* use = nullptr) {
+  LeveledByHand out;
+  for (std::size_t row = 0; row < points.size(); ++row) {
+    if ((use != nullptr && (*use)[row] == 0) || !points[row].allFinite()) continue;
+    const Eigen::Vector3d p = transform.topLeftCorner<3, 3>() * points[row] + transform.topRightCorner<3, 1>();
+    if ((p.array() < crop.min.array()).any() || (p.array() > crop.max.array()).any()) continue;
+    out.points.push_back(p);
+    out.rows.push_back(row);
+  }
+  return out;
+}
+
+TEST(BuildElevationMapTransform, LeveledCroppedSelectedCloudsMatchTheNaiveLayersOfTheLeveledPoints) {
+  for (std::uint32_t seed = 91; seed <= 95; ++seed) {
+    SCOPED_TRACE("seed " + std::to_string(seed));
+    auto points = test::random_scene(seed, 5000, 7.0);
+    points[3] = Eigen::Vector3d(0.0, std::numeric_limits<double>::quiet_NaN(), 1.0);
+    Eigen::Matrix4d transform = leveling_transform(0.02 * (seed % 3), -0.015 * (seed % 4));
+    transform.topRightCorner<3, 1>() = Eigen::Vector3d(-0.7, 0.2 * seed - 18.0, 1.5);
+    const CropBox crop{{-1.0, -2.0, 0.0}, {5.0, 4.0, 6.0}};
+    std::vector<std::uint8_t> use(points.size());
+    for (std::size_t row = 0; row < points.size(); ++row) use[row] = static_cast<std::uint8_t>(row % 5 != 2);
+    const LeveledByHand by_hand = level_by_hand(points, transform, crop, &use);
+    ASSERT_GT(by_hand.points.size(), 1000U);
+    ASSERT_LT(by_hand.points.size(), 3500U) << "the crop must cut the scene";
+    for (const bool fixed : {false, true}) {
+      SCOPED_TRACE(fixed ? "fixed extent" : "auto extent");
+      ElevationParams params = fixed ? fixed_extent(0.2, {-0.5, -1.5}, {25, 30}) : ElevationParams{};
+      params.resolution_m = 0.2;
+      params.discontinuity_m = 0.5;
+      params.transform = transform;
+      params.crop = crop;
+      params.drop_non_finite = true;
+      const ElevationMap map = build_elevation_map(PointsView<double>(points), params, &use);
+      if (!fixed) expect_snapped_extent(map.geometry(), by_hand.points);
+      expect_matches_naive(map, by_hand.points, params.discontinuity_m);
+      if (!fixed) {
+        EXPECT_EQ(map.get("count").sum(), static_cast<float>(by_hand.points.size()));
+      }
+      // float rows: the same against the float coordinates.
+      const std::vector<float> strided = as_floats(points, 4);
+      const auto rounded = rounded_to_float(points);
+      const LeveledByHand float_by_hand = level_by_hand(rounded, transform, crop, &use);
+      expect_matches_naive(build_elevation_map(PointsView<float>(strided.data(), points.size(), 4, 1), params, &use),
+                           float_by_hand.points, params.discontinuity_m);
+      params.drop_non_finite = false;
+      expect_throw_with<std::invalid_argument>([&] { build_elevation_map(PointsView<double>(points), params, &use); },
+                                               {"1 of 5000 point rows contain NaN or Inf (first at row 3)"});
+      use[3] = 0;  // an unselected NaN row is no error
+      expect_matches_naive(build_elevation_map(PointsView<double>(points), params, &use), by_hand.points,
+                           params.discontinuity_m);
+      use[3] = 1;
+    }
+  }
 }
 
 // --- bad input ----------------------------------------------------------------------------------
@@ -1284,6 +1382,45 @@ TEST(OverhangFreeMap, CollapseTransformAndCropReplaceTheElevationOnes) {
   expected_params.origin_m = raw.geometry().origin_m;
   expected_params.size = raw.geometry().size;
   expect_same_statistics(result.map, build_elevation_map(PointsView<double>(points), expected_params, &kept));
+}
+
+TEST(OverhangFreeMap, ALeveledCroppedCloudGivesTheMapAndMaskOfItsPointsLeveledByHand) {
+  // The pipeline with collapse's transform and crop against the pipeline without them on the
+  // points leveled and cropped here: the same layers, and the same mask back on the input rows.
+  for (std::uint32_t seed = 47; seed <= 49; ++seed) {
+    SCOPED_TRACE("seed " + std::to_string(seed));
+    auto points = test::random_scene(seed, 6000, 9.0);
+    points[11] = Eigen::Vector3d(std::numeric_limits<double>::infinity(), 0.0, 0.0);
+    CollapseParams collapse;
+    collapse.edge_m = 0.5;
+    collapse.sigma = 2;
+    collapse.transform = leveling_transform(-0.03, 0.02);
+    collapse.transform.topRightCorner<3, 1>() = Eigen::Vector3d(1.0, -2.0, 0.25 * seed - 10.0);
+    collapse.crop = CropBox{{0.0, -3.0, -20.0}, {9.0, 5.0, 20.0}};
+    collapse.drop_non_finite = true;
+    ElevationParams elevation;
+    elevation.resolution_m = 0.25;
+    const OverhangFreeMap result = build_overhang_free_map(PointsView<double>(points), collapse, elevation);
+    const LeveledByHand by_hand = level_by_hand(points, collapse.transform, *collapse.crop);
+    CollapseParams plain = collapse;
+    plain.transform = Eigen::Matrix4d::Identity();
+    plain.crop.reset();
+    const OverhangFreeMap expected = build_overhang_free_map(PointsView<double>(by_hand.points), plain, elevation);
+    ASSERT_GT(expected.collapse.num_overhang, 0U) << "the scene must keep overhangs";
+    std::vector<std::uint8_t> mask(points.size(), 0);
+    for (std::size_t k = 0; k < by_hand.rows.size(); ++k) mask[by_hand.rows[k]] = expected.collapse.overhang[k];
+    EXPECT_EQ(result.collapse.overhang, mask);
+    EXPECT_EQ(result.collapse.removed_cubes, expected.collapse.removed_cubes);
+    EXPECT_EQ(result.collapse.num_points, points.size());
+    EXPECT_EQ(result.collapse.num_used, by_hand.points.size());
+    EXPECT_EQ(result.collapse.num_cropped, points.size() - 1 - by_hand.points.size());
+    EXPECT_EQ(result.collapse.num_dropped_non_finite, 1U);
+    ASSERT_EQ(result.map.layers(), expected.map.layers());
+    EXPECT_EQ(result.map.geometry().origin_m, expected.map.geometry().origin_m);
+    for (const std::string& name : expected.map.layers()) {
+      expect_same_layer(result.map.get(name), expected.map.get(name), name);
+    }
+  }
 }
 
 TEST(OverhangFreeMap, FloatAndDoubleViewsOfTheSameValuesAgree) {
