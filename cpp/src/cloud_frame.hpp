@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "packed_extent.hpp"
+#include "quantize_kernels.hpp"
 #include "terracube/collapse.hpp"
 #include "terracube/cube_grid.hpp"
 
@@ -153,13 +154,29 @@ void pack_leveled(const PointsView<Scalar>& points, const Eigen::Matrix4d& trans
     out.xyz.resize(3 * points.size);
     out.rows.resize(points.size);
   }
-  out.size = out.num_non_finite = out.first_non_finite_row = out.num_cropped = 0;
   double* xyz = out.xyz.data();
   std::uint32_t* rows = out.rows.data();
-  std::size_t size = 0;
+  // Four rows at a time with AVX2 where the CPU has it, the rest (or all) row by row: the same
+  // arithmetic either way.
+  LevelConstants constants;
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) constants.rotation[3 * i + j] = transform(i, j);
+    constants.translation[i] = transform(i, 3);
+    constants.crop_min[i] = crop ? crop->min[i] : -std::numeric_limits<double>::infinity();
+    constants.crop_max[i] = crop ? crop->max[i] : std::numeric_limits<double>::infinity();
+  }
+  constants.transform = !transform.isIdentity(0.0);
+  constants.crop = crop.has_value();
+  LevelCounts counts;
+  const std::size_t handled = level_rows(points.data, points.size, points.row_stride, points.column_stride, constants,
+                                         use != nullptr ? use->data() : nullptr, xyz, rows, counts);
+  std::size_t size = counts.size;
+  out.num_non_finite = counts.num_non_finite;
+  out.first_non_finite_row = counts.first_non_finite_row;
+  out.num_cropped = counts.num_cropped;
   visit_leveled(points, transform, crop, [&](const auto& cloud) {
     Eigen::Vector3d p;
-    for (std::size_t row = 0; row < cloud.size(); ++row) {
+    for (std::size_t row = handled; row < cloud.size(); ++row) {
       if (use != nullptr && (*use)[row] == 0) continue;
       const int status = cloud.map(row, p);
       // Written whatever the status; only a row that takes part advances the count.

@@ -143,6 +143,107 @@ bool has_avx2() {
   static const bool supported = __builtin_cpu_supports("avx2") && std::getenv("TERRACUBE_DISABLE_AVX2") == nullptr;
   return supported;
 }
+
+/// One coordinate of four rows (`index`: their offsets) as doubles.
+__attribute__((target("avx2"), always_inline)) inline __m256d gather_rows(const float* base, __m128i index) {
+  // The masked gathers, all lanes on: the plain ones leave GCC 12 warning of an uninitialised source.
+  const __m128 all = _mm_castsi128_ps(_mm_set1_epi32(-1));
+  return _mm256_cvtps_pd(_mm_mask_i32gather_ps(_mm_setzero_ps(), base, index, all, 4));
+}
+__attribute__((target("avx2"), always_inline)) inline __m256d gather_rows(const double* base, __m128i index) {
+  const __m256d all = _mm256_castsi256_pd(_mm256_set1_epi64x(-1));
+  return _mm256_mask_i32gather_pd(_mm256_setzero_pd(), base, index, all, 8);
+}
+
+/// level_rows with AVX2: x, y and z of four rows gathered into doubles, leveled and tested in
+/// the same IEEE operations as LeveledCloud::map (no FMA: the target is AVX2 alone), then each
+/// lane packed or counted.
+template <typename Scalar, bool kTransform, bool kCrop>
+__attribute__((target("avx2"))) std::size_t level_avx2(const Scalar* data, std::size_t rows, std::ptrdiff_t row_stride,
+                                                       std::ptrdiff_t column_stride, const LevelConstants& k,
+                                                       const std::uint8_t* use, double* xyz, std::uint32_t* out_rows,
+                                                       LevelCounts& counts) {
+  const auto rs = static_cast<int>(row_stride);
+  const __m128i index = _mm_setr_epi32(0, rs, 2 * rs, 3 * rs);
+  __m256d r[9], t[3], lo[3], hi[3];
+  for (int i = 0; i < 9; ++i) r[i] = _mm256_set1_pd(k.rotation[i]);
+  for (int i = 0; i < 3; ++i) {
+    t[i] = _mm256_set1_pd(k.translation[i]);
+    lo[i] = _mm256_set1_pd(k.crop_min[i]);
+    hi[i] = _mm256_set1_pd(k.crop_max[i]);
+  }
+  const __m256d zero = _mm256_setzero_pd();
+  std::size_t size = counts.size;
+  const std::size_t blocks = rows / 4 * 4;
+  alignas(32) double q[3][4];
+  for (std::size_t row = 0; row < blocks; row += 4) {
+    const Scalar* base = data + static_cast<std::ptrdiff_t>(row) * row_stride;
+    const __m256d x = gather_rows(base, index);
+    const __m256d y = gather_rows(base + column_stride, index);
+    const __m256d z = gather_rows(base + 2 * column_stride, index);
+    // (x - x) + (y - y) + (z - z) == 0: all three finite.
+    const __m256d finite = _mm256_cmp_pd(
+        _mm256_add_pd(_mm256_add_pd(_mm256_sub_pd(x, x), _mm256_sub_pd(y, y)), _mm256_sub_pd(z, z)), zero, _CMP_EQ_OQ);
+    __m256d out[3] = {x, y, z};
+    if constexpr (kTransform) {
+      for (int i = 0; i < 3; ++i) {
+        out[i] = _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(_mm256_mul_pd(r[3 * i], x), _mm256_mul_pd(r[3 * i + 1], y)),
+                                             _mm256_mul_pd(r[3 * i + 2], z)),
+                               t[i]);
+      }
+    }
+    int inside_mask = 0xF;
+    if constexpr (kCrop) {
+      __m256d inside =
+          _mm256_and_pd(_mm256_cmp_pd(out[0], lo[0], _CMP_GE_OQ), _mm256_cmp_pd(out[0], hi[0], _CMP_LE_OQ));
+      for (int i = 1; i < 3; ++i) {
+        inside = _mm256_and_pd(
+            inside, _mm256_and_pd(_mm256_cmp_pd(out[i], lo[i], _CMP_GE_OQ), _mm256_cmp_pd(out[i], hi[i], _CMP_LE_OQ)));
+      }
+      inside_mask = _mm256_movemask_pd(inside);
+    }
+    const int finite_mask = _mm256_movemask_pd(finite);
+    for (int i = 0; i < 3; ++i) _mm256_store_pd(q[i], out[i]);
+    for (int lane = 0; lane < 4; ++lane) {
+      const std::size_t row_of_lane = row + static_cast<std::size_t>(lane);
+      if (use != nullptr && use[row_of_lane] == 0) continue;
+      xyz[3 * size] = q[0][lane];
+      xyz[3 * size + 1] = q[1][lane];
+      xyz[3 * size + 2] = q[2][lane];
+      out_rows[size] = static_cast<std::uint32_t>(row_of_lane);
+      const int is_finite = (finite_mask >> lane) & 1;
+      const int is_inside = (inside_mask >> lane) & 1;
+      size += static_cast<std::size_t>(is_finite & is_inside);
+      if (is_finite == 0) {
+        if (counts.num_non_finite++ == 0) counts.first_non_finite_row = row_of_lane;
+      } else {
+        counts.num_cropped += static_cast<std::size_t>(1 - is_inside);
+      }
+    }
+  }
+  counts.size = size;
+  return blocks;
+}
+
+template <typename Scalar>
+std::size_t level_dispatch(const Scalar* data, std::size_t rows, std::ptrdiff_t row_stride,
+                           std::ptrdiff_t column_stride, const LevelConstants& k, const std::uint8_t* use, double* xyz,
+                           std::uint32_t* out_rows, LevelCounts& counts) {
+  // The gather's offsets (0 to 3 row strides, plus the column offsets) must fit an int32.
+  constexpr std::ptrdiff_t kLimit = std::ptrdiff_t{1} << 28;
+  if (!has_avx2() || row_stride <= -kLimit || row_stride >= kLimit || column_stride <= -kLimit ||
+      column_stride >= kLimit) {
+    return 0;
+  }
+  if (k.transform) {
+    return k.crop
+               ? level_avx2<Scalar, true, true>(data, rows, row_stride, column_stride, k, use, xyz, out_rows, counts)
+               : level_avx2<Scalar, true, false>(data, rows, row_stride, column_stride, k, use, xyz, out_rows, counts);
+  }
+  return k.crop
+             ? level_avx2<Scalar, false, true>(data, rows, row_stride, column_stride, k, use, xyz, out_rows, counts)
+             : level_avx2<Scalar, false, false>(data, rows, row_stride, column_stride, k, use, xyz, out_rows, counts);
+}
 #endif
 
 template <typename Scalar>
@@ -185,6 +286,26 @@ bool extent_rows(const float* data, std::size_t rows, int stride, double* min, d
 
 bool extent_rows(const double* data, std::size_t rows, int stride, double* min, double* max, bool& handled) {
   return extent_dispatch(data, rows, stride, min, max, handled);
+}
+
+std::size_t level_rows(const float* data, std::size_t rows, std::ptrdiff_t row_stride, std::ptrdiff_t column_stride,
+                       const LevelConstants& k, const std::uint8_t* use, double* xyz, std::uint32_t* out_rows,
+                       LevelCounts& counts) {
+#if defined(TERRACUBE_HAVE_AVX2_KERNELS)
+  return level_dispatch(data, rows, row_stride, column_stride, k, use, xyz, out_rows, counts);
+#else
+  return 0;
+#endif
+}
+
+std::size_t level_rows(const double* data, std::size_t rows, std::ptrdiff_t row_stride, std::ptrdiff_t column_stride,
+                       const LevelConstants& k, const std::uint8_t* use, double* xyz, std::uint32_t* out_rows,
+                       LevelCounts& counts) {
+#if defined(TERRACUBE_HAVE_AVX2_KERNELS)
+  return level_dispatch(data, rows, row_stride, column_stride, k, use, xyz, out_rows, counts);
+#else
+  return 0;
+#endif
 }
 
 void quantize_rows(const float* data, std::size_t rows, int stride, const QuantizeConstants& k, std::uint32_t* out) {

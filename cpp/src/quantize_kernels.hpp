@@ -41,4 +41,34 @@ inline bool extent_tail(const Scalar* data, std::size_t first, std::size_t rows,
 bool extent_rows(const float* data, std::size_t rows, int stride, double* min, double* max, bool& handled);
 bool extent_rows(const double* data, std::size_t rows, int stride, double* min, double* max, bool& handled);
 
+/// Leveling and cropping of rows (see LeveledCloud::map, whose arithmetic it repeats):
+/// q_i = ((r_i0 x + r_i1 y) + r_i2 z) + t_i, inside when crop_min <= q <= crop_max.
+struct LevelConstants {
+  double rotation[9];  ///< row-major
+  double translation[3];
+  double crop_min[3], crop_max[3];
+  bool transform = false;
+  bool crop = false;
+};
+
+/// What level_rows found so far; `size` rows packed.
+struct LevelCounts {
+  std::size_t size = 0;
+  std::size_t num_non_finite = 0;
+  std::size_t first_non_finite_row = 0;
+  std::size_t num_cropped = 0;
+};
+
+/// With AVX2, four rows at a time: packs the selected (`use` null: all) finite rows of `data`
+/// (rows `row_stride` scalars apart, x y z `column_stride` apart) that fall inside the crop into
+/// xyz (3 doubles each) and their row numbers into out_rows, updating `counts`. Returns how many
+/// rows it handled from the first (a multiple of 4; 0 without AVX2): the caller does the rest
+/// with LeveledCloud::map.
+std::size_t level_rows(const float* data, std::size_t rows, std::ptrdiff_t row_stride, std::ptrdiff_t column_stride,
+                       const LevelConstants& k, const std::uint8_t* use, double* xyz, std::uint32_t* out_rows,
+                       LevelCounts& counts);
+std::size_t level_rows(const double* data, std::size_t rows, std::ptrdiff_t row_stride, std::ptrdiff_t column_stride,
+                       const LevelConstants& k, const std::uint8_t* use, double* xyz, std::uint32_t* out_rows,
+                       LevelCounts& counts);
+
 }  // namespace terracube::detail

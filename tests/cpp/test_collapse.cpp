@@ -356,6 +356,69 @@ TEST(CollapsePreprocessing, LeveledCroppedCloudsWithDroppedRowsMatchTheNaiveAlgo
   }
 }
 
+TEST(CollapsePreprocessing, LeveledCloudsThroughEveryViewLayoutAndLengthMatchTheNaiveAlgorithm) {
+  // The leveling kernel reads four rows at a time through any strides (packed, x y z i,
+  // column-major, reversed rows) and leaves a tail of up to three rows to the row-by-row path.
+  Eigen::Matrix4d transform = leveling_transform(0.04, -0.03);
+  transform.topRightCorner<3, 1>() = Eigen::Vector3d(0.5, -0.25, 1.0);
+  const CropBox crop{{-3.0, -3.0, -1.0}, {3.0, 2.5, 6.0}};
+  for (const std::size_t n : {1U, 2U, 3U, 4U, 5U, 7U, 9U, 2003U}) {
+    SCOPED_TRACE("n " + std::to_string(n));
+    auto points = test::random_scene(400 + static_cast<std::uint32_t>(n), n, 4.0);
+    points = std::vector<Eigen::Vector3d>(points.begin(), points.begin() + static_cast<std::ptrdiff_t>(n));
+    if (n > 5) points[5] = Eigen::Vector3d(1.0, std::numeric_limits<double>::quiet_NaN(), 0.0);
+    for (auto& p : points) p = p.cast<float>().cast<double>();  // exact in float rows too
+    // Expected: the naive Algorithm 1 on the rows leveled and cropped here.
+    std::vector<Eigen::Vector3d> inside;
+    std::vector<std::size_t> rows;
+    for (std::size_t row = 0; row < n; ++row) {
+      if (!points[row].allFinite()) continue;
+      const Eigen::Vector3d p = transform.topLeftCorner<3, 3>() * points[row] + transform.topRightCorner<3, 1>();
+      if ((p.array() < crop.min.array()).any() || (p.array() > crop.max.array()).any()) continue;
+      inside.push_back(p);
+      rows.push_back(row);
+    }
+    const NaiveResult naive = naive_algorithm1(inside, 0.25, 2);
+    if (n > 1000) ASSERT_GT(naive.removed.size(), 0U) << "the scene must keep overhangs";
+    std::vector<std::uint8_t> expected(n, 0);
+    for (std::size_t k = 0; k < rows.size(); ++k) expected[rows[k]] = naive.overhang[k];
+    CollapseParams params;
+    params.edge_m = 0.25;
+    params.sigma = 2;
+    params.transform = transform;
+    params.crop = crop;
+    params.drop_non_finite = true;
+    const auto check = [&](const auto& view, const std::vector<std::uint8_t>& mask, const char* what) {
+      const CollapseResult result = collapse_overhangs(view, params);
+      EXPECT_EQ(result.overhang, mask) << what;
+      EXPECT_EQ(result.removed_cubes, naive.removed) << what;
+      EXPECT_EQ(result.num_used, inside.size()) << what;
+      EXPECT_EQ(result.num_dropped_non_finite, n > 5 ? 1U : 0U) << what;
+    };
+    std::vector<double> packed, xyzi, columns(3 * n);
+    std::vector<float> packed_float, xyzi_float;
+    for (std::size_t row = 0; row < n; ++row) {
+      for (int a = 0; a < 3; ++a) {
+        packed.push_back(points[row][a]);
+        xyzi.push_back(points[row][a]);
+        packed_float.push_back(static_cast<float>(points[row][a]));
+        xyzi_float.push_back(static_cast<float>(points[row][a]));
+        columns[static_cast<std::size_t>(a) * n + row] = points[row][a];
+      }
+      xyzi.push_back(7.0);
+      xyzi_float.push_back(7.0F);
+    }
+    check(PointsView<double>(packed.data(), n), expected, "double x y z");
+    check(PointsView<double>(xyzi.data(), n, 4, 1), expected, "double x y z i");
+    check(PointsView<float>(packed_float.data(), n), expected, "float x y z");
+    check(PointsView<float>(xyzi_float.data(), n, 4, 1), expected, "float x y z i");
+    check(PointsView<double>(columns.data(), n, 1, static_cast<std::ptrdiff_t>(n)), expected, "column-major");
+    // Rows reversed: a negative row stride from the last row; the mask comes out reversed.
+    const std::vector<std::uint8_t> reversed(expected.rbegin(), expected.rend());
+    check(PointsView<double>(packed.data() + 3 * (n - 1), n, -3, 1), reversed, "reversed rows");
+  }
+}
+
 // --- storage ----------------------------------------------------------------------------------
 
 TEST(CollapseStorage, TenKilometreCloudAtFiveCentimetresStaysSparseAndExact) {
