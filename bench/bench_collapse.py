@@ -348,6 +348,35 @@ def _require_same_mask(name: str, method: str, mask: np.ndarray, expected: np.nd
         )
 
 
+# The paper levels the cloud by the sensor's roll and pitch before CBC; a crop box bounds it.
+LEVELING = (0.02, -0.03)  # roll, pitch [rad]
+
+
+def leveling_inputs(points: np.ndarray) -> tuple[np.ndarray, tuple]:
+    """A leveling transform (with a small translation) and a crop box that cuts the cloud's outer
+    tenth in x and y."""
+    transform = tc.leveling_transform(*LEVELING)
+    transform[:3, 3] = (0.25, -0.5, 1.0)
+    lo = np.percentile(points[:, :2], 5, axis=0)
+    hi = np.percentile(points[:, :2], 95, axis=0)
+    return transform, ((lo[0], lo[1], -1e9), (hi[0], hi[1], 1e9))
+
+
+def numpy_collapse_leveled(
+    points: np.ndarray, edge: float, sigma: int, transform: np.ndarray, crop
+) -> np.ndarray:
+    """numpy_collapse of the points leveled (q_i = ((r_i0 x + r_i1 y) + r_i2 z) + t_i, the C++
+    code's operations) and cropped, scattered back to the input rows."""
+    x, y, z = (points[:, axis].astype(np.float64) for axis in range(3))
+    leveled = np.empty((len(points), 3))
+    for i in range(3):
+        leveled[:, i] = transform[i, 0] * x + transform[i, 1] * y + transform[i, 2] * z + transform[i, 3]
+    inside = np.all((leveled >= crop[0]) & (leveled <= crop[1]), axis=1)
+    mask = np.zeros(len(points), dtype=bool)
+    mask[inside] = numpy_collapse(leveled[inside], edge, sigma)
+    return mask
+
+
 def measure(cloud: Cloud, edge: float, sigma: int, repeat: int) -> Measurement:
     measurement = Measurement(cloud)
     check_agreement(cloud, edge, sigma, measurement)
@@ -364,6 +393,21 @@ def measure(cloud: Cloud, edge: float, sigma: int, repeat: int) -> Measurement:
             measurement.ms[method] = None
             continue
         measurement.ms[method] = median_ms(runs[method], repeat)
+    # Leveled and cropped, as the paper's pipeline runs: checked equal to numpy, then timed.
+    transform, crop = leveling_inputs(points)
+    leveled = tc.collapse_overhangs(points, edge, sigma, transform=transform, crop=crop)
+    _require_same_mask(
+        f"{cloud.name} (leveled, cropped)",
+        "numpy",
+        numpy_collapse_leveled(points, edge, sigma, transform, crop),
+        leveled.overhang,
+    )
+    measurement.ms["collapse_leveled"] = median_ms(
+        lambda: tc.collapse_overhangs(points, edge, sigma, transform=transform, crop=crop), repeat
+    )
+    measurement.ms["numpy_leveled"] = median_ms(
+        lambda: numpy_collapse_leveled(points, edge, sigma, transform, crop), repeat
+    )
     return measurement
 
 
@@ -411,6 +455,11 @@ def print_measurement(measurement: Measurement) -> None:
     for method in METHODS:
         ms, ratio = _cell(measurement, method)
         print(f"  {LABELS[method]:<30} {ms:>10} {ratio:>9}")
+    leveled, numpy_leveled = measurement.ms["collapse_leveled"], measurement.ms["numpy_leveled"]
+    print(
+        f"  leveled + cropped: collapse_overhangs {leveled:.2f} ms, numpy {numpy_leveled:.2f} ms "
+        f"({numpy_leveled / leveled:.1f}x)"
+    )
     octomap_check = "n/a" if measurement.octomap_error else "OK"
     if measurement.octomap_error:
         print(f"  octomap n/a: {measurement.octomap_error}")
@@ -442,13 +491,29 @@ def print_targets(measurements: list[Measurement], quick: bool) -> None:
 
 def print_markdown(measurements: list[Measurement]) -> None:
     heads = ["point_gap", "OctoMap", "numpy", "numpy (np.unique)"]
-    columns = ["input", "N", "collapse ms", *(f"{h} ms (ratio)" for h in heads), "point_gap agreement"]
+    columns = [
+        "input",
+        "N",
+        "collapse ms",
+        *(f"{h} ms (ratio)" for h in heads),
+        "point_gap agreement",
+        "leveled + cropped: collapse ms, numpy ms (ratio)",
+    ]
     print("\n" + markdown_row(columns))
     print(markdown_rule(len(columns) - 1))
     for m in measurements:
         cells = [f"{ms} ({ratio})" if ms != "n/a" else ms for ms, ratio in (_cell(m, x) for x in METHODS[1:])]
         row = [m.cloud.name, f"{len(m.cloud.points):,}", f"{m.ms['collapse']:.2f}", *cells]
-        print(markdown_row([*row, f"{m.point_gap_agreement:.2%}"]))
+        leveled, numpy_leveled = m.ms["collapse_leveled"], m.ms["numpy_leveled"]
+        print(
+            markdown_row(
+                [
+                    *row,
+                    f"{m.point_gap_agreement:.2%}",
+                    f"{leveled:.2f}, {numpy_leveled:.2f} ({numpy_leveled / leveled:.1f}x)",
+                ]
+            )
+        )
 
 
 # --------------------------------------------------------------------------------------------
