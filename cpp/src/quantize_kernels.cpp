@@ -225,10 +225,13 @@ __attribute__((target("avx2"))) std::size_t level_avx2(const Scalar* data, std::
   return blocks;
 }
 
+#endif
+
 template <typename Scalar>
 std::size_t level_dispatch(const Scalar* data, std::size_t rows, std::ptrdiff_t row_stride,
                            std::ptrdiff_t column_stride, const LevelConstants& k, const std::uint8_t* use, double* xyz,
                            std::uint32_t* out_rows, LevelCounts& counts) {
+#if defined(TERRACUBE_HAVE_AVX2_KERNELS)
   // The gather's offsets (0 to 3 row strides, plus the column offsets) must fit an int32.
   constexpr std::ptrdiff_t kLimit = std::ptrdiff_t{1} << 28;
   if (!has_avx2() || row_stride <= -kLimit || row_stride >= kLimit || column_stride <= -kLimit ||
@@ -243,8 +246,12 @@ std::size_t level_dispatch(const Scalar* data, std::size_t rows, std::ptrdiff_t 
   return k.crop
              ? level_avx2<Scalar, false, true>(data, rows, row_stride, column_stride, k, use, xyz, out_rows, counts)
              : level_avx2<Scalar, false, false>(data, rows, row_stride, column_stride, k, use, xyz, out_rows, counts);
-}
+#else
+  (void)data, (void)rows, (void)row_stride, (void)column_stride, (void)k, (void)use, (void)xyz, (void)out_rows,
+      (void)counts;
+  return 0;
 #endif
+}
 
 template <typename Scalar>
 void dispatch(const Scalar* data, std::size_t rows, int stride, const QuantizeConstants& k, std::uint32_t* out) {
@@ -291,21 +298,13 @@ bool extent_rows(const double* data, std::size_t rows, int stride, double* min, 
 std::size_t level_rows(const float* data, std::size_t rows, std::ptrdiff_t row_stride, std::ptrdiff_t column_stride,
                        const LevelConstants& k, const std::uint8_t* use, double* xyz, std::uint32_t* out_rows,
                        LevelCounts& counts) {
-#if defined(TERRACUBE_HAVE_AVX2_KERNELS)
   return level_dispatch(data, rows, row_stride, column_stride, k, use, xyz, out_rows, counts);
-#else
-  return 0;
-#endif
 }
 
 std::size_t level_rows(const double* data, std::size_t rows, std::ptrdiff_t row_stride, std::ptrdiff_t column_stride,
                        const LevelConstants& k, const std::uint8_t* use, double* xyz, std::uint32_t* out_rows,
                        LevelCounts& counts) {
-#if defined(TERRACUBE_HAVE_AVX2_KERNELS)
   return level_dispatch(data, rows, row_stride, column_stride, k, use, xyz, out_rows, counts);
-#else
-  return 0;
-#endif
 }
 
 void quantize_rows(const float* data, std::size_t rows, int stride, const QuantizeConstants& k, std::uint32_t* out) {

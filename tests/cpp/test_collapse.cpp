@@ -270,6 +270,43 @@ TEST(CollapsePreprocessing, CropBoxExcludesPointsAndTheyAreNeverOverhang) {
   EXPECT_EQ(spread_result.num_cropped, 2U);
 }
 
+/// The rows of `points` that are finite and, leveled by `transform` (R p + t, computed here point
+/// by point), inside `crop`: the leveled points and their input rows.
+struct LeveledByHand {
+  std::vector<Eigen::Vector3d> points;
+  std::vector<std::size_t> rows;
+};
+LeveledByHand level_by_hand(const std::vector<Eigen::Vector3d>& points, const Eigen::Matrix4d& transform,
+                            const CropBox& crop) {
+  LeveledByHand out;
+  for (std::size_t row = 0; row < points.size(); ++row) {
+    if (!points[row].allFinite()) continue;
+    const Eigen::Vector3d p = transform.topLeftCorner<3, 3>() * points[row] + transform.topRightCorner<3, 1>();
+    if ((p.array() < crop.min.array()).any() || (p.array() > crop.max.array()).any()) continue;
+    out.points.push_back(p);
+    out.rows.push_back(row);
+  }
+  return out;
+}
+
+/// Collapse parameters (σ = 2) that level by `transform`, crop to `crop` and drop NaN/Inf rows.
+CollapseParams leveling_params(double edge_m, const Eigen::Matrix4d& transform, const CropBox& crop) {
+  CollapseParams params;
+  params.edge_m = edge_m;
+  params.sigma = 2;
+  params.transform = transform;
+  params.crop = crop;
+  params.drop_non_finite = true;
+  return params;
+}
+
+/// The naive Algorithm 1's mask of the leveled rows, scattered back to all `num_rows` rows.
+std::vector<std::uint8_t> scattered(const LeveledByHand& leveled, const NaiveResult& naive, std::size_t num_rows) {
+  std::vector<std::uint8_t> mask(num_rows, 0);
+  for (std::size_t k = 0; k < leveled.rows.size(); ++k) mask[leveled.rows[k]] = naive.overhang[k];
+  return mask;
+}
+
 TEST(CollapsePreprocessing, LeveledCroppedCloudsWithDroppedRowsMatchTheNaiveAlgorithmOnTheLeveledPoints) {
   // The transform and the crop, applied here point by point (R p + t in doubles, as documented),
   // then the naive Algorithm 1 on the points inside the box: every storage, float and double
@@ -282,23 +319,12 @@ TEST(CollapsePreprocessing, LeveledCroppedCloudsWithDroppedRowsMatchTheNaiveAlgo
     Eigen::Matrix4d transform = leveling_transform(0.01 * (seed % 5), -0.02 * (seed % 3));
     transform.topRightCorner<3, 1>() = Eigen::Vector3d(0.3 * seed, -1.25, 0.5);
     const CropBox crop{{-2.0 + 0.3 * seed, -4.0, -1.0}, {0.3 * seed + 5.0, 3.0, 4.0}};
-    std::vector<Eigen::Vector3d> inside;
-    std::vector<std::size_t> rows;
-    std::size_t cropped = 0;
-    for (std::size_t row = 0; row < points.size(); ++row) {
-      if (!points[row].allFinite()) continue;
-      const Eigen::Vector3d p = transform.topLeftCorner<3, 3>() * points[row] + transform.topRightCorner<3, 1>();
-      if ((p.array() < crop.min.array()).any() || (p.array() > crop.max.array()).any()) {
-        ++cropped;
-        continue;
-      }
-      inside.push_back(p);
-      rows.push_back(row);
-    }
+    const LeveledByHand leveled = level_by_hand(points, transform, crop);
+    const std::vector<Eigen::Vector3d>& inside = leveled.points;
+    const std::size_t cropped = points.size() - 2 - inside.size();  // two rows are NaN/Inf
     ASSERT_GT(cropped, 100U) << "the box must cut the scene";
     const NaiveResult naive = naive_algorithm1(inside, 0.5, 2);
-    std::vector<std::uint8_t> expected(points.size(), 0);
-    for (std::size_t k = 0; k < rows.size(); ++k) expected[rows[k]] = naive.overhang[k];
+    const std::vector<std::uint8_t> expected = scattered(leveled, naive, points.size());
     ASSERT_GT(std::count(expected.begin(), expected.end(), 1), 0) << "the scene must keep overhangs";
     const std::vector<float> floats = [&] {
       std::vector<float> packed;
@@ -306,12 +332,7 @@ TEST(CollapsePreprocessing, LeveledCroppedCloudsWithDroppedRowsMatchTheNaiveAlgo
       return packed;
     }();
     for (const CubeStorage storage : {CubeStorage::kDense, CubeStorage::kSparse}) {
-      CollapseParams params;
-      params.edge_m = 0.5;
-      params.sigma = 2;
-      params.transform = transform;
-      params.crop = crop;
-      params.drop_non_finite = true;
+      CollapseParams params = leveling_params(0.5, transform, crop);
       params.storage = storage;
       const CollapseResult result = collapse_overhangs(points, params);
       EXPECT_EQ(result.overhang, expected);
@@ -325,20 +346,11 @@ TEST(CollapsePreprocessing, LeveledCroppedCloudsWithDroppedRowsMatchTheNaiveAlgo
       EXPECT_EQ(result.storage_used, storage);
       // float rows: the naive reference on the float coordinates gives the same masks.
       const CollapseResult from_floats = collapse_overhangs(PointsView<float>(floats.data(), points.size()), params);
-      std::vector<Eigen::Vector3d> float_inside;
-      std::vector<std::size_t> float_rows;
-      for (std::size_t row = 0; row < points.size(); ++row) {
-        const Eigen::Vector3d q(floats[3 * row], floats[3 * row + 1], floats[3 * row + 2]);
-        if (!q.allFinite()) continue;
-        const Eigen::Vector3d p = transform.topLeftCorner<3, 3>() * q + transform.topRightCorner<3, 1>();
-        if ((p.array() < crop.min.array()).any() || (p.array() > crop.max.array()).any()) continue;
-        float_inside.push_back(p);
-        float_rows.push_back(row);
-      }
-      const NaiveResult float_naive = naive_algorithm1(float_inside, 0.5, 2);
-      std::vector<std::uint8_t> float_expected(points.size(), 0);
-      for (std::size_t k = 0; k < float_rows.size(); ++k) float_expected[float_rows[k]] = float_naive.overhang[k];
-      EXPECT_EQ(from_floats.overhang, float_expected);
+      std::vector<Eigen::Vector3d> rounded(points.size());
+      for (std::size_t row = 0; row < points.size(); ++row) rounded[row] = points[row].cast<float>().cast<double>();
+      const LeveledByHand float_leveled = level_by_hand(rounded, transform, crop);
+      const NaiveResult float_naive = naive_algorithm1(float_leveled.points, 0.5, 2);
+      EXPECT_EQ(from_floats.overhang, scattered(float_leveled, float_naive, points.size()));
       EXPECT_EQ(from_floats.removed_cubes, float_naive.removed);
     }
     // Without dropping, the NaN/Inf rows are named, whatever the transform and crop.
@@ -369,25 +381,14 @@ TEST(CollapsePreprocessing, LeveledCloudsThroughEveryViewLayoutAndLengthMatchThe
     if (n > 5) points[5] = Eigen::Vector3d(1.0, std::numeric_limits<double>::quiet_NaN(), 0.0);
     for (auto& p : points) p = p.cast<float>().cast<double>();  // exact in float rows too
     // Expected: the naive Algorithm 1 on the rows leveled and cropped here.
-    std::vector<Eigen::Vector3d> inside;
-    std::vector<std::size_t> rows;
-    for (std::size_t row = 0; row < n; ++row) {
-      if (!points[row].allFinite()) continue;
-      const Eigen::Vector3d p = transform.topLeftCorner<3, 3>() * points[row] + transform.topRightCorner<3, 1>();
-      if ((p.array() < crop.min.array()).any() || (p.array() > crop.max.array()).any()) continue;
-      inside.push_back(p);
-      rows.push_back(row);
-    }
+    const LeveledByHand leveled = level_by_hand(points, transform, crop);
+    const std::vector<Eigen::Vector3d>& inside = leveled.points;
     const NaiveResult naive = naive_algorithm1(inside, 0.25, 2);
-    if (n > 1000) ASSERT_GT(naive.removed.size(), 0U) << "the scene must keep overhangs";
-    std::vector<std::uint8_t> expected(n, 0);
-    for (std::size_t k = 0; k < rows.size(); ++k) expected[rows[k]] = naive.overhang[k];
-    CollapseParams params;
-    params.edge_m = 0.25;
-    params.sigma = 2;
-    params.transform = transform;
-    params.crop = crop;
-    params.drop_non_finite = true;
+    if (n > 1000) {
+      ASSERT_GT(naive.removed.size(), 0U) << "the scene must keep overhangs";
+    }
+    const std::vector<std::uint8_t> expected = scattered(leveled, naive, n);
+    const CollapseParams params = leveling_params(0.25, transform, crop);
     const auto check = [&](const auto& view, const std::vector<std::uint8_t>& mask, const char* what) {
       const CollapseResult result = collapse_overhangs(view, params);
       EXPECT_EQ(result.overhang, mask) << what;
