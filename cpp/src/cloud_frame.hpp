@@ -175,7 +175,7 @@ void pack_leveled(const PointsView<Scalar>& points, const Eigen::Matrix4d& trans
   out.first_non_finite_row = counts.first_non_finite_row;
   out.num_cropped = counts.num_cropped;
   visit_leveled(points, transform, crop, [&](const auto& cloud) {
-    Eigen::Vector3d p;
+    Eigen::Vector3d p = Eigen::Vector3d::Zero();  // written out even for rows that do not take part
     for (std::size_t row = handled; row < cloud.size(); ++row) {
       if (use != nullptr && (*use)[row] == 0) continue;
       const int status = cloud.map(row, p);
