@@ -45,6 +45,18 @@ class LeveledCloud {
 
   const PointsView<Scalar>& view() const { return points_; }
 
+  /// The transform and crop as the leveling kernels take them.
+  LevelConstants constants() const {
+    LevelConstants k;
+    std::copy_n(rotation_, 9, k.rotation);
+    std::copy_n(translation_, 3, k.translation);
+    std::copy_n(crop_min_, 3, k.crop_min);
+    std::copy_n(crop_max_, 3, k.crop_max);
+    k.transform = kTransform;
+    k.crop = kCrop;
+    return k;
+  }
+
   /// The raw coordinates of `row`, as doubles.
   double raw(std::size_t row, int axis) const {
     return static_cast<double>(
@@ -158,23 +170,16 @@ void pack_leveled(const PointsView<Scalar>& points, const Eigen::Matrix4d& trans
   std::uint32_t* rows = out.rows.data();
   // Four rows at a time with AVX2 where the CPU has it, the rest (or all) row by row: the same
   // arithmetic either way.
-  LevelConstants constants;
-  for (int i = 0; i < 3; ++i) {
-    for (int j = 0; j < 3; ++j) constants.rotation[3 * i + j] = transform(i, j);
-    constants.translation[i] = transform(i, 3);
-    constants.crop_min[i] = crop ? crop->min[i] : -std::numeric_limits<double>::infinity();
-    constants.crop_max[i] = crop ? crop->max[i] : std::numeric_limits<double>::infinity();
-  }
-  constants.transform = !transform.isIdentity(0.0);
-  constants.crop = crop.has_value();
-  LevelCounts counts;
-  const std::size_t handled = level_rows(points.data, points.size, points.row_stride, points.column_stride, constants,
-                                         use != nullptr ? use->data() : nullptr, xyz, rows, counts);
-  std::size_t size = counts.size;
-  out.num_non_finite = counts.num_non_finite;
-  out.first_non_finite_row = counts.first_non_finite_row;
-  out.num_cropped = counts.num_cropped;
+  std::size_t size = 0;
   visit_leveled(points, transform, crop, [&](const auto& cloud) {
+    LevelCounts counts;
+    const std::size_t handled =
+        level_rows(points.data, points.size, points.row_stride, points.column_stride, cloud.constants(),
+                   use != nullptr ? use->data() : nullptr, xyz, rows, counts);
+    size = counts.size;
+    out.num_non_finite = counts.num_non_finite;
+    out.first_non_finite_row = counts.first_non_finite_row;
+    out.num_cropped = counts.num_cropped;
     Eigen::Vector3d p = Eigen::Vector3d::Zero();  // written out even for rows that do not take part
     for (std::size_t row = handled; row < cloud.size(); ++row) {
       if (use != nullptr && (*use)[row] == 0) continue;
@@ -271,8 +276,21 @@ CloudExtent measure_extent(const Cloud& cloud, bool drop_non_finite) {
   }
   constexpr double kInf = std::numeric_limits<double>::infinity();
   double min_x = kInf, min_y = kInf, min_z = kInf, max_x = -kInf, max_y = -kInf, max_z = -kInf;
+  std::size_t first = 0;  // rows before it went through the leveling kernel (AVX2 CPUs)
+  if constexpr (!Cloud::kPlain) {
+    const auto& view = cloud.view();
+    double lo[3] = {kInf, kInf, kInf}, hi[3] = {-kInf, -kInf, -kInf};
+    LevelCounts counts;
+    first = extent_leveled_rows(view.data, view.size, view.row_stride, view.column_stride, cloud.constants(), lo, hi,
+                                counts);
+    min_x = lo[0], min_y = lo[1], min_z = lo[2], max_x = hi[0], max_y = hi[1], max_z = hi[2];
+    extent.num_used = counts.size;
+    extent.num_non_finite = counts.num_non_finite;
+    extent.first_non_finite_row = counts.first_non_finite_row;
+    extent.num_cropped = counts.num_cropped;
+  }
   Eigen::Vector3d p;
-  for (std::size_t row = 0; row < cloud.size(); ++row) {
+  for (std::size_t row = first; row < cloud.size(); ++row) {
     const int status = cloud.map(row, p);
     if (status == 0) {
       min_x = p.x() < min_x ? p.x() : min_x;

@@ -124,8 +124,16 @@ void quantize_block(const Cloud& cloud, const CubeGrid& grid, bool all_used, std
       return;
     }
   }
+  std::size_t first = begin;  // rows before it went through the leveling kernel (AVX2 CPUs)
+  if constexpr (!Cloud::kPlain) {
+    const auto& view = cloud.view();
+    const detail::QuantizeConstants constants{x0, y0, z0, inverse_edge, ixmax, layer};
+    first +=
+        detail::quantize_leveled_rows(view.data + static_cast<std::ptrdiff_t>(begin) * view.row_stride, end - begin,
+                                      view.row_stride, view.column_stride, cloud.constants(), constants, no_cube, out);
+  }
   Eigen::Vector3d p;
-  for (std::size_t row = begin; row < end; ++row) {
+  for (std::size_t row = first; row < end; ++row) {
     out[row - begin] = cloud.map(row, p) == 0 ? cube_of(p.x(), p.y(), p.z()) : no_cube;
   }
 }
@@ -395,8 +403,6 @@ void collapse_sparse(const Cloud& cloud, const CollapseParams& params, CollapseR
   result.num_overhang = count;
 }
 
-CollapseResult collapse_plain_or_leveled(const PointsView<double>& points, const CollapseParams& params);
-
 template <typename Scalar>
 CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapseParams& params) {
   detail::check_collapse_params(params);
@@ -409,23 +415,9 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
   result.grid.edge_m = params.edge_m;
   result.storage_used = params.storage == CubeStorage::kSparse ? CubeStorage::kSparse : CubeStorage::kDense;
 
-  const bool leveled = !params.transform.isIdentity(0.0) || params.crop.has_value();
-  if (leveled && points.size < std::numeric_limits<std::uint32_t>::max()) {
-    // A transform or a crop: level the points that take part into a packed buffer once (the same
-    // LeveledCloud::map as the per-row path, so the same doubles), then run the plain path --
-    // branch-free extent and quantisation kernels -- on it and scatter its mask back. The
-    // per-row path would level every row twice (extent, then cubes) in scalar code.
-    detail::PackedRows& packed_rows = detail::packed_rows_scratch();
-    detail::pack_leveled(points, params.transform, params.crop, params.drop_non_finite, nullptr, packed_rows);
-    CollapseParams plain = params;
-    plain.transform = Eigen::Matrix4d::Identity();
-    plain.crop.reset();
-    CollapseResult packed = collapse_plain_or_leveled(packed_rows.view(), plain);
-    detail::unpack_collapse(std::move(packed), packed_rows, result);
-    detail::release_packed_rows_if_large();
-    return result;
-  }
-
+  // A transform or a crop is applied on the fly: with AVX2 the extent and quantisation kernels
+  // level four rows at a time (the arithmetic of LeveledCloud::map), so each pass reads the input
+  // rows once and nothing is written per row but the cube index.
   detail::visit_leveled(points, params.transform, params.crop, [&](const auto& cloud) {
     const detail::CloudExtent extent = detail::measure_extent(cloud, params.drop_non_finite);
     result.num_used = extent.num_used;
@@ -441,10 +433,6 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
     }
   });
   return result;
-}
-
-CollapseResult collapse_plain_or_leveled(const PointsView<double>& points, const CollapseParams& params) {
-  return collapse_impl(points, params);
 }
 
 }  // namespace

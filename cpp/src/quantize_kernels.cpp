@@ -155,53 +155,111 @@ __attribute__((target("avx2"), always_inline)) inline __m256d gather_rows(const 
   return _mm256_mask_i32gather_pd(_mm256_setzero_pd(), base, index, all, 8);
 }
 
-/// level_rows with AVX2: x, y and z of four rows gathered into doubles, leveled and tested in
-/// the same IEEE operations as LeveledCloud::map (no FMA: the target is AVX2 alone), then each
-/// lane packed or counted.
-template <typename Scalar, bool kTransform, bool kCrop>
+/// x, y and z of four rows whose coordinates are adjacent (column stride 1), rows `row_stride`
+/// scalars apart: one load of four scalars per row (the fourth is not used; see
+/// kernel_rows), transposed in registers. Cheaper than three gathers.
+__attribute__((target("avx2"), always_inline)) inline void load_rows(const float* base, std::ptrdiff_t row_stride,
+                                                                     __m256d& x, __m256d& y, __m256d& z) {
+  const __m128 r0 = _mm_loadu_ps(base), r1 = _mm_loadu_ps(base + row_stride);
+  const __m128 r2 = _mm_loadu_ps(base + 2 * row_stride), r3 = _mm_loadu_ps(base + 3 * row_stride);
+  const __m128 xy01 = _mm_unpacklo_ps(r0, r1), xy23 = _mm_unpacklo_ps(r2, r3);  // x0 x1 y0 y1 | x2 x3 y2 y3
+  const __m128 zw01 = _mm_unpackhi_ps(r0, r1), zw23 = _mm_unpackhi_ps(r2, r3);  // z0 z1 w0 w1 | z2 z3 w2 w3
+  x = _mm256_cvtps_pd(_mm_movelh_ps(xy01, xy23));
+  y = _mm256_cvtps_pd(_mm_movehl_ps(xy23, xy01));
+  z = _mm256_cvtps_pd(_mm_movelh_ps(zw01, zw23));
+}
+__attribute__((target("avx2"), always_inline)) inline void load_rows(const double* base, std::ptrdiff_t row_stride,
+                                                                     __m256d& x, __m256d& y, __m256d& z) {
+  const __m256d r0 = _mm256_loadu_pd(base), r1 = _mm256_loadu_pd(base + row_stride);
+  const __m256d r2 = _mm256_loadu_pd(base + 2 * row_stride), r3 = _mm256_loadu_pd(base + 3 * row_stride);
+  const __m256d xz01 = _mm256_unpacklo_pd(r0, r1), xz23 = _mm256_unpacklo_pd(r2, r3);  // x0 x1 z0 z1 | x2 x3 z2 z3
+  const __m256d yw01 = _mm256_unpackhi_pd(r0, r1), yw23 = _mm256_unpackhi_pd(r2, r3);  // y0 y1 w0 w1 | y2 y3 w2 w3
+  x = _mm256_permute2f128_pd(xz01, xz23, 0x20);
+  y = _mm256_permute2f128_pd(yw01, yw23, 0x20);
+  z = _mm256_permute2f128_pd(xz01, xz23, 0x31);
+}
+
+/// How many rows (a multiple of 4) a leveling kernel takes. With row loads a row of three
+/// adjacent scalars is read with the scalar after it, which the last row does not have: that
+/// row's block is left to the caller.
+inline std::size_t kernel_rows(std::size_t rows, std::ptrdiff_t row_stride, bool row_loads) {
+  if (row_loads && row_stride < 4) return rows == 0 ? 0 : (rows - 1) / 4 * 4;
+  return rows / 4 * 4;
+}
+
+/// The leveling constants as vectors.
+struct LevelVectors {
+  __m256d r[9], t[3], lo[3], hi[3];
+};
+
+__attribute__((target("avx2"), always_inline)) inline void broadcast(const LevelConstants& k, LevelVectors& v) {
+  for (int i = 0; i < 9; ++i) v.r[i] = _mm256_set1_pd(k.rotation[i]);
+  for (int i = 0; i < 3; ++i) {
+    v.t[i] = _mm256_set1_pd(k.translation[i]);
+    v.lo[i] = _mm256_set1_pd(k.crop_min[i]);
+    v.hi[i] = _mm256_set1_pd(k.crop_max[i]);
+  }
+}
+
+/// Four rows (`index`: their offsets from `base`) leveled into q, in the same IEEE operations as
+/// LeveledCloud::map (no FMA: the target is AVX2 alone), with the lanes whose x, y and z are all
+/// finite (`finite`) and those whose leveled point lies inside the crop box (`inside`).
+template <typename Scalar, bool kTransform, bool kCrop, bool kRows>
+__attribute__((target("avx2"), always_inline)) inline void level4(const Scalar* base, std::ptrdiff_t row_stride,
+                                                                  __m128i index, std::ptrdiff_t column_stride,
+                                                                  const LevelVectors& v, __m256d* q, __m256d& finite,
+                                                                  __m256d& inside) {
+  __m256d x, y, z;
+  if constexpr (kRows) {
+    load_rows(base, row_stride, x, y, z);
+  } else {
+    x = gather_rows(base, index);
+    y = gather_rows(base + column_stride, index);
+    z = gather_rows(base + 2 * column_stride, index);
+  }
+  // (x - x) + (y - y) + (z - z) == 0: all three finite.
+  finite = _mm256_cmp_pd(_mm256_add_pd(_mm256_add_pd(_mm256_sub_pd(x, x), _mm256_sub_pd(y, y)), _mm256_sub_pd(z, z)),
+                         _mm256_setzero_pd(), _CMP_EQ_OQ);
+  q[0] = x, q[1] = y, q[2] = z;
+  if constexpr (kTransform) {
+    for (int i = 0; i < 3; ++i) {
+      q[i] = _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(_mm256_mul_pd(v.r[3 * i], x), _mm256_mul_pd(v.r[3 * i + 1], y)),
+                                         _mm256_mul_pd(v.r[3 * i + 2], z)),
+                           v.t[i]);
+    }
+  }
+  if constexpr (kCrop) {
+    inside = _mm256_and_pd(_mm256_cmp_pd(q[0], v.lo[0], _CMP_GE_OQ), _mm256_cmp_pd(q[0], v.hi[0], _CMP_LE_OQ));
+    for (int i = 1; i < 3; ++i) {
+      inside = _mm256_and_pd(
+          inside, _mm256_and_pd(_mm256_cmp_pd(q[i], v.lo[i], _CMP_GE_OQ), _mm256_cmp_pd(q[i], v.hi[i], _CMP_LE_OQ)));
+    }
+  } else {
+    inside = _mm256_castsi256_pd(_mm256_set1_epi64x(-1));
+  }
+}
+
+/// The number of set bits of a 4-bit lane mask (the baseline target has no popcnt instruction).
+constexpr std::uint8_t kLaneCount[16] = {0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4};
+
+/// level_rows with AVX2: four rows leveled and tested at a time, then each lane packed or counted.
+template <typename Scalar, bool kTransform, bool kCrop, bool kRows>
 __attribute__((target("avx2"))) std::size_t level_avx2(const Scalar* data, std::size_t rows, std::ptrdiff_t row_stride,
                                                        std::ptrdiff_t column_stride, const LevelConstants& k,
                                                        const std::uint8_t* use, double* xyz, std::uint32_t* out_rows,
                                                        LevelCounts& counts) {
   const auto rs = static_cast<int>(row_stride);
   const __m128i index = _mm_setr_epi32(0, rs, 2 * rs, 3 * rs);
-  __m256d r[9], t[3], lo[3], hi[3];
-  for (int i = 0; i < 9; ++i) r[i] = _mm256_set1_pd(k.rotation[i]);
-  for (int i = 0; i < 3; ++i) {
-    t[i] = _mm256_set1_pd(k.translation[i]);
-    lo[i] = _mm256_set1_pd(k.crop_min[i]);
-    hi[i] = _mm256_set1_pd(k.crop_max[i]);
-  }
-  const __m256d zero = _mm256_setzero_pd();
+  LevelVectors v;
+  broadcast(k, v);
   std::size_t size = counts.size;
-  const std::size_t blocks = rows / 4 * 4;
+  const std::size_t blocks = kernel_rows(rows, row_stride, kRows);
   alignas(32) double q[3][4];
   for (std::size_t row = 0; row < blocks; row += 4) {
-    const Scalar* base = data + static_cast<std::ptrdiff_t>(row) * row_stride;
-    const __m256d x = gather_rows(base, index);
-    const __m256d y = gather_rows(base + column_stride, index);
-    const __m256d z = gather_rows(base + 2 * column_stride, index);
-    // (x - x) + (y - y) + (z - z) == 0: all three finite.
-    const __m256d finite = _mm256_cmp_pd(
-        _mm256_add_pd(_mm256_add_pd(_mm256_sub_pd(x, x), _mm256_sub_pd(y, y)), _mm256_sub_pd(z, z)), zero, _CMP_EQ_OQ);
-    __m256d out[3] = {x, y, z};
-    if constexpr (kTransform) {
-      for (int i = 0; i < 3; ++i) {
-        out[i] = _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(_mm256_mul_pd(r[3 * i], x), _mm256_mul_pd(r[3 * i + 1], y)),
-                                             _mm256_mul_pd(r[3 * i + 2], z)),
-                               t[i]);
-      }
-    }
-    int inside_mask = 0xF;
-    if constexpr (kCrop) {
-      __m256d inside =
-          _mm256_and_pd(_mm256_cmp_pd(out[0], lo[0], _CMP_GE_OQ), _mm256_cmp_pd(out[0], hi[0], _CMP_LE_OQ));
-      for (int i = 1; i < 3; ++i) {
-        inside = _mm256_and_pd(
-            inside, _mm256_and_pd(_mm256_cmp_pd(out[i], lo[i], _CMP_GE_OQ), _mm256_cmp_pd(out[i], hi[i], _CMP_LE_OQ)));
-      }
-      inside_mask = _mm256_movemask_pd(inside);
-    }
+    __m256d out[3], finite, inside;
+    level4<Scalar, kTransform, kCrop, kRows>(data + static_cast<std::ptrdiff_t>(row) * row_stride, row_stride, index,
+                                             column_stride, v, out, finite, inside);
+    const int inside_mask = _mm256_movemask_pd(inside);
     const int finite_mask = _mm256_movemask_pd(finite);
     for (int i = 0; i < 3; ++i) _mm256_store_pd(q[i], out[i]);
     for (int lane = 0; lane < 4; ++lane) {
@@ -225,6 +283,112 @@ __attribute__((target("avx2"))) std::size_t level_avx2(const Scalar* data, std::
   return blocks;
 }
 
+/// extent_leveled_rows with AVX2: per axis four running minima and maxima over the lanes that
+/// take part (the others fold +-inf). min(q, lo) and max(q, hi) are the scalar path's
+/// q < lo ? q : lo and q > hi ? q : hi, lane by lane.
+template <typename Scalar, bool kTransform, bool kCrop, bool kRows>
+__attribute__((target("avx2"))) std::size_t extent_leveled_avx2(const Scalar* data, std::size_t rows,
+                                                                std::ptrdiff_t row_stride, std::ptrdiff_t column_stride,
+                                                                const LevelConstants& k, double* min, double* max,
+                                                                LevelCounts& counts) {
+  const auto rs = static_cast<int>(row_stride);
+  const __m128i index = _mm_setr_epi32(0, rs, 2 * rs, 3 * rs);
+  LevelVectors v;
+  broadcast(k, v);
+  constexpr double kInf = std::numeric_limits<double>::infinity();
+  const __m256d plus_inf = _mm256_set1_pd(kInf), minus_inf = _mm256_set1_pd(-kInf);
+  __m256d lo[3] = {plus_inf, plus_inf, plus_inf}, hi[3] = {minus_inf, minus_inf, minus_inf};
+  std::size_t used = 0, cropped = 0;
+  const std::size_t blocks = kernel_rows(rows, row_stride, kRows);
+  for (std::size_t row = 0; row < blocks; row += 4) {
+    __m256d q[3], finite, inside;
+    level4<Scalar, kTransform, kCrop, kRows>(data + static_cast<std::ptrdiff_t>(row) * row_stride, row_stride, index,
+                                             column_stride, v, q, finite, inside);
+    const __m256d take = _mm256_and_pd(finite, inside);
+    for (int i = 0; i < 3; ++i) {
+      lo[i] = _mm256_min_pd(_mm256_blendv_pd(plus_inf, q[i], take), lo[i]);
+      hi[i] = _mm256_max_pd(_mm256_blendv_pd(minus_inf, q[i], take), hi[i]);
+    }
+    const int finite_mask = _mm256_movemask_pd(finite);
+    const int take_mask = _mm256_movemask_pd(take);
+    used += kLaneCount[take_mask];
+    cropped += kLaneCount[finite_mask & ~take_mask];
+    if (finite_mask != 0xF) {
+      const int bad = ~finite_mask & 0xF;
+      if (counts.num_non_finite == 0) counts.first_non_finite_row = row + static_cast<std::size_t>(__builtin_ctz(bad));
+      counts.num_non_finite += kLaneCount[bad];
+    }
+  }
+  alignas(32) double lo_s[3][4], hi_s[3][4];
+  for (int i = 0; i < 3; ++i) {
+    _mm256_store_pd(lo_s[i], lo[i]);
+    _mm256_store_pd(hi_s[i], hi[i]);
+    for (int lane = 0; lane < 4; ++lane) {
+      min[i] = lo_s[i][lane] < min[i] ? lo_s[i][lane] : min[i];
+      max[i] = hi_s[i][lane] > max[i] ? hi_s[i][lane] : max[i];
+    }
+  }
+  counts.size += used;
+  counts.num_cropped += cropped;
+  return blocks;
+}
+
+/// quantize_leveled_rows with AVX2: the leveled points of four rows into cube indices as
+/// quantize_body does (double (q - x0) / E + 0.5 truncated to int32, then eq. (7) in uint32
+/// arithmetic), `no_cube` for the lanes that take no part.
+template <typename Scalar, bool kTransform, bool kCrop, bool kRows>
+__attribute__((target("avx2"))) std::size_t quantize_leveled_avx2(const Scalar* data, std::size_t rows,
+                                                                  std::ptrdiff_t row_stride,
+                                                                  std::ptrdiff_t column_stride, const LevelConstants& k,
+                                                                  const QuantizeConstants& c, std::uint32_t no_cube,
+                                                                  std::uint32_t* out) {
+  const auto rs = static_cast<int>(row_stride);
+  const __m128i index = _mm_setr_epi32(0, rs, 2 * rs, 3 * rs);
+  LevelVectors v;
+  broadcast(k, v);
+  const __m256d origin[3] = {_mm256_set1_pd(c.x0), _mm256_set1_pd(c.y0), _mm256_set1_pd(c.z0)};
+  const __m256d inverse = _mm256_set1_pd(c.inverse_edge), half = _mm256_set1_pd(0.5);
+  const __m128i ixmax = _mm_set1_epi32(static_cast<int>(c.ixmax)), layer = _mm_set1_epi32(static_cast<int>(c.layer));
+  const __m128i none = _mm_set1_epi32(static_cast<int>(no_cube));
+  const __m256i low_halves = _mm256_setr_epi32(0, 2, 4, 6, 1, 3, 5, 7);  // a 64-bit mask's lanes as 32-bit lanes
+  const std::size_t blocks = kernel_rows(rows, row_stride, kRows);
+  for (std::size_t row = 0; row < blocks; row += 4) {
+    __m256d q[3], finite, inside;
+    level4<Scalar, kTransform, kCrop, kRows>(data + static_cast<std::ptrdiff_t>(row) * row_stride, row_stride, index,
+                                             column_stride, v, q, finite, inside);
+    __m128i i[3];
+    for (int a = 0; a < 3; ++a) {
+      i[a] = _mm256_cvttpd_epi32(_mm256_add_pd(_mm256_mul_pd(_mm256_sub_pd(q[a], origin[a]), inverse), half));
+    }
+    const __m128i cube = _mm_add_epi32(_mm_add_epi32(i[0], _mm_mullo_epi32(i[1], ixmax)), _mm_mullo_epi32(i[2], layer));
+    const __m128i take = _mm256_castsi256_si128(
+        _mm256_permutevar8x32_epi32(_mm256_castpd_si256(_mm256_and_pd(finite, inside)), low_halves));
+    _mm_storeu_si128(reinterpret_cast<__m128i*>(out + row), _mm_blendv_epi8(none, cube, take));
+  }
+  return blocks;
+}
+
+/// Whether the gathers' offsets (0 to 3 row strides, plus the column offsets) fit an int32.
+bool gather_strides_fit(std::ptrdiff_t row_stride, std::ptrdiff_t column_stride) {
+  constexpr std::ptrdiff_t kLimit = std::ptrdiff_t{1} << 28;
+  return row_stride > -kLimit && row_stride < kLimit && column_stride > -kLimit && column_stride < kLimit;
+}
+
+/// Calls kernel(transform, crop, row_loads) with the std::bool_constant switches that `k` and the
+/// layout need: row loads for adjacent coordinates (column stride 1) in rows of at least three
+/// scalars going forward, gathers otherwise.
+template <typename Kernel>
+std::size_t with_level_switches(const LevelConstants& k, std::ptrdiff_t row_stride, std::ptrdiff_t column_stride,
+                                Kernel&& kernel) {
+  using Yes = std::true_type;
+  using No = std::false_type;
+  const auto with_rows = [&](auto transform, auto crop) {
+    return column_stride == 1 && row_stride >= 3 ? kernel(transform, crop, Yes{}) : kernel(transform, crop, No{});
+  };
+  if (k.transform) return k.crop ? with_rows(Yes{}, Yes{}) : with_rows(Yes{}, No{});
+  return k.crop ? with_rows(No{}, Yes{}) : with_rows(No{}, No{});
+}
+
 #endif
 
 template <typename Scalar>
@@ -232,23 +396,46 @@ std::size_t level_dispatch(const Scalar* data, std::size_t rows, std::ptrdiff_t 
                            std::ptrdiff_t column_stride, const LevelConstants& k, const std::uint8_t* use, double* xyz,
                            std::uint32_t* out_rows, LevelCounts& counts) {
 #if defined(TERRACUBE_HAVE_AVX2_KERNELS)
-  // The gather's offsets (0 to 3 row strides, plus the column offsets) must fit an int32.
-  constexpr std::ptrdiff_t kLimit = std::ptrdiff_t{1} << 28;
-  if (!has_avx2() || row_stride <= -kLimit || row_stride >= kLimit || column_stride <= -kLimit ||
-      column_stride >= kLimit) {
-    return 0;
-  }
-  if (k.transform) {
-    return k.crop
-               ? level_avx2<Scalar, true, true>(data, rows, row_stride, column_stride, k, use, xyz, out_rows, counts)
-               : level_avx2<Scalar, true, false>(data, rows, row_stride, column_stride, k, use, xyz, out_rows, counts);
-  }
-  return k.crop
-             ? level_avx2<Scalar, false, true>(data, rows, row_stride, column_stride, k, use, xyz, out_rows, counts)
-             : level_avx2<Scalar, false, false>(data, rows, row_stride, column_stride, k, use, xyz, out_rows, counts);
+  if (!has_avx2() || !gather_strides_fit(row_stride, column_stride)) return 0;
+  return with_level_switches(k, row_stride, column_stride, [&](auto transform, auto crop, auto row_loads) {
+    return level_avx2<Scalar, decltype(transform)::value, decltype(crop)::value, decltype(row_loads)::value>(
+        data, rows, row_stride, column_stride, k, use, xyz, out_rows, counts);
+  });
 #else
   (void)data, (void)rows, (void)row_stride, (void)column_stride, (void)k, (void)use, (void)xyz, (void)out_rows,
       (void)counts;
+  return 0;
+#endif
+}
+
+template <typename Scalar>
+std::size_t extent_leveled_dispatch(const Scalar* data, std::size_t rows, std::ptrdiff_t row_stride,
+                                    std::ptrdiff_t column_stride, const LevelConstants& k, double* min, double* max,
+                                    LevelCounts& counts) {
+#if defined(TERRACUBE_HAVE_AVX2_KERNELS)
+  if (!has_avx2() || !gather_strides_fit(row_stride, column_stride)) return 0;
+  return with_level_switches(k, row_stride, column_stride, [&](auto transform, auto crop, auto row_loads) {
+    return extent_leveled_avx2<Scalar, decltype(transform)::value, decltype(crop)::value, decltype(row_loads)::value>(
+        data, rows, row_stride, column_stride, k, min, max, counts);
+  });
+#else
+  (void)data, (void)rows, (void)row_stride, (void)column_stride, (void)k, (void)min, (void)max, (void)counts;
+  return 0;
+#endif
+}
+
+template <typename Scalar>
+std::size_t quantize_leveled_dispatch(const Scalar* data, std::size_t rows, std::ptrdiff_t row_stride,
+                                      std::ptrdiff_t column_stride, const LevelConstants& k, const QuantizeConstants& q,
+                                      std::uint32_t no_cube, std::uint32_t* out) {
+#if defined(TERRACUBE_HAVE_AVX2_KERNELS)
+  if (!has_avx2() || !gather_strides_fit(row_stride, column_stride)) return 0;
+  return with_level_switches(k, row_stride, column_stride, [&](auto transform, auto crop, auto row_loads) {
+    return quantize_leveled_avx2<Scalar, decltype(transform)::value, decltype(crop)::value, decltype(row_loads)::value>(
+        data, rows, row_stride, column_stride, k, q, no_cube, out);
+  });
+#else
+  (void)data, (void)rows, (void)row_stride, (void)column_stride, (void)k, (void)q, (void)no_cube, (void)out;
   return 0;
 #endif
 }
@@ -305,6 +492,30 @@ std::size_t level_rows(const double* data, std::size_t rows, std::ptrdiff_t row_
                        const LevelConstants& k, const std::uint8_t* use, double* xyz, std::uint32_t* out_rows,
                        LevelCounts& counts) {
   return level_dispatch(data, rows, row_stride, column_stride, k, use, xyz, out_rows, counts);
+}
+
+std::size_t extent_leveled_rows(const float* data, std::size_t rows, std::ptrdiff_t row_stride,
+                                std::ptrdiff_t column_stride, const LevelConstants& k, double* min, double* max,
+                                LevelCounts& counts) {
+  return extent_leveled_dispatch(data, rows, row_stride, column_stride, k, min, max, counts);
+}
+
+std::size_t extent_leveled_rows(const double* data, std::size_t rows, std::ptrdiff_t row_stride,
+                                std::ptrdiff_t column_stride, const LevelConstants& k, double* min, double* max,
+                                LevelCounts& counts) {
+  return extent_leveled_dispatch(data, rows, row_stride, column_stride, k, min, max, counts);
+}
+
+std::size_t quantize_leveled_rows(const float* data, std::size_t rows, std::ptrdiff_t row_stride,
+                                  std::ptrdiff_t column_stride, const LevelConstants& k, const QuantizeConstants& q,
+                                  std::uint32_t no_cube, std::uint32_t* out) {
+  return quantize_leveled_dispatch(data, rows, row_stride, column_stride, k, q, no_cube, out);
+}
+
+std::size_t quantize_leveled_rows(const double* data, std::size_t rows, std::ptrdiff_t row_stride,
+                                  std::ptrdiff_t column_stride, const LevelConstants& k, const QuantizeConstants& q,
+                                  std::uint32_t no_cube, std::uint32_t* out) {
+  return quantize_leveled_dispatch(data, rows, row_stride, column_stride, k, q, no_cube, out);
 }
 
 void quantize_rows(const float* data, std::size_t rows, int stride, const QuantizeConstants& k, std::uint32_t* out) {

@@ -71,4 +71,28 @@ std::size_t level_rows(const double* data, std::size_t rows, std::ptrdiff_t row_
                        const LevelConstants& k, const std::uint8_t* use, double* xyz, std::uint32_t* out_rows,
                        LevelCounts& counts);
 
+/// The bounding box of the rows that take part once leveled and cropped (finite, inside the crop;
+/// see level_rows for the arithmetic), with AVX2 four rows at a time: folds their leveled points
+/// into min/max and updates `counts` (size: the rows that take part). Returns how many rows it
+/// handled from the first (a multiple of 4; 0 without AVX2): the caller does the rest with
+/// LeveledCloud::map. Nothing is written per row.
+std::size_t extent_leveled_rows(const float* data, std::size_t rows, std::ptrdiff_t row_stride,
+                                std::ptrdiff_t column_stride, const LevelConstants& k, double* min, double* max,
+                                LevelCounts& counts);
+std::size_t extent_leveled_rows(const double* data, std::size_t rows, std::ptrdiff_t row_stride,
+                                std::ptrdiff_t column_stride, const LevelConstants& k, double* min, double* max,
+                                LevelCounts& counts);
+
+/// Eqs. (1)-(3) and (7) of leveled rows (dense path: every count and the product below 2^31):
+/// out[r] = I of row r's leveled point, `no_cube` for a row that takes no part (NaN/Inf or outside
+/// the crop). With AVX2 four rows at a time, in the same IEEE operations as LeveledCloud::map
+/// followed by quantize_rows; returns how many rows it handled from the first (a multiple of 4;
+/// 0 without AVX2).
+std::size_t quantize_leveled_rows(const float* data, std::size_t rows, std::ptrdiff_t row_stride,
+                                  std::ptrdiff_t column_stride, const LevelConstants& k, const QuantizeConstants& q,
+                                  std::uint32_t no_cube, std::uint32_t* out);
+std::size_t quantize_leveled_rows(const double* data, std::size_t rows, std::ptrdiff_t row_stride,
+                                  std::ptrdiff_t column_stride, const LevelConstants& k, const QuantizeConstants& q,
+                                  std::uint32_t no_cube, std::uint32_t* out);
+
 }  // namespace terracube::detail

@@ -347,7 +347,7 @@ TEST(CollapsePreprocessing, LeveledCroppedCloudsWithDroppedRowsMatchTheNaiveAlgo
       // float rows: the naive reference on the float coordinates gives the same masks.
       const CollapseResult from_floats = collapse_overhangs(PointsView<float>(floats.data(), points.size()), params);
       std::vector<Eigen::Vector3d> rounded(points.size());
-      for (std::size_t row = 0; row < points.size(); ++row) rounded[row] = points[row].cast<float>().cast<double>();
+      for (std::size_t row = 0; row < points.size(); ++row) rounded[row] = test::rounded_to<float>(points[row]);
       const LeveledByHand float_leveled = level_by_hand(rounded, transform, crop);
       const NaiveResult float_naive = naive_algorithm1(float_leveled.points, 0.5, 2);
       EXPECT_EQ(from_floats.overhang, scattered(float_leveled, float_naive, points.size()));
@@ -379,7 +379,7 @@ TEST(CollapsePreprocessing, LeveledCloudsThroughEveryViewLayoutAndLengthMatchThe
     auto points = test::random_scene(400 + static_cast<std::uint32_t>(n), n, 4.0);
     points = std::vector<Eigen::Vector3d>(points.begin(), points.begin() + static_cast<std::ptrdiff_t>(n));
     if (n > 5) points[5] = Eigen::Vector3d(1.0, std::numeric_limits<double>::quiet_NaN(), 0.0);
-    for (auto& p : points) p = p.cast<float>().cast<double>();  // exact in float rows too
+    for (auto& p : points) p = test::rounded_to<float>(p);  // exact in float rows too
     // Expected: the naive Algorithm 1 on the rows leveled and cropped here.
     const LeveledByHand leveled = level_by_hand(points, transform, crop);
     const std::vector<Eigen::Vector3d>& inside = leveled.points;
@@ -418,6 +418,87 @@ TEST(CollapsePreprocessing, LeveledCloudsThroughEveryViewLayoutAndLengthMatchThe
     const std::vector<std::uint8_t> reversed(expected.rbegin(), expected.rend());
     check(PointsView<double>(packed.data() + 3 * (n - 1), n, -3, 1), reversed, "reversed rows");
   }
+}
+
+/// Rows of `stride` scalars (x y z, then extra columns holding NaN): `points` written out.
+template <typename Scalar>
+std::vector<Scalar> rows_with_extra_columns(const std::vector<Eigen::Vector3d>& points, int stride) {
+  std::vector<Scalar> rows(points.size() * static_cast<std::size_t>(stride), std::numeric_limits<Scalar>::quiet_NaN());
+  for (std::size_t r = 0; r < points.size(); ++r) {
+    for (int a = 0; a < 3; ++a) rows[r * static_cast<std::size_t>(stride) + a] = static_cast<Scalar>(points[r][a]);
+  }
+  return rows;
+}
+
+template <typename Scalar>
+void check_leveled_non_finite_rows() {
+  // The leveling kernels take four rows at a time (row loads for adjacent coordinates, the last
+  // row of three-scalar rows left to the row-by-row path): NaN/Inf rows in every lane position,
+  // several in one block, extra columns of NaN that are no coordinates, rows of 3, 4 and 6
+  // scalars. Dropped, the rest must match the naive Algorithm 1 on the rows leveled by hand;
+  // kept, the error must count them and name the first.
+  Eigen::Matrix4d transform = leveling_transform(0.05, 0.02);
+  transform.topRightCorner<3, 1>() = Eigen::Vector3d(-0.5, 0.75, 1.5);
+  const CropBox crop{{-3.5, -3.0, -1.0}, {3.0, 3.5, 6.5}};
+  const Scalar bad_values[] = {std::numeric_limits<Scalar>::quiet_NaN(), std::numeric_limits<Scalar>::infinity(),
+                               -std::numeric_limits<Scalar>::infinity()};
+  for (const int stride : {3, 4, 6}) {
+    for (const std::size_t n : {1U, 2U, 3U, 4U, 5U, 6U, 7U, 8U, 9U, 12U, 13U, 37U}) {
+      auto points = test::random_scene(700 + static_cast<std::uint32_t>(n), n, 4.0);
+      points.resize(n);
+      for (auto& p : points) p = test::rounded_to<Scalar>(p);  // exact in the rows
+      // Bad rows: one in each lane position across the cloud, two in one block when it has room.
+      std::vector<std::size_t> bad_rows;
+      for (std::size_t row = n / 3; row < n; row += 5) bad_rows.push_back(row);
+      if (n >= 8) bad_rows.push_back(4 + (n % 4 == 0 ? 3 : 2));
+      std::sort(bad_rows.begin(), bad_rows.end());
+      bad_rows.erase(std::unique(bad_rows.begin(), bad_rows.end()), bad_rows.end());
+      std::vector<Scalar> rows = rows_with_extra_columns<Scalar>(points, stride);
+      for (std::size_t k = 0; k < bad_rows.size(); ++k) {
+        const std::size_t row = bad_rows[k];
+        rows[row * static_cast<std::size_t>(stride) + k % 3] = bad_values[k % 3];
+        points[row][static_cast<int>(k % 3)] = std::numeric_limits<double>::quiet_NaN();
+      }
+      const std::string where =
+          std::string(sizeof(Scalar) == 4 ? "float" : "double") + " stride " + std::to_string(stride) + " n " + std::to_string(n);
+      const PointsView<Scalar> view(rows.data(), n, stride);
+      const LeveledByHand leveled = level_by_hand(points, transform, crop);
+      const NaiveResult naive = naive_algorithm1(leveled.points, 0.25, 2);
+      const CollapseResult result = collapse_overhangs(view, leveling_params(0.25, transform, crop));
+      EXPECT_EQ(result.overhang, scattered(leveled, naive, n)) << where;
+      EXPECT_EQ(result.occupied_cubes, naive.occupied) << where;
+      EXPECT_EQ(result.num_used, leveled.points.size()) << where;
+      EXPECT_EQ(result.num_dropped_non_finite, bad_rows.size()) << where;
+      EXPECT_EQ(result.num_cropped, n - bad_rows.size() - leveled.points.size()) << where;
+      // The min corner to the last bit: the documented q_i = ((r_i0 x + r_i1 y) + r_i2 z) + t_i.
+      for (int a = 0; a < 3 && !leveled.rows.empty(); ++a) {
+        double lo = std::numeric_limits<double>::infinity();
+        for (const std::size_t row : leveled.rows) {
+          const Eigen::Vector3d& p = points[row];
+          lo = std::min(lo, ((transform(a, 0) * p.x() + transform(a, 1) * p.y()) + transform(a, 2) * p.z()) +
+                                transform(a, 3));
+        }
+        EXPECT_EQ(result.grid.min_corner[a], lo) << where << " axis " << a;
+      }
+      if (bad_rows.empty()) continue;
+      CollapseParams strict = leveling_params(0.25, transform, crop);
+      strict.drop_non_finite = false;
+      try {
+        collapse_overhangs(view, strict);
+        ADD_FAILURE() << "expected std::invalid_argument, " << where;
+      } catch (const std::invalid_argument& error) {
+        const std::string expected = std::to_string(bad_rows.size()) + " of " + std::to_string(n) +
+                                     " point rows contain NaN or Inf (first at row " + std::to_string(bad_rows[0]) +
+                                     ")";
+        EXPECT_NE(std::string(error.what()).find(expected), std::string::npos) << error.what() << ", " << where;
+      }
+    }
+  }
+}
+
+TEST(CollapsePreprocessing, LeveledNonFiniteRowsInEveryLaneAndExtraColumnsAreHandledAsTheNaiveAlgorithm) {
+  check_leveled_non_finite_rows<float>();
+  check_leveled_non_finite_rows<double>();
 }
 
 // --- storage ----------------------------------------------------------------------------------

@@ -168,7 +168,7 @@ std::vector<float> as_floats(const std::vector<Eigen::Vector3d>& points, int str
 /// The points as the float view sees them.
 std::vector<Eigen::Vector3d> rounded_to_float(const std::vector<Eigen::Vector3d>& points) {
   std::vector<Eigen::Vector3d> out;
-  for (const Eigen::Vector3d& p : points) out.push_back(p.cast<float>().cast<double>());
+  for (const Eigen::Vector3d& p : points) out.push_back(test::rounded_to<float>(p));
   return out;
 }
 
@@ -603,7 +603,7 @@ TEST(BuildElevationMapFastPaths, FloatRowsOnAndNearCellBordersOfEveryTailLengthA
         for (const float v : {std::nextafter(border, -1e30F), border, std::nextafter(border, 1e30F)}) {
           Eigen::Vector3d p(origin.x() + unit(random) * size.x() * resolution,
                             origin.y() + unit(random) * size.y() * resolution, height(random));
-          p = p.cast<float>().cast<double>();
+          p = test::rounded_to<float>(p);
           p[axis] = v;
           const double offset = p[axis] - origin[axis];
           multiplication_differs += std::floor(offset / resolution) != std::floor(offset * (1.0 / resolution));

@@ -30,4 +30,18 @@ std::vector<std::uint16_t> read_semantic_labels(const std::string& path);
 /// A seeded random scene: rough ground, some canopy blobs over it, walls, trunks and noise.
 std::vector<Eigen::Vector3d> random_scene(std::uint32_t seed, std::size_t num_points, double extent_m);
 
+/// `v` rounded to Scalar and back. Out of line on purpose: inlined into a loop that writes a
+/// Vector3d back in place, GCC 12.2 at -O2 was seen to drop the rounding of x and y (the pair it
+/// moves as one vector), also for p.cast<float>().cast<double>().
+template <typename Scalar>
+__attribute__((noinline)) double rounded_to(double v) {
+  return static_cast<double>(static_cast<Scalar>(v));
+}
+
+/// `p` with each coordinate rounded to Scalar and back (see above).
+template <typename Scalar>
+Eigen::Vector3d rounded_to(const Eigen::Vector3d& p) {
+  return {rounded_to<Scalar>(p.x()), rounded_to<Scalar>(p.y()), rounded_to<Scalar>(p.z())};
+}
+
 }  // namespace terracube::test
