@@ -459,8 +459,8 @@ void check_leveled_non_finite_rows() {
         rows[row * static_cast<std::size_t>(stride) + k % 3] = bad_values[k % 3];
         points[row][static_cast<int>(k % 3)] = std::numeric_limits<double>::quiet_NaN();
       }
-      const std::string where =
-          std::string(sizeof(Scalar) == 4 ? "float" : "double") + " stride " + std::to_string(stride) + " n " + std::to_string(n);
+      const std::string where = std::string(sizeof(Scalar) == 4 ? "float" : "double") + " stride " +
+                                std::to_string(stride) + " n " + std::to_string(n);
       const PointsView<Scalar> view(rows.data(), n, stride);
       const LeveledByHand leveled = level_by_hand(points, transform, crop);
       const NaiveResult naive = naive_algorithm1(leveled.points, 0.25, 2);
@@ -475,8 +475,8 @@ void check_leveled_non_finite_rows() {
         double lo = std::numeric_limits<double>::infinity();
         for (const std::size_t row : leveled.rows) {
           const Eigen::Vector3d& p = points[row];
-          lo = std::min(lo, ((transform(a, 0) * p.x() + transform(a, 1) * p.y()) + transform(a, 2) * p.z()) +
-                                transform(a, 3));
+          lo = std::min(
+              lo, ((transform(a, 0) * p.x() + transform(a, 1) * p.y()) + transform(a, 2) * p.z()) + transform(a, 3));
         }
         EXPECT_EQ(result.grid.min_corner[a], lo) << where << " axis " << a;
       }
