@@ -1,8 +1,13 @@
 #include "terracube/elevation_map.hpp"
 
+#if defined(__linux__)
+#include <sys/mman.h>
+#endif
+
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <cstdint>
 #include <cstdlib>
 #include <limits>
 #include <stdexcept>
@@ -15,8 +20,38 @@
 #endif
 
 #include "cloud_frame.hpp"
+#include "layer_memory.hpp"
 
 namespace terracube {
+
+namespace detail {
+
+void advise_huge_pages(void* data, std::size_t bytes) {
+#if defined(__linux__) && defined(MADV_HUGEPAGE)
+  constexpr std::uintptr_t kHugePage = std::uintptr_t{2} << 20;
+  if (bytes < 2 * kHugePage) return;
+  const auto first = reinterpret_cast<std::uintptr_t>(data);
+  const std::uintptr_t begin = (first + kHugePage - 1) & ~(kHugePage - 1);
+  const std::uintptr_t end = (first + bytes) & ~(kHugePage - 1);
+  if (end > begin) (void)madvise(reinterpret_cast<void*>(begin), end - begin, MADV_HUGEPAGE);
+#else
+  (void)data, (void)bytes;
+#endif
+}
+
+Layer uninitialised_layer(Eigen::Index rows, Eigen::Index cols) {
+  Layer layer(rows, cols);
+  advise_huge_pages(layer.data(), sizeof(float) * static_cast<std::size_t>(layer.size()));
+  return layer;
+}
+
+Layer filled_layer(Eigen::Index rows, Eigen::Index cols, float value) {
+  Layer layer = uninitialised_layer(rows, cols);
+  layer.setConstant(value);
+  return layer;
+}
+
+}  // namespace detail
 
 std::optional<CellIndex> MapGeometry::index_of(const Eigen::Vector2d& position) const {
   const Eigen::Vector2d cells = (position - origin_m) / resolution_m;
@@ -47,7 +82,7 @@ void ElevationMap::set_geometry(const MapGeometry& geometry) {
 }
 
 void ElevationMap::add(const std::string& name, float value) {
-  add(name, Layer::Constant(geometry_.size.x(), geometry_.size.y(), value));
+  add(name, detail::filled_layer(geometry_.size.x(), geometry_.size.y(), value));
 }
 
 void ElevationMap::add(const std::string& name, Layer data) {
@@ -91,7 +126,7 @@ std::vector<std::string> ElevationMap::layers() const {
 Layer step_layer(const Layer& height) {
   const auto nx = height.rows();
   const auto ny = height.cols();
-  Layer step = Layer::Constant(nx, ny, std::numeric_limits<float>::quiet_NaN());
+  Layer step = detail::filled_layer(nx, ny, std::numeric_limits<float>::quiet_NaN());
   for (Eigen::Index i = 0; i < nx; ++i) {
     for (Eigen::Index j = 0; j < ny; ++j) {
       const float h = height(i, j);
@@ -666,7 +701,7 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   }
   std::array<float*, kBuiltLayers.size()> layer_data{};
   for (std::size_t k = 0; k < kBuiltLayers.size(); ++k) {
-    if (!map.exists(kBuiltLayers[k])) map.add(kBuiltLayers[k], Layer(nx, ny));
+    if (!map.exists(kBuiltLayers[k])) map.add(kBuiltLayers[k], detail::uninitialised_layer(nx, ny));
     layer_data[k] = map.get(kBuiltLayers[k]).data();
   }
   for (const std::string& name : map.layers()) {  // layers of an earlier use of the map: no data yet
@@ -834,8 +869,8 @@ OverhangFreeMap overhang_free_impl(const PointsView<Scalar>& points, const Colla
   // it: the highest kept point below it. (A map cell can straddle two cube columns, so a kept
   // wall may rise above an overhang that its neighbouring column collapsed; measuring from it
   // would give a negative clearance.)
-  Layer lowest_overhang = Layer::Constant(top.rows(), top.cols(), kNaN);
-  Layer under = Layer::Constant(top.rows(), top.cols(), kNaN);
+  Layer lowest_overhang = detail::filled_layer(top.rows(), top.cols(), kNaN);
+  Layer under = detail::filled_layer(top.rows(), top.cols(), kNaN);
   float* lowest = lowest_overhang.data();
   float* highest_under = under.data();
   const std::vector<std::uint8_t>& overhang = out.collapse.overhang;
@@ -855,7 +890,7 @@ OverhangFreeMap overhang_free_impl(const PointsView<Scalar>& points, const Colla
       if (std::isnan(highest) || p.z() > highest) highest = static_cast<float>(p.z());
     }
   });
-  Layer clearance = Layer::Constant(top.rows(), top.cols(), kNaN);
+  Layer clearance = detail::filled_layer(top.rows(), top.cols(), kNaN);
   for (Eigen::Index k = 0; k < top.size(); ++k) {
     if (std::isnan(top.data()[k])) continue;  // no kept point: unknown
     if (std::isnan(lowest_overhang.data()[k])) {
@@ -864,7 +899,7 @@ OverhangFreeMap overhang_free_impl(const PointsView<Scalar>& points, const Colla
       clearance.data()[k] = lowest_overhang.data()[k] - under.data()[k];
     }
   }
-  out.map.add("overhang_min", lowest_overhang);
+  out.map.add("overhang_min", std::move(lowest_overhang));
   out.map.add("clearance", std::move(clearance));
   out.map.add("step", step_layer(top));
   return out;
