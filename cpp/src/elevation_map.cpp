@@ -839,12 +839,16 @@ OverhangFreeMap overhang_free_impl(const PointsView<Scalar>& points, const Colla
   params.drop_non_finite = collapse.drop_non_finite;
   std::vector<std::uint8_t> kept(out.collapse.overhang.size());
   for (std::size_t i = 0; i < kept.size(); ++i) kept[i] = out.collapse.overhang[i] ? 0 : 1;
-  // The geometry follows all points (kept and overhang) unless fixed, so both maps align.
+  // The geometry follows all points (kept and overhang) unless fixed, so that the raw DEM of the
+  // same parameters aligns: their bounding box, as build_elevation_map's first pass finds it.
   if (!params.origin_m) {
-    const ElevationMap all = build_impl(points, params, nullptr);
-    if (all.geometry().num_cells() > 0) {  // an empty cloud keeps the auto (empty) extent
-      params.origin_m = all.geometry().origin_m;
-      params.size = all.geometry().size;
+    const detail::CloudExtent extent =
+        detail::visit_leveled(points, params.transform, params.crop,
+                              [&](const auto& cloud) { return detail::measure_extent(cloud, params.drop_non_finite); });
+    if (extent.num_used > 0) {  // an empty cloud keeps the auto (empty) extent
+      const MapGeometry geometry = make_geometry(params, extent);
+      params.origin_m = geometry.origin_m;
+      params.size = geometry.size;
     }
   }
   out.map = build_impl(points, params, &kept);
