@@ -20,6 +20,7 @@
 #endif
 
 #include "cloud_frame.hpp"
+#include "cpu_features.hpp"
 #include "layer_memory.hpp"
 
 namespace terracube {
@@ -393,12 +394,6 @@ bool bin_rows_avx2(const Scalar* data, std::size_t rows, int stride, const Binni
   }
 }
 
-bool has_avx2() {
-  // TERRACUBE_DISABLE_AVX2 (any value) forces the baseline x86-64 kernels: the tests run once
-  // with it, so both builds of every kernel are checked on an AVX2 machine.
-  static const bool supported = __builtin_cpu_supports("avx2") && std::getenv("TERRACUBE_DISABLE_AVX2") == nullptr;
-  return supported;
-}
 #endif
 
 /// bin_rows_body for rows 3 or 4 scalars apart (x y z, or x y z intensity), AVX2 when the CPU has it.
@@ -406,7 +401,7 @@ template <typename Scalar>
 /// Returns whether any row got kSlow.
 bool bin_rows(const Scalar* data, std::size_t rows, int stride, const BinningConstants& k, std::uint32_t* out) {
 #if defined(TERRACUBE_HAVE_AVX2_BINNING)
-  if (has_avx2()) return bin_rows_avx2(data, rows, stride, k, out);
+  if (detail::has_avx2()) return bin_rows_avx2(data, rows, stride, k, out);
 #endif
   return bin_rows_default(data, rows, stride, k, out);
 }

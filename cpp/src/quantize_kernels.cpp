@@ -1,12 +1,13 @@
 #include "quantize_kernels.hpp"
 
-#include <cstdlib>
 #include <limits>
 #include <type_traits>
 
 #if defined(__x86_64__) && defined(__GNUC__)
 #include <immintrin.h>
 #endif
+
+#include "cpu_features.hpp"
 
 // No FMA target and ISO C++ (-ffp-contract=off): (x - x0) * (1/E) + 0.5 must round twice, exactly
 // as the definition in cube_grid.hpp and every reference implementation computes it.
@@ -135,13 +136,6 @@ __attribute__((target("avx2"))) bool extent_avx2(const Scalar* data, std::size_t
     if (min[axis] == -kInfinity || max[axis] == kInfinity) return false;
   }
   return true;
-}
-
-bool has_avx2() {
-  // TERRACUBE_DISABLE_AVX2 (any value) forces the baseline x86-64 kernels: the tests run once
-  // with it, so both builds of every kernel are checked on an AVX2 machine.
-  static const bool supported = __builtin_cpu_supports("avx2") && std::getenv("TERRACUBE_DISABLE_AVX2") == nullptr;
-  return supported;
 }
 
 /// One coordinate of four rows (`index`: their offsets) as doubles.
