@@ -23,7 +23,10 @@ scans, i.e. the floor that the data sets for every method (see the README's note
 also takes GICP started at the ground truth as the *scan reference* (the motion the raw scans
 support), prints how far it lies from the truth and its spread (the largest translation of
 GICP's runs from the perturbed guesses from it), and repeats the accuracy table with the errors
-of the same runs taken against that reference.
+of the same runs taken against that reference. A check without any ICP comes with it: on the
+labelled pairs (0->1, 1->2) the static thin objects (SemanticKITTI pole, trunk, traffic sign)
+are moved by the truth's rotation and its translation scaled, and the step that aligns them best
+is printed beside the truth's.
 
 Pairs: KITTI odometry seq 00 frames 0->1, 1->2, 2->3, 3->4, 4->5 and 0->5 (about 4.3 m), with
 the ground truth T_wv(i) = inv(Tr) P_i Tr and truth = inv(T_wv(target)) T_wv(source); and a
@@ -51,6 +54,7 @@ Reproduce
 from __future__ import annotations
 
 import argparse
+import functools
 import statistics
 import sys
 from dataclasses import dataclass
@@ -401,6 +405,52 @@ def scan_floor(data_dir: Path, trials: int) -> ScanFloor:
     return result
 
 
+#: SemanticKITTI classes of static, thin, vertical objects: pole, trunk, traffic sign.
+STATIC_OBJECT_LABELS = (80, 71, 81)
+
+
+def _object_misfit(rotated: np.ndarray, translation: np.ndarray, target: np.ndarray, scale: float) -> float:
+    """Median squared (x, y) distance from the moved objects to their nearest target object point."""
+    moved = (rotated + scale * translation).astype(np.float32)
+    return float(np.median(((moved[:, None, :] - target[None, :, :]) ** 2).sum(-1).min(axis=1)))
+
+
+def labelled_object_steps(data_dir: Path) -> dict:
+    """Per labelled KITTI pair: (truth step [m], step [m] that best aligns the labelled objects).
+
+    An ICP-free check of the ground truth: the points SemanticKITTI labels pole, trunk or traffic
+    sign (within 30 m) are moved by the truth's rotation and its translation scaled by 0.5 ... 1.2,
+    and the scale whose median nearest-neighbour distance (x, y) to the next frame's objects is
+    smallest gives the step the scans show.
+    """
+    steps = {}
+    root = data_dir / "kitti_seq00"
+    world_velo = kitti_world_velo(data_dir)
+
+    def objects(frame: int) -> np.ndarray | None:
+        labels = root / "labels" / f"{frame:06d}.label"
+        if not labels.is_file():
+            return None
+        points = load_xyzi_bin(root / "velodyne" / f"{frame:06d}.bin").astype(np.float64)
+        semantic = np.fromfile(labels, dtype=np.uint32) & 0xFFFF
+        keep = np.isin(semantic, STATIC_OBJECT_LABELS) & (np.hypot(points[:, 0], points[:, 1]) < 30.0)
+        return points[keep, :2]
+
+    for s, t in KITTI_PAIRS:
+        source, target = objects(s), objects(t)
+        if source is None or target is None or len(source) == 0 or len(target) == 0:
+            continue
+        truth = np.linalg.inv(world_velo[t]) @ world_velo[s]
+        rotated = source @ truth[:2, :2].T
+        cost = functools.partial(_object_misfit, rotated, truth[:2, 3], target.astype(np.float32))
+        # Coarse (0.05) then fine (0.005) steps of the scale.
+        best = min(np.arange(0.5, 1.2001, 0.05), key=cost)
+        best = min(np.arange(best - 0.05, best + 0.0501, 0.005), key=cost)
+        step = float(np.linalg.norm(truth[:3, 3]))
+        steps[f"KITTI {s}->{t}"] = (step, float(best) * step)
+    return steps
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     def add(parser: argparse.ArgumentParser) -> None:
         parser.add_argument(
@@ -459,6 +509,17 @@ def main(argv: list[str] | None = None) -> int:
                 f"  {name:<24}{t:>10.3f} / {r:.2f}{gt:>12.3f} / {gr:.2f}"
                 f"{off:>16.3f} m{floor.spread[name]:>7.3f} m"
             )
+        steps = labelled_object_steps(args.data_dir)
+        if steps:
+            print(
+                "  labelled poles, trunks and signs (SemanticKITTI, < 30 m) align best when moved by"
+                " the truth's rotation and this step (no ICP involved):"
+            )
+            for name, (truth_step, object_step) in steps.items():
+                print(
+                    f"    {name}: truth step {truth_step:.3f} m, objects' step {object_step:.3f} m"
+                    f" ({object_step / truth_step:.0%} of it)"
+                )
         if floor.reference:
             scan_winners = print_accuracy(
                 against(table, floor.reference),
