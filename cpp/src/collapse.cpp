@@ -3,6 +3,7 @@
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <stdexcept>
 #include <string>
@@ -149,14 +150,14 @@ struct DenseScratch {
   std::vector<std::int32_t> ground;      // M; layers fit 32 bits on the dense path
   std::vector<std::uint32_t> cubes;      // I of every point
   std::vector<std::uint32_t> words;      // the non-zero words of V, in order
-  std::vector<std::uint8_t> removed;     // a byte per cube of R, for small grids
+  std::vector<std::uint8_t> flags;       // V as a byte per cube (and R's marks), for small grids
   std::vector<std::int64_t> collapsed;   // R while it grows (the result gets an exact copy)
 
   static constexpr std::size_t kKeepBytes = std::size_t{64} << 20;
 
   std::size_t bytes() const {
     return occupancy.capacity() * 8 + summary.capacity() * 8 + ground.capacity() * 4 + cubes.capacity() * 4 +
-           words.capacity() * 4 + removed.capacity() + collapsed.capacity() * 8;
+           words.capacity() * 4 + flags.capacity() + collapsed.capacity() * 8;
   }
 };
 
@@ -174,12 +175,95 @@ struct ScratchGuard {
   }
 };
 
+/// Lines 5-15 of Algorithm 1 over the sorted L with M (scratch.ground, all -1 before and after):
+/// R into result.removed_cubes.
+void sweep_dense(const CubeGrid& grid, int sigma, DenseScratch& scratch, CollapseResult& result) {
+  const std::vector<std::int64_t>& occupied = result.occupied_cubes;
+  // R grows in scratch and is copied once at its final size: growing the result's own vector
+  // would touch (and page-fault) about twice the memory.
+  std::int32_t* const ground = scratch.ground.data();
+  scratch.collapsed.clear();
+  sweep_columns(
+      occupied, grid.num_columns(), sigma,
+      [ground](std::int64_t column) -> std::int32_t& { return ground[static_cast<std::size_t>(column)]; },
+      scratch.collapsed);
+  result.removed_cubes.assign(scratch.collapsed.begin(), scratch.collapsed.end());
+  // M restored to -1 on the columns L touched.
+  for_each_column(occupied, grid.num_columns(), [ground](std::int64_t, std::int64_t column, std::int64_t) {
+    ground[static_cast<std::size_t>(column)] = -1;
+  });
+}
+
+/// Dense path on a grid of no more cubes than twice the points: V as a byte per cube, so that
+/// marking a cube is one store (a bit needs a load, an OR and a store). The same byte then marks
+/// R (2) for the mask pass. scratch.flags is all zero before and after.
+template <typename Cloud>
+void collapse_dense_bytes(const Cloud& cloud, const CollapseParams& params, CollapseResult& result) {
+  const CubeGrid& grid = result.grid;
+  const bool all_used = result.num_used == cloud.size();
+  const std::size_t rows = cloud.size();
+  const auto num_cubes = static_cast<std::size_t>(grid.num_cubes());
+  // Rows that take no part get no_cube, a byte past the last cube.
+  const auto no_cube = static_cast<std::uint32_t>(num_cubes);
+  const auto num_columns = static_cast<std::size_t>(grid.num_columns());
+
+  DenseScratch& scratch = dense_scratch();
+  ScratchGuard guard{scratch};
+  // V's bytes, read eight at a time below: rounded up to a whole word past no_cube.
+  const std::size_t flag_words = num_cubes / 8 + 1;
+  if (scratch.flags.size() < flag_words * 8) scratch.flags.resize(flag_words * 8, 0);
+  if (scratch.ground.size() < num_columns) scratch.ground.resize(num_columns, -1);
+  if (scratch.cubes.size() < rows) scratch.cubes.resize(rows);
+  std::uint8_t* const flags = scratch.flags.data();
+  std::uint32_t* const cubes = scratch.cubes.data();
+
+  // Algorithm 1, lines 1-4: one O(N) pass sets V, in blocks whose cube indices are still in L1.
+  constexpr std::size_t kBlock = 2048;
+  for (std::size_t begin = 0; begin < rows; begin += kBlock) {
+    const std::size_t end = std::min(rows, begin + kBlock);
+    quantize_block(cloud, grid, all_used, no_cube, begin, end, cubes + begin);
+    for (std::size_t row = begin; row < end; ++row) flags[cubes[row]] = 1;
+  }
+  // L sorted: V read in index order, eight cubes a word (no_cube's byte is left out).
+  std::vector<std::int64_t>& occupied = result.occupied_cubes;
+  occupied.reserve(std::min(rows, num_cubes));
+  for (std::size_t w = 0; w < flag_words; ++w) {
+    std::uint64_t bits;
+    std::memcpy(&bits, flags + w * 8, 8);
+    for (; bits != 0; bits &= bits - 1) {
+      const std::size_t cube = w * 8 + static_cast<std::size_t>(__builtin_ctzll(bits)) / 8;
+      if (cube < num_cubes) occupied.push_back(static_cast<std::int64_t>(cube));
+    }
+  }
+  sweep_dense(grid, params.sigma, scratch, result);
+
+  // Points in R's cubes are overhang: R's bytes become 2 (no_cube's stays 1).
+  for (const std::int64_t cube : result.removed_cubes) flags[static_cast<std::size_t>(cube)] = 2;
+  std::size_t count = 0;
+  std::uint8_t* const overhang = result.overhang.data();
+  for (std::size_t row = 0; row < rows; ++row) {
+    const auto flag = static_cast<std::uint8_t>(flags[cubes[row]] >> 1);
+    overhang[row] = flag;
+    count += flag;
+  }
+  result.num_overhang = count;
+
+  // V restored to all zero.
+  for (const std::int64_t cube : occupied) flags[static_cast<std::size_t>(cube)] = 0;
+  flags[no_cube] = 0;
+  guard.dismissed = true;
+}
+
 /// Dense path: V is a bit vector over all cubes, M a vector over all columns.
 template <typename Cloud>
 void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseResult& result) {
   const CubeGrid& grid = result.grid;
-  const bool all_used = result.num_used == cloud.size();
   const std::size_t rows = cloud.size();
+  if (static_cast<std::size_t>(grid.num_cubes()) <= 2 * rows) {
+    collapse_dense_bytes(cloud, params, result);
+    return;
+  }
+  const bool all_used = result.num_used == cloud.size();
   const std::size_t words = static_cast<std::size_t>((grid.num_cubes() + 63) / 64);
   const auto num_columns = static_cast<std::size_t>(grid.num_columns());
   // Rows that take no part get no_cube, the first bit of the extra word after V.
@@ -249,49 +333,23 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
     }
   }
 
-  // Lines 5-15 with M, then M restored to -1 on the columns L touched.
-  // R grows in scratch and is copied once at its final size: growing the result's own vector
-  // would touch (and page-fault) about twice the memory.
-  std::int32_t* const ground = scratch.ground.data();
-  scratch.collapsed.clear();
-  sweep_columns(
-      occupied, grid.num_columns(), params.sigma,
-      [ground](std::int64_t column) -> std::int32_t& { return ground[static_cast<std::size_t>(column)]; },
-      scratch.collapsed);
-  result.removed_cubes.assign(scratch.collapsed.begin(), scratch.collapsed.end());
-  for_each_column(occupied, grid.num_columns(), [ground](std::int64_t, std::int64_t column, std::int64_t) {
-    ground[static_cast<std::size_t>(column)] = -1;
-  });
+  sweep_dense(grid, params.sigma, scratch, result);
 
-  // Points in R's cubes are overhang. Plain local pointers: a byte store may alias anything, so
-  // through the vectors the compiler would reload their data pointers on every row.
+  // Points in R's cubes are overhang: clear R's bits in V, and a point is overhang when its cube's
+  // bit is gone. The extra word is all ones, so no_cube is never overhang. Plain local pointers: a
+  // byte store may alias anything, so through the vectors the compiler would reload their data
+  // pointers on every row.
+  for (const std::int64_t cube : result.removed_cubes) {
+    occupancy[static_cast<std::size_t>(cube >> 6)] &= ~(std::uint64_t{1} << (cube & 63));
+  }
+  occupancy[words] = ~std::uint64_t{0};
   std::size_t count = 0;
   std::uint8_t* const overhang = result.overhang.data();
-  if (static_cast<std::size_t>(grid.num_cubes()) <= 2 * rows) {
-    // A byte per cube (no more bytes than two per point): one load per point, no bit arithmetic.
-    // no_cube lies past the last cube and is never removed.
-    std::vector<std::uint8_t>& removed_map = scratch.removed;
-    removed_map.assign(static_cast<std::size_t>(no_cube) + 1, 0);
-    for (const std::int64_t cube : result.removed_cubes) removed_map[static_cast<std::size_t>(cube)] = 1;
-    const std::uint8_t* const removed = removed_map.data();
-    for (std::size_t row = 0; row < rows; ++row) {
-      const std::uint8_t flag = removed[cubes[row]];
-      overhang[row] = flag;
-      count += flag;
-    }
-  } else {
-    // Clear R's bits in V: a point is overhang when its cube's bit is gone. The extra word is all
-    // ones, so no_cube is never overhang.
-    for (const std::int64_t cube : result.removed_cubes) {
-      occupancy[static_cast<std::size_t>(cube >> 6)] &= ~(std::uint64_t{1} << (cube & 63));
-    }
-    occupancy[words] = ~std::uint64_t{0};
-    for (std::size_t row = 0; row < rows; ++row) {
-      const std::uint32_t cube = cubes[row];
-      const auto flag = static_cast<std::uint8_t>(((occupancy[cube >> 6] >> (cube & 63)) & 1U) ^ 1U);
-      overhang[row] = flag;
-      count += flag;
-    }
+  for (std::size_t row = 0; row < rows; ++row) {
+    const std::uint32_t cube = cubes[row];
+    const auto flag = static_cast<std::uint8_t>(((occupancy[cube >> 6] >> (cube & 63)) & 1U) ^ 1U);
+    overhang[row] = flag;
+    count += flag;
   }
   result.num_overhang = count;
 
