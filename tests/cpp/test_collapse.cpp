@@ -199,6 +199,38 @@ TEST(CollapseVsNaive, ConsecutiveCallsOnGridsOfEverySizeShareNoState) {
   }
 }
 
+TEST(CollapseVsNaive, LargeGridsWithManyPointsPerCubeMatchTheNaiveAlgorithm) {
+  // Over 2^16 cubes (V stays a bit vector) with at least half as many points (52 x 52 m by about
+  // 21 m at 0.5 m: some 470,000 cubes for 240,000 points); small grids of this density keep V as
+  // bytes and are checked in ConsecutiveCallsOnGridsOfEverySizeShareNoState and the leveled tests.
+  const auto points = test::random_scene(404, 240000, 52.0);
+  expect_same_as_naive(points, 0.5, 2);
+  // With rows that take no part (a crop of the highest outliers): their cube is the byte past the
+  // last cube.
+  CollapseParams params;
+  params.edge_m = 0.5;
+  params.sigma = 3;
+  params.crop = CropBox{{-1.0, -1.0, -1.5}, {53.0, 53.0, 12.0}};
+  std::vector<Eigen::Vector3d> inside;
+  std::vector<std::size_t> rows_inside;
+  for (std::size_t row = 0; row < points.size(); ++row) {
+    if ((points[row].array() >= params.crop->min.array()).all() &&
+        (points[row].array() <= params.crop->max.array()).all()) {
+      inside.push_back(points[row]);
+      rows_inside.push_back(row);
+    }
+  }
+  ASSERT_GT(points.size() - inside.size(), 1000U) << "the box must cut the scene";
+  const NaiveResult expected = naive_algorithm1(inside, 0.5, 3);
+  ASSERT_GT(expected.occupied.back() + 1, std::int64_t{1} << 16) << "the grid must exceed 2^16 cubes";
+  const CollapseResult result = collapse_overhangs(points, params);
+  std::vector<std::uint8_t> mask(points.size(), 0);
+  for (std::size_t k = 0; k < inside.size(); ++k) mask[rows_inside[k]] = expected.overhang[k];
+  EXPECT_EQ(result.overhang, mask);
+  EXPECT_EQ(result.occupied_cubes, expected.occupied);
+  EXPECT_EQ(result.removed_cubes, expected.removed);
+}
+
 TEST(CollapseVsNaive, TinyAndDegenerateClouds) {
   expect_same_as_naive({{1, 2, 3}}, 0.5, 2);
   expect_same_as_naive({{1, 2, 3}, {1, 2, 3}, {1, 2, 3}}, 0.5, 2);                   // duplicates
