@@ -151,13 +151,14 @@ struct DenseScratch {
   std::vector<std::uint32_t> cubes;      // I of every point
   std::vector<std::uint32_t> words;      // the non-zero words of V, in order
   std::vector<std::uint8_t> flags;       // V as a byte per cube (and R's marks), for small grids
+  std::vector<std::uint8_t> removed;     // a byte per cube of R, for the bit vector's mask pass
   std::vector<std::int64_t> collapsed;   // R while it grows (the result gets an exact copy)
 
   static constexpr std::size_t kKeepBytes = std::size_t{64} << 20;
 
   std::size_t bytes() const {
     return occupancy.capacity() * 8 + summary.capacity() * 8 + ground.capacity() * 4 + cubes.capacity() * 4 +
-           words.capacity() * 4 + flags.capacity() + collapsed.capacity() * 8;
+           words.capacity() * 4 + flags.capacity() + removed.capacity() + collapsed.capacity() * 8;
   }
 };
 
@@ -379,17 +380,34 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
   }
   occupancy[words] = ~std::uint64_t{0};
   std::uint8_t* const overhang = result.overhang.data();
-  const auto gone = [occupancy](std::uint32_t cube) {
-    return static_cast<std::uint8_t>(((occupancy[cube >> 6] >> (cube & 63)) & 1U) ^ 1U);
-  };
-  std::size_t row = 0;
-  for (; row + 4 <= rows; row += 4) {  // unrolled by hand (GCC does not at -O3)
-    overhang[row] = gone(cubes[row]);
-    overhang[row + 1] = gone(cubes[row + 1]);
-    overhang[row + 2] = gone(cubes[row + 2]);
-    overhang[row + 3] = gone(cubes[row + 3]);
+  if (static_cast<std::size_t>(grid.num_cubes()) <= 2 * rows) {
+    // A byte per cube for R (no more bytes than two per point): one load per point, no bit
+    // arithmetic. no_cube lies past the last cube and is never removed.
+    std::vector<std::uint8_t>& removed_map = scratch.removed;
+    removed_map.assign(static_cast<std::size_t>(no_cube) + 1, 0);
+    for (const std::int64_t cube : result.removed_cubes) removed_map[static_cast<std::size_t>(cube)] = 1;
+    const std::uint8_t* const removed = removed_map.data();
+    std::size_t row = 0;
+    for (; row + 4 <= rows; row += 4) {  // unrolled by hand (GCC does not at -O3)
+      overhang[row] = removed[cubes[row]];
+      overhang[row + 1] = removed[cubes[row + 1]];
+      overhang[row + 2] = removed[cubes[row + 2]];
+      overhang[row + 3] = removed[cubes[row + 3]];
+    }
+    for (; row < rows; ++row) overhang[row] = removed[cubes[row]];
+  } else {
+    const auto gone = [occupancy](std::uint32_t cube) {
+      return static_cast<std::uint8_t>(((occupancy[cube >> 6] >> (cube & 63)) & 1U) ^ 1U);
+    };
+    std::size_t row = 0;
+    for (; row + 4 <= rows; row += 4) {  // unrolled by hand, as above
+      overhang[row] = gone(cubes[row]);
+      overhang[row + 1] = gone(cubes[row + 1]);
+      overhang[row + 2] = gone(cubes[row + 2]);
+      overhang[row + 3] = gone(cubes[row + 3]);
+    }
+    for (; row < rows; ++row) overhang[row] = gone(cubes[row]);
   }
-  for (; row < rows; ++row) overhang[row] = gone(cubes[row]);
   result.num_overhang = count_overhang(overhang, rows);
 
   // V restored to all clear.
