@@ -332,9 +332,15 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
         summary[cube >> 12] |= std::uint64_t{1} << ((cube >> 6) & 63);
       }
     } else {
-      for (std::size_t row = begin; row < end; ++row) {
-        occupancy[cubes[row] >> 6] |= std::uint64_t{1} << (cubes[row] & 63);
+      const auto set = [occupancy](std::uint32_t cube) { occupancy[cube >> 6] |= std::uint64_t{1} << (cube & 63); };
+      std::size_t row = begin;
+      for (; row + 4 <= end; row += 4) {  // unrolled by hand (GCC does not at -O3)
+        set(cubes[row]);
+        set(cubes[row + 1]);
+        set(cubes[row + 2]);
+        set(cubes[row + 3]);
       }
+      for (; row < end; ++row) set(cubes[row]);
     }
   }
 
