@@ -6,7 +6,8 @@ so they import this module as plain ``_common``.
 - the command line every benchmark has (:func:`parse_benchmark_args`: ``--repeat``, ``--quick``,
   ``--data-dir``, ``--markdown``) and the data folder it defaults to (:func:`default_data_dir`);
 - input helpers (:func:`load_xyzi_bin`, :data:`QUICK_STRIDE`, :data:`SYNTHETIC_SEED`);
-- timing (:func:`median_ms`) and checks that survive ``python -O`` (:func:`require`);
+- timing (:func:`median_ms`; :func:`interleaved_median_ms` for calls compared by their ratio) and
+  checks that survive ``python -O`` (:func:`require`);
 - the report: the machine/software header (:func:`print_header`), a cloud's size line
   (:func:`describe_points`), MET / NOT MET target lines (:func:`print_target`) and Markdown table
   rows (:func:`markdown_row`, :func:`markdown_rule`).
@@ -107,6 +108,29 @@ def median_ms(fn: Callable[[], object], repeat: int) -> float:
         fn()
         times.append(time.perf_counter() - start)
     return statistics.median(times) * 1e3
+
+
+def interleaved_median_ms(
+    calls: dict[str, Callable[[], object]], repeat: int, run: int = 1
+) -> dict[str, float]:
+    """One warm-up call of each, then rounds timing every call ``run`` times in a row, in turn,
+    until each has at least ``repeat`` timed calls: the median per call, in milliseconds.
+
+    Calls timed in turn see the same stretch of a shared machine, whose speed drifts by tens of
+    percent within seconds; their ratios then hold far better than those of back-to-back blocks.
+    ``run`` > 1 keeps most calls after one of their own kind (a call that follows another kind can
+    find the allocator in another state, e.g. memory just returned to the system).
+    """
+    for fn in calls.values():
+        fn()  # warm-up
+    times: dict[str, list[float]] = {name: [] for name in calls}
+    for _ in range(-(-repeat // run)):
+        for name, fn in calls.items():
+            for _ in range(run):
+                start = time.perf_counter()
+                fn()
+                times[name].append(time.perf_counter() - start)
+    return {name: statistics.median(values) * 1e3 for name, values in times.items()}
 
 
 def require(condition: bool, message: str) -> None:

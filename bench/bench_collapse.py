@@ -2,8 +2,10 @@
 
 What is measured
 ----------------
-For each input cloud the wall-clock time (``time.perf_counter``; one warm-up call, then the
-median of ``--repeat`` calls, in milliseconds) of four ways to flag overhang points (five timings):
+For each input cloud the wall-clock time (``time.perf_counter``; one warm-up call each, then
+rounds in which every method runs three times in a row, in turn, so that all see the same stretch
+of the shared machine, until each has ``--repeat`` calls; the median per method, in milliseconds)
+of four ways to flag overhang points (five timings):
 
 1. ``terracube.collapse_overhangs`` -- Algorithm 1 of Reina et al. (IEEE AIM 2014) in C++;
 2. ``terracube.point_gap_overhangs`` -- the point-based per-cell gap search the paper compares
@@ -53,10 +55,10 @@ from _common import (
     SYNTHETIC_SEED,
     describe_points,
     header_line,
+    interleaved_median_ms,
     load_xyzi_bin,
     markdown_row,
     markdown_rule,
-    median_ms,
     parse_benchmark_args,
     print_header,
     print_target,
@@ -388,11 +390,12 @@ def measure(cloud: Cloud, edge: float, sigma: int, repeat: int) -> Measurement:
         "numpy": lambda: numpy_collapse(points, edge, sigma),
         "numpy_unique": lambda: numpy_collapse_unique(points, edge, sigma),
     }
-    for method in METHODS:
-        if method == "octomap" and measurement.octomap_error:
-            measurement.ms[method] = None
-            continue
-        measurement.ms[method] = median_ms(runs[method], repeat)
+    if measurement.octomap_error:
+        measurement.ms["octomap"] = None
+    timed = {
+        method: runs[method] for method in METHODS if not (method == "octomap" and measurement.octomap_error)
+    }
+    measurement.ms.update(interleaved_median_ms(timed, repeat, run=3))
     # Leveled and cropped, as the paper's pipeline runs: checked equal to numpy, then timed.
     transform, crop = leveling_inputs(points)
     leveled = tc.collapse_overhangs(points, edge, sigma, transform=transform, crop=crop)
@@ -402,11 +405,17 @@ def measure(cloud: Cloud, edge: float, sigma: int, repeat: int) -> Measurement:
         numpy_collapse_leveled(points, edge, sigma, transform, crop),
         leveled.overhang,
     )
-    measurement.ms["collapse_leveled"] = median_ms(
-        lambda: tc.collapse_overhangs(points, edge, sigma, transform=transform, crop=crop), repeat
-    )
-    measurement.ms["numpy_leveled"] = median_ms(
-        lambda: numpy_collapse_leveled(points, edge, sigma, transform, crop), repeat
+    measurement.ms.update(
+        interleaved_median_ms(
+            {
+                "collapse_leveled": lambda: tc.collapse_overhangs(
+                    points, edge, sigma, transform=transform, crop=crop
+                ),
+                "numpy_leveled": lambda: numpy_collapse_leveled(points, edge, sigma, transform, crop),
+            },
+            repeat,
+            run=3,
+        )
     )
     return measurement
 

@@ -21,10 +21,12 @@ it is 2.5-4x slower here, still checked and timed, and shown for information onl
 the target are against the faster formulation.
 
 Each step is timed with ``time.perf_counter`` (one warm-up call, then the median of ``--repeat``
-calls, in milliseconds), in one process, single-threaded (the C++ code uses no threads; numpy's
-element-wise operations, sorts and bincounts run on one core). "total" is map + classification run
-back to back. Ratios are ``numpy time / C++ time``. ``dem_without_overhangs`` (collapsible cubes,
-edge 0.5 m, sigma 5, crop ((-100, -100, -3), (100, 100, 30))) is timed too, for information.
+calls, in milliseconds; the C++ and numpy map, classification and total are timed in turn, three
+calls of each per round, so that both see the same stretch of the shared machine), in one process,
+single-threaded (the C++ code uses no threads; numpy's element-wise operations, sorts and
+bincounts run on one core). "total" is map + classification run back to back. Ratios are
+``numpy time / C++ time``. ``dem_without_overhangs`` (collapsible cubes, edge 0.5 m, sigma 5,
+crop ((-100, -100, -3), (100, 100, 30))) is timed too, for information.
 
 Correctness is asserted before anything is timed: count, min and max must be equal, mean and
 std_dev within 1e-5 m (the C++ std-dev is a one-pass sum of squares shifted by each cell's first
@@ -67,6 +69,7 @@ from _common import (
     SYNTHETIC_SEED,
     describe_points,
     header_line,
+    interleaved_median_ms,
     load_xyzi_bin,
     markdown_row,
     markdown_rule,
@@ -481,9 +484,21 @@ def measure(scan: Scan, repeat: int) -> Results:
     results.class_counts = {c: int(np.count_nonzero(classes == c)) for c in tc.TerrainClass}
 
     numpy_layers = numpy_elevation_map(points)
-    results.ms["cpp_map"] = median_ms(lambda: cpp_map(points, params), repeat)
-    results.ms["cpp_classify"] = median_ms(lambda: cpp_classify(elevation_map, terrain), repeat)
-    results.ms["cpp_total"] = median_ms(lambda: cpp_classify(cpp_map(points, params), terrain), repeat)
+    # C++ and numpy timed in turn, round by round (they are compared by their ratio).
+    results.ms.update(
+        interleaved_median_ms(
+            {
+                "cpp_map": lambda: cpp_map(points, params),
+                "numpy_map": lambda: numpy_elevation_map(points),
+                "cpp_classify": lambda: cpp_classify(elevation_map, terrain),
+                "numpy_classify": lambda: numpy_classify(numpy_layers),
+                "cpp_total": lambda: cpp_classify(cpp_map(points, params), terrain),
+                "numpy_total": lambda: numpy_classify(numpy_elevation_map(points)),
+            },
+            repeat,
+            run=3,
+        )
+    )
     # A loop that refills one map (out=) reuses its layers' buffers: no allocation once warm.
     reused = cpp_map(points, params)
     refilled_classes = cpp_classify(tc.build_elevation_map(points, params=params, out=reused), terrain)
@@ -503,9 +518,6 @@ def measure(scan: Scan, repeat: int) -> Results:
     )
     results.faults["numpy"] = page_faults(lambda: numpy_classify(numpy_elevation_map(points)))
     results.loop = measure_loop(points, repeat)
-    results.ms["numpy_map"] = median_ms(lambda: numpy_elevation_map(points), repeat)
-    results.ms["numpy_classify"] = median_ms(lambda: numpy_classify(numpy_layers), repeat)
-    results.ms["numpy_total"] = median_ms(lambda: numpy_classify(numpy_elevation_map(points)), repeat)
     results.ms["numpy_full_sort_map"] = median_ms(lambda: numpy_elevation_map_full_sort(points), repeat)
     # The Python side of a map + classify call: the parameter dataclasses become the C++ structs.
     results.ms["python_params"] = median_ms(lambda: (params.to_core(), terrain.to_core()), repeat)
