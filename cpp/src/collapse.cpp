@@ -204,10 +204,16 @@ void sweep_dense(const CubeGrid& grid, int sigma, DenseScratch& scratch, Collaps
       [ground](std::int64_t column) -> std::int32_t& { return ground[static_cast<std::size_t>(column)]; },
       scratch.collapsed);
   result.removed_cubes.assign(scratch.collapsed.begin(), scratch.collapsed.end());
-  // M restored to -1 on the columns L touched.
-  for_each_column(occupied, grid.num_columns(), [ground](std::int64_t, std::int64_t column, std::int64_t) {
-    ground[static_cast<std::size_t>(column)] = -1;
-  });
+  // M restored to -1: all of it when it has no more entries than L (a vectorised fill), else only
+  // on the columns L touched.
+  const auto num_columns = static_cast<std::size_t>(grid.num_columns());
+  if (num_columns <= occupied.size()) {
+    std::fill_n(ground, num_columns, -1);
+  } else {
+    for_each_column(occupied, grid.num_columns(), [ground](std::int64_t, std::int64_t column, std::int64_t) {
+      ground[static_cast<std::size_t>(column)] = -1;
+    });
+  }
 }
 
 /// Whether the dense path keeps V as a byte per cube: on grids of no more cubes than twice the
