@@ -139,6 +139,19 @@ void quantize_block(const Cloud& cloud, const CubeGrid& grid, bool all_used, std
   }
 }
 
+/// Cube indices of all rows into `cubes`, in blocks that stay in L1: `mark(begin, end)` reads each
+/// block's indices while they are there.
+template <typename Cloud, typename Mark>
+void quantize_and_mark(const Cloud& cloud, const CubeGrid& grid, bool all_used, std::uint32_t no_cube,
+                       std::uint32_t* cubes, Mark&& mark) {
+  constexpr std::size_t kBlock = 2048;
+  for (std::size_t begin = 0; begin < cloud.size(); begin += kBlock) {
+    const std::size_t end = std::min(cloud.size(), begin + kBlock);
+    quantize_block(cloud, grid, all_used, no_cube, begin, end, cubes + begin);
+    mark(begin, end);
+  }
+}
+
 /// The dense path's buffers, one set per thread (shared by every cloud type): in a long-running
 /// process a fresh multi-megabyte buffer costs a page fault per 4 kB on every call. V, its summary
 /// and M keep their values between calls (all clear, all clear, all -1) and each call restores
@@ -249,11 +262,8 @@ void collapse_dense_bytes(const Cloud& cloud, const CollapseParams& params, Coll
   std::uint8_t* const flags = scratch.flags.data();
   std::uint32_t* const cubes = scratch.cubes.data();
 
-  // Algorithm 1, lines 1-4: one O(N) pass sets V, in blocks whose cube indices are still in L1.
-  constexpr std::size_t kBlock = 2048;
-  for (std::size_t begin = 0; begin < rows; begin += kBlock) {
-    const std::size_t end = std::min(rows, begin + kBlock);
-    quantize_block(cloud, grid, all_used, no_cube, begin, end, cubes + begin);
+  // Algorithm 1, lines 1-4: one O(N) pass sets V.
+  quantize_and_mark(cloud, grid, all_used, no_cube, cubes, [flags, cubes](std::size_t begin, std::size_t end) {
     // Unrolled by hand (GCC does not at -O3): four independent stores per iteration.
     std::size_t row = begin;
     for (; row + 4 <= end; row += 4) {
@@ -263,7 +273,7 @@ void collapse_dense_bytes(const Cloud& cloud, const CollapseParams& params, Coll
       flags[cubes[row + 3]] = 1;
     }
     for (; row < end; ++row) flags[cubes[row]] = 1;
-  }
+  });
   // L sorted: V read in index order, eight cubes a word (no_cube's byte is left out).
   std::vector<std::int64_t>& occupied = result.occupied_cubes;
   // Bytes are 0 or 1: the top byte of a word times 0x0101010101010101 is the sum of its bytes.
@@ -332,12 +342,8 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
   std::uint64_t* const summary = scratch.summary.data();
   std::uint32_t* const cubes = scratch.cubes.data();
 
-  // Algorithm 1, lines 1-4: one O(N) pass sets V, in blocks whose cube indices are still in L1
-  // when their bits are set.
-  constexpr std::size_t kBlock = 2048;
-  for (std::size_t begin = 0; begin < rows; begin += kBlock) {
-    const std::size_t end = std::min(rows, begin + kBlock);
-    quantize_block(cloud, grid, all_used, no_cube, begin, end, cubes + begin);
+  // Algorithm 1, lines 1-4: one O(N) pass sets V.
+  quantize_and_mark(cloud, grid, all_used, no_cube, cubes, [&](std::size_t begin, std::size_t end) {
     if (summarise) {
       for (std::size_t row = begin; row < end; ++row) {
         const std::uint32_t cube = cubes[row];
@@ -355,7 +361,7 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
       }
       for (; row < end; ++row) set(cubes[row]);
     }
-  }
+  });
 
   // L sorted: reading V in index order is a bucket sort of L, O(|V| / 64 + |L|) (or O(|V| / 4096
   // + |L|) through the summary).
