@@ -756,12 +756,21 @@ std::ptrdiff_t NearestNeighborGrid::nearest_two(const Eigen::Vector3d& query, do
 }
 
 template <int kKeep, bool kBound>
-void NearestNeighborGrid::search(const Eigen::Vector3d& query, double max_squared_distance, std::ptrdiff_t* found,
-                                 double* best) const {
+void NearestNeighborGrid::search(const Eigen::Vector3d& query, double max_squared_distance, std::ptrdiff_t* found_out,
+                                 double* best_out) const {
   constexpr int kLast = kBound ? kKeep : kKeep - 1;  // best[kLast] is the pruning distance
+  // Kept in locals (registers) while scanning, copied out at the end.
+  double best[kLast + 1];
+  std::ptrdiff_t found[kKeep];
   for (int k = 0; k <= kLast; ++k) best[k] = max_squared_distance;
   for (int k = 0; k < kKeep; ++k) found[k] = -1;
-  if (points_.empty()) return;
+  const auto copy_out = [&] {
+    for (int k = 0; k <= kLast; ++k) best_out[k] = best[k];
+    for (int k = 0; k < kKeep; ++k) {
+      found_out[k] = found[k] >= 0 ? static_cast<std::ptrdiff_t>(original_[static_cast<std::size_t>(found[k])]) : -1;
+    }
+  };
+  if (points_.empty()) return copy_out();
   // Pruning uses the largest distance kept: every point nearer than it is examined.
   double& prune = best[kLast];
   // The query in bucket units (it may lie outside the grid).
@@ -769,6 +778,8 @@ void NearestNeighborGrid::search(const Eigen::Vector3d& query, double max_square
   const double v = (query.y() - origin_.y()) * inverse_bucket_size_;
   const double bucket_squared = bucket_size_m_ * bucket_size_m_;
   const double last_column = static_cast<double>(columns_ - 1);
+  const double qx = query.x(), qy = query.y(), qz = query.z();
+  const Eigen::Vector3d* points = points_.data();
   // Scans the buckets of `row` whose x range can hold a point within `prune`, given that every
   // point of the row is at least `gap` buckets away in y. Points of consecutive buckets are
   // contiguous, so the scan is one loop.
@@ -785,20 +796,30 @@ void NearestNeighborGrid::search(const Eigen::Vector3d& query, double max_square
     const std::size_t base = static_cast<std::size_t>(row * columns_);
     const std::uint32_t end = start_[base + last + 1];
     for (std::uint32_t k = start_[base + first]; k < end; ++k) {
-      const double d = (points_[k] - query).squaredNorm();
-      if (d > prune) continue;
-      // Insert into the sorted best[] (the nearest first); ties keep the earlier point first.
-      int slot = kLast;
-      while (slot > 0 && d <= best[slot - 1]) {
-        best[slot] = best[slot - 1];
-        if (slot < kKeep) found[slot] = found[slot - 1];
-        --slot;
+      const Eigen::Vector3d& point = points[k];
+      const double dx = point.x() - qx, dy = point.y() - qy, dz = point.z() - qz;
+      const double d = dx * dx + dy * dy + dz * dz;
+      // Insert into the sorted best[] (the nearest first; a tie puts the new point first), without
+      // branches: whether a point is nearer than those kept is data, not a pattern a branch
+      // predictor learns, so the choices are masks (-1: take) and min/max. A point beyond
+      // best[kLast] changes nothing. Slots go from the last down, each from old values.
+      const auto index = static_cast<std::ptrdiff_t>(k);
+      for (int slot = kLast; slot > 0; --slot) {
+        if (slot < kKeep) {
+          const std::ptrdiff_t shift = -static_cast<std::ptrdiff_t>(d <= best[slot - 1]);
+          const std::ptrdiff_t take = -static_cast<std::ptrdiff_t>(d <= best[slot]);
+          const std::ptrdiff_t kept = (index & take) | (found[slot] & ~take);
+          found[slot] = (found[slot - 1] & shift) | (kept & ~shift);
+        }
+        best[slot] = std::min(std::max(d, best[slot - 1]), best[slot]);
       }
-      best[slot] = d;
-      if (slot < kKeep) found[slot] = static_cast<std::ptrdiff_t>(k);
+      const std::ptrdiff_t take = -static_cast<std::ptrdiff_t>(d <= best[0]);
+      found[0] = (index & take) | (found[0] & ~take);
+      best[0] = std::min(d, best[0]);
     }
   };
-  const auto row_of_query = static_cast<std::int64_t>(std::floor(std::clamp(v, -1.0, static_cast<double>(rows_))));
+  // floor(v) clamped to [-1, rows_]: truncation of the non-negative v + 1 is its floor.
+  const auto row_of_query = static_cast<std::int64_t>(std::clamp(v, -1.0, static_cast<double>(rows_)) + 1.0) - 1;
   // Upward from the query's row (gap 0 within it), then downward; a row whose gap alone exceeds
   // the pruning distance ends its direction.
   for (std::int64_t row = std::max<std::int64_t>(row_of_query, 0); row < rows_; ++row) {
@@ -811,9 +832,7 @@ void NearestNeighborGrid::search(const Eigen::Vector3d& query, double max_square
     if (gap * gap * bucket_squared > prune) break;
     scan_row(row, gap);
   }
-  for (int k = 0; k < kKeep; ++k) {
-    if (found[k] >= 0) found[k] = static_cast<std::ptrdiff_t>(original_[static_cast<std::size_t>(found[k])]);
-  }
+  copy_out();
 }
 
 }  // namespace terracube
