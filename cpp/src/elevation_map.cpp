@@ -260,7 +260,42 @@ struct BinningConstants {
   double origin_x, origin_y, inverse;  // inverse = 1 / resolution
   double upper_x, upper_y;             // cells + 1 along x and y
   std::int32_t nx, ny;
+  /// > 0: float rows may be binned in float arithmetic with this margin [cells] (see
+  /// float_binning_margin); 0: they are binned in doubles.
+  float float_margin = 0.0F;
 };
+
+/// The margin [cells] with which the 8-lane float kernel's estimate decides exactly like the
+/// division formula along one axis, or 0 when no margin up to 2^-7 does (the double kernel runs).
+/// For a float coordinate x (exact in double) the kernel computes, in float,
+/// s = fl(fl(fl(x - fl(origin)) * fl(1 / resolution)) + 1); the defining formula is
+/// floor(fl(fl(x - origin) / resolution)) (MapGeometry::index_of). With u = 2^-24 and Q the exact
+/// (x - origin) / resolution, where the kernel decides (-1 < s - 1 < cells + 1, so |Q| < R =
+/// cells + 2 up to the error below):
+///   rounding the origin to float moves Q by at most O = |fl(origin) - origin| / resolution;
+///   the subtraction, 1 / resolution (float after double) and the product round by at most
+///   (R + O) (3 u + 2^-52) together, adding 1 by (R + 1) u;
+///   the double formula is within R 2^-51 of Q.
+/// The margin is the smallest power of two from 2^-12 that is at least twice their sum B: a
+/// float estimate whose fraction lies more than the margin from a whole number then floors to the
+/// formula's cell. Outside decisions (s - 1 <= -1 or >= cells + 1) hold as long as B < 1.
+/// Rows within the margin of a border (about 4 margins of the rows) are divided. Large origins
+/// (|origin| / resolution beyond about 10^5 cells) or maps wider than about 10^4 cells take the
+/// double kernel.
+float float_binning_margin(double origin, double resolution, std::int64_t cells) {
+  constexpr double kUnit = 0x1p-24;
+  const auto inverse = static_cast<float>(1.0 / resolution);
+  if (!(std::isfinite(inverse) && inverse >= std::numeric_limits<float>::min())) return 0.0F;
+  const double rounded_origin = std::abs(static_cast<double>(static_cast<float>(origin)) - origin) / resolution;
+  const double reach = static_cast<double>(cells) + 2.0;
+  const double bound =
+      rounded_origin + (reach + rounded_origin) * (3.0 * kUnit + 0x1p-52) + (reach + 1.0) * kUnit + reach * 0x1p-51;
+  if (!std::isfinite(bound)) return 0.0F;
+  for (float margin = 0x1p-12F; margin <= 0x1p-7F; margin *= 2.0F) {
+    if (2.0 * bound <= static_cast<double>(margin)) return margin;
+  }
+  return 0.0F;
+}
 
 /// The cell code of each row of a plain (untransformed, uncropped) cloud with rows `kStride`
 /// scalars apart: the cell when AxisBinning's estimate decides it on both axes (the same
@@ -385,9 +420,89 @@ __attribute__((target("avx2"))) bool bin_float_rows_avx2(const float* data, std:
   return bin_rows_body<float, kStride>(data + r * kStride, rows - r, k, out + r) || slow != 0;
 }
 
+/// The cell codes of bin_rows_body for float rows, eight at a time in float arithmetic: the
+/// estimate has a float's precision, so it runs only where float_binning_margin gives a margin,
+/// and rows within that margin of a border get kSlow. The rows
+/// a full vector does not cover go through bin_rows_body.
+template <int kStride>
+__attribute__((target("avx2"))) bool bin_float_rows_avx2_8(const float* data, std::size_t rows,
+                                                           const BinningConstants& k, std::uint32_t* out) {
+  const __m256 origin_x = _mm256_set1_ps(static_cast<float>(k.origin_x));
+  const __m256 origin_y = _mm256_set1_ps(static_cast<float>(k.origin_y));
+  const __m256 inverse = _mm256_set1_ps(static_cast<float>(k.inverse));
+  const __m256 upper_x = _mm256_set1_ps(static_cast<float>(k.upper_x));
+  const __m256 upper_y = _mm256_set1_ps(static_cast<float>(k.upper_y));
+  const __m256 minus_one = _mm256_set1_ps(-1.0F), one = _mm256_set1_ps(1.0F), half = _mm256_set1_ps(0.5F);
+  const __m256 zero = _mm256_setzero_ps();
+  const __m256 margin = _mm256_set1_ps(k.float_margin), one_minus_margin = _mm256_set1_ps(1.0F - k.float_margin);
+  const __m256i minus_one_i = _mm256_set1_epi32(-1), nx = _mm256_set1_epi32(k.nx), ny = _mm256_set1_epi32(k.ny);
+  const __m256i outside_code = _mm256_set1_epi32(static_cast<std::int32_t>(kOutside));
+  const __m256i slow_code = _mm256_set1_epi32(static_cast<std::int32_t>(kSlow));
+  // A 16-byte load at row r reads up to data[r * kStride + 3]: with 3 scalars a row, the last
+  // row is left to the scalar tail.
+  const std::size_t vector_rows = kStride == 4 ? rows : (rows > 0 ? rows - 1 : 0);
+  std::size_t r = 0;
+  int slow = 0;
+  for (; r + 8 <= vector_rows; r += 8) {
+    const float* p = data + r * kStride;
+    // Rows r..r+3 in the low halves, r+4..r+7 in the high halves; a 4x4 transpose per half then
+    // gives the x, y and z of the eight rows in order.
+    __m256 a = _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(p)), _mm_loadu_ps(p + 4 * kStride), 1);
+    __m256 b =
+        _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(p + kStride)), _mm_loadu_ps(p + 5 * kStride), 1);
+    __m256 c =
+        _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(p + 2 * kStride)), _mm_loadu_ps(p + 6 * kStride), 1);
+    __m256 d =
+        _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(p + 3 * kStride)), _mm_loadu_ps(p + 7 * kStride), 1);
+    const __m256 ab_low = _mm256_unpacklo_ps(a, b), ab_high = _mm256_unpackhi_ps(a, b);
+    const __m256 cd_low = _mm256_unpacklo_ps(c, d), cd_high = _mm256_unpackhi_ps(c, d);
+    const __m256 x = _mm256_shuffle_ps(ab_low, cd_low, _MM_SHUFFLE(1, 0, 1, 0));
+    const __m256 y = _mm256_shuffle_ps(ab_low, cd_low, _MM_SHUFFLE(3, 2, 3, 2));
+    const __m256 z = _mm256_shuffle_ps(ab_high, cd_high, _MM_SHUFFLE(1, 0, 1, 0));
+    const __m256 residue = _mm256_add_ps(_mm256_add_ps(_mm256_sub_ps(x, x), _mm256_sub_ps(y, y)), _mm256_sub_ps(z, z));
+    const __m256 finite = _mm256_cmp_ps(residue, zero, _CMP_EQ_OQ);
+    const __m256 ex = _mm256_mul_ps(_mm256_sub_ps(x, origin_x), inverse);
+    const __m256 ey = _mm256_mul_ps(_mm256_sub_ps(y, origin_y), inverse);
+    const __m256 near_x =
+        _mm256_and_ps(_mm256_cmp_ps(ex, minus_one, _CMP_GT_OQ), _mm256_cmp_ps(ex, upper_x, _CMP_LT_OQ));
+    const __m256 near_y =
+        _mm256_and_ps(_mm256_cmp_ps(ey, minus_one, _CMP_GT_OQ), _mm256_cmp_ps(ey, upper_y, _CMP_LT_OQ));
+    const __m256 sx = _mm256_blendv_ps(half, _mm256_add_ps(ex, one), near_x);
+    const __m256 sy = _mm256_blendv_ps(half, _mm256_add_ps(ey, one), near_y);
+    const __m256i wx = _mm256_cvttps_epi32(sx);
+    const __m256i wy = _mm256_cvttps_epi32(sy);
+    const __m256 fx = _mm256_sub_ps(sx, _mm256_cvtepi32_ps(wx));  // exact: sx - trunc(sx)
+    const __m256 fy = _mm256_sub_ps(sy, _mm256_cvtepi32_ps(wy));
+    const __m256i clear_x = _mm256_castps_si256(
+        _mm256_and_ps(_mm256_cmp_ps(fx, margin, _CMP_GT_OQ), _mm256_cmp_ps(fx, one_minus_margin, _CMP_LT_OQ)));
+    const __m256i clear_y = _mm256_castps_si256(
+        _mm256_and_ps(_mm256_cmp_ps(fy, margin, _CMP_GT_OQ), _mm256_cmp_ps(fy, one_minus_margin, _CMP_LT_OQ)));
+    const __m256i i = _mm256_add_epi32(wx, minus_one_i);
+    const __m256i j = _mm256_add_epi32(wy, minus_one_i);
+    const __m256i in_x = _mm256_and_si256(_mm256_cmpgt_epi32(i, minus_one_i), _mm256_cmpgt_epi32(nx, i));
+    const __m256i in_y = _mm256_and_si256(_mm256_cmpgt_epi32(j, minus_one_i), _mm256_cmpgt_epi32(ny, j));
+    const __m256i finite_i = _mm256_castps_si256(finite);
+    const __m256i near = _mm256_castps_si256(_mm256_and_ps(near_x, near_y));
+    const __m256i decided =
+        _mm256_and_si256(_mm256_and_si256(_mm256_and_si256(clear_x, clear_y), _mm256_and_si256(in_x, in_y)), finite_i);
+    const __m256i outside = _mm256_and_si256(
+        _mm256_or_si256(_mm256_or_si256(_mm256_andnot_si256(near, minus_one_i), _mm256_andnot_si256(in_x, clear_x)),
+                        _mm256_andnot_si256(in_y, clear_y)),
+        finite_i);
+    const __m256i cell = _mm256_add_epi32(_mm256_mullo_epi32(i, ny), j);
+    const __m256i code = _mm256_blendv_epi8(_mm256_blendv_epi8(slow_code, outside_code, outside), cell, decided);
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(out + r), code);
+    slow |= _mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpeq_epi32(code, slow_code)));
+  }
+  return bin_rows_body<float, kStride>(data + r * kStride, rows - r, k, out + r) || slow != 0;
+}
+
 template <typename Scalar>
 bool bin_rows_avx2(const Scalar* data, std::size_t rows, int stride, const BinningConstants& k, std::uint32_t* out) {
   if constexpr (std::is_same_v<Scalar, float>) {
+    if (k.float_margin > 0.0F) {
+      return stride == 3 ? bin_float_rows_avx2_8<3>(data, rows, k, out) : bin_float_rows_avx2_8<4>(data, rows, k, out);
+    }
     return stride == 3 ? bin_float_rows_avx2<3>(data, rows, k, out) : bin_float_rows_avx2<4>(data, rows, k, out);
   } else {
     return bin_rows_default(data, rows, stride, k, out);
@@ -583,6 +698,9 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     constants = {geometry.origin_m.x(),         geometry.origin_m.y(),         1.0 / geometry.resolution_m,
                  static_cast<double>(nx) + 1.0, static_cast<double>(ny) + 1.0, static_cast<std::int32_t>(nx),
                  static_cast<std::int32_t>(ny)};
+    const float margin_x = float_binning_margin(geometry.origin_m.x(), geometry.resolution_m, nx);
+    const float margin_y = float_binning_margin(geometry.origin_m.y(), geometry.resolution_m, ny);
+    if (margin_x > 0.0F && margin_y > 0.0F) constants.float_margin = std::max(margin_x, margin_y);
   }
   const auto height = [&](std::size_t row) {
     if constexpr (Cloud::kPlain) {

@@ -640,6 +640,62 @@ TEST(BuildElevationMapFastPaths, FloatRowsOnAndNearCellBordersOfEveryTailLengthA
   EXPECT_GT(multiplication_differs, 0) << "the pools must hold rows that only the division bins right";
 }
 
+TEST(BuildElevationMapFastPaths, FloatRowsAreBinnedByTheDivisionFormulaForOriginsResolutionsAndWidthsOfEveryScale) {
+  // Float rows are binned eight at a time in float arithmetic where the float estimate's error
+  // bound allows (a margin of 2^-12 to 2^-7 cells, wider for larger origins and wider maps), else
+  // in doubles. Either way every row must land in the cell of the division formula: random rows
+  // and rows on, and a float ulp either side of, cell borders, for geometries whose margin ranges
+  // over the whole span and past it (an origin 3e5 m away that a float does not hold, and the
+  // 20,000-cell map, take the double kernel), on rows of 3 and 4 scalars and lengths that end
+  // inside and after an 8-row block.
+  struct Case {
+    double resolution;
+    Eigen::Vector2d origin;
+    CellIndex size;
+  };
+  const std::vector<Case> cases = {
+      {0.1, {-20.0, -10.0}, {400, 200}},      {0.07, {123.456, -987.65}, {300, 150}},
+      {0.25, {5000.3, -4000.1}, {200, 100}},  {0.05, {-1.3, 2.9}, {2000, 10}},
+      {0.02, {0.01, -0.03}, {8000, 4}},       {0.1, {300000.0, -200000.0}, {50, 50}},
+      {0.1, {300000.3, -200000.7}, {50, 50}}, {0.003, {-0.7, 0.4}, {20000, 2}},
+      {3.0, {-1234.5, 987.6}, {64, 64}},
+  };
+  std::mt19937 random(2024);
+  for (const Case& c : cases) {
+    SCOPED_TRACE("resolution " + std::to_string(c.resolution) + ", origin " + std::to_string(c.origin.x()) + ", " +
+                 std::to_string(c.origin.y()) + ", size " + std::to_string(c.size.x()) + " x " +
+                 std::to_string(c.size.y()));
+    std::uniform_real_distribution<double> unit(-0.05, 1.05), height(-2.0, 5.0);
+    std::vector<Eigen::Vector3d> points;
+    for (int k = 0; k < 1500; ++k) {
+      points.push_back(test::rounded_to<float>(Eigen::Vector3d(
+          c.origin.x() + unit(random) * static_cast<double>(c.size.x()) * c.resolution,
+          c.origin.y() + unit(random) * static_cast<double>(c.size.y()) * c.resolution, height(random))));
+    }
+    for (int axis = 0; axis < 2; ++axis) {
+      std::uniform_int_distribution<int> border_index(-1, static_cast<int>(c.size[axis]) + 1);
+      for (int k = 0; k < 300; ++k) {
+        const auto border = static_cast<float>(c.origin[axis] + border_index(random) * c.resolution);
+        Eigen::Vector3d p = points[static_cast<std::size_t>(k)];
+        p[axis] = static_cast<double>(k % 3 == 0 ? std::nextafter(border, -1e30F)
+                                                 : (k % 3 == 1 ? border : std::nextafter(border, 1e30F)));
+        points.push_back(p);
+      }
+    }
+    std::shuffle(points.begin(), points.end(), random);
+    const ElevationParams params = fixed_extent(c.resolution, c.origin, c.size);
+    for (const std::size_t length : {points.size(), std::size_t{8}, std::size_t{15}, std::size_t{17}}) {
+      const std::vector<Eigen::Vector3d> slice(points.begin(), points.begin() + static_cast<std::ptrdiff_t>(length));
+      for (const int stride : {3, 4}) {
+        SCOPED_TRACE("length " + std::to_string(length) + ", stride " + std::to_string(stride));
+        const std::vector<float> rows = as_floats(slice, stride);
+        expect_matches_naive(build_elevation_map(PointsView<float>(rows.data(), slice.size(), stride, 1), params),
+                             slice, 1.0);
+      }
+    }
+  }
+}
+
 TEST(BuildElevationMapFastPaths, RunsOfACellBrokenByOutsideRowsAndOtherCellsKeepEveryElevation) {
   // Consecutive rows of one cell are summed as a run, and the gap test gathers elevations run by
   // run: rows outside the map inside a run, a cell that comes back after another, and a gap that
