@@ -127,22 +127,45 @@ std::vector<std::string> ElevationMap::layers() const {
 Layer step_layer(const Layer& height) {
   const auto nx = height.rows();
   const auto ny = height.cols();
-  Layer step = detail::filled_layer(nx, ny, std::numeric_limits<float>::quiet_NaN());
-  for (Eigen::Index i = 0; i < nx; ++i) {
-    for (Eigen::Index j = 0; j < ny; ++j) {
-      const float h = height(i, j);
-      if (std::isnan(h)) continue;
-      float largest = 0.0F;
-      for (Eigen::Index di = -1; di <= 1; ++di) {
-        for (Eigen::Index dj = -1; dj <= 1; ++dj) {
-          const Eigen::Index a = i + di;
-          const Eigen::Index b = j + dj;
-          if ((di == 0 && dj == 0) || a < 0 || b < 0 || a >= nx || b >= ny) continue;
-          const float other = height(a, b);
-          if (!std::isnan(other)) largest = std::max(largest, std::abs(other - h));
-        }
+  constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+  Layer step = detail::uninitialised_layer(nx, ny);
+  // std::max(largest, d) keeps `largest` when d is NaN (a neighbour without data), so no test is
+  // needed per neighbour; a cell without data gets NaN at the end.
+  const auto cell_step = [&](Eigen::Index i, Eigen::Index j) {
+    const float h = height(i, j);
+    float largest = 0.0F;
+    for (Eigen::Index a = std::max<Eigen::Index>(i - 1, 0); a <= std::min(i + 1, nx - 1); ++a) {
+      for (Eigen::Index b = std::max<Eigen::Index>(j - 1, 0); b <= std::min(j + 1, ny - 1); ++b) {
+        largest = std::max(largest, std::abs(height(a, b) - h));  // the cell itself adds 0
       }
-      step(i, j) = largest;
+    }
+    return std::isnan(h) ? kNaN : largest;
+  };
+  for (Eigen::Index i = 0; i < nx; ++i) {
+    if (i == 0 || i == nx - 1 || ny < 3) {
+      for (Eigen::Index j = 0; j < ny; ++j) step(i, j) = cell_step(i, j);
+      continue;
+    }
+    // Interior rows: the first and last cells take the bounds-checked form, the others a
+    // branch-free loop over the three rows (row-major, so each is contiguous) that vectorises.
+    step(i, 0) = cell_step(i, 0);
+    step(i, ny - 1) = cell_step(i, ny - 1);
+    const float* up = &height(i - 1, 0);
+    const float* mid = &height(i, 0);
+    const float* down = &height(i + 1, 0);
+    float* out = &step(i, 0);
+    for (Eigen::Index j = 1; j + 1 < ny; ++j) {
+      const float h = mid[j];
+      float largest = 0.0F;
+      largest = std::max(largest, std::abs(up[j - 1] - h));
+      largest = std::max(largest, std::abs(up[j] - h));
+      largest = std::max(largest, std::abs(up[j + 1] - h));
+      largest = std::max(largest, std::abs(mid[j - 1] - h));
+      largest = std::max(largest, std::abs(mid[j + 1] - h));
+      largest = std::max(largest, std::abs(down[j - 1] - h));
+      largest = std::max(largest, std::abs(down[j] - h));
+      largest = std::max(largest, std::abs(down[j + 1] - h));
+      out[j] = h == h ? largest : kNaN;
     }
   }
   return step;
@@ -351,31 +374,31 @@ bool bin_rows_default(const Scalar* data, std::size_t rows, int stride, const Bi
 
 #if defined(__x86_64__) && defined(__GNUC__)
 #define TERRACUBE_HAVE_AVX2_BINNING 1
-/// bin_rows_body for float rows, four at a time in AVX2 doubles: the same operations in the same
-/// order (no FMA target, so every product and sum rounds as in the scalar code).
-template <int kStride>
-__attribute__((target("avx2"))) bool bin_float_rows_avx2(const float* data, std::size_t rows, const BinningConstants& k,
-                                                         std::uint32_t* out) {
-  const __m256d origin_x = _mm256_set1_pd(k.origin_x), origin_y = _mm256_set1_pd(k.origin_y);
-  const __m256d inverse = _mm256_set1_pd(k.inverse);
-  const __m256d upper_x = _mm256_set1_pd(k.upper_x), upper_y = _mm256_set1_pd(k.upper_y);
-  const __m256d minus_one = _mm256_set1_pd(-1.0), one = _mm256_set1_pd(1.0), half = _mm256_set1_pd(0.5);
-  const __m256d zero = _mm256_setzero_pd();
-  const __m256d margin = _mm256_set1_pd(1.0 / 65536.0), one_minus_margin = _mm256_set1_pd(1.0 - 1.0 / 65536.0);
-  const __m128i minus_one_i = _mm_set1_epi32(-1), nx = _mm_set1_epi32(k.nx), ny = _mm_set1_epi32(k.ny);
-  // A 16-byte load at row r reads up to data[r * kStride + 3]: with 3 scalars a row, the last
-  // row is left to the scalar tail.
-  const std::size_t vector_rows = kStride == 4 ? rows : (rows > 0 ? rows - 1 : 0);
-  std::size_t r = 0;
-  int slow = 0;
-  for (; r + 4 <= vector_rows; r += 4) {
-    const float* p = data + r * kStride;
-    __m128 x4 = _mm_loadu_ps(p);
-    __m128 y4 = _mm_loadu_ps(p + kStride);
-    __m128 z4 = _mm_loadu_ps(p + 2 * kStride);
-    __m128 w4 = _mm_loadu_ps(p + 3 * kStride);
-    _MM_TRANSPOSE4_PS(x4, y4, z4, w4);  // now the x, y, z (and 4th) values of the 4 rows
-    const __m256d x = _mm256_cvtps_pd(x4), y = _mm256_cvtps_pd(y4), z = _mm256_cvtps_pd(z4);
+/// bin_rows_body's decision for four rows whose x, y and z are in AVX2 doubles: the same operations
+/// in the same order (no FMA target, so every product and sum rounds as in the scalar code). Writes
+/// the four codes to `out` and returns the mask of rows that got kSlow.
+struct Avx2Binning {
+  __m256d origin_x, origin_y, inverse, upper_x, upper_y, minus_one, one, half, zero, margin, one_minus_margin;
+  __m128i minus_one_i, nx, ny;
+
+  __attribute__((target("avx2"))) explicit Avx2Binning(const BinningConstants& k)
+      : origin_x(_mm256_set1_pd(k.origin_x)),
+        origin_y(_mm256_set1_pd(k.origin_y)),
+        inverse(_mm256_set1_pd(k.inverse)),
+        upper_x(_mm256_set1_pd(k.upper_x)),
+        upper_y(_mm256_set1_pd(k.upper_y)),
+        minus_one(_mm256_set1_pd(-1.0)),
+        one(_mm256_set1_pd(1.0)),
+        half(_mm256_set1_pd(0.5)),
+        zero(_mm256_setzero_pd()),
+        margin(_mm256_set1_pd(1.0 / 65536.0)),
+        one_minus_margin(_mm256_set1_pd(1.0 - 1.0 / 65536.0)),
+        minus_one_i(_mm_set1_epi32(-1)),
+        nx(_mm_set1_epi32(k.nx)),
+        ny(_mm_set1_epi32(k.ny)) {}
+
+  __attribute__((target("avx2"), always_inline)) inline int decide(__m256d x, __m256d y, __m256d z,
+                                                                   std::uint32_t* out) const {
     const __m256d residue = _mm256_add_pd(_mm256_add_pd(_mm256_sub_pd(x, x), _mm256_sub_pd(y, y)), _mm256_sub_pd(z, z));
     const int finite = _mm256_movemask_pd(_mm256_cmp_pd(residue, zero, _CMP_EQ_OQ));
     const __m256d ex = _mm256_mul_pd(_mm256_sub_pd(x, origin_x), inverse);
@@ -404,20 +427,76 @@ __attribute__((target("avx2"))) bool bin_float_rows_avx2(const float* data, std:
     const int decided = clear_x & clear_y & in_x & in_y & finite;
     const int outside = (~near | (clear_x & ~in_x) | (clear_y & ~in_y)) & finite & 0xF;
     const __m128i cell = _mm_add_epi32(_mm_mullo_epi32(i, ny), j);
-    slow |= ~(decided | outside) & 0xF;
     if (decided == 0xF) {
-      _mm_storeu_si128(reinterpret_cast<__m128i*>(out + r), cell);
+      _mm_storeu_si128(reinterpret_cast<__m128i*>(out), cell);
     } else if (outside == 0xF) {
-      _mm_storeu_si128(reinterpret_cast<__m128i*>(out + r), _mm_set1_epi32(-1));  // kOutside
+      _mm_storeu_si128(reinterpret_cast<__m128i*>(out), _mm_set1_epi32(-1));  // kOutside
     } else {
       alignas(16) std::uint32_t cells[4];
       _mm_store_si128(reinterpret_cast<__m128i*>(cells), cell);
       for (int lane = 0; lane < 4; ++lane) {
-        out[r + lane] = (decided >> lane) & 1 ? cells[lane] : ((outside >> lane) & 1 ? kOutside : kSlow);
+        out[lane] = (decided >> lane) & 1 ? cells[lane] : ((outside >> lane) & 1 ? kOutside : kSlow);
       }
     }
+    return ~(decided | outside) & 0xF;
+  }
+};
+
+/// bin_rows_body for float rows, four at a time in AVX2 doubles (Avx2Binning).
+template <int kStride>
+__attribute__((target("avx2"))) bool bin_float_rows_avx2(const float* data, std::size_t rows, const BinningConstants& k,
+                                                         std::uint32_t* out) {
+  const Avx2Binning binning(k);
+  // A 16-byte load at row r reads up to data[r * kStride + 3]: with 3 scalars a row, the last
+  // row is left to the scalar tail.
+  const std::size_t vector_rows = kStride == 4 ? rows : (rows > 0 ? rows - 1 : 0);
+  std::size_t r = 0;
+  int slow = 0;
+  for (; r + 4 <= vector_rows; r += 4) {
+    const float* p = data + r * kStride;
+    __m128 x4 = _mm_loadu_ps(p);
+    __m128 y4 = _mm_loadu_ps(p + kStride);
+    __m128 z4 = _mm_loadu_ps(p + 2 * kStride);
+    __m128 w4 = _mm_loadu_ps(p + 3 * kStride);
+    _MM_TRANSPOSE4_PS(x4, y4, z4, w4);  // now the x, y, z (and 4th) values of the 4 rows
+    slow |= binning.decide(_mm256_cvtps_pd(x4), _mm256_cvtps_pd(y4), _mm256_cvtps_pd(z4), out + r);
   }
   return bin_rows_body<float, kStride>(data + r * kStride, rows - r, k, out + r) || slow != 0;
+}
+
+/// bin_rows_body for double rows, four at a time (Avx2Binning), the rows' x, y and z gathered
+/// from three (3 scalars a row) or four (4 a row) 32-byte loads.
+template <int kStride>
+__attribute__((target("avx2"))) bool bin_double_rows_avx2(const double* data, std::size_t rows,
+                                                          const BinningConstants& k, std::uint32_t* out) {
+  const Avx2Binning binning(k);
+  std::size_t r = 0;
+  int slow = 0;
+  for (; r + 4 <= rows; r += 4) {
+    const double* p = data + r * kStride;
+    __m256d x, y, z;
+    if constexpr (kStride == 3) {
+      const __m256d a = _mm256_loadu_pd(p);                   // x0 y0 z0 x1
+      const __m256d b = _mm256_loadu_pd(p + 4);               // y1 z1 x2 y2
+      const __m256d c = _mm256_loadu_pd(p + 8);               // z2 x3 y3 z3
+      const __m256d xy = _mm256_blend_pd(a, b, 0b1100);       // x0 y0 x2 y2
+      const __m256d zx = _mm256_permute2f128_pd(a, c, 0x21);  // z0 x1 z2 x3
+      const __m256d yz = _mm256_blend_pd(b, c, 0b1100);       // y1 z1 y3 z3
+      x = _mm256_blend_pd(xy, zx, 0b1010);
+      y = _mm256_shuffle_pd(xy, yz, 0b0101);
+      z = _mm256_blend_pd(zx, yz, 0b1010);
+    } else {
+      const __m256d a = _mm256_loadu_pd(p), b = _mm256_loadu_pd(p + 4);
+      const __m256d c = _mm256_loadu_pd(p + 8), d = _mm256_loadu_pd(p + 12);
+      const __m256d ab_low = _mm256_unpacklo_pd(a, b), ab_high = _mm256_unpackhi_pd(a, b);  // x0 x1 z0 z1, y0 y1 w0 w1
+      const __m256d cd_low = _mm256_unpacklo_pd(c, d), cd_high = _mm256_unpackhi_pd(c, d);
+      x = _mm256_permute2f128_pd(ab_low, cd_low, 0x20);
+      y = _mm256_permute2f128_pd(ab_high, cd_high, 0x20);
+      z = _mm256_permute2f128_pd(ab_low, cd_low, 0x31);
+    }
+    slow |= binning.decide(x, y, z, out + r);
+  }
+  return bin_rows_body<double, kStride>(data + r * kStride, rows - r, k, out + r) || slow != 0;
 }
 
 /// The cell codes of bin_rows_body for float rows, eight at a time in float arithmetic: the
@@ -505,7 +584,7 @@ bool bin_rows_avx2(const Scalar* data, std::size_t rows, int stride, const Binni
     }
     return stride == 3 ? bin_float_rows_avx2<3>(data, rows, k, out) : bin_float_rows_avx2<4>(data, rows, k, out);
   } else {
-    return bin_rows_default(data, rows, stride, k, out);
+    return stride == 3 ? bin_double_rows_avx2<3>(data, rows, k, out) : bin_double_rows_avx2<4>(data, rows, k, out);
   }
 }
 
@@ -691,9 +770,8 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   if constexpr (Cloud::kPlain) {
     constexpr std::int64_t kLargest = std::int64_t{1} << 30;  // cells + 2 must fit the kernel's int32
     // With a selection the kernel bins every row and the unselected ones are dropped after: worth
-    // it for float rows (the AVX2 kernel), not for double rows (whose kernel is scalar code).
-    using Scalar = std::remove_cv_t<std::remove_pointer_t<decltype(view.data)>>;
-    kernel = (use == nullptr || std::is_same_v<Scalar, float>)&&view.column_stride == 1 &&
+    // it with the AVX2 kernels, not with the scalar one (no faster than the per-row path).
+    kernel = (use == nullptr || detail::has_avx2()) && view.column_stride == 1 &&
              (view.row_stride == 3 || view.row_stride == 4) && nx < kLargest && ny < kLargest;
     constants = {geometry.origin_m.x(),         geometry.origin_m.y(),         1.0 / geometry.resolution_m,
                  static_cast<double>(nx) + 1.0, static_cast<double>(ny) + 1.0, static_cast<std::int32_t>(nx),
