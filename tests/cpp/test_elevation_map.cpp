@@ -877,6 +877,44 @@ TEST(BuildElevationMapSelection, FloatRowsWithASelectionTakeTheKernelAndSkipUnse
   }
 }
 
+TEST(BuildElevationMapSelection, DoubleRowsWithASelectionTakeTheKernelAndSkipUnselectedNaNRows) {
+  // The same for double rows of 3 and 4 scalars (the AVX2 double kernel, or row by row without
+  // AVX2): unselected rows, NaN ones among them, take no part; a selected NaN row is an error.
+  auto points = test::random_scene(34, 6001, 8.0);
+  for (std::size_t row = 0; row < 40; ++row) {  // rows on cell borders (x = 0.25 k) and just beside
+    points[row].x() = 0.25 * static_cast<double>(row % 20) + (row < 20 ? 0.0 : 1e-12);
+  }
+  points[78] = Eigen::Vector3d(1.0, std::numeric_limits<double>::infinity(), 1.0);
+  std::vector<std::uint8_t> use(points.size());
+  std::vector<Eigen::Vector3d> selected;
+  for (std::size_t row = 0; row < points.size(); ++row) {
+    use[row] = static_cast<std::uint8_t>(row % 5 != 2 && row != 78);
+    if (use[row] != 0) selected.push_back(points[row]);
+  }
+  for (const int stride : {3, 4}) {
+    SCOPED_TRACE("stride " + std::to_string(stride));
+    std::vector<double> rows(points.size() * static_cast<std::size_t>(stride), -7.0);
+    for (std::size_t row = 0; row < points.size(); ++row) {
+      for (int axis = 0; axis < 3; ++axis) rows[row * static_cast<std::size_t>(stride) + axis] = points[row][axis];
+    }
+    const PointsView<double> view(rows.data(), points.size(), stride, 1);
+    for (const bool fixed : {false, true}) {
+      ElevationParams params = fixed ? fixed_extent(0.25, {0.5, -1.0}, {20, 24}) : ElevationParams{};
+      params.resolution_m = 0.25;
+      const ElevationMap map = build_elevation_map(view, params, &use);
+      expect_matches_naive(map, selected, params.discontinuity_m);
+      expect_same_statistics(map, build_elevation_map(PointsView<double>(selected), params));
+    }
+    use[78] = 1;
+    expect_throw_with<std::invalid_argument>(
+        [&] {
+          build_elevation_map(view, fixed_extent(0.25, {0, 0}, {4, 4}), &use);
+        },
+        {"1 of 6001 point rows contain NaN or Inf (first at row 78)"});
+    use[78] = 0;
+  }
+}
+
 TEST(BuildElevationMapSelection, AutoExtentFollowsOnlyTheSelectedPoints) {
   const std::vector<Eigen::Vector3d> points = {{0.25, 0.25, 0.0}, {10.0, 10.0, 0.0}, {0.75, 0.25, 1.0}};
   const std::vector<std::uint8_t> use = {1, 0, 1};
