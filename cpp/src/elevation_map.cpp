@@ -614,6 +614,53 @@ struct CellStatistics {
   double squares = 0.0;  ///< sum of (z - first)^2
 };
 
+/// Whether the elevations [begin, end) of a cell, once sorted, hold two neighbours more than
+/// `threshold` apart, found without sorting them (the classic linear-time maximum gap): the range [lowest, highest]
+/// is cut into buckets of threshold / 2 and each bucket keeps its least and greatest elevation.
+/// Two neighbours in sorted order either share a bucket, and then lie at most about threshold / 2
+/// apart (the bucket's width; the rounding of (z - lowest) / width moves that by a few ulps), or
+/// lie in consecutive non-empty buckets as the greater elevation of the first and the least of the
+/// second (the bucket of z never decreases as z grows, rounding being monotonic). So the answer is
+/// whether any two consecutive non-empty buckets are more than `threshold` apart, each difference
+/// computed as the sorted scan would compute it. A cell whose range would need more buckets than
+/// four per elevation (an outlier far above the rest) is sorted instead, keeping memory O(points).
+bool has_gap(double* begin, double* end, double threshold, std::vector<double>& buckets) {
+  const auto count = static_cast<std::size_t>(end - begin);
+  if (count < 2) return false;
+  double lowest = *begin, highest = *begin;
+  for (const double* z = begin + 1; z < end; ++z) {
+    lowest = std::min(lowest, *z);
+    highest = std::max(highest, *z);
+  }
+  const double width = 0.5 * threshold;
+  const double spread = (highest - lowest) / width;
+  if (!(spread < static_cast<double>(4 * count + 64))) {
+    std::sort(begin, end);
+    for (const double* z = begin + 1; z < end; ++z) {
+      if (*z - *(z - 1) > threshold) return true;
+    }
+    return false;
+  }
+  const auto num_buckets = static_cast<std::size_t>(spread) + 1;
+  buckets.assign(2 * num_buckets, 0.0);
+  double* least = buckets.data();
+  double* greatest = least + num_buckets;
+  std::fill_n(least, num_buckets, std::numeric_limits<double>::infinity());
+  std::fill_n(greatest, num_buckets, -std::numeric_limits<double>::infinity());
+  for (const double* z = begin; z < end; ++z) {
+    const auto bucket = static_cast<std::size_t>((*z - lowest) / width);  // <= spread: monotonic rounding
+    least[bucket] = std::min(least[bucket], *z);
+    greatest[bucket] = std::max(greatest[bucket], *z);
+  }
+  double previous = greatest[0];  // bucket 0 holds the lowest elevation
+  for (std::size_t bucket = 1; bucket < num_buckets; ++bucket) {
+    if (least[bucket] > greatest[bucket]) continue;  // empty
+    if (least[bucket] - previous > threshold) return true;
+    previous = greatest[bucket];
+  }
+  return false;
+}
+
 /// Per-thread scratch buffers of build_map, kept between calls: a fresh multi-megabyte buffer
 /// costs a page fault per 4 kB page on first touch, which on a fresh map would take longer than
 /// the whole computation. The per-cell buffers (`place`, the bitmaps, `slot`) are left clean
@@ -626,7 +673,7 @@ struct BuildScratch {
   std::vector<std::uint64_t> occupied, wide;  // one bit per cell
   std::vector<CellStatistics<float>> statistics_float;
   std::vector<CellStatistics<double>> statistics_double;
-  std::vector<double> heights;
+  std::vector<double> heights, buckets;
   std::vector<std::size_t> offset, next;
 
   static constexpr std::size_t kKeepBytes = std::size_t{32} << 20;
@@ -646,7 +693,7 @@ struct BuildScratch {
                               8 * (occupied.capacity() + wide.capacity()) +
                               sizeof(CellStatistics<float>) * statistics_float.capacity() +
                               sizeof(CellStatistics<double>) * statistics_double.capacity() +
-                              8 * (heights.capacity() + offset.capacity() + next.capacity());
+                              8 * (heights.capacity() + buckets.capacity() + offset.capacity() + next.capacity());
     if (bytes > kKeepBytes) *this = BuildScratch();
   }
 };
@@ -956,12 +1003,10 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
       }
     }
     for (std::size_t k = 0; k < num_wide; ++k) {
-      double* begin = heights.data() + offset[k];
-      double* end = heights.data() + offset[k + 1];
-      std::sort(begin, end);
-      bool gap = false;
-      for (const double* z = begin + 1; z < end && !gap; ++z) gap = *z - *(z - 1) > params.discontinuity_m;
-      discontinuity.data()[wide_cells[k]] = gap ? 1.0F : 0.0F;
+      discontinuity.data()[wide_cells[k]] =
+          has_gap(heights.data() + offset[k], heights.data() + offset[k + 1], params.discontinuity_m, scratch.buckets)
+              ? 1.0F
+              : 0.0F;
     }
   }
   return fresh;

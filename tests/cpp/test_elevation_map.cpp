@@ -490,6 +490,47 @@ TEST(BuildElevationMapFastPaths, PointsOnAndWithinRoundingOfCellBordersAreBinned
   }
 }
 
+TEST(BuildElevationMapFastPaths, DiscontinuityOfManyElevationsWithGapsAtTheThresholdMatchesTheSortedScan) {
+  // The gap test of wide cells buckets the elevations (width threshold / 2) instead of sorting
+  // them. Cells of 2 to 60 elevations built from runs of close values separated by gaps of exactly
+  // the threshold, one ulp less or more, or random, at random offsets (so gaps straddle bucket
+  // borders every way), a cell with an outlier far above the rest (the sorted fallback), for a
+  // representable and a non-representable threshold, against the naive sorted scan.
+  std::mt19937 random(5);
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  for (const double threshold : {1.0, 0.3}) {
+    SCOPED_TRACE("threshold " + std::to_string(threshold));
+    std::vector<Eigen::Vector3d> points;
+    const CellIndex size(20, 20);
+    for (int cell = 0; cell < 400; ++cell) {
+      const double x = 0.05 + 0.1 * (cell / 20);
+      const double y = 0.05 + 0.1 * (cell % 20);
+      double z = -5.0 + 10.0 * unit(random);
+      const int count = 2 + static_cast<int>(59 * unit(random));
+      for (int k = 0; k < count; ++k) {
+        points.emplace_back(x, y, z);
+        const double choice = unit(random);
+        if (choice < 0.15) {
+          z += threshold;
+        } else if (choice < 0.25) {
+          z = std::nextafter(z + threshold, -1e300);
+        } else if (choice < 0.35) {
+          z = std::nextafter(z + threshold, 1e300);
+        } else if (choice < 0.4) {
+          z += threshold * (1.0 + unit(random));
+        } else {
+          z += threshold * 0.6 * unit(random);
+        }
+      }
+      if (cell % 50 == 7) points.emplace_back(x, y, 1e6);  // an outlier: sorted instead
+    }
+    std::shuffle(points.begin(), points.end(), random);
+    ElevationParams params = fixed_extent(0.1, {0.0, 0.0}, size);
+    params.discontinuity_m = threshold;
+    expect_matches_naive(build_elevation_map(PointsView<double>(points), params), points, threshold);
+  }
+}
+
 TEST(BuildElevationMapFastPaths, WideCellFilterAtTheThresholdAgreesWithHandComputedFlags) {
   // One cell per case (threshold 1 m, all values exact in binary). Only cells whose range exceeds
   // the threshold are sorted; the rest are 0 without looking for gaps.
