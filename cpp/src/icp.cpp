@@ -5,12 +5,19 @@
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <numeric>
 #include <stdexcept>
 #include <string>
 
+#if defined(__x86_64__) && defined(__GNUC__)
+#include <immintrin.h>
+#define TERRACUBE_HAVE_AVX2_CELLS 1
+#endif
+
 #include "cloud_frame.hpp"
+#include "cpu_features.hpp"
 
 namespace terracube {
 
@@ -332,6 +339,81 @@ const char* to_string(StopReason reason) {
 
 namespace {
 
+/// The class code of a "class" value, branch-free: NaN or out of range is unknown (0). On the
+/// bits: the non-negative floats below 6 are exactly the bit patterns below 6.0F's (negative
+/// values, -0, Inf and NaN are above it as unsigned integers).
+static_assert(kNumTerrainClasses == 6, "0x40C00000 is 6.0F");
+constexpr std::uint32_t kSixBits = 0x40C00000U;
+
+inline std::uint32_t class_code(const float* value) {
+  std::uint32_t bits;
+  std::memcpy(&bits, value, sizeof bits);
+  bits &= 0U - static_cast<std::uint32_t>(bits < kSixBits);  // out of range: +0, unknown
+  float c;
+  std::memcpy(&c, &bits, sizeof c);
+  return static_cast<std::uint32_t>(static_cast<std::int32_t>(c));  // 0 <= c < 6
+}
+
+/// Of `length` (at most 64) cells from `z` and `classes` (null: all unknown), bit k of `finite`:
+/// z[k] is finite; bit k of the result: also its class is in `keep` (bit c for class c).
+std::uint64_t take_bits_scalar(const float* z, const float* classes, std::size_t length, std::uint32_t keep,
+                               std::uint64_t& finite) {
+  constexpr float kLargest = std::numeric_limits<float>::max();
+  std::uint64_t finite_bits = 0, bits = 0;
+  for (std::size_t k = 0; k < length; ++k) {
+    const std::uint64_t is_finite = std::fabs(z[k]) <= kLargest ? 1 : 0;  // 0 for NaN and Inf
+    const std::uint32_t code = classes != nullptr ? class_code(classes + k) : 0;
+    finite_bits |= is_finite << k;
+    bits |= (is_finite & ((keep >> code) & 1U)) << k;
+  }
+  finite = finite_bits;
+  return bits;
+}
+
+#if defined(TERRACUBE_HAVE_AVX2_CELLS)
+/// take_bits_scalar eight cells at a time.
+__attribute__((target("avx2"))) std::uint64_t take_bits_avx2(const float* z, const float* classes, std::size_t length,
+                                                             std::uint32_t keep, std::uint64_t& finite) {
+  const __m256 magnitude = _mm256_castsi256_ps(_mm256_set1_epi32(0x7FFFFFFF));
+  const __m256 largest = _mm256_set1_ps(std::numeric_limits<float>::max());
+  const __m256i six = _mm256_set1_epi32(static_cast<int>(kSixBits)), minus_one = _mm256_set1_epi32(-1);
+  const __m256i keep_vector = _mm256_set1_epi32(static_cast<int>(keep)), one = _mm256_set1_epi32(1);
+  const int keep_unknown = (keep & 1U) != 0 ? 0xFF : 0;
+  std::uint64_t finite_bits = 0, bits = 0;
+  std::size_t k = 0;
+  for (; k + 8 <= length; k += 8) {
+    const __m256 height = _mm256_and_ps(_mm256_loadu_ps(z + k), magnitude);
+    const auto is_finite = static_cast<std::uint64_t>(_mm256_movemask_ps(_mm256_cmp_ps(height, largest, _CMP_LE_OQ)));
+    std::uint64_t kept = static_cast<std::uint64_t>(keep_unknown);
+    if (classes != nullptr) {
+      // As signed integers the class values' bits are in [0, 6.0F's) exactly when in range.
+      const __m256i value = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(classes + k));
+      const __m256i in_range = _mm256_and_si256(_mm256_cmpgt_epi32(six, value), _mm256_cmpgt_epi32(value, minus_one));
+      const __m256i code = _mm256_cvttps_epi32(_mm256_castsi256_ps(_mm256_and_si256(value, in_range)));
+      const __m256i take = _mm256_and_si256(_mm256_srlv_epi32(keep_vector, code), one);
+      kept = static_cast<std::uint64_t>(_mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpeq_epi32(take, one))));
+    }
+    finite_bits |= is_finite << k;
+    bits |= (is_finite & kept) << k;
+  }
+  finite = finite_bits;
+  if (k == length) return bits;
+  std::uint64_t tail_finite = 0;  // k < 64 from here
+  const std::uint64_t tail =
+      take_bits_scalar(z + k, classes != nullptr ? classes + k : nullptr, length - k, keep, tail_finite);
+  finite |= tail_finite << k;
+  return bits | (tail << k);
+}
+#endif
+
+std::uint64_t take_bits(const float* z, const float* classes, std::size_t length, std::uint32_t keep,
+                        std::uint64_t& finite) {
+#if defined(TERRACUBE_HAVE_AVX2_CELLS)
+  if (detail::has_avx2()) return take_bits_avx2(z, classes, length, keep, finite);
+#endif
+  return take_bits_scalar(z, classes, length, keep, finite);
+}
+
 /// The cells of points_of_map, only those of classes with a positive weight when `weights` is
 /// given; `cells_with_data` receives the number of all cells with data.
 ClassifiedPoints cells_of_map(const ElevationMap& map, const ClassWeights* weights, std::size_t& cells_with_data) {
@@ -340,42 +422,48 @@ ClassifiedPoints cells_of_map(const ElevationMap& map, const ClassWeights* weigh
   const MapGeometry& geometry = map.geometry();
   const auto rows = static_cast<std::size_t>(highest.rows()), cols = static_cast<std::size_t>(highest.cols());
   const float* z = highest.data();  // row-major: cell (i, j) at i * cols + j
-  std::array<std::uint8_t, kNumTerrainClasses> keep{};
-  for (std::size_t c = 0; c < kNumTerrainClasses; ++c) keep[c] = weights == nullptr || (*weights)[c] > 0.0 ? 1 : 0;
-  const auto class_of = [&](std::size_t cell) -> std::uint8_t {
-    const float c = classes ? classes[cell] : 0.0F;  // NaN or out of range: unknown
-    return c >= 0.0F && c < static_cast<float>(kNumTerrainClasses) ? static_cast<std::uint8_t>(c) : 0;
-  };
-  const auto takes_part = [&](std::size_t cell) -> std::size_t {
-    return static_cast<std::size_t>(std::isfinite(z[cell])) & keep[class_of(cell)];
-  };
-  ClassifiedPoints set;
-  // The cell centres of MapGeometry::position_of, one coordinate at a time.
+  std::uint32_t keep = 0;           // bit c: class c takes part
+  for (std::size_t c = 0; c < kNumTerrainClasses; ++c) {
+    if (weights == nullptr || (*weights)[c] > 0.0) keep |= std::uint32_t{1} << c;
+  }
+  // Pass 1: a bit per cell that takes part (finite "max", a kept class), 64 cells of a row per
+  // word, and the exact number of points, so that they are allocated once.
+  const std::size_t words_per_row = (cols + 63) / 64;
+  std::vector<std::uint64_t> takes_part(rows * words_per_row);
+  std::size_t total = 0, with_data = 0;
+  for (std::size_t i = 0; i < rows; ++i) {
+    for (std::size_t w = 0; w < words_per_row; ++w) {
+      const std::size_t first = i * cols + w * 64;
+      std::uint64_t finite = 0;
+      const std::uint64_t bits = take_bits(z + first, classes != nullptr ? classes + first : nullptr,
+                                           std::min<std::size_t>(64, cols - w * 64), keep, finite);
+      takes_part[i * words_per_row + w] = bits;
+      with_data += static_cast<std::size_t>(__builtin_popcountll(finite));
+      total += static_cast<std::size_t>(__builtin_popcountll(bits));
+    }
+  }
+  cells_with_data = with_data;
+  // Pass 2: the cell centres of MapGeometry::position_of, one coordinate at a time.
   std::vector<double> ys(cols);
   for (std::size_t j = 0; j < cols; ++j) {
     ys[j] = geometry.origin_m.y() + (static_cast<double>(j) + 0.5) * geometry.resolution_m;
   }
-  // One pass over the layers (they are read once; room for a whole row is made before each row).
-  // The cells that take part are a minority on most maps, so the branch is well predicted.
+  ClassifiedPoints set;
+  set.points.resize(total);
+  set.classes.resize(total);
   std::size_t next = 0;
-  cells_with_data = 0;
   for (std::size_t i = 0; i < rows; ++i) {
-    if (set.points.size() < next + cols) {
-      const std::size_t size = std::max(2 * set.points.size(), next + cols);
-      set.points.resize(size);
-      set.classes.resize(size);
-    }
     const double x = geometry.origin_m.x() + (static_cast<double>(i) + 0.5) * geometry.resolution_m;
-    for (std::size_t j = 0, cell = i * cols; j < cols; ++j, ++cell) {
-      cells_with_data += static_cast<std::size_t>(std::isfinite(z[cell]));
-      if (!takes_part(cell)) continue;
-      set.points[next] = Eigen::Vector3d(x, ys[j], static_cast<double>(z[cell]));
-      set.classes[next] = class_of(cell);
-      ++next;
+    for (std::size_t w = 0; w < words_per_row; ++w) {
+      for (std::uint64_t bits = takes_part[i * words_per_row + w]; bits != 0; bits &= bits - 1) {
+        const std::size_t j = w * 64 + static_cast<std::size_t>(__builtin_ctzll(bits));
+        const std::size_t cell = i * cols + j;
+        set.points[next] = Eigen::Vector3d(x, ys[j], static_cast<double>(z[cell]));
+        set.classes[next] = static_cast<std::uint8_t>(classes != nullptr ? class_code(classes + cell) : 0);
+        ++next;
+      }
     }
   }
-  set.points.resize(next);
-  set.classes.resize(next);
   return set;
 }
 

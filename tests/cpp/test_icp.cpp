@@ -485,6 +485,56 @@ TEST(RegisterMaps, PointsOfMapAreCellCentresAtTheHighestElevationWithTheirClass)
   EXPECT_THROW(points_of_map(ElevationMap(geometry)), std::out_of_range);
 }
 
+// Random maps of every width around the 8- and 64-cell blocks of the cell scan, with heights
+// that are NaN or infinite and class values that are NaN, infinite, negative, -0, fractional or
+// too large (all unknown but the fractional ones, which truncate), against a loop over the cells.
+TEST(RegisterMaps, PointsOfRandomMapsMatchALoopOverTheCells) {
+  std::mt19937 rng(20261123);
+  const float kInf = std::numeric_limits<float>::infinity(), kNaN = std::numeric_limits<float>::quiet_NaN();
+  const std::vector<float> odd_classes = {kNaN,  -kNaN, kInf,   -kInf, -1.0F, -0.0F,
+                                          -0.5F, 2.5F,  5.999F, 6.0F,  7.0F,  1e30F};
+  for (const Eigen::Index cols : {1, 7, 8, 9, 63, 64, 65, 131, 200}) {
+    for (const bool with_classes : {true, false}) {
+      MapGeometry geometry;
+      geometry.resolution_m = 0.1;
+      geometry.origin_m = Eigen::Vector2d(-3.0, 5.0);
+      geometry.size = CellIndex(5, cols);
+      ElevationMap map(geometry);
+      map.add("max");
+      if (with_classes) map.add("class");
+      std::uniform_real_distribution<float> height(-3.0F, 3.0F);
+      std::uniform_int_distribution<int> pick(0, 19);
+      for (Eigen::Index i = 0; i < geometry.size.x(); ++i) {
+        for (Eigen::Index j = 0; j < cols; ++j) {
+          const int h = pick(rng);
+          map.get("max")(i, j) = h < 8 ? kNaN : h == 8 ? kInf : h == 9 ? -kInf : height(rng);
+          if (!with_classes) continue;
+          const int c = pick(rng);
+          map.get("class")(i, j) = c < 12 ? static_cast<float>(c % 6) : odd_classes[static_cast<std::size_t>(c - 8)];
+        }
+      }
+      std::vector<Eigen::Vector3d> points;
+      std::vector<std::uint8_t> classes;
+      for (Eigen::Index i = 0; i < geometry.size.x(); ++i) {
+        for (Eigen::Index j = 0; j < cols; ++j) {
+          const float z = map.get("max")(i, j);
+          if (!std::isfinite(z)) continue;
+          points.push_back(Eigen::Vector3d(geometry.origin_m.x() + (static_cast<double>(i) + 0.5) * 0.1,
+                                           geometry.origin_m.y() + (static_cast<double>(j) + 0.5) * 0.1, z));
+          const float c = with_classes ? map.get("class")(i, j) : 0.0F;
+          classes.push_back(c >= 0.0F && c < 6.0F ? static_cast<std::uint8_t>(c) : 0);
+        }
+      }
+      const ClassifiedPoints set = points_of_map(map);
+      ASSERT_EQ(set.size(), points.size()) << cols << " columns";
+      EXPECT_EQ(set.classes, classes) << cols << " columns";
+      for (std::size_t k = 0; k < points.size(); ++k) {
+        ASSERT_EQ(set.points[k], points[k]) << cols << " columns, point " << k;
+      }
+    }
+  }
+}
+
 TEST(RegisterMaps, RecoverThreeMetresAndTwentyDegreesFromAPerturbedGuess) {
   const std::vector<Eigen::Vector3d> world = street(0.1);
   const Eigen::Matrix4d source_pose = pose(-1.0, 0.0, kSensorHeight, -10.0);
