@@ -30,6 +30,8 @@ constexpr double kCertificateSlack = 1e-9;
 // A search that finds nothing within the certificate reach looks this many times the distance
 // limit far (see Registration::search).
 constexpr double kEmptyReach = 1.5;
+// The number of set bits of a 4-bit lane mask.
+constexpr std::uint8_t kLaneCount[16] = {0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4};
 
 using Matrix6d = Eigen::Matrix<double, 6, 6>;
 using Vector6d = Eigen::Matrix<double, 6, 1>;
@@ -98,6 +100,45 @@ struct Pass {
   std::array<std::size_t, kNumTerrainClasses> per_class{};
 };
 
+/// Unweighted sums over the correspondences of one class (p, q: the moved source point and its
+/// partner, both relative to the pass's origin o); a class's weight multiplies them afterwards.
+struct ClassMoments {
+  std::size_t count = 0;
+  double squared = 0.0;  // sum |p - q|^2
+  double p[3] = {0, 0, 0}, q[3] = {0, 0, 0}, pxq[3] = {0, 0, 0};
+  double pp[6] = {0, 0, 0, 0, 0, 0};  // xx xy xz yy yz zz
+
+  void add(const Eigen::Vector3d& a, const Eigen::Vector3d& b, double d2) {
+    ++count;
+    squared += d2;
+    for (int i = 0; i < 3; ++i) p[i] += a[i], q[i] += b[i];
+    pp[0] += a.x() * a.x(), pp[1] += a.x() * a.y(), pp[2] += a.x() * a.z();
+    pp[3] += a.y() * a.y(), pp[4] += a.y() * a.z(), pp[5] += a.z() * a.z();
+    pxq[0] += a.y() * b.z() - a.z() * b.y();
+    pxq[1] += a.z() * b.x() - a.x() * b.z();
+    pxq[2] += a.x() * b.y() - a.y() * b.x();
+  }
+};
+
+/// A pass's motion: rotation r (row-major), translation t and the moments' origin o.
+struct Motion {
+  double r[9], t[3], o[3];
+};
+
+#if defined(TERRACUBE_HAVE_AVX2_CELLS)
+/// a^2 + b^2 + c^2 lane by lane, in that order.
+__attribute__((target("avx2"), always_inline)) inline __m256d squared_norm4(__m256d a, __m256d b, __m256d c) {
+  return _mm256_add_pd(_mm256_add_pd(_mm256_mul_pd(a, a), _mm256_mul_pd(b, b)), _mm256_mul_pd(c, c));
+}
+
+/// The sum of the four lanes, (0 + 1) + (2 + 3).
+__attribute__((target("avx2"), always_inline)) inline double lane_total(__m256d v) {
+  alignas(32) double lanes[4];
+  _mm256_store_pd(lanes, v);
+  return (lanes[0] + lanes[1]) + (lanes[2] + lanes[3]);
+}
+#endif
+
 class Registration {
  public:
   Registration(const ClassifiedPoints& source, const ClassifiedPoints& target, const RegistrationParams& params) {
@@ -110,24 +151,47 @@ class Registration {
     for (std::size_t c = 0; c < kNumTerrainClasses; ++c) {
       if (!buckets[c].empty()) grids_[c] = NearestNeighborGrid(std::move(buckets[c]));
     }
-    // The source points that can take part, gathered with their grid, class and weight.
-    for (std::size_t k = 0; k < source.size(); ++k) {
-      const std::uint8_t c = source.classes[k];
-      const std::uint8_t grid = params.use_classes ? c : 0;
+    // The source points that can take part, grouped by class (in their order within a class):
+    // a class has one weight and one grid, and its points are checked four at a time.
+    std::array<std::size_t, kNumTerrainClasses> count{};
+    for (std::size_t c = 0; c < kNumTerrainClasses; ++c) {
+      class_grid_[c] = static_cast<std::uint8_t>(params.use_classes ? c : 0);
       const double w = params.use_classes ? params.class_weights[c] : 1.0;
-      if (w > 0.0 && grids_[grid].size() > 0) {
-        active_.push_back({source.points[k], w, grid, c});
-        total_weight_ += w;
-        reference_ += source.points[k];
-      }
+      class_weight_[c] = w > 0.0 && grids_[class_grid_[c]].size() > 0 ? w : 0.0;
     }
-    if (!active_.empty()) reference_ /= static_cast<double>(active_.size());
-    certificates_.resize(active_.size());
+    for (std::size_t k = 0; k < source.size(); ++k) count[source.classes[k]] += class_weight_[source.classes[k]] > 0.0;
+    class_begin_[0] = 0;
+    for (std::size_t c = 0; c < kNumTerrainClasses; ++c) class_begin_[c + 1] = class_begin_[c] + count[c];
+    const std::size_t n = class_begin_[kNumTerrainClasses];
+    for (auto* v : {&x_, &y_, &z_}) v->resize(n);
+    ordinal_.resize(n);
+    std::array<std::size_t, kNumTerrainClasses> next{};
+    std::copy(class_begin_.begin(), class_begin_.end() - 1, next.begin());
+    for (std::size_t k = 0, ordinal = 0; k < source.size(); ++k) {
+      const std::uint8_t c = source.classes[k];
+      if (!(class_weight_[c] > 0.0)) continue;
+      const std::size_t slot = next[c]++;
+      ordinal_[slot] = static_cast<std::uint32_t>(ordinal++);
+      const Eigen::Vector3d& p = source.points[k];
+      x_[slot] = p.x(), y_[slot] = p.y(), z_[slot] = p.z();
+      total_weight_ += class_weight_[c];
+      reference_ += p;
+    }
+    if (n > 0) reference_ /= static_cast<double>(n);
+    // No certificate yet: no candidate, a clearance that proves nothing.
+    for (auto* v :
+         {&anchor_x_, &anchor_y_, &anchor_z_, &first_x_, &first_y_, &first_z_, &second_x_, &second_y_, &second_z_}) {
+      v->assign(n, 0.0);
+    }
+    clearance_.assign(n, -1.0);
+    first_.assign(n, -1);
+    second_.assign(n, -1);
+    deferred_.resize(n + 4);
     certificate_reach_ = params.min_correspondence_distance_m;
   }
 
-  bool has_common_class() const { return !active_.empty(); }
-  std::size_t active_size() const { return active_.size(); }
+  bool has_common_class() const { return class_begin_[kNumTerrainClasses] > 0; }
+  std::size_t active_size() const { return class_begin_[kNumTerrainClasses]; }
 
   /// The eq. (4) error of a pass truncated at `max_distance`: sum over the active source points of
   /// w min(d^2, max_distance^2), d the distance to the nearest target point of the class. A proper
@@ -140,62 +204,59 @@ class Registration {
   /// target point (of its class) within `max_distance`; one sweep accumulates the moments. With
   /// `stride` > 1 only every stride-th active point takes part (the coarse iterations).
   Pass pass(const Eigen::Matrix4d& transform, double max_distance, std::size_t stride = 1) {
-    const Eigen::Matrix3d rotation = transform.topLeftCorner<3, 3>();
-    const Eigen::Vector3d translation = transform.topRightCorner<3, 1>();
+    if (stride > 1 && stride != coarse_stride_) select_coarse(stride);
+    Motion motion{};
+    for (int i = 0; i < 3; ++i) {
+      for (int j = 0; j < 3; ++j) motion.r[3 * i + j] = transform(i, j);
+      motion.t[i] = transform(i, 3);
+    }
     // Moments are taken about o, the moved centroid of the active source points, so that they
     // stay well conditioned far from the origin.
-    const Eigen::Vector3d o = rotation * reference_ + translation;
+    const Eigen::Vector3d o = transform.topLeftCorner<3, 3>() * reference_ + transform.topRightCorner<3, 1>();
+    for (int i = 0; i < 3; ++i) motion.o[i] = o[i];
     const double max_squared = max_distance * max_distance;
     Pass result;
     double w_sum = 0.0, error = 0.0;
     double sp[3] = {0, 0, 0}, sq[3] = {0, 0, 0}, spxq[3] = {0, 0, 0};
     double spp[6] = {0, 0, 0, 0, 0, 0};  // xx xy xz yy yz zz
-    std::size_t used = 0;
-    for (std::size_t slot = 0; slot < active_.size(); slot += stride) {
-      const Active& a = active_[slot];
-      const Eigen::Vector3d moved = rotation * a.point + translation;
-      // The last search from `anchor` found the candidates (its two nearest target points) and
-      // nothing else nearer than `clearance`. The moved query is `shift` from the anchor, so by the
-      // triangle inequality the nearer candidate is still the nearest point while its distance is
-      // at most clearance - shift; likewise nothing lies within the limit while the limit is below
-      // clearance - shift (no candidate). Otherwise search again.
-      Certificate& cached = certificates_[slot];
-      const double margin = cached.clearance - (moved - cached.anchor).norm() - kCertificateSlack;
-      double squared = 0.0;
-      int nearer = 0;
-      if (cached.index[0] >= 0) {
-        squared = (moved - cached.candidate[0]).squaredNorm();
-        if (cached.index[1] >= 0) {
-          const double other = (moved - cached.candidate[1]).squaredNorm();
-          if (other < squared) squared = other, nearer = 1;
+    for (std::size_t c = 0; c < kNumTerrainClasses; ++c) {
+      const std::size_t begin = class_begin_[c], end = class_begin_[c + 1];
+      if (begin == end) continue;
+      ClassMoments m;
+      std::size_t num_deferred = 0;
+      if (stride == 1) {
+        std::size_t slot = begin;
+#if defined(TERRACUBE_HAVE_AVX2_CELLS)
+        if (detail::has_avx2()) slot = check_avx2(begin, end, motion, max_distance, m, num_deferred);
+#endif
+        for (; slot < end; ++slot) check_one(slot, motion, max_distance, m, num_deferred);
+      } else {
+        for (std::size_t k = coarse_begin_[c]; k < coarse_begin_[c + 1]; ++k) {
+          check_one(coarse_[k], motion, max_distance, m, num_deferred);
         }
-        if (!(margin >= 0.0 && squared <= margin * margin))
-          nearer = search(a.grid, moved, max_squared, cached, squared);
-      } else if (!(margin > max_distance)) {
-        nearer = search(a.grid, moved, max_squared, cached, squared);
       }
-      if (cached.index[0] < 0 || squared > max_squared) continue;
-      const Eigen::Vector3d& partner = cached.candidate[nearer];
-      const Eigen::Vector3d p = moved - o;
-      const Eigen::Vector3d q = partner - o;
-      const double w = a.weight;
-      ++used;
-      ++result.per_class[a.terrain_class];
-      w_sum += w;
-      error += w * squared;
-      const double wx = w * p.x(), wy = w * p.y(), wz = w * p.z();
-      sp[0] += wx, sp[1] += wy, sp[2] += wz;
-      sq[0] += w * q.x(), sq[1] += w * q.y(), sq[2] += w * q.z();
-      spp[0] += wx * p.x(), spp[1] += wx * p.y(), spp[2] += wx * p.z();
-      spp[3] += wy * p.y(), spp[4] += wy * p.z(), spp[5] += wz * p.z();
-      spxq[0] += wy * q.z() - wz * q.y();
-      spxq[1] += wz * q.x() - wx * q.z();
-      spxq[2] += wx * q.y() - wy * q.x();
+      // The points whose certificate did not hold: searched again.
+      for (std::size_t k = 0; k < num_deferred; ++k) {
+        const std::uint32_t s = deferred_[k];
+        const Eigen::Vector3d moved = move(motion, s);
+        double squared = 0.0;
+        search(class_grid_[c], moved, max_squared, s, squared);
+        if (first_[s] >= 0 && squared <= max_squared) {
+          m.add(moved - o, Eigen::Vector3d(first_x_[s], first_y_[s], first_z_[s]) - o, squared);
+        }
+      }
+      // Eq. (4): the class's weight on each of its correspondences.
+      const double w = class_weight_[c];
+      result.count += m.count;
+      result.per_class[c] += m.count;
+      w_sum += w * static_cast<double>(m.count);
+      error += w * m.squared;
+      for (int i = 0; i < 3; ++i) sp[i] += w * m.p[i], sq[i] += w * m.q[i], spxq[i] += w * m.pxq[i];
+      for (int i = 0; i < 6; ++i) spp[i] += w * m.pp[i];
     }
-    result.count = used;
     result.weight_sum = w_sum;
     result.weighted_squared_error = error;
-    if (used == 0) return result;
+    if (result.count == 0) return result;
     // Eq. (A6) with per-class weights (eq. 4). Unknowns x = (omega, t) about the weighted centroid
     // c of the moved source points; residual r_i = p_i + omega x (p_i - c) + t - q_i, so
     // J_i = [-[p_i - c]x, I], H = sum w J^T J and g = sum w J^T (q_i - p_i). From the moments
@@ -217,62 +278,204 @@ class Registration {
   }
 
  private:
-  struct Active {
-    Eigen::Vector3d point;  // source point [m]
-    double weight;          // eq. (4) weight of its class (1 without classes)
-    std::uint8_t grid;      // index into grids_
-    std::uint8_t terrain_class;
-  };
-  /// Per active source point, what its last search proved (see pass()).
-  struct Certificate {
-    Eigen::Vector3d anchor = Eigen::Vector3d::Zero();  // the query of the last search
-    std::array<Eigen::Vector3d, 2> candidate;          // its two nearest target points (index >= 0)
-    double clearance = -1.0;                           // every other target point is at least this far from anchor [m]
-    std::array<std::ptrdiff_t, 2> index = {-1, -1};    // grid indices of the candidates, -1: none
-  };
+  /// The points of the coarse passes: every stride-th active point in the source's order (their
+  /// slots, by class).
+  void select_coarse(std::size_t stride) {
+    coarse_.clear();
+    for (std::size_t c = 0; c < kNumTerrainClasses; ++c) {
+      coarse_begin_[c] = coarse_.size();
+      for (std::size_t slot = class_begin_[c]; slot < class_begin_[c + 1]; ++slot) {
+        if (ordinal_[slot] % stride == 0) coarse_.push_back(static_cast<std::uint32_t>(slot));
+      }
+    }
+    coarse_begin_[kNumTerrainClasses] = coarse_.size();
+    coarse_stride_ = stride;
+  }
 
-  /// A fresh search from `moved` within the limit; records its certificate and returns which
-  /// candidate is the nearest (0), with its squared distance in `squared`.
-  int search(std::uint8_t grid_index, const Eigen::Vector3d& moved, double max_squared, Certificate& cached,
-             double& squared) const {
+  /// Source point `slot` moved, in the operations of check_avx2.
+  Eigen::Vector3d move(const Motion& m, std::size_t slot) const {
+    const double x = x_[slot], y = y_[slot], z = z_[slot];
+    return {m.r[0] * x + m.r[1] * y + m.r[2] * z + m.t[0], m.r[3] * x + m.r[4] * y + m.r[5] * z + m.t[1],
+            m.r[6] * x + m.r[7] * y + m.r[8] * z + m.t[2]};
+  }
+
+  /// One source point: its correspondence from its certificate, or the slot deferred to a search.
+  /// The last search from `anchor` found the candidates (its two nearest target points) and
+  /// nothing else nearer than `clearance`. The moved query is `shift` from the anchor, so by the
+  /// triangle inequality the nearer candidate is still the nearest point while its distance is at
+  /// most clearance - shift; likewise nothing lies within the limit while the limit is below
+  /// clearance - shift (no candidate). Otherwise the point is searched again.
+  void check_one(std::size_t s, const Motion& motion, double max_distance, ClassMoments& m, std::size_t& num_deferred) {
+    const Eigen::Vector3d moved = move(motion, s);
+    const double ax = moved.x() - anchor_x_[s], ay = moved.y() - anchor_y_[s], az = moved.z() - anchor_z_[s];
+    const double margin = clearance_[s] - std::sqrt(ax * ax + ay * ay + az * az) - kCertificateSlack;
+    const Eigen::Vector3d first(first_x_[s], first_y_[s], first_z_[s]);
+    const Eigen::Vector3d second(second_x_[s], second_y_[s], second_z_[s]);
+    const auto squared_to = [&](const Eigen::Vector3d& q) {
+      const double dx = moved.x() - q.x(), dy = moved.y() - q.y(), dz = moved.z() - q.z();
+      return dx * dx + dy * dy + dz * dz;
+    };
+    const double d0 = squared_to(first), d1 = squared_to(second);
+    const bool nearer_second = second_[s] >= 0 && d1 < d0;
+    const double squared = nearer_second ? d1 : d0;
+    const bool holds = first_[s] >= 0 ? margin >= 0.0 && squared <= margin * margin : margin > max_distance;
+    if (!holds) {
+      deferred_[num_deferred++] = static_cast<std::uint32_t>(s);
+      return;
+    }
+    if (first_[s] >= 0 && squared <= max_distance * max_distance) {
+      const Eigen::Vector3d o(motion.o[0], motion.o[1], motion.o[2]);
+      m.add(moved - o, (nearer_second ? second : first) - o, squared);
+    }
+  }
+
+#if defined(TERRACUBE_HAVE_AVX2_CELLS)
+  /// check_one four points at a time, from `begin` while four remain before `end`; returns the
+  /// first slot not checked. The same IEEE operations lane by lane; only the order in which the
+  /// moments are summed differs (four running sums, added up at the end).
+  __attribute__((target("avx2"))) std::size_t check_avx2(std::size_t begin, std::size_t end, const Motion& motion,
+                                                         double max_distance, ClassMoments& m,
+                                                         std::size_t& num_deferred) {
+    __m256d r[9], t[3], o[3];
+    for (int i = 0; i < 9; ++i) r[i] = _mm256_set1_pd(motion.r[i]);
+    for (int i = 0; i < 3; ++i) t[i] = _mm256_set1_pd(motion.t[i]), o[i] = _mm256_set1_pd(motion.o[i]);
+    const __m256d zero = _mm256_setzero_pd(), slack = _mm256_set1_pd(kCertificateSlack);
+    const __m256d limit = _mm256_set1_pd(max_distance), limit_squared = _mm256_set1_pd(max_distance * max_distance);
+    const __m256i none = _mm256_set1_epi64x(-1);
+    __m256d sum_squared = zero, sum_p[3] = {zero, zero, zero}, sum_q[3] = {zero, zero, zero};
+    __m256d sum_pxq[3] = {zero, zero, zero}, sum_pp[6] = {zero, zero, zero, zero, zero, zero};
+    std::size_t count = 0;
+    std::size_t s = begin;
+    for (; s + 4 <= end; s += 4) {
+      const __m256d x = _mm256_loadu_pd(&x_[s]), y = _mm256_loadu_pd(&y_[s]), z = _mm256_loadu_pd(&z_[s]);
+      __m256d moved[3];
+      for (int i = 0; i < 3; ++i) {
+        moved[i] =
+            _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(_mm256_mul_pd(r[3 * i], x), _mm256_mul_pd(r[3 * i + 1], y)),
+                                        _mm256_mul_pd(r[3 * i + 2], z)),
+                          t[i]);
+      }
+      const __m256d shift = _mm256_sqrt_pd(squared_norm4(_mm256_sub_pd(moved[0], _mm256_loadu_pd(&anchor_x_[s])),
+                                                         _mm256_sub_pd(moved[1], _mm256_loadu_pd(&anchor_y_[s])),
+                                                         _mm256_sub_pd(moved[2], _mm256_loadu_pd(&anchor_z_[s]))));
+      const __m256d margin = _mm256_sub_pd(_mm256_sub_pd(_mm256_loadu_pd(&clearance_[s]), shift), slack);
+      const __m256d first[3] = {_mm256_loadu_pd(&first_x_[s]), _mm256_loadu_pd(&first_y_[s]),
+                                _mm256_loadu_pd(&first_z_[s])};
+      const __m256d second[3] = {_mm256_loadu_pd(&second_x_[s]), _mm256_loadu_pd(&second_y_[s]),
+                                 _mm256_loadu_pd(&second_z_[s])};
+      const __m256d d0 = squared_norm4(_mm256_sub_pd(moved[0], first[0]), _mm256_sub_pd(moved[1], first[1]),
+                                       _mm256_sub_pd(moved[2], first[2]));
+      const __m256d d1 = squared_norm4(_mm256_sub_pd(moved[0], second[0]), _mm256_sub_pd(moved[1], second[1]),
+                                       _mm256_sub_pd(moved[2], second[2]));
+      const __m256d has_first = _mm256_castsi256_pd(
+          _mm256_cmpgt_epi64(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(&first_[s])), none));
+      const __m256d has_second = _mm256_castsi256_pd(
+          _mm256_cmpgt_epi64(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(&second_[s])), none));
+      const __m256d nearer_second = _mm256_and_pd(has_second, _mm256_cmp_pd(d1, d0, _CMP_LT_OQ));
+      const __m256d squared = _mm256_blendv_pd(d0, d1, nearer_second);
+      const __m256d holds_with = _mm256_and_pd(_mm256_cmp_pd(margin, zero, _CMP_GE_OQ),
+                                               _mm256_cmp_pd(squared, _mm256_mul_pd(margin, margin), _CMP_LE_OQ));
+      const __m256d holds = _mm256_blendv_pd(_mm256_cmp_pd(margin, limit, _CMP_GT_OQ), holds_with, has_first);
+      const int search = ~_mm256_movemask_pd(holds) & 0xF;
+      for (int lane = 0; lane < 4; ++lane) {  // branch-free append of the lanes to search
+        deferred_[num_deferred] = static_cast<std::uint32_t>(s + static_cast<std::size_t>(lane));
+        num_deferred += static_cast<std::size_t>((search >> lane) & 1);
+      }
+      const __m256d take =
+          _mm256_and_pd(_mm256_and_pd(holds, has_first), _mm256_cmp_pd(squared, limit_squared, _CMP_LE_OQ));
+      count += kLaneCount[_mm256_movemask_pd(take)];
+      __m256d p[3], q[3];
+      for (int i = 0; i < 3; ++i) {
+        p[i] = _mm256_and_pd(_mm256_sub_pd(moved[i], o[i]), take);
+        q[i] = _mm256_and_pd(_mm256_sub_pd(_mm256_blendv_pd(first[i], second[i], nearer_second), o[i]), take);
+        sum_p[i] = _mm256_add_pd(sum_p[i], p[i]);
+        sum_q[i] = _mm256_add_pd(sum_q[i], q[i]);
+      }
+      sum_squared = _mm256_add_pd(sum_squared, _mm256_and_pd(squared, take));
+      sum_pp[0] = _mm256_add_pd(sum_pp[0], _mm256_mul_pd(p[0], p[0]));
+      sum_pp[1] = _mm256_add_pd(sum_pp[1], _mm256_mul_pd(p[0], p[1]));
+      sum_pp[2] = _mm256_add_pd(sum_pp[2], _mm256_mul_pd(p[0], p[2]));
+      sum_pp[3] = _mm256_add_pd(sum_pp[3], _mm256_mul_pd(p[1], p[1]));
+      sum_pp[4] = _mm256_add_pd(sum_pp[4], _mm256_mul_pd(p[1], p[2]));
+      sum_pp[5] = _mm256_add_pd(sum_pp[5], _mm256_mul_pd(p[2], p[2]));
+      sum_pxq[0] = _mm256_add_pd(sum_pxq[0], _mm256_sub_pd(_mm256_mul_pd(p[1], q[2]), _mm256_mul_pd(p[2], q[1])));
+      sum_pxq[1] = _mm256_add_pd(sum_pxq[1], _mm256_sub_pd(_mm256_mul_pd(p[2], q[0]), _mm256_mul_pd(p[0], q[2])));
+      sum_pxq[2] = _mm256_add_pd(sum_pxq[2], _mm256_sub_pd(_mm256_mul_pd(p[0], q[1]), _mm256_mul_pd(p[1], q[0])));
+    }
+    m.count += count;
+    m.squared += lane_total(sum_squared);
+    for (int i = 0; i < 3; ++i) {
+      m.p[i] += lane_total(sum_p[i]), m.q[i] += lane_total(sum_q[i]), m.pxq[i] += lane_total(sum_pxq[i]);
+    }
+    for (int i = 0; i < 6; ++i) m.pp[i] += lane_total(sum_pp[i]);
+    return s;
+  }
+#endif
+
+  /// A fresh search from `moved` within the limit; records the certificate of `slot` and returns
+  /// the squared distance to its nearest candidate in `squared`.
+  void search(std::uint8_t grid_index, const Eigen::Vector3d& moved, double max_squared, std::size_t slot,
+              double& squared) {
     const NearestNeighborGrid& grid = grids_[grid_index];
     // The two nearest within a reach of at most certificate_reach_ (a wider search costs more and
     // a wider certificate is rarely needed); nothing there: the plain nearest within
     // kEmptyReach times the limit. A partner found so (beyond the reach, within the limit) has a
     // certificate that holds for no motion (clearance = its own distance).
+    std::array<std::ptrdiff_t, 2> index = {-1, -1};
     std::array<double, 2> distances{};
     const double reach_squared = std::min(max_squared, certificate_reach_ * certificate_reach_);
     double others = reach_squared;
-    grid.nearest_two(moved, reach_squared, cached.index, distances, others);
-    if (cached.index[0] < 0) {
+    grid.nearest_two(moved, reach_squared, index, distances, others);
+    if (index[0] < 0) {
       // Nothing within the reach: the nearest within kEmptyReach times the limit. Beyond the
       // limit it is no partner, but its distance still certifies "nothing within the limit"
       // for a motion of up to its distance minus the limit (without it a point with no partner
       // would search again on every pass once the limit has shrunk to the reach).
       const double wide_squared = max_squared * (kEmptyReach * kEmptyReach);
       double nearest_squared = wide_squared;
-      const std::ptrdiff_t index = grid.nearest(moved, wide_squared, nearest_squared);
-      if (index >= 0 && nearest_squared <= max_squared) {
-        cached.index[0] = index;
+      const std::ptrdiff_t nearest = grid.nearest(moved, wide_squared, nearest_squared);
+      if (nearest >= 0 && nearest_squared <= max_squared) {
+        index[0] = nearest;
         distances[0] = nearest_squared;
       }
       others = nearest_squared;
     }
-    cached.anchor = moved;
-    cached.clearance = std::sqrt(others);
-    for (int k = 0; k < 2; ++k) {
-      if (cached.index[k] >= 0) cached.candidate[k] = grid.point(static_cast<std::size_t>(cached.index[k]));
+    anchor_x_[slot] = moved.x(), anchor_y_[slot] = moved.y(), anchor_z_[slot] = moved.z();
+    clearance_[slot] = std::sqrt(others);
+    first_[slot] = index[0];
+    second_[slot] = index[1];
+    if (index[0] >= 0) {
+      const Eigen::Vector3d& q = grid.point(static_cast<std::size_t>(index[0]));
+      first_x_[slot] = q.x(), first_y_[slot] = q.y(), first_z_[slot] = q.z();
+    }
+    if (index[1] >= 0) {
+      const Eigen::Vector3d& q = grid.point(static_cast<std::size_t>(index[1]));
+      second_x_[slot] = q.x(), second_y_[slot] = q.y(), second_z_[slot] = q.z();
     }
     squared = distances[0];
-    return 0;
   }
 
   std::array<NearestNeighborGrid, kNumTerrainClasses> grids_;
-  std::vector<Active> active_;  // source points that can take part
+  // The active source points (those that can take part), grouped by class: class c's are
+  // [class_begin_[c], class_begin_[c + 1]), with its weight (eq. 4; 0: none take part) and grid.
+  std::array<std::size_t, kNumTerrainClasses + 1> class_begin_{};
+  std::array<double, kNumTerrainClasses> class_weight_{};
+  std::array<std::uint8_t, kNumTerrainClasses> class_grid_{};
+  std::vector<double> x_, y_, z_;
+  std::vector<std::uint32_t> ordinal_;  // of each slot among the active points in the source's order
+  std::size_t coarse_stride_ = 0;       // of coarse_ (0: not selected yet)
+  std::vector<std::uint32_t> coarse_;   // see select_coarse
+  std::array<std::size_t, kNumTerrainClasses + 1> coarse_begin_{};
   Eigen::Vector3d reference_ = Eigen::Vector3d::Zero();
-  double total_weight_ = 0.0;              // of the active source points
-  double certificate_reach_ = 0.0;         // widest search for a certificate [m]
-  std::vector<Certificate> certificates_;  // one per active source point
+  double total_weight_ = 0.0;       // of the active source points
+  double certificate_reach_ = 0.0;  // widest search for a certificate [m]
+  // Per active source point, what its last search proved (see check_one): the query (anchor),
+  // its two nearest target points (first, second; index -1: none) and a bound below which no
+  // other target point lies (clearance; -1 before any search).
+  std::vector<double> anchor_x_, anchor_y_, anchor_z_, first_x_, first_y_, first_z_, second_x_, second_y_, second_z_;
+  std::vector<double> clearance_;
+  std::vector<std::ptrdiff_t> first_, second_;
+  std::vector<std::uint32_t> deferred_;  // the slots of a class to search again in a pass
 };
 
 /// Rodrigues: the exact rotation exp([omega]x).
