@@ -396,14 +396,8 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
 
   sweep_dense(grid, params.sigma, scratch, result);
 
-  // Points in R's cubes are overhang: clear R's bits in V, and a point is overhang when its cube's
-  // bit is gone. The extra word is all ones, so no_cube is never overhang. Plain local pointers: a
-  // byte store may alias anything, so through the vectors the compiler would reload their data
-  // pointers on every row.
-  for (const std::int64_t cube : result.removed_cubes) {
-    occupancy[static_cast<std::size_t>(cube >> 6)] &= ~(std::uint64_t{1} << (cube & 63));
-  }
-  occupancy[words] = ~std::uint64_t{0};
+  // Points in R's cubes are overhang. Plain local pointers: a byte store may alias anything, so
+  // through the vectors the compiler would reload their data pointers on every row.
   std::uint8_t* const overhang = result.overhang.data();
   if (static_cast<std::size_t>(grid.num_cubes()) <= 2 * rows) {
     // A byte per cube for R (no more bytes than two per point): one load per point, no bit
@@ -421,6 +415,12 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
     }
     for (; row < rows; ++row) overhang[row] = removed[cubes[row]];
   } else {
+    // R's bits cleared in V: a point is overhang when its cube's bit is gone. The extra word is
+    // all ones, so no_cube is never overhang.
+    for (const std::int64_t cube : result.removed_cubes) {
+      occupancy[static_cast<std::size_t>(cube >> 6)] &= ~(std::uint64_t{1} << (cube & 63));
+    }
+    occupancy[words] = ~std::uint64_t{0};
     const auto gone = [occupancy](std::uint32_t cube) {
       return static_cast<std::uint8_t>(((occupancy[cube >> 6] >> (cube & 63)) & 1U) ^ 1U);
     };
