@@ -163,6 +163,9 @@ class Registration {
     class_begin_[0] = 0;
     for (std::size_t c = 0; c < kNumTerrainClasses; ++c) class_begin_[c + 1] = class_begin_[c] + count[c];
     const std::size_t n = class_begin_[kNumTerrainClasses];
+    if (n >= std::numeric_limits<std::uint32_t>::max()) {
+      throw std::invalid_argument("register_points handles fewer than 2^32 - 1 source points that take part");
+    }
     for (auto* v : {&x_, &y_, &z_}) v->resize(n);
     ordinal_.resize(n);
     std::array<std::size_t, kNumTerrainClasses> next{};
