@@ -13,7 +13,7 @@
 
 #if defined(__x86_64__) && defined(__GNUC__)
 #include <immintrin.h>
-#define TERRACUBE_HAVE_AVX2_CELLS 1
+#define TERRACUBE_HAVE_AVX2_ICP 1
 #endif
 
 #include "cloud_frame.hpp"
@@ -125,7 +125,7 @@ struct Motion {
   double r[9], t[3], o[3];
 };
 
-#if defined(TERRACUBE_HAVE_AVX2_CELLS)
+#if defined(TERRACUBE_HAVE_AVX2_ICP)
 /// a^2 + b^2 + c^2 lane by lane, in that order.
 __attribute__((target("avx2"), always_inline)) inline __m256d squared_norm4(__m256d a, __m256d b, __m256d c) {
   return _mm256_add_pd(_mm256_add_pd(_mm256_mul_pd(a, a), _mm256_mul_pd(b, b)), _mm256_mul_pd(c, c));
@@ -229,7 +229,7 @@ class Registration {
       std::size_t num_deferred = 0;
       if (stride == 1) {
         std::size_t slot = begin;
-#if defined(TERRACUBE_HAVE_AVX2_CELLS)
+#if defined(TERRACUBE_HAVE_AVX2_ICP)
         if (detail::has_avx2()) slot = check_avx2(begin, end, motion, max_distance, m, num_deferred);
 #endif
         for (; slot < end; ++slot) check_one(slot, motion, max_distance, m, num_deferred);
@@ -332,7 +332,7 @@ class Registration {
     }
   }
 
-#if defined(TERRACUBE_HAVE_AVX2_CELLS)
+#if defined(TERRACUBE_HAVE_AVX2_ICP)
   /// check_one four points at a time, from `begin` while four remain before `end`; returns the
   /// first slot not checked. The same IEEE operations lane by lane; only the order in which the
   /// moments are summed differs (four running sums, added up at the end).
@@ -576,7 +576,7 @@ std::uint64_t take_bits_scalar(const float* z, const float* classes, std::size_t
   return bits;
 }
 
-#if defined(TERRACUBE_HAVE_AVX2_CELLS)
+#if defined(TERRACUBE_HAVE_AVX2_ICP)
 /// take_bits_scalar eight cells at a time.
 __attribute__((target("avx2"))) std::uint64_t take_bits_avx2(const float* z, const float* classes, std::size_t length,
                                                              std::uint32_t keep, std::uint64_t& finite) {
@@ -614,7 +614,7 @@ __attribute__((target("avx2"))) std::uint64_t take_bits_avx2(const float* z, con
 
 std::uint64_t take_bits(const float* z, const float* classes, std::size_t length, std::uint32_t keep,
                         std::uint64_t& finite) {
-#if defined(TERRACUBE_HAVE_AVX2_CELLS)
+#if defined(TERRACUBE_HAVE_AVX2_ICP)
   if (detail::has_avx2()) return take_bits_avx2(z, classes, length, keep, finite);
 #endif
   return take_bits_scalar(z, classes, length, keep, finite);
