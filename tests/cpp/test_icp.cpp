@@ -452,6 +452,17 @@ TEST(RegisterPoints, RejectsBadGuessesParametersAndPoints) {
   bad.points[3].y() = std::numeric_limits<double>::infinity();
   EXPECT_THROW(register_points(bad, set, Eigen::Matrix4d::Identity()), std::invalid_argument);
   bad = set;
+  bad.points.back().z() = -std::numeric_limits<double>::infinity();
+  EXPECT_THROW(register_points(set, bad, Eigen::Matrix4d::Identity()), std::invalid_argument);
+  bad = set;
+  bad.points[1].x() = std::numeric_limits<double>::quiet_NaN();
+  try {
+    register_points(bad, set, Eigen::Matrix4d::Identity());
+    ADD_FAILURE() << "a NaN source point was accepted";
+  } catch (const std::invalid_argument& error) {
+    EXPECT_STREQ(error.what(), "source point 1 is NaN or Inf");
+  }
+  bad = set;
   bad.classes[0] = 6;
   EXPECT_THROW(register_points(set, bad, Eigen::Matrix4d::Identity()), std::invalid_argument);
   bad = set;
