@@ -405,6 +405,32 @@ def scan_floor(data_dir: Path, trials: int) -> ScanFloor:
     return result
 
 
+def kiss_icp_steps(data_dir: Path) -> dict | None:
+    """KISS-ICP (Vizzo et al. 2023, ``pip install kiss-icp``) over KITTI frames 0-5, if installed.
+
+    A third-party odometry pipeline, independent of terracube and PCL, as a check of what the
+    scans support: per consecutive pair, its relative pose (Velodyne frame). Its defaults, except
+    the range (5-100 m, so 1 m voxels) and no de-skewing (the odometry scans carry no point times). None when
+    kiss-icp is not installed.
+    """
+    try:
+        from kiss_icp.config import KISSConfig
+        from kiss_icp.kiss_icp import KissICP
+    except ImportError:
+        return None
+    config = KISSConfig()
+    config.data.max_range, config.data.min_range, config.data.deskew = 100.0, 5.0, False
+    config.mapping.voxel_size = config.data.max_range / 100.0  # kiss-icp's own default rule
+    odometry = KissICP(config)
+    poses = []
+    for frame in range(6):
+        points = load_xyzi_bin(data_dir / "kitti_seq00" / "velodyne" / f"{frame:06d}.bin")[:, :3]
+        odometry.register_frame(points.astype(np.float64), np.zeros(len(points)))
+        poses.append(np.array(odometry.last_pose))
+    # Source -> target as everywhere here: inv(T_w(target)) @ T_w(source).
+    return {f"KITTI {s}->{t}": np.linalg.inv(poses[t]) @ poses[s] for s, t in KITTI_PAIRS}
+
+
 #: SemanticKITTI classes of static, thin, vertical objects: pole, trunk, traffic sign.
 STATIC_OBJECT_LABELS = (80, 71, 81)
 
@@ -520,6 +546,26 @@ def main(argv: list[str] | None = None) -> int:
                     f"    {name}: truth step {truth_step:.3f} m, objects' step {object_step:.3f} m"
                     f" ({object_step / truth_step:.0%} of it)"
                 )
+        kiss = kiss_icp_steps(args.data_dir)
+        if kiss is None:
+            print("  KISS-ICP: not installed (pip install kiss-icp for a third-party check)")
+        else:
+            print(
+                "  KISS-ICP (third-party odometry on the raw scans, frames 0-5 in turn):"
+                " its step, and its translation / rotation from the truth and from the scan reference"
+            )
+            for name, found in kiss.items():
+                truth = next(pair.truth for pair in accuracy_pairs if pair.name == name)
+                t_truth, r_truth = errors(found, truth)
+                line = (
+                    f"    {name}: step {np.linalg.norm(found[:3, 3]):.3f} m (truth"
+                    f" {np.linalg.norm(truth[:3, 3]):.3f} m);"
+                    f" from the truth {t_truth:.3f} m / {r_truth:.2f} deg"
+                )
+                if name in floor.reference:
+                    t_ref, r_ref = errors(found, floor.reference[name])
+                    line += f", from the reference {t_ref:.3f} m / {r_ref:.2f} deg"
+                print(line)
         if floor.reference:
             scan_winners = print_accuracy(
                 against(table, floor.reference),
