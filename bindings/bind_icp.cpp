@@ -71,7 +71,9 @@ void bind_icp(py::module_& m) {
       .def_readwrite("degeneracy_threshold", &RegistrationParams::degeneracy_threshold)
       .def_readwrite("extrapolate", &RegistrationParams::extrapolate)
       .def_readwrite("coarse_subsample", &RegistrationParams::coarse_subsample)
-      .def_readwrite("coarse_until_motion_m", &RegistrationParams::coarse_until_motion_m);
+      .def_readwrite("coarse_until_motion_m", &RegistrationParams::coarse_until_motion_m)
+      .def_readwrite("ground_weight", &RegistrationParams::ground_weight)
+      .def_readwrite("ground_cell_m", &RegistrationParams::ground_cell_m);
 
   py::class_<RegistrationResult>(m, "RegistrationResult")
       .def_readonly("transform", &RegistrationResult::transform, "(4, 4) source -> target")

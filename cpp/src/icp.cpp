@@ -64,6 +64,8 @@ void check_registration_params(const RegistrationParams& p) {
   for (const double w : p.class_weights) {
     if (!non_negative(w)) throw std::invalid_argument("class weights must be finite and >= 0");
   }
+  if (!non_negative(p.ground_weight)) throw std::invalid_argument("ground weight must be finite and >= 0");
+  if (!positive(p.ground_cell_m)) throw std::invalid_argument("ground cell must be positive and finite [m]");
 }
 
 void check_points(const ClassifiedPoints& set, const char* what) {
@@ -106,6 +108,9 @@ struct Pass {
   Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
   double weight_sum = 0.0;
   double weighted_squared_error = 0.0;
+  /// rms distance of the class correspondences from their centroid (ground planes not counted)
+  double class_radius = 0.0;
+  double class_weight_sum = 0.0, class_squared_error = 0.0;  // the class correspondences' part
   std::size_t count = 0;
   std::array<std::size_t, kNumTerrainClasses> per_class{};
 };
@@ -148,6 +153,128 @@ __attribute__((target("avx2"), always_inline)) inline double lane_total(__m256d 
   return (lanes[0] + lanes[1]) + (lanes[2] + lanes[3]);
 }
 #endif
+
+/// Square cells of side `cell` over (x, y), cell (kx, ky) = (floor(x / cell), floor(y / cell)),
+/// numbered in the order their first point comes. Dense (an entry per cell of the points'
+/// bounding box) when the box has at most 8 n + 65536 cells, else sorted keys and a binary search,
+/// so that memory stays O(n) for any extent.
+class GroundCells {
+ public:
+  GroundCells() = default;
+
+  /// `id_of_point` receives each point's cell number. Throws std::invalid_argument when a point
+  /// lies 2^31 or more cells from the origin.
+  GroundCells(const std::vector<Eigen::Vector3d>& points, double cell, std::vector<std::uint32_t>& id_of_point)
+      : cell_(cell) {
+    const std::size_t n = points.size();
+    std::vector<std::int64_t> kx(n), ky(n);
+    for (std::size_t k = 0; k < n; ++k) {
+      const double fx = std::floor(points[k].x() / cell), fy = std::floor(points[k].y() / cell);
+      if (!(std::abs(fx) < kLimit && std::abs(fy) < kLimit)) {
+        throw std::invalid_argument(
+            "ground cell is too small for the extent of the ground points (2^31 cells or "
+            "more from the origin)");
+      }
+      kx[k] = static_cast<std::int64_t>(fx), ky[k] = static_cast<std::int64_t>(fy);
+      kx0_ = std::min(kx0_, kx[k]), kx1_ = std::max(kx1_, kx[k]);
+      ky0_ = std::min(ky0_, ky[k]), ky1_ = std::max(ky1_, ky[k]);
+    }
+    id_of_point.resize(n);
+    if (n == 0) return;
+    columns_ = kx1_ - kx0_ + 1;
+    const double cells = static_cast<double>(columns_) * static_cast<double>(ky1_ - ky0_ + 1);
+    if (cells <= 8.0 * static_cast<double>(n) + 65536.0) {
+      dense_.assign(static_cast<std::size_t>(cells), -1);
+      for (std::size_t k = 0; k < n; ++k) {
+        std::int32_t& id = dense_[static_cast<std::size_t>((kx[k] - kx0_) + (ky[k] - ky0_) * columns_)];
+        if (id < 0) id = static_cast<std::int32_t>(size_++);
+        id_of_point[k] = static_cast<std::uint32_t>(id);
+      }
+      return;
+    }
+    keys_.resize(n);
+    for (std::size_t k = 0; k < n; ++k) keys_[k] = key(kx[k], ky[k]);
+    std::sort(keys_.begin(), keys_.end());
+    keys_.erase(std::unique(keys_.begin(), keys_.end()), keys_.end());
+    size_ = keys_.size();
+    for (std::size_t k = 0; k < n; ++k) {
+      id_of_point[k] =
+          static_cast<std::uint32_t>(std::lower_bound(keys_.begin(), keys_.end(), key(kx[k], ky[k])) - keys_.begin());
+    }
+  }
+
+  std::size_t size() const { return size_; }
+
+  /// The number of the cell holding (x, y), or -1 where no point fell (NaN included).
+  std::int64_t find(double x, double y) const {
+    const double fx = std::floor(x / cell_), fy = std::floor(y / cell_);
+    if (!(fx >= static_cast<double>(kx0_) && fx <= static_cast<double>(kx1_) && fy >= static_cast<double>(ky0_) &&
+          fy <= static_cast<double>(ky1_))) {
+      return -1;
+    }
+    const auto ix = static_cast<std::int64_t>(fx), iy = static_cast<std::int64_t>(fy);
+    if (!dense_.empty()) return dense_[static_cast<std::size_t>((ix - kx0_) + (iy - ky0_) * columns_)];
+    const std::uint64_t wanted = key(ix, iy);
+    const auto it = std::lower_bound(keys_.begin(), keys_.end(), wanted);
+    return it != keys_.end() && *it == wanted ? it - keys_.begin() : -1;
+  }
+
+ private:
+  static constexpr double kLimit = 2147483648.0;  // 2^31
+  static std::uint64_t key(std::int64_t kx, std::int64_t ky) {
+    return (static_cast<std::uint64_t>(kx + (std::int64_t{1} << 31)) << 32) |
+           static_cast<std::uint64_t>(ky + (std::int64_t{1} << 31));
+  }
+
+  double cell_ = 1.0;
+  std::int64_t kx0_ = std::numeric_limits<std::int64_t>::max(), ky0_ = std::numeric_limits<std::int64_t>::max();
+  std::int64_t kx1_ = std::numeric_limits<std::int64_t>::min(), ky1_ = std::numeric_limits<std::int64_t>::min();
+  std::int64_t columns_ = 0;
+  std::vector<std::int32_t> dense_;
+  std::vector<std::uint64_t> keys_;
+  std::size_t size_ = 0;
+};
+
+/// A target ground cell's plane (RegistrationParams::ground_weight): a point on it (the mean of
+/// the cell's points) and its unit normal.
+struct GroundPlane {
+  Eigen::Vector3d point, normal;
+};
+
+/// Per cell of `index`, the least-squares plane z = a + b x + c y of its points (`id_of_point`);
+/// horizontal through the mean below three points or when the points nearly lie on a line.
+std::vector<GroundPlane> fit_ground_planes(const std::vector<Eigen::Vector3d>& points,
+                                           const std::vector<std::uint32_t>& id_of_point, std::size_t cells) {
+  // Sums relative to each cell's first point, so that they stay well conditioned far from zero:
+  // n, x, y, z, xx, xy, yy, xz, yz.
+  std::vector<std::array<double, 9>> sums(cells, std::array<double, 9>{});
+  std::vector<Eigen::Vector3d> first(cells);
+  for (std::size_t k = 0; k < points.size(); ++k) {
+    auto& m = sums[id_of_point[k]];
+    if (m[0] == 0.0) first[id_of_point[k]] = points[k];
+    const Eigen::Vector3d d = points[k] - first[id_of_point[k]];
+    m[0] += 1.0, m[1] += d.x(), m[2] += d.y(), m[3] += d.z();
+    m[4] += d.x() * d.x(), m[5] += d.x() * d.y(), m[6] += d.y() * d.y(), m[7] += d.x() * d.z(), m[8] += d.y() * d.z();
+  }
+  std::vector<GroundPlane> planes(cells);
+  for (std::size_t c = 0; c < cells; ++c) {
+    const auto& m = sums[c];
+    const double n = m[0];
+    const Eigen::Vector3d mean(m[1] / n, m[2] / n, m[3] / n);
+    // Centred moments.
+    const double xx = m[4] - m[1] * mean.x(), xy = m[5] - m[1] * mean.y(), yy = m[6] - m[2] * mean.y();
+    const double xz = m[7] - m[1] * mean.z(), yz = m[8] - m[2] * mean.z();
+    const double det = xx * yy - xy * xy;
+    double b = 0.0, slope_y = 0.0;
+    if (n >= 3.0 && det > 1e-6 * (xx + yy) * (xx + yy)) {
+      b = (yy * xz - xy * yz) / det;
+      slope_y = (xx * yz - xy * xz) / det;
+    }
+    planes[c].point = first[c] + mean;
+    planes[c].normal = Eigen::Vector3d(-b, -slope_y, 1.0).normalized();
+  }
+  return planes;
+}
 
 class Registration {
  public:
@@ -201,6 +328,7 @@ class Registration {
     second_.assign(n, -1);
     deferred_.resize(n + 4);
     certificate_reach_ = params.min_correspondence_distance_m;
+    if (params.use_classes && params.ground_weight > 0.0) set_up_ground(source, target, params);
   }
 
   bool has_common_class() const { return class_begin_[kNumTerrainClasses] > 0; }
@@ -210,7 +338,7 @@ class Registration {
   /// w min(d^2, max_distance^2), d the distance to the nearest target point of the class. A proper
   /// objective to compare poses with (unlike the RMSE, it does not fall when pairs drop out).
   double truncated_error(const Pass& pass, double max_distance) const {
-    return pass.weighted_squared_error + (total_weight_ - pass.weight_sum) * max_distance * max_distance;
+    return pass.class_squared_error + (total_weight_ - pass.class_weight_sum) * max_distance * max_distance;
   }
 
   /// Correspondences of the source moved by `transform`, each source point paired with its nearest
@@ -267,6 +395,39 @@ class Registration {
       for (int i = 0; i < 3; ++i) sp[i] += w * m.p[i], sq[i] += w * m.q[i], spxq[i] += w * m.pxq[i];
       for (int i = 0; i < 6; ++i) spp[i] += w * m.pp[i];
     }
+    // Ground as planes (RegistrationParams::ground_weight): each source sample with the plane of
+    // the target cell under it, residual along the plane's normal n. About o, v = (a x n, n) with a
+    // the moved sample; about the centroid c below, J = M v with M = [I, -[c]x; 0, I].
+    Matrix6d ground_normal = Matrix6d::Zero();
+    Vector6d ground_gradient = Vector6d::Zero();
+    std::size_t ground_count = 0;
+    double ground_error = 0.0;
+    for (std::size_t k = 0; k < ground_x_.size(); k += stride) {
+      const double x = ground_x_[k], y = ground_y_[k], z = ground_z_[k];
+      const Eigen::Vector3d moved(motion.r[0] * x + motion.r[1] * y + motion.r[2] * z + motion.t[0],
+                                  motion.r[3] * x + motion.r[4] * y + motion.r[5] * z + motion.t[1],
+                                  motion.r[6] * x + motion.r[7] * y + motion.r[8] * z + motion.t[2]);
+      const std::int64_t cell = ground_cells_.find(moved.x(), moved.y());
+      if (cell < 0) continue;
+      const GroundPlane& plane = ground_planes_[static_cast<std::size_t>(cell)];
+      const double d = plane.normal.dot(moved - plane.point);
+      if (!(d * d <= max_squared)) continue;
+      Vector6d v;
+      v << (moved - o).cross(plane.normal), plane.normal;
+      ground_normal.noalias() += v * v.transpose();
+      ground_gradient -= d * v;
+      ground_error += d * d;
+      ++ground_count;
+    }
+    const double class_w_sum = w_sum;
+    result.class_weight_sum = w_sum;
+    result.class_squared_error = error;
+    if (ground_count > 0) {
+      result.count += ground_count;
+      result.per_class[static_cast<std::size_t>(TerrainClass::kGround)] += ground_count;
+      w_sum += ground_weight_ * static_cast<double>(ground_count);
+      error += ground_weight_ * ground_error;
+    }
     result.weight_sum = w_sum;
     result.weighted_squared_error = error;
     if (result.count == 0) return result;
@@ -277,20 +438,64 @@ class Registration {
     //   sum w [p - c]x^T [p - c]x = tr(C) I - C with C = sum w p p^T - W c c^T,
     //   the rotation-translation block is [sum w (p - c)]x = 0,
     //   g_rot = sum w (p - c) x (q - p) = sum w p x q - c x sum w q,  g_trans = sum w q - W c.
-    const Eigen::Vector3d c = Eigen::Vector3d(sp[0], sp[1], sp[2]) / w_sum;
+    // c: the centroid of the class correspondences (o itself when there are only ground pairs).
+    const Eigen::Vector3d c = class_w_sum > 0.0 ? Eigen::Vector3d(Eigen::Vector3d(sp[0], sp[1], sp[2]) / class_w_sum)
+                                                : Eigen::Vector3d::Zero();
     Eigen::Matrix3d scatter;
     scatter << spp[0], spp[1], spp[2], spp[1], spp[3], spp[4], spp[2], spp[4], spp[5];
-    scatter -= w_sum * c * c.transpose();
+    scatter -= class_w_sum * c * c.transpose();
     const Eigen::Vector3d weighted_q(sq[0], sq[1], sq[2]);
     result.normal.setZero();
     result.normal.topLeftCorner<3, 3>() = scatter.trace() * Eigen::Matrix3d::Identity() - scatter;
-    result.normal.bottomRightCorner<3, 3>() = w_sum * Eigen::Matrix3d::Identity();
-    result.gradient << Eigen::Vector3d(spxq[0], spxq[1], spxq[2]) - c.cross(weighted_q), weighted_q - w_sum * c;
+    result.normal.bottomRightCorner<3, 3>() = class_w_sum * Eigen::Matrix3d::Identity();
+    result.gradient << Eigen::Vector3d(spxq[0], spxq[1], spxq[2]) - c.cross(weighted_q), weighted_q - class_w_sum * c;
+    // The trace of the rotation block is 2 sum w |p - c|^2.
+    result.class_radius =
+        class_w_sum > 0.0
+            ? std::sqrt(std::max(result.normal.topLeftCorner<3, 3>().trace() / (2.0 * class_w_sum), 1e-12))
+            : 1e-6;
+    if (ground_count > 0) {
+      Matrix6d shift = Matrix6d::Identity();
+      shift.topRightCorner<3, 3>() = -skew(c);
+      result.normal += ground_weight_ * (shift * ground_normal * shift.transpose());
+      result.gradient += ground_weight_ * (shift * ground_gradient);
+    }
     result.centroid = c + o;
     return result;
   }
 
  private:
+  /// The ground planes of the target and the ground samples of the source (one per occupied
+  /// source cell: the mean of its ground points).
+  void set_up_ground(const ClassifiedPoints& source, const ClassifiedPoints& target, const RegistrationParams& params) {
+    constexpr auto kGround = static_cast<std::uint8_t>(TerrainClass::kGround);
+    std::vector<Eigen::Vector3d> target_ground, source_ground;
+    for (std::size_t k = 0; k < target.size(); ++k) {
+      if (target.classes[k] == kGround) target_ground.push_back(target.points[k]);
+    }
+    for (std::size_t k = 0; k < source.size(); ++k) {
+      if (source.classes[k] == kGround) source_ground.push_back(source.points[k]);
+    }
+    if (target_ground.empty() || source_ground.empty()) return;
+    std::vector<std::uint32_t> ids;
+    ground_cells_ = GroundCells(target_ground, params.ground_cell_m, ids);
+    ground_planes_ = fit_ground_planes(target_ground, ids, ground_cells_.size());
+    const GroundCells source_cells(source_ground, params.ground_cell_m, ids);
+    // Sums relative to each cell's first point (well conditioned far from zero).
+    std::vector<Eigen::Vector3d> first(source_cells.size()), sums(source_cells.size(), Eigen::Vector3d::Zero());
+    std::vector<double> counts(source_cells.size(), 0.0);
+    for (std::size_t k = 0; k < source_ground.size(); ++k) {
+      if (counts[ids[k]] == 0.0) first[ids[k]] = source_ground[k];
+      sums[ids[k]] += source_ground[k] - first[ids[k]];
+      counts[ids[k]] += 1.0;
+    }
+    for (std::size_t c = 0; c < sums.size(); ++c) {
+      const Eigen::Vector3d mean = first[c] + sums[c] / counts[c];
+      ground_x_.push_back(mean.x()), ground_y_.push_back(mean.y()), ground_z_.push_back(mean.z());
+    }
+    ground_weight_ = params.ground_weight;
+  }
+
   /// The points of the coarse passes: every stride-th active point in the source's order (their
   /// slots, by class).
   void select_coarse(std::size_t stride) {
@@ -489,6 +694,11 @@ class Registration {
   std::vector<double> clearance_;
   std::vector<std::ptrdiff_t> first_, second_;
   std::vector<std::uint32_t> deferred_;  // the slots of a class to search again in a pass
+  // Ground as planes (empty unless RegistrationParams::ground_weight > 0 and both sets have ground).
+  GroundCells ground_cells_;                            // the target's ground cells
+  std::vector<GroundPlane> ground_planes_;              // one per target ground cell
+  std::vector<double> ground_x_, ground_y_, ground_z_;  // the source's ground samples
+  double ground_weight_ = 0.0;
 };
 
 /// Rodrigues: the exact rotation exp([omega]x).
@@ -770,8 +980,8 @@ RegistrationResult register_checked(const ClassifiedPoints& source, const Classi
     }
     if (iteration == 0) {
       pivot = pass.centroid;
-      // rms distance of the correspondences from their centroid: trace of the rotation block / 2W
-      radius = std::sqrt(std::max(pass.normal.topLeftCorner<3, 3>().trace() / (2.0 * pass.weight_sum), 1e-12));
+      // rms distance of the class correspondences from their centroid (Pass::class_radius)
+      radius = pass.class_radius;
     }
     // Eq. (A6): H x = g, solved by LDLT.
     const Vector6d x = pass.normal.ldlt().solve(pass.gradient);
@@ -860,7 +1070,9 @@ RegistrationResult register_maps(const ElevationMap& source, const ElevationMap&
   // Only the cells that can take part (with classes, those of classes with a positive weight):
   // Registration would drop the others anyway, and on a map mostly of ground they are most of
   // its cells. The map's points are finite with valid classes by construction.
-  const ClassWeights* weights = params.use_classes ? &params.class_weights : nullptr;
+  ClassWeights keep = params.class_weights;  // > 0: the class's cells are needed
+  if (params.ground_weight > 0.0) keep[static_cast<std::size_t>(TerrainClass::kGround)] = 1.0;
+  const ClassWeights* weights = params.use_classes ? &keep : nullptr;
   std::size_t source_cells = 0, target_cells = 0;
   const ClassifiedPoints source_points = cells_of_map(source, weights, source_cells);
   const ClassifiedPoints target_points = cells_of_map(target, weights, target_cells);

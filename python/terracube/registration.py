@@ -87,6 +87,17 @@ class RegistrationParams:
     coarse_until_motion : float
         ... until an update moves the points less than this (|t| + |omega| * rms radius) [m].
         Stopping decisions and the final estimate always use every point.
+    ground_weight : float
+        Ground as planes (not in the paper, where ground takes no part; 0, the default, keeps it
+        out). Positive: the target's ground points are binned into square cells of
+        ``ground_cell`` m, each fitted with a plane, and the mean of each source cell's ground
+        points is paired with the plane of the target cell it moves into (no search), weighted
+        this much in eq. (4), its residual the distance along the plane's normal. That fixes
+        height, roll and pitch, which the other classes leave loose, without the pull along the
+        road of point-to-point ground pairs. Counted under ground in the per-class
+        correspondences, the RMSE and the normal matrix. Needs ``use_classes``.
+    ground_cell : float
+        Side of the ground cells [m] (> 0).
     """
 
     use_classes: bool = True
@@ -103,6 +114,8 @@ class RegistrationParams:
     extrapolate: bool = True
     coarse_subsample: int = 4
     coarse_until_motion: float = 0.05
+    ground_weight: float = 0.0
+    ground_cell: float = 0.5
 
     def to_core(self) -> _core.RegistrationParams:
         params = _core.RegistrationParams()
@@ -127,6 +140,8 @@ class RegistrationParams:
             raise ValueError(f"coarse_subsample must be at least 1, got {self.coarse_subsample}")
         params.coarse_subsample = int(self.coarse_subsample)
         params.coarse_until_motion_m = float(self.coarse_until_motion)
+        params.ground_weight = float(self.ground_weight)
+        params.ground_cell_m = float(self.ground_cell)
         return params
 
 

@@ -10,6 +10,7 @@
 #include <cmath>
 #include <iostream>
 #include <limits>
+#include <map>
 #include <random>
 #include <stdexcept>
 #include <utility>
@@ -447,6 +448,11 @@ TEST(RegisterPoints, RejectsBadGuessesParametersAndPoints) {
   rejects([](RegistrationParams& p) { p.coarse_subsample = 0; });
   rejects([](RegistrationParams& p) { p.coarse_until_motion_m = -0.1; });
   rejects([](RegistrationParams& p) { p.coarse_until_motion_m = std::numeric_limits<double>::infinity(); });
+  rejects([](RegistrationParams& p) { p.ground_weight = -1.0; });
+  rejects([](RegistrationParams& p) { p.ground_weight = std::numeric_limits<double>::quiet_NaN(); });
+  rejects([](RegistrationParams& p) { p.ground_cell_m = 0.0; });
+  rejects([](RegistrationParams& p) { p.ground_cell_m = -0.5; });
+  rejects([](RegistrationParams& p) { p.ground_cell_m = std::numeric_limits<double>::infinity(); });
 
   ClassifiedPoints bad = set;
   bad.points[3].y() = std::numeric_limits<double>::infinity();
@@ -599,16 +605,20 @@ TEST(RegisterMaps, SameResultAsRegisterPointsOnAllTheMapsPoints) {
   const ElevationMap source = street_map(world, source_pose, 0.2);
   const ElevationMap target = street_map(world, target_pose, 0.2);
   const Eigen::Matrix4d guess = pose(0.25, -0.15, 0.05, 3.0, 0.5, -0.5) * target_pose.inverse() * source_pose;
-  for (const bool use_classes : {true, false}) {
-    RegistrationParams params;
-    params.use_classes = use_classes;
-    const RegistrationResult maps = register_maps(source, target, guess, params);
-    const RegistrationResult points = register_points(points_of_map(source), points_of_map(target), guess, params);
-    EXPECT_EQ(maps.transform, points.transform) << "use_classes " << use_classes;
-    EXPECT_EQ(maps.iterations, points.iterations);
-    EXPECT_EQ(maps.passes, points.passes);
-    EXPECT_EQ(maps.num_correspondences, points.num_correspondences);
-    EXPECT_EQ(maps.normal_matrix, points.normal_matrix);
+  for (const double ground_weight : {0.0, 2.0}) {
+    for (const bool use_classes : {true, false}) {
+      RegistrationParams params;
+      params.use_classes = use_classes;
+      params.ground_weight = ground_weight;  // register_maps must then pass the ground cells too
+      const RegistrationResult maps = register_maps(source, target, guess, params);
+      const RegistrationResult points = register_points(points_of_map(source), points_of_map(target), guess, params);
+      EXPECT_EQ(maps.transform, points.transform) << "use_classes " << use_classes;
+      EXPECT_EQ(maps.iterations, points.iterations);
+      EXPECT_EQ(maps.passes, points.passes);
+      EXPECT_EQ(maps.num_correspondences, points.num_correspondences);
+      EXPECT_EQ(maps.normal_matrix, points.normal_matrix);
+      EXPECT_EQ(maps.correspondences_per_class, points.correspondences_per_class);
+    }
   }
 }
 
@@ -677,6 +687,182 @@ TEST(RegisterMaps, NormalEquationsEqualANaiveSumOverBruteForcePairs) {
   }
   EXPECT_LT((result.normal_matrix - naive).cwiseAbs().maxCoeff(), 1e-9 * naive.cwiseAbs().maxCoeff());
   EXPECT_NEAR(result.rmse_m, std::sqrt(error / w_sum), 1e-12);
+}
+
+/// A hilly scene (ground class on z = 0.04 x - 0.03 y + 0.3 sin(0.4 x), boxes as obstacles,
+/// columns as vertical objects) sampled on a lattice of `step` from `offset`, in the frame of
+/// `sensor_in_world`; with `far_patch`, a second patch of ground 10^5 m away in x.
+ClassifiedPoints hilly_scene(const Eigen::Matrix4d& sensor_in_world, double offset, bool far_patch) {
+  std::vector<Eigen::Vector3d> ground, obstacles, vertical;
+  const auto height = [](double x, double y) { return 0.04 * x - 0.03 * y + 0.3 * std::sin(0.4 * x); };
+  std::mt19937 rng(11);
+  std::normal_distribution<double> noise(0.0, 0.005);
+  const double step = 0.2;
+  for (double x = -15.0 + offset; x < 15.0; x += step) {
+    for (double y = -10.0 + offset; y < 10.0; y += step) ground.emplace_back(x, y, height(x, y) + noise(rng));
+  }
+  if (far_patch) {
+    for (double x = 1e5 + offset; x < 1e5 + 6.0; x += step) {
+      for (double y = offset; y < 6.0; y += step) ground.emplace_back(x, y, noise(rng));
+    }
+  }
+  for (const double cx : {-9.0, -2.0, 6.0}) {
+    for (double x = cx + offset; x < cx + 3.0; x += step) {
+      for (double y = 2.0 + offset; y < 4.0; y += step) obstacles.emplace_back(x, y, height(cx, 3.0) + 0.5);
+    }
+  }
+  for (const double cx : {-12.0, -4.0, 3.0, 11.0}) {
+    for (double z = 0.0; z < 3.0; z += step) vertical.emplace_back(cx, -6.0 + 0.3 * std::sin(cx), height(cx, -6.0) + z);
+  }
+  const Eigen::Matrix4d into_sensor = sensor_in_world.inverse();
+  ClassifiedPoints set;
+  for (const auto& [points, c] :
+       {std::pair{&ground, TerrainClass::kGround}, std::pair{&obstacles, TerrainClass::kObstacle},
+        std::pair{&vertical, TerrainClass::kVerticalObject}}) {
+    for (const Eigen::Vector3d& p : transformed(*points, into_sensor)) {
+      set.points.push_back(p);
+      set.classes.push_back(static_cast<std::uint8_t>(c));
+    }
+  }
+  return set;
+}
+
+TEST(RegisterPoints, GroundPlanesNormalEquationsEqualANaiveSumOverTheirDefinition) {
+  // The ground-plane term (RegistrationParams::ground_weight) at the result against its
+  // definition, evaluated here independently: target ground cells of ground_cell_m with their
+  // least-squares planes (a QR solve), source cells' mean points, each moved sample paired with
+  // the plane of the cell it falls in; plus the class pairs by brute force. Both a compact scene
+  // (a dense cell index) and one with a patch 10^5 m away (sorted keys) are checked.
+  for (const bool far_patch : {false, true}) {
+    const Eigen::Matrix4d source_pose = pose(-1.0, 0.3, 1.5, -4.0, 1.0, -0.5);
+    const Eigen::Matrix4d target_pose = pose(0.8, 0.0, 1.6, 3.0, -0.5, 0.8);
+    const ClassifiedPoints source = hilly_scene(source_pose, 0.0, far_patch);
+    const ClassifiedPoints target = hilly_scene(target_pose, 0.1, far_patch);
+    const Eigen::Matrix4d truth = target_pose.inverse() * source_pose;
+    RegistrationParams params;
+    params.ground_weight = 2.5;
+    params.ground_cell_m = 0.7;
+    const RegistrationResult result =
+        register_points(source, target, pose(0.1, -0.1, 0.05, 1.0, 0.5, 0.5) * truth, params);
+    ASSERT_TRUE(result.converged) << to_string(result.reason);
+    // Loose: the two lattices are offset by half a step, and only the equations are checked here.
+    EXPECT_LT(translation_error(result.transform, truth), 0.2);
+    EXPECT_LT(rotation_error_deg(result.transform, truth), 1.0);
+    const double limit = result.correspondence_distance_m;
+    const Eigen::Matrix3d rotation = result.transform.topLeftCorner<3, 3>();
+    const Eigen::Vector3d translation = result.transform.topRightCorner<3, 1>();
+    const double h = params.ground_cell_m;
+    using Key = std::pair<std::int64_t, std::int64_t>;
+    const auto key_of = [h](const Eigen::Vector3d& p) {
+      return Key{static_cast<std::int64_t>(std::floor(p.x() / h)), static_cast<std::int64_t>(std::floor(p.y() / h))};
+    };
+    constexpr auto kGround = static_cast<std::uint8_t>(TerrainClass::kGround);
+    // Target planes.
+    std::map<Key, std::vector<Eigen::Vector3d>> target_cells, source_cells;
+    for (std::size_t k = 0; k < target.size(); ++k) {
+      if (target.classes[k] == kGround) target_cells[key_of(target.points[k])].push_back(target.points[k]);
+    }
+    for (std::size_t k = 0; k < source.size(); ++k) {
+      if (source.classes[k] == kGround) source_cells[key_of(source.points[k])].push_back(source.points[k]);
+    }
+    std::map<Key, std::pair<Eigen::Vector3d, Eigen::Vector3d>> planes;  // point, normal
+    for (const auto& [key, points] : target_cells) {
+      Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+      for (const Eigen::Vector3d& p : points) mean += p;
+      mean /= static_cast<double>(points.size());
+      Eigen::MatrixXd design(points.size(), 3);
+      Eigen::VectorXd z(points.size());
+      Eigen::Matrix2d scatter = Eigen::Matrix2d::Zero();
+      for (std::size_t k = 0; k < points.size(); ++k) {
+        const Eigen::Vector3d d = points[k] - mean;
+        design.row(static_cast<Eigen::Index>(k)) << 1.0, d.x(), d.y();
+        z(static_cast<Eigen::Index>(k)) = d.z();
+        scatter += d.head<2>() * d.head<2>().transpose();
+      }
+      Eigen::Vector3d normal = Eigen::Vector3d::UnitZ();
+      if (points.size() >= 3 && scatter.determinant() > 1e-6 * scatter.trace() * scatter.trace()) {
+        const Eigen::Vector3d abc = design.colPivHouseholderQr().solve(z);
+        normal = Eigen::Vector3d(-abc(1), -abc(2), 1.0).normalized();
+      }
+      planes[key] = {mean, normal};
+    }
+    // Class pairs, then ground pairs.
+    std::vector<Eigen::Vector3d> p, q;
+    std::vector<double> w;
+    for (std::size_t k = 0; k < source.size(); ++k) {
+      const double weight = params.class_weights[source.classes[k]];
+      if (weight == 0.0) continue;
+      const Eigen::Vector3d moved = rotation * source.points[k] + translation;
+      std::vector<Eigen::Vector3d> same_class;
+      for (std::size_t j = 0; j < target.size(); ++j) {
+        if (target.classes[j] == source.classes[k]) same_class.push_back(target.points[j]);
+      }
+      const auto [index, squared] = brute_nearest(same_class, moved, limit * limit);
+      if (index < 0) continue;
+      p.push_back(moved);
+      q.push_back(same_class[static_cast<std::size_t>(index)]);
+      w.push_back(weight);
+    }
+    double w_sum = 0.0, error = 0.0;
+    Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
+    for (std::size_t k = 0; k < p.size(); ++k) {
+      w_sum += w[k];
+      centroid += w[k] * p[k];
+      error += w[k] * (p[k] - q[k]).squaredNorm();
+    }
+    centroid /= w_sum;
+    Eigen::Matrix<double, 6, 6> naive = Eigen::Matrix<double, 6, 6>::Zero();
+    for (std::size_t k = 0; k < p.size(); ++k) {
+      Eigen::Matrix<double, 3, 6> jacobian;
+      const Eigen::Vector3d r = p[k] - centroid;
+      jacobian.leftCols<3>() << 0.0, r.z(), -r.y(), -r.z(), 0.0, r.x(), r.y(), -r.x(), 0.0;  // -[r]x
+      jacobian.rightCols<3>().setIdentity();
+      naive += w[k] * jacobian.transpose() * jacobian;
+    }
+    std::size_t ground_pairs = 0;
+    for (const auto& [key, points] : source_cells) {
+      Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+      for (const Eigen::Vector3d& s : points) mean += s;
+      const Eigen::Vector3d moved = rotation * (mean / static_cast<double>(points.size())) + translation;
+      const auto plane = planes.find(key_of(moved));
+      if (plane == planes.end()) continue;
+      const Eigen::Vector3d& n = plane->second.second;
+      const double d = n.dot(moved - plane->second.first);
+      if (d * d > limit * limit) continue;
+      Eigen::Matrix<double, 6, 1> jacobian;  // d(n . residual)/d(omega, t) about the centroid
+      jacobian << (moved - centroid).cross(n), n;
+      naive += params.ground_weight * jacobian * jacobian.transpose();
+      error += params.ground_weight * d * d;
+      ++ground_pairs;
+    }
+    w_sum += params.ground_weight * static_cast<double>(ground_pairs);
+    ASSERT_GT(ground_pairs, 100u);
+    EXPECT_EQ(result.correspondences_per_class[kGround], ground_pairs) << "far patch " << far_patch;
+    EXPECT_EQ(result.num_correspondences, p.size() + ground_pairs);
+    EXPECT_LT((result.normal_matrix - naive).cwiseAbs().maxCoeff(), 1e-9 * naive.cwiseAbs().maxCoeff())
+        << "far patch " << far_patch;
+    EXPECT_NEAR(result.rmse_m, std::sqrt(error / w_sum), 1e-12);
+  }
+}
+
+TEST(RegisterPoints, GroundPlanesAreOffByDefaultAndWithoutClasses) {
+  const Eigen::Matrix4d source_pose = pose(-1.0, 0.3, 1.5, -4.0, 1.0, -0.5);
+  const Eigen::Matrix4d target_pose = pose(0.8, 0.0, 1.6, 3.0, -0.5, 0.8);
+  const ClassifiedPoints source = hilly_scene(source_pose, 0.0, false);
+  const ClassifiedPoints target = hilly_scene(target_pose, 0.1, false);
+  const Eigen::Matrix4d guess = target_pose.inverse() * source_pose;
+  RegistrationParams params;
+  EXPECT_EQ(register_points(source, target, guess, params).correspondences_per_class[1], 0u);
+  params.use_classes = false;
+  const RegistrationResult plain = register_points(source, target, guess, params);
+  params.ground_weight = 3.0;
+  const RegistrationResult with_weight = register_points(source, target, guess, params);
+  EXPECT_EQ(plain.transform, with_weight.transform);
+  EXPECT_EQ(plain.normal_matrix, with_weight.normal_matrix);
+  // A ground cell so small that the points lie 2^31 cells or more from the origin: a clear error.
+  params.use_classes = true;
+  params.ground_cell_m = 1e-9;
+  EXPECT_THROW(register_points(source, target, guess, params), std::invalid_argument);
 }
 
 TEST(RegisterPoints, ExtrapolationReachesTheSameAnswerInFewerIterations) {

@@ -113,6 +113,8 @@ def test_params_mirror_the_cpp_defaults():
         "extrapolate",
         "coarse_subsample",
         "coarse_until_motion_m",
+        "ground_weight",
+        "ground_cell_m",
     ):
         assert getattr(core, name) == getattr(default, name), name
     assert list(core.class_weights) == list(default.class_weights) == [0.0, 0.0, 0.8, 0.5, 0.5, 0.8]
@@ -142,6 +144,23 @@ def test_weighted_icp_recovers_three_metres_and_twenty_degrees(street_pair):
     np.testing.assert_allclose(np.linalg.eigvalsh(result.normal_matrix), result.eigenvalues, rtol=1e-9)
     assert 0.0 < result.rmse < 0.2
     assert "converged" in repr(result)
+
+
+def test_ground_planes_take_part_only_when_weighted(street_pair):
+    source, target, truth, guess = street_pair
+    plain = tc.register_maps(source, target, guess)
+    with_ground = tc.register_maps(source, target, guess, ground_weight=4.0)
+    assert with_ground.converged, with_ground
+    ground = with_ground.correspondences_per_class[int(TC.GROUND)]
+    assert plain.correspondences_per_class[int(TC.GROUND)] == 0 and ground > 100
+    assert sum(with_ground.correspondences_per_class) == with_ground.num_correspondences
+    # The street's ground is the plane z = 0 in both views: the ground term pins height, roll and
+    # pitch, so the estimate gets at least as close as without it.
+    translation, rotation = errors(with_ground.transform, truth)
+    assert translation <= errors(plain.transform, truth)[0] + 0.005 and rotation < 0.5
+    np.testing.assert_allclose(
+        np.linalg.eigvalsh(with_ground.normal_matrix), with_ground.eigenvalues, rtol=1e-9
+    )
 
 
 def test_passes_count_one_per_iteration_plus_the_extrapolations_tried(street_pair):
@@ -253,6 +272,10 @@ def test_bad_guesses_and_parameters_raise_value_error(street_pair):
         tc.register_maps(source, target, np.eye(4), coarse_subsample=0)
     with pytest.raises(ValueError, match="coarse"):
         tc.register_maps(source, target, np.eye(4), coarse_until_motion=-1.0)
+    with pytest.raises(ValueError, match="ground weight"):
+        tc.register_maps(source, target, np.eye(4), ground_weight=np.nan)
+    with pytest.raises(ValueError, match="ground cell"):
+        tc.register_maps(source, target, np.eye(4), ground_weight=1.0, ground_cell=0.0)
     unclassified = tc.build_elevation_map(np.random.default_rng(0).uniform(0, 5, (100, 3)), 0.5)
     with pytest.raises(ValueError, match="classify_terrain"):
         tc.register_maps(unclassified, unclassified)

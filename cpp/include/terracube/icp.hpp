@@ -79,6 +79,19 @@ struct RegistrationParams {
   /// stopping decision and the final estimate use all the points.
   int coarse_subsample = 4;
   double coarse_until_motion_m = 0.05;
+  /// Ground as planes (not in the paper, where ground takes no part; 0 keeps it out). With a
+  /// positive weight and use_classes, the ground cells add a point-to-plane term: the target's
+  /// ground points are binned into square cells of ground_cell_m, each fitted with a plane (least
+  /// squares z = a + b x + c y; a horizontal plane at the mean below three points or when
+  /// ill-conditioned); the source's ground points are binned alike and each occupied cell's mean
+  /// point is one sample, paired with the plane of the target cell its moved (x, y) falls in
+  /// (no search) and weighted ground_weight in eq. (4), its residual the distance along the
+  /// plane's normal. Such pairs fix height, roll and pitch, which the non-ground classes leave
+  /// loose, without the pull along the road of point-to-point ground pairs. They count in
+  /// correspondences_per_class[ground], the RMSE and the normal matrix. Independent of
+  /// class_weights[ground] (point-to-point ground pairs). >= 0.
+  double ground_weight = 0.0;
+  double ground_cell_m = 0.5;  ///< > 0 [m]
 };
 
 /// Why registration stopped.
