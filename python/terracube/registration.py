@@ -79,8 +79,8 @@ class RegistrationParams:
     extrapolate : bool
         Guarded acceleration after Besl and McKay (not in the paper): when two successive updates
         point the same way and shrink, try a jump along them (at most 10 steps) and keep it only if
-        the eq. (4) error truncated at the next distance limit is no larger than after the plain
-        step (both evaluated: one more correspondence pass per try). False: the plain iteration.
+        the eq. (4) error truncated at the next distance limit (class pairs; ground planes left
+        out) is no larger than after the plain step (both evaluated: one more correspondence pass per try). False: the plain iteration.
     coarse_subsample : int
         Coarse to fine (not in the paper): the first iterations pair only every n-th source point
         (>= 1; 1 disables it; off when fewer than 500 points would remain) ...

@@ -70,8 +70,9 @@ struct RegistrationParams {
   /// paper): when two successive updates point the same way and shrink, try a jump along them by
   /// the geometric series' remainder (at most 10 steps) and keep it only if the eq. (4) error
   /// truncated at the next distance limit, sum w min(d^2, limit^2) over the source points that
-  /// take part, is no larger there than after the plain step (both are evaluated, so a try costs
-  /// one more correspondence pass). false: the plain iteration of the paper.
+  /// take part (class pairs; the ground planes' are left out), is no larger there than after the
+  /// plain step (both are evaluated, so a try costs one more correspondence pass). false: the
+  /// plain iteration of the paper.
   bool extrapolate = true;
   /// Coarse to fine (not in the paper): the first iterations pair only every n-th source point
   /// (>= 1; 1 disables it; also off when fewer than 500 points would remain), until an update
