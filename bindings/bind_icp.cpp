@@ -73,7 +73,8 @@ void bind_icp(py::module_& m) {
       .def_readwrite("coarse_subsample", &RegistrationParams::coarse_subsample)
       .def_readwrite("coarse_until_motion_m", &RegistrationParams::coarse_until_motion_m)
       .def_readwrite("ground_weight", &RegistrationParams::ground_weight)
-      .def_readwrite("ground_cell_m", &RegistrationParams::ground_cell_m);
+      .def_readwrite("ground_cell_m", &RegistrationParams::ground_cell_m)
+      .def_readwrite("structure_radius_m", &RegistrationParams::structure_radius_m);
 
   py::class_<RegistrationResult>(m, "RegistrationResult")
       .def_readonly("transform", &RegistrationResult::transform, "(4, 4) source -> target")
@@ -89,6 +90,12 @@ void bind_icp(py::module_& m) {
       .def_readonly("correspondences_per_class", &RegistrationResult::correspondences_per_class)
       .def_readonly("normal_matrix", &RegistrationResult::normal_matrix, "(6, 6) H of eq. (A6)")
       .def_readonly("eigenvalues", &RegistrationResult::eigenvalues, "(6,) eigenvalues of H, ascending")
+      .def_readonly("constraint_matrix", &RegistrationResult::constraint_matrix,
+                    "(6, 6) what the geometry constrains (structure_radius > 0)")
+      .def_readonly("constraint_eigenvalues", &RegistrationResult::constraint_eigenvalues,
+                    "(6,) eigenvalues of constraint_matrix, ascending")
+      .def_readonly("constraint_eigenvectors", &RegistrationResult::constraint_eigenvectors,
+                    "(6, 6) unit eigenvectors of constraint_matrix, as columns")
       .def("__repr__", [](const RegistrationResult& r) {
         std::ostringstream text;
         text << "RegistrationResult(reason=" << to_string(r.reason) << ", iterations=" << r.iterations

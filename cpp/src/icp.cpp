@@ -58,6 +58,9 @@ void check_registration_params(const RegistrationParams& p) {
     throw std::invalid_argument("coarse-until motion must be finite and >= 0 [m]");
   }
   if (p.min_correspondences < 3) throw std::invalid_argument("min correspondences must be at least 3");
+  if (!non_negative(p.structure_radius_m)) {
+    throw std::invalid_argument("structure_radius_m must be finite and >= 0 [m]");
+  }
   if (!(p.degeneracy_threshold >= 0.0 && p.degeneracy_threshold < 1.0)) {
     throw std::invalid_argument("degeneracy threshold must lie in [0, 1)");
   }
@@ -462,6 +465,78 @@ class Registration {
     }
     result.centroid = c + o;
     return result;
+  }
+
+  /// RegistrationResult::constraint_matrix at `transform`: each active source point paired with
+  /// its nearest target point of its class within `max_distance` (a fresh search), the row
+  /// [((p - c) x e)^T, e^T] of every direction e in which the partner's neighbourhood within
+  /// `radius` does not extend, weighted; plus the ground planes' rows along their normals.
+  Matrix6d constraints(const Eigen::Matrix4d& transform, double max_distance, double radius,
+                       const Eigen::Vector3d& c) const {
+    const Eigen::Matrix3d rotation = transform.topLeftCorner<3, 3>();
+    const Eigen::Vector3d translation = transform.topRightCorner<3, 1>();
+    const double max_squared = max_distance * max_distance;
+    const double extent = 0.25 * radius;  // standard deviation along a direction the structure extends in
+    Matrix6d information = Matrix6d::Zero();
+    const auto add_row = [&](const Eigen::Vector3d& p, const Eigen::Vector3d& e, double w) {
+      Vector6d row;
+      row << (p - c).cross(e), e;
+      information.noalias() += w * row * row.transpose();
+    };
+    std::vector<std::uint32_t> neighbours;
+    for (std::size_t cls = 0; cls < kNumTerrainClasses; ++cls) {
+      const NearestNeighborGrid& grid = grids_[class_grid_[cls]];
+      for (std::size_t slot = class_begin_[cls]; slot < class_begin_[cls + 1]; ++slot) {
+        const Eigen::Vector3d p = rotation * Eigen::Vector3d(x_[slot], y_[slot], z_[slot]) + translation;
+        // The partner from the slot's certificate where it holds (as in check_one), else searched.
+        std::ptrdiff_t partner = -1;
+        const double margin = clearance_[slot] -
+                              (p - Eigen::Vector3d(anchor_x_[slot], anchor_y_[slot], anchor_z_[slot])).norm() -
+                              kCertificateSlack;
+        const double d0 = (p - Eigen::Vector3d(first_x_[slot], first_y_[slot], first_z_[slot])).squaredNorm();
+        const double d1 = (p - Eigen::Vector3d(second_x_[slot], second_y_[slot], second_z_[slot])).squaredNorm();
+        const bool nearer_second = second_[slot] >= 0 && d1 < d0;
+        const double squared = nearer_second ? d1 : d0;
+        if (first_[slot] >= 0 ? margin >= 0.0 && squared <= margin * margin : margin > max_distance) {
+          if (first_[slot] >= 0 && squared <= max_squared) partner = nearer_second ? second_[slot] : first_[slot];
+        } else {
+          double found = max_squared;
+          partner = grid.nearest(p, max_squared, found);
+        }
+        if (partner < 0) continue;
+        const Eigen::Vector3d& q = grid.point(static_cast<std::size_t>(partner));
+        neighbours.clear();
+        grid.within(q, radius, neighbours);
+        // The neighbourhood's covariance (about q, which is among the neighbours).
+        Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+        Eigen::Matrix3d moments = Eigen::Matrix3d::Zero();
+        for (const std::uint32_t k : neighbours) {
+          const Eigen::Vector3d d = grid.point(k) - q;
+          mean += d;
+          moments.noalias() += d * d.transpose();
+        }
+        const double n = static_cast<double>(std::max<std::size_t>(neighbours.size(), 1));
+        mean /= n;
+        const Eigen::Matrix3d covariance = moments / n - mean * mean.transpose();
+        Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> solver;
+        solver.computeDirect(covariance);
+        for (int k = 0; k < 3; ++k) {
+          if (!(std::sqrt(std::max(solver.eigenvalues()(k), 0.0)) > extent)) {
+            add_row(p, solver.eigenvectors().col(k), class_weight_[cls]);
+          }
+        }
+      }
+    }
+    for (std::size_t k = 0; k < ground_x_.size(); ++k) {
+      const Eigen::Vector3d p = rotation * Eigen::Vector3d(ground_x_[k], ground_y_[k], ground_z_[k]) + translation;
+      const std::int64_t cell = ground_cells_.find(p.x(), p.y());
+      if (cell < 0) continue;
+      const GroundPlane& plane = ground_planes_[static_cast<std::size_t>(cell)];
+      const double d = plane.normal.dot(p - plane.point);
+      if (d * d <= max_squared) add_row(p, plane.normal, ground_weight_);
+    }
+    // (w r) r^T is symmetric only up to rounding; make it exactly so.
+    return 0.5 * (information + information.transpose());
   }
 
  private:
@@ -948,6 +1023,13 @@ RegistrationResult register_checked(const ClassifiedPoints& source, const Classi
   Eigen::Vector3d pivot = Eigen::Vector3d::Zero();
   double radius = 1.0;
   const auto finish = [&](StopReason reason) {
+    if (params.structure_radius_m > 0.0 && pass.count > 0 && result.num_correspondences > 0) {
+      result.constraint_matrix = registration.constraints(result.transform, result.correspondence_distance_m,
+                                                          params.structure_radius_m, pass.centroid);
+      Eigen::SelfAdjointEigenSolver<Matrix6d> solver(result.constraint_matrix);
+      result.constraint_eigenvalues = solver.eigenvalues();
+      result.constraint_eigenvectors = solver.eigenvectors();
+    }
     result.reason = reason;
     result.converged = reason == StopReason::kConverged || reason == StopReason::kErrorBelowThreshold;
     result.passes = passes;
@@ -1269,6 +1351,31 @@ std::ptrdiff_t NearestNeighborGrid::nearest_two(const Eigen::Vector3d& query, do
   squared_distances = {best[0], best[1]};
   others_squared_distance = best[2];
   return found[0];
+}
+
+void NearestNeighborGrid::within(const Eigen::Vector3d& query, double radius, std::vector<std::uint32_t>& out) const {
+  if (points_.empty() || !(radius >= 0.0)) return;
+  // The buckets that can hold a point within the radius (with slack; the distance decides).
+  const double reach = radius * inverse_bucket_size_ + kBucketSlack;
+  const double u = (query.x() - origin_.x()) * inverse_bucket_size_;
+  const double v = (query.y() - origin_.y()) * inverse_bucket_size_;
+  const auto clamp_to = [](double value, std::int64_t count) {
+    return static_cast<std::int64_t>(std::clamp(std::floor(value), 0.0, static_cast<double>(count - 1)));
+  };
+  if (u + reach < 0.0 || v + reach < 0.0 || u - reach >= static_cast<double>(columns_) ||
+      v - reach >= static_cast<double>(rows_)) {
+    return;
+  }
+  const std::int64_t first_column = clamp_to(u - reach, columns_), last_column = clamp_to(u + reach, columns_);
+  const std::int64_t first_row = clamp_to(v - reach, rows_), last_row = clamp_to(v + reach, rows_);
+  const double squared = radius * radius;
+  for (std::int64_t row = first_row; row <= last_row; ++row) {
+    const auto base = static_cast<std::size_t>(row * columns_);
+    const std::uint32_t end = start_[base + static_cast<std::size_t>(last_column) + 1];
+    for (std::uint32_t k = start_[base + static_cast<std::size_t>(first_column)]; k < end; ++k) {
+      if ((points_[k] - query).squaredNorm() <= squared) out.push_back(original_[k]);
+    }
+  }
 }
 
 template <int kKeep, bool kBound>

@@ -4,6 +4,7 @@
 #include <terracube/terrain.hpp>
 
 #include <Eigen/Cholesky>
+#include <Eigen/Eigenvalues>
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <array>
@@ -727,6 +728,9 @@ ClassifiedPoints hilly_scene(const Eigen::Matrix4d& sensor_in_world, double offs
   return set;
 }
 
+Eigen::Matrix<double, 6, 6> naive_constraints(const ClassifiedPoints& source, const ClassifiedPoints& target,
+                                              const RegistrationResult& result, const RegistrationParams& params);
+
 TEST(RegisterPoints, GroundPlanesNormalEquationsEqualANaiveSumOverTheirDefinition) {
   // The ground-plane term (RegistrationParams::ground_weight) at the result against its
   // definition, evaluated here independently: target ground cells of ground_cell_m with their
@@ -742,6 +746,7 @@ TEST(RegisterPoints, GroundPlanesNormalEquationsEqualANaiveSumOverTheirDefinitio
     RegistrationParams params;
     params.ground_weight = 2.5;
     params.ground_cell_m = 0.7;
+    params.structure_radius_m = 0.5;  // the constraint matrix's ground rows are checked too
     const RegistrationResult result =
         register_points(source, target, pose(0.1, -0.1, 0.05, 1.0, 0.5, 0.5) * truth, params);
     ASSERT_TRUE(result.converged) << to_string(result.reason);
@@ -820,6 +825,7 @@ TEST(RegisterPoints, GroundPlanesNormalEquationsEqualANaiveSumOverTheirDefinitio
       naive += w[k] * jacobian.transpose() * jacobian;
     }
     std::size_t ground_pairs = 0;
+    Eigen::Matrix<double, 6, 6> ground_information = Eigen::Matrix<double, 6, 6>::Zero();
     for (const auto& [key, points] : source_cells) {
       Eigen::Vector3d mean = Eigen::Vector3d::Zero();
       for (const Eigen::Vector3d& s : points) mean += s;
@@ -832,6 +838,7 @@ TEST(RegisterPoints, GroundPlanesNormalEquationsEqualANaiveSumOverTheirDefinitio
       Eigen::Matrix<double, 6, 1> jacobian;  // d(n . residual)/d(omega, t) about the centroid
       jacobian << (moved - centroid).cross(n), n;
       naive += params.ground_weight * jacobian * jacobian.transpose();
+      ground_information += params.ground_weight * jacobian * jacobian.transpose();
       error += params.ground_weight * d * d;
       ++ground_pairs;
     }
@@ -842,6 +849,12 @@ TEST(RegisterPoints, GroundPlanesNormalEquationsEqualANaiveSumOverTheirDefinitio
     EXPECT_LT((result.normal_matrix - naive).cwiseAbs().maxCoeff(), 1e-9 * naive.cwiseAbs().maxCoeff())
         << "far patch " << far_patch;
     EXPECT_NEAR(result.rmse_m, std::sqrt(error / w_sum), 1e-12);
+    // The constraint matrix: the class pairs' rows (by brute force) plus each ground pair's row
+    // along its plane's normal.
+    const Eigen::Matrix<double, 6, 6> constraints =
+        naive_constraints(source, target, result, params) + ground_information;
+    EXPECT_LT((result.constraint_matrix - constraints).cwiseAbs().maxCoeff(), 1e-9 * constraints.cwiseAbs().maxCoeff())
+        << "far patch " << far_patch;
   }
 }
 
@@ -1092,6 +1105,147 @@ TEST(PclGicp, RecoversAKnownMotionOfTheSameScene) {
   EXPECT_LT(rotation_error_deg(result.transform, motion), 0.05);
 }
 #endif
+
+// --- What the geometry constrains (RegistrationResult::constraint_matrix) --------------------
+
+/// constraint_matrix by its definition, summed by brute force: each source point that takes part,
+/// moved by the result's transform, with its nearest target point (of its class with classes)
+/// within the final limit; that partner's neighbours (the same target points) within `radius`;
+/// their covariance decomposed by Eigen's iterative solver; a row [((p - c) x e)^T, e^T] per
+/// direction e whose standard deviation is at most radius / 4, weighted; c the pairs' weighted
+/// centroid. No ground planes.
+Eigen::Matrix<double, 6, 6> naive_constraints(const ClassifiedPoints& source, const ClassifiedPoints& target,
+                                              const RegistrationResult& result, const RegistrationParams& params) {
+  const double limit = result.correspondence_distance_m;
+  const double radius = params.structure_radius_m;
+  // The target points each source class pairs with (all of them without classes).
+  std::array<std::vector<Eigen::Vector3d>, kNumTerrainClasses> candidates;
+  for (std::size_t j = 0; j < target.size(); ++j) {
+    for (std::size_t c = 0; c < kNumTerrainClasses; ++c) {
+      if (!params.use_classes || target.classes[j] == c) candidates[c].push_back(target.points[j]);
+    }
+  }
+  std::vector<Eigen::Vector3d> p, q;
+  std::vector<double> w;
+  std::vector<const std::vector<Eigen::Vector3d>*> partner_set;
+  for (std::size_t k = 0; k < source.size(); ++k) {
+    const std::uint8_t c = source.classes[k];
+    const double weight = params.use_classes ? params.class_weights[c] : 1.0;
+    if (weight == 0.0) continue;
+    const Eigen::Vector3d moved =
+        result.transform.topLeftCorner<3, 3>() * source.points[k] + result.transform.topRightCorner<3, 1>();
+    const auto [index, squared] = brute_nearest(candidates[c], moved, limit * limit);
+    if (index < 0) continue;
+    p.push_back(moved);
+    q.push_back(candidates[c][static_cast<std::size_t>(index)]);
+    w.push_back(weight);
+    partner_set.push_back(&candidates[c]);
+  }
+  Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
+  double w_sum = 0.0;
+  for (std::size_t k = 0; k < p.size(); ++k) centroid += w[k] * p[k], w_sum += w[k];
+  centroid /= w_sum;
+  Eigen::Matrix<double, 6, 6> sum = Eigen::Matrix<double, 6, 6>::Zero();
+  for (std::size_t k = 0; k < p.size(); ++k) {
+    std::vector<Eigen::Vector3d> near;
+    for (const Eigen::Vector3d& t : *partner_set[k]) {
+      if ((t - q[k]).norm() <= radius) near.push_back(t);
+    }
+    Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+    for (const Eigen::Vector3d& t : near) mean += t;
+    mean /= static_cast<double>(near.size());
+    Eigen::Matrix3d covariance = Eigen::Matrix3d::Zero();
+    for (const Eigen::Vector3d& t : near) covariance += (t - mean) * (t - mean).transpose();
+    covariance /= static_cast<double>(near.size());
+    const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> solver(covariance);
+    for (int d = 0; d < 3; ++d) {
+      if (std::sqrt(std::max(solver.eigenvalues()(d), 0.0)) > radius / 4.0) continue;
+      const Eigen::Vector3d e = solver.eigenvectors().col(d);
+      Eigen::Matrix<double, 6, 1> row;
+      row << (p[k] - centroid).cross(e), e;
+      sum += w[k] * row * row.transpose();
+    }
+  }
+  return sum;
+}
+
+TEST(RegisterPoints, ConstraintMatrixEqualsItsDefinitionSummedByBruteForce) {
+  const StreetPair pair = street_pair();  // 0.2 m cells: a road, house fronts, poles, boxes, a tree
+  for (const bool use_classes : {true, false}) {
+    RegistrationParams params;
+    params.use_classes = use_classes;
+    params.structure_radius_m = 0.5;
+    const RegistrationResult result = register_points(pair.source, pair.target, pair.guess, params);
+    ASSERT_GT(result.num_correspondences, 100U);
+    const Eigen::Matrix<double, 6, 6> naive = naive_constraints(pair.source, pair.target, result, params);
+    EXPECT_LT((result.constraint_matrix - naive).cwiseAbs().maxCoeff(), 1e-9 * naive.cwiseAbs().maxCoeff())
+        << "use_classes " << use_classes;
+    // The decomposition: ascending, orthonormal, and it rebuilds the matrix.
+    const Eigen::Matrix<double, 6, 6>& v = result.constraint_eigenvectors;
+    for (int k = 0; k < 5; ++k) EXPECT_LE(result.constraint_eigenvalues(k), result.constraint_eigenvalues(k + 1));
+    EXPECT_LT((v.transpose() * v - Eigen::Matrix<double, 6, 6>::Identity()).cwiseAbs().maxCoeff(), 1e-9);
+    EXPECT_LT((v * result.constraint_eigenvalues.asDiagonal() * v.transpose() - result.constraint_matrix)
+                  .cwiseAbs()
+                  .maxCoeff(),
+              1e-9 * naive.cwiseAbs().maxCoeff());
+    // The same answer as without the analysis, which is off by default.
+    params.structure_radius_m = 0.0;
+    const RegistrationResult plain = register_points(pair.source, pair.target, pair.guess, params);
+    EXPECT_EQ(plain.transform, result.transform);
+    EXPECT_EQ(plain.normal_matrix, result.normal_matrix);
+    EXPECT_EQ(plain.constraint_matrix, (Eigen::Matrix<double, 6, 6>::Zero()));
+  }
+  EXPECT_EQ(RegistrationParams{}.structure_radius_m, 0.0);
+  RegistrationParams bad;
+  for (const double radius :
+       {-0.1, std::numeric_limits<double>::quiet_NaN(), std::numeric_limits<double>::infinity()}) {
+    bad.structure_radius_m = radius;
+    EXPECT_THROW(register_points(pair.source, pair.target, pair.guess, bad), std::invalid_argument) << radius;
+  }
+}
+
+/// How much of the unit vector along unknown `axis` (0-2 rotation, 3-5 translation) lies in the
+/// span of the eigenvectors of the `count` smallest constraint eigenvalues.
+double share_in_weakest(const RegistrationResult& result, int axis, int count) {
+  return result.constraint_eigenvectors.row(axis).head(count).norm();
+}
+
+TEST(RegisterPoints, ConstraintEigenvaluesShowTheMotionsTheSceneLeavesFree) {
+  RegistrationParams params;
+  params.structure_radius_m = 0.3;
+  const Eigen::Matrix4d shift = pose(0.037, -0.021, 0.013, 0.3);
+  // A flat road (obstacle cells, so that they take part): only z, roll and pitch are held.
+  ClassifiedPoints road;
+  for (double x = -6.0; x < 6.0; x += 0.1) {
+    for (double y = -6.0; y < 6.0; y += 0.1) road.points.emplace_back(x, y, 0.0);
+  }
+  road.classes.assign(road.points.size(), static_cast<std::uint8_t>(TerrainClass::kObstacle));
+  const RegistrationResult flat = register_points(road, road, shift, params);
+  const double flat_top = flat.constraint_eigenvalues(5);
+  EXPECT_LT(flat.constraint_eigenvalues(2), 1e-9 * flat_top);
+  EXPECT_GT(flat.constraint_eigenvalues(3), 1e-3 * flat_top);
+  for (const int free_axis : {2, 3, 4}) EXPECT_NEAR(share_in_weakest(flat, free_axis, 3), 1.0, 1e-9) << free_axis;
+  EXPECT_GT(flat.eigenvalues(0), 1e-3 * flat.eigenvalues(5));  // the point-to-point matrix cannot show it
+
+  // The tops of two straight walls along x: only the street's direction is free.
+  ClassifiedPoints street_walls;
+  for (double x = -10.0; x < 10.0; x += 0.1) {
+    for (const double y : {-4.0, 4.0}) street_walls.points.emplace_back(x, y, 3.0);
+  }
+  street_walls.classes.assign(street_walls.points.size(), static_cast<std::uint8_t>(TerrainClass::kVerticalObject));
+  const RegistrationResult walls = register_points(street_walls, street_walls, shift, params);
+  const double walls_top = walls.constraint_eigenvalues(5);
+  EXPECT_LT(walls.constraint_eigenvalues(0), 1e-9 * walls_top);
+  EXPECT_GT(walls.constraint_eigenvalues(1), 1e-3 * walls_top);
+  EXPECT_NEAR(share_in_weakest(walls, 3, 1), 1.0, 1e-9);  // translation along x
+
+  // A pole's top (an isolated obstacle point) holds it.
+  ClassifiedPoints with_pole = street_walls;
+  with_pole.points.emplace_back(2.0, 0.5, 5.0);
+  with_pole.classes.push_back(static_cast<std::uint8_t>(TerrainClass::kObstacle));
+  const RegistrationResult pole = register_points(with_pole, with_pole, shift, params);
+  EXPECT_GT(pole.constraint_eigenvalues(0), 1e-6 * pole.constraint_eigenvalues(5));
+}
 
 }  // namespace
 }  // namespace terracube

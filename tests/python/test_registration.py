@@ -115,6 +115,7 @@ def test_params_mirror_the_cpp_defaults():
         "coarse_until_motion_m",
         "ground_weight",
         "ground_cell_m",
+        "structure_radius_m",
     ):
         assert getattr(core, name) == getattr(default, name), name
     assert list(core.class_weights) == list(default.class_weights) == [0.0, 0.0, 0.8, 0.5, 0.5, 0.8]
@@ -290,6 +291,48 @@ def test_no_class_in_common_and_too_few_pairs_say_so():
     far = tc.register_points(points, points + 100.0, source_classes=obstacle, target_classes=obstacle)
     assert not far.converged and far.reason == tc.StopReason.too_few_correspondences
     assert np.isnan(far.rmse)
+
+
+def test_constraint_eigenvalues_show_what_a_flat_road_and_a_street_leave_free(street_pair):
+    # Point-to-point ICP's normal matrix is full rank on a plane; the constraint matrix shows that
+    # a flat road holds only z, roll and pitch, and two straight walls everything but the street.
+    x, y = np.meshgrid(np.arange(-6.0, 6.0, 0.1), np.arange(-6.0, 6.0, 0.1))
+    road = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)]).astype(np.float32)
+    obstacle = np.full(len(road), int(TC.OBSTACLE), np.uint8)
+    shift = pose(0.037, -0.021, 0.013, 0.3)
+    flat = tc.register_points(
+        road, road, shift, source_classes=obstacle, target_classes=obstacle, structure_radius=0.3
+    )
+    values, vectors = flat.constraint_eigenvalues, flat.constraint_eigenvectors
+    assert values[2] < 1e-9 * values[5] < values[3]
+    # yaw, x and y span the three weakest directions
+    np.testing.assert_allclose(np.linalg.norm(vectors[[2, 3, 4], :3], axis=1), 1.0, atol=1e-9)
+    assert flat.eigenvalues[0] > 1e-3 * flat.eigenvalues[5]
+    np.testing.assert_array_equal(flat.constraint_matrix, flat.constraint_matrix.T)
+    np.testing.assert_allclose(np.linalg.eigvalsh(flat.constraint_matrix), values, atol=1e-9 * values[5])
+
+    wall_x = np.arange(-10.0, 10.0, 0.1)
+    walls = np.vstack(
+        [np.column_stack([wall_x, np.full(wall_x.size, side), np.full(wall_x.size, 3.0)]) for side in (-4, 4)]
+    )
+    vertical = np.full(len(walls), int(TC.VERTICAL_OBJECT), np.uint8)
+    street = tc.register_points(
+        walls, walls, shift, source_classes=vertical, target_classes=vertical, structure_radius=0.3
+    )
+    assert (
+        street.constraint_eigenvalues[0]
+        < 1e-9 * street.constraint_eigenvalues[5]
+        < street.constraint_eigenvalues[1]
+    )
+    assert abs(street.constraint_eigenvectors[3, 0]) == pytest.approx(1.0, abs=1e-9)  # translation along x
+
+    # Off by default; through register_maps too; a bad radius is a clear error.
+    source, target, _, guess = street_pair
+    assert not np.any(tc.register_maps(source, target, guess).constraint_matrix)
+    result = tc.register_maps(source, target, guess, structure_radius=0.5)
+    assert result.constraint_eigenvalues[5] > 0.0
+    with pytest.raises(ValueError, match="structure_radius"):
+        tc.register_maps(source, target, guess, structure_radius=-1.0)
 
 
 def test_collinear_points_are_degenerate_not_a_crash():
