@@ -98,6 +98,10 @@ METHODS = ("weighted", "weighted plain", "weighted + ground", "all cells", "PCL"
 PLAIN = tc.RegistrationParams(extrapolate=False, coarse_subsample=1)
 GROUND_WEIGHT = 4.0
 GROUND = tc.RegistrationParams(ground_weight=GROUND_WEIGHT)
+#: The weighted ICP with the constraint analysis (RegistrationResult.constraint_matrix) on.
+STRUCTURE_RADIUS_M = 0.3
+ANALYSED = tc.RegistrationParams(structure_radius=STRUCTURE_RADIUS_M)
+UNKNOWNS = ("roll", "pitch", "yaw", "x", "y", "z")
 #: The three methods the issue ranks (the paper's weighted ICP, all cells, PCL).
 ISSUE_METHODS = ("weighted", "all cells", "PCL")
 #: Simulated pairs: keyframes about 3 m apart (the paper's local-map spacing) along the loop scene.
@@ -314,6 +318,63 @@ def speed(pairs: list[Pair], repeat: int) -> dict:
             ms = median_ms(lambda m=method, p=pair, g=guess, q=points: run(m, p, g, q), repeat)
             timing[pair.name][method] = (ms, iterations, passes)
     return timing
+
+
+def normalised(matrix: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """A 6x6 information matrix per unit of correspondence weight, rotations scaled by the pairs'
+    rms distance from their centroid: an eigenvalue of 1 along a translation means every pair holds
+    it fully, 0 that none does. W and the radius come from the point-to-point normal matrix (its
+    translation block is W I, the trace of its rotation block 2 W r^2)."""
+    weight = normal[3, 3]
+    radius = np.sqrt(np.trace(normal[:3, :3]) / (2.0 * weight))
+    scale = np.diag(1.0 / np.array([radius] * 3 + [1.0] * 3))
+    return scale @ matrix @ scale / weight
+
+
+def constraints(pairs: list[Pair], repeat: int | None = None) -> dict:
+    """Per pair, the weighted ICP from the truth with the constraint analysis, normalised: (the
+    weakest eigenvalue, the unknown that dominates its direction, the second weakest, the weakest of
+    the normalised point-to-point normal matrix, and with ``repeat`` the median ms with and without
+    the analysis)."""
+    out = {}
+    for pair in pairs:
+        r = tc.register_maps(pair.source, pair.target, pair.truth, ANALYSED)
+        values, vectors = np.linalg.eigh(normalised(r.constraint_matrix, r.normal_matrix))
+        weakest = UNKNOWNS[int(np.argmax(np.abs(vectors[:, 0])))]
+        plain = np.linalg.eigvalsh(normalised(r.normal_matrix, r.normal_matrix))[0]
+        row = [values[0], weakest, values[1], plain]
+        if repeat:
+            row.append(
+                median_ms(lambda p=pair: tc.register_maps(p.source, p.target, p.truth, ANALYSED), repeat)
+            )
+            row.append(median_ms(lambda p=pair: tc.register_maps(p.source, p.target, p.truth), repeat))
+        out[pair.name] = row
+    return out
+
+
+def print_constraints(found: dict, markdown: bool) -> None:
+    print(
+        "\nWhat the geometry constrains (weighted ICP from the truth,"
+        f" structure_radius={STRUCTURE_RADIUS_M} m):"
+        " the weakest and second weakest eigenvalue of the constraint matrix per unit of pair weight"
+        " (rotations times the pairs' rms radius; 1: every pair holds that direction fully), the"
+        " unknown the weakest direction moves most, and the weakest of the point-to-point normal"
+        " matrix alike, which cannot show sliding"
+    )
+    timed = any(len(row) > 4 for row in found.values())
+    header = f"  {'pair':<24}{'weakest':>10}{'along':>7}{'second':>10}{'H weakest':>10}"
+    print(header + (f"{'ms with':>9}{'without':>9}" if timed else ""))
+    for name, row in found.items():
+        line = f"  {name:<24}{row[0]:>10.3f}{row[1]:>7}{row[2]:>10.3f}{row[3]:>10.3f}"
+        print(line + (f"{row[4]:>9.2f}{row[5]:>9.2f}" if len(row) > 4 else ""))
+    if markdown:
+        print()
+        columns = ["pair", "weakest", "along", "second weakest", "point-to-point H: weakest"]
+        print(markdown_row(columns + (["ms with", "ms without"] if timed else [])))
+        print(markdown_rule(len(columns) - 1 + (2 if timed else 0)))
+        for name, row in found.items():
+            cells = [name, f"{row[0]:.3f}", row[1], f"{row[2]:.3f}", f"{row[3]:.3f}"]
+            print(markdown_row(cells + ([f"{row[4]:.2f}", f"{row[5]:.2f}"] if len(row) > 4 else [])))
 
 
 # --------------------------------------------------------------------------------------------
@@ -659,8 +720,14 @@ def main(argv: list[str] | None = None) -> int:
                 args.markdown,
                 "against the scan reference instead of the truth",
             )
-    timing = speed(load_pairs(args.data_dir, SPEED_EXTENT, args.quick), args.repeat)
+    speed_pairs = load_pairs(args.data_dir, SPEED_EXTENT, args.quick)
+    timing = speed(speed_pairs, args.repeat)
     weighted_ms = print_speed(timing, args.markdown)
+    print_constraints(
+        constraints(speed_pairs, args.repeat)
+        | constraints([p for p in accuracy_pairs if p.name.startswith(UNALIGNED_PREFIXES)]),
+        args.markdown,
+    )
 
     print("\nTargets (reported, not asserted):")
     print_target(
