@@ -101,7 +101,6 @@ GROUND = tc.RegistrationParams(ground_weight=GROUND_WEIGHT)
 #: The weighted ICP with the constraint analysis (RegistrationResult.constraint_matrix) on.
 STRUCTURE_RADIUS_M = 0.3
 ANALYSED = tc.RegistrationParams(structure_radius=STRUCTURE_RADIUS_M)
-UNKNOWNS = ("roll", "pitch", "yaw", "x", "y", "z")
 #: The three methods the issue ranks (the paper's weighted ICP, all cells, PCL).
 ISSUE_METHODS = ("weighted", "all cells", "PCL")
 #: Simulated pairs: keyframes about 3 m apart (the paper's local-map spacing) along the loop scene.
@@ -320,17 +319,6 @@ def speed(pairs: list[Pair], repeat: int) -> dict:
     return timing
 
 
-def normalised(matrix: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """A 6x6 information matrix per unit of correspondence weight, rotations scaled by the pairs'
-    rms distance from their centroid: an eigenvalue of 1 along a translation means every pair holds
-    it fully, 0 that none does. W and the radius come from the point-to-point normal matrix (its
-    translation block is W I, the trace of its rotation block 2 W r^2)."""
-    weight = normal[3, 3]
-    radius = np.sqrt(np.trace(normal[:3, :3]) / (2.0 * weight))
-    scale = np.diag(1.0 / np.array([radius] * 3 + [1.0] * 3))
-    return scale @ matrix @ scale / weight
-
-
 def constraints(pairs: list[Pair], repeat: int | None = None) -> dict:
     """Per pair, the weighted ICP from the truth with the constraint analysis, normalised: (the
     weakest eigenvalue, the unknown that dominates its direction, the second weakest, the weakest of
@@ -339,10 +327,14 @@ def constraints(pairs: list[Pair], repeat: int | None = None) -> dict:
     out = {}
     for pair in pairs:
         r = tc.register_maps(pair.source, pair.target, pair.truth, ANALYSED)
-        values, vectors = np.linalg.eigh(normalised(r.constraint_matrix, r.normal_matrix))
-        weakest = UNKNOWNS[int(np.argmax(np.abs(vectors[:, 0])))]
-        plain = np.linalg.eigvalsh(normalised(r.normal_matrix, r.normal_matrix))[0]
-        row = [values[0], weakest, values[1], plain]
+        directions = tc.constrained_directions(r)
+        # The point-to-point normal matrix taken alike (its translations are 1 by construction).
+        weight = np.trace(r.normal_matrix[3:, 3:]) / 3.0
+        scale = np.diag(
+            1.0 / np.array([np.sqrt(np.trace(r.normal_matrix[:3, :3]) / (2.0 * weight))] * 3 + [1.0] * 3)
+        )
+        plain = np.linalg.eigvalsh(scale @ r.normal_matrix @ scale / weight)[0]
+        row = [directions[0][1], directions[0][0], directions[1][1], plain]
         if repeat:
             row.append(
                 median_ms(lambda p=pair: tc.register_maps(p.source, p.target, p.truth, ANALYSED), repeat)

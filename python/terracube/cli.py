@@ -882,6 +882,12 @@ def _register_record(method: str, source: Path, target: Path, result) -> dict[st
             num_correspondences=int(result.num_correspondences),
             correspondences_per_class=_class_counts(result),
         )
+        if np.any(np.asarray(result.constraint_matrix)):
+            from .registration import constrained_directions
+
+            record["constraints"] = [
+                {"along": along, "held": held} for along, held, _ in constrained_directions(result)
+            ]
     return record
 
 
@@ -925,6 +931,17 @@ def register(
     remove_overhangs: bool = typer.Option(
         False, "--remove-overhangs/--keep-overhangs", help="Map each scan without its overhangs first."
     ),
+    structure_radius: float | None = typer.Option(
+        None,
+        "--structure-radius",
+        help=_help(
+            "Also report what the scene constrains (classes and all-cells): the weakest motions, "
+            "from neighbourhoods of this radius [m], e.g. three cells.",
+            "registration",
+            "structure_radius",
+        ),
+        show_default=False,
+    ),
     roll: float | None = _ROLL,
     pitch: float | None = _PITCH,
     crop: _Crop | None = _CROP,
@@ -932,7 +949,7 @@ def register(
     """Register two scans: each becomes a classified elevation map, then ICP moves source onto target.
 
     Prints the transform, whether it converged and why, iterations, RMSE and the correspondences per
-    terrain class.
+    terrain class; with --structure-radius also the two motions the scene holds least firmly.
     """
     from tqdm import tqdm
 
@@ -947,7 +964,7 @@ def register(
         frame=_frame_options(roll, pitch, crop),
         elevation={"resolution": resolution},
         terrain=_terrain_options(sensor_height=sensor_height, reference=reference),
-        registration={"max_iterations": max_iterations},
+        registration={"max_iterations": max_iterations, "structure_radius": structure_radius},
         pcl_icp={"max_iterations": max_iterations},
     )
     with _exit_on_bad_input():
@@ -981,6 +998,9 @@ def register(
             f"{k.replace('_', ' ')} {v:,}" for k, v in record["correspondences_per_class"].items()
         )
         typer.echo(f"  correspondences per class: {per_class}")
+        if "constraints" in record:
+            weakest = ", ".join(f"{c['along']} {c['held']:.3f}" for c in record["constraints"][:2])
+            typer.echo(f"  least held (share of the pairs' weight holding it, 1 = all): {weakest}")
     t = np.asarray(record["transform"])
     typer.echo(
         f"  translation: x {t[0, 3]:+.4f} m, y {t[1, 3]:+.4f} m, z {t[2, 3]:+.4f} m; "

@@ -19,10 +19,12 @@ from .elevation import ElevationMap, TerrainClass
 
 __all__ = [
     "DEFAULT_CLASS_WEIGHTS",
+    "UNKNOWNS",
     "PclIcpParams",
     "RegistrationParams",
     "RegistrationResult",
     "StopReason",
+    "constrained_directions",
     "has_pcl",
     "pcl_gicp",
     "pcl_icp",
@@ -34,6 +36,9 @@ __all__ = [
 
 StopReason = _core.StopReason
 RegistrationResult = _core.RegistrationResult
+
+#: The unknowns of the 6x6 matrices, in order: rotation about x, y, z, then translation.
+UNKNOWNS = ("roll", "pitch", "yaw", "x", "y", "z")
 
 #: Table 2 of the classification paper; classes not listed (unknown, ground) weigh 0.
 DEFAULT_CLASS_WEIGHTS: dict[TerrainClass, float] = {
@@ -294,3 +299,39 @@ def pcl_gicp(source, target, initial=None, params: PclIcpParams | None = None, *
     params = params or PclIcpParams(**kwargs)
     core = params.to_core()
     return _core.pcl_gicp(np.asarray(source), np.asarray(target), _as_guess(initial), core)
+
+
+def constrained_directions(result: RegistrationResult) -> list[tuple[str, float, np.ndarray]]:
+    """How firmly the scene holds each motion, weakest first, from a result registered with
+    ``structure_radius > 0``.
+
+    The constraint matrix is taken per unit of correspondence weight W, rotations scaled by the
+    pairs' rms distance r from their centroid, both read off the normal matrix H (without ground
+    planes its translation block is W I and the trace of its rotation block 2 W r^2; here W is a
+    third of the translation block's trace), so that an eigenvalue of 1 along a translation means
+    every pair holds it fully and 0 that none does.
+
+    Returns
+    -------
+    list of (unknown, held, direction)
+        Six entries in ascending order of ``held``: the unknown of :data:`UNKNOWNS` that dominates
+        the eigenvector, the normalised eigenvalue, and the unit eigenvector (6,) in the scaled
+        unknowns (rotation times radius, translation).
+
+    Raises
+    ------
+    ValueError
+        If the result carries no constraint matrix (``structure_radius`` was 0, or there were no
+        correspondences).
+    """
+    matrix = np.asarray(result.constraint_matrix)
+    normal = np.asarray(result.normal_matrix)
+    weight = float(np.trace(normal[3:, 3:])) / 3.0
+    if not np.any(matrix) or not weight > 0.0:
+        raise ValueError("the result has no constraint matrix: register with structure_radius > 0")
+    radius = np.sqrt(np.trace(normal[:3, :3]) / (2.0 * weight))
+    scale = np.diag(1.0 / np.array([radius] * 3 + [1.0] * 3))
+    values, vectors = np.linalg.eigh(scale @ matrix @ scale / weight)
+    return [
+        (UNKNOWNS[int(np.argmax(np.abs(vectors[:, k])))], float(values[k]), vectors[:, k]) for k in range(6)
+    ]

@@ -161,6 +161,22 @@ def test_register_recovers_a_known_motion_and_writes_json_and_txt(runner, tmp_pa
     np.testing.assert_allclose(np.loadtxt(tmp_path / "r.txt"), all_cells.transform, rtol=0, atol=1e-11)
 
 
+def test_register_reports_what_the_scene_constrains(runner, tmp_path, street_scans):
+    import json
+
+    folder, truth, sensor_height = street_scans
+    args = ["register", str(folder / "source.npy"), str(folder / "target.npy"), "-r", "0.2"]
+    args += ["--sensor-height", str(sensor_height), "--structure-radius", "0.6"]
+    result = runner.invoke(app, [*args, "--output", str(tmp_path / "r.json")])
+    assert result.exit_code == 0, result.output
+    assert "least held" in result.output
+    constraints = json.loads((tmp_path / "r.json").read_text())["constraints"]
+    held = [c["held"] for c in constraints]
+    assert len(held) == 6 and held == sorted(held) and held[0] >= -1e-9
+    plain = runner.invoke(app, args[:-2])
+    assert plain.exit_code == 0 and "least held" not in plain.output
+
+
 def test_register_with_pcl_or_a_clear_message(runner, tmp_path, street_scans):
     folder, truth, sensor_height = street_scans
     args = ["register", str(folder / "source.npy"), str(folder / "target.npy"), "-r", "0.2", "-m", "pcl"]

@@ -326,9 +326,21 @@ def test_constraint_eigenvalues_show_what_a_flat_road_and_a_street_leave_free(st
     )
     assert abs(street.constraint_eigenvectors[3, 0]) == pytest.approx(1.0, abs=1e-9)  # translation along x
 
+    # Per unit of pair weight: none of the pairs holds the free motions, the walls hold y fully.
+    flat_directions = tc.constrained_directions(flat)
+    assert {along for along, _, _ in flat_directions[:3]} <= {"x", "y", "yaw"}
+    assert max(held for _, held, _ in flat_directions[:3]) < 1e-9 < flat_directions[3][1]
+    street_directions = tc.constrained_directions(street)
+    assert street_directions[0][0] == "x" and abs(street_directions[0][1]) < 1e-9
+    assert [held for _, held, _ in street_directions] == sorted(held for _, held, _ in street_directions)
+    assert dict((along, held) for along, held, _ in street_directions)["y"] == pytest.approx(1.0)
+
     # Off by default; through register_maps too; a bad radius is a clear error.
     source, target, _, guess = street_pair
-    assert not np.any(tc.register_maps(source, target, guess).constraint_matrix)
+    plain = tc.register_maps(source, target, guess)
+    assert not np.any(plain.constraint_matrix)
+    with pytest.raises(ValueError, match="structure_radius"):
+        tc.constrained_directions(plain)
     result = tc.register_maps(source, target, guess, structure_radius=0.5)
     assert result.constraint_eigenvalues[5] > 0.0
     with pytest.raises(ValueError, match="structure_radius"):
