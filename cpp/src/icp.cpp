@@ -468,7 +468,8 @@ class Registration {
   }
 
   /// RegistrationResult::constraint_matrix at `transform`: each active source point paired with
-  /// its nearest target point of its class within `max_distance` (a fresh search), the row
+  /// its nearest target point of its class within `max_distance` (from its certificate where that
+  /// still holds, else searched), the row
   /// [((p - c) x e)^T, e^T] of every direction e in which the partner's neighbourhood within
   /// `radius` does not extend, weighted; plus the ground planes' rows along their normals.
   Matrix6d constraints(const Eigen::Matrix4d& transform, double max_distance, double radius,

@@ -177,6 +177,14 @@ void expect_grid_matches_brute_force(const std::vector<Eigen::Vector3d>& points,
       EXPECT_EQ((points[static_cast<std::size_t>(got)] - queries[q]).squaredNorm(), best) << what << " query " << q;
       EXPECT_EQ(grid.point(static_cast<std::size_t>(got)), points[static_cast<std::size_t>(got)]);
     }
+    // within(): exactly the points within the limit.
+    std::vector<std::uint32_t> expected, found_within;
+    for (std::size_t k = 0; k < points.size(); ++k) {
+      if ((points[k] - queries[q]).squaredNorm() <= limit * limit) expected.push_back(static_cast<std::uint32_t>(k));
+    }
+    grid.within(queries[q], limit, found_within);
+    std::sort(found_within.begin(), found_within.end());
+    EXPECT_EQ(found_within, expected) << what << " query " << q << " limit " << limit;
   }
 }
 
