@@ -730,6 +730,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     print_verdicts(medians, "KITTI pair (against the ground truth)", "KITTI")
     print_verdicts(scan_medians, "KITTI pair (against the scan reference)", "KITTI")
+    print_typical(scan_medians, "KITTI pairs against the scan reference", ("KITTI",))
     for step in SIM_STEPS_M:
         prefix = f"sim {step:.3f} "
         aligned = (
