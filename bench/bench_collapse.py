@@ -19,6 +19,13 @@ Every method runs single-threaded (the C++ code uses no threads, and the numpy v
 element-wise operations, sorts and gathers, none of which numpy parallelises). Ratios are
 ``method time / collapse_overhangs time``.
 
+The memory floor (:func:`memory_floor`): per input, bare C++ loops (``terracube._core._memory_floor``,
+private to this benchmark) time the memory traffic any exact single-threaded implementation of
+Algorithm 1 must do -- read the rows for the bounding box, read them again while storing a byte per
+point at its cube, then load that byte per point and write the mask -- with no arithmetic at all.
+``numpy time / floor`` is the largest speed-up over numpy that this machine allows on one core; the
+targets section names the inputs where it is below 20x.
+
 Correctness is asserted, not timed: the numpy mask and its occupied and removed cube lists (both
 paths) must equal ``collapse_overhangs``' on every input, and so must OctoMap's mask; the point-gap
 baseline solves a different problem, so only its agreement rate is printed. Before anything is timed, the
@@ -313,6 +320,7 @@ class Measurement:
     octomap_error: str = ""
     point_gap_agreement: float = float("nan")
     overhang_fraction: float = float("nan")
+    floor: dict = field(default_factory=dict)  # see memory_floor
 
 
 MAX_CHECKED_DENSE_CUBES = 1 << 28  # the check runs the dense numpy path too while it fits in 256 MB
@@ -379,6 +387,27 @@ def numpy_collapse_leveled(
     return mask
 
 
+FLOOR_RUNS = 15
+
+
+def memory_floor(points: np.ndarray, edge: float, sigma: int) -> dict:
+    """The memory floor of Algorithm 1 on this cloud, timed in C++ by bare loops (fastest of
+    FLOOR_RUNS runs each): ``read_ms`` reads the rows' bytes once; ``store_ms`` writes a byte per
+    point into a table of one byte per occupied cube (the smallest table there is), at the point's
+    own cube; ``load_ms`` reads that byte back per point and writes a mask byte. Any exact
+    single-threaded implementation reads the rows once for the bounding box (eqs. 1-3 need it
+    before the first cube index), marks every point's cube while reading them again (line 3 of
+    Algorithm 1; the stores may overlap that read) and, once R is known, looks up every point's
+    cube for the mask: ``floor_ms`` = read + max(read, store) + load, with no arithmetic at all.
+    """
+    occupied = tc.collapse_overhangs(points, edge, sigma).occupied_cubes
+    entry = np.searchsorted(occupied, cube_indices(points, edge).per_point).astype(np.uint32)
+    probe = dict(tc._core._memory_floor(points, entry, len(occupied), FLOOR_RUNS))
+    read, store, load = probe["read_ms"], probe["store_ms"], probe["load_ms"]
+    probe["floor_ms"] = read + max(read, store) + load
+    return probe
+
+
 def measure(cloud: Cloud, edge: float, sigma: int, repeat: int) -> Measurement:
     measurement = Measurement(cloud)
     check_agreement(cloud, edge, sigma, measurement)
@@ -396,6 +425,7 @@ def measure(cloud: Cloud, edge: float, sigma: int, repeat: int) -> Measurement:
         method: runs[method] for method in METHODS if not (method == "octomap" and measurement.octomap_error)
     }
     measurement.ms.update(interleaved_median_ms(timed, repeat, run=3))
+    measurement.floor = memory_floor(points, edge, sigma)
     # Leveled and cropped, as the paper's pipeline runs: checked equal to numpy, then timed.
     transform, crop = leveling_inputs(points)
     leveled = tc.collapse_overhangs(points, edge, sigma, transform=transform, crop=crop)
@@ -469,6 +499,16 @@ def print_measurement(measurement: Measurement) -> None:
         f"  leveled + cropped: collapse_overhangs {leveled:.2f} ms, numpy {numpy_leveled:.2f} ms "
         f"({numpy_leveled / leveled:.1f}x)"
     )
+    floor = measurement.floor
+    print(
+        f"  memory floor (bare C++ loops, fastest of {FLOOR_RUNS}): read the rows "
+        f"{floor['read_ms']:.3f} ms, a store per point {floor['store_ms']:.3f} ms, "
+        f"a load + mask byte per point {floor['load_ms']:.3f} ms;"
+    )
+    print(
+        f"    read + max(read, store) + load = {floor['floor_ms']:.3f} ms: at most "
+        f"{measurement.ms['numpy'] / floor['floor_ms']:.1f}x numpy on one core"
+    )
     octomap_check = "n/a" if measurement.octomap_error else "OK"
     if measurement.octomap_error:
         print(f"  octomap n/a: {measurement.octomap_error}")
@@ -488,6 +528,11 @@ def print_targets(measurements: list[Measurement], quick: bool) -> None:
     octomap_ratios = [m.ms["octomap"] / m.ms["collapse"] for m in measurements if m.ms.get("octomap")]
     unique_ratios = [m.ms["numpy_unique"] / m.ms["collapse"] for m in measurements]
     print_target("collapse vs numpy  >= 20x on every input", numpy_ratios, lambda r: r >= 20.0, "x")
+    bounds = [m.ms["numpy"] / m.floor["floor_ms"] for m in measurements]
+    print(f"    the memory floor allows at most: {', '.join(f'{bound:.1f}x' for bound in bounds)}")
+    below = [m.cloud.name for m, bound in zip(measurements, bounds, strict=True) if bound < 20.0]
+    if below:
+        print(f"    out of reach on one core for: {', '.join(below)} (the floor alone exceeds numpy / 20)")
     print_target("  (same vs the np.unique path only)", unique_ratios, lambda r: r >= 20.0, "x")
     print_target("collapse vs OctoMap >= 10x on every input", octomap_ratios, lambda r: r >= 10.0, "x")
     synthetic = [m for m in measurements if m.cloud.name.startswith("synthetic")]

@@ -1,0 +1,34 @@
+"""The private memory-floor probe behind bench/bench_collapse.py (terracube._core._memory_floor)."""
+
+import numpy as np
+import pytest
+from terracube import _core
+
+
+def _rows(n: int, width: int, dtype) -> np.ndarray:
+    return np.arange(n * width, dtype=dtype).reshape(n, width)
+
+
+@pytest.mark.parametrize(("width", "dtype"), [(3, np.float64), (4, np.float32)])
+def test_probe_reads_the_span_of_the_rows_and_times_three_loops(width, dtype):
+    rows = _rows(1000, width, dtype)
+    entry = (np.arange(1000) % 7).astype(np.uint32)
+    probe = _core._memory_floor(rows[:, :3], entry, 7, repeat=2)
+    assert probe["bytes"] == (999 * width + 3) * np.dtype(dtype).itemsize
+    for key in ("read_ms", "store_ms", "load_ms"):
+        assert probe[key] >= 0.0
+
+
+def test_probe_rejects_bad_input():
+    rows = _rows(10, 3, np.float64)
+    entry = np.zeros(10, dtype=np.uint32)
+    with pytest.raises(ValueError, match="past num_entries"):
+        _core._memory_floor(rows, entry + 3, 3)
+    with pytest.raises(ValueError, match="differ in length"):
+        _core._memory_floor(rows, entry[:9], 1)
+    with pytest.raises(ValueError, match="repeat"):
+        _core._memory_floor(rows, entry, 1, repeat=0)
+    with pytest.raises(ValueError, match="adjacent x, y, z"):
+        _core._memory_floor(np.asfortranarray(rows), entry, 1)
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        _core._memory_floor(rows[:, :2], entry, 1)
