@@ -393,9 +393,12 @@ FLOOR_RUNS = 15
 
 def memory_floor(points: np.ndarray, edge: float, sigma: int) -> dict:
     """The memory floor of Algorithm 1 on this cloud, timed in C++ by bare loops (fastest of
-    FLOOR_RUNS runs each): ``read_ms`` reads the rows' bytes once; ``store_ms`` writes a byte per
-    point into a table of one byte per occupied cube (the smallest table there is), at the point's
-    own cube; ``load_ms`` reads that byte back per point and writes a mask byte. Any exact
+    FLOOR_RUNS runs each).
+
+    ``read_ms`` reads the rows once: every byte of them while rows lie at most 32 bytes apart, else
+    each row's x, y, z (a strided subset still costs its cache lines). ``store_ms`` writes a byte
+    per point, at the point's own cube, into a table of one byte per occupied cube (the smallest
+    table there is). ``load_ms`` reads that byte back per point and writes a mask byte. Any exact
     single-threaded implementation reads the rows once for the bounding box (eqs. 1-3 need it
     before the first cube index), marks every point's cube while reading them again (line 3 of
     Algorithm 1; the stores may overlap that read) and, once R is known, looks up every point's

@@ -19,6 +19,12 @@ def test_probe_reads_the_span_of_the_rows_and_times_three_loops(width, dtype):
         assert probe[key] >= 0.0
 
 
+def test_probe_reads_only_the_coordinates_of_rows_far_apart():
+    rows = _rows(8000, 4, np.float32)[::8, :3]  # 128 bytes apart
+    probe = _core._memory_floor(rows, np.zeros(1000, dtype=np.uint32), 1, repeat=2)
+    assert probe["bytes"] == 1000 * 12
+
+
 def test_probe_rejects_bad_input():
     rows = _rows(10, 3, np.float64)
     entry = np.zeros(10, dtype=np.uint32)
