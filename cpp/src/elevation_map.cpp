@@ -9,7 +9,9 @@
 #include <cmath>
 #include <cstdint>
 #include <cstdlib>
+#include <iomanip>
 #include <limits>
+#include <sstream>
 #include <stdexcept>
 #include <string>
 #include <type_traits>
@@ -214,7 +216,12 @@ MapGeometry make_geometry(const ElevationParams& params, const detail::CloudExte
     cells_y = std::floor((extent.max.y() - geometry.origin_m.y()) / params.resolution_m) + 1.0;
   }
   if (!(cells_x * cells_y <= static_cast<double>(params.max_cells))) {
-    throw std::invalid_argument("the map would need " + std::to_string(cells_x) + " x " + std::to_string(cells_y) +
+    const auto whole = [](double cells) {  // a cell count as a whole number, however large
+      std::ostringstream text;
+      text << std::fixed << std::setprecision(0) << cells;
+      return text.str();
+    };
+    throw std::invalid_argument("the map would need " + whole(cells_x) + " x " + whole(cells_y) +
                                 " cells, over max_cells = " + std::to_string(params.max_cells) +
                                 "; use a coarser resolution, a fixed extent or a crop");
   }
