@@ -4,6 +4,8 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "number_text.hpp"
+
 namespace terracube::detail {
 
 PackedRows& packed_rows_scratch() {
@@ -31,11 +33,10 @@ void check_rigid_transform(const Eigen::Matrix4d& transform, const char* what) {
 
 void check_collapse_params(const CollapseParams& params) {
   if (!(params.edge_m > 0.0) || !std::isfinite(params.edge_m)) {
-    throw std::invalid_argument("edge must be a positive finite length in metres, got " +
-                                std::to_string(params.edge_m));
+    throw std::invalid_argument("edge must be a positive finite length in metres, got " + number_text(params.edge_m));
   }
   if (!std::isfinite(1.0 / params.edge_m)) {
-    throw std::invalid_argument("edge " + std::to_string(params.edge_m) + " m is too small to quantise with");
+    throw std::invalid_argument("edge " + number_text(params.edge_m) + " m is too small to quantise with");
   }
   if (params.sigma < 1) {
     throw std::invalid_argument("sigma must be at least 1 cube, got " + std::to_string(params.sigma));

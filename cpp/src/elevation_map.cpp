@@ -24,6 +24,7 @@
 #include "cloud_frame.hpp"
 #include "cpu_features.hpp"
 #include "layer_memory.hpp"
+#include "number_text.hpp"
 
 namespace terracube {
 
@@ -179,7 +180,7 @@ void check_elevation_params(const ElevationParams& params) {
   if (!(params.resolution_m > 0.0) || !std::isfinite(params.resolution_m) ||
       !std::isfinite(1.0 / params.resolution_m)) {
     throw std::invalid_argument("resolution must be a positive finite length in metres, got " +
-                                std::to_string(params.resolution_m));
+                                detail::number_text(params.resolution_m));
   }
   if (!(params.discontinuity_m > 0.0) || !std::isfinite(params.discontinuity_m)) {
     throw std::invalid_argument("discontinuity must be a positive finite length in metres");

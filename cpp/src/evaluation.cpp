@@ -8,6 +8,8 @@
 #include <stdexcept>
 #include <string>
 
+#include "number_text.hpp"
+
 namespace terracube {
 
 namespace {
@@ -173,7 +175,8 @@ RelativePoseError relative_pose_error(const std::vector<Eigen::Matrix4d>& estima
   if (params.lengths_m.empty()) throw std::invalid_argument("relative pose error needs at least one segment length");
   for (double length : params.lengths_m) {
     if (!(length > 0.0) || !std::isfinite(length)) {
-      throw std::invalid_argument("segment lengths must be positive and finite [m], got " + std::to_string(length));
+      throw std::invalid_argument("segment lengths must be positive and finite [m], got " +
+                                  detail::number_text(length));
     }
   }
   check_trajectories(estimate, ground_truth);

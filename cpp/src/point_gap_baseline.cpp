@@ -4,6 +4,7 @@
 #include <string>
 
 #include "cloud_frame.hpp"
+#include "number_text.hpp"
 #include "terracube/baselines.hpp"
 
 namespace terracube {
@@ -23,11 +24,11 @@ template <typename Scalar>
 std::vector<std::uint8_t> point_gap_impl(const PointsView<Scalar>& points, const PointGapParams& params) {
   if (!(params.cell_m > 0.0) || !std::isfinite(params.cell_m)) {
     throw std::invalid_argument("cell must be a positive finite length in metres, got " +
-                                std::to_string(params.cell_m));
+                                detail::number_text(params.cell_m));
   }
   if (!(params.min_gap_m > 0.0) || !std::isfinite(params.min_gap_m)) {
     throw std::invalid_argument("min_gap must be a positive finite length in metres, got " +
-                                std::to_string(params.min_gap_m));
+                                detail::number_text(params.min_gap_m));
   }
   detail::check_rigid_transform(params.transform, "transform");
   return detail::visit_leveled(points, params.transform, params.crop,

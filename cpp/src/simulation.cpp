@@ -8,6 +8,8 @@
 #include <stdexcept>
 #include <utility>
 
+#include "number_text.hpp"
+
 namespace terracube::simulation {
 
 namespace {
@@ -21,16 +23,17 @@ double deg2rad(double degrees) { return degrees * kPi / 180.0; }
 [[noreturn]] void fail(const std::string& message) { throw std::invalid_argument(message); }
 
 void require_finite(double value, const char* name) {
-  if (!std::isfinite(value)) fail(std::string(name) + " must be finite, got " + std::to_string(value));
+  if (!std::isfinite(value)) fail(std::string(name) + " must be finite, got " + detail::number_text(value));
 }
 
 void require_positive(double value, const char* name) {
   if (!std::isfinite(value) || !(value > 0.0))
-    fail(std::string(name) + " must be positive, got " + std::to_string(value));
+    fail(std::string(name) + " must be positive, got " + detail::number_text(value));
 }
 
 void require_non_negative(double value, const char* name) {
-  if (!std::isfinite(value) || value < 0.0) fail(std::string(name) + " must be >= 0, got " + std::to_string(value));
+  if (!std::isfinite(value) || value < 0.0)
+    fail(std::string(name) + " must be >= 0, got " + detail::number_text(value));
 }
 
 double clamp01(double value) { return std::min(1.0, std::max(0.0, value)); }
@@ -619,8 +622,8 @@ void validate(const SensorModel& model) {
     require_non_negative(min_range, "min_range_m");
     require_positive(max_range, "max_range_m");
     if (!(min_range < max_range)) {
-      fail("min_range_m must be below max_range_m, got " + std::to_string(min_range) +
-           " >= " + std::to_string(max_range));
+      fail("min_range_m must be below max_range_m, got " + detail::number_text(min_range) +
+           " >= " + detail::number_text(max_range));
     }
     require_non_negative(sigma, "range_noise_sigma_m");
   };

@@ -698,8 +698,23 @@ def test_sigma_beyond_32_bits_raises_value_error(sigma):
 
 
 def test_subnormal_edge_raises_value_error_saying_it_is_too_small():
-    with pytest.raises(ValueError, match="too small"):
+    with pytest.raises(ValueError, match=r"edge \S+e-32\d m is too small"):
         tc.collapse_overhangs(np.zeros((1, 3)), 1e-320, 2)
+
+
+@pytest.mark.parametrize(
+    ("call", "text"),
+    [
+        (lambda: tc.collapse_overhangs(np.zeros((1, 3)), -0.25, 2), "edge must be .*, got -0.25$"),
+        (lambda: tc.point_gap_overhangs(np.zeros((1, 3)), cell=0.0), "cell must be .*, got 0$"),
+        (lambda: tc.point_gap_overhangs(np.zeros((1, 3)), min_gap=np.inf), "min_gap must be .*, got inf$"),
+        (lambda: tc.build_elevation_map(np.zeros((1, 3)), 1e-400), "resolution must be .*, got 0$"),
+        (lambda: tc.build_elevation_map(np.zeros((1, 3)), -3e-9), "resolution must be .*, got -3e-09$"),
+    ],
+)
+def test_rejected_lengths_are_named_as_given(call, text):
+    with pytest.raises(ValueError, match=text):
+        call()
 
 
 @pytest.mark.parametrize("storage", ["dense", "sparse"])
