@@ -338,6 +338,11 @@ def classify_terrain(
 
     Also adds the layers ``class`` (float, NaN for unknown), ``relative_height`` and ``ground``.
     """
+    if not isinstance(elevation_map, ElevationMap):
+        raise TypeError(
+            f"classify_terrain needs an ElevationMap (build_elevation_map's result), "
+            f"not {type(elevation_map).__name__}"
+        )
     if params is None:
         params = TerrainParams(**kwargs)
     missing = [name for name in ("max", "min", "std_dev", "discontinuity") if name not in elevation_map]

@@ -325,6 +325,12 @@ def test_a_map_without_the_needed_layers_cannot_be_classified():
         tc.classify_terrain(elevation_map)
 
 
+@pytest.mark.parametrize("not_a_map", [np.zeros((3, 3)), {"max": np.zeros((2, 2))}, None])
+def test_classifying_something_else_than_a_map_raises_type_error(not_a_map):
+    with pytest.raises(TypeError, match="needs an ElevationMap"):
+        tc.classify_terrain(not_a_map)
+
+
 @pytest.mark.parametrize(
     "bad",
     [
