@@ -115,8 +115,11 @@ class ElevationMap:
 
     @classmethod
     def load(cls, path: str | Path) -> ElevationMap:
-        """Read a map written by :meth:`save`; ValueError naming the file when it is not one."""
+        """Read a map written by :meth:`save`; FileNotFoundError when there is no such file,
+        ValueError naming the file when it is not one."""
         path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: no such elevation map file")
         try:
             with np.load(path, allow_pickle=False) as archive:
                 elevation_map = cls.empty(float(archive["resolution"]), archive["origin"], archive["size"])

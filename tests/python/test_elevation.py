@@ -461,6 +461,11 @@ def test_load_of_an_npz_that_is_not_a_map_raises_value_error_naming_the_file(tmp
         tc.ElevationMap.load(path)
 
 
+def test_load_of_a_missing_file_raises_file_not_found_error_naming_it(tmp_path):
+    with pytest.raises(FileNotFoundError, match="missing.npz"):
+        tc.ElevationMap.load(tmp_path / "missing.npz")
+
+
 @pytest.mark.parametrize("kind", ["npy", "text"])
 def test_load_of_a_file_that_is_not_an_npz_raises_value_error_naming_the_file(tmp_path, kind):
     path = tmp_path / "not_a_map.npz"
