@@ -10,6 +10,7 @@
 #include <cstdint>
 #include <cstdlib>
 #include <iomanip>
+#include <iterator>
 #include <limits>
 #include <sstream>
 #include <stdexcept>
@@ -43,8 +44,71 @@ void advise_huge_pages(void* data, std::size_t bytes) {
 #endif
 }
 
+namespace {
+
+/// The buffers of the layers of maps that were dropped, kept per thread for the layers of the next
+/// maps (see recycle_layer). Most recently dropped last; the oldest go first when over kKeepBytes.
+class LayerPool {
+ public:
+  static constexpr std::size_t kKeepBytes = std::size_t{64} << 20;
+
+  LayerPool() = default;
+  LayerPool(const LayerPool&) = delete;
+  LayerPool& operator=(const LayerPool&) = delete;
+  ~LayerPool() { open() = false; }
+
+  /// False once this thread's pool is gone (maps dropped later, at thread or program exit, then
+  /// free their layers as usual). A trivially destructible flag, valid all along.
+  static bool& open() {
+    thread_local bool flag = true;
+    return flag;
+  }
+
+  void put(Layer&& layer) {
+    const std::size_t bytes = sizeof(float) * static_cast<std::size_t>(layer.size());
+    if (bytes == 0 || bytes > kKeepBytes) return;
+    while (bytes_ + bytes > kKeepBytes) {
+      bytes_ -= sizeof(float) * static_cast<std::size_t>(layers_.front().size());
+      layers_.erase(layers_.begin());
+    }
+    layers_.push_back(std::move(layer));
+    bytes_ += bytes;
+  }
+
+  /// A kept buffer of rows * cols floats, reshaped (no reallocation), when there is one.
+  bool take(Eigen::Index rows, Eigen::Index cols, Layer& out) {
+    for (auto it = layers_.rbegin(); it != layers_.rend(); ++it) {
+      if (it->size() != rows * cols) continue;
+      out = std::move(*it);
+      layers_.erase(std::next(it).base());
+      bytes_ -= sizeof(float) * static_cast<std::size_t>(out.size());
+      out.resize(rows, cols);
+      return true;
+    }
+    return false;
+  }
+
+ private:
+  std::vector<Layer> layers_;
+  std::size_t bytes_ = 0;
+};
+
+LayerPool* layer_pool() {
+  if (!LayerPool::open()) return nullptr;
+  thread_local LayerPool pool;
+  return &pool;
+}
+
+}  // namespace
+
+void recycle_layer(Layer&& layer) {
+  if (LayerPool* pool = layer_pool()) pool->put(std::move(layer));
+}
+
 Layer uninitialised_layer(Eigen::Index rows, Eigen::Index cols) {
-  Layer layer(rows, cols);
+  Layer layer;
+  if (LayerPool* pool = layer_pool(); pool != nullptr && pool->take(rows, cols, layer)) return layer;
+  layer.resize(rows, cols);
   advise_huge_pages(layer.data(), sizeof(float) * static_cast<std::size_t>(layer.size()));
   return layer;
 }
@@ -61,6 +125,10 @@ std::optional<CellIndex> MapGeometry::index_of(const Eigen::Vector2d& position) 
   const Eigen::Vector2d cells = (position - origin_m) / resolution_m;
   if (!(cells.x() >= 0.0 && cells.y() >= 0.0 && cells.x() < size.x() && cells.y() < size.y())) return std::nullopt;
   return CellIndex(static_cast<int>(std::floor(cells.x())), static_cast<int>(std::floor(cells.y())));
+}
+
+ElevationMap::~ElevationMap() {
+  for (auto& entry : layers_) detail::recycle_layer(std::move(entry.second));
 }
 
 ElevationMap::ElevationMap(const MapGeometry& geometry) : geometry_(geometry) {
@@ -98,6 +166,7 @@ void ElevationMap::add(const std::string& name, Layer data) {
   for (auto& [existing, layer] : layers_) {
     if (existing == name) {
       layer.array() = data.array();  // in place: views of the old layer stay valid
+      detail::recycle_layer(std::move(data));
       return;
     }
   }

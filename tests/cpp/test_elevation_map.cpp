@@ -604,6 +604,52 @@ TEST(BuildElevationMapFastPaths, ScratchBuffersReusedAcrossCallsOfDifferentSizes
   expect_matches_naive(first, large, large_params.discontinuity_m);
 }
 
+/// Drops a map of `layers` layers of `size`, every cell `poison`; returns their buffers.
+std::vector<const float*> drop_poisoned_map(const MapGeometry& geometry, int layers, float poison) {
+  std::vector<const float*> buffers;
+  ElevationMap poisoned(geometry);
+  for (int k = 0; k < layers; ++k) {
+    poisoned.add("poison " + std::to_string(k), poison);
+    buffers.push_back(poisoned.get("poison " + std::to_string(k)).data());
+  }
+  return buffers;
+}
+
+TEST(BuildElevationMapFastPaths, DroppedMapsLeaveTheirBuffersToTheNextMapsWhichShowNoTraceOfThem) {
+  // A dropped map's layers go to the thread's next maps (no fresh pages to fault in). The next map
+  // must take them and still equal the naive layers, its own and the overhang pipeline's derived
+  // ones alike (a build on a thread with nothing to reuse is the reference there).
+  const auto points = test::random_scene(61, 3000, 6.0);
+  const ElevationParams params = fixed_extent(0.25, {-6.0, -6.0}, {48, 40});
+  constexpr float kPoison = 12345.0F;
+  MapGeometry geometry;
+  geometry.resolution_m = 0.25;
+  geometry.origin_m = Eigen::Vector2d(-6.0, -6.0);
+  geometry.size = CellIndex(48, 40);
+  const std::vector<const float*> dropped = drop_poisoned_map(geometry, 12, kPoison);
+  const ElevationMap map = build_elevation_map(PointsView<double>(points), params);
+  int reused = 0;
+  for (const std::string& name : map.layers()) {
+    const Layer& layer = map.get(name);
+    reused += std::count(dropped.begin(), dropped.end(), layer.data()) > 0 ? 1 : 0;
+    EXPECT_EQ((layer.array() == kPoison).count(), 0) << name;
+  }
+  EXPECT_EQ(reused, 6);
+  expect_matches_naive(map, points, params.discontinuity_m);
+
+  CollapseParams collapse;
+  collapse.edge_m = 0.5;
+  collapse.sigma = 2;
+  drop_poisoned_map(geometry, 20, kPoison);
+  const OverhangFreeMap pooled = build_overhang_free_map(PointsView<double>(points), collapse, params);
+  std::optional<OverhangFreeMap> fresh;
+  std::thread([&] { fresh = build_overhang_free_map(PointsView<double>(points), collapse, params); }).join();
+  ASSERT_EQ(pooled.map.layers(), fresh->map.layers());
+  for (const std::string& name : pooled.map.layers()) {
+    expect_same_layer(pooled.map.get(name), fresh->map.get(name), name);
+  }
+}
+
 TEST(BuildElevationMapFastPaths, ConcurrentCallsOnTwoThreadsGiveTheSerialResults) {
   const auto a = test::random_scene(51, 6000, 8.0);
   const auto b = test::random_scene(52, 5000, 6.0);

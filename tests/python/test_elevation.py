@@ -11,6 +11,7 @@ float32 cast of the reference), mean and std-dev with rtol 1e-6 / atol 1e-5.
 
 from __future__ import annotations
 
+import gc
 import sys
 from dataclasses import dataclass
 
@@ -459,6 +460,22 @@ def test_load_of_an_npz_that_is_not_a_map_raises_value_error_naming_the_file(tmp
     np.savez(path, xyz=np.zeros((4, 3)))
     with pytest.raises(ValueError, match="other.npz"):
         tc.ElevationMap.load(path)
+
+
+def test_a_layer_view_keeps_its_values_while_later_maps_of_its_size_are_built():
+    # Dropped maps leave their buffers to the next maps of the thread; a view keeps its map (and
+    # so its buffer) alive, so later builds must not write into it.
+    params = tc.ElevationParams(0.5, origin=(0.0, 0.0), size=(40, 40))
+    first = tc.build_elevation_map(random_cloud(5, 4000), params=params)
+    view = first["mean"]
+    expected = view.copy()
+    del first
+    gc.collect()
+    for seed in range(6, 10):
+        later = tc.build_elevation_map(random_cloud(seed, 4000), params=params)
+        assert not np.array_equal(later["mean"], expected, equal_nan=True)
+        del later
+    np.testing.assert_array_equal(view, expected)
 
 
 def test_load_of_a_missing_file_raises_file_not_found_error_naming_it(tmp_path):

@@ -48,6 +48,13 @@ class ElevationMap {
  public:
   ElevationMap() = default;
   explicit ElevationMap(const MapGeometry& geometry);
+  ElevationMap(const ElevationMap&) = default;
+  ElevationMap(ElevationMap&&) = default;
+  ElevationMap& operator=(const ElevationMap&) = default;
+  ElevationMap& operator=(ElevationMap&&) = default;
+  /// Leaves the layers' buffers to this thread's next maps (up to 64 MB per thread, the most
+  /// recently dropped first): a map built and dropped per scan then touches no fresh page.
+  ~ElevationMap();
 
   const MapGeometry& geometry() const { return geometry_; }
   /// Moves the map to `geometry` without touching its layers' values (as grid_map's
