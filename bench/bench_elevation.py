@@ -37,10 +37,11 @@ faster than numpy) is reported as MET / NOT MET, never asserted. The time the Py
 turning the parameter dataclasses into the C++ structs is printed too. "map + classify, refilling a
 map" is the same C++ step refilling one map (``out=``, its layers' buffers reused; checked equal to a
 fresh map first), as a loop over scans would; numpy makes its arrays anew (the target is judged on
-the fresh C++ map). The minor page faults per map + classify call are counted too (getrusage): a
-refilled map takes none, whatever the state of the allocator, while a fresh one takes one per 4 kB
-of its nine 320 kB layers when the allocator has just returned that memory to the system (about
-670 per call in a loop of terracube calls alone) and none when it has kept it.
+the fresh C++ map). The minor page faults per map + classify call are counted too (getrusage), here
+and in a fresh process of terracube calls alone: a refilled map takes none, and neither does a fresh
+one once a dropped map has left its layers' buffers to the thread (before that change, about 670
+per call there, one per 4 kB of its nine 320 kB layers, whenever the allocator had returned them to
+the system).
 
 Reproduce
 ---------
@@ -537,7 +538,7 @@ def measure(scan: Scan, repeat: int) -> Results:
     results.ms["dem_whole"] = median_ms(
         lambda: tc.dem_without_overhangs(points, collapse=collapse, elevation=auto), repeat
     )
-    # Its ten layers of 6 MB are fresh on every call: the page faults show what that costs.
+    # Ten layers of 6 MB per call: the page faults show whether their pages are fresh.
     results.faults["dem_whole"] = page_faults(
         lambda: tc.dem_without_overhangs(points, collapse=collapse, elevation=auto), calls=5
     )
