@@ -12,6 +12,7 @@
 #include <iomanip>
 #include <iterator>
 #include <limits>
+#include <new>
 #include <sstream>
 #include <stdexcept>
 #include <string>
@@ -102,7 +103,12 @@ LayerPool* layer_pool() {
 }  // namespace
 
 void recycle_layer(Layer&& layer) {
-  if (LayerPool* pool = layer_pool()) pool->put(std::move(layer));
+  LayerPool* pool = layer_pool();
+  if (pool == nullptr) return;
+  try {
+    pool->put(std::move(layer));
+  } catch (const std::bad_alloc&) {  // called from ~ElevationMap: the layer is then freed as usual
+  }
 }
 
 Layer uninitialised_layer(Eigen::Index rows, Eigen::Index cols) {
