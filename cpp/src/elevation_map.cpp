@@ -1174,24 +1174,17 @@ OverhangFreeMap overhang_free_impl(const PointsView<Scalar>& points, const Colla
   const Layer& top = out.map.get("max");
   constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
   const MapGeometry& geometry = out.map.geometry();
-  // The cell of a point as build_elevation_map and MapGeometry::index_of bin it ((p - origin) /
-  // resolution, floored, half-open bounds), written out on doubles; none when outside.
-  const double origin_x = geometry.origin_m.x(), origin_y = geometry.origin_m.y();
-  const double resolution = geometry.resolution_m;
-  const auto size_x = static_cast<double>(geometry.size.x()), size_y = static_cast<double>(geometry.size.y());
-  const auto columns = static_cast<std::size_t>(geometry.size.y());
-  const auto cell_of = [&](const Eigen::Vector3d& p, std::size_t& cell) {
-    const double fx = (p.x() - origin_x) / resolution;
-    const double fy = (p.y() - origin_y) / resolution;
-    if (!(fx >= 0.0 && fy >= 0.0 && fx < size_x && fy < size_y)) return false;
-    cell = static_cast<std::size_t>(fx) * columns + static_cast<std::size_t>(fy);
-    return true;
-  };
   // The lowest overhang point of each cell (the "min" layer of the overhang points' map: rounding
   // is monotonic, so the least rounded height is the rounded least height), then the ground under
   // it: the highest kept point below it. (A map cell can straddle two cube columns, so a kept
   // wall may rise above an overhang that its neighbouring column collapsed; measuring from it
-  // would give a negative clearance.)
+  // would give a negative clearance.) The kept points' cells are those build_map just left in
+  // this thread's scratch (kOutside for overhang rows); the few overhang points are binned here
+  // by the same formula (MapGeometry::index_of, as AxisBinning computes it).
+  const std::uint32_t* kept_cells = thread_scratch().cell_of_point.data();
+  const AxisBinning along_x(geometry.origin_m.x(), geometry.resolution_m, geometry.size.x());
+  const AxisBinning along_y(geometry.origin_m.y(), geometry.resolution_m, geometry.size.y());
+  const auto ny = static_cast<std::int64_t>(geometry.size.y());
   Layer lowest_overhang = detail::filled_layer(top.rows(), top.cols(), kNaN);
   Layer under = detail::filled_layer(top.rows(), top.cols(), kNaN);
   float* lowest = lowest_overhang.data();
@@ -1199,16 +1192,22 @@ OverhangFreeMap overhang_free_impl(const PointsView<Scalar>& points, const Colla
   const std::vector<std::uint8_t>& overhang = out.collapse.overhang;
   detail::visit_leveled(points, params.transform, params.crop, [&](const auto& cloud) {
     Eigen::Vector3d p;
-    std::size_t cell = 0;
     for (std::size_t row = 0; row < cloud.size(); ++row) {
-      if (!overhang[row] || cloud.map(row, p) != 0 || !cell_of(p, cell)) continue;
+      if (!overhang[row] || cloud.map(row, p) != 0) continue;
+      const std::int64_t i = along_x(p.x());
+      const std::int64_t j = along_y(p.y());
+      if (i < 0 || j < 0) continue;
+      float& least = lowest[i * ny + j];
       const auto z = static_cast<float>(p.z());
-      if (std::isnan(lowest[cell]) || z < lowest[cell]) lowest[cell] = z;
+      if (std::isnan(least) || z < least) least = z;
     }
     for (std::size_t row = 0; row < cloud.size(); ++row) {
-      if (!kept[row] || cloud.map(row, p) != 0 || !cell_of(p, cell)) continue;
+      const std::uint32_t cell = kept_cells[row];
+      if (cell == kOutside) continue;
       const float above = lowest[cell];
-      if (std::isnan(above) || !(p.z() < above)) continue;
+      if (std::isnan(above)) continue;  // no overhang over the cell (most cells)
+      cloud.map_unchecked(row, p);
+      if (!(p.z() < above)) continue;
       float& highest = highest_under[cell];
       if (std::isnan(highest) || p.z() > highest) highest = static_cast<float>(p.z());
     }
