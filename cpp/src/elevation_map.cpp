@@ -1212,13 +1212,19 @@ OverhangFreeMap overhang_free_impl(const PointsView<Scalar>& points, const Colla
       if (std::isnan(highest) || p.z() > highest) highest = static_cast<float>(p.z());
     }
   });
-  Layer clearance = detail::filled_layer(top.rows(), top.cols(), kNaN);
-  for (Eigen::Index k = 0; k < top.size(); ++k) {
-    if (std::isnan(top.data()[k])) continue;  // no kept point: unknown
-    if (std::isnan(lowest_overhang.data()[k])) {
-      clearance.data()[k] = std::numeric_limits<float>::infinity();
-    } else if (!std::isnan(under.data()[k])) {
-      clearance.data()[k] = lowest_overhang.data()[k] - under.data()[k];
+  // Clearance: NaN without a kept point (unknown), +inf without an overhang, else the overhang's
+  // height over the ground under it (NaN when no kept point lies below it). Selects, no branches.
+  Layer clearance = detail::uninitialised_layer(top.rows(), top.cols());
+  {
+    const float* kept_top = top.data();
+    const float* overhang_low = lowest_overhang.data();
+    const float* ground = under.data();
+    float* out_clearance = clearance.data();
+    constexpr float kInfinity = std::numeric_limits<float>::infinity();
+    for (Eigen::Index k = 0; k < top.size(); ++k) {
+      const float gap = overhang_low[k] - ground[k];
+      const float value = std::isnan(overhang_low[k]) ? kInfinity : gap;
+      out_clearance[k] = std::isnan(kept_top[k]) ? kNaN : value;
     }
   }
   out.map.add("overhang_min", std::move(lowest_overhang));
