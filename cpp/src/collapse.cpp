@@ -96,8 +96,8 @@ CubeStorage choose_storage(const CubeGrid& grid, const CollapseParams& params, s
 /// stay below 2^31, so 32-bit truncation is the floor of eqs. 1-3). Rows that take no part get
 /// `no_cube`. The plain, all-used case is a branch-free loop the compiler vectorises.
 template <typename Cloud>
-void quantize_block(const Cloud& cloud, const CubeGrid& grid, bool all_used, std::uint32_t no_cube, std::size_t begin,
-                    std::size_t end, std::uint32_t* out) {
+void quantize_block(const Cloud& cloud, const CubeGrid& grid, bool all_used, std::uint32_t no_cube, float float_margin,
+                    std::size_t begin, std::size_t end, std::uint32_t* out) {
   const double inverse_edge = 1.0 / grid.edge_m;
   const double x0 = grid.min_corner.x();
   const double y0 = grid.min_corner.y();
@@ -113,7 +113,7 @@ void quantize_block(const Cloud& cloud, const CubeGrid& grid, bool all_used, std
   if constexpr (Cloud::kPlain) {
     const auto& view = cloud.view();
     if (all_used && view.column_stride == 1 && (view.row_stride == 3 || view.row_stride == 4)) {
-      const detail::QuantizeConstants constants{x0, y0, z0, inverse_edge, ixmax, layer};
+      const detail::QuantizeConstants constants{x0, y0, z0, inverse_edge, ixmax, layer, float_margin};
       detail::quantize_rows(view.data + static_cast<std::ptrdiff_t>(begin) * view.row_stride, end - begin,
                             static_cast<int>(view.row_stride), constants, out);
       return;
@@ -145,9 +145,12 @@ template <typename Cloud, typename Mark>
 void quantize_and_mark(const Cloud& cloud, const CubeGrid& grid, bool all_used, std::uint32_t no_cube,
                        std::uint32_t* cubes, Mark&& mark) {
   constexpr std::size_t kBlock = 2048;
+  // Plain float rows may be quantised in float arithmetic (see detail::float_estimate_margin).
+  const float float_margin = detail::quantize_float_margin(
+      grid.min_corner.x(), grid.min_corner.y(), grid.min_corner.z(), grid.edge_m, grid.ixmax, grid.iymax, grid.izmax);
   for (std::size_t begin = 0; begin < cloud.size(); begin += kBlock) {
     const std::size_t end = std::min(cloud.size(), begin + kBlock);
-    quantize_block(cloud, grid, all_used, no_cube, begin, end, cubes + begin);
+    quantize_block(cloud, grid, all_used, no_cube, float_margin, begin, end, cubes + begin);
     mark(begin, end);
   }
 }

@@ -367,41 +367,9 @@ struct BinningConstants {
   double upper_x, upper_y;             // cells + 1 along x and y
   std::int32_t nx, ny;
   /// > 0: float rows may be binned in float arithmetic with this margin [cells] (see
-  /// float_binning_margin); 0: they are binned in doubles.
+  /// detail::float_estimate_margin); 0: they are binned in doubles.
   float float_margin = 0.0F;
 };
-
-/// The margin [cells] with which the 8-lane float kernel's estimate decides exactly like the
-/// division formula along one axis, or 0 when no margin up to 2^-7 does (the double kernel runs).
-/// For a float coordinate x (exact in double) the kernel computes, in float,
-/// s = fl(fl(fl(x - fl(origin)) * fl(1 / resolution)) + 1); the defining formula is
-/// floor(fl(fl(x - origin) / resolution)) (MapGeometry::index_of). With u = 2^-24 and Q the exact
-/// (x - origin) / resolution, where the kernel decides (-1 < s - 1 < cells + 1, so |Q| < R =
-/// cells + 2 up to the error below):
-///   rounding the origin to float moves Q by at most O = |fl(origin) - origin| / resolution;
-///   the subtraction, 1 / resolution (float after double) and the product round by at most
-///   (R + O) (3 u + 2^-52) together, adding 1 by (R + 1) u;
-///   the double formula is within R 2^-51 of Q.
-/// The margin is the smallest power of two from 2^-12 that is at least twice their sum B: a
-/// float estimate whose fraction lies more than the margin from a whole number then floors to the
-/// formula's cell. Outside decisions (s - 1 <= -1 or >= cells + 1) hold as long as B < 1.
-/// Rows within the margin of a border (about 4 margins of the rows) are divided. Large origins
-/// (|origin| / resolution beyond about 10^5 cells) or maps wider than about 10^4 cells take the
-/// double kernel.
-float float_binning_margin(double origin, double resolution, std::int64_t cells) {
-  constexpr double kUnit = 0x1p-24;
-  const auto inverse = static_cast<float>(1.0 / resolution);
-  if (!(std::isfinite(inverse) && inverse >= std::numeric_limits<float>::min())) return 0.0F;
-  const double rounded_origin = std::abs(static_cast<double>(static_cast<float>(origin)) - origin) / resolution;
-  const double reach = static_cast<double>(cells) + 2.0;
-  const double bound =
-      rounded_origin + (reach + rounded_origin) * (3.0 * kUnit + 0x1p-52) + (reach + 1.0) * kUnit + reach * 0x1p-51;
-  if (!std::isfinite(bound)) return 0.0F;
-  for (float margin = 0x1p-12F; margin <= 0x1p-7F; margin *= 2.0F) {
-    if (2.0 * bound <= static_cast<double>(margin)) return margin;
-  }
-  return 0.0F;
-}
 
 /// The cell code of each row of a plain (untransformed, uncropped) cloud with rows `kStride`
 /// scalars apart: the cell when AxisBinning's estimate decides it on both axes (the same
@@ -583,7 +551,7 @@ __attribute__((target("avx2"))) bool bin_double_rows_avx2(const double* data, st
 }
 
 /// The cell codes of bin_rows_body for float rows, eight at a time in float arithmetic: the
-/// estimate has a float's precision, so it runs only where float_binning_margin gives a margin,
+/// estimate has a float's precision, so it runs only where detail::float_estimate_margin gives a margin,
 /// and rows within that margin of a border get kSlow. The rows
 /// a full vector does not cover go through bin_rows_body.
 template <int kStride>
@@ -906,8 +874,8 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     constants = {geometry.origin_m.x(),         geometry.origin_m.y(),         1.0 / geometry.resolution_m,
                  static_cast<double>(nx) + 1.0, static_cast<double>(ny) + 1.0, static_cast<std::int32_t>(nx),
                  static_cast<std::int32_t>(ny)};
-    const float margin_x = float_binning_margin(geometry.origin_m.x(), geometry.resolution_m, nx);
-    const float margin_y = float_binning_margin(geometry.origin_m.y(), geometry.resolution_m, ny);
+    const float margin_x = detail::float_estimate_margin(geometry.origin_m.x(), geometry.resolution_m, nx);
+    const float margin_y = detail::float_estimate_margin(geometry.origin_m.y(), geometry.resolution_m, ny);
     if (margin_x > 0.0F && margin_y > 0.0F) constants.float_margin = std::max(margin_x, margin_y);
   }
   const auto height = [&](std::size_t row) {

@@ -1,5 +1,8 @@
 #include "quantize_kernels.hpp"
 
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
 #include <limits>
 #include <type_traits>
 
@@ -53,6 +56,76 @@ __attribute__((target("avx2"))) void quantize_avx2(const Scalar* data, std::size
   } else {
     quantize_body<Scalar, 4>(data, rows, k, out);
   }
+}
+
+/// Lanes whose estimate's fraction (estimate - whole, exact) lies clear of the margin: there the
+/// truncation `whole` is the double formula's.
+__attribute__((target("avx2"))) inline __m256 clear_of_margin(__m256 estimate, __m256i whole, __m256 margin,
+                                                              __m256 one_minus_margin) {
+  const __m256 fraction = _mm256_sub_ps(estimate, _mm256_cvtepi32_ps(whole));
+  return _mm256_and_ps(_mm256_cmp_ps(fraction, margin, _CMP_GT_OQ),
+                       _mm256_cmp_ps(fraction, one_minus_margin, _CMP_LT_OQ));
+}
+
+/// quantize_body for float rows, eight at a time in float arithmetic, where
+/// QuantizeConstants::float_margin > 0 (see float_estimate_margin): a lane whose estimate
+/// s = (x - x0) * (1 / E) + 0.5 lies within the margin of a whole number on any axis is quantised
+/// again by quantize_body's double formula, so every index is the formula's. The rows a full
+/// vector does not cover go through quantize_body.
+template <int kStride>
+__attribute__((target("avx2"))) void quantize_float_avx2_8(const float* data, std::size_t rows,
+                                                           const QuantizeConstants& k, std::uint32_t* out) {
+  const __m256 x0 = _mm256_set1_ps(static_cast<float>(k.x0));
+  const __m256 y0 = _mm256_set1_ps(static_cast<float>(k.y0));
+  const __m256 z0 = _mm256_set1_ps(static_cast<float>(k.z0));
+  const __m256 inverse = _mm256_set1_ps(static_cast<float>(k.inverse_edge));
+  const __m256 half = _mm256_set1_ps(0.5F);
+  const __m256 margin = _mm256_set1_ps(k.float_margin), one_minus_margin = _mm256_set1_ps(1.0F - k.float_margin);
+  const __m256i ixmax = _mm256_set1_epi32(static_cast<std::int32_t>(k.ixmax));
+  const __m256i layer = _mm256_set1_epi32(static_cast<std::int32_t>(k.layer));
+  // A 16-byte load at row r reads up to data[r * kStride + 3]: with 3 scalars a row, the last
+  // row is left to the scalar tail.
+  const std::size_t vector_rows = kStride == 4 ? rows : (rows > 0 ? rows - 1 : 0);
+  std::size_t r = 0;
+  for (; r + 8 <= vector_rows; r += 8) {
+    const float* p = data + r * kStride;
+    // Rows r..r+3 in the low halves, r+4..r+7 in the high halves; a 4x4 transpose per half then
+    // gives the x, y and z of the eight rows in order.
+    const __m256 a = _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(p)), _mm_loadu_ps(p + 4 * kStride), 1);
+    const __m256 b =
+        _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(p + kStride)), _mm_loadu_ps(p + 5 * kStride), 1);
+    const __m256 c =
+        _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(p + 2 * kStride)), _mm_loadu_ps(p + 6 * kStride), 1);
+    const __m256 d =
+        _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_loadu_ps(p + 3 * kStride)), _mm_loadu_ps(p + 7 * kStride), 1);
+    const __m256 ab_low = _mm256_unpacklo_ps(a, b), ab_high = _mm256_unpackhi_ps(a, b);
+    const __m256 cd_low = _mm256_unpacklo_ps(c, d), cd_high = _mm256_unpackhi_ps(c, d);
+    const __m256 x = _mm256_shuffle_ps(ab_low, cd_low, _MM_SHUFFLE(1, 0, 1, 0));
+    const __m256 y = _mm256_shuffle_ps(ab_low, cd_low, _MM_SHUFFLE(3, 2, 3, 2));
+    const __m256 z = _mm256_shuffle_ps(ab_high, cd_high, _MM_SHUFFLE(1, 0, 1, 0));
+    // Eqs. (1)-(3): x >= x0 on the dense path, so truncation is the floor.
+    const __m256 sx = _mm256_add_ps(_mm256_mul_ps(_mm256_sub_ps(x, x0), inverse), half);
+    const __m256 sy = _mm256_add_ps(_mm256_mul_ps(_mm256_sub_ps(y, y0), inverse), half);
+    const __m256 sz = _mm256_add_ps(_mm256_mul_ps(_mm256_sub_ps(z, z0), inverse), half);
+    const __m256i ix = _mm256_cvttps_epi32(sx), iy = _mm256_cvttps_epi32(sy), iz = _mm256_cvttps_epi32(sz);
+    const __m256 decided = _mm256_and_ps(_mm256_and_ps(clear_of_margin(sx, ix, margin, one_minus_margin),
+                                                       clear_of_margin(sy, iy, margin, one_minus_margin)),
+                                         clear_of_margin(sz, iz, margin, one_minus_margin));
+    // Eq. (7), in uint32 arithmetic (the dense path's cube count is below 2^31).
+    const __m256i cube =
+        _mm256_add_epi32(_mm256_add_epi32(ix, _mm256_mullo_epi32(iy, ixmax)), _mm256_mullo_epi32(iz, layer));
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(out + r), cube);
+    const int undecided = ~_mm256_movemask_ps(decided) & 0xFF;
+    if (undecided != 0) {  // rare: a row within the margin of a cube border
+      for (int lane = 0; lane < 8; ++lane) {
+        if ((undecided >> lane) & 1) {
+          const auto row = static_cast<std::size_t>(lane);
+          quantize_body<float, kStride>(p + row * kStride, 1, k, out + r + row);
+        }
+      }
+    }
+  }
+  quantize_body<float, kStride>(data + r * kStride, rows - r, k, out + r);
 }
 
 // The AVX2 vector of a scalar type.
@@ -438,6 +511,16 @@ template <typename Scalar>
 void dispatch(const Scalar* data, std::size_t rows, int stride, const QuantizeConstants& k, std::uint32_t* out) {
 #if defined(TERRACUBE_HAVE_AVX2_KERNELS)
   if (has_avx2()) {
+    if constexpr (std::is_same_v<Scalar, float>) {
+      if (k.float_margin > 0.0F) {
+        if (stride == 3) {
+          quantize_float_avx2_8<3>(data, rows, k, out);
+        } else {
+          quantize_float_avx2_8<4>(data, rows, k, out);
+        }
+        return;
+      }
+    }
     quantize_avx2(data, rows, stride, k, out);
     return;
   }
@@ -467,6 +550,30 @@ bool extent_dispatch(const Scalar* data, std::size_t rows, int stride, double* m
 }
 
 }  // namespace
+
+float float_estimate_margin(double origin, double unit, std::int64_t cells) {
+  constexpr double kUnit = 0x1p-24;
+  const auto inverse = static_cast<float>(1.0 / unit);
+  if (!(std::isfinite(inverse) && inverse >= std::numeric_limits<float>::min())) return 0.0F;
+  const double rounded_origin = std::abs(static_cast<double>(static_cast<float>(origin)) - origin) / unit;
+  const double reach = static_cast<double>(cells) + 2.0;
+  const double bound =
+      rounded_origin + (reach + rounded_origin) * (3.0 * kUnit + 0x1p-52) + (reach + 1.0) * kUnit + reach * 0x1p-51;
+  if (!std::isfinite(bound)) return 0.0F;
+  for (float margin = 0x1p-12F; margin <= 0x1p-7F; margin *= 2.0F) {
+    if (2.0 * bound <= static_cast<double>(margin)) return margin;
+  }
+  return 0.0F;
+}
+
+float quantize_float_margin(double x0, double y0, double z0, double edge, std::int64_t ixmax, std::int64_t iymax,
+                            std::int64_t izmax) {
+  const float margin_x = float_estimate_margin(x0, edge, ixmax);
+  const float margin_y = float_estimate_margin(y0, edge, iymax);
+  const float margin_z = float_estimate_margin(z0, edge, izmax);
+  if (margin_x == 0.0F || margin_y == 0.0F || margin_z == 0.0F) return 0.0F;
+  return std::max({margin_x, margin_y, margin_z});
+}
 
 bool extent_rows(const float* data, std::size_t rows, int stride, double* min, double* max, bool& handled) {
   return extent_dispatch(data, rows, stride, min, max, handled);

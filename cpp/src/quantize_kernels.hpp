@@ -14,7 +14,36 @@ struct QuantizeConstants {
   double inverse_edge;  ///< 1 / E
   std::uint32_t ixmax;  ///< cubes along x
   std::uint32_t layer;  ///< ixmax * iymax
+  /// > 0: float rows may be quantised eight at a time in float arithmetic with this margin
+  /// [cubes] (quantize_float_margin); 0: in doubles.
+  float float_margin = 0.0F;
 };
+
+/// The margin [units] within which a float estimate of a coordinate's position on a grid must not
+/// fall from a whole number for its floor to equal the double formula's, along one axis of
+/// `cells` cells of `unit` metres from `origin`; 0 when no margin up to 2^-7 does (then the
+/// double kernels run). Two kernels use it:
+///   the map's binning: s = fl(fl(fl(x - fl(origin)) * fl(1 / unit)) + 1) against
+///   floor(fl(fl(x - origin) / unit)) (MapGeometry::index_of), decided where -1 < s - 1 < cells + 1;
+///   CBC's quantisation: s = fl(fl(fl(x - fl(x0)) * fl(1 / E)) + 0.5) against
+///   floor(fl(fl(fl(x - x0) * fl(1 / E)) + 0.5)) (eqs. 1-3 as cube_grid.hpp's quantize), where
+///   0 <= x - x0 <= (cells - 1) E.
+/// For a float coordinate x (exact in double), with u = 2^-24 and Q the exact (x - origin) / unit,
+/// |Q| < R = cells + 2 where the kernels decide (up to the error below):
+///   rounding the origin to float moves Q by at most O = |fl(origin) - origin| / unit;
+///   the subtraction, 1 / unit (float after double) and the product round by at most
+///   (R + O) (3 u + 2^-52) together, adding 1 or 0.5 by (R + 1) u;
+///   the double formula is within R 2^-51 of Q (plus the 0.5 exactly, up to 2^-54).
+/// The margin is the smallest power of two from 2^-12 that is at least twice their sum B: a float
+/// estimate whose fraction lies more than the margin from a whole number then floors as the formula
+/// does. Outside decisions of the map (s - 1 <= -1 or >= cells + 1) hold as long as B < 1. Rows
+/// within the margin of a border (about 4 margins of the rows per axis) take the double formula.
+float float_estimate_margin(double origin, double unit, std::int64_t cells);
+
+/// The float margin of CBC's quantisation on `grid` (the least margin that serves all three axes,
+/// see float_estimate_margin), or 0 when float arithmetic cannot decide exactly on it.
+float quantize_float_margin(double x0, double y0, double z0, double edge, std::int64_t ixmax, std::int64_t iymax,
+                            std::int64_t izmax);
 
 /// out[r] = I of row r, for `rows` rows of `stride` (3 or 4) scalars starting at `data`.
 void quantize_rows(const float* data, std::size_t rows, int stride, const QuantizeConstants& k, std::uint32_t* out);

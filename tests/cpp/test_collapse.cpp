@@ -535,6 +535,81 @@ TEST(CollapsePreprocessing, LeveledNonFiniteRowsInEveryLaneAndExtraColumnsAreHan
 
 // --- storage ----------------------------------------------------------------------------------
 
+TEST(CollapseVsNaive, FloatRowsAreQuantisedByTheDoubleFormulaForEdgesCornersAndExtentsOfEveryScale) {
+  // Plain float rows are quantised eight at a time in float arithmetic where the float estimate's
+  // error bound allows (a margin of 2^-12 to 2^-7 cubes), else in doubles; rows whose estimate
+  // lies within the margin of a cube border take the double formula. Either way every cube index
+  // must be eqs. (1)-(3)'s in doubles: random rows, and rows on and up to 16 float ulps either
+  // side of cube borders, for grids whose margin ranges over the whole span and past it (a corner
+  // 3e5 m away, the 20,000-cube axis), on rows of 3 and 4 scalars and lengths that end inside and
+  // after an 8-row block.
+  struct Case {
+    double edge;
+    Eigen::Vector3d corner;
+    Eigen::Vector3i cubes;
+  };
+  const std::vector<Case> cases = {
+      {0.5, {-80.0, -60.0, -3.0}, {320, 240, 20}},      {0.07, {123.456, -987.65, 0.7}, {300, 150, 40}},
+      {0.35, {5000.3, -4000.1, 100.2}, {200, 100, 40}}, {0.045, {-1.3, 2.9, -0.4}, {2000, 10, 30}},
+      {0.013, {0.01, -0.03, 0.0}, {8000, 4, 4}},        {0.1, {300000.3, -200000.7, 10.2}, {50, 50, 20}},
+      {0.003, {-0.7, 0.4, 0.0}, {20000, 2, 2}},         {3.0, {-1234.5, 987.6, -50.0}, {64, 64, 10}},
+  };
+  std::mt19937 random(2026);
+  int float_differs = 0;  // border rows that float arithmetic alone would put in another cube
+  for (const Case& c : cases) {
+    SCOPED_TRACE("edge " + std::to_string(c.edge) + ", corner " + std::to_string(c.corner.x()) + ", " +
+                 std::to_string(c.corner.y()) + ", " + std::to_string(c.corner.z()));
+    const Eigen::Vector3d low = test::rounded_to<float>(c.corner);
+    const Eigen::Vector3d high =
+        test::rounded_to<float>(Eigen::Vector3d(low + c.edge * (c.cubes.cast<double>() - Eigen::Vector3d::Ones())));
+    std::vector<Eigen::Vector3d> points = {low, high};
+    std::uniform_real_distribution<double> unit(0.0, 1.0);
+    for (int k = 0; k < 1500; ++k) {
+      Eigen::Vector3d p;
+      for (int a = 0; a < 3; ++a) p[a] = low[a] + unit(random) * (high[a] - low[a]);
+      points.push_back(test::rounded_to<float>(p));
+    }
+    for (int axis = 0; axis < 3; ++axis) {
+      std::uniform_int_distribution<int> border_index(0, c.cubes[axis] - 2);
+      const double inverse = 1.0 / c.edge;
+      for (int k = 0; k < 660; ++k) {
+        // The border between cubes b and b + 1 lies where (x - xmin) / E + 0.5 = b + 1.
+        auto x = static_cast<float>(low[axis] + (border_index(random) + 0.5) * c.edge);
+        const int ulps = k % 33 - 16;  // -16 .. 16 float ulps from the border
+        for (int step = 0; step < std::abs(ulps); ++step) x = std::nextafter(x, ulps > 0 ? 1e30F : -1e30F);
+        Eigen::Vector3d p = points[static_cast<std::size_t>(k)];
+        p[axis] = std::clamp(static_cast<double>(x), low[axis], high[axis]);
+        points.push_back(p);
+        const float estimate =
+            (static_cast<float>(p[axis]) - static_cast<float>(low[axis])) * static_cast<float>(inverse) + 0.5F;
+        if (std::floor(static_cast<double>(estimate)) != std::floor((p[axis] - low[axis]) * inverse + 0.5)) {
+          ++float_differs;
+        }
+      }
+    }
+    std::shuffle(points.begin(), points.end(), random);
+    for (const std::size_t length : {points.size(), std::size_t{8}, std::size_t{15}, std::size_t{17}}) {
+      std::vector<Eigen::Vector3d> slice(points.begin(), points.begin() + static_cast<std::ptrdiff_t>(length));
+      if (length < points.size()) slice.insert(slice.end(), {low, high});  // the same grid
+      const NaiveResult expected = naive_algorithm1(slice, c.edge, 2);
+      for (const int stride : {3, 4}) {
+        SCOPED_TRACE("length " + std::to_string(slice.size()) + ", stride " + std::to_string(stride));
+        const std::vector<float> rows = rows_with_extra_columns<float>(slice, stride);
+        CollapseParams params;
+        params.edge_m = c.edge;
+        params.sigma = 2;
+        params.storage = CubeStorage::kDense;
+        const CollapseResult result =
+            collapse_overhangs(PointsView<float>(rows.data(), slice.size(), stride, 1), params);
+        ASSERT_EQ(result.occupied_cubes, expected.occupied);
+        ASSERT_EQ(result.removed_cubes, expected.removed);
+        ASSERT_EQ(result.overhang, expected.overhang);
+      }
+    }
+  }
+  EXPECT_GT(float_differs, 0) << "the border rows must include some that only the double formula quantises right";
+}
+
 TEST(CollapseStorage, TenKilometreCloudAtFiveCentimetresStaysSparseAndExact) {
   // 200,000 x 200,000 x 2,000 cubes would be 10 TB of bits: the sparse path must be chosen.
   auto points = test::random_scene(7, 2000, 20.0);
