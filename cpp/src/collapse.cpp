@@ -94,10 +94,11 @@ CubeStorage choose_storage(const CubeGrid& grid, const CollapseParams& params, s
 
 /// Cube indices of rows [begin, end) into `out`, dense path only (every count and the product
 /// stay below 2^31, so 32-bit truncation is the floor of eqs. 1-3). Rows that take no part get
-/// `no_cube`. The plain, all-used case is a branch-free loop the compiler vectorises.
+/// `no_cube`. The plain, all-used case is a branch-free loop the compiler vectorises. Returns how
+/// many rows the float kernel left to the double formula (0 when it did not run).
 template <typename Cloud>
-void quantize_block(const Cloud& cloud, const CubeGrid& grid, bool all_used, std::uint32_t no_cube, float float_margin,
-                    std::size_t begin, std::size_t end, std::uint32_t* out) {
+std::size_t quantize_block(const Cloud& cloud, const CubeGrid& grid, bool all_used, std::uint32_t no_cube,
+                           float float_margin, std::size_t begin, std::size_t end, std::uint32_t* out) {
   const double inverse_edge = 1.0 / grid.edge_m;
   const double x0 = grid.min_corner.x();
   const double y0 = grid.min_corner.y();
@@ -114,15 +115,14 @@ void quantize_block(const Cloud& cloud, const CubeGrid& grid, bool all_used, std
     const auto& view = cloud.view();
     if (all_used && view.column_stride == 1 && (view.row_stride == 3 || view.row_stride == 4)) {
       const detail::QuantizeConstants constants{x0, y0, z0, inverse_edge, ixmax, layer, float_margin};
-      detail::quantize_rows(view.data + static_cast<std::ptrdiff_t>(begin) * view.row_stride, end - begin,
-                            static_cast<int>(view.row_stride), constants, out);
-      return;
+      return detail::quantize_rows(view.data + static_cast<std::ptrdiff_t>(begin) * view.row_stride, end - begin,
+                                   static_cast<int>(view.row_stride), constants, out);
     }
     if (all_used) {
       for (std::size_t row = begin; row < end; ++row) {
         out[row - begin] = cube_of(cloud.raw(row, 0), cloud.raw(row, 1), cloud.raw(row, 2));
       }
-      return;
+      return 0;
     }
   }
   std::size_t first = begin;  // rows before it went through the leveling kernel (AVX2 CPUs)
@@ -137,6 +137,7 @@ void quantize_block(const Cloud& cloud, const CubeGrid& grid, bool all_used, std
   for (std::size_t row = first; row < end; ++row) {
     out[row - begin] = cloud.map(row, p) == 0 ? cube_of(p.x(), p.y(), p.z()) : no_cube;
   }
+  return 0;
 }
 
 /// Cube indices of all rows into `cubes`, in blocks that stay in L1: `mark(begin, end)` reads each
@@ -146,11 +147,17 @@ void quantize_and_mark(const Cloud& cloud, const CubeGrid& grid, bool all_used, 
                        std::uint32_t* cubes, Mark&& mark) {
   constexpr std::size_t kBlock = 2048;
   // Plain float rows may be quantised in float arithmetic (see detail::float_estimate_margin).
-  const float float_margin = detail::quantize_float_margin(
-      grid.min_corner.x(), grid.min_corner.y(), grid.min_corner.z(), grid.edge_m, grid.ixmax, grid.iymax, grid.izmax);
+  // Rows within its margin of a cube border are quantised again in doubles, one by one: on lattice
+  // data (coordinates on a 1 cm grid put 2 % of the rows of each axis exactly on the borders of
+  // 0.5 m cubes) that costs more than it saves, so a block with more than 1 % such rows hands the
+  // rest of the call to the double kernel.
+  float float_margin = detail::quantize_float_margin(grid.min_corner.x(), grid.min_corner.y(), grid.min_corner.z(),
+                                                     grid.edge_m, grid.ixmax, grid.iymax, grid.izmax);
   for (std::size_t begin = 0; begin < cloud.size(); begin += kBlock) {
     const std::size_t end = std::min(cloud.size(), begin + kBlock);
-    quantize_block(cloud, grid, all_used, no_cube, float_margin, begin, end, cubes + begin);
+    const std::size_t undecided =
+        quantize_block(cloud, grid, all_used, no_cube, float_margin, begin, end, cubes + begin);
+    if (undecided * 100 > end - begin) float_margin = 0.0F;
     mark(begin, end);
   }
 }

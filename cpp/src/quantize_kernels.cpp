@@ -73,8 +73,8 @@ __attribute__((target("avx2"))) inline __m256 clear_of_margin(__m256 estimate, _
 /// again by quantize_body's double formula, so every index is the formula's. The rows a full
 /// vector does not cover go through quantize_body.
 template <int kStride>
-__attribute__((target("avx2"))) void quantize_float_avx2_8(const float* data, std::size_t rows,
-                                                           const QuantizeConstants& k, std::uint32_t* out) {
+__attribute__((target("avx2"))) std::size_t quantize_float_avx2_8(const float* data, std::size_t rows,
+                                                                  const QuantizeConstants& k, std::uint32_t* out) {
   const __m256 x0 = _mm256_set1_ps(static_cast<float>(k.x0));
   const __m256 y0 = _mm256_set1_ps(static_cast<float>(k.y0));
   const __m256 z0 = _mm256_set1_ps(static_cast<float>(k.z0));
@@ -87,6 +87,7 @@ __attribute__((target("avx2"))) void quantize_float_avx2_8(const float* data, st
   // row is left to the scalar tail.
   const std::size_t vector_rows = kStride == 4 ? rows : (rows > 0 ? rows - 1 : 0);
   std::size_t r = 0;
+  std::size_t num_undecided = 0;
   for (; r + 8 <= vector_rows; r += 8) {
     const float* p = data + r * kStride;
     // Rows r..r+3 in the low halves, r+4..r+7 in the high halves; a 4x4 transpose per half then
@@ -116,7 +117,8 @@ __attribute__((target("avx2"))) void quantize_float_avx2_8(const float* data, st
         _mm256_add_epi32(_mm256_add_epi32(ix, _mm256_mullo_epi32(iy, ixmax)), _mm256_mullo_epi32(iz, layer));
     _mm256_storeu_si256(reinterpret_cast<__m256i*>(out + r), cube);
     const int undecided = ~_mm256_movemask_ps(decided) & 0xFF;
-    if (undecided != 0) {  // rare: a row within the margin of a cube border
+    if (undecided != 0) {  // rare (but for lattice data): a row within the margin of a cube border
+      num_undecided += static_cast<std::size_t>(__builtin_popcount(static_cast<unsigned>(undecided)));
       for (int lane = 0; lane < 8; ++lane) {
         if ((undecided >> lane) & 1) {
           const auto row = static_cast<std::size_t>(lane);
@@ -126,6 +128,7 @@ __attribute__((target("avx2"))) void quantize_float_avx2_8(const float* data, st
     }
   }
   quantize_body<float, kStride>(data + r * kStride, rows - r, k, out + r);
+  return num_undecided;
 }
 
 // The AVX2 vector of a scalar type.
@@ -508,24 +511,21 @@ std::size_t quantize_leveled_dispatch(const Scalar* data, std::size_t rows, std:
 }
 
 template <typename Scalar>
-void dispatch(const Scalar* data, std::size_t rows, int stride, const QuantizeConstants& k, std::uint32_t* out) {
+std::size_t dispatch(const Scalar* data, std::size_t rows, int stride, const QuantizeConstants& k, std::uint32_t* out) {
 #if defined(TERRACUBE_HAVE_AVX2_KERNELS)
   if (has_avx2()) {
     if constexpr (std::is_same_v<Scalar, float>) {
       if (k.float_margin > 0.0F) {
-        if (stride == 3) {
-          quantize_float_avx2_8<3>(data, rows, k, out);
-        } else {
-          quantize_float_avx2_8<4>(data, rows, k, out);
-        }
-        return;
+        return stride == 3 ? quantize_float_avx2_8<3>(data, rows, k, out)
+                           : quantize_float_avx2_8<4>(data, rows, k, out);
       }
     }
     quantize_avx2(data, rows, stride, k, out);
-    return;
+    return 0;
   }
 #endif
   quantize_default(data, rows, stride, k, out);
+  return 0;
 }
 
 template <typename Scalar>
@@ -619,12 +619,14 @@ std::size_t quantize_leveled_rows(const double* data, std::size_t rows, std::ptr
   return quantize_leveled_dispatch(data, rows, row_stride, column_stride, k, q, no_cube, out);
 }
 
-void quantize_rows(const float* data, std::size_t rows, int stride, const QuantizeConstants& k, std::uint32_t* out) {
-  dispatch(data, rows, stride, k, out);
+std::size_t quantize_rows(const float* data, std::size_t rows, int stride, const QuantizeConstants& k,
+                          std::uint32_t* out) {
+  return dispatch(data, rows, stride, k, out);
 }
 
-void quantize_rows(const double* data, std::size_t rows, int stride, const QuantizeConstants& k, std::uint32_t* out) {
-  dispatch(data, rows, stride, k, out);
+std::size_t quantize_rows(const double* data, std::size_t rows, int stride, const QuantizeConstants& k,
+                          std::uint32_t* out) {
+  return dispatch(data, rows, stride, k, out);
 }
 
 }  // namespace terracube::detail

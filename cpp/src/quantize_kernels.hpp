@@ -45,9 +45,13 @@ float float_estimate_margin(double origin, double unit, std::int64_t cells);
 float quantize_float_margin(double x0, double y0, double z0, double edge, std::int64_t ixmax, std::int64_t iymax,
                             std::int64_t izmax);
 
-/// out[r] = I of row r, for `rows` rows of `stride` (3 or 4) scalars starting at `data`.
-void quantize_rows(const float* data, std::size_t rows, int stride, const QuantizeConstants& k, std::uint32_t* out);
-void quantize_rows(const double* data, std::size_t rows, int stride, const QuantizeConstants& k, std::uint32_t* out);
+/// out[r] = I of row r, for `rows` rows of `stride` (3 or 4) scalars starting at `data`. Returns
+/// how many rows the float kernel left to the double formula (within its margin of a border; 0
+/// when it did not run).
+std::size_t quantize_rows(const float* data, std::size_t rows, int stride, const QuantizeConstants& k,
+                          std::uint32_t* out);
+std::size_t quantize_rows(const double* data, std::size_t rows, int stride, const QuantizeConstants& k,
+                          std::uint32_t* out);
 
 /// The scalar part of both bounding-box kernels: rows [first, rows) of kStride scalars folded
 /// into min/max; false at the first NaN/Inf coordinate.

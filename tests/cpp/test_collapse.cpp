@@ -610,6 +610,40 @@ TEST(CollapseVsNaive, FloatRowsAreQuantisedByTheDoubleFormulaForEdgesCornersAndE
   EXPECT_GT(float_differs, 0) << "the border rows must include some that only the double formula quantises right";
 }
 
+TEST(CollapseVsNaive, LatticeFloatRowsStayExactWhenTheFloatKernelHandsOverToTheDoubleOne) {
+  // Coordinates on a 1 cm lattice (as laser-scanner exports often are) put 2 % of the rows of each
+  // axis exactly on a border of 0.5 m cubes; after a block with more than 1 % such rows the call
+  // quantises in doubles. Lattice blocks first, then random rows (the double kernel takes them),
+  // and the other way round (the float kernel takes the random blocks, then hands over).
+  std::mt19937 random(7);
+  std::uniform_int_distribution<int> step(0, 1500);
+  std::uniform_real_distribution<double> coordinate(0.0, 15.0);
+  std::vector<Eigen::Vector3d> lattice, scattered;
+  for (int k = 0; k < 5000; ++k) {
+    lattice.push_back(test::rounded_to<float>(Eigen::Vector3d(step(random), step(random), step(random)) * 0.01));
+    scattered.push_back(
+        test::rounded_to<float>(Eigen::Vector3d(coordinate(random), coordinate(random), coordinate(random))));
+  }
+  for (const bool lattice_first : {true, false}) {
+    SCOPED_TRACE(lattice_first ? "lattice first" : "lattice last");
+    std::vector<Eigen::Vector3d> points = lattice_first ? lattice : scattered;
+    points.insert(points.end(), (lattice_first ? scattered : lattice).begin(),
+                  (lattice_first ? scattered : lattice).end());
+    const NaiveResult expected = naive_algorithm1(points, 0.5, 2);
+    for (const int stride : {3, 4}) {
+      const std::vector<float> rows = rows_with_extra_columns<float>(points, stride);
+      CollapseParams params;
+      params.edge_m = 0.5;
+      params.sigma = 2;
+      const CollapseResult result =
+          collapse_overhangs(PointsView<float>(rows.data(), points.size(), stride, 1), params);
+      ASSERT_EQ(result.occupied_cubes, expected.occupied) << "stride " << stride;
+      ASSERT_EQ(result.removed_cubes, expected.removed);
+      ASSERT_EQ(result.overhang, expected.overhang);
+    }
+  }
+}
+
 TEST(CollapseStorage, TenKilometreCloudAtFiveCentimetresStaysSparseAndExact) {
   // 200,000 x 200,000 x 2,000 cubes would be 10 TB of bits: the sparse path must be chosen.
   auto points = test::random_scene(7, 2000, 20.0);
