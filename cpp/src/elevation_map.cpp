@@ -763,10 +763,12 @@ struct LayerView {
 /// The layers build_map writes, in the order a fresh map gets them.
 constexpr std::array<const char*, 6> kBuiltLayers = {"count", "min", "max", "mean", "std_dev", "discontinuity"};
 
-/// Builds into `*into` (see build_elevation_map_into) when given, else into the returned map.
+/// Builds into `*into` (see build_elevation_map_into) when given, else into the returned map. With
+/// `cells_out`, hands over the cell of every row (row-major i * ny + j; kOutside for rows outside the
+/// map, unselected or NaN/Inf) by swapping buffers with it.
 template <typename Cloud>
 ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const std::vector<std::uint8_t>* use,
-                       ElevationMap* into) {
+                       ElevationMap* into, std::vector<std::uint32_t>* cells_out = nullptr) {
   if (use && use->size() != cloud.size()) {
     throw std::invalid_argument("the point selection has " + std::to_string(use->size()) + " flags for " +
                                 std::to_string(cloud.size()) + " points");
@@ -1060,12 +1062,16 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
               : 0.0F;
     }
   }
+  if (cells_out != nullptr) cells_out->swap(cell_of_point);
   return fresh;
 }
 
+/// build_map on any view; `cells_out` (see build_map) is left empty when a transform or crop packs
+/// the rows first (its cells would index the packed rows).
 template <typename Scalar>
 ElevationMap build_impl(const PointsView<Scalar>& points, const ElevationParams& params,
-                        const std::vector<std::uint8_t>* use, ElevationMap* into = nullptr) {
+                        const std::vector<std::uint8_t>* use, ElevationMap* into = nullptr,
+                        std::vector<std::uint32_t>* cells_out = nullptr) {
   check_elevation_params(params);
   if (points.size > 0 && points.data == nullptr) throw std::invalid_argument("points view has no data");
   if (points.size >= std::numeric_limits<std::uint32_t>::max()) {
@@ -1090,7 +1096,7 @@ ElevationMap build_impl(const PointsView<Scalar>& points, const ElevationParams&
     return map;
   }
   return detail::visit_leveled(points, params.transform, params.crop,
-                               [&](const auto& cloud) { return build_map(cloud, params, use, into); });
+                               [&](const auto& cloud) { return build_map(cloud, params, use, into, cells_out); });
 }
 
 template <typename Scalar>
@@ -1138,7 +1144,10 @@ OverhangFreeMap overhang_free_impl(const PointsView<Scalar>& points, const Colla
       params.size = geometry.size;
     }
   }
-  out.map = build_impl(points, params, &kept);
+  // The kept rows' cells come back from the map's binning (a buffer swapped with the thread's
+  // scratch, and given back to it at the end).
+  std::vector<std::uint32_t> cells;
+  out.map = build_impl(points, params, &kept, nullptr, &cells);
   const Layer& top = out.map.get("max");
   constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
   const MapGeometry& geometry = out.map.geometry();
@@ -1146,10 +1155,9 @@ OverhangFreeMap overhang_free_impl(const PointsView<Scalar>& points, const Colla
   // is monotonic, so the least rounded height is the rounded least height), then the ground under
   // it: the highest kept point below it. (A map cell can straddle two cube columns, so a kept
   // wall may rise above an overhang that its neighbouring column collapsed; measuring from it
-  // would give a negative clearance.) The kept points' cells are those build_map just left in
-  // this thread's scratch (kOutside for overhang rows); the few overhang points are binned here
-  // by the same formula (MapGeometry::index_of, as AxisBinning computes it).
-  const std::uint32_t* kept_cells = thread_scratch().cell_of_point.data();
+  // would give a negative clearance.) The kept points' cells are those of the map's binning
+  // (kOutside for overhang rows); the few overhang points are binned here by the same formula
+  // (MapGeometry::index_of, as AxisBinning computes it).
   const AxisBinning along_x(geometry.origin_m.x(), geometry.resolution_m, geometry.size.x());
   const AxisBinning along_y(geometry.origin_m.y(), geometry.resolution_m, geometry.size.y());
   const auto ny = static_cast<std::int64_t>(geometry.size.y());
@@ -1169,8 +1177,17 @@ OverhangFreeMap overhang_free_impl(const PointsView<Scalar>& points, const Colla
       const auto z = static_cast<float>(p.z());
       if (std::isnan(least) || z < least) least = z;
     }
+    if (cells.size() != cloud.size()) {  // not handed over (build_impl packed the rows): bin them here
+      cells.assign(cloud.size(), kOutside);
+      for (std::size_t row = 0; row < cloud.size(); ++row) {
+        if (!kept[row] || cloud.map(row, p) != 0) continue;
+        const std::int64_t i = along_x(p.x());
+        const std::int64_t j = along_y(p.y());
+        if (i >= 0 && j >= 0) cells[row] = static_cast<std::uint32_t>(i * ny + j);
+      }
+    }
     for (std::size_t row = 0; row < cloud.size(); ++row) {
-      const std::uint32_t cell = kept_cells[row];
+      const std::uint32_t cell = cells[row];
       if (cell == kOutside) continue;
       const float above = lowest[cell];
       if (std::isnan(above)) continue;  // no overhang over the cell (most cells)
@@ -1195,6 +1212,7 @@ OverhangFreeMap overhang_free_impl(const PointsView<Scalar>& points, const Colla
       out_clearance[k] = std::isnan(kept_top[k]) ? kNaN : value;
     }
   }
+  thread_scratch().cell_of_point.swap(cells);  // kept warm for the next map of this thread
   out.map.add("overhang_min", std::move(lowest_overhang));
   out.map.add("clearance", std::move(clearance));
   out.map.add("step", step_layer(top));
