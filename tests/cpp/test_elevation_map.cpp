@@ -783,6 +783,54 @@ TEST(BuildElevationMapFastPaths, FloatRowsAreBinnedByTheDivisionFormulaForOrigin
   }
 }
 
+TEST(BuildElevationMapFastPaths, LatticeRowsOnCellBordersAreBinnedByTheDivisionFormula) {
+  // Coordinates on a 1 cm lattice (as laser-scanner exports often are) put a tenth of the rows of
+  // each axis on 0.1 m cell borders, where the binning kernels leave them to the exact formula:
+  // four at a time with AVX2, NaN/Inf rows (in every lane position) and the list's tail by the
+  // checking path. Every row must land where the division puts it, on float and double views,
+  // rows of 3 and 4 scalars, with and without a selection, fixed and automatic extents.
+  std::mt19937 random(11);
+  std::uniform_int_distribution<int> step_x(-150, 250), step_y(-80, 300), step_z(-50, 400);
+  std::vector<Eigen::Vector3d> lattice;
+  for (int k = 0; k < 3001; ++k) {
+    lattice.push_back(Eigen::Vector3d(step_x(random), step_y(random), step_z(random)) * 0.01);
+  }
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  const double inf = std::numeric_limits<double>::infinity();
+  std::vector<Eigen::Vector3d> points = lattice;
+  for (std::size_t row : {0, 5, 10, 15, 17, 18, 19, 300, 301, 2000}) {  // several lanes and groups
+    points[row][static_cast<int>(row % 3)] = row % 2 == 0 ? nan : inf;
+  }
+  std::vector<std::uint8_t> use(points.size());
+  for (std::size_t row = 0; row < use.size(); ++row) use[row] = row % 3 == 0 ? 0 : 1;
+  for (const bool fixed : {true, false}) {
+    ElevationParams params = fixed ? fixed_extent(0.1, {-1.0, -0.5}, {30, 40}) : ElevationParams{};
+    params.resolution_m = 0.1;
+    params.drop_non_finite = true;
+    for (const bool selection : {false, true}) {
+      std::vector<Eigen::Vector3d> finite, finite_float;
+      for (std::size_t row = 0; row < points.size(); ++row) {
+        if (!points[row].allFinite() || (selection && use[row] == 0)) continue;
+        finite.push_back(points[row]);
+        finite_float.push_back(test::rounded_to<float>(points[row]));
+      }
+      const std::vector<std::uint8_t>* chosen = selection ? &use : nullptr;
+      SCOPED_TRACE(std::string(fixed ? "fixed extent" : "automatic extent") + (selection ? ", selection" : ""));
+      {
+        SCOPED_TRACE("double view");
+        expect_matches_naive(build_elevation_map(PointsView<double>(points), params, chosen), finite, 1.0);
+      }
+      for (const int stride : {3, 4}) {
+        SCOPED_TRACE("float view, stride " + std::to_string(stride));
+        const std::vector<float> rows = as_floats(points, stride);
+        expect_matches_naive(
+            build_elevation_map(PointsView<float>(rows.data(), points.size(), stride, 1), params, chosen), finite_float,
+            1.0);
+      }
+    }
+  }
+}
+
 TEST(BuildElevationMapFastPaths, RunsOfACellBrokenByOutsideRowsAndOtherCellsKeepEveryElevation) {
   // Consecutive rows of one cell are summed as a run, and the gap test gathers elevations run by
   // run: rows outside the map inside a run, a cell that comes back after another, and a gap that
