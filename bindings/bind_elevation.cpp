@@ -112,7 +112,8 @@ void bind_elevation(py::module_& m) {
       .def_readwrite("transform", &ElevationParams::transform)
       .def_readwrite("crop", &ElevationParams::crop)
       .def_readwrite("drop_non_finite", &ElevationParams::drop_non_finite)
-      .def_readwrite("max_cells", &ElevationParams::max_cells);
+      .def_readwrite("max_cells", &ElevationParams::max_cells)
+      .def_readwrite("num_threads", &ElevationParams::num_threads);
 
   m.def(
       "build_elevation_map",
@@ -162,7 +163,8 @@ void bind_elevation(py::module_& m) {
       .def_readwrite("robot_height_m", &TerrainParams::robot_height_m)
       .def_readwrite("reference", &TerrainParams::reference)
       .def_readwrite("sensor_height_m", &TerrainParams::sensor_height_m)
-      .def_readwrite("local_ground_radius_cells", &TerrainParams::local_ground_radius_cells);
+      .def_readwrite("local_ground_radius_cells", &TerrainParams::local_ground_radius_cells)
+      .def_readwrite("num_threads", &TerrainParams::num_threads);
 
   m.def(
       "classify_terrain",

@@ -27,6 +27,7 @@
 #include "cpu_features.hpp"
 #include "layer_memory.hpp"
 #include "number_text.hpp"
+#include "threads.hpp"
 
 namespace terracube {
 
@@ -257,6 +258,7 @@ void check_elevation_params(const ElevationParams& params) {
     throw std::invalid_argument("resolution must be a positive finite length in metres, got " +
                                 detail::number_text(params.resolution_m));
   }
+  detail::check_num_threads(params.num_threads, "ElevationParams");
   if (!(params.discontinuity_m > 0.0) || !std::isfinite(params.discontinuity_m)) {
     throw std::invalid_argument("discontinuity must be a positive finite length in metres");
   }
@@ -815,18 +817,264 @@ BuildScratch& thread_scratch() {
   return scratch;
 }
 
-/// A layer's buffer, written through data() like a Layer.
-struct LayerView {
-  float* pointer;
-  float* data() const { return pointer; }
-};
-
 /// The layers build_map writes, in the order a fresh map gets them.
 constexpr std::array<const char*, 6> kBuiltLayers = {"count", "min", "max", "mean", "std_dev", "discontinuity"};
+
+/// The height of a row as the map bins it (the mapped z).
+template <typename Cloud>
+double row_height(const Cloud& cloud, std::size_t row) {
+  if constexpr (Cloud::kPlain) {
+    return cloud.raw(row, 2);
+  } else {
+    Eigen::Vector3d p;
+    cloud.map_unchecked(row, p);
+    return p.z();
+  }
+}
+
+/// NaN/Inf rows met while binning: how many, and the first.
+struct NonFiniteRows {
+  std::size_t count = 0;
+  std::size_t first_row = 0;
+  void add(std::size_t row) {
+    if (count++ == 0 || row < first_row) first_row = row;
+  }
+  void merge(const NonFiniteRows& other) {
+    if (other.count == 0) return;
+    first_row = count == 0 ? other.first_row : std::min(first_row, other.first_row);
+    count += other.count;
+  }
+};
+
+/// The cells [lo, hi) of a map (lo a multiple of 64) as one thread builds them, in two stages:
+/// accumulate() runs over the cell codes of all rows and keeps the statistics of the rows whose
+/// cells are in the range, write() writes the range's layers. Several threads build disjoint
+/// ranges with their own scratch. A row of another range ends a run as another cell of the range
+/// would, so each cell's sums are added in the same order, and so are bit for bit the same,
+/// however the map is split. The scratch's per-cell buffers are indexed from lo, and left clean
+/// when the range is destroyed, whatever happens.
+template <typename Cloud>
+class CellRange {
+ public:
+  // Heights are exact floats when a float cloud is not transformed: then min and max are
+  // accumulated as floats. Otherwise in doubles, rounded at the end (rounding is monotonic, so
+  // float(min z) = min float(z) either way) -- the wide-cell test needs the double range.
+  using Height = std::conditional_t<ExactFloatHeights<Cloud>::value, float, double>;
+
+  CellRange(const Cloud& cloud, const std::uint32_t* codes, std::size_t lo, std::size_t hi, BuildScratch& scratch)
+      : cloud_(cloud), codes_(codes), lo_(lo), span_(hi - lo), words_((span_ + 63) / 64), scratch_(scratch) {
+    std::vector<CellStatistics<Height>>& statistics = scratch.statistics<Height>();
+    // One entry per occupied cell, written when a point first reaches it.
+    const std::size_t most = std::min(span_, cloud.size());
+    if (statistics.size() < most) statistics.resize(most);
+    if (scratch.place.size() < span_) scratch.place.resize(span_, kOutside);  // old entries were left clean
+    if (scratch.occupied.size() < words_) scratch.occupied.resize(words_, 0);
+    if (scratch.wide.size() < words_) scratch.wide.resize(words_, 0);
+  }
+  CellRange(const CellRange&) = delete;
+  CellRange& operator=(const CellRange&) = delete;
+
+  /// Leaves the per-cell buffers clean (after write() only the wide cells remain to reset). The
+  /// scratch's owner releases oversized buffers (release_if_large) once no range uses them.
+  ~CellRange() {
+    std::uint32_t* place = scratch_.place.data();
+    for (std::size_t w = 0; w < words_; ++w) {
+      for (std::uint64_t bits = scratch_.occupied[w]; bits != 0; bits &= bits - 1) {
+        place[w * 64 + static_cast<std::size_t>(__builtin_ctzll(bits))] = kOutside;
+      }
+      scratch_.occupied[w] = 0;
+    }
+    for (const std::uint32_t cell : scratch_.wide_cells) {
+      if (cell < scratch_.slot.size()) scratch_.slot[cell] = kOutside;  // set only after slot has grown
+      scratch_.wide[cell / 64] = 0;
+    }
+    scratch_.wide_cells.clear();
+  }
+
+  /// Count, min, max and the shifted sums of the range's cells, over the rows in blocks of
+  /// kBlock; bin_block(begin, end) runs first on each block (a no-op when the codes are ready).
+  template <typename BinBlock>
+  void accumulate(const BinBlock& bin_block) {
+    // Consecutive rows of a scan often share a cell: a run of them is summed in registers and
+    // added to the cell's statistics once (summing straight into memory would chain every row's
+    // additions through a store and a load). A cell's first row sets its shift. The runs (cell and
+    // first row; rows outside the map do not end a run) are kept for the gap test in write().
+    const std::size_t rows = cloud_.size();
+    CellStatistics<Height>* statistics_data = scratch_.statistics<Height>().data();
+    std::uint32_t* place = scratch_.place.data();
+    std::uint64_t* occupied = scratch_.occupied.data();
+    const auto lo = static_cast<std::uint32_t>(lo_);
+    const auto span = static_cast<std::uint32_t>(span_);
+    constexpr Height kInfinity = std::numeric_limits<Height>::infinity();
+    std::uint32_t current = kOutside;  // the run's cell, from lo
+    std::uint32_t entry = 0;           // and its statistics
+    Height shift = 0, lowest = kInfinity, highest = -kInfinity;
+    double sum = 0.0, squares = 0.0;
+    std::uint32_t run = 0;
+    const auto flush = [&] {
+      if (current == kOutside) return;
+      CellStatistics<Height>& s = statistics_data[entry];
+      s.count += run;
+      s.sum += sum;
+      s.squares += squares;
+      s.lowest = lowest < s.lowest ? lowest : s.lowest;
+      s.highest = highest > s.highest ? highest : s.highest;
+    };
+    for (std::size_t begin = 0; begin < rows; begin += kBlock) {
+      const std::size_t end = std::min(rows, begin + kBlock);
+      bin_block(begin, end);
+      for (std::size_t row = begin; row < end; ++row) {
+        const std::uint32_t code = codes_[row];
+        const std::uint32_t cell = code - lo;  // wraps for cells below the range
+        if (cell >= span) {
+          if (code != kOutside && current != kOutside) {  // another range's cell ends the run
+            flush();
+            current = kOutside;
+          }
+          continue;
+        }
+        const double z_double = row_height(cloud_, row);
+        const auto z = static_cast<Height>(z_double);
+        if (cell != current) {
+          flush();
+          current = cell;
+          if (num_runs_ == scratch_.run_cell.size()) grow_runs();
+          scratch_.run_cell[num_runs_] = cell;
+          scratch_.run_start[num_runs_++] = static_cast<std::uint32_t>(row);
+          // Fetch the cell of a later row ahead of its run (a code outside the range fetches the
+          // first cell; prefetches never fault).
+          const std::uint32_t ahead = codes_[std::min(row + kPrefetchRows, end - 1)] - lo;
+          __builtin_prefetch(place + (ahead < span ? ahead : 0), 1);
+          std::uint32_t& cell_place = place[cell];
+          if (cell_place == kOutside) {  // the cell's first point
+            cell_place = num_occupied_++;
+            CellStatistics<Height>& s = statistics_data[cell_place];
+            s = CellStatistics<Height>();
+            s.first = z;
+            occupied[cell / 64] |= std::uint64_t{1} << (cell % 64);
+          }
+          entry = cell_place;
+          shift = statistics_data[entry].first;
+          lowest = kInfinity;
+          highest = -kInfinity;
+          sum = squares = 0.0;
+          run = 0;
+        }
+        const double d = z_double - static_cast<double>(shift);
+        sum += d;
+        squares += d * d;
+        lowest = z < lowest ? z : lowest;
+        highest = z > highest ? z : highest;
+        ++run;
+      }
+    }
+    flush();
+  }
+
+  /// The range's cells of the six layers (`layers` in kBuiltLayers' order, indexed by map cell),
+  /// 64 cells at a time: empty, then the occupied cells' statistics (their places are reset).
+  /// Discontinuity: only a cell whose elevations span more than the threshold can hold a gap
+  /// longer than it (rounding is monotonic, so this holds for the computed differences too). Those
+  /// (few) "wide" cells have their elevations gathered and tested by has_gap; the others get 0.
+  void write(const std::array<float*, kBuiltLayers.size()>& layers, double discontinuity_m) {
+    constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+    const CellStatistics<Height>* statistics_data = scratch_.statistics<Height>().data();
+    std::uint32_t* place = scratch_.place.data();
+    std::uint64_t* occupied = scratch_.occupied.data();
+    std::uint64_t* wide = scratch_.wide.data();
+    std::vector<std::uint32_t>& wide_cells = scratch_.wide_cells;  // from lo
+    std::vector<std::size_t>& offset = scratch_.offset;  // the wide cells' elevations, counting-sorted by cell
+    offset.assign(1, 0);
+    float* count_layer = layers[0] + lo_;
+    float* min = layers[1] + lo_;
+    float* max = layers[2] + lo_;
+    float* mean = layers[3] + lo_;
+    float* std_dev = layers[4] + lo_;
+    float* discontinuity = layers[5] + lo_;
+    for (std::size_t w = 0; w < words_; ++w) {
+      const std::size_t base = w * 64;
+      const std::size_t length = std::min<std::size_t>(64, span_ - base);
+      std::fill_n(count_layer + base, length, 0.0F);
+      for (float* layer : {min, max, mean, std_dev, discontinuity}) std::fill_n(layer + base, length, kNaN);
+      for (std::uint64_t bits = occupied[w]; bits != 0; bits &= bits - 1) {
+        const std::size_t cell = base + static_cast<std::size_t>(__builtin_ctzll(bits));
+        std::uint32_t& cell_place = place[cell];
+        const CellStatistics<Height>& s = statistics_data[cell_place];
+        cell_place = kOutside;
+        const double n = static_cast<double>(s.count);
+        const double offset_of_mean = s.sum / n;
+        // The population variance from the shifted sums; rounding can leave it just below 0.
+        const double variance = std::max((s.squares - s.sum * offset_of_mean) / n, 0.0);
+        count_layer[cell] = static_cast<float>(s.count);
+        min[cell] = static_cast<float>(s.lowest);
+        max[cell] = static_cast<float>(s.highest);
+        mean[cell] = static_cast<float>(static_cast<double>(s.first) + offset_of_mean);
+        std_dev[cell] = static_cast<float>(std::sqrt(variance));
+        discontinuity[cell] = 0.0F;
+        if (std::isgreater(static_cast<double>(s.highest) - static_cast<double>(s.lowest), discontinuity_m)) {
+          wide_cells.push_back(static_cast<std::uint32_t>(cell));
+          offset.push_back(offset.back() + s.count);
+          wide[w] |= std::uint64_t{1} << (cell % 64);
+        }
+      }
+      occupied[w] = 0;
+    }
+
+    const std::size_t num_wide = wide_cells.size();
+    if (num_wide == 0) return;
+    std::vector<std::uint32_t>& slot = scratch_.slot;  // per cell from lo: its place in wide_cells, or kOutside
+    if (slot.size() < span_) slot.resize(span_, kOutside);
+    for (std::size_t k = 0; k < num_wide; ++k) slot[wide_cells[k]] = static_cast<std::uint32_t>(k);
+    std::vector<double>& heights = scratch_.heights;
+    heights.resize(offset.back());
+    std::vector<std::size_t>& next = scratch_.next;
+    next.assign(offset.begin(), offset.end() - 1);
+    const std::uint32_t* run_cell = scratch_.run_cell.data();
+    const std::uint32_t* run_start = scratch_.run_start.data();
+    for (std::size_t run = 0; run < num_runs_; ++run) {
+      const std::uint32_t cell = run_cell[run];
+      if (((wide[cell / 64] >> (cell % 64)) & 1) == 0) continue;
+      // The run's rows, up to the range's next run (rows of other cells in between are skipped).
+      const std::size_t end = run + 1 < num_runs_ ? run_start[run + 1] : cloud_.size();
+      const std::uint32_t code = cell + static_cast<std::uint32_t>(lo_);
+      std::size_t& at = next[slot[cell]];
+      for (std::size_t row = run_start[run]; row < end; ++row) {
+        if (codes_[row] == code) heights[at++] = row_height(cloud_, row);
+      }
+    }
+    for (std::size_t k = 0; k < num_wide; ++k) {
+      discontinuity[wide_cells[k]] =
+          has_gap(heights.data() + offset[k], heights.data() + offset[k + 1], discontinuity_m, scratch_.buckets) ? 1.0F
+                                                                                                                 : 0.0F;
+    }
+  }
+
+  static constexpr std::size_t kBlock = 1024;  ///< rows binned and accumulated at a time (L1)
+
+ private:
+  static constexpr std::size_t kPrefetchRows = 16;
+
+  void grow_runs() {
+    const std::size_t size = std::min(cloud_.size(), std::max<std::size_t>(4096, 2 * scratch_.run_cell.size()));
+    scratch_.run_cell.resize(size);
+    scratch_.run_start.resize(size);
+  }
+
+  const Cloud& cloud_;
+  const std::uint32_t* codes_;
+  std::size_t lo_, span_, words_;
+  BuildScratch& scratch_;
+  std::size_t num_runs_ = 0;
+  std::uint32_t num_occupied_ = 0;
+};
 
 /// Builds into `*into` (see build_elevation_map_into) when given, else into the returned map. With
 /// `cells_out`, hands over the cell of every row (row-major i * ny + j; kOutside for rows outside the
 /// map, unselected or NaN/Inf) by swapping buffers with it.
+///
+/// On one thread the rows are binned and accumulated a block at a time (the block's rows still in
+/// L1). On several: the threads bin disjoint blocks of rows, then each builds a range of cells
+/// (CellRange) holding about as many rows (from a sample of the codes) and cells as the others.
 template <typename Cloud>
 ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const std::vector<std::uint8_t>* use,
                        ElevationMap* into, std::vector<std::uint32_t>* cells_out = nullptr) {
@@ -835,18 +1083,17 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
                                 std::to_string(cloud.size()) + " points");
   }
   const auto selected = [&](std::size_t row) { return use == nullptr || (*use)[row] != 0; };
-  const auto throw_non_finite = [&](const detail::CloudExtent& extent) {
-    throw std::invalid_argument(std::to_string(extent.num_non_finite) + " of " + std::to_string(cloud.size()) +
-                                " point rows contain NaN or Inf (first at row " +
-                                std::to_string(extent.first_non_finite_row) +
+  const auto throw_non_finite = [&](std::size_t count, std::size_t first_row) {
+    throw std::invalid_argument(std::to_string(count) + " of " + std::to_string(cloud.size()) +
+                                " point rows contain NaN or Inf (first at row " + std::to_string(first_row) +
                                 "); clean the cloud or set drop_non_finite=True to drop them");
   };
   // Pass 1 (auto extent only): extent of the selected points and NaN/Inf check. With a fixed
   // extent the check happens in pass 2.
   detail::CloudExtent extent;
-  Eigen::Vector3d p;
   const bool fixed_extent = params.origin_m.has_value();
   if (!fixed_extent) {
+    Eigen::Vector3d p;
     for (std::size_t row = 0; row < cloud.size(); ++row) {
       if (!selected(row)) continue;
       const int status = cloud.map(row, p);
@@ -859,7 +1106,9 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
       extent.max = extent.max.cwiseMax(p);
       ++extent.num_used;
     }
-    if (extent.num_non_finite > 0 && !params.drop_non_finite) throw_non_finite(extent);
+    if (extent.num_non_finite > 0 && !params.drop_non_finite) {
+      throw_non_finite(extent.num_non_finite, extent.first_non_finite_row);
+    }
   }
   const MapGeometry geometry = make_geometry(params, extent);
   if (into != nullptr && !into->layers().empty() && (into->geometry().size != geometry.size).any()) {
@@ -872,53 +1121,26 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   const auto nx = static_cast<std::int64_t>(geometry.size.x());
   const auto ny = static_cast<std::int64_t>(geometry.size.y());
   if (cells >= kSlow) throw std::invalid_argument("build_elevation_map handles maps of fewer than 2^32 - 2 cells");
-  const std::size_t words = (cells + 63) / 64;
-
-  // Heights are exact floats when a float cloud is not transformed: then min and max are
-  // accumulated as floats. Otherwise in doubles, rounded at the end (rounding is monotonic, so
-  // float(min z) = min float(z) either way) -- the wide-cell test below needs the double range.
-  using Height = std::conditional_t<ExactFloatHeights<Cloud>::value, float, double>;
-  BuildScratch& scratch = thread_scratch();
-  std::vector<CellStatistics<Height>>& statistics = scratch.statistics<Height>();
-  // One entry per occupied cell, written when a point first reaches it.
-  if (statistics.size() < std::min(cells, cloud.size())) statistics.resize(std::min(cells, cloud.size()));
-  if (scratch.place.size() < cells) scratch.place.resize(cells, kOutside);  // old entries were left clean
-  if (scratch.occupied.size() < words) scratch.occupied.resize(words, 0);
-  if (scratch.wide.size() < words) scratch.wide.resize(words, 0);
-  // Leaves the per-cell buffers clean whatever happens (on success the layer pass has already
-  // reset the occupied cells), then releases oversized buffers.
-  struct CleanOnExit {
-    BuildScratch& scratch;
-    std::size_t words;
-    ~CleanOnExit() {
-      for (std::size_t w = 0; w < words; ++w) {
-        for (std::uint64_t bits = scratch.occupied[w]; bits != 0; bits &= bits - 1) {
-          scratch.place[w * 64 + static_cast<std::size_t>(__builtin_ctzll(bits))] = kOutside;
-        }
-        scratch.occupied[w] = 0;
-      }
-      for (const std::uint32_t cell : scratch.wide_cells) {
-        if (cell < scratch.slot.size()) scratch.slot[cell] = kOutside;  // set only after slot has grown
-        scratch.wide[cell / 64] = 0;
-      }
-      scratch.wide_cells.clear();
-      scratch.release_if_large();
-    }
-  } clean_on_exit{scratch, words};
 
   // Pass 2, in blocks of rows that stay in the L1 cache: the cell code of every row (row-major
   // cell = i * ny + j), then count, min, max and the shifted sums of the block's rows.
+  BuildScratch& scratch = thread_scratch();
+  struct ReleaseOnExit {  // after the cells have been handed over (or on an exception)
+    BuildScratch& scratch;
+    ~ReleaseOnExit() { scratch.release_if_large(); }
+  } release_on_exit{scratch};
   std::vector<std::uint32_t>& cell_of_point = scratch.cell_of_point;
   cell_of_point.resize(cloud.size());
   std::uint32_t* codes = cell_of_point.data();
   const AxisBinning along_x(geometry.origin_m.x(), geometry.resolution_m, nx);
   const AxisBinning along_y(geometry.origin_m.y(), geometry.resolution_m, ny);
-  const auto bin_row = [&](std::size_t row) {  // the checking path of one row
+  const auto bin_row = [&](std::size_t row, NonFiniteRows& non_finite) {  // the checking path of one row
     codes[row] = kOutside;
     if (!selected(row)) return;
+    Eigen::Vector3d p;
     const int status = cloud.map(row, p);
     if (status != 0) {
-      if (status == 1 && extent.num_non_finite++ == 0) extent.first_non_finite_row = row;
+      if (status == 1) non_finite.add(row);
       return;
     }
     const std::int64_t i = along_x(p.x());
@@ -942,201 +1164,133 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     const float margin_y = detail::float_estimate_margin(geometry.origin_m.y(), geometry.resolution_m, ny);
     if (margin_x > 0.0F && margin_y > 0.0F) constants.float_margin = std::max(margin_x, margin_y);
   }
-  const auto height = [&](std::size_t row) {
-    if constexpr (Cloud::kPlain) {
-      return cloud.raw(row, 2);
-    } else {
-      cloud.map_unchecked(row, p);
-      return p.z();
+  const auto bin_block = [&](std::size_t begin, std::size_t end, NonFiniteRows& non_finite) {
+    if (!kernel) {
+      for (std::size_t row = begin; row < end; ++row) bin_row(row, non_finite);
+      return;
+    }
+    const bool any_slow = bin_rows(view.data + static_cast<std::ptrdiff_t>(begin) * view.row_stride, end - begin,
+                                   static_cast<int>(view.row_stride), constants, codes + begin);
+    if (use != nullptr) {  // rows not selected take no part (nor count as NaN/Inf)
+      const std::uint8_t* flags = use->data();
+      for (std::size_t row = begin; row < end; ++row) codes[row] = flags[row] != 0 ? codes[row] : kOutside;
+    }
+    if (any_slow) {  // NaN/Inf rows and rows on cell borders: rare, but for lattice data
+      // The rows are listed first without a branch per row (on a 1 cm lattice a fifth of the
+      // rows sit on 0.1 m cell borders, at random), then binned by the checking path.
+      std::uint32_t slow_rows[CellRange<Cloud>::kBlock];
+      std::size_t num_slow = 0;
+      for (std::size_t row = begin; row < end; ++row) {
+        slow_rows[num_slow] = static_cast<std::uint32_t>(row);
+        num_slow += codes[row] == kSlow ? 1 : 0;
+      }
+      // The exact formula, four rows at a time; NaN/Inf rows (still kSlow) and the rest of the
+      // list go through the checking path.
+      const std::size_t done =
+          bin_exact_rows(view.data, static_cast<int>(view.row_stride), slow_rows, num_slow, constants, codes);
+      for (std::size_t k = 0; k < num_slow; ++k) {
+        if (k >= done || codes[slow_rows[k]] == kSlow) bin_row(slow_rows[k], non_finite);
+      }
     }
   };
-  // Consecutive rows of a scan often share a cell: a run of them is summed in registers and
-  // added to the cell's statistics once (summing straight into memory would chain every row's
-  // additions through a store and a load). A cell's first row sets its shift. The runs (cell and
-  // first row; rows outside the map do not end a run) are kept for the gap test below.
-  if (scratch.run_cell.size() < cloud.size()) {
-    scratch.run_cell.resize(cloud.size());
-    scratch.run_start.resize(cloud.size());
-  }
-  std::uint32_t* run_cell = scratch.run_cell.data();
-  std::uint32_t* run_start = scratch.run_start.data();
-  std::size_t num_runs = 0;
-  CellStatistics<Height>* statistics_data = statistics.data();
-  std::uint32_t* place = scratch.place.data();
-  std::uint32_t num_occupied = 0;
-  std::uint64_t* occupied = scratch.occupied.data();
-  constexpr Height kInfinity = std::numeric_limits<Height>::infinity();
-  std::uint32_t current = kOutside;  // the run's cell
-  std::uint32_t entry = 0;           // and its statistics
-  Height shift = 0, lowest = kInfinity, highest = -kInfinity;
-  double sum = 0.0, squares = 0.0;
-  std::uint32_t run = 0;
-  const auto flush = [&] {
-    if (current == kOutside) return;
-    CellStatistics<Height>& s = statistics_data[entry];
-    s.count += run;
-    s.sum += sum;
-    s.squares += squares;
-    s.lowest = lowest < s.lowest ? lowest : s.lowest;
-    s.highest = highest > s.highest ? highest : s.highest;
-  };
-  constexpr std::size_t kBlock = 1024;
-  constexpr std::size_t kPrefetchRows = 16;
-  for (std::size_t begin = 0; begin < cloud.size(); begin += kBlock) {
-    const std::size_t end = std::min(cloud.size(), begin + kBlock);
-    if (kernel) {
-      const bool any_slow = bin_rows(view.data + static_cast<std::ptrdiff_t>(begin) * view.row_stride, end - begin,
-                                     static_cast<int>(view.row_stride), constants, codes + begin);
-      if (use != nullptr) {  // rows not selected take no part (nor count as NaN/Inf)
-        const std::uint8_t* flags = use->data();
-        for (std::size_t row = begin; row < end; ++row) codes[row] = flags[row] != 0 ? codes[row] : kOutside;
-      }
-      if (any_slow) {  // NaN/Inf rows and rows on cell borders: rare, but for lattice data
-        // The rows are listed first without a branch per row (on a 1 cm lattice a fifth of the
-        // rows sit on 0.1 m cell borders, at random), then binned by the checking path.
-        std::uint32_t slow_rows[kBlock];
-        std::size_t num_slow = 0;
-        for (std::size_t row = begin; row < end; ++row) {
-          slow_rows[num_slow] = static_cast<std::uint32_t>(row);
-          num_slow += codes[row] == kSlow ? 1 : 0;
-        }
-        // The exact formula, four rows at a time; NaN/Inf rows (still kSlow) and the rest of the
-        // list go through the checking path.
-        const std::size_t done =
-            bin_exact_rows(view.data, static_cast<int>(view.row_stride), slow_rows, num_slow, constants, codes);
-        for (std::size_t k = 0; k < num_slow; ++k) {
-          if (k >= done || codes[slow_rows[k]] == kSlow) bin_row(slow_rows[k]);
-        }
-      }
-    } else {
-      for (std::size_t row = begin; row < end; ++row) bin_row(row);
-    }
-    for (std::size_t row = begin; row < end; ++row) {
-      const std::uint32_t cell = codes[row];
-      if (cell == kOutside) continue;
-      const double z_double = height(row);
-      const auto z = static_cast<Height>(z_double);
-      if (cell != current) {
-        flush();
-        current = cell;
-        run_cell[num_runs] = cell;
-        run_start[num_runs++] = static_cast<std::uint32_t>(row);
-        // Fetch the cell of a later row ahead of its run (an outside code fetches cell 0;
-        // prefetches never fault).
-        const std::uint32_t ahead = codes[std::min(row + kPrefetchRows, end - 1)];
-        __builtin_prefetch(place + (ahead < kSlow ? ahead : 0), 1);
-        std::uint32_t& cell_place = place[cell];
-        if (cell_place == kOutside) {  // the cell's first point
-          cell_place = num_occupied++;
-          CellStatistics<Height>& s = statistics_data[cell_place];
-          s = CellStatistics<Height>();
-          s.first = z;
-          occupied[cell / 64] |= std::uint64_t{1} << (cell % 64);
-        }
-        entry = cell_place;
-        shift = statistics_data[entry].first;
-        lowest = kInfinity;
-        highest = -kInfinity;
-        sum = squares = 0.0;
-        run = 0;
-      }
-      const double d = z_double - static_cast<double>(shift);
-      sum += d;
-      squares += d * d;
-      lowest = z < lowest ? z : lowest;
-      highest = z > highest ? z : highest;
-      ++run;
-    }
-  }
-  flush();
-  if (fixed_extent && extent.num_non_finite > 0 && !params.drop_non_finite) throw_non_finite(extent);
 
-  // The layers, written in cell order 64 cells at a time: empty, then the occupied cells'
-  // statistics (their places are reset for the next call).
-  // Discontinuity: only a cell whose elevations span more than the threshold can hold a gap
-  // longer than it (rounding is monotonic, so this holds for the computed differences too). Those
-  // (few) "wide" cells have their elevations gathered below and sorted; the others get 0.
-  constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
   // The layers: the map's own buffers when refilling (in place, so that references to them stay
   // valid and no page is touched for the first time), else fresh ones. Every cell is written.
+  // Added only once the rows have passed the NaN/Inf check: a map that throws is left unchanged.
   ElevationMap fresh;
-  ElevationMap& map = into != nullptr ? *into : fresh;
-  if (into != nullptr) {
-    into->set_geometry(geometry);
-  } else {
-    fresh = ElevationMap(geometry);
-  }
-  std::array<float*, kBuiltLayers.size()> layer_data{};
-  for (std::size_t k = 0; k < kBuiltLayers.size(); ++k) {
-    if (!map.exists(kBuiltLayers[k])) map.add(kBuiltLayers[k], detail::uninitialised_layer(nx, ny));
-    layer_data[k] = map.get(kBuiltLayers[k]).data();
-  }
-  for (const std::string& name : map.layers()) {  // layers of an earlier use of the map: no data yet
-    if (std::find(kBuiltLayers.begin(), kBuiltLayers.end(), name) == kBuiltLayers.end()) {
-      map.get(name).setConstant(std::numeric_limits<float>::quiet_NaN());
+  std::array<float*, kBuiltLayers.size()> layers{};
+  const auto make_layers = [&] {
+    if (into != nullptr) {
+      into->set_geometry(geometry);
+    } else {
+      fresh = ElevationMap(geometry);
     }
-  }
-  const LayerView count_layer{layer_data[0]}, min{layer_data[1]}, max{layer_data[2]}, mean{layer_data[3]},
-      std_dev{layer_data[4]}, discontinuity{layer_data[5]};
-  std::vector<std::uint32_t>& wide_cells = scratch.wide_cells;
-  std::vector<std::size_t>& offset = scratch.offset;  // the wide cells' elevations, counting-sorted by cell
-  offset.assign(1, 0);
-  std::uint64_t* wide = scratch.wide.data();
-  for (std::size_t w = 0; w < words; ++w) {
-    const std::size_t base = w * 64;
-    const std::size_t length = std::min<std::size_t>(64, cells - base);
-    std::fill_n(count_layer.data() + base, length, 0.0F);
-    for (float* layer : {min.data(), max.data(), mean.data(), std_dev.data(), discontinuity.data()}) {
-      std::fill_n(layer + base, length, kNaN);
+    ElevationMap& map = into != nullptr ? *into : fresh;
+    for (std::size_t k = 0; k < kBuiltLayers.size(); ++k) {
+      if (!map.exists(kBuiltLayers[k])) map.add(kBuiltLayers[k], detail::uninitialised_layer(nx, ny));
+      layers[k] = map.get(kBuiltLayers[k]).data();
     }
-    for (std::uint64_t bits = occupied[w]; bits != 0; bits &= bits - 1) {
-      const std::size_t cell = base + static_cast<std::size_t>(__builtin_ctzll(bits));
-      std::uint32_t& cell_place = place[cell];
-      const CellStatistics<Height>& s = statistics_data[cell_place];
-      cell_place = kOutside;
-      const double n = static_cast<double>(s.count);
-      const double offset_of_mean = s.sum / n;
-      // The population variance from the shifted sums; rounding can leave it just below 0.
-      const double variance = std::max((s.squares - s.sum * offset_of_mean) / n, 0.0);
-      count_layer.data()[cell] = static_cast<float>(s.count);
-      min.data()[cell] = static_cast<float>(s.lowest);
-      max.data()[cell] = static_cast<float>(s.highest);
-      mean.data()[cell] = static_cast<float>(static_cast<double>(s.first) + offset_of_mean);
-      std_dev.data()[cell] = static_cast<float>(std::sqrt(variance));
-      discontinuity.data()[cell] = 0.0F;
-      if (std::isgreater(static_cast<double>(s.highest) - static_cast<double>(s.lowest), params.discontinuity_m)) {
-        wide_cells.push_back(static_cast<std::uint32_t>(cell));
-        offset.push_back(offset.back() + s.count);
-        wide[w] |= std::uint64_t{1} << (cell % 64);
+    for (const std::string& name : map.layers()) {  // layers of an earlier use of the map: no data yet
+      if (std::find(kBuiltLayers.begin(), kBuiltLayers.end(), name) == kBuiltLayers.end()) {
+        map.get(name).setConstant(std::numeric_limits<float>::quiet_NaN());
       }
     }
-    occupied[w] = 0;
-  }
+  };
+  const auto check_non_finite = [&](const NonFiniteRows& non_finite) {
+    if (fixed_extent && non_finite.count > 0 && !params.drop_non_finite) {
+      throw_non_finite(non_finite.count, non_finite.first_row);
+    }
+  };
 
-  const std::size_t num_wide = wide_cells.size();
-  if (num_wide > 0) {
-    std::vector<std::uint32_t>& slot = scratch.slot;  // per cell: its place in wide_cells, or kOutside
-    if (slot.size() < cells) slot.resize(cells, kOutside);
-    for (std::size_t k = 0; k < num_wide; ++k) slot[wide_cells[k]] = static_cast<std::uint32_t>(k);
-    std::vector<double>& heights = scratch.heights;
-    heights.resize(offset.back());
-    std::vector<std::size_t>& next = scratch.next;
-    next.assign(offset.begin(), offset.end() - 1);
-    for (std::size_t run = 0; run < num_runs; ++run) {
-      const std::uint32_t cell = run_cell[run];
-      if (((wide[cell / 64] >> (cell % 64)) & 1) == 0) continue;
-      const std::size_t end = run + 1 < num_runs ? run_start[run + 1] : cloud.size();
-      std::size_t& place = next[slot[cell]];
-      for (std::size_t row = run_start[run]; row < end; ++row) {
-        if (codes[row] == cell) heights[place++] = height(row);
+  constexpr std::size_t kRowsPerThread = 32768;
+  const int parts = detail::thread_count(params.num_threads, cloud.size(), kRowsPerThread);
+  const std::size_t block = CellRange<Cloud>::kBlock;
+  const std::size_t num_blocks = (cloud.size() + block - 1) / block;
+  if (parts == 1 || cells < 64 * static_cast<std::size_t>(parts)) {
+    NonFiniteRows non_finite;
+    CellRange<Cloud> range(cloud, codes, 0, cells, scratch);
+    range.accumulate([&](std::size_t begin, std::size_t end) { bin_block(begin, end, non_finite); });
+    check_non_finite(non_finite);
+    make_layers();
+    range.write(layers, params.discontinuity_m);
+  } else {
+    // Bin: each part takes a run of blocks, and counts the codes of every kSample-th row in
+    // buckets of 2^shift cells (at least 64, at most 4096 buckets) for the split below.
+    constexpr std::size_t kSample = 4;
+    int shift = 6;
+    while ((cells >> shift) >= 4096) ++shift;
+    const std::size_t num_buckets = (cells >> shift) + 1;
+    std::vector<NonFiniteRows> non_finite(static_cast<std::size_t>(parts));
+    std::vector<std::uint32_t> sampled(static_cast<std::size_t>(parts) * num_buckets, 0);
+    detail::for_each_part(parts, [&](int part) {
+      const auto k = static_cast<std::size_t>(part);
+      std::uint32_t* histogram = sampled.data() + k * num_buckets;
+      for (std::size_t b = num_blocks * k / parts; b < num_blocks * (k + 1) / parts; ++b) {
+        const std::size_t begin = b * block;
+        const std::size_t end = std::min(cloud.size(), begin + block);
+        bin_block(begin, end, non_finite[k]);
+        for (std::size_t row = begin; row < end; row += kSample) {
+          const std::uint32_t code = codes[row];
+          if (code != kOutside) ++histogram[code >> shift];
+        }
+      }
+    });
+    NonFiniteRows all;
+    for (const NonFiniteRows& counted : non_finite) all.merge(counted);
+    check_non_finite(all);
+    make_layers();
+    // Split the cells at bucket borders into parts of about equal work: kSample rows per sampled
+    // code, plus a quarter of a row per cell for the layers.
+    std::vector<double> work(num_buckets, 0.0);
+    double total = 0.0;
+    for (std::size_t b = 0; b < num_buckets; ++b) {
+      const std::size_t first = b << shift;
+      const std::size_t bucket_cells = first < cells ? std::min(cells - first, std::size_t{1} << shift) : 0;
+      for (int part = 0; part < parts; ++part) work[b] += kSample * sampled[part * num_buckets + b];
+      work[b] += 0.25 * static_cast<double>(bucket_cells);
+      total += work[b];
+    }
+    std::vector<std::size_t> cut(static_cast<std::size_t>(parts) + 1, cells);
+    cut[0] = 0;
+    double done = 0.0;
+    std::size_t next_cut = 1;
+    for (std::size_t b = 0; b < num_buckets && next_cut < static_cast<std::size_t>(parts); ++b) {
+      done += work[b];
+      while (next_cut < static_cast<std::size_t>(parts) && done >= total * next_cut / parts) {
+        cut[next_cut++] = std::min(cells, (b + 1) << shift);
       }
     }
-    for (std::size_t k = 0; k < num_wide; ++k) {
-      discontinuity.data()[wide_cells[k]] =
-          has_gap(heights.data() + offset[k], heights.data() + offset[k + 1], params.discontinuity_m, scratch.buckets)
-              ? 1.0F
-              : 0.0F;
-    }
+    detail::for_each_part(parts, [&](int part) {
+      const auto k = static_cast<std::size_t>(part);
+      if (cut[k] >= cut[k + 1]) return;
+      BuildScratch& own = thread_scratch();  // the calling thread's is `scratch`, which holds the codes
+      {
+        CellRange<Cloud> range(cloud, codes, cut[k], cut[k + 1], own);
+        range.accumulate([](std::size_t, std::size_t) {});
+        range.write(layers, params.discontinuity_m);
+      }
+      if (&own != &scratch) own.release_if_large();
+    });
   }
   if (cells_out != nullptr) cells_out->swap(cell_of_point);
   return fresh;

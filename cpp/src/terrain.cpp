@@ -9,6 +9,8 @@
 #include <string>
 #include <vector>
 
+#include "threads.hpp"
+
 namespace terracube {
 
 namespace {
@@ -23,6 +25,7 @@ void check_terrain_params(const TerrainParams& params) {
   }
   if (!std::isfinite(params.sensor_height_m)) throw std::invalid_argument("sensor height must be finite");
   if (params.local_ground_radius_cells < 0) throw std::invalid_argument("local ground radius must be >= 0 cells");
+  detail::check_num_threads(params.num_threads, "TerrainParams");
 }
 
 /// Running minimum of a line of `n` values (`stride` apart) over windows [k - r, k + r] clipped to
@@ -99,14 +102,11 @@ TerrainClasses classify_terrain_layers(ElevationMap& map, const TerrainParams& p
   const Eigen::Index nx = highest.rows();
   const Eigen::Index ny = highest.cols();
   const Eigen::Index cells = highest.size();
-
-  if (params.reference == GroundReference::kSensorHeight) {
-    ground.setConstant(static_cast<float>(-params.sensor_height_m));
-  } else {
+  TerrainClasses out(nx, ny);
+  if (cells == 0) return out;
+  if (params.reference == GroundReference::kLocalGround) {
     ground = window_min(map.get("min"), params.local_ground_radius_cells);
   }
-  relative_height = highest - ground;  // NaN stays NaN
-  TerrainClasses out(nx, ny);
 
   // Table 1. The thresholds are doubles (a 0.7 m threshold means 0.7, not float(0.7) =
   // 0.69999999); for a float v, v < t exactly when v < the smallest float >= t, so the per-cell
@@ -114,67 +114,112 @@ TerrainClasses classify_terrain_layers(ElevationMap& map, const TerrainParams& p
   const float low = smallest_float_at_least(params.ground_height_m);
   const float high = smallest_float_at_least(params.robot_height_m);
   const float small = smallest_float_at_least(params.std_dev_m);
-  const float* height = relative_height.data();
-  const float* deviation = spread.data();
-  const float* flag = gap.data();
-  std::uint8_t* classes = out.data();
-  // kObject marks obstacle, overhanging and vertical cells for the edge pass below.
+  const bool sensor_height = params.reference == GroundReference::kSensorHeight;
   constexpr std::uint8_t kUnknown = static_cast<std::uint8_t>(TerrainClass::kUnknown);
   constexpr std::uint8_t kGround = static_cast<std::uint8_t>(TerrainClass::kGround);
   constexpr std::uint8_t kObstacle = static_cast<std::uint8_t>(TerrainClass::kObstacle);
   constexpr std::uint8_t kOverhanging = static_cast<std::uint8_t>(TerrainClass::kOverhangingObject);
   constexpr std::uint8_t kVertical = static_cast<std::uint8_t>(TerrainClass::kVerticalObject);
   constexpr std::uint8_t kEdge = static_cast<std::uint8_t>(TerrainClass::kHorizontalEdge);
+  const auto sensor_ground = static_cast<float>(-params.sensor_height_m);
+  const float* top = highest.data();
+  const float* deviation = spread.data();
+  const float* flag = gap.data();
+  float* reference = ground.data();
+  float* height = relative_height.data();
+  // The classes before the edge test, for the whole map: the edge test of a row reads the rows
+  // beside it, which another thread may be classifying.
+  thread_local std::vector<std::uint8_t> table_classes;  // kept for the next call up to 16 MB
+  table_classes.resize(static_cast<std::size_t>(cells));
+  struct ReleaseIfLarge {
+    std::vector<std::uint8_t>& buffer;
+    ~ReleaseIfLarge() {
+      if (buffer.capacity() > (std::size_t{16} << 20)) buffer = std::vector<std::uint8_t>();
+    }
+  } release_if_large{table_classes};
+  std::uint8_t* first = table_classes.data();
+  std::uint8_t* classes = out.data();
+  float* class_value = class_layer.data();
+  // Rows are split into parts of about kCellsPerThread cells or more.
+  constexpr std::size_t kCellsPerThread = 32768;
+  const int parts = detail::thread_count(params.num_threads, static_cast<std::size_t>(cells), kCellsPerThread);
+  const auto rows_of = [&](int part) { return std::make_pair(nx * part / parts, nx * (part + 1) / parts); };
+  // Pass 1: ground reference, relative height ("max" minus the ground; NaN stays NaN) and Table 1.
   // Quiet comparisons (std::isless...) leave no branches, so the loop vectorises; a NaN height
   // (no data) gives unknown whatever the other layers hold.
-  for (Eigen::Index k = 0; k < cells; ++k) {
-    const float h = height[k];
-    const int small_spread = std::isless(deviation[k], small);
-    const int ground = std::isless(h, low) & small_spread;  // low and smooth
-    const int vertical = std::isgreaterequal(h, high) & (1 - small_spread);
-    const int overhanging = flag[k] == 1.0F;
-    const int c = overhanging ? kOverhanging : kObstacle - ground + (kVertical - kObstacle) * vertical;
-    classes[k] = static_cast<std::uint8_t>(std::isunordered(h, h) ? kUnknown : c);
-  }
-
-  // Horizontal edges: ground cells with an obstacle, overhanging or vertical cell among their 8
-  // neighbours. A 3 x 3 dilation of the object mask, separable: each row's mask is first widened
-  // along j (three rolling rows), then rows i - 1, i and i + 1 are combined. Ground that becomes
-  // an edge is no object, so the order of cells does not matter.
-  if (cells > 0) {
+  // The lambdas copy what their loops read into locals: a byte store may alias a captured reference,
+  // which would keep the loops from vectorising.
+  const auto table_1 = [&](Eigen::Index begin, Eigen::Index end) {
+    const float low_height = low, high_height = high, small_spread_below = small;
+    const float* __restrict in_top = top;
+    const float* __restrict in_deviation = deviation;
+    const float* __restrict in_flag = flag;
+    const float* __restrict in_reference = reference;
+    float* __restrict out_height = height;
+    std::uint8_t* __restrict out_class = first;
+    for (Eigen::Index k = begin; k < end; ++k) {
+      const float h = in_top[k] - in_reference[k];
+      out_height[k] = h;
+      const int small_spread = std::isless(in_deviation[k], small_spread_below);
+      const int ground_cell = std::isless(h, low_height) & small_spread;  // low and smooth
+      const int vertical = std::isgreaterequal(h, high_height) & (1 - small_spread);
+      const int overhanging = in_flag[k] == 1.0F;
+      const int c = overhanging ? kOverhanging : kObstacle - ground_cell + (kVertical - kObstacle) * vertical;
+      out_class[k] = static_cast<std::uint8_t>(std::isunordered(h, h) ? kUnknown : c);
+    }
+  };
+  detail::for_each_part(parts, [&](int part) {
+    const auto [row_begin, row_end] = rows_of(part);
+    constexpr Eigen::Index kChunk = 2048;  // the ground of a chunk is written, then read from L1
+    for (Eigen::Index begin = row_begin * ny; begin < row_end * ny; begin += kChunk) {
+      const Eigen::Index end = std::min(row_end * ny, begin + kChunk);
+      if (sensor_height) std::fill(reference + begin, reference + end, sensor_ground);
+      table_1(begin, end);
+    }
+  });
+  // Pass 2: horizontal edges, ground cells with an obstacle, overhanging or vertical cell (2, 3,
+  // 4) among their 8 neighbours -- a 3 x 3 dilation of the object mask, separable: each row's mask
+  // widened along j, then rows i - 1, i and i + 1 combined -- and the class as a float, NaN for
+  // unknown (the bits of float(c), or a quiet NaN's for c = 0).
+  detail::for_each_part(parts, [&](int part) {
+    const auto [row_begin, row_end] = rows_of(part);
     std::vector<std::uint8_t> objects(static_cast<std::size_t>(ny));
     std::vector<std::uint8_t> widened(static_cast<std::size_t>(3 * ny));
-    const auto widen = [&](Eigen::Index i) {  // row i's objects (2, 3, 4) widened along j
-      const std::uint8_t* in = classes + i * ny;
+    const Eigen::Index n = ny;                   // a local copy (see above)
+    const auto widen = [&, n](Eigen::Index i) {  // row i's objects widened along j, into slot i % 3
+      const std::uint8_t* in = first + i * n;
       std::uint8_t* object = objects.data();
-      std::uint8_t* row = widened.data() + (i % 3) * ny;
-      for (Eigen::Index j = 0; j < ny; ++j) object[j] = in[j] >= kObstacle ? 1 : 0;
-      row[0] = object[0] | (ny > 1 ? object[1] : 0);
-      for (Eigen::Index j = 1; j + 1 < ny; ++j) row[j] = object[j - 1] | object[j] | object[j + 1];
-      if (ny > 1) row[ny - 1] = object[ny - 2] | object[ny - 1];
+      std::uint8_t* row = widened.data() + (i % 3) * n;
+      for (Eigen::Index j = 0; j < n; ++j) object[j] = in[j] >= kObstacle ? 1 : 0;
+      row[0] = object[0] | (n > 1 ? object[1] : 0);
+      for (Eigen::Index j = 1; j + 1 < n; ++j) row[j] = object[j - 1] | object[j] | object[j + 1];
+      if (n > 1) row[n - 1] = object[n - 2] | object[n - 1];
     };
-    widen(0);
-    for (Eigen::Index i = 0; i < nx; ++i) {
+    if (row_begin < row_end) {
+      if (row_begin > 0) widen(row_begin - 1);
+      widen(row_begin);
+    }
+    for (Eigen::Index i = row_begin; i < row_end; ++i) {
       if (i + 1 < nx) widen(i + 1);  // the ring buffer holds rows i - 1, i and i + 1
-      const std::uint8_t* above = widened.data() + (std::max<Eigen::Index>(i - 1, 0) % 3) * ny;
-      const std::uint8_t* here = widened.data() + (i % 3) * ny;
-      const std::uint8_t* below = widened.data() + (std::min(i + 1, nx - 1) % 3) * ny;
-      std::uint8_t* row = classes + i * ny;
-      for (Eigen::Index j = 0; j < ny; ++j) {
+      const std::uint8_t* above = widened.data() + (std::max<Eigen::Index>(i - 1, 0) % 3) * n;
+      const std::uint8_t* here = widened.data() + (i % 3) * n;
+      const std::uint8_t* below = widened.data() + (std::min(i + 1, nx - 1) % 3) * n;
+      const std::uint8_t* __restrict in = first + i * n;
+      std::uint8_t* __restrict row = classes + i * n;
+      float* __restrict values = class_value + i * n;
+      for (Eigen::Index j = 0; j < n; ++j) {
         const bool near = (above[j] | here[j] | below[j]) != 0;
-        row[j] = row[j] == kGround && near ? kEdge : row[j];
+        row[j] = in[j] == kGround && near ? kEdge : in[j];
+      }
+      for (Eigen::Index j = 0; j < n; ++j) {
+        const float value = static_cast<float>(row[j]);
+        std::uint32_t bits = 0;
+        std::memcpy(&bits, &value, sizeof bits);
+        bits |= row[j] == kUnknown ? 0x7fc00000U : 0U;
+        std::memcpy(values + j, &bits, sizeof bits);
       }
     }
-  }
-
-  // The class as a float, NaN for unknown: the bits of float(c), or a quiet NaN's for c = 0.
-  for (Eigen::Index k = 0; k < cells; ++k) {
-    const float value = static_cast<float>(classes[k]);
-    std::uint32_t bits = 0;
-    std::memcpy(&bits, &value, sizeof bits);
-    bits |= classes[k] == kUnknown ? 0x7fc00000U : 0U;
-    std::memcpy(class_layer.data() + k, &bits, sizeof bits);
-  }
+  });
   return out;
 }
 

@@ -43,6 +43,15 @@ def _as_transform(transform) -> np.ndarray:
     return matrix
 
 
+def _num_threads(num_threads) -> int:
+    """A thread count for the C++ parameters: a whole number >= 0 (0 = one per processor)."""
+    if isinstance(num_threads, bool) or not isinstance(num_threads, (int, np.integer)) or num_threads < 0:
+        raise ValueError(
+            f"num_threads must be a whole number >= 0 (0 = one per processor), got {num_threads!r}"
+        )
+    return int(num_threads)
+
+
 def _as_crop(crop) -> _core.CropBox | None:
     if crop is None:
         return None

@@ -1,4 +1,5 @@
 #include <gtest/gtest.h>
+#include <Eigen/Geometry>
 #include <terracube/collapse.hpp>
 #include <terracube/elevation_map.hpp>
 
@@ -16,6 +17,7 @@
 #include <vector>
 
 #include "test_support.hpp"
+#include "threads.hpp"  // private: detail::largest_team
 
 namespace terracube {
 namespace {
@@ -955,6 +957,155 @@ TEST(BuildElevationMapVsNaive, RealKittiScanOnAFixedExtent) {
   EXPECT_GT(counted, 0.3F * static_cast<float>(points.size()));
   EXPECT_LT(counted, static_cast<float>(points.size())) << "points beyond the 40 m x 20 m extent are ignored";
   expect_same_statistics(build_elevation_map(PointsView<double>(points), params), map);
+}
+
+// --- several threads (ElevationParams::num_threads) ----------------------------------------------
+
+/// Builds with `threads` threads and checks that the call ran on more than one.
+ElevationMap build_on_threads(const std::function<ElevationMap(const ElevationParams&)>& build, ElevationParams params,
+                              int threads) {
+  params.num_threads = threads;
+  detail::largest_team(true);
+  ElevationMap map = build(params);
+  EXPECT_GE(detail::largest_team(), 2) << threads << " threads asked for, the call ran on one";
+  return map;
+}
+
+TEST(BuildElevationMapThreads, RandomScenesGiveTheOneThreadMapBitForBitOnAnyNumberOfThreads) {
+  // Random point order: consecutive rows fall in cells of different threads' ranges all the time,
+  // so runs of a cell are cut by other ranges' rows everywhere.
+  for (std::uint32_t seed = 61; seed <= 62; ++seed) {
+    SCOPED_TRACE("seed " + std::to_string(seed));
+    const auto points = rounded_to_float(test::random_scene(seed, 140000, 12.0 + seed));
+    const std::vector<float> strided = as_floats(points, 4);
+    const PointsView<float> floats(strided.data(), points.size(), 4, 1);
+    ElevationParams automatic;
+    automatic.resolution_m = 0.05 * (seed - 60);
+    automatic.discontinuity_m = 0.4;
+    const ElevationParams fixed = fixed_extent(0.1, {-3.0, -2.0}, {150, 170});  // part of the scene
+    for (const ElevationParams& params : {automatic, fixed}) {
+      const ElevationMap serial = build_elevation_map(PointsView<double>(points), params);
+      expect_matches_naive(serial, points, params.discontinuity_m);
+      EXPECT_GT((serial.get("discontinuity").array() == 1.0F).count(), 0) << "the scene must have gaps";
+      for (const int threads : {2, 3, 4, 0}) {
+        SCOPED_TRACE(std::to_string(threads) + " threads");
+        expect_same_statistics(
+            build_on_threads(
+                [&](const ElevationParams& p) { return build_elevation_map(PointsView<double>(points), p); }, params,
+                threads == 0 ? 0 : threads),
+            serial);
+        expect_same_statistics(
+            build_on_threads([&](const ElevationParams& p) { return build_elevation_map(floats, p); }, params,
+                             threads == 0 ? 0 : threads),
+            serial);
+      }
+    }
+  }
+}
+
+TEST(BuildElevationMapThreads, RunsCutByRowsOfAnotherThreadsCellsAreSummedAsOnOneThread) {
+  // Each cell on the left (x < 0) gets three rows, a row of a cell on the right, three more rows:
+  // two runs on one thread. The thread building the left cells must also see two runs, or it would
+  // add the six heights in another order; heights of +-1e6 m that cancel make that order show in
+  // the float mean and std-dev of most cells.
+  std::mt19937 rng(76);
+  std::uniform_real_distribution<double> small(0.0, 1.0);
+  std::uniform_int_distribution<int> column(0, 99);
+  std::vector<Eigen::Vector3d> points;
+  for (int group = 0; group < 12000; ++group) {
+    const double x = -9.95 + 0.1 * (group % 90), y = -9.95 + 0.1 * (group / 90 % 100);
+    const double right_x = 0.05 + 0.1 * column(rng), right_y = -9.95 + 0.1 * column(rng);
+    for (const double big : {1e6, 0.0, -1e6 + 0.25, 0.0}) {
+      points.emplace_back(x, y, big + small(rng));
+      if (big == 0.0 && points.size() % 2 == 0) points.emplace_back(right_x, right_y, small(rng));
+    }
+    points.emplace_back(right_x, right_y, small(rng));
+  }
+  ElevationParams params = fixed_extent(0.1, {-10.0, -10.0}, {200, 200});
+  params.discontinuity_m = 5e6;
+  const ElevationMap serial = build_elevation_map(PointsView<double>(points), params);
+  for (const int threads : {2, 3}) {
+    expect_same_statistics(
+        build_on_threads([&](const ElevationParams& p) { return build_elevation_map(PointsView<double>(points), p); },
+                         params, threads),
+        serial);
+  }
+}
+
+TEST(BuildElevationMapThreads, RealKittiScanGivesTheOneThreadMapBitForBit) {
+  const auto data = test::shared_data_dir();
+  if (!data) GTEST_SKIP() << "../shared/data not found (set TERRACUBE_DATA_DIR)";
+  const test::XyziScan scan = test::read_xyzi_bin(*data + "/kitti_seq00/velodyne/000000.bin");
+  const ElevationParams params = fixed_extent(0.1, {-20.0, -10.0}, {400, 200});
+  const ElevationMap serial = build_elevation_map(scan.xyz(), params);
+  for (const int threads : {2, 3}) {
+    const ElevationMap threaded =
+        build_on_threads([&](const ElevationParams& p) { return build_elevation_map(scan.xyz(), p); }, params, threads);
+    expect_same_statistics(threaded, serial);
+    expect_matches_naive(threaded, scan.as_vectors(), params.discontinuity_m);
+  }
+}
+
+TEST(BuildElevationMapThreads, LatticeRowsSelectionsTransformsAndRefillsGiveTheOneThreadMaps) {
+  // A 1 cm lattice puts many rows on 0.1 m cell borders (the exact-formula path of the binning),
+  // every third row is left out by a selection, and a leveling transform packs the rows first.
+  std::mt19937 rng(71);
+  std::uniform_int_distribution<int> lattice(-900, 900);
+  std::uniform_int_distribution<int> heights(-50, 300);
+  std::vector<Eigen::Vector3d> points(120000);
+  for (auto& p : points) p = Eigen::Vector3d(0.01 * lattice(rng), 0.01 * lattice(rng), 0.01 * heights(rng));
+  std::vector<std::uint8_t> use(points.size());
+  for (std::size_t row = 0; row < use.size(); ++row) use[row] = row % 3 != 0 ? 1 : 0;
+  ElevationParams params = fixed_extent(0.1, {-8.0, -9.0}, {170, 160});
+  const auto build = [&](const ElevationParams& p) { return build_elevation_map(PointsView<double>(points), p, &use); };
+  expect_same_statistics(build_on_threads(build, params, 2), build(params));
+  ElevationParams leveled = params;
+  leveled.transform.topLeftCorner<3, 3>() = Eigen::AngleAxisd(0.05, Eigen::Vector3d::UnitX()).toRotationMatrix();
+  expect_same_statistics(build_on_threads(build, leveled, 3), build(leveled));
+  // Refilling one map alternately on one and several threads leaves no trace of the other calls.
+  ElevationMap reused;
+  const auto other = test::random_scene(72, 90000, 8.0);
+  for (const int threads : {2, 1, 3, 1}) {
+    params.num_threads = threads;
+    build_elevation_map_into(reused, PointsView<double>(threads == 3 ? other : points), params,
+                             threads == 3 ? nullptr : &use);
+    params.num_threads = 1;
+    const ElevationMap fresh = threads == 3 ? build_elevation_map(PointsView<double>(other), params) : build(params);
+    expect_same_statistics(reused, fresh);
+  }
+}
+
+TEST(BuildElevationMapThreads, NaNRowsInSeveralThreadsBlocksAreCountedOnceAndTheFirstIsNamed) {
+  auto points = test::random_scene(73, 100000, 10.0);
+  for (const std::size_t row : {99990, 70000, 5000, 5001}) points[row].y() = std::nan("");
+  ElevationParams params = fixed_extent(0.1, {-10.0, -10.0}, {200, 200});
+  params.num_threads = 3;
+  ElevationMap untouched;
+  build_elevation_map_into(untouched, PointsView<double>(test::random_scene(74, 1000, 5.0)), params);
+  const ElevationMap before = untouched;
+  expect_throw_with<std::invalid_argument>(
+      [&] { build_elevation_map_into(untouched, PointsView<double>(points), params); },
+      {"4 of 100000", "first at row 5000", "drop_non_finite"});
+  expect_same_statistics(untouched, before);  // a call that throws leaves the map unchanged
+  params.drop_non_finite = true;
+  const ElevationMap dropped = build_elevation_map(PointsView<double>(points), params);
+  params.num_threads = 1;
+  expect_same_statistics(dropped, build_elevation_map(PointsView<double>(points), params));
+  EXPECT_EQ(dropped.get("count").sum(), static_cast<float>(points.size() - 4));
+}
+
+TEST(BuildElevationMapThreads, SmallCloudsAndMapsRunOnOneThreadAndNegativeCountsAreRejected) {
+  const auto points = test::random_scene(75, 5000, 6.0);
+  ElevationParams params;
+  params.num_threads = 4;
+  detail::largest_team(true);
+  const ElevationMap map = build_elevation_map(PointsView<double>(points), params);
+  EXPECT_EQ(detail::largest_team(), 0) << "5,000 points are not worth waking a thread";
+  params.num_threads = 1;
+  expect_same_statistics(map, build_elevation_map(PointsView<double>(points), params));
+  params.num_threads = -1;
+  expect_throw_with<std::invalid_argument>([&] { build_elevation_map(PointsView<double>(points), params); },
+                                           {"num_threads", ">= 0", "-1"});
 }
 
 // --- selection, transform, crop ----------------------------------------------------------------

@@ -17,6 +17,7 @@
 #include <vector>
 
 #include "test_support.hpp"
+#include "threads.hpp"  // private: detail::largest_team
 
 namespace terracube {
 
@@ -374,6 +375,46 @@ TEST(TerrainVsNaive, RandomMapsWithValuesAtTheFloatNeighboursOfTheThresholds) {
       }
     }
   }
+}
+
+TEST(TerrainVsNaive, SeveralThreadsGiveTheNaiveClassesAndTheOneThreadLayers) {
+  // Maps large enough for two to four threads, split into row blocks whose edge tests read the
+  // rows of their neighbours; both ground references.
+  TerrainParams params;
+  params.sensor_height_m = 1.73;
+  std::uint32_t seed = 200;
+  for (const auto& [nx, ny] : std::vector<std::pair<int, int>>{{300, 240}, {1000, 67}, {67, 1500}}) {
+    for (const GroundReference reference : {GroundReference::kSensorHeight, GroundReference::kLocalGround}) {
+      SCOPED_TRACE("map " + std::to_string(nx) + " x " + std::to_string(ny) + ", seed " + std::to_string(seed));
+      params.reference = reference;
+      params.local_ground_radius_cells = 3;
+      ElevationMap serial_map = random_threshold_map(seed++, nx, ny, params, nx == 1000);
+      ElevationMap threaded_map = serial_map;
+      params.num_threads = 1;
+      const TerrainClassification serial = classify_terrain(serial_map, params);
+      if (reference == GroundReference::kSensorHeight) {  // (the local ground has its own tests below)
+        EXPECT_EQ(serial.classes, naive_classes(serial_map, params));
+      }
+      for (const int threads : {2, 3, 4}) {
+        params.num_threads = threads;
+        detail::largest_team(true);
+        const TerrainClassification threaded = classify_terrain(threaded_map, params);
+        EXPECT_GE(detail::largest_team(), 2) << threads << " threads asked for, the call ran on one";
+        EXPECT_EQ(threaded.classes, serial.classes) << threads << " threads";
+        for (const char* name : {"class", "relative_height", "ground"}) {
+          const Layer& a = threaded_map.get(name);
+          const Layer& b = serial_map.get(name);
+          EXPECT_EQ(a.array().isNaN().matrix(), b.array().isNaN().matrix()) << name;
+          EXPECT_EQ(a.array().isNaN().select(0.0F, a.array()).matrix(),
+                    b.array().isNaN().select(0.0F, b.array()).matrix())
+              << name;
+        }
+      }
+    }
+  }
+  params.num_threads = -2;
+  ElevationMap map = uniform_map(3, 3, 0.0F, 0.0F);
+  expect_throw_with<std::invalid_argument>([&] { classify_terrain(map, params); }, "num_threads must be >= 0");
 }
 
 TEST(TerrainVsNaive, ClassifyingTheSameMapTwiceGivesTheSameResultAndLayers) {

@@ -812,3 +812,32 @@ def test_use_of_the_wrong_length_raises_value_error(length):
 def test_discontinuity_that_is_not_positive_raises_value_error():
     with pytest.raises(ValueError, match="discontinuity"):
         tc.build_elevation_map(np.zeros((3, 3)), 0.1, discontinuity=0.0)
+
+
+@pytest.mark.parametrize("num_threads", [2, 3, 0])
+def test_kitti_frame0_map_and_classes_on_several_threads_equal_the_one_thread_results(
+    shared_data, num_threads
+):
+    xyz = shared_data.kitti_xyzi(0)[:, :3]
+    extent = {"origin": (-20.0, -10.0), "size": (400, 200)}
+    one = tc.build_elevation_map(xyz, 0.1, **extent)
+    several = tc.build_elevation_map(xyz, 0.1, num_threads=num_threads, **extent)
+    assert several.layers == one.layers
+    for name in one.layers:
+        np.testing.assert_array_equal(several[name], one[name], err_msg=name)  # NaN where NaN, else equal
+    assert_layers_match(several, reference_layers(xyz, 0.1, extent["origin"], extent["size"]))
+    classes_one = tc.classify_terrain(one, sensor_height=1.73)
+    classes_several = tc.classify_terrain(several, sensor_height=1.73, num_threads=num_threads)
+    np.testing.assert_array_equal(classes_several, classes_one)
+    for name in ("class", "relative_height", "ground"):
+        np.testing.assert_array_equal(several[name], one[name], err_msg=name)
+
+
+@pytest.mark.parametrize("num_threads", [-1, 1.5, True, "2"])
+def test_num_threads_that_is_not_a_whole_number_at_least_zero_raises_value_error(num_threads):
+    points = np.zeros((10, 3))
+    with pytest.raises(ValueError, match="num_threads"):
+        tc.build_elevation_map(points, 0.5, num_threads=num_threads)
+    elevation_map = tc.build_elevation_map(points, 0.5)
+    with pytest.raises(ValueError, match="num_threads"):
+        tc.classify_terrain(elevation_map, num_threads=num_threads)

@@ -95,6 +95,11 @@ struct ElevationParams {
   bool drop_non_finite = false;
   /// Largest number of cells allowed (memory guard): 64 M cells = 256 MB per float layer.
   std::size_t max_cells = std::size_t{1} << 26;
+  /// Threads (OpenMP): 1 runs on the calling thread alone, 0 uses one per processor. The map is
+  /// the same bit for bit whatever the number; clouds under about 32,000 points per thread use
+  /// fewer threads. The thread pool does not survive fork(): a process that forks after building
+  /// with more than one thread must not build with more than one in the child.
+  int num_threads = 1;
 };
 
 /// Builds the map in O(N + cells): one pass over the points for count, min, max and the sums of z
