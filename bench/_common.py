@@ -162,11 +162,17 @@ def header_line(field: str, text: str) -> str:
 
 
 def print_header(
-    title: str, details: Iterable[str], ratio: str, args: argparse.Namespace, quick_note: str
+    title: str,
+    details: Iterable[str],
+    ratio: str,
+    args: argparse.Namespace,
+    quick_note: str,
+    threads: str = "single-threaded",
 ) -> None:
     """The report's header: title, machine, software and date, the script's ``details`` lines
     (see :func:`header_line`), the timing rule with ``ratio = <ratio>``, and the data folder
-    (followed by ``  (--quick: <quick_note>)`` with ``--quick``)."""
+    (followed by ``  (--quick: <quick_note>)`` with ``--quick``). ``threads`` says how the methods
+    use threads."""
     print(title)
     print(
         header_line(
@@ -183,9 +189,7 @@ def print_header(
     print(header_line("date", datetime.datetime.now().isoformat(timespec="seconds")))
     for line in details:
         print(line)
-    print(
-        header_line("timing", f"single-threaded, median of {args.repeat} runs after 1 warm-up, milliseconds;")
-    )
+    print(header_line("timing", f"{threads}, median of {args.repeat} runs after 1 warm-up, milliseconds;"))
     print(f"            ratio = {ratio}")
     print(header_line("data", f"{args.data_dir}{f'  (--quick: {quick_note})' if args.quick else ''}"))
 

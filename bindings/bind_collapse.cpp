@@ -94,7 +94,8 @@ void bind_collapse(py::module_& m) {
       .def_readwrite("crop", &CollapseParams::crop)
       .def_readwrite("drop_non_finite", &CollapseParams::drop_non_finite)
       .def_readwrite("storage", &CollapseParams::storage)
-      .def_readwrite("dense_budget_bytes", &CollapseParams::dense_budget_bytes);
+      .def_readwrite("dense_budget_bytes", &CollapseParams::dense_budget_bytes)
+      .def_readwrite("num_threads", &CollapseParams::num_threads);
 
   py::class_<CollapseResult>(m, "CollapseResult", "Result of collapse_overhangs; arrays are views into it.")
       .def_readonly("grid", &CollapseResult::grid)

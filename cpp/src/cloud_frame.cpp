@@ -5,6 +5,7 @@
 #include <stdexcept>
 
 #include "number_text.hpp"
+#include "threads.hpp"
 
 namespace terracube::detail {
 
@@ -43,6 +44,7 @@ void check_collapse_params(const CollapseParams& params) {
   }
   check_rigid_transform(params.transform, "transform");
   check_crop(params.crop);
+  check_num_threads(params.num_threads, "CollapseParams");
 }
 
 void check_crop(const std::optional<CropBox>& crop) {

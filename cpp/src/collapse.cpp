@@ -12,6 +12,7 @@
 
 #include "cloud_frame.hpp"
 #include "quantize_kernels.hpp"
+#include "threads.hpp"
 
 namespace terracube {
 
@@ -140,11 +141,11 @@ std::size_t quantize_block(const Cloud& cloud, const CubeGrid& grid, bool all_us
   return 0;
 }
 
-/// Cube indices of all rows into `cubes`, in blocks that stay in L1: `mark(begin, end)` reads each
-/// block's indices while they are there.
+/// Cube indices of rows [first_row, end_row) into `cubes`, in blocks that stay in L1:
+/// `mark(begin, end)` reads each block's indices while they are there.
 template <typename Cloud, typename Mark>
-void quantize_and_mark(const Cloud& cloud, const CubeGrid& grid, bool all_used, std::uint32_t no_cube,
-                       std::uint32_t* cubes, Mark&& mark) {
+void quantize_rows_of(const Cloud& cloud, const CubeGrid& grid, bool all_used, std::uint32_t no_cube,
+                      std::uint32_t* cubes, std::size_t first_row, std::size_t end_row, Mark&& mark) {
   constexpr std::size_t kBlock = 2048;
   // Plain float rows may be quantised in float arithmetic (see detail::float_estimate_margin).
   // Rows within its margin of a cube border are quantised again in doubles, one by one: on lattice
@@ -153,13 +154,46 @@ void quantize_and_mark(const Cloud& cloud, const CubeGrid& grid, bool all_used, 
   // rest of the call to the double kernel.
   float float_margin = detail::quantize_float_margin(grid.min_corner.x(), grid.min_corner.y(), grid.min_corner.z(),
                                                      grid.edge_m, grid.ixmax, grid.iymax, grid.izmax);
-  for (std::size_t begin = 0; begin < cloud.size(); begin += kBlock) {
-    const std::size_t end = std::min(cloud.size(), begin + kBlock);
+  for (std::size_t begin = first_row; begin < end_row; begin += kBlock) {
+    const std::size_t end = std::min(end_row, begin + kBlock);
     const std::size_t undecided =
         quantize_block(cloud, grid, all_used, no_cube, float_margin, begin, end, cubes + begin);
     if (undecided * 100 > end - begin) float_margin = 0.0F;
     mark(begin, end);
   }
+}
+
+/// quantize_rows_of over all rows.
+template <typename Cloud, typename Mark>
+void quantize_and_mark(const Cloud& cloud, const CubeGrid& grid, bool all_used, std::uint32_t no_cube,
+                       std::uint32_t* cubes, Mark&& mark) {
+  quantize_rows_of(cloud, grid, all_used, no_cube, cubes, 0, cloud.size(), std::forward<Mark>(mark));
+}
+
+/// The rows [begin, end) of part `part` of `parts`, in whole blocks of `block` rows.
+std::pair<std::size_t, std::size_t> part_rows(std::size_t rows, std::size_t block, int part, int parts) {
+  const std::size_t blocks = (rows + block - 1) / block;
+  const auto k = static_cast<std::size_t>(part);
+  const auto n = static_cast<std::size_t>(parts);
+  return {std::min(rows, blocks * k / n * block), std::min(rows, blocks * (k + 1) / n * block)};
+}
+
+/// quantize_and_mark on `parts` threads: each quantises a run of whole blocks (each with its own
+/// float/double kernel choice; both give eqs. 1-3's indices), then `mark(0, rows)` runs on the
+/// calling thread. With one part, quantize_and_mark itself.
+template <typename Cloud, typename Mark>
+void quantize_then_mark(const Cloud& cloud, const CubeGrid& grid, bool all_used, std::uint32_t no_cube,
+                        std::uint32_t* cubes, int parts, Mark&& mark) {
+  if (parts <= 1) {
+    quantize_and_mark(cloud, grid, all_used, no_cube, cubes, std::forward<Mark>(mark));
+    return;
+  }
+  detail::for_each_part(parts, [&](int part) {
+    const auto [begin, end] = part_rows(cloud.size(), 2048, part, parts);
+    if (begin >= end) return;
+    quantize_rows_of(cloud, grid, all_used, no_cube, cubes, begin, end, [](std::size_t, std::size_t) {});
+  });
+  mark(std::size_t{0}, cloud.size());
 }
 
 /// Calls f(row) for every row of [begin, end), in eight interleaved streams an eighth of the range
@@ -235,6 +269,28 @@ std::size_t count_overhang(const std::uint8_t* overhang, std::size_t rows) {
   return count;
 }
 
+/// The mask of rows [0, rows): overhang[row] = flag(row), on `parts` threads (whole blocks of
+/// rows each), and the number of overhang rows.
+template <typename Flag>
+std::size_t write_mask(std::uint8_t* overhang, std::size_t rows, int parts, const Flag& flag) {
+  std::vector<std::size_t> counted(static_cast<std::size_t>(std::max(parts, 1)), 0);
+  detail::for_each_part(parts, [&](int part) {
+    const auto [begin, end] = part_rows(rows, 2048, part, parts);
+    std::size_t row = begin;
+    for (; row + 4 <= end; row += 4) {  // unrolled by hand (GCC does not at -O3)
+      overhang[row] = flag(row);
+      overhang[row + 1] = flag(row + 1);
+      overhang[row + 2] = flag(row + 2);
+      overhang[row + 3] = flag(row + 3);
+    }
+    for (; row < end; ++row) overhang[row] = flag(row);
+    counted[static_cast<std::size_t>(part)] = count_overhang(overhang + begin, end - begin);
+  });
+  std::size_t total = 0;
+  for (const std::size_t count : counted) total += count;
+  return total;
+}
+
 /// Lines 5-15 of Algorithm 1 over the sorted L with M (scratch.ground, all -1 before and after):
 /// R into result.removed_cubes.
 void sweep_dense(const CubeGrid& grid, int sigma, DenseScratch& scratch, CollapseResult& result) {
@@ -274,7 +330,7 @@ bool use_byte_occupancy(const CubeGrid& grid, std::size_t rows) {
 /// Dense path with V as a byte per cube (see use_byte_occupancy): marking a cube is one store.
 /// The same byte then marks R (2) for the mask pass. scratch.flags is all zero before and after.
 template <typename Cloud>
-void collapse_dense_bytes(const Cloud& cloud, const CollapseParams& params, CollapseResult& result) {
+void collapse_dense_bytes(const Cloud& cloud, const CollapseParams& params, int parts, CollapseResult& result) {
   const CubeGrid& grid = result.grid;
   const bool all_used = result.num_used == cloud.size();
   const std::size_t rows = cloud.size();
@@ -294,7 +350,7 @@ void collapse_dense_bytes(const Cloud& cloud, const CollapseParams& params, Coll
   std::uint32_t* const cubes = scratch.cubes.data();
 
   // Algorithm 1, lines 1-4: one O(N) pass sets V.
-  quantize_and_mark(cloud, grid, all_used, no_cube, cubes, [flags, cubes](std::size_t begin, std::size_t end) {
+  quantize_then_mark(cloud, grid, all_used, no_cube, cubes, parts, [flags, cubes](std::size_t begin, std::size_t end) {
     // Unrolled by hand (GCC does not at -O3): four independent stores per iteration.
     std::size_t row = begin;
     for (; row + 4 <= end; row += 4) {
@@ -327,16 +383,10 @@ void collapse_dense_bytes(const Cloud& cloud, const CollapseParams& params, Coll
 
   // Points in R's cubes are overhang: R's bytes become 2 (no_cube's stays 1).
   for (const std::int64_t cube : result.removed_cubes) flags[static_cast<std::size_t>(cube)] = 2;
-  std::uint8_t* const overhang = result.overhang.data();
-  std::size_t row = 0;
-  for (; row + 4 <= rows; row += 4) {  // unrolled by hand, as above
-    overhang[row] = static_cast<std::uint8_t>(flags[cubes[row]] >> 1);
-    overhang[row + 1] = static_cast<std::uint8_t>(flags[cubes[row + 1]] >> 1);
-    overhang[row + 2] = static_cast<std::uint8_t>(flags[cubes[row + 2]] >> 1);
-    overhang[row + 3] = static_cast<std::uint8_t>(flags[cubes[row + 3]] >> 1);
-  }
-  for (; row < rows; ++row) overhang[row] = static_cast<std::uint8_t>(flags[cubes[row]] >> 1);
-  result.num_overhang = count_overhang(overhang, rows);
+  const std::uint8_t* const marks = flags;
+  result.num_overhang = write_mask(result.overhang.data(), rows, parts, [marks, cubes](std::size_t row) {
+    return static_cast<std::uint8_t>(marks[cubes[row]] >> 1);
+  });
 
   // V restored to all zero.
   for (const std::int64_t cube : occupied) flags[static_cast<std::size_t>(cube)] = 0;
@@ -346,11 +396,11 @@ void collapse_dense_bytes(const Cloud& cloud, const CollapseParams& params, Coll
 
 /// Dense path: V is a bit vector over all cubes, M a vector over all columns.
 template <typename Cloud>
-void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseResult& result) {
+void collapse_dense(const Cloud& cloud, const CollapseParams& params, int parts, CollapseResult& result) {
   const CubeGrid& grid = result.grid;
   const std::size_t rows = cloud.size();
   if (use_byte_occupancy(grid, rows)) {
-    collapse_dense_bytes(cloud, params, result);
+    collapse_dense_bytes(cloud, params, parts, result);
     return;
   }
   const bool all_used = result.num_used == cloud.size();
@@ -374,7 +424,7 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
   std::uint32_t* const cubes = scratch.cubes.data();
 
   // Algorithm 1, lines 1-4: one O(N) pass sets V.
-  quantize_and_mark(cloud, grid, all_used, no_cube, cubes, [&](std::size_t begin, std::size_t end) {
+  quantize_then_mark(cloud, grid, all_used, no_cube, cubes, parts, [&](std::size_t begin, std::size_t end) {
     if (summarise) {
       for_each_interleaved(begin, end, [occupancy, summary, cubes](std::size_t row) {
         const std::uint32_t cube = cubes[row];
@@ -432,14 +482,8 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
     removed_map.assign(static_cast<std::size_t>(no_cube) + 1, 0);
     for (const std::int64_t cube : result.removed_cubes) removed_map[static_cast<std::size_t>(cube)] = 1;
     const std::uint8_t* const removed = removed_map.data();
-    std::size_t row = 0;
-    for (; row + 4 <= rows; row += 4) {  // unrolled by hand (GCC does not at -O3)
-      overhang[row] = removed[cubes[row]];
-      overhang[row + 1] = removed[cubes[row + 1]];
-      overhang[row + 2] = removed[cubes[row + 2]];
-      overhang[row + 3] = removed[cubes[row + 3]];
-    }
-    for (; row < rows; ++row) overhang[row] = removed[cubes[row]];
+    result.num_overhang =
+        write_mask(overhang, rows, parts, [removed, cubes](std::size_t row) { return removed[cubes[row]]; });
   } else {
     // R's bits cleared in V: a point is overhang when its cube's bit is gone. The extra word is
     // all ones, so no_cube is never overhang.
@@ -447,19 +491,12 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, CollapseRe
       occupancy[static_cast<std::size_t>(cube >> 6)] &= ~(std::uint64_t{1} << (cube & 63));
     }
     occupancy[words] = ~std::uint64_t{0};
-    const auto gone = [occupancy](std::uint32_t cube) {
-      return static_cast<std::uint8_t>(((occupancy[cube >> 6] >> (cube & 63)) & 1U) ^ 1U);
-    };
-    std::size_t row = 0;
-    for (; row + 4 <= rows; row += 4) {  // unrolled by hand, as above
-      overhang[row] = gone(cubes[row]);
-      overhang[row + 1] = gone(cubes[row + 1]);
-      overhang[row + 2] = gone(cubes[row + 2]);
-      overhang[row + 3] = gone(cubes[row + 3]);
-    }
-    for (; row < rows; ++row) overhang[row] = gone(cubes[row]);
+    const std::uint64_t* const remaining = occupancy;
+    result.num_overhang = write_mask(overhang, rows, parts, [remaining, cubes](std::size_t row) {
+      const std::uint32_t cube = cubes[row];
+      return static_cast<std::uint8_t>(((remaining[cube >> 6] >> (cube & 63)) & 1U) ^ 1U);
+    });
   }
-  result.num_overhang = count_overhang(overhang, rows);
 
   // V restored to all clear.
   for (const std::uint32_t word : nonzero) occupancy[word] = 0;
@@ -569,6 +606,44 @@ void collapse_sparse(const Cloud& cloud, const CollapseParams& params, CollapseR
   result.num_overhang = count;
 }
 
+/// detail::measure_extent, on `parts` threads for a plain cloud (each measures a run of rows; the
+/// bounding box does not depend on the order).
+template <typename Cloud>
+detail::CloudExtent measure_extent_on(const Cloud& cloud, bool drop_non_finite, int parts) {
+  if constexpr (!Cloud::kPlain) {
+    return detail::measure_extent(cloud, drop_non_finite);
+  } else {
+    if (parts <= 1) return detail::measure_extent(cloud, drop_non_finite);
+    using Scalar = std::remove_cv_t<std::remove_pointer_t<decltype(cloud.view().data)>>;
+    const PointsView<Scalar>& view = cloud.view();
+    std::vector<detail::CloudExtent> extents(static_cast<std::size_t>(parts));
+    detail::for_each_part(parts, [&](int part) {
+      const auto [begin, end] = part_rows(view.size, 2048, part, parts);
+      PointsView<Scalar> rows = view;
+      rows.data = view.data + static_cast<std::ptrdiff_t>(begin) * view.row_stride;
+      rows.size = end - begin;
+      const Cloud piece(rows, Eigen::Matrix4d::Identity(), std::nullopt);
+      extents[static_cast<std::size_t>(part)] = detail::measure_extent(piece, true);
+      extents[static_cast<std::size_t>(part)].first_non_finite_row += begin;
+    });
+    detail::CloudExtent extent;
+    for (const detail::CloudExtent& piece : extents) {
+      extent.min = extent.min.cwiseMin(piece.min);
+      extent.max = extent.max.cwiseMax(piece.max);
+      extent.num_used += piece.num_used;
+      if (piece.num_non_finite > 0 && extent.num_non_finite == 0) {
+        extent.first_non_finite_row = piece.first_non_finite_row;  // parts are in row order
+      }
+      extent.num_non_finite += piece.num_non_finite;
+      extent.num_cropped += piece.num_cropped;
+    }
+    if (extent.num_non_finite > 0 && !drop_non_finite) {
+      detail::throw_non_finite_rows(extent.num_non_finite, cloud.size(), extent.first_non_finite_row);
+    }
+    return extent;
+  }
+}
+
 template <typename Scalar>
 CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapseParams& params) {
   detail::check_collapse_params(params);
@@ -584,8 +659,10 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
   // A transform or a crop is applied on the fly: with AVX2 the extent and quantisation kernels
   // level four rows at a time (the arithmetic of LeveledCloud::map), so each pass reads the input
   // rows once and nothing is written per row but the cube index.
+  constexpr std::size_t kRowsPerThread = 32768;
+  const int parts = detail::thread_count(params.num_threads, points.size, kRowsPerThread);
   detail::visit_leveled(points, params.transform, params.crop, [&](const auto& cloud) {
-    const detail::CloudExtent extent = detail::measure_extent(cloud, params.drop_non_finite);
+    const detail::CloudExtent extent = measure_extent_on(cloud, params.drop_non_finite, parts);
     result.num_used = extent.num_used;
     result.num_cropped = extent.num_cropped;
     result.num_dropped_non_finite = extent.num_non_finite;
@@ -593,7 +670,7 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
     result.grid = detail::make_grid(extent, params.edge_m);
     result.storage_used = choose_storage(result.grid, params, extent.num_used);
     if (result.storage_used == CubeStorage::kDense) {
-      collapse_dense(cloud, params, result);
+      collapse_dense(cloud, params, parts, result);
     } else {
       collapse_sparse(cloud, params, result);
     }

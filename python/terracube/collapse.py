@@ -80,6 +80,13 @@ class CollapseParams:
         Drop NaN/Inf rows (never overhang) instead of raising ValueError.
     storage : {"auto", "dense", "sparse"}
         Storage of V and M; all give identical results.
+    dense_budget_bytes : int
+        Largest V + M allowed for the dense storage [bytes].
+    num_threads : int
+        Threads (OpenMP) for the passes over the points on the dense storage: 1 runs on the calling
+        thread alone, 0 uses one per processor; the result is the same whatever the number. As for
+        :class:`terracube.ElevationParams`, a forked child must not ask for more than one thread
+        if its parent did.
     """
 
     edge: float = 0.5
@@ -89,6 +96,7 @@ class CollapseParams:
     drop_non_finite: bool = False
     storage: str = "auto"
     dense_budget_bytes: int = field(default=256 << 20)
+    num_threads: int = 1
 
     def to_core(self) -> _core.CollapseParams:
         if self.storage not in _STORAGE:
@@ -105,6 +113,7 @@ class CollapseParams:
         params.drop_non_finite = bool(self.drop_non_finite)
         params.storage = _STORAGE[self.storage]
         params.dense_budget_bytes = int(self.dense_budget_bytes)
+        params.num_threads = _num_threads(self.num_threads)
         return params
 
 
@@ -147,6 +156,7 @@ def collapse_overhangs(
     crop=None,
     drop_non_finite: bool = False,
     storage: str = "auto",
+    num_threads: int = 1,
     params: CollapseParams | None = None,
 ) -> CollapseResult:
     """Remove overhangs with collapsible cubes (Algorithm 1 of Reina et al. 2014).
@@ -155,7 +165,7 @@ def collapse_overhangs(
     ----------
     points : (N, 3) float32 or float64 array
         x, y, z [m]; any strides, not copied. Other sequences are converted to float64.
-    edge, sigma, transform, crop, drop_non_finite, storage
+    edge, sigma, transform, crop, drop_non_finite, storage, num_threads
         See :class:`CollapseParams`; ``params`` overrides them all when given.
 
     Returns
@@ -173,7 +183,9 @@ def collapse_overhangs(
         A dtype other than float32 or float64.
     """
     if params is None:
-        params = CollapseParams(edge, sigma, transform, crop, drop_non_finite, storage)
+        params = CollapseParams(
+            edge, sigma, transform, crop, drop_non_finite, storage, num_threads=num_threads
+        )
     return _core.collapse_overhangs(_as_points(points), params.to_core())
 
 

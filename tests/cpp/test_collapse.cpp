@@ -3,11 +3,13 @@
 
 #include <algorithm>
 #include <cmath>
+#include <functional>
 #include <limits>
 #include <random>
 #include <set>
 
 #include "test_support.hpp"
+#include "threads.hpp"  // private: detail::largest_team
 
 namespace terracube {
 namespace {
@@ -662,6 +664,122 @@ TEST(CollapseStorage, TenKilometreCloudAtFiveCentimetresStaysSparseAndExact) {
   EXPECT_TRUE(std::equal(near_only.overhang.begin(), near_only.overhang.end(), result.overhang.begin() + n));
   params.storage = CubeStorage::kDense;
   EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument);
+}
+
+// --- several threads (CollapseParams::num_threads) -----------------------------------------------
+
+/// collapse_overhangs with `threads` threads, which must have run on more than one.
+CollapseResult collapse_on_threads(const std::function<CollapseResult(const CollapseParams&)>& collapse,
+                                   CollapseParams params, int threads) {
+  params.num_threads = threads;
+  detail::largest_team(true);
+  CollapseResult result = collapse(params);
+  EXPECT_GE(detail::largest_team(), 2) << threads << " threads asked for, the call ran on one";
+  return result;
+}
+
+void expect_same_result(const CollapseResult& actual, const CollapseResult& expected) {
+  EXPECT_EQ(actual.overhang, expected.overhang);
+  EXPECT_EQ(actual.occupied_cubes, expected.occupied_cubes);
+  EXPECT_EQ(actual.removed_cubes, expected.removed_cubes);
+  EXPECT_EQ(actual.num_overhang, expected.num_overhang);
+  EXPECT_EQ(actual.num_used, expected.num_used);
+  EXPECT_EQ(actual.num_cropped, expected.num_cropped);
+  EXPECT_EQ(actual.num_dropped_non_finite, expected.num_dropped_non_finite);
+  EXPECT_EQ(actual.grid.min_corner, expected.grid.min_corner);
+  EXPECT_EQ(actual.grid.ixmax, expected.grid.ixmax);
+  EXPECT_EQ(actual.grid.iymax, expected.grid.iymax);
+  EXPECT_EQ(actual.grid.izmax, expected.grid.izmax);
+}
+
+TEST(CollapseThreads, RandomScenesOnAnyNumberOfThreadsMatchTheNaiveAlgorithm) {
+  // V as bits (a 52 m scene at 0.5 m, and the summary path at 0.1 m) and as bytes (a 6 m scene at
+  // 0.5 m: under 2^16 cubes), float rows strided and double rows, against the naive Algorithm 1.
+  struct Case {
+    std::uint32_t seed;
+    double extent_m, edge_m;
+  };
+  for (const Case c : {Case{81, 52.0, 0.5}, Case{82, 30.0, 0.1}, Case{83, 6.0, 0.5}}) {
+    SCOPED_TRACE("seed " + std::to_string(c.seed));
+    const auto points = test::random_scene(c.seed, 150000, c.extent_m);
+    const NaiveResult expected = naive_algorithm1(points, c.edge_m, 2);
+    std::vector<float> strided(points.size() * 4);
+    for (std::size_t row = 0; row < points.size(); ++row) {
+      for (int axis = 0; axis < 3; ++axis) strided[row * 4 + axis] = static_cast<float>(points[row][axis]);
+    }
+    const PointsView<float> floats(strided.data(), points.size(), 4, 1);
+    CollapseParams params;
+    params.edge_m = c.edge_m;
+    params.storage = CubeStorage::kDense;
+    const CollapseResult float_serial = collapse_overhangs(floats, params);
+    for (const int threads : {2, 3, 0}) {
+      SCOPED_TRACE(std::to_string(threads) + " threads");
+      const CollapseResult result =
+          collapse_on_threads([&](const CollapseParams& p) { return collapse_overhangs(points, p); }, params, threads);
+      EXPECT_EQ(result.overhang, expected.overhang);
+      EXPECT_EQ(result.occupied_cubes, expected.occupied);
+      EXPECT_EQ(result.removed_cubes, expected.removed);
+      expect_same_result(
+          collapse_on_threads([&](const CollapseParams& p) { return collapse_overhangs(floats, p); }, params, threads),
+          float_serial);
+    }
+  }
+}
+
+TEST(CollapseThreads, RealScansLatticeRowsTransformsCropsAndNaNRowsGiveTheOneThreadResult) {
+  const auto data = test::shared_data_dir();
+  if (!data) GTEST_SKIP() << "../shared/data not found (set TERRACUBE_DATA_DIR)";
+  const test::XyziScan scan = test::read_xyzi_bin(*data + "/kitti_seq00/velodyne/000000.bin");
+  CollapseParams params;
+  const auto kitti = [&](const CollapseParams& p) { return collapse_overhangs(scan.xyz(), p); };
+  expect_same_result(collapse_on_threads(kitti, params, 2), kitti(params));
+  // Leveled and cropped (the rows' extent and indices through the leveling kernels).
+  params.transform = leveling_transform(0.03, -0.02);
+  params.crop = CropBox{{-40.0, -40.0, -3.0}, {40.0, 40.0, 20.0}};
+  expect_same_result(collapse_on_threads(kitti, params, 3), kitti(params));
+  // A 1 cm lattice: many rows on cube borders hand blocks to the double kernel.
+  std::vector<Eigen::Vector3d> lattice;
+  for (const Eigen::Vector3d& p : scan.as_vectors()) lattice.push_back((p * 100.0).array().round() / 100.0);
+  params = CollapseParams{};
+  const auto on_lattice = [&](const CollapseParams& p) { return collapse_overhangs(lattice, p); };
+  expect_same_result(collapse_on_threads(on_lattice, params, 2), on_lattice(params));
+  // NaN rows in both halves: counted once each, the first one named; dropped on request.
+  std::vector<Eigen::Vector3d> poisoned = lattice;
+  for (const std::size_t row : {std::size_t{120000}, std::size_t{70}, std::size_t{71}}) poisoned[row].z() = NAN;
+  params.num_threads = 2;
+  try {
+    collapse_overhangs(poisoned, params);
+    ADD_FAILURE() << "expected std::invalid_argument";
+  } catch (const std::invalid_argument& error) {
+    EXPECT_NE(std::string(error.what()).find("3 of 124668 point rows contain NaN or Inf (first at row 70)"),
+              std::string::npos)
+        << error.what();
+  }
+  params.drop_non_finite = true;
+  const auto dropping = [&](const CollapseParams& p) { return collapse_overhangs(poisoned, p); };
+  const CollapseResult dropped = collapse_on_threads(dropping, params, 2);
+  params.num_threads = 1;
+  expect_same_result(dropped, dropping(params));
+  EXPECT_EQ(dropped.num_dropped_non_finite, 3U);
+}
+
+TEST(CollapseThreads, SmallCloudsRunOnOneThreadAndNegativeCountsAreRejected) {
+  const auto points = test::random_scene(84, 20000, 8.0);
+  CollapseParams params;
+  params.num_threads = 8;
+  detail::largest_team(true);
+  const CollapseResult result = collapse_overhangs(points, params);
+  EXPECT_EQ(detail::largest_team(), 0) << "20,000 points are not worth waking a thread";
+  params.num_threads = 1;
+  expect_same_result(result, collapse_overhangs(points, params));
+  params.num_threads = -3;
+  try {
+    collapse_overhangs(points, params);
+    ADD_FAILURE() << "expected std::invalid_argument";
+  } catch (const std::invalid_argument& error) {
+    EXPECT_NE(std::string(error.what()).find("CollapseParams.num_threads must be >= 0"), std::string::npos)
+        << error.what();
+  }
 }
 
 // --- bad input --------------------------------------------------------------------------------

@@ -233,6 +233,21 @@ def test_ouster_scan_matches_naive_algorithm1_for_every_storage(shared_data):
     assert len(reference.removed) > 0
 
 
+@pytest.mark.parametrize("num_threads", [2, 0])
+def test_kitti_and_ouster_scans_on_several_threads_match_naive_algorithm1(shared_data, num_threads):
+    for xyz in (shared_data.kitti_xyzi(0)[:, :3], shared_data.ouster_xyzi()[:, :3].astype(np.float64)):
+        reference = naive_algorithm1(xyz, 0.5, 2)
+        result = tc.collapse_overhangs(xyz, 0.5, 2, num_threads=num_threads)
+        assert_same_as_naive(result, reference)
+        assert result.num_overhang == int(result.overhang.sum()) > 0
+
+
+@pytest.mark.parametrize("num_threads", [-1, 2.5, False])
+def test_num_threads_that_is_not_a_whole_number_at_least_zero_raises_value_error(num_threads):
+    with pytest.raises(ValueError, match="num_threads"):
+        tc.collapse_overhangs(np.zeros((4, 3)), num_threads=num_threads)
+
+
 # --------------------------------------------------------------------------------------------
 # Hand-made columns (edge 1, points at integer heights).
 # --------------------------------------------------------------------------------------------
