@@ -194,6 +194,14 @@ def print_header(
     print(header_line("data", f"{args.data_dir}{f'  (--quick: {quick_note})' if args.quick else ''}"))
 
 
+def processors() -> int:
+    """The processors this process may run on (what ``num_threads=0`` uses)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
 def describe_points(points: np.ndarray) -> str:
     """``N = <count> points (<dtype>, contiguous|strided)``."""
     layout = "contiguous" if points.flags.c_contiguous else "strided"

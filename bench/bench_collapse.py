@@ -15,8 +15,10 @@ of four ways to flag overhang points (five timings):
    "auto" storage it keeps a bool per cube while the grid is small and falls back to np.unique
    otherwise. It is also timed forced onto the np.unique path (:func:`numpy_collapse_unique`).
 
-Every method runs single-threaded (the C++ code uses no threads, and the numpy version uses only
-element-wise operations, sorts and gathers, none of which numpy parallelises). Ratios are
+Every method runs single-threaded (the numpy version uses only element-wise operations, sorts and
+gathers, none of which numpy parallelises), and collapse_overhangs runs once more on every
+processor the process may use (``num_threads=0``; its result is first checked equal to one
+thread's), shown as "same, N threads" and as a second numpy ratio. Ratios are
 ``method time / collapse_overhangs time``.
 
 The memory floor (:func:`memory_floor`): per input, bare C++ loops (``terracube._core._memory_floor``,
@@ -70,6 +72,7 @@ from _common import (
     parse_benchmark_args,
     print_header,
     print_target,
+    processors,
     require,
 )
 
@@ -311,7 +314,7 @@ def load_inputs(data_dir: Path, quick: bool) -> list[Cloud]:
 # Timing and checks
 # --------------------------------------------------------------------------------------------
 
-METHODS = ("collapse", "point_gap", "octomap", "numpy", "numpy_unique")
+METHODS = ("collapse", "collapse_threads", "point_gap", "octomap", "numpy", "numpy_unique")
 
 
 @dataclass
@@ -345,6 +348,12 @@ def check_agreement(cloud: Cloud, edge: float, sigma: int, measurement: Measurem
         measurement.octomap_error = str(error)
     else:
         _require_same_mask(cloud.name, "octomap", octomap, result.overhang)
+    threaded = tc.collapse_overhangs(points, edge, sigma, num_threads=0)
+    for field_name in ("overhang", "occupied_cubes", "removed_cubes"):
+        require(
+            np.array_equal(getattr(threaded, field_name), getattr(result, field_name)),
+            f"{cloud.name}: num_threads=0 gives another {field_name} than one thread",
+        )
     point_gap = tc.point_gap_overhangs(points, edge, sigma * edge)
     measurement.point_gap_agreement = float(np.mean(point_gap == result.overhang))
     measurement.overhang_fraction = float(np.mean(result.overhang))
@@ -418,6 +427,7 @@ def measure(cloud: Cloud, edge: float, sigma: int, repeat: int) -> Measurement:
     points = cloud.points
     runs = {
         "collapse": lambda: tc.collapse_overhangs(points, edge, sigma),
+        "collapse_threads": lambda: tc.collapse_overhangs(points, edge, sigma, num_threads=0),
         "point_gap": lambda: tc.point_gap_overhangs(points, edge, sigma * edge),
         "octomap": lambda: tc.octomap_column_overhangs(points, edge, sigma),
         "numpy": lambda: numpy_collapse(points, edge, sigma),
@@ -471,6 +481,7 @@ def print_collapse_header(args: argparse.Namespace) -> None:
         "method time / collapse_overhangs time",
         args,
         "smaller inputs",
+        threads=f"single-threaded, and collapse_overhangs on {processors()} threads too",
     )
 
 
@@ -483,6 +494,7 @@ def _cell(measurement: Measurement, method: str) -> tuple[str, str]:
 
 LABELS = {
     "collapse": "collapse_overhangs (C++)",
+    "collapse_threads": f"  same, {processors()} threads",
     "point_gap": "point_gap_overhangs (C++)",
     "octomap": "octomap_column_overhangs (C++)",
     "numpy": "numpy_collapse (numpy)",
@@ -532,6 +544,10 @@ def print_targets(measurements: list[Measurement], quick: bool) -> None:
     octomap_ratios = [m.ms["octomap"] / m.ms["collapse"] for m in measurements if m.ms.get("octomap")]
     unique_ratios = [m.ms["numpy_unique"] / m.ms["collapse"] for m in measurements]
     print_target("collapse vs numpy  >= 20x on every input", numpy_ratios, lambda r: r >= 20.0, "x")
+    threaded_ratios = [m.ms["numpy"] / m.ms["collapse_threads"] for m in measurements]
+    print_target(
+        f"  (collapse on {processors()} threads, numpy on one)", threaded_ratios, lambda r: r >= 20.0, "x"
+    )
     bounds = [m.ms["numpy"] / m.floor["floor_ms"] for m in measurements]
     print(f"    the memory floor allows at most: {', '.join(f'{bound:.1f}x' for bound in bounds)}")
     below = [m.cloud.name for m, bound in zip(measurements, bounds, strict=True) if bound < 20.0]
@@ -548,7 +564,7 @@ def print_targets(measurements: list[Measurement], quick: bool) -> None:
 
 
 def print_markdown(measurements: list[Measurement]) -> None:
-    heads = ["point_gap", "OctoMap", "numpy", "numpy (np.unique)"]
+    heads = [f"collapse, {processors()} threads", "point_gap", "OctoMap", "numpy", "numpy (np.unique)"]
     columns = [
         "input",
         "N",

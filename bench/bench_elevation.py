@@ -59,7 +59,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -81,6 +80,7 @@ from _common import (
     parse_benchmark_args,
     print_header,
     print_target,
+    processors,
     require,
 )
 
@@ -281,14 +281,6 @@ def elevation_params(
     return tc.ElevationParams(
         resolution, origin=origin, size=size, discontinuity=discontinuity, num_threads=num_threads
     )
-
-
-def processors() -> int:
-    """The processors this process may run on (what ``num_threads=0`` uses)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
 
 
 # --------------------------------------------------------------------------------------------
