@@ -14,8 +14,12 @@ void check_num_threads(int num_threads, const std::string& what);
 /// How many parts a call splits into: `num_threads` (0 = one per processor the process may use),
 /// but no more than one per `min_work` units of `work` (threads cost several microseconds to wake
 /// up), and at least 1. With 1 no thread is started, so a process that never asks for more never
-/// starts OpenMP's thread pool (which does not survive a fork()).
+/// starts OpenMP's thread pool. The pool does not survive fork() (in a child, GCC's libgomp hangs
+/// at the next parallel region): in a forked child of a process that started it, always 1.
 int thread_count(int num_threads, std::size_t work, std::size_t min_work);
+
+/// Records that this process starts OpenMP's thread pool (for thread_count's fork check).
+void note_pool_start();
 
 /// Called inside a parallel region: records its number of threads for largest_team().
 void note_team();
@@ -34,6 +38,7 @@ void for_each_part(int parts, const Body& body) {
     body(0);
     return;
   }
+  note_pool_start();
   std::exception_ptr error;
 #pragma omp parallel for schedule(static, 1) num_threads(parts)
   for (int part = 0; part < parts; ++part) {

@@ -194,8 +194,9 @@ class ElevationParams:
     num_threads : int
         Threads (OpenMP): 1 runs on the calling thread alone, 0 uses one per processor. The map is
         the same bit for bit whatever the number; small clouds (under about 32,000 points per
-        thread) use fewer. OpenMP's thread pool does not survive ``fork()``: a forked child (a
-        ``multiprocessing`` "fork" worker) must not ask for more than one thread if its parent did.
+        thread) use fewer. OpenMP's thread pool does not survive ``fork()``, so in a forked child
+        (a ``multiprocessing`` "fork" worker) of a process that used several threads, calls run
+        on one.
     """
 
     resolution: float = 0.1

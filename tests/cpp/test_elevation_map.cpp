@@ -3,8 +3,13 @@
 #include <terracube/collapse.hpp>
 #include <terracube/elevation_map.hpp>
 
+#include <sys/wait.h>
+#include <unistd.h>
+
 #include <algorithm>
+#include <chrono>
 #include <cmath>
+#include <csignal>
 #include <functional>
 #include <limits>
 #include <map>
@@ -1092,6 +1097,35 @@ TEST(BuildElevationMapThreads, NaNRowsInSeveralThreadsBlocksAreCountedOnceAndThe
   params.num_threads = 1;
   expect_same_statistics(dropped, build_elevation_map(PointsView<double>(points), params));
   EXPECT_EQ(dropped.get("count").sum(), static_cast<float>(points.size() - 4));
+}
+
+TEST(BuildElevationMapThreads, AForkedChildOfAProcessThatUsedThreadsBuildsOnOneInsteadOfHanging) {
+  // GCC's libgomp hangs at the first parallel region of a forked child whose parent started its
+  // thread pool: the child's calls must run on the calling thread.
+  const auto points = test::random_scene(77, 100000, 10.0);
+  ElevationParams params;
+  params.num_threads = 2;
+  const ElevationMap parent = build_elevation_map(PointsView<double>(points), params);  // starts the pool
+  const float expected = parent.get("count").sum();
+  const pid_t child = fork();
+  ASSERT_GE(child, 0) << "fork failed";
+  if (child == 0) {
+    const ElevationMap map = build_elevation_map(PointsView<double>(points), params);
+    _exit(map.get("count").sum() == expected ? 0 : 1);
+  }
+  int status = 0;
+  pid_t done = 0;
+  for (int tick = 0; tick < 600 && done == 0; ++tick) {  // up to 60 s
+    done = waitpid(child, &status, WNOHANG);
+    if (done == 0) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  if (done == 0) {
+    kill(child, SIGKILL);
+    waitpid(child, &status, 0);
+    FAIL() << "the forked child hung in its first threaded build";
+  }
+  ASSERT_TRUE(WIFEXITED(status));
+  EXPECT_EQ(WEXITSTATUS(status), 0) << "the child's map differs from the parent's";
 }
 
 TEST(BuildElevationMapThreads, SmallCloudsAndMapsRunOnOneThreadAndNegativeCountsAreRejected) {

@@ -841,3 +841,30 @@ def test_num_threads_that_is_not_a_whole_number_at_least_zero_raises_value_error
     elevation_map = tc.build_elevation_map(points, 0.5)
     with pytest.raises(ValueError, match="num_threads"):
         tc.classify_terrain(elevation_map, num_threads=num_threads)
+
+
+def _threaded_counts_in_child(points, queue):
+    elevation_map = tc.build_elevation_map(points, 0.5, num_threads=2)
+    collapsed = tc.collapse_overhangs(points, 0.5, 2, num_threads=2)
+    queue.put((float(elevation_map["count"].sum()), int(collapsed.num_overhang)))
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="fork() start method")
+def test_a_forked_child_of_a_process_that_used_threads_still_builds_instead_of_hanging():
+    # GCC's libgomp hangs at the first parallel region of a forked child whose parent had started
+    # its thread pool; the library runs such a child's calls on one thread.
+    import multiprocessing
+
+    points = np.random.default_rng(5).random((150_000, 3)) * [60.0, 60.0, 8.0]
+    expected_map = tc.build_elevation_map(points, 0.5, num_threads=2)  # starts the pool here
+    expected = (float(expected_map["count"].sum()), int(tc.collapse_overhangs(points, 0.5, 2).num_overhang))
+    context = multiprocessing.get_context("fork")
+    queue = context.Queue()
+    child = context.Process(target=_threaded_counts_in_child, args=(points, queue))
+    child.start()
+    child.join(60)
+    if child.is_alive():
+        child.kill()
+        pytest.fail("the forked child hung in its first threaded call")
+    assert child.exitcode == 0
+    assert queue.get(timeout=5) == expected

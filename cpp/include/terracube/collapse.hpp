@@ -42,8 +42,8 @@ struct CollapseParams {
   /// Threads (OpenMP) for the passes over the points (bounding box of an untransformed, uncropped
   /// cloud, cube indices, the mask) on the dense storage: 1 is the calling thread alone, 0 one per
   /// processor; clouds under about 32,000 points per thread use fewer. V, L, the sweep and the
-  /// sparse storage stay on the calling thread. The result is the same whatever the number. As for
-  /// ElevationParams::num_threads, OpenMP's thread pool does not survive fork().
+  /// sparse storage stay on the calling thread. The result is the same whatever the number. As with
+  /// ElevationParams::num_threads, a forked child of a process that used several runs on one.
   int num_threads = 1;
 };
 

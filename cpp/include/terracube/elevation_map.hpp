@@ -97,8 +97,8 @@ struct ElevationParams {
   std::size_t max_cells = std::size_t{1} << 26;
   /// Threads (OpenMP): 1 runs on the calling thread alone, 0 uses one per processor. The map is
   /// the same bit for bit whatever the number; clouds under about 32,000 points per thread use
-  /// fewer threads. The thread pool does not survive fork(): a process that forks after building
-  /// with more than one thread must not build with more than one in the child.
+  /// fewer threads. OpenMP's thread pool does not survive fork() (GCC's libgomp hangs in the
+  /// child): in a forked child of a process that used several threads, calls run on one.
   int num_threads = 1;
 };
 
