@@ -564,6 +564,14 @@ _SENSOR_HEIGHT = typer.Option(
     help=_help("Sensor height above the ground [m]: the ground is z = -height.", "terrain", "sensor_height"),
     show_default=False,
 )
+_NUM_THREADS = typer.Option(
+    None,
+    "--num-threads",
+    "-j",
+    help="Threads of the C++ passes (collapse, map, classes): 1 the calling thread, 0 one per processor; "
+    "the results are the same. [default: 1]",
+    show_default=False,
+)
 _REFERENCE = typer.Option(
     None,
     "--reference",
@@ -597,6 +605,7 @@ def collapse(
     crop: _Crop | None = _CROP,
     output_format: str = _FORMAT,
     png: bool = _PNG,
+    num_threads: int | None = _NUM_THREADS,
 ) -> None:
     """Remove overhangs (canopy, ceilings, bridge decks) from one scan with collapsible cubes.
 
@@ -607,7 +616,11 @@ def collapse(
     cfg = _config(
         config,
         frame=_frame_options(roll, pitch, crop),
-        collapse={"edge": edge, "sigma": _sigma_option(sigma, robot_height, edge, config)},
+        collapse={
+            "edge": edge,
+            "sigma": _sigma_option(sigma, robot_height, edge, config),
+            "num_threads": num_threads,
+        },
     )
     _run_and_print("collapse", input_path, output_dir, cfg, output_format=output_format, png=png)
 
@@ -656,6 +669,7 @@ def dem(
     size: tuple[int, int] | None = _SIZE,
     png: bool = _PNG,
     geotiff: bool = _GEOTIFF,
+    num_threads: int | None = _NUM_THREADS,
 ) -> None:
     """Build the DEM of one scan with and without overhangs (collapsible cubes); write the map and pictures.
 
@@ -665,8 +679,12 @@ def dem(
     cfg = _config(
         config,
         frame=_frame_options(roll, pitch, crop),
-        collapse={"edge": edge, "sigma": _sigma_option(sigma, robot_height, edge, config)},
-        elevation={"resolution": resolution, **_extent_options(origin, size)},
+        collapse={
+            "edge": edge,
+            "sigma": _sigma_option(sigma, robot_height, edge, config),
+            "num_threads": num_threads,
+        },
+        elevation={"resolution": resolution, **_extent_options(origin, size), "num_threads": num_threads},
     )
     _run_and_print("dem", input_path, output_dir, cfg, png=png, geotiff=geotiff)
 
@@ -723,6 +741,7 @@ def classify(
     ),
     png: bool = _PNG,
     geotiff: bool = _GEOTIFF,
+    num_threads: int | None = _NUM_THREADS,
 ) -> None:
     """Classify the cells of one scan's elevation map: ground, obstacle, overhanging, vertical, edge.
 
@@ -735,8 +754,8 @@ def classify(
     cfg = _config(
         config,
         frame=_frame_options(roll, pitch, crop),
-        collapse={"edge": edge, "sigma": sigma},
-        elevation={"resolution": resolution, **_extent_options(origin, size)},
+        collapse={"edge": edge, "sigma": sigma, "num_threads": num_threads},
+        elevation={"resolution": resolution, **_extent_options(origin, size), "num_threads": num_threads},
         terrain=_terrain_options(
             ground_height=ground_height,
             std_dev=std_dev,
@@ -744,6 +763,7 @@ def classify(
             reference=reference,
             sensor_height=sensor_height,
             local_ground_radius=ground_radius,
+            num_threads=num_threads,
         ),
     )
     _run_and_print(

@@ -383,12 +383,12 @@ TEST(TerrainVsNaive, SeveralThreadsGiveTheNaiveClassesAndTheOneThreadLayers) {
   TerrainParams params;
   params.sensor_height_m = 1.73;
   std::uint32_t seed = 200;
-  for (const auto& [nx, ny] : std::vector<std::pair<int, int>>{{300, 240}, {1000, 67}, {67, 1500}}) {
+  for (const auto& [nx, ny] : std::vector<std::pair<int, int>>{{800, 700}, {4000, 67}, {67, 4000}}) {
     for (const GroundReference reference : {GroundReference::kSensorHeight, GroundReference::kLocalGround}) {
       SCOPED_TRACE("map " + std::to_string(nx) + " x " + std::to_string(ny) + ", seed " + std::to_string(seed));
       params.reference = reference;
       params.local_ground_radius_cells = 3;
-      ElevationMap serial_map = random_threshold_map(seed++, nx, ny, params, nx == 1000);
+      ElevationMap serial_map = random_threshold_map(seed++, nx, ny, params, nx == 4000);
       ElevationMap threaded_map = serial_map;
       params.num_threads = 1;
       const TerrainClassification serial = classify_terrain(serial_map, params);

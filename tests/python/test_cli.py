@@ -374,3 +374,35 @@ def test_the_console_script_runs_as_a_subprocess(tmp_path):
     assert done.returncode == 0, done.stderr
     expected = tc.collapse_overhangs(points, 0.5, 2).overhang
     np.testing.assert_array_equal(np.load(tmp_path / "o" / "scan_classified.npz")["overhang"], expected)
+
+
+def test_dem_and_classify_on_every_processor_write_the_one_thread_results(runner, tmp_path):
+    rng = np.random.default_rng(11)
+    _, points = _scan(tmp_path)
+    tiles = [points + np.array([10.0 * (k % 5), 10.0 * (k // 5), 0.0], np.float32) for k in range(20)]
+    big = np.vstack(tiles) + rng.normal(0, 0.01, (len(points) * 20, 3)).astype(np.float32)
+    path = tmp_path / "big.npy"
+    np.save(path, big)
+    outputs = {}
+    for threads in ("1", "0"):
+        out = tmp_path / f"threads_{threads}"
+        for command in ("dem", "classify"):
+            result = runner.invoke(
+                app, [command, str(path), "-o", str(out), "-r", "0.5", "--num-threads", threads, "--no-png"]
+            )
+            assert result.exit_code == 0, result.output
+        outputs[threads] = (
+            tc.ElevationMap.load(out / "big_dem.npz"),
+            tc.ElevationMap.load(out / "big_classes.npz"),
+        )
+    for one, every in zip(outputs["1"], outputs["0"], strict=True):
+        assert one.layers == every.layers
+        for name in one.layers:
+            np.testing.assert_array_equal(every[name], one[name], err_msg=name)
+
+
+def test_a_negative_number_of_threads_exits_with_status_2_naming_it(runner, tmp_path):
+    path, _ = _scan(tmp_path)
+    result = runner.invoke(app, ["dem", str(path), "-o", str(tmp_path / "out"), "--num-threads", "-1"])
+    assert result.exit_code == 2
+    assert "num_threads" in result.output
