@@ -43,6 +43,7 @@ void bind_mapper(py::module_& m) {
       .def_readwrite("resolution_m", &MapperParams::resolution_m)
       .def_readwrite("local_map_size_m", &MapperParams::local_map_size_m)
       .def_readwrite("max_scans_per_local_map", &MapperParams::max_scans_per_local_map)
+      .def_readwrite("num_threads", &MapperParams::num_threads)
       .def_readwrite("keep_local_maps", &MapperParams::keep_local_maps)
       .def_readwrite("min_range_m", &MapperParams::min_range_m)
       .def_readwrite("discontinuity_m", &MapperParams::discontinuity_m)

@@ -16,6 +16,7 @@
 
 #include "terracube/collapse.hpp"
 #include "terracube/pose_graph.hpp"
+#include "threads.hpp"
 
 namespace terracube {
 
@@ -55,6 +56,7 @@ void check_params(const MapperParams& p) {
   check_positive(p.loop_search_window_m, "loop_search_window_m");
   check_positive(p.overlap_block_m, "overlap_block_m");
   if (p.max_scans_per_local_map < 1) throw std::invalid_argument("MapperParams.max_scans_per_local_map must be >= 1");
+  detail::check_num_threads(p.num_threads, "MapperParams");
   if (!(p.loop_yaw_search_rad >= 0.0) || !std::isfinite(p.loop_yaw_search_rad)) {
     throw std::invalid_argument("MapperParams.loop_yaw_search_rad must be finite and >= 0");
   }
@@ -319,6 +321,7 @@ void Mapper::Impl::build_local_map(Keyframe& keyframe) {
   elevation.size = CellIndex(cells, cells);
   elevation.origin_m = Eigen::Vector2d::Constant(-0.5 * cells * params.resolution_m);
   elevation.discontinuity_m = params.discontinuity_m;
+  elevation.num_threads = params.num_threads;
   // The keyframe's own scan and the buffered scans since the previous keyframe, moved into the
   // keyframe's leveled frame L by odometry (locally accurate): a denser local map than one scan.
   const Eigen::Matrix4d level_world = inverse_rigid(keyframe.odometry_level);

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import _core
+from .collapse import _num_threads
 from .elevation import ElevationMap, TerrainParams
 from .registration import RegistrationParams
 
@@ -44,6 +45,10 @@ class MapperParams:
     max_scans_per_local_map : int
         A local map holds the keyframe's scan and the scans since the previous keyframe (at most this
         many, the newest), moved into the keyframe's leveled frame by odometry; 1: one scan alone.
+    num_threads : int
+        Threads of each local map (as :class:`terracube.ElevationParams`': 1 the calling thread, 0
+        one per processor; the same map whatever the number). Its classes take
+        ``terrain.num_threads``.
     keep_local_maps : bool
         Keep every keyframe's local map for :meth:`Mapper.local_map`; off, only the newest is kept
         (memory per keyframe: its cells and the cells its class weights can pair).
@@ -104,6 +109,7 @@ class MapperParams:
     resolution: float = 0.2
     local_map_size: float = 40.0
     max_scans_per_local_map: int = 1
+    num_threads: int = 1
     keep_local_maps: bool = False
     min_range: float = 0.5
     discontinuity: float = 1.0
@@ -140,6 +146,7 @@ class MapperParams:
         params.resolution_m = float(self.resolution)
         params.local_map_size_m = float(self.local_map_size)
         params.max_scans_per_local_map = int(self.max_scans_per_local_map)
+        params.num_threads = _num_threads(self.num_threads)
         params.keep_local_maps = bool(self.keep_local_maps)
         params.min_range_m = float(self.min_range)
         params.discontinuity_m = float(self.discontinuity)

@@ -8,7 +8,10 @@
 #include <cmath>
 #include <map>
 #include <random>
+#include <string>
 #include <vector>
+
+#include "threads.hpp"  // private: detail::largest_team
 
 namespace terracube {
 namespace {
@@ -306,6 +309,43 @@ TEST(Mapper, ChainingByRegistrationBeatsDriftingOdometry) {
   const MapperTimings& t = mapper.timings();
   EXPECT_EQ(t.keyframes, indices.size());
   EXPECT_EQ(t.scans, truth.size());
+}
+
+TEST(Mapper, LocalMapsOnSeveralThreadsGiveTheOneThreadPosesAndGlobalMap) {
+  // Five scans a local map (about 70,000 points: enough for two threads), registration on.
+  const auto world = world_cloud(3);
+  const auto truth = square_loop(1.0, 0);
+  const auto odometry = drifting_odometry(truth, 0.004, 0.02);
+  auto run = [&](int threads) {
+    MapperParams params;
+    params.loop_closing = false;
+    params.max_scans_per_local_map = 5;
+    params.num_threads = threads;
+    Mapper mapper(params);
+    for (std::size_t k = 0; k < 24; ++k) {
+      const auto scan = scan_of(world, truth[k], 20.0);
+      mapper.add_scan(PointsView<float>(scan.data()->data(), scan.size()), odometry[k]);
+    }
+    return std::make_pair(mapper.keyframe_poses(), mapper.global_map());
+  };
+  const auto [poses, map] = run(1);
+  detail::largest_team(true);
+  const auto [threaded_poses, threaded_map] = run(2);
+  EXPECT_GE(detail::largest_team(), 2) << "the local maps were built on one thread";
+  ASSERT_EQ(threaded_poses.size(), poses.size());
+  ASSERT_GE(poses.size(), 5u);
+  for (std::size_t k = 0; k < poses.size(); ++k) EXPECT_EQ(threaded_poses[k], poses[k]) << "keyframe " << k;
+  ASSERT_EQ(threaded_map.layers(), map.layers());
+  for (const std::string& name : map.layers()) {
+    const Layer& a = threaded_map.get(name);
+    const Layer& b = map.get(name);
+    EXPECT_EQ(a.array().isNaN().matrix(), b.array().isNaN().matrix()) << name;
+    EXPECT_EQ(a.array().isNaN().select(0.0F, a.array()).matrix(), b.array().isNaN().select(0.0F, b.array()).matrix())
+        << name;
+  }
+  MapperParams bad;
+  bad.num_threads = -1;
+  EXPECT_THROW(Mapper{bad}, std::invalid_argument);
 }
 
 TEST(Mapper, YawOnlyStepsKeepOdometrysRollAndPitch) {

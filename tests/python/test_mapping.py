@@ -177,6 +177,8 @@ def test_bad_input_raises_clear_errors():
     assert len(mapper) == 0  # the failed scans left no trace
     with pytest.raises(ValueError, match="keyframe_distance"):
         Mapper(MapperParams(keyframe_distance=0.0))
+    with pytest.raises(ValueError, match="num_threads"):
+        Mapper(MapperParams(num_threads=-1))
     with pytest.raises(IndexError):
         mapper.local_map(3)
 

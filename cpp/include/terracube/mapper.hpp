@@ -38,6 +38,9 @@ struct MapperParams {
   /// test world with 0.23 deg/m of yaw drift: chaining error 0.02 m with 1 scan, 0.5 m with 3).
   /// 1 (default): the keyframe's scan alone, as in the paper.
   int max_scans_per_local_map = 1;
+  /// Threads of each keyframe's local map (ElevationParams::num_threads: 1 the calling thread, 0
+  /// one per processor; the same map whatever the number). Its classes take terrain.num_threads.
+  int num_threads = 1;
   /// Keep every keyframe's local map (all layers) for local_map(k). Off, only the newest is kept and
   /// a keyframe holds its cells (about 28 bytes each) and the cells its class weights can pair.
   bool keep_local_maps = false;
