@@ -276,15 +276,19 @@ std::size_t write_mask(std::uint8_t* overhang, std::size_t rows, int parts, cons
   std::vector<std::size_t> counted(static_cast<std::size_t>(std::max(parts, 1)), 0);
   detail::for_each_part(parts, [&](int part) {
     const auto [begin, end] = part_rows(rows, 2048, part, parts);
+    // Local copies: a byte store may alias anything reached through a reference (the captured
+    // pointer, the flag's), which the compiler would then reload on every row.
+    std::uint8_t* const out = overhang;
+    const Flag of = flag;
     std::size_t row = begin;
     for (; row + 4 <= end; row += 4) {  // unrolled by hand (GCC does not at -O3)
-      overhang[row] = flag(row);
-      overhang[row + 1] = flag(row + 1);
-      overhang[row + 2] = flag(row + 2);
-      overhang[row + 3] = flag(row + 3);
+      out[row] = of(row);
+      out[row + 1] = of(row + 1);
+      out[row + 2] = of(row + 2);
+      out[row + 3] = of(row + 3);
     }
-    for (; row < end; ++row) overhang[row] = flag(row);
-    counted[static_cast<std::size_t>(part)] = count_overhang(overhang + begin, end - begin);
+    for (; row < end; ++row) out[row] = of(row);
+    counted[static_cast<std::size_t>(part)] = count_overhang(out + begin, end - begin);
   });
   std::size_t total = 0;
   for (const std::size_t count : counted) total += count;
