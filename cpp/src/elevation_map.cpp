@@ -895,82 +895,17 @@ class CellRange {
   /// kBlock; bin_block(begin, end) runs first on each block (a no-op when the codes are ready).
   template <typename BinBlock>
   void accumulate(const BinBlock& bin_block) {
-    // Consecutive rows of a scan often share a cell: a run of them is summed in registers and
-    // added to the cell's statistics once (summing straight into memory would chain every row's
-    // additions through a store and a load). A cell's first row sets its shift. The runs (cell and
-    // first row; rows outside the map do not end a run) are kept for the gap test in write().
     const std::size_t rows = cloud_.size();
-    CellStatistics<Height>* statistics_data = scratch_.statistics<Height>().data();
-    std::uint32_t* place = scratch_.place.data();
-    std::uint64_t* occupied = scratch_.occupied.data();
-    const auto lo = static_cast<std::uint32_t>(lo_);
-    const auto span = static_cast<std::uint32_t>(span_);
-    constexpr Height kInfinity = std::numeric_limits<Height>::infinity();
-    std::uint32_t current = kOutside;  // the run's cell, from lo
-    std::uint32_t entry = 0;           // and its statistics
-    Height shift = 0, lowest = kInfinity, highest = -kInfinity;
-    double sum = 0.0, squares = 0.0;
-    std::uint32_t run = 0;
-    const auto flush = [&] {
-      if (current == kOutside) return;
-      CellStatistics<Height>& s = statistics_data[entry];
-      s.count += run;
-      s.sum += sum;
-      s.squares += squares;
-      s.lowest = lowest < s.lowest ? lowest : s.lowest;
-      s.highest = highest > s.highest ? highest : s.highest;
-    };
+    RunState state;
     for (std::size_t begin = 0; begin < rows; begin += kBlock) {
       const std::size_t end = std::min(rows, begin + kBlock);
       bin_block(begin, end);
-      for (std::size_t row = begin; row < end; ++row) {
-        const std::uint32_t code = codes_[row];
-        const std::uint32_t cell = code - lo;  // wraps for cells below the range
-        if (cell >= span) {
-          if (code != kOutside && current != kOutside) {  // another range's cell ends the run
-            flush();
-            current = kOutside;
-          }
-          continue;
-        }
-        const double z_double = row_height(cloud_, row);
-        const auto z = static_cast<Height>(z_double);
-        if (cell != current) {
-          flush();
-          current = cell;
-          if (num_runs_ == scratch_.run_cell.size()) grow_runs();
-          scratch_.run_cell[num_runs_] = cell;
-          scratch_.run_start[num_runs_++] = static_cast<std::uint32_t>(row);
-          // Fetch the cell of a later row ahead of its run (a code outside the range fetches the
-          // first cell; prefetches never fault).
-          const std::uint32_t ahead = codes_[std::min(row + kPrefetchRows, end - 1)] - lo;
-          __builtin_prefetch(place + (ahead < span ? ahead : 0), 1);
-          std::uint32_t& cell_place = place[cell];
-          if (cell_place == kOutside) {  // the cell's first point
-            cell_place = num_occupied_++;
-            CellStatistics<Height>& s = statistics_data[cell_place];
-            s = CellStatistics<Height>();
-            s.first = z;
-            occupied[cell / 64] |= std::uint64_t{1} << (cell % 64);
-          }
-          entry = cell_place;
-          shift = statistics_data[entry].first;
-          lowest = kInfinity;
-          highest = -kInfinity;
-          sum = squares = 0.0;
-          run = 0;
-        }
-        const double d = z_double - static_cast<double>(shift);
-        sum += d;
-        squares += d * d;
-        lowest = z < lowest ? z : lowest;
-        highest = z > highest ? z : highest;
-        ++run;
-      }
+      // A block starts at most one run per row: room for them is made here, not per run.
+      if (scratch_.run_cell.size() < num_runs_ + (end - begin)) grow_runs(num_runs_ + (end - begin));
+      accumulate_block(begin, end, state);
     }
-    flush();
+    flush(state);
   }
-
   /// The range's cells of the six layers (`layers` in kBuiltLayers' order, indexed by map cell),
   /// 64 cells at a time: empty, then the occupied cells' statistics (their places are reset).
   /// Discontinuity: only a cell whose elevations span more than the threshold can hold a gap
@@ -1054,8 +989,103 @@ class CellRange {
  private:
   static constexpr std::size_t kPrefetchRows = 16;
 
-  void grow_runs() {
-    const std::size_t size = std::min(cloud_.size(), std::max<std::size_t>(4096, 2 * scratch_.run_cell.size()));
+  /// The run being summed: its cell (from lo; kOutside before the first), its statistics entry,
+  /// and its rows' count, least and greatest height and shifted sums.
+  struct RunState {
+    std::uint32_t current = kOutside;
+    std::uint32_t entry = 0;
+    std::uint32_t run = 0;
+    Height shift = 0;
+    Height lowest = std::numeric_limits<Height>::infinity();
+    Height highest = -std::numeric_limits<Height>::infinity();
+    double sum = 0.0;
+    double squares = 0.0;
+  };
+
+  /// Adds a run to its cell's statistics.
+  static void flush_run(const RunState& state, CellStatistics<Height>* statistics) {
+    if (state.current == kOutside) return;
+    CellStatistics<Height>& s = statistics[state.entry];
+    s.count += state.run;
+    s.sum += state.sum;
+    s.squares += state.squares;
+    s.lowest = state.lowest < s.lowest ? state.lowest : s.lowest;
+    s.highest = state.highest > s.highest ? state.highest : s.highest;
+  }
+  void flush(const RunState& state) { flush_run(state, scratch_.statistics<Height>().data()); }
+
+  /// The rows [begin, end) of accumulate(), with room for a run per row. Consecutive rows of a scan
+  /// often share a cell: a run of them is summed in registers and added to the cell's statistics
+  /// once (summing straight into memory would chain every row's additions through a store and a
+  /// load). A cell's first row sets its shift. The runs (cell and first row) are kept for the gap
+  /// test in write(); rows outside the map do not end a run, rows of another range do. The state
+  /// and every pointer are copied to locals for the loop (members and references would be
+  /// reloaded after each store, and the state kept in memory).
+  __attribute__((noinline)) void accumulate_block(std::size_t begin, std::size_t end, RunState& state_io) {
+    const std::uint32_t* __restrict codes = codes_;
+    CellStatistics<Height>* __restrict statistics = scratch_.statistics<Height>().data();
+    std::uint32_t* __restrict place = scratch_.place.data();
+    std::uint64_t* __restrict occupied = scratch_.occupied.data();
+    std::uint32_t* __restrict run_cell = scratch_.run_cell.data();
+    std::uint32_t* __restrict run_start = scratch_.run_start.data();
+    std::size_t num_runs = num_runs_;
+    std::uint32_t num_occupied = num_occupied_;
+    const auto lo = static_cast<std::uint32_t>(lo_);
+    const auto span = static_cast<std::uint32_t>(span_);
+    const Cloud& cloud = cloud_;
+    constexpr Height kInfinity = std::numeric_limits<Height>::infinity();
+    RunState state = state_io;
+    for (std::size_t row = begin; row < end; ++row) {
+      const std::uint32_t code = codes[row];
+      const std::uint32_t cell = code - lo;  // wraps for cells below the range
+      if (cell >= span) {
+        if (code != kOutside && state.current != kOutside) {  // another range's cell ends the run
+          flush_run(state, statistics);
+          state.current = kOutside;
+        }
+        continue;
+      }
+      const double z_double = row_height(cloud, row);
+      const auto z = static_cast<Height>(z_double);
+      if (cell != state.current) {
+        flush_run(state, statistics);
+        state.current = cell;
+        run_cell[num_runs] = cell;
+        run_start[num_runs++] = static_cast<std::uint32_t>(row);
+        // Fetch the cell of a later row ahead of its run (a code outside the range fetches the
+        // first cell; prefetches never fault).
+        const std::uint32_t ahead = codes[std::min(row + kPrefetchRows, end - 1)] - lo;
+        __builtin_prefetch(place + (ahead < span ? ahead : 0), 1);
+        std::uint32_t& cell_place = place[cell];
+        if (cell_place == kOutside) {  // the cell's first point
+          cell_place = num_occupied++;
+          CellStatistics<Height>& s = statistics[cell_place];
+          s = CellStatistics<Height>();
+          s.first = z;
+          occupied[cell / 64] |= std::uint64_t{1} << (cell % 64);
+        }
+        state.entry = cell_place;
+        state.shift = statistics[state.entry].first;
+        state.lowest = kInfinity;
+        state.highest = -kInfinity;
+        state.sum = state.squares = 0.0;
+        state.run = 0;
+      }
+      const double d = z_double - static_cast<double>(state.shift);
+      state.sum += d;
+      state.squares += d * d;
+      state.lowest = z < state.lowest ? z : state.lowest;
+      state.highest = z > state.highest ? z : state.highest;
+      ++state.run;
+    }
+    state_io = state;
+    num_runs_ = num_runs;
+    num_occupied_ = num_occupied;
+  }
+
+  void grow_runs(std::size_t least) {
+    const std::size_t size =
+        std::min(cloud_.size(), std::max({least, std::size_t{4096}, 2 * scratch_.run_cell.size()}));
     scratch_.run_cell.resize(size);
     scratch_.run_start.resize(size);
   }
