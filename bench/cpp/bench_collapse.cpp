@@ -29,12 +29,13 @@ std::vector<double> synthetic_cloud(std::size_t n) {
   return xyz;
 }
 
-std::vector<float> kitti_scan() {
+/// x y z intensity float rows of a file under the data directory, empty when it is missing.
+std::vector<float> xyzi_scan(const char* relative) {
   namespace fs = std::filesystem;
   const char* env = std::getenv("TERRACUBE_DATA_DIR");
   for (const fs::path dir :
        {fs::path(env ? env : ""), fs::path(TERRACUBE_DEFAULT_DATA_DIR), fs::path("/work/shared/data")}) {
-    std::ifstream file(dir / "kitti_seq00/velodyne/000000.bin", std::ios::binary | std::ios::ate);
+    std::ifstream file(dir / relative, std::ios::binary | std::ios::ate);
     if (!file) continue;
     std::vector<float> values(static_cast<std::size_t>(file.tellg()) / sizeof(float));
     file.seekg(0);
@@ -67,7 +68,7 @@ BENCHMARK(BM_CollapseSynthetic500kSparse)->Unit(benchmark::kMillisecond);
 
 template <int kMethod>
 void BM_Kitti(benchmark::State& state) {
-  static const std::vector<float> values = kitti_scan();
+  static const std::vector<float> values = xyzi_scan("kitti_seq00/velodyne/000000.bin");
   if (values.empty()) {
     state.SkipWithError("KITTI scan not found");
     return;
@@ -86,6 +87,21 @@ void BM_Kitti(benchmark::State& state) {
 BENCHMARK(BM_Kitti<0>)->Name("BM_KittiCollapse")->Unit(benchmark::kMillisecond);
 BENCHMARK(BM_Kitti<1>)->Name("BM_KittiPointGap")->Unit(benchmark::kMillisecond);
 BENCHMARK(BM_Kitti<2>)->Name("BM_KittiOctomap")->Unit(benchmark::kMillisecond);
+
+/// The bundled-size Ouster OS-128 scan of bench_collapse.py, on `state.range(0)` threads.
+void BM_OusterCollapse(benchmark::State& state) {
+  static const std::vector<float> values = xyzi_scan("ouster128/ouster128_000000_xyzi_valid.bin");
+  if (values.empty()) {
+    state.SkipWithError("Ouster scan not found");
+    return;
+  }
+  const terracube::PointsView<float> view(values.data(), values.size() / 4, 4, 1);
+  terracube::CollapseParams params;
+  params.num_threads = static_cast<int>(state.range(0));
+  for (auto _ : state) benchmark::DoNotOptimize(terracube::collapse_overhangs(view, params));
+  state.SetItemsProcessed(state.iterations() * static_cast<std::int64_t>(view.size));
+}
+BENCHMARK(BM_OusterCollapse)->Arg(1)->Arg(2)->Unit(benchmark::kMillisecond);
 
 }  // namespace
 

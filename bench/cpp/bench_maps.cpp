@@ -73,26 +73,29 @@ bool skip_without_kitti(benchmark::State& state) {
   return true;
 }
 
+/// On `state.range(0)` threads (1, or 0: every processor).
 void BM_BuildElevationMapKitti(benchmark::State& state) {
   if (skip_without_kitti(state)) return;
   const auto points = view_of(kitti_scan(0));
-  const terracube::ElevationParams params = map_params();
+  terracube::ElevationParams params = map_params();
+  params.num_threads = static_cast<int>(state.range(0));
   for (auto _ : state) benchmark::DoNotOptimize(terracube::build_elevation_map(points, params));
 }
-BENCHMARK(BM_BuildElevationMapKitti)->Unit(benchmark::kMillisecond);
+BENCHMARK(BM_BuildElevationMapKitti)->Arg(1)->Arg(0)->Unit(benchmark::kMillisecond);
 
 void BM_MapAndClassifyKittiRefilled(benchmark::State& state) {
   if (skip_without_kitti(state)) return;
   const auto points = view_of(kitti_scan(0));
-  const terracube::ElevationParams params = map_params();
-  const terracube::TerrainParams terrain = terrain_params();
+  terracube::ElevationParams params = map_params();
+  terracube::TerrainParams terrain = terrain_params();
+  params.num_threads = terrain.num_threads = static_cast<int>(state.range(0));
   terracube::ElevationMap map = terracube::build_elevation_map(points, params);
   for (auto _ : state) {
     terracube::build_elevation_map_into(map, points, params);
     benchmark::DoNotOptimize(terracube::classify_terrain_layers(map, terrain));
   }
 }
-BENCHMARK(BM_MapAndClassifyKittiRefilled)->Unit(benchmark::kMillisecond);
+BENCHMARK(BM_MapAndClassifyKittiRefilled)->Arg(1)->Arg(0)->Unit(benchmark::kMillisecond);
 
 void BM_DemWithoutOverhangsKitti(benchmark::State& state) {
   if (skip_without_kitti(state)) return;
