@@ -398,6 +398,46 @@ void collapse_dense_bytes(const Cloud& cloud, const CollapseParams& params, int 
   guard.dismissed = true;
 }
 
+/// The number of set bits (without the POPCNT instruction, which the baseline x86-64 target
+/// lacks: __builtin_popcountll would call libgcc).
+inline std::size_t bit_count(std::uint64_t x) {
+  x -= (x >> 1) & 0x5555555555555555ULL;
+  x = (x & 0x3333333333333333ULL) + ((x >> 2) & 0x3333333333333333ULL);
+  x = (x + (x >> 4)) & 0x0F0F0F0F0F0F0F0FULL;
+  return static_cast<std::size_t>((x * 0x0101010101010101ULL) >> 56);
+}
+
+/// The indices of the non-zero words among words[0, count), ascending, into `nonzero` (which
+/// ends up with that many entries); `most` bounds their number. Branch-free: every word's index
+/// is stored, and the end moves past it when the word is non-zero (whether a word of V is zero
+/// is close to random, so a branch on it would often be mispredicted).
+__attribute__((noinline)) void find_nonzero_words(const std::uint64_t* words, std::size_t count, std::size_t most,
+                                                  std::vector<std::uint32_t>& nonzero) {
+  nonzero.resize(most + 1);  // + 1: the store after the last non-zero word
+  std::uint32_t* __restrict out = nonzero.data();
+  std::size_t end = 0;
+  for (std::size_t word = 0; word < count; ++word) {
+    out[end] = static_cast<std::uint32_t>(word);
+    end += words[word] != 0 ? 1 : 0;
+  }
+  nonzero.resize(end);
+}
+
+/// The set bits of the listed words of V, as cube indices in ascending order: L sorted.
+__attribute__((noinline)) void list_set_bits(const std::uint64_t* occupancy, const std::vector<std::uint32_t>& nonzero,
+                                             std::vector<std::int64_t>& occupied) {
+  std::size_t total = 0;
+  for (const std::uint32_t word : nonzero) total += bit_count(occupancy[word]);
+  occupied.clear();
+  occupied.reserve(total);  // not resize(): no zeros written first
+  for (const std::uint32_t word : nonzero) {
+    const auto base = static_cast<std::int64_t>(std::size_t{word} * 64);
+    for (std::uint64_t bits = occupancy[word]; bits != 0; bits &= bits - 1) {
+      occupied.push_back(base + __builtin_ctzll(bits));
+    }
+  }
+}
+
 /// Dense path: V is a bit vector over all cubes, M a vector over all columns.
 template <typename Cloud>
 void collapse_dense(const Cloud& cloud, const CollapseParams& params, int parts, CollapseResult& result) {
@@ -446,33 +486,20 @@ void collapse_dense(const Cloud& cloud, const CollapseParams& params, int parts,
   // L sorted: reading V in index order is a bucket sort of L, O(|V| / 64 + |L|) (or O(|V| / 4096
   // + |L|) through the summary).
   std::vector<std::uint32_t>& nonzero = scratch.words;
-  nonzero.clear();
-  std::size_t num_occupied = 0;
   if (summarise) {
+    nonzero.clear();
     for (std::size_t s = 0; s < summary_words; ++s) {
       for (std::uint64_t bits = summary[s]; bits != 0; bits &= bits - 1) {
         const std::size_t word = s * 64 + static_cast<std::size_t>(__builtin_ctzll(bits));
         if (word >= words) continue;  // the word of rows that take no part
         nonzero.push_back(static_cast<std::uint32_t>(word));
-        num_occupied += static_cast<std::size_t>(__builtin_popcountll(occupancy[word]));
       }
       summary[s] = 0;  // restored
     }
   } else {
-    for (std::size_t word = 0; word < words; ++word) {
-      if (occupancy[word] == 0) continue;
-      nonzero.push_back(static_cast<std::uint32_t>(word));
-      num_occupied += static_cast<std::size_t>(__builtin_popcountll(occupancy[word]));
-    }
+    find_nonzero_words(occupancy, words, std::min(words, rows), nonzero);
   }
-  std::vector<std::int64_t>& occupied = result.occupied_cubes;
-  occupied.reserve(num_occupied);
-  for (const std::uint32_t word : nonzero) {
-    for (std::uint64_t bits = occupancy[word]; bits != 0; bits &= bits - 1) {
-      occupied.push_back(
-          static_cast<std::int64_t>(std::size_t{word} * 64 + static_cast<std::size_t>(__builtin_ctzll(bits))));
-    }
-  }
+  list_set_bits(occupancy, nonzero, result.occupied_cubes);
 
   sweep_dense(grid, params.sigma, scratch, result);
 
