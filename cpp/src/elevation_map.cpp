@@ -1279,15 +1279,15 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     // them the rows that start a run (a cell other than the row before's: each costs a flush and
     // a mispredicted branch, several rows' worth).
     constexpr std::size_t kSample = 4;
-    constexpr std::uint32_t kRunWeight = 4;
+    constexpr std::uint64_t kRunWeight = 4;
     int shift = 6;
     while ((cells >> shift) >= 4096) ++shift;
     const std::size_t num_buckets = (cells >> shift) + 1;
     std::vector<NonFiniteRows> non_finite(static_cast<std::size_t>(parts));
-    std::vector<std::uint32_t> sampled(static_cast<std::size_t>(parts) * num_buckets, 0);
+    std::vector<std::uint64_t> sampled(static_cast<std::size_t>(parts) * num_buckets, 0);
     detail::for_each_part(parts, [&](int part) {
       const auto k = static_cast<std::size_t>(part);
-      std::uint32_t* histogram = sampled.data() + k * num_buckets;
+      std::uint64_t* histogram = sampled.data() + k * num_buckets;
       for (std::size_t b = num_blocks * k / parts; b < num_blocks * (k + 1) / parts; ++b) {
         const std::size_t begin = b * block;
         const std::size_t end = std::min(cloud.size(), begin + block);
