@@ -911,6 +911,7 @@ class CellRange {
     }
     flush(state);
   }
+
   /// The range's cells of the six layers (`layers` in kBuiltLayers' order, indexed by map cell),
   /// 64 cells at a time: empty, then the occupied cells' statistics (their places are reset).
   /// Discontinuity: only a cell whose elevations span more than the threshold can hold a gap
