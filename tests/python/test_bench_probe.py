@@ -9,11 +9,12 @@ def _rows(n: int, width: int, dtype) -> np.ndarray:
     return np.arange(n * width, dtype=dtype).reshape(n, width)
 
 
+@pytest.mark.parametrize("threads", [1, 2, 3])
 @pytest.mark.parametrize(("width", "dtype"), [(3, np.float64), (4, np.float32)])
-def test_probe_reads_the_span_of_the_rows_and_times_three_loops(width, dtype):
+def test_probe_reads_the_span_of_the_rows_and_times_three_loops(width, dtype, threads):
     rows = _rows(1000, width, dtype)
     entry = (np.arange(1000) % 7).astype(np.uint32)
-    probe = _core._memory_floor(rows[:, :3], entry, 7, repeat=2)
+    probe = _core._memory_floor(rows[:, :3], entry, 7, repeat=2, threads=threads)
     assert probe["bytes"] == (999 * width + 3) * np.dtype(dtype).itemsize
     for key in ("read_ms", "store_ms", "load_ms"):
         assert probe[key] >= 0.0
@@ -34,6 +35,9 @@ def test_probe_rejects_bad_input():
         _core._memory_floor(rows, entry[:9], 1)
     with pytest.raises(ValueError, match="repeat"):
         _core._memory_floor(rows, entry, 1, repeat=0)
+    for threads in (0, -1, 257):
+        with pytest.raises(ValueError, match="threads"):
+            _core._memory_floor(rows, entry, 1, threads=threads)
     with pytest.raises(ValueError, match="adjacent x, y, z"):
         _core._memory_floor(np.asfortranarray(rows), entry, 1)
     with pytest.raises(ValueError, match=r"\(N, 3\)"):
