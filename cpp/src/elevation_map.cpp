@@ -729,25 +729,24 @@ struct CellStatistics {
 };
 
 /// Whether the elevations [begin, end) of a cell, once sorted, hold two neighbours more than
-/// `threshold` apart, found without sorting them (the classic linear-time maximum gap): the range [lowest, highest]
-/// is cut into buckets of threshold / 2 and each bucket keeps its least and greatest elevation.
-/// Two neighbours in sorted order either share a bucket, and then lie at most about threshold / 2
-/// apart (the bucket's width; the rounding of (z - lowest) / width moves that by a few ulps), or
-/// lie in consecutive non-empty buckets as the greater elevation of the first and the least of the
-/// second (the bucket of z never decreases as z grows, rounding being monotonic). So the answer is
-/// whether any two consecutive non-empty buckets are more than `threshold` apart, each difference
-/// computed as the sorted scan would compute it. A cell whose range would need more buckets than
-/// four per elevation (an outlier far above the rest) is sorted instead, keeping memory O(points).
-bool has_gap(double* begin, double* end, double threshold, std::vector<double>& buckets) {
+/// `threshold` apart, found without sorting them (the classic linear-time maximum gap): the range
+/// [lowest, highest] (the cell's least and greatest elevation, known from its statistics) is cut
+/// into buckets of about threshold / 2 and each bucket keeps its least and greatest elevation. A
+/// bucket is floor((z - lowest) * (2 / threshold)): rounding is monotonic, so the bucket of z never
+/// decreases as z grows, and two elevations in one bucket lie at most threshold / 2 and a few ulps
+/// apart. Two neighbours in sorted order either share a bucket, and then are no gap, or lie in
+/// consecutive non-empty buckets as the greater elevation of the first and the least of the second.
+/// So the answer is whether any two consecutive non-empty buckets are more than `threshold` apart,
+/// each difference computed as the sorted scan would compute it. A cell whose range would need more
+/// buckets than four per elevation (an outlier far above the rest) is sorted instead, keeping
+/// memory O(points). Up to kStackBuckets buckets live on the stack (most wide cells: 64 m of range).
+bool has_gap(std::pair<double*, double*> elevations, double lowest, double highest, double threshold,
+             std::vector<double>& buckets) {
+  const auto [begin, end] = elevations;
   const auto count = static_cast<std::size_t>(end - begin);
   if (count < 2) return false;
-  double lowest = *begin, highest = *begin;
-  for (const double* z = begin + 1; z < end; ++z) {
-    lowest = std::min(lowest, *z);
-    highest = std::max(highest, *z);
-  }
-  const double width = 0.5 * threshold;
-  const double spread = (highest - lowest) / width;
+  const double per_metre = 2.0 / threshold;
+  const double spread = (highest - lowest) * per_metre;  // the largest bucket, by monotonic rounding
   if (!(spread < static_cast<double>(4 * count + 64))) {
     std::sort(begin, end);
     for (const double* z = begin + 1; z < end; ++z) {
@@ -756,13 +755,18 @@ bool has_gap(double* begin, double* end, double threshold, std::vector<double>& 
     return false;
   }
   const auto num_buckets = static_cast<std::size_t>(spread) + 1;
-  buckets.assign(2 * num_buckets, 0.0);
-  double* least = buckets.data();
+  constexpr std::size_t kStackBuckets = 128;
+  double on_stack[2 * kStackBuckets];
+  double* least = on_stack;
+  if (num_buckets > kStackBuckets) {
+    buckets.resize(2 * num_buckets);
+    least = buckets.data();
+  }
   double* greatest = least + num_buckets;
   std::fill_n(least, num_buckets, std::numeric_limits<double>::infinity());
   std::fill_n(greatest, num_buckets, -std::numeric_limits<double>::infinity());
   for (const double* z = begin; z < end; ++z) {
-    const auto bucket = static_cast<std::size_t>((*z - lowest) / width);  // <= spread: monotonic rounding
+    const auto bucket = static_cast<std::size_t>((*z - lowest) * per_metre);  // <= spread
     least[bucket] = std::min(least[bucket], *z);
     greatest[bucket] = std::max(greatest[bucket], *z);
   }
@@ -777,18 +781,19 @@ bool has_gap(double* begin, double* end, double threshold, std::vector<double>& 
 
 /// Per-thread scratch buffers of build_map, kept between calls: a fresh multi-megabyte buffer
 /// costs a page fault per 4 kB page on first touch, which on a fresh map would take longer than
-/// the whole computation. The per-cell buffers (`place`, the bitmaps, `slot`) are left clean
-/// after every call -- only the cells a call touched are reset -- so a call costs O(points +
-/// occupied cells) beyond writing the layers; the statistics are kept only for occupied cells, in
-/// the order the points reach them. Buffers over kKeepBytes are released after the call.
+/// the whole computation. The per-cell buffers (`place`, the bitmap) are left clean after every
+/// call -- only the cells a call touched are reset -- so a call costs O(points + occupied cells)
+/// beyond writing the layers; the statistics are kept only for occupied cells, in the order the
+/// points reach them. Buffers over kKeepBytes are released after the call.
 struct BuildScratch {
-  std::vector<std::uint32_t> cell_of_point, run_cell, run_start, wide_cells, slot;
-  std::vector<std::uint32_t> place;           // per cell: its entry in the statistics, or kOutside
-  std::vector<std::uint64_t> occupied, wide;  // one bit per cell
+  std::vector<std::uint32_t> cell_of_point, run_start;
+  std::vector<std::uint32_t> run_next;  // per run: the previous run of its cell, or kOutside
+  std::vector<std::uint32_t> last_run;  // per statistics entry: its cell's latest run
+  std::vector<std::uint32_t> place;     // per cell: its entry in the statistics, or kOutside
+  std::vector<std::uint64_t> occupied;  // one bit per cell
   std::vector<CellStatistics<float>> statistics_float;
   std::vector<CellStatistics<double>> statistics_double;
   std::vector<double> heights, buckets;
-  std::vector<std::size_t> offset, next;
 
   static constexpr std::size_t kKeepBytes = std::size_t{32} << 20;
 
@@ -802,12 +807,11 @@ struct BuildScratch {
   }
 
   void release_if_large() {
-    const std::size_t bytes = 4 * (cell_of_point.capacity() + run_cell.capacity() + run_start.capacity() +
-                                   wide_cells.capacity() + slot.capacity() + place.capacity()) +
-                              8 * (occupied.capacity() + wide.capacity()) +
-                              sizeof(CellStatistics<float>) * statistics_float.capacity() +
+    const std::size_t bytes = 4 * (cell_of_point.capacity() + run_start.capacity() + run_next.capacity() +
+                                   last_run.capacity() + place.capacity()) +
+                              8 * occupied.capacity() + sizeof(CellStatistics<float>) * statistics_float.capacity() +
                               sizeof(CellStatistics<double>) * statistics_double.capacity() +
-                              8 * (heights.capacity() + buckets.capacity() + offset.capacity() + next.capacity());
+                              8 * (heights.capacity() + buckets.capacity());
     if (bytes > kKeepBytes) *this = BuildScratch();
   }
 };
@@ -872,14 +876,14 @@ class CellRange {
     // One entry per occupied cell, written when a point first reaches it.
     const std::size_t most = std::min(span_, cloud.size());
     if (statistics.size() < most) statistics.resize(most);
+    if (scratch.last_run.size() < most) scratch.last_run.resize(most);
     if (scratch.place.size() < span_) scratch.place.resize(span_, kOutside);  // old entries were left clean
     if (scratch.occupied.size() < words_) scratch.occupied.resize(words_, 0);
-    if (scratch.wide.size() < words_) scratch.wide.resize(words_, 0);
   }
   CellRange(const CellRange&) = delete;
   CellRange& operator=(const CellRange&) = delete;
 
-  /// Leaves the per-cell buffers clean (after write() only the wide cells remain to reset). The
+  /// Leaves the per-cell buffers clean (write() leaves them so already, unless it did not run). The
   /// scratch's owner releases oversized buffers (release_if_large) once no range uses them.
   ~CellRange() {
     std::uint32_t* place = scratch_.place.data();
@@ -889,11 +893,6 @@ class CellRange {
       }
       scratch_.occupied[w] = 0;
     }
-    for (const std::uint32_t cell : scratch_.wide_cells) {
-      if (cell < scratch_.slot.size()) scratch_.slot[cell] = kOutside;  // set only after slot has grown
-      scratch_.wide[cell / 64] = 0;
-    }
-    scratch_.wide_cells.clear();
   }
 
   /// Count, min, max and the shifted sums of the range's cells, over the rows in blocks of
@@ -906,7 +905,7 @@ class CellRange {
       const std::size_t end = std::min(rows, begin + kBlock);
       bin_block(begin, end);
       // A block starts at most one run per row: room for them is made here, not per run.
-      if (scratch_.run_cell.size() < num_runs_ + (end - begin)) grow_runs(num_runs_ + (end - begin));
+      if (scratch_.run_start.size() < num_runs_ + (end - begin)) grow_runs(num_runs_ + (end - begin));
       accumulate_block(begin, end, state);
     }
     flush(state);
@@ -916,16 +915,13 @@ class CellRange {
   /// 64 cells at a time: empty, then the occupied cells' statistics (their places are reset).
   /// Discontinuity: only a cell whose elevations span more than the threshold can hold a gap
   /// longer than it (rounding is monotonic, so this holds for the computed differences too). Those
-  /// (few) "wide" cells have their elevations gathered and tested by has_gap; the others get 0.
+  /// (few) "wide" cells have their elevations gathered, run by run along the cell's chain of runs,
+  /// and tested by has_gap; the others get 0.
   void write(const std::array<float*, kBuiltLayers.size()>& layers, double discontinuity_m) {
     constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
     const CellStatistics<Height>* statistics_data = scratch_.statistics<Height>().data();
     std::uint32_t* place = scratch_.place.data();
     std::uint64_t* occupied = scratch_.occupied.data();
-    std::uint64_t* wide = scratch_.wide.data();
-    std::vector<std::uint32_t>& wide_cells = scratch_.wide_cells;  // from lo
-    std::vector<std::size_t>& offset = scratch_.offset;  // the wide cells' elevations, counting-sorted by cell
-    offset.assign(1, 0);
     float* count_layer = layers[0] + lo_;
     float* min = layers[1] + lo_;
     float* max = layers[2] + lo_;
@@ -945,7 +941,8 @@ class CellRange {
       for (std::uint64_t bits = occupied[w]; bits != 0; bits &= bits - 1) {
         const std::size_t cell = base + static_cast<std::size_t>(__builtin_ctzll(bits));
         std::uint32_t& cell_place = place[cell];
-        const CellStatistics<Height>& s = statistics_data[cell_place];
+        const std::uint32_t entry = cell_place;
+        const CellStatistics<Height>& s = statistics_data[entry];
         cell_place = kOutside;
         const double n = static_cast<double>(s.count);
         const double offset_of_mean = s.sum / n;
@@ -956,42 +953,14 @@ class CellRange {
         max[cell] = static_cast<float>(s.highest);
         mean[cell] = static_cast<float>(static_cast<double>(s.first) + offset_of_mean);
         std_dev[cell] = static_cast<float>(std::sqrt(variance));
-        discontinuity[cell] = 0.0F;
-        if (std::isgreater(static_cast<double>(s.highest) - static_cast<double>(s.lowest), discontinuity_m)) {
-          wide_cells.push_back(static_cast<std::uint32_t>(cell));
-          offset.push_back(offset.back() + s.count);
-          wide[w] |= std::uint64_t{1} << (cell % 64);
-        }
+        const bool wide =
+            std::isgreater(static_cast<double>(s.highest) - static_cast<double>(s.lowest), discontinuity_m);
+        discontinuity[cell] = wide && has_gap(gather(cell, entry), static_cast<double>(s.lowest),
+                                              static_cast<double>(s.highest), discontinuity_m, scratch_.buckets)
+                                  ? 1.0F
+                                  : 0.0F;
       }
       occupied[w] = 0;
-    }
-
-    const std::size_t num_wide = wide_cells.size();
-    if (num_wide == 0) return;
-    std::vector<std::uint32_t>& slot = scratch_.slot;  // per cell from lo: its place in wide_cells, or kOutside
-    if (slot.size() < span_) slot.resize(span_, kOutside);
-    for (std::size_t k = 0; k < num_wide; ++k) slot[wide_cells[k]] = static_cast<std::uint32_t>(k);
-    std::vector<double>& heights = scratch_.heights;
-    heights.resize(offset.back());
-    std::vector<std::size_t>& next = scratch_.next;
-    next.assign(offset.begin(), offset.end() - 1);
-    const std::uint32_t* run_cell = scratch_.run_cell.data();
-    const std::uint32_t* run_start = scratch_.run_start.data();
-    for (std::size_t run = 0; run < num_runs_; ++run) {
-      const std::uint32_t cell = run_cell[run];
-      if (((wide[cell / 64] >> (cell % 64)) & 1) == 0) continue;
-      // The run's rows, up to the range's next run (rows of other cells in between are skipped).
-      const std::size_t end = run + 1 < num_runs_ ? run_start[run + 1] : cloud_.size();
-      const std::uint32_t code = cell + static_cast<std::uint32_t>(lo_);
-      std::size_t& at = next[slot[cell]];
-      for (std::size_t row = run_start[run]; row < end; ++row) {
-        if (codes_[row] == code) heights[at++] = row_height(cloud_, row);
-      }
-    }
-    for (std::size_t k = 0; k < num_wide; ++k) {
-      discontinuity[wide_cells[k]] =
-          has_gap(heights.data() + offset[k], heights.data() + offset[k + 1], discontinuity_m, scratch_.buckets) ? 1.0F
-                                                                                                                 : 0.0F;
     }
   }
 
@@ -1013,6 +982,26 @@ class CellRange {
     double squares = 0.0;
   };
 
+  /// The elevations of a cell (from lo) with statistics entry `entry`, in the scratch's heights:
+  /// its runs from the latest back, each run's rows up to the range's next run (the rows of other
+  /// cells in between are skipped).
+  std::pair<double*, double*> gather(std::size_t cell, std::uint32_t entry) {
+    const std::uint32_t* run_next = scratch_.run_next.data();
+    const std::uint32_t* run_start = scratch_.run_start.data();
+    std::vector<double>& heights = scratch_.heights;
+    const std::size_t count = scratch_.statistics<Height>()[entry].count;
+    if (heights.size() < count) heights.resize(count);
+    double* at = heights.data();
+    const auto code = static_cast<std::uint32_t>(cell + lo_);
+    for (std::uint32_t run = scratch_.last_run[entry]; run != kOutside; run = run_next[run]) {
+      const std::size_t end = run + 1 < num_runs_ ? run_start[run + 1] : cloud_.size();
+      for (std::size_t row = run_start[run]; row < end; ++row) {
+        if (codes_[row] == code) *at++ = row_height(cloud_, row);
+      }
+    }
+    return {heights.data(), at};
+  }
+
   /// Adds a run to its cell's statistics.
   static void flush_run(const RunState& state, CellStatistics<Height>* statistics) {
     if (state.current == kOutside) return;
@@ -1028,16 +1017,17 @@ class CellRange {
   /// The rows [begin, end) of accumulate(), with room for a run per row. Consecutive rows of a scan
   /// often share a cell: a run of them is summed in registers and added to the cell's statistics
   /// once (summing straight into memory would chain every row's additions through a store and a
-  /// load). A cell's first row sets its shift. The runs (cell and first row) are kept for the gap
-  /// test in write(); rows outside the map do not end a run, rows of another range do. The state
-  /// and every pointer are copied to locals for the loop (members and references would be
-  /// reloaded after each store, and the state kept in memory).
+  /// load). A cell's first row sets its shift. Each run's first row is kept, chained to the
+  /// previous run of its cell, for the gap test in write() (gather()); rows outside the map do not
+  /// end a run, rows of another range do. The state and every pointer are copied to locals for the
+  /// loop (members and references would be reloaded after each store, and the state kept in memory).
   __attribute__((noinline)) void accumulate_block(std::size_t begin, std::size_t end, RunState& state_io) {
     const std::uint32_t* __restrict codes = codes_;
     CellStatistics<Height>* __restrict statistics = scratch_.statistics<Height>().data();
     std::uint32_t* __restrict place = scratch_.place.data();
     std::uint64_t* __restrict occupied = scratch_.occupied.data();
-    std::uint32_t* __restrict run_cell = scratch_.run_cell.data();
+    std::uint32_t* __restrict run_next = scratch_.run_next.data();
+    std::uint32_t* __restrict last_run = scratch_.last_run.data();
     std::uint32_t* __restrict run_start = scratch_.run_start.data();
     std::size_t num_runs = num_runs_;
     std::uint32_t num_occupied = num_occupied_;
@@ -1061,8 +1051,7 @@ class CellRange {
       if (cell != state.current) {
         flush_run(state, statistics);
         state.current = cell;
-        run_cell[num_runs] = cell;
-        run_start[num_runs++] = static_cast<std::uint32_t>(row);
+        run_start[num_runs] = static_cast<std::uint32_t>(row);
         // Fetch the cell of a later row ahead of its run (a code outside the range fetches the
         // first cell; prefetches never fault).
         const std::uint32_t ahead = codes[std::min(row + kPrefetchRows, end - 1)] - lo;
@@ -1074,8 +1063,11 @@ class CellRange {
           s = CellStatistics<Height>();
           s.first = z;
           occupied[cell / 64] |= std::uint64_t{1} << (cell % 64);
+          last_run[cell_place] = kOutside;
         }
         state.entry = cell_place;
+        run_next[num_runs] = last_run[state.entry];  // the cell's chain of runs, for gather()
+        last_run[state.entry] = static_cast<std::uint32_t>(num_runs++);
         state.shift = statistics[state.entry].first;
         state.lowest = kInfinity;
         state.highest = -kInfinity;
@@ -1096,8 +1088,8 @@ class CellRange {
 
   void grow_runs(std::size_t least) {
     const std::size_t size =
-        std::min(cloud_.size(), std::max({least, std::size_t{4096}, 2 * scratch_.run_cell.size()}));
-    scratch_.run_cell.resize(size);
+        std::min(cloud_.size(), std::max({least, std::size_t{4096}, 2 * scratch_.run_start.size()}));
+    scratch_.run_next.resize(size);
     scratch_.run_start.resize(size);
   }
 
