@@ -916,8 +916,10 @@ class CellRange {
   /// Discontinuity: only a cell whose elevations span more than the threshold can hold a gap
   /// longer than it (rounding is monotonic, so this holds for the computed differences too). Those
   /// (few) "wide" cells have their elevations gathered, run by run along the cell's chain of runs,
-  /// and tested by has_gap; the others get 0.
-  void write(const std::array<float*, kBuiltLayers.size()>& layers, double discontinuity_m) {
+  /// and tested by has_gap; the others get 0. The range's cells of the `stale` layers are set to NaN.
+  void write(const std::array<float*, kBuiltLayers.size()>& layers, const std::vector<float*>& stale,
+             double discontinuity_m) {
+    for (float* layer : stale) std::fill_n(layer + lo_, span_, std::numeric_limits<float>::quiet_NaN());
     constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
     const CellStatistics<Height>* statistics_data = scratch_.statistics<Height>().data();
     std::uint32_t* place = scratch_.place.data();
@@ -1230,8 +1232,10 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   // The layers: the map's own buffers when refilling (in place, so that references to them stay
   // valid and no page is touched for the first time), else fresh ones. Every cell is written.
   // Added only once the rows have passed the NaN/Inf check: a map that throws is left unchanged.
+  // A refilled map's other layers (of an earlier use: no data yet) are set to NaN by the ranges.
   ElevationMap fresh;
   std::array<float*, kBuiltLayers.size()> layers{};
+  std::vector<float*> stale;
   const auto make_layers = [&] {
     if (into != nullptr) {
       into->set_geometry(geometry);
@@ -1243,9 +1247,9 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
       if (!map.exists(kBuiltLayers[k])) map.add(kBuiltLayers[k], detail::uninitialised_layer(nx, ny));
       layers[k] = map.get(kBuiltLayers[k]).data();
     }
-    for (const std::string& name : map.layers()) {  // layers of an earlier use of the map: no data yet
+    for (const std::string& name : map.layers()) {
       if (std::find(kBuiltLayers.begin(), kBuiltLayers.end(), name) == kBuiltLayers.end()) {
-        map.get(name).setConstant(std::numeric_limits<float>::quiet_NaN());
+        stale.push_back(map.get(name).data());
       }
     }
   };
@@ -1265,7 +1269,7 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     range.accumulate([&](std::size_t begin, std::size_t end) { bin_block(begin, end, non_finite); });
     check_non_finite(non_finite);
     make_layers();
-    range.write(layers, params.discontinuity_m);
+    range.write(layers, stale, params.discontinuity_m);
   } else {
     // Bin: each part takes a run of blocks, and counts the codes of every kSample-th row in
     // buckets of 2^shift cells (at least 64, at most 4096 buckets) for the split below, and among
@@ -1323,7 +1327,7 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
       {
         CellRange<Cloud> range(cloud, codes, cut[k], cut[k + 1], own);
         range.accumulate([](std::size_t, std::size_t) {});
-        range.write(layers, params.discontinuity_m);
+        range.write(layers, stale, params.discontinuity_m);
       }
       if (&own != &scratch) own.release_if_large();
     });

@@ -1099,6 +1099,31 @@ TEST(BuildElevationMapThreads, NaNRowsInSeveralThreadsBlocksAreCountedOnceAndThe
   EXPECT_EQ(dropped.get("count").sum(), static_cast<float>(points.size() - 4));
 }
 
+TEST(BuildElevationMapThreads, RefillingOnThreadsGivesTheFreshMapAndResetsOtherLayersInEveryRange) {
+  // Each thread's range of cells sets its part of the layers the build does not write to NaN.
+  const ElevationParams params = fixed_extent(0.1, {-6.0, -5.0}, {130, 110});
+  ElevationMap map = build_elevation_map(PointsView<double>(test::random_scene(81, 2000, 5.0)), params);
+  map.add("extra", 3.0F);  // a layer of an earlier use (classify_terrain's, say)
+  map.add("more", -1.0F);
+  const float* extra = map.get("extra").data();
+  for (const int threads : {2, 3}) {
+    SCOPED_TRACE(std::to_string(threads) + " threads");
+    map.get("extra").setConstant(3.0F);
+    map.get("more").setConstant(-1.0F);
+    const auto points = test::random_scene(82 + static_cast<std::uint32_t>(threads), 120000, 7.0);
+    build_on_threads(
+        [&](const ElevationParams& p) {
+          build_elevation_map_into(map, PointsView<double>(points), p);
+          return ElevationMap();
+        },
+        params, threads);
+    expect_same_statistics(map, build_elevation_map(PointsView<double>(points), params));
+    EXPECT_EQ(map.get("extra").data(), extra) << "refilled in place";
+    EXPECT_TRUE(map.get("extra").array().isNaN().all()) << "a layer the build does not write holds no data";
+    EXPECT_TRUE(map.get("more").array().isNaN().all()) << "a layer the build does not write holds no data";
+  }
+}
+
 TEST(BuildElevationMapThreads, AForkedChildOfAProcessThatUsedThreadsBuildsOnOneInsteadOfHanging) {
   // GCC's libgomp hangs at the first parallel region of a forked child whose parent started its
   // thread pool: the child's calls must run on the calling thread.
