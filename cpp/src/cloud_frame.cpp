@@ -16,7 +16,8 @@ PackedRows& packed_rows_scratch() {
 
 void release_packed_rows_if_large() {
   PackedRows& scratch = packed_rows_scratch();
-  if (8 * scratch.xyz.capacity() + 4 * scratch.rows.capacity() > (std::size_t{64} << 20)) scratch = PackedRows{};
+  const std::size_t bytes = 8 * scratch.xyz.capacity() + 4 * (scratch.xyz_float.capacity() + scratch.rows.capacity());
+  if (bytes > (std::size_t{64} << 20)) scratch = PackedRows{};
 }
 
 void check_rigid_transform(const Eigen::Matrix4d& transform, const char* what) {

@@ -11,6 +11,7 @@
 #include <optional>
 #include <stdexcept>
 #include <string>
+#include <type_traits>
 #include <vector>
 
 #include "packed_extent.hpp"
@@ -137,17 +138,28 @@ struct CloudExtent {
                               "); clean the cloud or set drop_non_finite=True to drop them");
 }
 
-/// The rows of a cloud that take part once leveled and cropped, packed x y z in doubles, with the
-/// input row of each: the plain (branch-free) paths then run on view(), and whatever they find
+/// The rows of a cloud that take part once leveled and cropped, packed x y z in doubles (or, for
+/// a float cloud that is only cropped, in floats: its values unchanged), with the input row of
+/// each: the plain (branch-free) paths then run on view() (float_view()), and whatever they find
 /// per row goes back to rows[k]. Leveling once costs less than leveling row by row in every pass.
 struct PackedRows {
   std::vector<double> xyz;          // 3 per row, the first `size` rows valid
+  std::vector<float> xyz_float;     // the same in floats (see pack_rows)
   std::vector<std::uint32_t> rows;  // input row of each
   std::size_t size = 0;
   std::size_t num_non_finite = 0;  // selected rows with NaN/Inf
   std::size_t first_non_finite_row = 0;
   std::size_t num_cropped = 0;  // selected finite rows outside the crop box
   PointsView<double> view() const { return PointsView<double>(xyz.data(), size, 3, 1); }
+  PointsView<float> float_view() const { return PointsView<float>(xyz_float.data(), size, 3, 1); }
+  template <typename Out>
+  std::vector<Out>& buffer() {
+    if constexpr (std::is_same_v<Out, float>) {
+      return xyz_float;
+    } else {
+      return xyz;
+    }
+  }
 };
 
 /// The calling thread's PackedRows, kept between calls (fresh buffers cost a page fault per
@@ -156,17 +168,17 @@ PackedRows& packed_rows_scratch();
 void release_packed_rows_if_large();
 
 /// Fills `out` with the rows of `points` selected by `use` (all when null) that are finite and,
-/// leveled by `transform`, inside `crop`. NaN/Inf rows throw unless `drop_non_finite`.
+/// leveled by `transform`, inside `crop`, as `Out` (float only for float rows without a transform:
+/// then the packed values are the input's). NaN/Inf rows throw unless `drop_non_finite`.
 /// Needs points.size < 2^32.
-template <typename Scalar>
-void pack_leveled(const PointsView<Scalar>& points, const Eigen::Matrix4d& transform,
-                  const std::optional<CropBox>& crop, bool drop_non_finite, const std::vector<std::uint8_t>* use,
-                  PackedRows& out) {
-  if (out.rows.size() < points.size) {
-    out.xyz.resize(3 * points.size);
-    out.rows.resize(points.size);
-  }
-  double* xyz = out.xyz.data();
+template <typename Out, typename Scalar>
+void pack_rows(const PointsView<Scalar>& points, const Eigen::Matrix4d& transform, const std::optional<CropBox>& crop,
+               bool drop_non_finite, const std::vector<std::uint8_t>* use, PackedRows& out) {
+  static_assert(std::is_same_v<Out, double> || std::is_same_v<Scalar, float>, "floats pack only float rows");
+  std::vector<Out>& buffer = out.buffer<Out>();
+  if (buffer.size() < 3 * points.size) buffer.resize(3 * points.size);
+  if (out.rows.size() < points.size) out.rows.resize(points.size);
+  Out* xyz = buffer.data();
   std::uint32_t* rows = out.rows.data();
   // Four rows at a time with AVX2 where the CPU has it, the rest (or all) row by row: the same
   // arithmetic either way.
@@ -185,7 +197,7 @@ void pack_leveled(const PointsView<Scalar>& points, const Eigen::Matrix4d& trans
       if (use != nullptr && (*use)[row] == 0) continue;
       const int status = cloud.map(row, p);
       // Written whatever the status; only a row that takes part advances the count.
-      std::copy_n(p.data(), 3, xyz + 3 * size);
+      for (int axis = 0; axis < 3; ++axis) xyz[3 * size + axis] = static_cast<Out>(p[axis]);
       rows[size] = static_cast<std::uint32_t>(row);
       size += status == 0 ? 1 : 0;
       if (status == 1) {
@@ -199,6 +211,31 @@ void pack_leveled(const PointsView<Scalar>& points, const Eigen::Matrix4d& trans
   if (out.num_non_finite > 0 && !drop_non_finite) {
     throw_non_finite_rows(out.num_non_finite, points.size, out.first_non_finite_row);
   }
+}
+
+/// pack_rows in doubles: the leveled rows.
+template <typename Scalar>
+void pack_leveled(const PointsView<Scalar>& points, const Eigen::Matrix4d& transform,
+                  const std::optional<CropBox>& crop, bool drop_non_finite, const std::vector<std::uint8_t>* use,
+                  PackedRows& out) {
+  pack_rows<double>(points, transform, crop, drop_non_finite, use, out);
+}
+
+/// f(view) of the rows of `points` that take part, packed once: as floats for a float cloud that
+/// is only cropped (the plain float paths then run on them, with the same results as on doubles,
+/// at half the bytes), else leveled in doubles. Returns what f returns.
+template <typename Scalar, typename F>
+decltype(auto) with_packed_rows(const PointsView<Scalar>& points, const Eigen::Matrix4d& transform,
+                                const std::optional<CropBox>& crop, bool drop_non_finite,
+                                const std::vector<std::uint8_t>* use, PackedRows& packed, F&& f) {
+  if constexpr (std::is_same_v<Scalar, float>) {
+    if (transform.isIdentity(0.0)) {
+      pack_rows<float>(points, transform, crop, drop_non_finite, use, packed);
+      return f(packed.float_view());
+    }
+  }
+  pack_leveled(points, transform, crop, drop_non_finite, use, packed);
+  return f(packed.view());
 }
 
 /// The result of collapse_overhangs on packed.view() as the result for the input rows: `result`

@@ -1355,13 +1355,16 @@ ElevationMap build_impl(const PointsView<Scalar>& points, const ElevationParams&
       throw std::invalid_argument("the point selection has " + std::to_string(use->size()) + " flags for " +
                                   std::to_string(points.size) + " points");
     }
-    detail::PackedRows& packed = detail::packed_rows_scratch();
-    detail::pack_leveled(points, params.transform, params.crop, params.drop_non_finite, use, packed);
     ElevationParams plain = params;
     plain.transform = Eigen::Matrix4d::Identity();
     plain.crop.reset();
-    ElevationMap map = build_map(
-        detail::LeveledCloud<double, false, false>(packed.view(), plain.transform, std::nullopt), plain, nullptr, into);
+    ElevationMap map = detail::with_packed_rows(
+        points, params.transform, params.crop, params.drop_non_finite, use, detail::packed_rows_scratch(),
+        [&](const auto& packed) {
+          using Packed = std::remove_cv_t<std::remove_pointer_t<decltype(packed.data)>>;
+          return build_map(detail::LeveledCloud<Packed, false, false>(packed, plain.transform, std::nullopt), plain,
+                           nullptr, into);
+        });
     detail::release_packed_rows_if_large();
     return map;
   }
@@ -1381,11 +1384,12 @@ OverhangFreeMap overhang_free_impl(const PointsView<Scalar>& points, const Colla
       throw std::invalid_argument("build_overhang_free_map handles fewer than 2^32 points per call");
     }
     detail::PackedRows& packed = detail::packed_rows_scratch();
-    detail::pack_leveled(points, collapse.transform, collapse.crop, collapse.drop_non_finite, nullptr, packed);
     CollapseParams plain = collapse;
     plain.transform = Eigen::Matrix4d::Identity();
     plain.crop.reset();
-    OverhangFreeMap inner = overhang_free_impl(packed.view(), plain, elevation);
+    OverhangFreeMap inner =
+        detail::with_packed_rows(points, collapse.transform, collapse.crop, collapse.drop_non_finite, nullptr, packed,
+                                 [&](const auto& rows) { return overhang_free_impl(rows, plain, elevation); });
     OverhangFreeMap out;
     out.map = std::move(inner.map);
     out.collapse.num_points = points.size;

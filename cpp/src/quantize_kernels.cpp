@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <stdexcept>
 #include <type_traits>
 
 #if defined(__x86_64__) && defined(__GNUC__)
@@ -312,11 +313,12 @@ __attribute__((target("avx2"), always_inline)) inline void level4(const Scalar* 
 /// The number of set bits of a 4-bit lane mask (the baseline target has no popcnt instruction).
 constexpr std::uint8_t kLaneCount[16] = {0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4};
 
-/// level_rows with AVX2: four rows leveled and tested at a time, then each lane packed or counted.
-template <typename Scalar, bool kTransform, bool kCrop, bool kRows>
+/// level_rows with AVX2: four rows leveled and tested at a time, then each lane packed (as `Out`)
+/// or counted.
+template <typename Scalar, bool kTransform, bool kCrop, bool kRows, typename Out>
 __attribute__((target("avx2"))) std::size_t level_avx2(const Scalar* data, std::size_t rows, std::ptrdiff_t row_stride,
                                                        std::ptrdiff_t column_stride, const LevelConstants& k,
-                                                       const std::uint8_t* use, double* xyz, std::uint32_t* out_rows,
+                                                       const std::uint8_t* use, Out* xyz, std::uint32_t* out_rows,
                                                        LevelCounts& counts) {
   const auto rs = static_cast<int>(row_stride);
   const __m128i index = _mm_setr_epi32(0, rs, 2 * rs, 3 * rs);
@@ -335,9 +337,9 @@ __attribute__((target("avx2"))) std::size_t level_avx2(const Scalar* data, std::
     for (int lane = 0; lane < 4; ++lane) {
       const std::size_t row_of_lane = row + static_cast<std::size_t>(lane);
       if (use != nullptr && use[row_of_lane] == 0) continue;
-      xyz[3 * size] = q[0][lane];
-      xyz[3 * size + 1] = q[1][lane];
-      xyz[3 * size + 2] = q[2][lane];
+      xyz[3 * size] = static_cast<Out>(q[0][lane]);
+      xyz[3 * size + 1] = static_cast<Out>(q[1][lane]);
+      xyz[3 * size + 2] = static_cast<Out>(q[2][lane]);
       out_rows[size] = static_cast<std::uint32_t>(row_of_lane);
       const int is_finite = (finite_mask >> lane) & 1;
       const int is_inside = (inside_mask >> lane) & 1;
@@ -461,14 +463,14 @@ std::size_t with_level_switches(const LevelConstants& k, std::ptrdiff_t row_stri
 
 #endif
 
-template <typename Scalar>
+template <typename Scalar, typename Out>
 std::size_t level_dispatch(const Scalar* data, std::size_t rows, std::ptrdiff_t row_stride,
-                           std::ptrdiff_t column_stride, const LevelConstants& k, const std::uint8_t* use, double* xyz,
+                           std::ptrdiff_t column_stride, const LevelConstants& k, const std::uint8_t* use, Out* xyz,
                            std::uint32_t* out_rows, LevelCounts& counts) {
 #if defined(TERRACUBE_HAVE_AVX2_KERNELS)
   if (!has_avx2() || !gather_strides_fit(row_stride, column_stride)) return 0;
   return with_level_switches(k, row_stride, column_stride, [&](auto transform, auto crop, auto row_loads) {
-    return level_avx2<Scalar, decltype(transform)::value, decltype(crop)::value, decltype(row_loads)::value>(
+    return level_avx2<Scalar, decltype(transform)::value, decltype(crop)::value, decltype(row_loads)::value, Out>(
         data, rows, row_stride, column_stride, k, use, xyz, out_rows, counts);
   });
 #else
@@ -592,6 +594,13 @@ std::size_t level_rows(const float* data, std::size_t rows, std::ptrdiff_t row_s
 std::size_t level_rows(const double* data, std::size_t rows, std::ptrdiff_t row_stride, std::ptrdiff_t column_stride,
                        const LevelConstants& k, const std::uint8_t* use, double* xyz, std::uint32_t* out_rows,
                        LevelCounts& counts) {
+  return level_dispatch(data, rows, row_stride, column_stride, k, use, xyz, out_rows, counts);
+}
+
+std::size_t level_rows(const float* data, std::size_t rows, std::ptrdiff_t row_stride, std::ptrdiff_t column_stride,
+                       const LevelConstants& k, const std::uint8_t* use, float* xyz, std::uint32_t* out_rows,
+                       LevelCounts& counts) {
+  if (k.transform) throw std::logic_error("level_rows packs floats only for rows that are not transformed");
   return level_dispatch(data, rows, row_stride, column_stride, k, use, xyz, out_rows, counts);
 }
 

@@ -103,6 +103,11 @@ std::size_t level_rows(const float* data, std::size_t rows, std::ptrdiff_t row_s
 std::size_t level_rows(const double* data, std::size_t rows, std::ptrdiff_t row_stride, std::ptrdiff_t column_stride,
                        const LevelConstants& k, const std::uint8_t* use, double* xyz, std::uint32_t* out_rows,
                        LevelCounts& counts);
+/// The same for float rows that are cropped but not transformed, packed as they are, in floats
+/// (`k.transform` must be false: then every packed value is a float).
+std::size_t level_rows(const float* data, std::size_t rows, std::ptrdiff_t row_stride, std::ptrdiff_t column_stride,
+                       const LevelConstants& k, const std::uint8_t* use, float* xyz, std::uint32_t* out_rows,
+                       LevelCounts& counts);
 
 /// The bounding box of the rows that take part once leveled and cropped (finite, inside the crop;
 /// see level_rows for the arithmetic), with AVX2 four rows at a time: folds their leveled points

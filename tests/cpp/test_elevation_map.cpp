@@ -1521,6 +1521,53 @@ TEST(BuildElevationMapTransform, LeveledCroppedSelectedCloudsMatchTheNaiveLayers
   }
 }
 
+TEST(BuildElevationMapTransform, CroppedFloatCloudsArePackedAsFloatsWithTheDoubleViewsLayers) {
+  // A float cloud that is cropped but not transformed is packed in floats (its values unchanged):
+  // the layers must equal the naive ones of the points that take part, and those of a double
+  // view of the same values (packed in doubles) bit for bit. Row counts that are not a multiple of
+  // four leave rows to the scalar tail; a view with column stride 2 takes the gathering kernel.
+  for (std::uint32_t seed = 96; seed <= 98; ++seed) {
+    SCOPED_TRACE("seed " + std::to_string(seed));
+    auto points = rounded_to_float(test::random_scene(seed, 4997 + seed % 3, 7.0));
+    points[5] = Eigen::Vector3d(0.0, 0.0, std::numeric_limits<double>::quiet_NaN());
+    points[points.size() - 1] = Eigen::Vector3d(std::numeric_limits<double>::infinity(), 0.0, 0.0);  // in the tail
+    const CropBox crop{{-1.0, -2.0, 0.0}, {5.0, 4.0, 6.0}};
+    std::vector<std::uint8_t> use(points.size());
+    for (std::size_t row = 0; row < points.size(); ++row) use[row] = static_cast<std::uint8_t>(row % 7 != 3);
+    const std::vector<float> strided = as_floats(points, 4);
+    std::vector<float> interleaved(2 * 3 * points.size(), -9.0F);  // x ? y ? z ? per row: column stride 2
+    for (std::size_t row = 0; row < points.size(); ++row) {
+      for (int axis = 0; axis < 3; ++axis) interleaved[6 * row + 2 * axis] = strided[4 * row + axis];
+    }
+    const PointsView<float> views[] = {PointsView<float>(strided.data(), points.size(), 4, 1),
+                                       PointsView<float>(interleaved.data(), points.size(), 6, 2)};
+    for (const bool selected : {false, true}) {
+      SCOPED_TRACE(selected ? "with a selection" : "every row");
+      const std::vector<std::uint8_t>* selection = selected ? &use : nullptr;
+      const LeveledByHand by_hand = level_by_hand(points, Eigen::Matrix4d::Identity(), crop, selection);
+      ASSERT_LT(by_hand.points.size(), points.size() * 3 / 4) << "the crop must cut the scene";
+      for (const bool fixed : {false, true}) {
+        SCOPED_TRACE(fixed ? "fixed extent" : "auto extent");
+        ElevationParams params = fixed ? fixed_extent(0.2, {-0.5, -1.5}, {25, 30}) : ElevationParams{};
+        params.resolution_m = 0.2;
+        params.discontinuity_m = 0.5;
+        params.crop = crop;
+        params.drop_non_finite = true;
+        const ElevationMap from_doubles = build_elevation_map(PointsView<double>(points), params, selection);
+        expect_matches_naive(from_doubles, by_hand.points, params.discontinuity_m);
+        for (const PointsView<float>& view : views) {
+          SCOPED_TRACE("column stride " + std::to_string(view.column_stride));
+          expect_same_statistics(build_elevation_map(view, params, selection), from_doubles);
+        }
+        params.drop_non_finite = false;
+        expect_throw_with<std::invalid_argument>(
+            [&] { build_elevation_map(views[0], params, selection); },
+            {"2 of " + std::to_string(points.size()) + " point rows", "(first at row 5)"});
+      }
+    }
+  }
+}
+
 // --- bad input ----------------------------------------------------------------------------------
 
 TEST(BuildElevationMapBadInput, NanAndInfRowsThrowWithTheirCount) {
@@ -1909,6 +1956,39 @@ TEST(OverhangFreeMap, FloatAndDoubleViewsOfTheSameValuesAgree) {
   ASSERT_EQ(from_float.map.layers(), from_double.map.layers());
   for (const std::string& name : from_double.map.layers()) {
     expect_same_layer(from_float.map.get(name), from_double.map.get(name), name);
+  }
+}
+
+TEST(OverhangFreeMap, ACroppedFloatCloudGivesTheMapAndMaskOfItsDoubleView) {
+  // Only cropped, a float cloud is packed in floats; a double view of the same values is packed
+  // in doubles. Both must give the same mask, cube lists, counts and layers.
+  for (std::uint32_t seed = 50; seed <= 51; ++seed) {
+    SCOPED_TRACE("seed " + std::to_string(seed));
+    auto points = rounded_to_float(test::random_scene(seed, 6001, 9.0));
+    points[7] = Eigen::Vector3d(0.0, std::numeric_limits<double>::quiet_NaN(), 0.0);
+    const std::vector<float> strided = as_floats(points, 4);
+    CollapseParams collapse;
+    collapse.edge_m = 0.5;
+    collapse.sigma = 2;
+    collapse.crop = CropBox{{0.0, -3.0, -20.0}, {9.0, 5.0, 20.0}};
+    collapse.drop_non_finite = true;
+    ElevationParams elevation;
+    elevation.resolution_m = 0.25;
+    const OverhangFreeMap from_float =
+        build_overhang_free_map(PointsView<float>(strided.data(), points.size(), 4, 1), collapse, elevation);
+    const OverhangFreeMap from_double = build_overhang_free_map(PointsView<double>(points), collapse, elevation);
+    ASSERT_GT(from_double.collapse.num_overhang, 0U) << "the scene must keep overhangs";
+    ASSERT_GT(from_double.collapse.num_cropped, 0U) << "the crop must cut the scene";
+    EXPECT_EQ(from_float.collapse.overhang, from_double.collapse.overhang);
+    EXPECT_EQ(from_float.collapse.occupied_cubes, from_double.collapse.occupied_cubes);
+    EXPECT_EQ(from_float.collapse.removed_cubes, from_double.collapse.removed_cubes);
+    EXPECT_EQ(from_float.collapse.num_used, from_double.collapse.num_used);
+    EXPECT_EQ(from_float.collapse.num_cropped, from_double.collapse.num_cropped);
+    EXPECT_EQ(from_float.collapse.num_dropped_non_finite, 1U);
+    ASSERT_EQ(from_float.map.layers(), from_double.map.layers());
+    for (const std::string& name : from_double.map.layers()) {
+      expect_same_layer(from_float.map.get(name), from_double.map.get(name), name);
+    }
   }
 }
 
