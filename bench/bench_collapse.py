@@ -581,6 +581,7 @@ def print_markdown(measurements: list[Measurement]) -> None:
         *(f"{h} ms (ratio)" for h in heads),
         "point_gap agreement",
         "leveled + cropped: collapse ms, numpy ms (ratio)",
+        f"memory floor ms, 1 and {processors()} threads (numpy / floor)",
     ]
     print("\n" + markdown_row(columns))
     print(markdown_rule(len(columns) - 1))
@@ -594,6 +595,10 @@ def print_markdown(measurements: list[Measurement]) -> None:
                     *row,
                     f"{m.point_gap_agreement:.2%}",
                     f"{leveled:.2f}, {numpy_leveled:.2f} ({numpy_leveled / leveled:.1f}x)",
+                    "; ".join(
+                        f"{floor['floor_ms']:.3f} ({m.ms['numpy'] / floor['floor_ms']:.0f}x)"
+                        for floor in (m.floor, m.floor_threads)
+                    ),
                 ]
             )
         )
