@@ -213,14 +213,6 @@ void pack_rows(const PointsView<Scalar>& points, const Eigen::Matrix4d& transfor
   }
 }
 
-/// pack_rows in doubles: the leveled rows.
-template <typename Scalar>
-void pack_leveled(const PointsView<Scalar>& points, const Eigen::Matrix4d& transform,
-                  const std::optional<CropBox>& crop, bool drop_non_finite, const std::vector<std::uint8_t>* use,
-                  PackedRows& out) {
-  pack_rows<double>(points, transform, crop, drop_non_finite, use, out);
-}
-
 /// f(view) of the rows of `points` that take part, packed once: as floats for a float cloud that
 /// is only cropped (the plain float paths then run on them, with the same results as on doubles,
 /// at half the bytes), else leveled in doubles. Returns what f returns.
@@ -234,7 +226,7 @@ decltype(auto) with_packed_rows(const PointsView<Scalar>& points, const Eigen::M
       return f(packed.float_view());
     }
   }
-  pack_leveled(points, transform, crop, drop_non_finite, use, packed);
+  pack_rows<double>(points, transform, crop, drop_non_finite, use, packed);
   return f(packed.view());
 }
 
