@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import enum
+import math
 import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -11,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from . import _core
-from .collapse import CollapseParams, CollapseResult, _as_crop, _as_points, _as_transform, _num_threads
+from .collapse import CollapseParams, CollapseResult, _as_points, _num_threads, _set_frame
 
 __all__ = [
     "ElevationMap",
@@ -174,6 +175,46 @@ class ElevationMap:
         )
 
 
+def _two_numbers(values):
+    """`values` when it is a tuple or list of two Python or numpy real scalars, else None."""
+    if isinstance(values, (tuple, list)) and len(values) == 2:
+        if all(isinstance(v, (int, float, np.integer, np.floating)) for v in values):
+            return values
+    return None
+
+
+def _fixed_extent(origin, size) -> tuple[float, float, int, int]:
+    """(x0, y0, nx, ny) of a fixed map extent: two finite coordinates [m] and two whole cell counts
+    in [1, 2**31). Tuples and lists of scalars (the usual case) are checked in plain Python, in
+    about a microsecond; anything else goes through numpy."""
+    pair = _two_numbers(origin)
+    if pair is not None:
+        x0, y0 = float(pair[0]), float(pair[1])
+        origin_ok = math.isfinite(x0) and math.isfinite(y0)
+    else:
+        array = np.asarray(origin, dtype=np.float64)
+        origin_ok = array.shape == (2,) and bool(np.all(np.isfinite(array)))
+        x0, y0 = (float(array[0]), float(array[1])) if origin_ok else (0.0, 0.0)
+    if not origin_ok:
+        raise ValueError(f"origin must be two finite coordinates [m], got {origin!r}")
+    pair = _two_numbers(size)
+    if pair is not None:
+        counts = [float(v) for v in pair]
+        size_ok = all(1 <= c < 2**31 and c == round(c) for c in counts)
+    else:
+        array = np.asarray(size)
+        size_ok = (
+            array.shape == (2,)
+            and not np.any(array < 1)
+            and not np.any(array >= 2**31)
+            and not np.any(array != np.round(array))
+        )
+        counts = [float(v) for v in array] if size_ok else []
+    if not size_ok:
+        raise ValueError(f"size must be two positive whole cell counts, got {size!r}")
+    return x0, y0, int(counts[0]), int(counts[1])
+
+
 @dataclass
 class ElevationParams:
     """Parameters of :func:`build_elevation_map`, mirroring ``terracube::ElevationParams``.
@@ -215,21 +256,9 @@ class ElevationParams:
         if (self.origin is None) != (self.size is None):
             raise ValueError("give both origin and size for a fixed map extent, or neither")
         if self.size is not None:
-            origin = np.asarray(self.origin, dtype=np.float64)
-            size = np.asarray(self.size)
-            if origin.shape != (2,) or not np.all(np.isfinite(origin)):
-                raise ValueError(f"origin must be two finite coordinates [m], got {self.origin!r}")
-            if (
-                size.shape != (2,)
-                or np.any(size < 1)
-                or np.any(size >= 2**31)
-                or np.any(size != np.round(size))
-            ):
-                raise ValueError(f"size must be two positive whole cell counts, got {self.size!r}")
-            params.set_extent(float(origin[0]), float(origin[1]), int(size[0]), int(size[1]))
+            params.set_extent(*_fixed_extent(self.origin, self.size))
         params.discontinuity_m = float(self.discontinuity)
-        params.transform = _as_transform(self.transform)
-        params.crop = _as_crop(self.crop)
+        _set_frame(params, self.transform, self.crop)
         params.drop_non_finite = bool(self.drop_non_finite)
         params.max_cells = int(self.max_cells)
         params.num_threads = _num_threads(self.num_threads)

@@ -782,10 +782,51 @@ def test_origin_without_size_or_size_without_origin_raises_value_error(extent):
         tc.build_elevation_map(np.zeros((3, 3)), 0.1, **extent)
 
 
-@pytest.mark.parametrize("size", [(0, 4), (4, 0), (0, 0), (-1, 4), (2.5, 4)])
-def test_size_with_zero_negative_or_fractional_cells_raises_value_error(size):
-    with pytest.raises(ValueError, match="size"):
+_BAD_SIZES = [
+    (0, 4),
+    (4, 0),
+    (0, 0),
+    (-1, 4),
+    (2.5, 4),
+    (np.nan, 4),
+    (4, np.inf),
+    (2**31, 4),
+    (4,),
+    (4, 4, 4),
+]
+
+
+@pytest.mark.parametrize("as_array", [False, True], ids=["tuple", "array"])
+@pytest.mark.parametrize("size", _BAD_SIZES)
+def test_size_with_zero_negative_or_fractional_cells_raises_value_error(size, as_array):
+    # Tuples of scalars are checked in plain Python, arrays by numpy: both reject the same sizes.
+    size = np.array(size) if as_array else size
+    with pytest.raises(ValueError, match="size must be two positive whole cell counts"):
         tc.build_elevation_map(np.zeros((3, 3)), 0.1, origin=(0.0, 0.0), size=size)
+
+
+@pytest.mark.parametrize("as_array", [False, True], ids=["tuple", "array"])
+@pytest.mark.parametrize("origin", [(0.0, np.nan), (np.inf, 0.0), (-np.inf, 1.0), (0.0,), (0.0, 0.0, 0.0)])
+def test_origin_that_is_not_two_finite_coordinates_raises_value_error(origin, as_array):
+    origin = np.array(origin) if as_array else origin
+    with pytest.raises(ValueError, match="origin must be two finite coordinates"):
+        tc.build_elevation_map(np.zeros((3, 3)), 0.1, origin=origin, size=(4, 4))
+
+
+@pytest.mark.parametrize(
+    "origin, size",
+    [
+        ((-1, 2), (3, 4)),
+        ((-1.0, 2.0), (3.0, 4.0)),
+        ([np.float32(-1.0), np.int64(2)], [np.int32(3), np.float64(4.0)]),
+        (np.array([-1.0, 2.0]), np.array([3, 4])),
+        (np.array([-1, 2], dtype=np.int16), np.array([3.0, 4.0])),
+    ],
+)
+def test_fixed_extent_of_python_or_numpy_numbers_gives_the_same_geometry(origin, size):
+    geometry = tc.build_elevation_map(np.zeros((3, 3)), 0.5, origin=origin, size=size).geometry
+    assert geometry.origin.tolist() == [-1.0, 2.0]
+    assert geometry.size.tolist() == [3, 4]
 
 
 def test_auto_extent_over_max_cells_raises_value_error_naming_max_cells():
