@@ -786,13 +786,17 @@ bool has_gap(std::pair<double*, double*> elevations, double lowest, double highe
 /// beyond writing the layers; the statistics are kept only for occupied cells, in the order the
 /// points reach them. Buffers over kKeepBytes are released after the call.
 struct BuildScratch {
-  std::vector<std::uint32_t> cell_of_point, run_start;
-  std::vector<std::uint32_t> run_next;  // per run: the previous run of its cell, or kOutside
-  std::vector<std::uint32_t> last_run;  // per statistics entry: its cell's latest run
-  std::vector<std::uint32_t> place;     // per cell: its entry in the statistics, or kOutside
-  std::vector<std::uint64_t> occupied;  // one bit per cell
+  std::vector<std::uint32_t> cell_of_point;
+  std::vector<std::uint32_t> run_start;  // per run: the index of its first height in run_heights
+  std::vector<std::uint32_t> run_next;   // per run: the previous run of its cell, or kOutside
+  std::vector<std::uint32_t> last_run;   // per statistics entry: its cell's latest run
+  std::vector<std::uint32_t> place;      // per cell: its entry in the statistics, or kOutside
+  std::vector<std::uint64_t> occupied;   // one bit per cell
   std::vector<CellStatistics<float>> statistics_float;
   std::vector<CellStatistics<double>> statistics_double;
+  // The heights of the range's rows in row order (so each run's are contiguous), for gather().
+  std::vector<float> run_heights_float;
+  std::vector<double> run_heights_double;
   std::vector<double> heights, buckets;
 
   static constexpr std::size_t kKeepBytes = std::size_t{32} << 20;
@@ -806,12 +810,22 @@ struct BuildScratch {
     }
   }
 
+  template <typename Height>
+  std::vector<Height>& run_heights() {
+    if constexpr (std::is_same_v<Height, float>) {
+      return run_heights_float;
+    } else {
+      return run_heights_double;
+    }
+  }
+
   void release_if_large() {
     const std::size_t bytes = 4 * (cell_of_point.capacity() + run_start.capacity() + run_next.capacity() +
                                    last_run.capacity() + place.capacity()) +
                               8 * occupied.capacity() + sizeof(CellStatistics<float>) * statistics_float.capacity() +
                               sizeof(CellStatistics<double>) * statistics_double.capacity() +
-                              8 * (heights.capacity() + buckets.capacity());
+                              4 * run_heights_float.capacity() +
+                              8 * (run_heights_double.capacity() + heights.capacity() + buckets.capacity());
     if (bytes > kKeepBytes) *this = BuildScratch();
   }
 };
@@ -930,8 +944,13 @@ class CellRange {
     for (std::size_t begin = 0; begin < rows; begin += kBlock) {
       const std::size_t end = std::min(rows, begin + kBlock);
       bin_block(begin, end);
-      // A block starts at most one run per row: room for them is made here, not per run.
+      // A block starts at most one run per row and adds at most one height per row: room for them
+      // is made here, not per row.
       if (scratch_.run_start.size() < num_runs_ + (end - begin)) grow_runs(num_runs_ + (end - begin));
+      std::vector<Height>& run_heights = scratch_.run_heights<Height>();
+      if (run_heights.size() < num_heights_ + (end - begin)) {
+        run_heights.resize(std::min(rows, std::max(num_heights_ + (end - begin), 2 * run_heights.size())));
+      }
       accumulate_block(begin, end, state);
     }
     flush(state);
@@ -983,7 +1002,7 @@ class CellRange {
         std_dev[cell] = static_cast<float>(std::sqrt(variance));
         const bool wide =
             std::isgreater(static_cast<double>(s.highest) - static_cast<double>(s.lowest), discontinuity_m);
-        discontinuity[cell] = wide && has_gap(gather(cell, entry), static_cast<double>(s.lowest),
+        discontinuity[cell] = wide && has_gap(gather(entry), static_cast<double>(s.lowest),
                                               static_cast<double>(s.highest), discontinuity_m, scratch_.buckets)
                                   ? 1.0F
                                   : 0.0F;
@@ -1010,22 +1029,19 @@ class CellRange {
     double squares = 0.0;
   };
 
-  /// The elevations of a cell (from lo) with statistics entry `entry`, in the scratch's heights:
-  /// its runs from the latest back, each run's rows up to the range's next run (the rows of other
-  /// cells in between are skipped).
-  std::pair<double*, double*> gather(std::size_t cell, std::uint32_t entry) {
+  /// The elevations of the cell with statistics entry `entry`, in the scratch's heights: its runs
+  /// from the latest back, each a slice of the run heights (up to the next run's first).
+  std::pair<double*, double*> gather(std::uint32_t entry) {
     const std::uint32_t* run_next = scratch_.run_next.data();
     const std::uint32_t* run_start = scratch_.run_start.data();
+    const Height* run_heights = scratch_.run_heights<Height>().data();
     std::vector<double>& heights = scratch_.heights;
     const std::size_t count = scratch_.statistics<Height>()[entry].count;
     if (heights.size() < count) heights.resize(count);
     double* at = heights.data();
-    const auto code = static_cast<std::uint32_t>(cell + lo_);
     for (std::uint32_t run = scratch_.last_run[entry]; run != kOutside; run = run_next[run]) {
-      const std::size_t end = run + 1 < num_runs_ ? run_start[run + 1] : cloud_.size();
-      for (std::size_t row = run_start[run]; row < end; ++row) {
-        if (codes_[row] == code) *at++ = row_height(cloud_, row);
-      }
+      const std::size_t end = run + 1 < num_runs_ ? run_start[run + 1] : num_heights_;
+      for (std::size_t k = run_start[run]; k < end; ++k) *at++ = static_cast<double>(run_heights[k]);
     }
     return {heights.data(), at};
   }
@@ -1045,9 +1061,11 @@ class CellRange {
   /// The rows [begin, end) of accumulate(), with room for a run per row. Consecutive rows of a scan
   /// often share a cell: a run of them is summed in registers and added to the cell's statistics
   /// once (summing straight into memory would chain every row's additions through a store and a
-  /// load). A cell's first row sets its shift. Each run's first row is kept, chained to the
-  /// previous run of its cell, for the gap test in write() (gather()); rows outside the map do not
-  /// end a run, rows of another range do. The state and every pointer are copied to locals for the
+  /// load). A cell's first row sets its shift. Every height of the range is appended to the run
+  /// heights, and each run records where its first is, chained to the previous run of its cell,
+  /// for the gap test in write() (gather(): the few wide cells' heights then come from that compact
+  /// copy, not from rows scattered over the cloud); rows outside the map do not end a run, rows of
+  /// another range do. The state and every pointer are copied to locals for the
   /// loop (members and references would be reloaded after each store, and the state kept in memory).
   __attribute__((noinline)) TERRACUBE_NO_SLP_VECTORIZE void accumulate_block(std::size_t begin, std::size_t end,
                                                                              RunState& state_io) {
@@ -1058,7 +1076,9 @@ class CellRange {
     std::uint32_t* __restrict run_next = scratch_.run_next.data();
     std::uint32_t* __restrict last_run = scratch_.last_run.data();
     std::uint32_t* __restrict run_start = scratch_.run_start.data();
+    Height* __restrict run_heights = scratch_.run_heights<Height>().data();
     std::size_t num_runs = num_runs_;
+    std::size_t num_heights = num_heights_;
     std::uint32_t num_occupied = num_occupied_;
     const auto lo = static_cast<std::uint32_t>(lo_);
     const auto span = static_cast<std::uint32_t>(span_);
@@ -1080,7 +1100,7 @@ class CellRange {
       if (cell != state.current) {
         flush_run(state, statistics);
         state.current = cell;
-        run_start[num_runs] = static_cast<std::uint32_t>(row);
+        run_start[num_runs] = static_cast<std::uint32_t>(num_heights);
         // Fetch the cell of a later row ahead of its run (a code outside the range fetches the
         // first cell; prefetches never fault).
         const std::uint32_t ahead = codes[std::min(row + kPrefetchRows, end - 1)] - lo;
@@ -1103,6 +1123,7 @@ class CellRange {
         state.sum = state.squares = 0.0;
         state.run = 0;
       }
+      run_heights[num_heights++] = z;
       const double d = z_double - state.shift;
       state.sum += d;
       state.squares += d * d;
@@ -1112,6 +1133,7 @@ class CellRange {
     }
     state_io = state;
     num_runs_ = num_runs;
+    num_heights_ = num_heights;
     num_occupied_ = num_occupied;
   }
 
@@ -1127,6 +1149,7 @@ class CellRange {
   std::size_t lo_, span_, words_;
   BuildScratch& scratch_;
   std::size_t num_runs_ = 0;
+  std::size_t num_heights_ = 0;  ///< heights appended to the run heights
   std::uint32_t num_occupied_ = 0;
 };
 
