@@ -5,8 +5,8 @@
 //  - with neither: main(), which loads KITTI 00/000000 and times the two sides in alternation.
 // Each round times `reps` calls of one side, then of the other (which one goes first alternates),
 // so that both see the same stretch of the shared machine; the ratio B / A of each round is kept and
-// their median and quartiles printed. Compare a build with itself (A/A) first: on the 2-core VM of
-// the seventeenth session that read 0.97-0.99, the effect of code placement alone.
+// their median and quartiles printed. Code placement alone moves a side by up to about 5 %, which
+// is why ab_builds.sh also runs the two builds with the sides swapped.
 #include <cstddef>
 
 #ifdef TERRACUBE_AB_SIDE
