@@ -1065,8 +1065,8 @@ class CellRange {
   /// heights, and each run records where its first is, chained to the previous run of its cell,
   /// for the gap test in write() (gather(): the few wide cells' heights then come from that compact
   /// copy, not from rows scattered over the cloud); rows outside the map do not end a run, rows of
-  /// another range do. The state and every pointer are copied to locals for the
-  /// loop (members and references would be reloaded after each store, and the state kept in memory).
+  /// another range do. The state and every pointer are copied to locals for the loop (members and
+  /// references would be reloaded after each store, and the state kept in memory).
   __attribute__((noinline)) TERRACUBE_NO_SLP_VECTORIZE void accumulate_block(std::size_t begin, std::size_t end,
                                                                              RunState& state_io) {
     const std::uint32_t* __restrict codes = codes_;
