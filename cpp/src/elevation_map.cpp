@@ -714,23 +714,131 @@ bool bin_rows(const Scalar* data, std::size_t rows, int stride, const BinningCon
   return bin_rows_default(data, rows, stride, k, out);
 }
 
-/// Running statistics of one cell. Heights are accumulated relative to the cell's first height
-/// (a shifted one-pass variance: with `first` one of the samples, (first - mean)^2 <= n var, so
-/// sum(d^2) - sum(d)^2 / n loses at most about n ulps of the variance to cancellation, where the
-/// plain sums of z and z^2 lose everything at large absolute heights).
+/// What a cell's layers are made of: count, least and greatest elevation, and the sums of the
+/// elevations and of their squares relative to the cell's first elevation (a shifted one-pass
+/// variance: with `first` one of the samples, (first - mean)^2 <= n var, so sum(d^2) - sum(d)^2 / n
+/// loses at most about n ulps of the variance to cancellation, where the plain sums of z and z^2
+/// lose everything at large absolute heights).
 template <typename Height>
-struct CellStatistics {
-  Height first = 0;
-  Height lowest = std::numeric_limits<Height>::infinity();
-  Height highest = -std::numeric_limits<Height>::infinity();
-  std::uint32_t count = 0;
-  double sum = 0.0;      ///< sum of (z - first)
-  double squares = 0.0;  ///< sum of (z - first)^2
+struct CellSums {
+  Height lowest;
+  Height highest;
+  double sum;      ///< sum of (z - first)
+  double squares;  ///< sum of (z - first)^2
 };
+
+/// The sums of a cell's elevations z[0, n) (n >= 1, z[0] its first). The additions follow one fixed
+/// order, that of eight lanes: chunk i adds d[8i + j] + d[8i + j + 4] to lane j (j < 4), and the
+/// lanes end as (lane 0 + lane 2) + (lane 1 + lane 3); past n, d is 0 (adding 0 changes nothing).
+/// cell_sums_avx2 computes the same operations in vector registers, so both give the same bits.
+template <typename Height>
+CellSums<Height> cell_sums_scalar(const Height* z, std::uint32_t n) {
+  const double shift = static_cast<double>(z[0]);
+  CellSums<Height> out{z[0], z[0], 0.0, 0.0};
+  double sum[4] = {0.0, 0.0, 0.0, 0.0};
+  double squares[4] = {0.0, 0.0, 0.0, 0.0};
+  for (std::uint32_t chunk = 0; chunk < n; chunk += 8) {
+    for (std::uint32_t j = 0; j < 4; ++j) {
+      const std::uint32_t first = chunk + j;
+      const std::uint32_t second = chunk + j + 4;
+      const double a = first < n ? static_cast<double>(z[first]) - shift : 0.0;
+      const double b = second < n ? static_cast<double>(z[second]) - shift : 0.0;
+      if (first < n) {
+        out.lowest = std::min(out.lowest, z[first]);
+        out.highest = std::max(out.highest, z[first]);
+      }
+      if (second < n) {
+        out.lowest = std::min(out.lowest, z[second]);
+        out.highest = std::max(out.highest, z[second]);
+      }
+      sum[j] += a + b;
+      const double a2 = a * a;
+      const double b2 = b * b;
+      squares[j] += a2 + b2;
+    }
+  }
+  out.sum = (sum[0] + sum[2]) + (sum[1] + sum[3]);
+  out.squares = (squares[0] + squares[2]) + (squares[1] + squares[3]);
+  return out;
+}
+
+#if defined(__x86_64__) && defined(__GNUC__)
+/// Horizontal reductions of cell_sums_avx2: (lane 0 + lane 2) + (lane 1 + lane 3), least, greatest.
+__attribute__((target("avx2"))) inline double lane_sum(__m256d v) {
+  const __m128d pairs = _mm_add_pd(_mm256_castpd256_pd128(v), _mm256_extractf128_pd(v, 1));
+  return _mm_cvtsd_f64(_mm_add_sd(pairs, _mm_unpackhi_pd(pairs, pairs)));
+}
+__attribute__((target("avx2"))) inline double lane_min(__m256d v) {
+  const __m128d pairs = _mm_min_pd(_mm256_castpd256_pd128(v), _mm256_extractf128_pd(v, 1));
+  return _mm_cvtsd_f64(_mm_min_sd(pairs, _mm_unpackhi_pd(pairs, pairs)));
+}
+__attribute__((target("avx2"))) inline double lane_max(__m256d v) {
+  const __m128d pairs = _mm_max_pd(_mm256_castpd256_pd128(v), _mm256_extractf128_pd(v, 1));
+  return _mm_cvtsd_f64(_mm_max_sd(pairs, _mm_unpackhi_pd(pairs, pairs)));
+}
+__attribute__((target("avx2"))) inline float lane_min(__m256 v) {
+  __m128 x = _mm_min_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps(v, 1));
+  x = _mm_min_ps(x, _mm_movehl_ps(x, x));
+  return _mm_cvtss_f32(_mm_min_ss(x, _mm_shuffle_ps(x, x, 1)));
+}
+__attribute__((target("avx2"))) inline float lane_max(__m256 v) {
+  __m128 x = _mm_max_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps(v, 1));
+  x = _mm_max_ps(x, _mm_movehl_ps(x, x));
+  return _mm_cvtss_f32(_mm_max_ss(x, _mm_shuffle_ps(x, x, 1)));
+}
+
+/// cell_sums_scalar in AVX2 (no FMA: the products are rounded as there). Reads up to 7 heights past
+/// z + n (the sorted heights are padded); those lanes are masked out.
+__attribute__((target("avx2"))) CellSums<float> cell_sums_avx2(const float* z, std::uint32_t n) {
+  const __m256i lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+  const __m256 first = _mm256_set1_ps(z[0]);
+  const __m256d shift = _mm256_set1_pd(static_cast<double>(z[0]));
+  __m256 lowest = first;
+  __m256 highest = first;
+  __m256d sum = _mm256_setzero_pd();
+  __m256d squares = _mm256_setzero_pd();
+  for (std::uint32_t chunk = 0; chunk < n; chunk += 8) {
+    const __m256 inside = _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_set1_epi32(static_cast<int>(n - chunk)), lane));
+    const __m256 heights = _mm256_blendv_ps(first, _mm256_loadu_ps(z + chunk), inside);  // first: d = 0
+    lowest = _mm256_min_ps(lowest, heights);
+    highest = _mm256_max_ps(highest, heights);
+    const __m256d a = _mm256_sub_pd(_mm256_cvtps_pd(_mm256_castps256_ps128(heights)), shift);
+    const __m256d b = _mm256_sub_pd(_mm256_cvtps_pd(_mm256_extractf128_ps(heights, 1)), shift);
+    sum = _mm256_add_pd(sum, _mm256_add_pd(a, b));
+    squares = _mm256_add_pd(squares, _mm256_add_pd(_mm256_mul_pd(a, a), _mm256_mul_pd(b, b)));
+  }
+  return {lane_min(lowest), lane_max(highest), lane_sum(sum), lane_sum(squares)};
+}
+
+/// The same for double heights, four to a register.
+__attribute__((target("avx2"))) CellSums<double> cell_sums_avx2(const double* z, std::uint32_t n) {
+  const __m256i lane_low = _mm256_setr_epi64x(0, 1, 2, 3);
+  const __m256i lane_high = _mm256_setr_epi64x(4, 5, 6, 7);
+  const __m256d first = _mm256_set1_pd(z[0]);
+  __m256d lowest = first;
+  __m256d highest = first;
+  __m256d sum = _mm256_setzero_pd();
+  __m256d squares = _mm256_setzero_pd();
+  for (std::uint32_t chunk = 0; chunk < n; chunk += 8) {
+    const __m256i left = _mm256_set1_epi64x(static_cast<long long>(n - chunk));
+    const __m256d in_a = _mm256_castsi256_pd(_mm256_cmpgt_epi64(left, lane_low));
+    const __m256d in_b = _mm256_castsi256_pd(_mm256_cmpgt_epi64(left, lane_high));
+    const __m256d za = _mm256_blendv_pd(first, _mm256_loadu_pd(z + chunk), in_a);
+    const __m256d zb = _mm256_blendv_pd(first, _mm256_loadu_pd(z + chunk + 4), in_b);
+    lowest = _mm256_min_pd(lowest, _mm256_min_pd(za, zb));
+    highest = _mm256_max_pd(highest, _mm256_max_pd(za, zb));
+    const __m256d a = _mm256_sub_pd(za, first);
+    const __m256d b = _mm256_sub_pd(zb, first);
+    sum = _mm256_add_pd(sum, _mm256_add_pd(a, b));
+    squares = _mm256_add_pd(squares, _mm256_add_pd(_mm256_mul_pd(a, a), _mm256_mul_pd(b, b)));
+  }
+  return {lane_min(lowest), lane_max(highest), lane_sum(sum), lane_sum(squares)};
+}
+#endif
 
 /// Whether the elevations [begin, end) of a cell, once sorted, hold two neighbours more than
 /// `threshold` apart, found without sorting them (the classic linear-time maximum gap): the range
-/// [lowest, highest] (the cell's least and greatest elevation, known from its statistics) is cut
+/// [lowest, highest] (the cell's least and greatest elevation, known from its sums) is cut
 /// into buckets of about threshold / 2 and each bucket keeps its least and greatest elevation. A
 /// bucket is floor((z - lowest) * (2 / threshold)): rounding is monotonic, so the bucket of z never
 /// decreases as z grows, and two elevations in one bucket lie at most threshold / 2 and a few ulps
@@ -781,51 +889,46 @@ bool has_gap(std::pair<double*, double*> elevations, double lowest, double highe
 
 /// Per-thread scratch buffers of build_map, kept between calls: a fresh multi-megabyte buffer
 /// costs a page fault per 4 kB page on first touch, which on a fresh map would take longer than
-/// the whole computation. The per-cell buffers (`place`, the bitmap) are left clean after every
-/// call -- only the cells a call touched are reset -- so a call costs O(points + occupied cells)
-/// beyond writing the layers; the statistics are kept only for occupied cells, in the order the
-/// points reach them. Buffers over kKeepBytes are released after the call.
+/// the whole computation. `slot` and the bitmap (per cell) are left clean after every call, so a
+/// call costs O(points + cells), the cells' part being no more than writing the layers. Buffers
+/// over kKeepBytes are released after the call.
 struct BuildScratch {
   std::vector<std::uint32_t> cell_of_point;
-  std::vector<std::uint32_t> run_start;  // per run: the index of its first height in run_heights
-  std::vector<std::uint32_t> run_next;   // per run: the previous run of its cell, or kOutside
-  std::vector<std::uint32_t> last_run;   // per statistics entry: its cell's latest run
-  std::vector<std::uint32_t> place;      // per cell: its entry in the statistics, or kOutside
+  std::vector<std::uint32_t> slot;       // per cell + 1: counts, then where each cell's heights start
   std::vector<std::uint64_t> occupied;   // one bit per cell
-  std::vector<CellStatistics<float>> statistics_float;
-  std::vector<CellStatistics<double>> statistics_double;
-  // The heights of the range's rows in row order (so each run's are contiguous), for gather().
-  std::vector<float> run_heights_float;
-  std::vector<double> run_heights_double;
+  std::vector<std::uint32_t> row_cell;   // per row of the range, in row order: its cell (from lo)
+  std::vector<std::uint32_t> row_rank;   // ... and how many rows of its cell came before it
+  std::vector<float> row_heights_float;  // ... and its height
+  std::vector<double> row_heights_double;
+  std::vector<float> by_cell_float;  // the heights grouped by cell (row order within a cell), padded
+  std::vector<double> by_cell_double;
   std::vector<double> heights, buckets;
 
   static constexpr std::size_t kKeepBytes = std::size_t{32} << 20;
 
   template <typename Height>
-  std::vector<CellStatistics<Height>>& statistics() {
+  std::vector<Height>& row_heights() {
     if constexpr (std::is_same_v<Height, float>) {
-      return statistics_float;
+      return row_heights_float;
     } else {
-      return statistics_double;
+      return row_heights_double;
     }
   }
 
   template <typename Height>
-  std::vector<Height>& run_heights() {
+  std::vector<Height>& by_cell() {
     if constexpr (std::is_same_v<Height, float>) {
-      return run_heights_float;
+      return by_cell_float;
     } else {
-      return run_heights_double;
+      return by_cell_double;
     }
   }
 
   void release_if_large() {
-    const std::size_t bytes = 4 * (cell_of_point.capacity() + run_start.capacity() + run_next.capacity() +
-                                   last_run.capacity() + place.capacity()) +
-                              8 * occupied.capacity() + sizeof(CellStatistics<float>) * statistics_float.capacity() +
-                              sizeof(CellStatistics<double>) * statistics_double.capacity() +
-                              4 * run_heights_float.capacity() +
-                              8 * (run_heights_double.capacity() + heights.capacity() + buckets.capacity());
+    const std::size_t bytes = 4 * (cell_of_point.capacity() + slot.capacity() + row_cell.capacity() +
+                                   row_rank.capacity() + row_heights_float.capacity() + by_cell_float.capacity()) +
+                              8 * (occupied.capacity() + row_heights_double.capacity() + by_cell_double.capacity() +
+                                   heights.capacity() + buckets.capacity());
     if (bytes > kKeepBytes) *this = BuildScratch();
   }
 };
@@ -854,15 +957,6 @@ double row_height(const Cloud& cloud, std::size_t row) {
     return p.z();
   }
 }
-
-/// GCC's straight-line (SLP) vectoriser packs the run state's sums and extremes into vector
-/// registers, for the one paired addition of a flush, and then shuffles them on every row: in the
-/// accumulation loop it costs about 8 % more instructions (cachegrind, KITTI map + classes).
-#if defined(__GNUC__) && !defined(__clang__)
-#define TERRACUBE_NO_SLP_VECTORIZE __attribute__((optimize("no-tree-slp-vectorize")))
-#else
-#define TERRACUBE_NO_SLP_VECTORIZE
-#endif
 
 /// row_height for a loop over rows, as a value the loop keeps in registers: a plain view's z column
 /// and row stride (read through the cloud, they would be reloaded from memory after every store).
@@ -895,29 +989,28 @@ struct NonFiniteRows {
   }
 };
 
-/// The cells [lo, hi) of a map (lo a multiple of 64) as one thread builds them, in two stages:
-/// accumulate() runs over the cell codes of all rows and keeps the statistics of the rows whose
-/// cells are in the range, write() writes the range's layers. Several threads build disjoint
-/// ranges with their own scratch. A row of another range ends a run as another cell of the range
-/// would, so each cell's sums are added in the same order, and so are bit for bit the same,
-/// however the map is split. The scratch's per-cell buffers are indexed from lo, and left clean
-/// when the range is destroyed, whatever happens.
+/// The cells [lo, hi) of a map (lo a multiple of 64) as one thread builds them, by a counting sort
+/// of the range's heights by cell. list_rows() goes over the cell codes of all rows and lists the
+/// range's rows in row order (cell, height, and the rank of the row among its cell's rows), counting
+/// the rows of each cell; write() turns the counts into where each cell's heights start, places
+/// every height there (a cell's heights stay in row order, its first one first) and then writes the
+/// range's layers, each cell from its contiguous heights (cell_sums). No row's work depends on the
+/// row before it (no branch on where a cell's rows begin or end: on a scan they alternate between
+/// cells every few rows), and each cell's sums come from its heights alone, in one fixed order, so
+/// the map is the same bit for bit however the cells are split between threads. Several threads
+/// build disjoint ranges with their own scratch. The scratch's per-cell buffers are indexed from lo,
+/// and left clean when the range is destroyed, whatever happens.
 template <typename Cloud>
 class CellRange {
  public:
-  // Heights are exact floats when a float cloud is not transformed: then min and max are
-  // accumulated as floats. Otherwise in doubles, rounded at the end (rounding is monotonic, so
-  // float(min z) = min float(z) either way) -- the wide-cell test needs the double range.
+  // Heights are exact floats when a float cloud is not transformed: then they are kept as floats.
+  // Otherwise in doubles, rounded at the end (rounding is monotonic, so float(min z) = min float(z)
+  // either way) -- the wide-cell test needs the double range.
   using Height = std::conditional_t<ExactFloatHeights<Cloud>::value, float, double>;
 
   CellRange(const Cloud& cloud, const std::uint32_t* codes, std::size_t lo, std::size_t hi, BuildScratch& scratch)
       : cloud_(cloud), codes_(codes), lo_(lo), span_(hi - lo), words_((span_ + 63) / 64), scratch_(scratch) {
-    std::vector<CellStatistics<Height>>& statistics = scratch.statistics<Height>();
-    // One entry per occupied cell, written when a point first reaches it.
-    const std::size_t most = std::min(span_, cloud.size());
-    if (statistics.size() < most) statistics.resize(most);
-    if (scratch.last_run.size() < most) scratch.last_run.resize(most);
-    if (scratch.place.size() < span_) scratch.place.resize(span_, kOutside);  // old entries were left clean
+    if (scratch.slot.size() < span_ + 1) scratch.slot.resize(span_ + 1, 0);  // old entries were left at 0
     if (scratch.occupied.size() < words_) scratch.occupied.resize(words_, 0);
   }
   CellRange(const CellRange&) = delete;
@@ -926,48 +1019,45 @@ class CellRange {
   /// Leaves the per-cell buffers clean (write() leaves them so already, unless it did not run). The
   /// scratch's owner releases oversized buffers (release_if_large) once no range uses them.
   ~CellRange() {
-    std::uint32_t* place = scratch_.place.data();
-    for (std::size_t w = 0; w < words_; ++w) {
-      for (std::uint64_t bits = scratch_.occupied[w]; bits != 0; bits &= bits - 1) {
-        place[w * 64 + static_cast<std::size_t>(__builtin_ctzll(bits))] = kOutside;
-      }
-      scratch_.occupied[w] = 0;
-    }
+    if (clean_) return;
+    std::fill_n(scratch_.slot.begin(), span_ + 1, 0U);
+    std::fill_n(scratch_.occupied.begin(), words_, std::uint64_t{0});
   }
 
-  /// Count, min, max and the shifted sums of the range's cells, over the rows in blocks of
-  /// kBlock; bin_block(begin, end) runs first on each block (a no-op when the codes are ready).
+  /// Lists and counts the range's rows, in blocks of kBlock; bin_block(begin, end) runs first on
+  /// each block (a no-op when the codes are ready).
   template <typename BinBlock>
-  void accumulate(const BinBlock& bin_block) {
+  void list_rows(const BinBlock& bin_block) {
     const std::size_t rows = cloud_.size();
-    RunState state;
+    clean_ = false;
     for (std::size_t begin = 0; begin < rows; begin += kBlock) {
       const std::size_t end = std::min(rows, begin + kBlock);
       bin_block(begin, end);
-      // A block starts at most one run per row and adds at most one height per row: room for them
-      // is made here, not per row.
-      if (scratch_.run_start.size() < num_runs_ + (end - begin)) grow_runs(num_runs_ + (end - begin));
-      std::vector<Height>& run_heights = scratch_.run_heights<Height>();
-      if (run_heights.size() < num_heights_ + (end - begin)) {
-        run_heights.resize(std::min(rows, std::max(num_heights_ + (end - begin), 2 * run_heights.size())));
+      // A block adds at most one entry per row: room for them is made here, not per row.
+      const std::size_t least = num_rows_ + (end - begin);
+      std::vector<Height>& row_heights = scratch_.row_heights<Height>();
+      if (scratch_.row_cell.size() < least || row_heights.size() < least) {
+        const std::size_t size = std::min(rows, std::max(least, 2 * row_heights.size()));
+        if (scratch_.row_cell.size() < size) scratch_.row_cell.resize(size);
+        if (scratch_.row_rank.size() < size) scratch_.row_rank.resize(size);
+        row_heights.resize(size);
       }
-      accumulate_block(begin, end, state);
+      list_block(begin, end);
     }
-    flush(state);
   }
 
   /// The range's cells of the six layers (`layers` in kBuiltLayers' order, indexed by map cell),
-  /// 64 cells at a time: empty, then the occupied cells' statistics (their places are reset).
-  /// Discontinuity: only a cell whose elevations span more than the threshold can hold a gap
-  /// longer than it (rounding is monotonic, so this holds for the computed differences too). Those
-  /// (few) "wide" cells have their elevations gathered, run by run along the cell's chain of runs,
-  /// and tested by has_gap; the others get 0. The range's cells of the `stale` layers are set to NaN.
+  /// 64 cells at a time: empty, then the occupied cells from their heights. Discontinuity: only a
+  /// cell whose elevations span more than the threshold can hold a gap longer than it (rounding is
+  /// monotonic, so this holds for the computed differences too); those (few) "wide" cells are
+  /// tested by has_gap, the others get 0. The range's cells of the `stale` layers are set to NaN.
   void write(const std::array<float*, kBuiltLayers.size()>& layers, const std::vector<float*>& stale,
              double discontinuity_m) {
     for (float* layer : stale) std::fill_n(layer + lo_, span_, std::numeric_limits<float>::quiet_NaN());
+    place_heights();
     constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
-    const CellStatistics<Height>* statistics_data = scratch_.statistics<Height>().data();
-    std::uint32_t* place = scratch_.place.data();
+    const std::uint32_t* start = scratch_.slot.data();
+    const Height* heights = scratch_.by_cell<Height>().data();
     std::uint64_t* occupied = scratch_.occupied.data();
     float* count_layer = layers[0] + lo_;
     float* min = layers[1] + lo_;
@@ -975,6 +1065,9 @@ class CellRange {
     float* mean = layers[3] + lo_;
     float* std_dev = layers[4] + lo_;
     float* discontinuity = layers[5] + lo_;
+#if defined(__x86_64__) && defined(__GNUC__)
+    const bool avx2 = detail::has_avx2();
+#endif
     for (std::size_t w = 0; w < words_; ++w) {
       const std::size_t base = w * 64;
       if (base + 64 <= span_) {  // a whole word: fills of a constant length, unrolled (no loop exit to mispredict)
@@ -987,179 +1080,115 @@ class CellRange {
       }
       for (std::uint64_t bits = occupied[w]; bits != 0; bits &= bits - 1) {
         const std::size_t cell = base + static_cast<std::size_t>(__builtin_ctzll(bits));
-        std::uint32_t& cell_place = place[cell];
-        const std::uint32_t entry = cell_place;
-        const CellStatistics<Height>& s = statistics_data[entry];
-        cell_place = kOutside;
-        const double n = static_cast<double>(s.count);
+        const std::uint32_t first = start[cell];
+        const std::uint32_t count = start[cell + 1] - first;
+        const Height* z = heights + first;
+#if defined(__x86_64__) && defined(__GNUC__)
+        const CellSums<Height> s = avx2 ? cell_sums_avx2(z, count) : cell_sums_scalar(z, count);
+#else
+        const CellSums<Height> s = cell_sums_scalar(z, count);
+#endif
+        const double n = static_cast<double>(count);
         const double offset_of_mean = s.sum / n;
         // The population variance from the shifted sums; rounding can leave it just below 0.
         const double variance = std::max((s.squares - s.sum * offset_of_mean) / n, 0.0);
-        count_layer[cell] = static_cast<float>(s.count);
+        count_layer[cell] = static_cast<float>(count);
         min[cell] = static_cast<float>(s.lowest);
         max[cell] = static_cast<float>(s.highest);
-        mean[cell] = static_cast<float>(static_cast<double>(s.first) + offset_of_mean);
+        mean[cell] = static_cast<float>(static_cast<double>(z[0]) + offset_of_mean);
         std_dev[cell] = static_cast<float>(std::sqrt(variance));
         const bool wide =
             std::isgreater(static_cast<double>(s.highest) - static_cast<double>(s.lowest), discontinuity_m);
-        discontinuity[cell] = wide && has_gap(gather(entry), static_cast<double>(s.lowest),
+        discontinuity[cell] = wide && has_gap(as_doubles(z, count), static_cast<double>(s.lowest),
                                               static_cast<double>(s.highest), discontinuity_m, scratch_.buckets)
                                   ? 1.0F
                                   : 0.0F;
       }
       occupied[w] = 0;
     }
+    std::fill_n(scratch_.slot.begin(), span_ + 1, 0U);
+    clean_ = true;
   }
 
-  static constexpr std::size_t kBlock = 1024;  ///< rows binned and accumulated at a time (L1)
+  static constexpr std::size_t kBlock = 1024;  ///< rows binned and listed at a time (L1)
 
  private:
-  static constexpr std::size_t kPrefetchRows = 16;
+  static constexpr std::size_t kPadding = 8;  ///< heights read past a cell's last by cell_sums_avx2
 
-  /// The run being summed: its cell (from lo; kOutside before the first), its statistics entry,
-  /// and its rows' count, least and greatest height and shifted sums.
-  struct RunState {
-    std::uint32_t current = kOutside;
-    std::uint32_t entry = 0;
-    std::uint32_t run = 0;
-    double shift = 0.0;  // the cell's first height, as a double once per run
-    Height lowest = std::numeric_limits<Height>::infinity();
-    Height highest = -std::numeric_limits<Height>::infinity();
-    double sum = 0.0;
-    double squares = 0.0;
-  };
-
-  /// The elevations of the cell with statistics entry `entry`, in the scratch's heights: its runs
-  /// from the latest back, each a slice of the run heights (up to the next run's first).
-  std::pair<double*, double*> gather(std::uint32_t entry) {
-    const std::uint32_t* run_next = scratch_.run_next.data();
-    const std::uint32_t* run_start = scratch_.run_start.data();
-    const Height* run_heights = scratch_.run_heights<Height>().data();
+  /// The heights [z, z + n) as doubles, in the scratch (has_gap may reorder them).
+  std::pair<double*, double*> as_doubles(const Height* z, std::uint32_t n) {
     std::vector<double>& heights = scratch_.heights;
-    const std::size_t count = scratch_.statistics<Height>()[entry].count;
-    if (heights.size() < count) heights.resize(count);
-    double* at = heights.data();
-    for (std::uint32_t run = scratch_.last_run[entry]; run != kOutside; run = run_next[run]) {
-      const std::size_t end = run + 1 < num_runs_ ? run_start[run + 1] : num_heights_;
-      for (std::size_t k = run_start[run]; k < end; ++k) *at++ = static_cast<double>(run_heights[k]);
-    }
-    return {heights.data(), at};
+    if (heights.size() < n) heights.resize(n);
+    std::copy_n(z, n, heights.data());
+    return {heights.data(), heights.data() + n};
   }
 
-  /// Adds a run to its cell's statistics.
-  static void flush_run(const RunState& state, CellStatistics<Height>* statistics) {
-    if (state.current == kOutside) return;
-    CellStatistics<Height>& s = statistics[state.entry];
-    s.count += state.run;
-    s.sum += state.sum;
-    s.squares += state.squares;
-    s.lowest = state.lowest < s.lowest ? state.lowest : s.lowest;
-    s.highest = state.highest > s.highest ? state.highest : s.highest;
-  }
-  void flush(const RunState& state) { flush_run(state, scratch_.statistics<Height>().data()); }
-
-  /// The rows [begin, end) of accumulate(), with room for a run per row. Consecutive rows of a scan
-  /// often share a cell: a run of them is summed in registers and added to the cell's statistics
-  /// once (summing straight into memory would chain every row's additions through a store and a
-  /// load). A cell's first row sets its shift. Every height of the range is appended to the run
-  /// heights, and each run records where its first is, chained to the previous run of its cell,
-  /// for the gap test in write() (gather(): the few wide cells' heights then come from that compact
-  /// copy, not from rows scattered over the cloud); rows outside the map do not end a run, rows of
-  /// another range do. The state and every pointer are copied to locals for the loop (members and
-  /// references would be reloaded after each store, and the state kept in memory).
-  __attribute__((noinline)) TERRACUBE_NO_SLP_VECTORIZE void accumulate_block(std::size_t begin, std::size_t end,
-                                                                             RunState& state_io) {
+  /// The rows [begin, end) of list_rows(): each row of the range is listed, and counted in the
+  /// slot after its cell's (slot[cell + 1]; slot[0] stays 0 for the starts below).
+  __attribute__((noinline)) void list_block(std::size_t begin, std::size_t end) {
     const std::uint32_t* __restrict codes = codes_;
-    CellStatistics<Height>* __restrict statistics = scratch_.statistics<Height>().data();
-    std::uint32_t* __restrict place = scratch_.place.data();
-    std::uint64_t* __restrict occupied = scratch_.occupied.data();
-    std::uint32_t* __restrict run_next = scratch_.run_next.data();
-    std::uint32_t* __restrict last_run = scratch_.last_run.data();
-    std::uint32_t* __restrict run_start = scratch_.run_start.data();
-    Height* __restrict run_heights = scratch_.run_heights<Height>().data();
-    std::size_t num_runs = num_runs_;
-    std::size_t num_heights = num_heights_;
-    std::uint32_t num_occupied = num_occupied_;
+    std::uint32_t* __restrict counts = scratch_.slot.data() + 1;
+    std::uint32_t* __restrict row_cell = scratch_.row_cell.data();
+    std::uint32_t* __restrict row_rank = scratch_.row_rank.data();
+    Height* __restrict row_heights = scratch_.row_heights<Height>().data();
+    std::size_t listed = num_rows_;
     const auto lo = static_cast<std::uint32_t>(lo_);
     const auto span = static_cast<std::uint32_t>(span_);
     const RowHeights<Cloud> height_of(cloud_);
-    constexpr Height kInfinity = std::numeric_limits<Height>::infinity();
-    RunState state = state_io;
     for (std::size_t row = begin; row < end; ++row) {
-      const std::uint32_t code = codes[row];
-      const std::uint32_t cell = code - lo;  // wraps for cells below the range
-      if (cell >= span) {
-        if (code != kOutside && state.current != kOutside) {  // another range's cell ends the run
-          flush_run(state, statistics);
-          state.current = kOutside;
-        }
-        continue;
-      }
-      const double z_double = height_of(row);
-      const auto z = static_cast<Height>(z_double);
-      if (cell != state.current) {
-        flush_run(state, statistics);
-        state.current = cell;
-        run_start[num_runs] = static_cast<std::uint32_t>(num_heights);
-        // Fetch the cell of a later row ahead of its run (a code outside the range fetches the
-        // first cell; prefetches never fault).
-        const std::uint32_t ahead = codes[std::min(row + kPrefetchRows, end - 1)] - lo;
-        __builtin_prefetch(place + (ahead < span ? ahead : 0), 1);
-        std::uint32_t& cell_place = place[cell];
-        if (cell_place == kOutside) {  // the cell's first point
-          cell_place = num_occupied++;
-          CellStatistics<Height>& s = statistics[cell_place];
-          s = CellStatistics<Height>();
-          s.first = z;
-          occupied[cell / 64] |= std::uint64_t{1} << (cell % 64);
-          last_run[cell_place] = kOutside;
-        }
-        state.entry = cell_place;
-        run_next[num_runs] = last_run[state.entry];  // the cell's chain of runs, for gather()
-        last_run[state.entry] = static_cast<std::uint32_t>(num_runs++);
-        state.shift = static_cast<double>(statistics[state.entry].first);
-        state.lowest = kInfinity;
-        state.highest = -kInfinity;
-        state.sum = state.squares = 0.0;
-        state.run = 0;
-      }
-      run_heights[num_heights++] = z;
-      const double d = z_double - state.shift;
-      state.sum += d;
-      state.squares += d * d;
-      state.lowest = z < state.lowest ? z : state.lowest;
-      state.highest = z > state.highest ? z : state.highest;
-      ++state.run;
+      const std::uint32_t cell = codes[row] - lo;  // wraps for cells below the range (and kOutside)
+      if (cell >= span) continue;
+      row_cell[listed] = cell;
+      row_rank[listed] = counts[cell]++;
+      row_heights[listed] = static_cast<Height>(height_of(row));
+      ++listed;
     }
-    state_io = state;
-    num_runs_ = num_runs;
-    num_heights_ = num_heights;
-    num_occupied_ = num_occupied;
+    num_rows_ = listed;
   }
 
-  void grow_runs(std::size_t least) {
-    const std::size_t size =
-        std::min(cloud_.size(), std::max({least, std::size_t{4096}, 2 * scratch_.run_start.size()}));
-    scratch_.run_next.resize(size);
-    scratch_.run_start.resize(size);
+  /// Counts to starts (slot[cell] = where the cell's heights start, slot[span] = all of them; the
+  /// bitmap marks the cells with any), then every listed height to its place.
+  void place_heights() {
+    std::uint32_t* slot = scratch_.slot.data();
+    std::uint64_t* occupied = scratch_.occupied.data();
+    std::uint32_t total = 0;
+    for (std::size_t w = 0; w < words_; ++w) {
+      const std::size_t base = w * 64;
+      const std::size_t length = std::min<std::size_t>(64, span_ - base);
+      std::uint64_t bits = 0;
+      for (std::size_t k = 0; k < length; ++k) {
+        const std::uint32_t count = slot[base + k + 1];
+        bits |= static_cast<std::uint64_t>(count != 0) << k;
+        total += count;
+        slot[base + k + 1] = total;
+      }
+      occupied[w] = bits;
+    }
+    std::vector<Height>& by_cell = scratch_.by_cell<Height>();
+    if (by_cell.size() < num_rows_ + kPadding) by_cell.resize(num_rows_ + kPadding, Height{0});
+    Height* __restrict placed = by_cell.data();
+    const std::uint32_t* __restrict start = slot;
+    const std::uint32_t* __restrict row_cell = scratch_.row_cell.data();
+    const std::uint32_t* __restrict row_rank = scratch_.row_rank.data();
+    const Height* __restrict row_heights = scratch_.row_heights<Height>().data();
+    for (std::size_t k = 0; k < num_rows_; ++k) placed[start[row_cell[k]] + row_rank[k]] = row_heights[k];
   }
 
   const Cloud& cloud_;
   const std::uint32_t* codes_;
   std::size_t lo_, span_, words_;
   BuildScratch& scratch_;
-  std::size_t num_runs_ = 0;
-  std::size_t num_heights_ = 0;  ///< heights appended to the run heights
-  std::uint32_t num_occupied_ = 0;
+  std::size_t num_rows_ = 0;  ///< rows of the range listed
+  bool clean_ = true;         ///< the per-cell buffers are clean
 };
 
 /// Builds into `*into` (see build_elevation_map_into) when given, else into the returned map. With
 /// `cells_out`, hands over the cell of every row (row-major i * ny + j; kOutside for rows outside the
 /// map, unselected or NaN/Inf) by swapping buffers with it.
 ///
-/// On one thread the rows are binned and accumulated a block at a time (the block's rows still in
-/// L1). On several: the threads bin disjoint blocks of rows, then each builds a range of cells
-/// (CellRange) holding about as many rows (from a sample of the codes) and cells as the others.
+/// On one thread the rows are binned and listed a block at a time (the block's rows still in L1). On several: the
+/// threads bin disjoint blocks of rows, then each builds a range of cells (CellRange) holding about as many rows (from
+/// a sample of the codes) and cells as the others.
 template <typename Cloud>
 ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const std::vector<std::uint8_t>* use,
                        ElevationMap* into, std::vector<std::uint32_t>* cells_out = nullptr) {
@@ -1208,7 +1237,7 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   if (cells >= kSlow) throw std::invalid_argument("build_elevation_map handles maps of fewer than 2^32 - 2 cells");
 
   // Pass 2, in blocks of rows that stay in the L1 cache: the cell code of every row (row-major
-  // cell = i * ny + j), then count, min, max and the shifted sums of the block's rows.
+  // cell = i * ny + j), then the block's rows listed and counted by cell (CellRange).
   BuildScratch& scratch = thread_scratch();
   struct ReleaseOnExit {  // after the cells have been handed over (or on an exception)
     BuildScratch& scratch;
@@ -1316,7 +1345,7 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   if (parts == 1 || cells < 64 * static_cast<std::size_t>(parts)) {
     NonFiniteRows non_finite;
     CellRange<Cloud> range(cloud, codes, 0, cells, scratch);
-    range.accumulate([&](std::size_t begin, std::size_t end) { bin_block(begin, end, non_finite); });
+    range.list_rows([&](std::size_t begin, std::size_t end) { bin_block(begin, end, non_finite); });
     check_non_finite(non_finite);
     make_layers();
     range.write(layers, stale, params.discontinuity_m);
@@ -1376,7 +1405,7 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
       BuildScratch& own = thread_scratch();  // the calling thread's is `scratch`, which holds the codes
       {
         CellRange<Cloud> range(cloud, codes, cut[k], cut[k + 1], own);
-        range.accumulate([](std::size_t, std::size_t) {});
+        range.list_rows([](std::size_t, std::size_t) {});
         range.write(layers, stale, params.discontinuity_m);
       }
       if (&own != &scratch) own.release_if_large();

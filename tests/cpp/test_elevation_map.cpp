@@ -894,6 +894,68 @@ TEST(BuildElevationMapFastPaths, ShiftedOnePassVarianceIsAccurateFarFromZeroAndA
   EXPECT_GT(map.get("std_dev")(0, 0), 0.0F);
 }
 
+/// A cell's mean and std-dev as build_elevation_map documents them (cell_sums): elevations relative
+/// to the first, added in the order of eight lanes (chunk i adds d[8i + j] + d[8i + j + 4] to lane
+/// j < 4; the lanes end as (0 + 2) + (1 + 3)); or, with `in_row_order`, one after the other.
+std::pair<float, float> documented_mean_and_std(const std::vector<double>& z, bool in_row_order) {
+  const std::size_t n = z.size();
+  double sum = 0.0, squares = 0.0;
+  if (in_row_order) {
+    for (const double v : z) {
+      sum += v - z[0];
+      squares += (v - z[0]) * (v - z[0]);
+    }
+  } else {
+    double lane_sum[4] = {}, lane_squares[4] = {};
+    for (std::size_t chunk = 0; chunk < n; chunk += 8) {
+      for (std::size_t j = 0; j < 4; ++j) {
+        const double a = chunk + j < n ? z[chunk + j] - z[0] : 0.0;
+        const double b = chunk + j + 4 < n ? z[chunk + j + 4] - z[0] : 0.0;
+        lane_sum[j] += a + b;
+        lane_squares[j] += a * a + b * b;
+      }
+    }
+    sum = (lane_sum[0] + lane_sum[2]) + (lane_sum[1] + lane_sum[3]);
+    squares = (lane_squares[0] + lane_squares[2]) + (lane_squares[1] + lane_squares[3]);
+  }
+  const double offset = sum / static_cast<double>(n);
+  const double variance = std::max((squares - sum * offset) / static_cast<double>(n), 0.0);
+  return {static_cast<float>(z[0] + offset), static_cast<float>(std::sqrt(variance))};
+}
+
+TEST(BuildElevationMapFastPaths, CellSumsFollowTheDocumentedOrderBitForBitWithAndWithoutAvx2) {
+  // Cells of 1 to 40 elevations (every tail length of the eight lanes), +-1e10 m apart so that the
+  // order of the additions shows in the float mean and std-dev; rows of the cells interleaved. The
+  // map must give the documented order's bits (this binary also runs with TERRACUBE_DISABLE_AVX2),
+  // and row order must give other bits in some cells (else the test could not tell them apart).
+  std::mt19937 rng(97);
+  std::uniform_real_distribution<double> small(0.0, 1.0);
+  constexpr int kCells = 40;
+  std::vector<std::vector<double>> heights(kCells);
+  std::vector<Eigen::Vector3d> points;
+  for (int k = 0; k < kCells; ++k) {
+    for (int m = 0; m <= k; ++m) heights[k].push_back((m % 2 == 0 ? 1e10 : -1e10) * (m % 3 != 0) + small(rng));
+  }
+  for (int m = 0; m < kCells; ++m) {  // row m of every cell that has one, cells in turn
+    for (int k = 0; k < kCells; ++k) {
+      if (m <= k) points.emplace_back(k + 0.5, 0.5, heights[k][m]);
+    }
+  }
+  const ElevationParams params = fixed_extent(1.0, {0.0, 0.0}, {kCells, 1});
+  const ElevationMap map = build_elevation_map(PointsView<double>(points), params);
+  int differ_in_row_order = 0;
+  for (int k = 0; k < kCells; ++k) {
+    SCOPED_TRACE("cell of " + std::to_string(k + 1) + " elevations");
+    const auto [mean, std_dev] = documented_mean_and_std(heights[k], false);
+    EXPECT_EQ(map.get("count")(k, 0), static_cast<float>(k + 1));
+    EXPECT_EQ(map.get("mean")(k, 0), mean);
+    EXPECT_EQ(map.get("std_dev")(k, 0), std_dev);
+    const auto [row_mean, row_std_dev] = documented_mean_and_std(heights[k], true);
+    differ_in_row_order += row_mean != mean || row_std_dev != std_dev;
+  }
+  EXPECT_GT(differ_in_row_order, 3);
+}
+
 // --- build_elevation_map against the naive reference ----------------------------------------------
 
 TEST(BuildElevationMapVsNaive, RandomScenesDoubleViewAutoExtent) {
@@ -1009,10 +1071,10 @@ TEST(BuildElevationMapThreads, RandomScenesGiveTheOneThreadMapBitForBitOnAnyNumb
 }
 
 TEST(BuildElevationMapThreads, RunsCutByRowsOfAnotherThreadsCellsAreSummedAsOnOneThread) {
-  // Each cell on the left (x < 0) gets three rows, a row of a cell on the right, three more rows:
-  // two runs on one thread. The thread building the left cells must also see two runs, or it would
-  // add the six heights in another order; heights of +-1e6 m that cancel make that order show in
-  // the float mean and std-dev of most cells.
+  // Each cell on the left (x < 0) gets three rows, a row of a cell on the right, three more rows.
+  // The thread building the left cells must add the six heights in the one-thread order whatever
+  // the rows of the other thread's cells between them; heights of +-1e6 m that cancel make the
+  // order show in the float mean and std-dev of many cells.
   std::mt19937 rng(76);
   std::uniform_real_distribution<double> small(0.0, 1.0);
   std::uniform_int_distribution<int> column(0, 99);
