@@ -1351,11 +1351,8 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     range.write(layers, stale, params.discontinuity_m);
   } else {
     // Bin: each part takes a run of blocks, and counts the codes of every kSample-th row in
-    // buckets of 2^shift cells (at least 64, at most 4096 buckets) for the split below, and among
-    // them the rows that start a run (a cell other than the row before's: each costs a flush and
-    // a mispredicted branch, several rows' worth).
+    // buckets of 2^shift cells (at least 64, at most 4096 buckets) for the split below.
     constexpr std::size_t kSample = 4;
-    constexpr std::uint64_t kRunWeight = 4;
     int shift = 6;
     while ((cells >> shift) >= 4096) ++shift;
     const std::size_t num_buckets = (cells >> shift) + 1;
@@ -1368,9 +1365,9 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
         const std::size_t begin = b * block;
         const std::size_t end = std::min(cloud.size(), begin + block);
         bin_block(begin, end, non_finite[k]);
-        for (std::size_t row = begin + 1; row < end; row += kSample) {
+        for (std::size_t row = begin; row < end; row += kSample) {
           const std::uint32_t code = codes[row];
-          if (code != kOutside) histogram[code >> shift] += code != codes[row - 1] ? kRunWeight + 1 : 1;
+          if (code != kOutside) ++histogram[code >> shift];
         }
       }
     });
@@ -1379,7 +1376,7 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     check_non_finite(all);
     make_layers();
     // Split the cells at bucket borders into parts of about equal work: kSample rows per sampled
-    // code (kRunWeight more for a run's first), plus a quarter of a row per cell for the layers.
+    // code, plus a quarter of a row per cell for the layers.
     std::vector<double> work(num_buckets, 0.0);
     double total = 0.0;
     for (std::size_t b = 0; b < num_buckets; ++b) {
