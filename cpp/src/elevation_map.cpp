@@ -836,6 +836,39 @@ __attribute__((target("avx2"))) CellSums<double> cell_sums_avx2(const double* z,
 }
 #endif
 
+/// Mean and std-dev of cells [begin, end) from their first elevation, sums and count (see
+/// CellSums): the population variance from the shifted sums, where rounding can leave it just
+/// below 0.
+inline void finish_cells(const double* firsts, const double* sums, const double* squares, const double* counts,
+                         int begin, int end, float* means, float* std_devs) {
+  for (int k = begin; k < end; ++k) {
+    const double offset_of_mean = sums[k] / counts[k];
+    const double variance = std::max((squares[k] - sums[k] * offset_of_mean) / counts[k], 0.0);
+    means[k] = static_cast<float>(firsts[k] + offset_of_mean);
+    std_devs[k] = static_cast<float>(std::sqrt(variance));
+  }
+}
+
+#if defined(__x86_64__) && defined(__GNUC__)
+/// finish_cells four cells at a time (the same correctly rounded operations: the same bits). The
+/// arrays are 32-byte aligned; the last incomplete group is left to finish_cells.
+__attribute__((target("avx2"))) void finish_cells_avx2(const double* firsts, const double* sums, const double* squares,
+                                                       const double* counts, int end, float* means, float* std_devs) {
+  const __m256d zero = _mm256_setzero_pd();
+  int k = 0;
+  for (; k + 4 <= end; k += 4) {
+    const __m256d n = _mm256_load_pd(counts + k);
+    const __m256d sum = _mm256_load_pd(sums + k);
+    const __m256d offset_of_mean = _mm256_div_pd(sum, n);
+    const __m256d spread = _mm256_sub_pd(_mm256_load_pd(squares + k), _mm256_mul_pd(sum, offset_of_mean));
+    const __m256d variance = _mm256_max_pd(zero, _mm256_div_pd(spread, n));  // max(0, v): std::max(v, 0) on -0
+    _mm_store_ps(means + k, _mm256_cvtpd_ps(_mm256_add_pd(_mm256_load_pd(firsts + k), offset_of_mean)));
+    _mm_store_ps(std_devs + k, _mm256_cvtpd_ps(_mm256_sqrt_pd(variance)));
+  }
+  finish_cells(firsts, sums, squares, counts, k, end, means, std_devs);
+}
+#endif
+
 /// Whether the elevations [begin, end) of a cell, once sorted, hold two neighbours more than
 /// `threshold` apart, found without sorting them (the classic linear-time maximum gap): the range
 /// [lowest, highest] (the cell's least and greatest elevation, known from its sums) is cut
@@ -1078,6 +1111,12 @@ class CellRange {
         std::fill_n(count_layer + base, length, 0.0F);
         for (float* layer : {min, max, mean, std_dev, discontinuity}) std::fill_n(layer + base, length, kNaN);
       }
+      // The word's occupied cells: sums, count, min, max and the gap test first, then mean and
+      // std-dev in a second loop, whose divisions and square roots (long latencies) overlap.
+      std::uint32_t cells[64];
+      alignas(32) double firsts[64], sums[64], squares[64], counts[64];
+      alignas(16) float means[64], std_devs[64];
+      int listed = 0;
       for (std::uint64_t bits = occupied[w]; bits != 0; bits &= bits - 1) {
         const std::size_t cell = base + static_cast<std::size_t>(__builtin_ctzll(bits));
         const std::uint32_t first = start[cell];
@@ -1088,21 +1127,33 @@ class CellRange {
 #else
         const CellSums<Height> s = cell_sums_scalar(z, count);
 #endif
-        const double n = static_cast<double>(count);
-        const double offset_of_mean = s.sum / n;
-        // The population variance from the shifted sums; rounding can leave it just below 0.
-        const double variance = std::max((s.squares - s.sum * offset_of_mean) / n, 0.0);
+        cells[listed] = static_cast<std::uint32_t>(cell);
+        firsts[listed] = static_cast<double>(z[0]);
+        sums[listed] = s.sum;
+        squares[listed] = s.squares;
+        counts[listed++] = static_cast<double>(count);
         count_layer[cell] = static_cast<float>(count);
         min[cell] = static_cast<float>(s.lowest);
         max[cell] = static_cast<float>(s.highest);
-        mean[cell] = static_cast<float>(static_cast<double>(z[0]) + offset_of_mean);
-        std_dev[cell] = static_cast<float>(std::sqrt(variance));
         const bool wide =
             std::isgreater(static_cast<double>(s.highest) - static_cast<double>(s.lowest), discontinuity_m);
         discontinuity[cell] = wide && has_gap(as_doubles(z, count), static_cast<double>(s.lowest),
                                               static_cast<double>(s.highest), discontinuity_m, scratch_.buckets)
                                   ? 1.0F
                                   : 0.0F;
+      }
+#if defined(__x86_64__) && defined(__GNUC__)
+      if (avx2) {
+        finish_cells_avx2(firsts, sums, squares, counts, listed, means, std_devs);
+      } else {
+        finish_cells(firsts, sums, squares, counts, 0, listed, means, std_devs);
+      }
+#else
+      finish_cells(firsts, sums, squares, counts, 0, listed, means, std_devs);
+#endif
+      for (int k = 0; k < listed; ++k) {
+        mean[cells[k]] = means[k];
+        std_dev[cells[k]] = std_devs[k];
       }
       occupied[w] = 0;
     }
