@@ -869,6 +869,39 @@ __attribute__((target("avx2"))) void finish_cells_avx2(const double* firsts, con
 }
 #endif
 
+#if defined(__x86_64__) && defined(__GNUC__)
+/// CellRange::place_heights' first loop over the first `words` whole bitmap words, eight counts at a
+/// time: each becomes the running total up to and including it (slot[cell + 1]), and its bit is
+/// set when it is not 0. Returns the words done; `total` carries the running total on.
+__attribute__((target("avx2"))) std::size_t count_to_starts_avx2(std::uint32_t* slot, std::size_t words,
+                                                                 std::uint64_t* occupied, std::uint32_t& total) {
+  const __m256i zero = _mm256_setzero_si256();
+  const __m256i last = _mm256_set1_epi32(7);
+  const __m256i fourth = _mm256_set1_epi32(3);
+  __m256i carry = _mm256_set1_epi32(static_cast<int>(total));
+  for (std::size_t w = 0; w < words; ++w) {
+    std::uint64_t bits = 0;
+    for (int k = 0; k < 8; ++k) {
+      __m256i* at = reinterpret_cast<__m256i*>(slot + w * 64 + 8 * k + 1);
+      const __m256i counts = _mm256_loadu_si256(at);
+      const auto empty =
+          static_cast<std::uint32_t>(_mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpeq_epi32(counts, zero))));
+      bits |= static_cast<std::uint64_t>(~empty & 0xFFU) << (8 * k);
+      __m256i sums = _mm256_add_epi32(counts, _mm256_slli_si256(counts, 4));  // prefix sums in each half
+      sums = _mm256_add_epi32(sums, _mm256_slli_si256(sums, 8));
+      const __m256i low_total = _mm256_permutevar8x32_epi32(sums, fourth);  // the low half's total
+      sums = _mm256_add_epi32(sums, _mm256_blend_epi32(zero, low_total, 0xF0));
+      sums = _mm256_add_epi32(sums, carry);
+      _mm256_storeu_si256(at, sums);
+      carry = _mm256_permutevar8x32_epi32(sums, last);
+    }
+    occupied[w] = bits;
+  }
+  total = static_cast<std::uint32_t>(_mm256_cvtsi256_si32(carry));
+  return words;
+}
+#endif
+
 /// Whether the elevations [begin, end) of a cell, once sorted, hold two neighbours more than
 /// `threshold` apart, found without sorting them (the classic linear-time maximum gap): the range
 /// [lowest, highest] (the cell's least and greatest elevation, known from its sums) is cut
@@ -1203,7 +1236,11 @@ class CellRange {
     std::uint32_t* slot = scratch_.slot.data();
     std::uint64_t* occupied = scratch_.occupied.data();
     std::uint32_t total = 0;
-    for (std::size_t w = 0; w < words_; ++w) {
+    std::size_t w = 0;
+#if defined(__x86_64__) && defined(__GNUC__)
+    if (detail::has_avx2()) w = count_to_starts_avx2(slot, span_ / 64, occupied, total);
+#endif
+    for (; w < words_; ++w) {
       const std::size_t base = w * 64;
       const std::size_t length = std::min<std::size_t>(64, span_ - base);
       std::uint64_t bits = 0;
