@@ -97,6 +97,31 @@ void BM_MapAndClassifyKittiRefilled(benchmark::State& state) {
 }
 BENCHMARK(BM_MapAndClassifyKittiRefilled)->Arg(1)->Arg(0)->Unit(benchmark::kMillisecond);
 
+/// The two parts of the refilled loop above, each alone: the refill (which also sets the class
+/// layers of the previous classification to NaN) and the classification.
+void BM_RefillClassifiedMapKitti(benchmark::State& state) {
+  if (skip_without_kitti(state)) return;
+  const auto points = view_of(kitti_scan(0));
+  terracube::ElevationParams params = map_params();
+  terracube::TerrainParams terrain = terrain_params();
+  params.num_threads = terrain.num_threads = static_cast<int>(state.range(0));
+  terracube::ElevationMap map = terracube::build_elevation_map(points, params);
+  terracube::classify_terrain_layers(map, terrain);
+  for (auto _ : state) terracube::build_elevation_map_into(map, points, params);
+}
+BENCHMARK(BM_RefillClassifiedMapKitti)->Arg(1)->Arg(0)->Unit(benchmark::kMillisecond);
+
+void BM_ClassifyTerrainKitti(benchmark::State& state) {
+  if (skip_without_kitti(state)) return;
+  const auto points = view_of(kitti_scan(0));
+  terracube::ElevationParams params = map_params();
+  terracube::TerrainParams terrain = terrain_params();
+  params.num_threads = terrain.num_threads = static_cast<int>(state.range(0));
+  terracube::ElevationMap map = terracube::build_elevation_map(points, params);
+  for (auto _ : state) benchmark::DoNotOptimize(terracube::classify_terrain_layers(map, terrain));
+}
+BENCHMARK(BM_ClassifyTerrainKitti)->Arg(1)->Arg(0)->Unit(benchmark::kMillisecond);
+
 void BM_DemWithoutOverhangsKitti(benchmark::State& state) {
   if (skip_without_kitti(state)) return;
   const auto points = view_of(kitti_scan(0));
