@@ -8,7 +8,8 @@
 #   bash bench/ab_builds.sh HEAD HEAD         # A/A: what code placement alone does (read this first)
 #
 # Environment: THREADS (default "1 2"), WHAT (0 refilled map + classes, 1 fresh map + classes, 2 fresh
-# map; default "0"), ROUNDS (400), REPS (20), TERRACUBE_DATA_DIR (else ../shared/data). Each side's
+# map, 3 fresh map + classes with cold caches: each call after 64 MB were written and read, untimed;
+# default "0"), ROUNDS (400), REPS (20), TERRACUBE_DATA_DIR (else ../shared/data). Each side's
 # library sources are compiled with -Dterracube=tcA / tcB (so both link into one program); the list
 # below is the map path's, extend it if a build misses a symbol.
 set -euo pipefail
