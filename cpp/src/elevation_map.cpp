@@ -1055,6 +1055,9 @@ struct NonFiniteRows {
   }
 };
 
+/// Rows binned and listed at a time (their rows still in L1).
+constexpr std::size_t kListBlock = 1024;
+
 /// The cells [lo, hi) of a map (lo a multiple of 64) as one thread builds them, by a counting sort
 /// of the range's heights by cell. list_rows() goes over the cell codes of all rows and lists the
 /// range's rows in row order (cell, height, and the rank of the row among its cell's rows), counting
@@ -1074,8 +1077,8 @@ class CellRange {
   // either way) -- the wide-cell test needs the double range.
   using Height = std::conditional_t<ExactFloatHeights<Cloud>::value, float, double>;
 
-  CellRange(const Cloud& cloud, const std::uint32_t* codes, std::size_t lo, std::size_t hi, BuildScratch& scratch)
-      : cloud_(cloud), codes_(codes), lo_(lo), span_(hi - lo), words_((span_ + 63) / 64), scratch_(scratch) {
+  CellRange(const Cloud& cloud, std::size_t lo, std::size_t hi, BuildScratch& scratch)
+      : cloud_(cloud), lo_(lo), span_(hi - lo), words_((span_ + 63) / 64), scratch_(scratch) {
     if (scratch.slot.size() < span_ + 1) scratch.slot.resize(span_ + 1, 0);  // old entries were left at 0
     if (scratch.occupied.size() < words_) scratch.occupied.resize(words_, 0);
   }
@@ -1090,15 +1093,15 @@ class CellRange {
     std::fill_n(scratch_.occupied.begin(), words_, std::uint64_t{0});
   }
 
-  /// Lists and counts the range's rows, in blocks of kBlock; bin_block(begin, end) runs first on
-  /// each block (a no-op when the codes are ready).
+  /// Lists and counts the range's rows, in blocks of kListBlock; bin_block(begin, end) gives the
+  /// block's cell codes, indexed from begin (binning them first, or where they are already).
   template <typename BinBlock>
   void list_rows(const BinBlock& bin_block) {
     const std::size_t rows = cloud_.size();
     clean_ = false;
-    for (std::size_t begin = 0; begin < rows; begin += kBlock) {
-      const std::size_t end = std::min(rows, begin + kBlock);
-      bin_block(begin, end);
+    for (std::size_t begin = 0; begin < rows; begin += kListBlock) {
+      const std::size_t end = std::min(rows, begin + kListBlock);
+      const std::uint32_t* codes = bin_block(begin, end);
       // A block adds at most one entry per row: room for them is made here, not per row.
       const std::size_t least = num_rows_ + (end - begin);
       std::vector<Height>& row_heights = scratch_.row_heights<Height>();
@@ -1108,7 +1111,7 @@ class CellRange {
         if (scratch_.row_rank.size() < size) scratch_.row_rank.resize(size);
         row_heights.resize(size);
       }
-      list_block(begin, end);
+      list_block(begin, end, codes);
     }
   }
 
@@ -1194,8 +1197,6 @@ class CellRange {
     clean_ = true;
   }
 
-  static constexpr std::size_t kBlock = 1024;  ///< rows binned and listed at a time (L1)
-
  private:
   static constexpr std::size_t kPadding = 8;  ///< heights read past a cell's last by cell_sums_avx2
 
@@ -1209,8 +1210,7 @@ class CellRange {
 
   /// The rows [begin, end) of list_rows(): each row of the range is listed, and counted in the
   /// slot after its cell's (slot[cell + 1]; slot[0] stays 0 for the starts below).
-  __attribute__((noinline)) void list_block(std::size_t begin, std::size_t end) {
-    const std::uint32_t* __restrict codes = codes_;
+  __attribute__((noinline)) void list_block(std::size_t begin, std::size_t end, const std::uint32_t* __restrict codes) {
     std::uint32_t* __restrict counts = scratch_.slot.data() + 1;
     std::uint32_t* __restrict row_cell = scratch_.row_cell.data();
     std::uint32_t* __restrict row_rank = scratch_.row_rank.data();
@@ -1220,7 +1220,7 @@ class CellRange {
     const auto span = static_cast<std::uint32_t>(span_);
     const RowHeights<Cloud> height_of(cloud_);
     for (std::size_t row = begin; row < end; ++row) {
-      const std::uint32_t cell = codes[row] - lo;  // wraps for cells below the range (and kOutside)
+      const std::uint32_t cell = codes[row - begin] - lo;  // wraps for cells below the range (and kOutside)
       if (cell >= span) continue;
       row_cell[listed] = cell;
       row_rank[listed] = counts[cell]++;
@@ -1263,7 +1263,6 @@ class CellRange {
   }
 
   const Cloud& cloud_;
-  const std::uint32_t* codes_;
   std::size_t lo_, span_, words_;
   BuildScratch& scratch_;
   std::size_t num_rows_ = 0;  ///< rows of the range listed
@@ -1331,13 +1330,19 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     BuildScratch& scratch;
     ~ReleaseOnExit() { scratch.release_if_large(); }
   } release_on_exit{scratch};
+  constexpr std::size_t kRowsPerThread = 32768;
+  int parts = detail::thread_count(params.num_threads, cloud.size(), kRowsPerThread);
+  if (cells < 64 * static_cast<std::size_t>(parts)) parts = 1;
+  // The cell of every row is kept when several threads share the rows, or for cells_out; else only
+  // a block's at a time (in L1: a scan's worth would be written and read back from memory).
   std::vector<std::uint32_t>& cell_of_point = scratch.cell_of_point;
-  cell_of_point.resize(cloud.size());
+  const bool all_codes = parts > 1 || cells_out != nullptr;
+  cell_of_point.resize(all_codes ? cloud.size() : 0);
   std::uint32_t* codes = cell_of_point.data();
   const AxisBinning along_x(geometry.origin_m.x(), geometry.resolution_m, nx);
   const AxisBinning along_y(geometry.origin_m.y(), geometry.resolution_m, ny);
-  const auto bin_row = [&](std::size_t row, NonFiniteRows& non_finite) {  // the checking path of one row
-    codes[row] = kOutside;
+  const auto bin_row = [&](std::size_t row, std::uint32_t& code, NonFiniteRows& non_finite) {  // the checking path
+    code = kOutside;
     if (!selected(row)) return;
     Eigen::Vector3d p;
     const int status = cloud.map(row, p);
@@ -1347,7 +1352,7 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     }
     const std::int64_t i = along_x(p.x());
     const std::int64_t j = along_y(p.y());
-    if (i >= 0 && j >= 0) codes[row] = static_cast<std::uint32_t>(i * ny + j);
+    if (i >= 0 && j >= 0) code = static_cast<std::uint32_t>(i * ny + j);
   };
   const auto& view = cloud.view();
   bool kernel = false;  // plain rows of 3 or 4 scalars: the branch-free (vectorised) binning
@@ -1366,32 +1371,34 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     const float margin_y = detail::float_estimate_margin(geometry.origin_m.y(), geometry.resolution_m, ny);
     if (margin_x > 0.0F && margin_y > 0.0F) constants.float_margin = std::max(margin_x, margin_y);
   }
-  const auto bin_block = [&](std::size_t begin, std::size_t end, NonFiniteRows& non_finite) {
+  // The cell codes of the rows [begin, end) (at most kBlock) into out[0, end - begin).
+  const auto bin_block = [&](std::size_t begin, std::size_t end, std::uint32_t* out, NonFiniteRows& non_finite) {
     if (!kernel) {
-      for (std::size_t row = begin; row < end; ++row) bin_row(row, non_finite);
+      for (std::size_t row = begin; row < end; ++row) bin_row(row, out[row - begin], non_finite);
       return;
     }
-    const bool any_slow = bin_rows(view.data + static_cast<std::ptrdiff_t>(begin) * view.row_stride, end - begin,
-                                   static_cast<int>(view.row_stride), constants, codes + begin);
+    const auto* data = view.data + static_cast<std::ptrdiff_t>(begin) * view.row_stride;
+    const auto stride = static_cast<int>(view.row_stride);
+    const bool any_slow = bin_rows(data, end - begin, stride, constants, out);
     if (use != nullptr) {  // rows not selected take no part (nor count as NaN/Inf)
-      const std::uint8_t* flags = use->data();
-      for (std::size_t row = begin; row < end; ++row) codes[row] = flags[row] != 0 ? codes[row] : kOutside;
+      const std::uint8_t* flags = use->data() + begin;
+      for (std::size_t k = 0; k < end - begin; ++k) out[k] = flags[k] != 0 ? out[k] : kOutside;
     }
     if (any_slow) {  // NaN/Inf rows and rows on cell borders: rare, but for lattice data
       // The rows are listed first without a branch per row (on a 1 cm lattice a fifth of the
       // rows sit on 0.1 m cell borders, at random), then binned by the checking path.
-      std::uint32_t slow_rows[CellRange<Cloud>::kBlock];
+      std::uint32_t slow_rows[kListBlock];  // from begin
       std::size_t num_slow = 0;
-      for (std::size_t row = begin; row < end; ++row) {
-        slow_rows[num_slow] = static_cast<std::uint32_t>(row);
-        num_slow += codes[row] == kSlow ? 1 : 0;
+      for (std::size_t k = 0; k < end - begin; ++k) {
+        slow_rows[num_slow] = static_cast<std::uint32_t>(k);
+        num_slow += out[k] == kSlow ? 1 : 0;
       }
       // The exact formula, four rows at a time; NaN/Inf rows (still kSlow) and the rest of the
       // list go through the checking path.
-      const std::size_t done =
-          bin_exact_rows(view.data, static_cast<int>(view.row_stride), slow_rows, num_slow, constants, codes);
+      const std::size_t done = bin_exact_rows(data, stride, slow_rows, num_slow, constants, out);
       for (std::size_t k = 0; k < num_slow; ++k) {
-        if (k >= done || codes[slow_rows[k]] == kSlow) bin_row(slow_rows[k], non_finite);
+        std::uint32_t& code = out[slow_rows[k]];
+        if (k >= done || code == kSlow) bin_row(begin + slow_rows[k], code, non_finite);
       }
     }
   };
@@ -1426,14 +1433,17 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     }
   };
 
-  constexpr std::size_t kRowsPerThread = 32768;
-  const int parts = detail::thread_count(params.num_threads, cloud.size(), kRowsPerThread);
-  const std::size_t block = CellRange<Cloud>::kBlock;
+  const std::size_t block = kListBlock;
   const std::size_t num_blocks = (cloud.size() + block - 1) / block;
-  if (parts == 1 || cells < 64 * static_cast<std::size_t>(parts)) {
+  if (parts == 1) {
     NonFiniteRows non_finite;
-    CellRange<Cloud> range(cloud, codes, 0, cells, scratch);
-    range.list_rows([&](std::size_t begin, std::size_t end) { bin_block(begin, end, non_finite); });
+    CellRange<Cloud> range(cloud, 0, cells, scratch);
+    std::uint32_t block_codes[kListBlock];
+    range.list_rows([&](std::size_t begin, std::size_t end) {
+      std::uint32_t* out = all_codes ? codes + begin : block_codes;
+      bin_block(begin, end, out, non_finite);
+      return out;
+    });
     check_non_finite(non_finite);
     make_layers();
     range.write(layers, stale, params.discontinuity_m);
@@ -1452,7 +1462,7 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
       for (std::size_t b = num_blocks * k / parts; b < num_blocks * (k + 1) / parts; ++b) {
         const std::size_t begin = b * block;
         const std::size_t end = std::min(cloud.size(), begin + block);
-        bin_block(begin, end, non_finite[k]);
+        bin_block(begin, end, codes + begin, non_finite[k]);
         for (std::size_t row = begin; row < end; row += kSample) {
           const std::uint32_t code = codes[row];
           if (code != kOutside) ++histogram[code >> shift];
@@ -1489,8 +1499,8 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
       if (cut[k] >= cut[k + 1]) return;
       BuildScratch& own = thread_scratch();  // the calling thread's is `scratch`, which holds the codes
       {
-        CellRange<Cloud> range(cloud, codes, cut[k], cut[k + 1], own);
-        range.list_rows([](std::size_t, std::size_t) {});
+        CellRange<Cloud> range(cloud, cut[k], cut[k + 1], own);
+        range.list_rows([&](std::size_t begin, std::size_t) { return codes + begin; });
         range.write(layers, stale, params.discontinuity_m);
       }
       if (&own != &scratch) own.release_if_large();
