@@ -1063,12 +1063,12 @@ constexpr std::size_t kListBlock = 1024;
 /// range's rows in row order (cell, height, and the rank of the row among its cell's rows), counting
 /// the rows of each cell; write() turns the counts into where each cell's heights start, places
 /// every height there (a cell's heights stay in row order, its first one first) and then writes the
-/// range's layers, each cell from its contiguous heights (cell_sums). No row's work depends on the
-/// row before it (no branch on where a cell's rows begin or end: on a scan they alternate between
-/// cells every few rows), and each cell's sums come from its heights alone, in one fixed order, so
-/// the map is the same bit for bit however the cells are split between threads. Several threads
-/// build disjoint ranges with their own scratch. The scratch's per-cell buffers are indexed from lo,
-/// and left clean when the range is destroyed, whatever happens.
+/// range's layers, each cell from its contiguous heights (cell_sums). No branch depends on where a
+/// cell's rows begin or end (on a scan they alternate between cells every few rows, and such a
+/// branch was mispredicted once per run), and each cell's sums come from its heights alone, in one
+/// fixed order, so the map is the same bit for bit however the cells are split between threads.
+/// Several threads build disjoint ranges with their own scratch. The scratch's per-cell buffers are
+/// indexed from lo, and left clean when the range is destroyed, whatever happens.
 template <typename Cloud>
 class CellRange {
  public:
