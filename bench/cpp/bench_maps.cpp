@@ -73,6 +73,17 @@ bool skip_without_kitti(benchmark::State& state) {
   return true;
 }
 
+/// The map path's cases: KITTI frame 0, the map's and the classes' parameters, both on
+/// `state.range(0)` threads (1, or 0: every processor).
+struct MapCase {
+  terracube::PointsView<float> points;
+  terracube::ElevationParams params = map_params();
+  terracube::TerrainParams terrain = terrain_params();
+  explicit MapCase(const benchmark::State& state) : points(view_of(kitti_scan(0))) {
+    params.num_threads = terrain.num_threads = static_cast<int>(state.range(0));
+  }
+};
+
 /// On `state.range(0)` threads (1, or 0: every processor).
 void BM_BuildElevationMapKitti(benchmark::State& state) {
   if (skip_without_kitti(state)) return;
@@ -85,14 +96,11 @@ BENCHMARK(BM_BuildElevationMapKitti)->Arg(1)->Arg(0)->Unit(benchmark::kMilliseco
 
 void BM_MapAndClassifyKittiRefilled(benchmark::State& state) {
   if (skip_without_kitti(state)) return;
-  const auto points = view_of(kitti_scan(0));
-  terracube::ElevationParams params = map_params();
-  terracube::TerrainParams terrain = terrain_params();
-  params.num_threads = terrain.num_threads = static_cast<int>(state.range(0));
-  terracube::ElevationMap map = terracube::build_elevation_map(points, params);
+  const MapCase c(state);
+  terracube::ElevationMap map = terracube::build_elevation_map(c.points, c.params);
   for (auto _ : state) {
-    terracube::build_elevation_map_into(map, points, params);
-    benchmark::DoNotOptimize(terracube::classify_terrain_layers(map, terrain));
+    terracube::build_elevation_map_into(map, c.points, c.params);
+    benchmark::DoNotOptimize(terracube::classify_terrain_layers(map, c.terrain));
   }
 }
 BENCHMARK(BM_MapAndClassifyKittiRefilled)->Arg(1)->Arg(0)->Unit(benchmark::kMillisecond);
@@ -101,24 +109,18 @@ BENCHMARK(BM_MapAndClassifyKittiRefilled)->Arg(1)->Arg(0)->Unit(benchmark::kMill
 /// layers of the previous classification to NaN) and the classification.
 void BM_RefillClassifiedMapKitti(benchmark::State& state) {
   if (skip_without_kitti(state)) return;
-  const auto points = view_of(kitti_scan(0));
-  terracube::ElevationParams params = map_params();
-  terracube::TerrainParams terrain = terrain_params();
-  params.num_threads = terrain.num_threads = static_cast<int>(state.range(0));
-  terracube::ElevationMap map = terracube::build_elevation_map(points, params);
-  terracube::classify_terrain_layers(map, terrain);
-  for (auto _ : state) terracube::build_elevation_map_into(map, points, params);
+  const MapCase c(state);
+  terracube::ElevationMap map = terracube::build_elevation_map(c.points, c.params);
+  terracube::classify_terrain_layers(map, c.terrain);
+  for (auto _ : state) terracube::build_elevation_map_into(map, c.points, c.params);
 }
 BENCHMARK(BM_RefillClassifiedMapKitti)->Arg(1)->Arg(0)->Unit(benchmark::kMillisecond);
 
 void BM_ClassifyTerrainKitti(benchmark::State& state) {
   if (skip_without_kitti(state)) return;
-  const auto points = view_of(kitti_scan(0));
-  terracube::ElevationParams params = map_params();
-  terracube::TerrainParams terrain = terrain_params();
-  params.num_threads = terrain.num_threads = static_cast<int>(state.range(0));
-  terracube::ElevationMap map = terracube::build_elevation_map(points, params);
-  for (auto _ : state) benchmark::DoNotOptimize(terracube::classify_terrain_layers(map, terrain));
+  const MapCase c(state);
+  terracube::ElevationMap map = terracube::build_elevation_map(c.points, c.params);
+  for (auto _ : state) benchmark::DoNotOptimize(terracube::classify_terrain_layers(map, c.terrain));
 }
 BENCHMARK(BM_ClassifyTerrainKitti)->Arg(1)->Arg(0)->Unit(benchmark::kMillisecond);
 
@@ -126,18 +128,15 @@ BENCHMARK(BM_ClassifyTerrainKitti)->Arg(1)->Arg(0)->Unit(benchmark::kMillisecond
 /// numpy call): 64 MB are written and read between calls, outside the timing.
 void BM_MapAndClassifyKittiCold(benchmark::State& state) {
   if (skip_without_kitti(state)) return;
-  const auto points = view_of(kitti_scan(0));
-  terracube::ElevationParams params = map_params();
-  terracube::TerrainParams terrain = terrain_params();
-  params.num_threads = terrain.num_threads = static_cast<int>(state.range(0));
+  const MapCase c(state);
   std::vector<std::uint64_t> other(std::size_t{8} << 20, 1);
   std::uint64_t sink = 0;
   for (auto _ : state) {
     state.PauseTiming();
     for (std::uint64_t& word : other) sink += word++;
     state.ResumeTiming();
-    terracube::ElevationMap map = terracube::build_elevation_map(points, params);
-    benchmark::DoNotOptimize(terracube::classify_terrain_layers(map, terrain));
+    terracube::ElevationMap map = terracube::build_elevation_map(c.points, c.params);
+    benchmark::DoNotOptimize(terracube::classify_terrain_layers(map, c.terrain));
   }
   benchmark::DoNotOptimize(sink);
 }
