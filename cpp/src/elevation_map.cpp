@@ -730,7 +730,9 @@ struct CellSums {
 /// The sums of a cell's elevations z[0, n) (n >= 1, z[0] its first). The additions follow one fixed
 /// order, that of eight lanes: chunk i adds d[8i + j] + d[8i + j + 4] to lane j (j < 4), and the
 /// lanes end as (lane 0 + lane 2) + (lane 1 + lane 3); past n, d is 0 (adding 0 changes nothing).
-/// cell_sums_avx2 computes the same operations in vector registers, so both give the same bits.
+/// cell_sums_avx2 computes the same operations in vector registers, so both give the same sums, bit
+/// for bit (the least and greatest elevation are the same values; a cell holding both +0 and -0 may
+/// get either sign).
 template <typename Height>
 CellSums<Height> cell_sums_scalar(const Height* z, std::uint32_t n) {
   const double shift = static_cast<double>(z[0]);
@@ -798,7 +800,8 @@ __attribute__((target("avx2"))) CellSums<float> cell_sums_avx2(const float* z, s
   __m256d sum = _mm256_setzero_pd();
   __m256d squares = _mm256_setzero_pd();
   for (std::uint32_t chunk = 0; chunk < n; chunk += 8) {
-    const __m256 inside = _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_set1_epi32(static_cast<int>(n - chunk)), lane));
+    const int left = static_cast<int>(std::min<std::uint32_t>(n - chunk, 8));
+    const __m256 inside = _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_set1_epi32(left), lane));
     const __m256 heights = _mm256_blendv_ps(first, _mm256_loadu_ps(z + chunk), inside);  // first: d = 0
     lowest = _mm256_min_ps(lowest, heights);
     highest = _mm256_max_ps(highest, heights);
@@ -861,7 +864,8 @@ __attribute__((target("avx2"))) void finish_cells_avx2(const double* firsts, con
     const __m256d sum = _mm256_load_pd(sums + k);
     const __m256d offset_of_mean = _mm256_div_pd(sum, n);
     const __m256d spread = _mm256_sub_pd(_mm256_load_pd(squares + k), _mm256_mul_pd(sum, offset_of_mean));
-    const __m256d variance = _mm256_max_pd(zero, _mm256_div_pd(spread, n));  // max(0, v): std::max(v, 0) on -0
+    // max(0, v) returns v for v = -0, as std::max(v, 0.0) does.
+    const __m256d variance = _mm256_max_pd(zero, _mm256_div_pd(spread, n));
     _mm_store_ps(means + k, _mm256_cvtpd_ps(_mm256_add_pd(_mm256_load_pd(firsts + k), offset_of_mean)));
     _mm_store_ps(std_devs + k, _mm256_cvtpd_ps(_mm256_sqrt_pd(variance)));
   }
@@ -1273,9 +1277,9 @@ class CellRange {
 /// `cells_out`, hands over the cell of every row (row-major i * ny + j; kOutside for rows outside the
 /// map, unselected or NaN/Inf) by swapping buffers with it.
 ///
-/// On one thread the rows are binned and listed a block at a time (the block's rows still in L1). On several: the
-/// threads bin disjoint blocks of rows, then each builds a range of cells (CellRange) holding about as many rows (from
-/// a sample of the codes) and cells as the others.
+/// On one thread the rows are binned and listed a block at a time (the block's rows still in L1).
+/// On several: the threads bin disjoint blocks of rows, then each builds a range of cells
+/// (CellRange) holding about as many rows (from a sample of the codes) and cells as the others.
 template <typename Cloud>
 ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const std::vector<std::uint8_t>* use,
                        ElevationMap* into, std::vector<std::uint32_t>* cells_out = nullptr) {
@@ -1371,7 +1375,7 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     const float margin_y = detail::float_estimate_margin(geometry.origin_m.y(), geometry.resolution_m, ny);
     if (margin_x > 0.0F && margin_y > 0.0F) constants.float_margin = std::max(margin_x, margin_y);
   }
-  // The cell codes of the rows [begin, end) (at most kBlock) into out[0, end - begin).
+  // The cell codes of the rows [begin, end) (at most kListBlock) into out[0, end - begin).
   const auto bin_block = [&](std::size_t begin, std::size_t end, std::uint32_t* out, NonFiniteRows& non_finite) {
     if (!kernel) {
       for (std::size_t row = begin; row < end; ++row) bin_row(row, out[row - begin], non_finite);
