@@ -38,7 +38,10 @@ else
   tree_b=$repo
 fi
 
-flags=(-std=c++17 -fopenmp -isystem /usr/include/eigen3)
+# -fopenmp for revisions before the library's own thread pool (bfb696c and earlier used OpenMP). Two
+# threads across that change put both pools in one process, each spinning while the other works:
+# compare such revisions on two threads in separate processes instead (bench_maps_cpp, alternately).
+flags=(-std=c++17 -pthread -fopenmp -isystem /usr/include/eigen3)
 # Both revisions are compiled in both namespaces and linked into two programs, the second with the
 # sides swapped: code placement alone moves a side by up to about 5 % (an A/A run of one program
 # reads 0.95-1.04), and the geometric mean of the two programs' new / base ratios cancels it.

@@ -143,7 +143,8 @@ TerrainClasses classify_terrain_layers(ElevationMap& map, const TerrainParams& p
   // Rows are split into parts of kCellsPerThread cells or more: about 0.03 ms of work each. Waking
   // a sleeping thread costs tens of microseconds, but right after a threaded map build (the usual
   // caller) the pool's threads are still spinning: there two threads took the 80,000-cell KITTI
-  // map's classes from 0.18 to 0.09 ms (bench/bench_elevation.py).
+  // map's classes from 0.18 to 0.09 ms (bench/bench_elevation.py). Sleeping ones are not woken for
+  // a call this small alone (see detail::thread_count).
   constexpr std::size_t kCellsPerThread = std::size_t{1} << 15;
   const int parts = detail::thread_count(params.num_threads, static_cast<std::size_t>(cells), kCellsPerThread);
   const auto rows_of = [&](int part) { return std::make_pair(nx * part / parts, nx * (part + 1) / parts); };

@@ -93,7 +93,7 @@ class CollapseParams:
     dense_budget_bytes : int
         Largest V + M allowed for the dense storage [bytes].
     num_threads : int
-        Threads (OpenMP) for the passes over the points on the dense storage: 1 runs on the calling
+        Threads for the passes over the points on the dense storage: 1 runs on the calling
         thread alone, 0 uses one per processor; the result is the same whatever the number. As with
         :class:`terracube.ElevationParams`, a forked child of a process that used several runs on
         one.

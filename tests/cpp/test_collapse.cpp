@@ -673,7 +673,9 @@ CollapseResult collapse_on_threads(const std::function<CollapseResult(const Coll
                                    CollapseParams params, int threads) {
   params.num_threads = threads;
   detail::largest_team(true);
+  detail::require_helpers_in_tests(true);
   CollapseResult result = collapse(params);
+  detail::require_helpers_in_tests(false);
   EXPECT_GE(detail::largest_team(), 2) << threads << " threads asked for, the call ran on one";
   return result;
 }

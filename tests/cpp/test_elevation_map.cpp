@@ -1033,7 +1033,9 @@ ElevationMap build_on_threads(const std::function<ElevationMap(const ElevationPa
                               int threads) {
   params.num_threads = threads;
   detail::largest_team(true);
+  detail::require_helpers_in_tests(true);
   ElevationMap map = build(params);
+  detail::require_helpers_in_tests(false);
   EXPECT_GE(detail::largest_team(), 2) << threads << " threads asked for, the call ran on one";
   return map;
 }
@@ -1187,8 +1189,8 @@ TEST(BuildElevationMapThreads, RefillingOnThreadsGivesTheFreshMapAndResetsOtherL
 }
 
 TEST(BuildElevationMapThreads, AForkedChildOfAProcessThatUsedThreadsBuildsOnOneInsteadOfHanging) {
-  // GCC's libgomp hangs at the first parallel region of a forked child whose parent started its
-  // thread pool: the child's calls must run on the calling thread.
+  // The pool's threads do not exist in a forked child of a process that started them (with GCC's
+  // libgomp, which the library used before, the child hung): the child's calls run on one thread.
   const auto points = test::random_scene(77, 100000, 10.0);
   ElevationParams params;
   params.num_threads = 2;

@@ -330,7 +330,9 @@ TEST(Mapper, LocalMapsOnSeveralThreadsGiveTheOneThreadPosesAndGlobalMap) {
   };
   const auto [poses, map] = run(1);
   detail::largest_team(true);
+  detail::require_helpers_in_tests(true);
   const auto [threaded_poses, threaded_map] = run(2);
+  detail::require_helpers_in_tests(false);
   EXPECT_GE(detail::largest_team(), 2) << "the local maps were built on one thread";
   ASSERT_EQ(threaded_poses.size(), poses.size());
   ASSERT_GE(poses.size(), 5u);

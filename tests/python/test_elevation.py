@@ -892,8 +892,8 @@ def _threaded_counts_in_child(points, queue):
 
 @pytest.mark.skipif(sys.platform != "linux", reason="fork() start method")
 def test_a_forked_child_of_a_process_that_used_threads_still_builds_instead_of_hanging():
-    # GCC's libgomp hangs at the first parallel region of a forked child whose parent had started
-    # its thread pool; the library runs such a child's calls on one thread.
+    # The pool's threads do not exist in a forked child of a process that had started them (with
+    # GCC's libgomp, which the library used before, the child hung); the child's calls run on one.
     import multiprocessing
 
     points = np.random.default_rng(5).random((150_000, 3)) * [60.0, 60.0, 8.0]

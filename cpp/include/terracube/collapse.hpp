@@ -39,7 +39,7 @@ struct CollapseParams {
   CubeStorage storage = CubeStorage::kAuto;
   /// Largest V + M allowed for the dense storage [bytes].
   std::size_t dense_budget_bytes = std::size_t{256} << 20;
-  /// Threads (OpenMP) for the passes over the points (bounding box of an untransformed, uncropped
+  /// Threads for the passes over the points (bounding box of an untransformed, uncropped
   /// cloud, cube indices, the mask) on the dense storage: 1 is the calling thread alone, 0 one per
   /// processor; clouds under about 32,000 points per thread use fewer. V, L, the sweep and the
   /// sparse storage stay on the calling thread. The result is the same whatever the number. As with

@@ -95,10 +95,12 @@ struct ElevationParams {
   bool drop_non_finite = false;
   /// Largest number of cells allowed (memory guard): 64 M cells = 256 MB per float layer.
   std::size_t max_cells = std::size_t{1} << 26;
-  /// Threads (OpenMP): 1 runs on the calling thread alone, 0 uses one per processor. The map is
-  /// the same bit for bit whatever the number; clouds under about 32,000 points per thread use
-  /// fewer threads. OpenMP's thread pool does not survive fork() (GCC's libgomp hangs in the
-  /// child): in a forked child of a process that used several threads, calls run on one.
+  /// Threads: 1 runs on the calling thread alone, 0 uses one per processor. The map is the same
+  /// bit for bit whatever the number; clouds under about 32,000 points per thread use fewer
+  /// threads, and so do calls that find the pool's threads asleep (they sleep after 10 ms without
+  /// work; only a burst of calls, the third in a row each within 10 ms of the one before, or a
+  /// call with 32 threads' worth of points wakes them). The pool's threads do not survive fork():
+  /// in a forked child of a process that used several threads, calls run on one.
   int num_threads = 1;
 };
 

@@ -35,7 +35,7 @@ struct TerrainParams {
   GroundReference reference = GroundReference::kSensorHeight;
   double sensor_height_m = 0.0;        ///< sensor above the ground [m], for kSensorHeight
   int local_ground_radius_cells = 10;  ///< window half-size for kLocalGround
-  /// Threads (OpenMP), as ElevationParams::num_threads: 1 is the calling thread alone, 0 one per
+  /// Threads, as ElevationParams::num_threads: 1 is the calling thread alone, 0 one per
   /// processor; the classes are the same whatever the number.
   int num_threads = 1;
 };
