@@ -44,8 +44,9 @@ constexpr int kMaxThreads = 256;
 /// waking a sleeping thread costs far more (tens of microseconds on a quiet machine; on the shared
 /// VMs this project is measured on, a call that woke one took about 1 ms longer, and GCC's OpenMP
 /// pool, which woke its threads at every parallel step, took 12 ms instead of 1.5 for a map and its
-/// classes every 100 ms). Calls that come more often than this keep the threads awake.
-constexpr std::chrono::milliseconds kSpin{10};
+/// classes every 100 ms). Calls that come more often than this keep the threads awake, spinning on
+/// a processor each in between (as OpenMP runtimes do); rarer ones never wake them (below).
+constexpr std::chrono::milliseconds kSpin{20};
 /// Sleeping threads are woken (or the first ones started) only for a call that is the third in a
 /// row each within kSpin of the one before (a robot's map and classes every 100 ms never wake
 /// them), or that has at least this many times the work of one part.

@@ -16,7 +16,7 @@ int processor_count();
 
 /// How many parts a call splits into: `num_threads` (0 = one per processor the process may use),
 /// but no more than one per `min_work` units of `work`, nor more than one plus the pool's threads
-/// that are awake now, and at least 1. A pool thread sleeps after 1 ms without work, and waking it
+/// that are awake now, and at least 1. A pool thread sleeps after 20 ms without work, and waking it
 /// costs tens of microseconds, on a virtual machine up to milliseconds: a call that finds the
 /// threads asleep (or not yet started: the first call) runs on fewer, and wakes (or starts) them
 /// for the calls that follow. The parts of a call never change its result. When `num_threads` and

@@ -100,11 +100,11 @@ TEST(ThreadPool, CallsFromSeveralThreadsAtOnceEachRunAllTheirParts) {
 }
 
 TEST(ThreadPool, ASleepingPoolThreadIsWokenForTheNextCall) {
-  // Pool threads sleep after 10 ms without work; a later call must still reach them (the test
+  // Pool threads sleep after 20 ms without work; a later call must still reach them (the test
   // switch makes the call wait for one, so a lost wake-up would hang here, not pass).
   detail::for_each_part(2, [](int) {});
   for (int round = 0; round < 5; ++round) {
-    std::this_thread::sleep_for(std::chrono::milliseconds(30));
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
     detail::require_helpers_in_tests(true);
     detail::largest_team(true);
     detail::for_each_part(2, [](int) {});
