@@ -13,7 +13,6 @@
 #include <cstdint>
 #include <mutex>
 #include <stdexcept>
-#include <system_error>
 #include <thread>
 
 namespace terracube::detail {
@@ -162,8 +161,8 @@ void start_threads(Pool& p, int wanted) {
   while (p.started.load(std::memory_order_relaxed) < wanted) {
     try {
       std::thread(pool_thread, std::ref(p)).detach();
-    } catch (const std::system_error&) {
-      return;  // the calling thread runs what no pool thread claims
+    } catch (...) {  // std::system_error (no more threads), std::bad_alloc
+      return;        // the calling thread runs what no pool thread claims
     }
     p.started.fetch_add(1, std::memory_order_relaxed);
   }
