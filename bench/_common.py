@@ -54,20 +54,21 @@ def parse_benchmark_args(
     repeat_unit: str,
     quick_help: str,
     add_arguments: Callable[[argparse.ArgumentParser], None] | None = None,
+    default_repeat: tuple[int, int] = (7, 3),
 ) -> argparse.Namespace:
     """Parse ``--repeat``, ``--quick``, ``--data-dir``, the script's own options, then ``--markdown``.
 
     ``repeat_unit`` names what ``--repeat`` counts runs of ("method", "step"); ``add_arguments``
     adds the script's own options (between ``--data-dir`` and ``--markdown`` in ``--help``).
-    ``args.repeat`` defaults to 7 (3 with ``--quick``) and must be at least 1; ``args.data_dir``
-    defaults to :func:`default_data_dir`.
+    ``args.repeat`` defaults to ``default_repeat`` (7, and 3 with ``--quick``) and must be at least
+    1; ``args.data_dir`` defaults to :func:`default_data_dir`.
     """
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument(
         "--repeat",
         type=int,
         default=None,
-        help=f"timed runs per {repeat_unit} (default 7, 3 with --quick)",
+        help=f"timed runs per {repeat_unit} (default {default_repeat[0]}, {default_repeat[1]} with --quick)",
     )
     parser.add_argument("--quick", action="store_true", help=quick_help)
     parser.add_argument(
@@ -81,7 +82,7 @@ def parse_benchmark_args(
     parser.add_argument("--markdown", action="store_true", help="also print a Markdown table")
     args = parser.parse_args(argv)
     if args.repeat is None:
-        args.repeat = 3 if args.quick else 7
+        args.repeat = default_repeat[1] if args.quick else default_repeat[0]
     if args.repeat < 1:
         parser.error("--repeat must be at least 1")
     if args.data_dir is None:

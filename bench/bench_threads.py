@@ -1,0 +1,124 @@
+"""Map + classify at the cadences a caller really has, on one thread and on every processor.
+
+What is measured
+----------------
+The map + classify of ``bench_elevation.py`` (KITTI 00/000000 into 400 x 200 cells at 0.1 m, all six
+layers, then the Table 1 classes; a fresh map per call), called
+
+- back to back (a dataset processed offline),
+- straight after a numpy map + classify of the same scan (about 6 ms of other work on the calling
+  thread, as in ``bench_elevation.py``'s interleaved timing),
+- once every 10 ms and once every 100 ms (a 10 Hz LiDAR's scans), the thread asleep in between,
+
+each on one thread (``num_threads=1``) and on every processor (``num_threads=0``). Between paced
+calls the library's thread pool, the caches and the (virtual) processors go idle, which back-to-back
+timing never shows: with GCC's OpenMP pool, which the library used before its own, two threads took
+11.6-12.8 ms per call every 100 ms on the shared VM (in two runs of three) where one thread took
+1.4 ms. Each line is the median
+of ``--repeat`` calls (at most 25 at 100 ms) after one warm-up; ``--json`` prints the medians as one
+JSON object instead (for ``bench/ab_python.sh``, which alternates two builds' processes).
+
+Reproduce
+---------
+    python bench/bench_threads.py                   # about 10 s
+    python bench/bench_threads.py --quick           # every 4th point, fewer calls
+    bash bench/ab_python.sh BASE [NEW] bench/bench_threads.py --json   # two builds, alternating
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+
+import terracube as tc
+from _common import parse_benchmark_args, print_header, processors
+from bench_elevation import (
+    SENSOR_HEIGHT,
+    cpp_classify,
+    cpp_map,
+    elevation_params,
+    load_scan,
+    numpy_classify,
+    numpy_elevation_map,
+)
+
+CADENCES = ("back to back", "after numpy", "every 10 ms", "every 100 ms")
+
+
+def timed_calls(call, cadence: str, calls: int, before) -> float:
+    """Median ms of ``call`` at ``cadence``; ``before`` is the numpy work of "after numpy"."""
+    period = {"every 10 ms": 0.01, "every 100 ms": 0.1}.get(cadence, 0.0)
+    call()
+    times = []
+    next_start = time.perf_counter()
+    for _ in range(calls):
+        if cadence == "after numpy":
+            before()
+        elif period:
+            next_start += period
+            time.sleep(max(0.0, next_start - time.perf_counter()))
+        start = time.perf_counter()
+        call()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times) * 1e3
+
+
+def measure(points, repeat: int) -> dict[str, float]:
+    results = {}
+    for threads in (1, 0):
+        params = elevation_params(num_threads=threads)
+        terrain = tc.TerrainParams(sensor_height=SENSOR_HEIGHT, num_threads=threads)
+        label = "1 thread" if threads == 1 else f"{processors()} threads"
+        for cadence in CADENCES:
+            calls = min(repeat, 25) if cadence == "every 100 ms" else repeat
+            results[f"{cadence}, {label}"] = timed_calls(
+                lambda p=params, t=terrain: cpp_classify(cpp_map(points, p), t),
+                cadence,
+                calls,
+                lambda: numpy_classify(numpy_elevation_map(points)),
+            )
+    return results
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    def add(parser: argparse.ArgumentParser) -> None:
+        parser.add_argument("--json", action="store_true", help="print the medians as one JSON object")
+
+    args = parse_benchmark_args(
+        __doc__.split("\n\n")[0],
+        argv,
+        repeat_unit="cadence",
+        quick_help="every 4th point, 10 calls per cadence",
+        add_arguments=add,
+        default_repeat=(60, 10),
+    )
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    scan = load_scan(args.data_dir, args.quick)
+    results = measure(scan.points, args.repeat)
+    if args.json:
+        print(json.dumps(results))
+        return 0
+    print_header(
+        "terracube map + classify at a caller's cadences (bench/bench_threads.py)",
+        [],
+        "none (absolute times; compare builds with bench/ab_python.sh)",
+        args,
+        "every 4th point",
+        threads=f"1 thread and {processors()} (num_threads=0), at most 25 calls every 100 ms",
+    )
+    print(f"\n{scan.name}: {len(scan.points):,} points, a fresh map per call")
+    width = max(len(name) for name in results)
+    for name, ms in results.items():
+        print(f"  {name:<{width}} {ms:7.2f} ms")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
