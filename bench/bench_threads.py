@@ -10,7 +10,9 @@ layers, then the Table 1 classes; a fresh map per call), called
   thread, as in ``bench_elevation.py``'s interleaved timing),
 - once every 10 ms and once every 100 ms (a 10 Hz LiDAR's scans), the thread asleep in between,
 
-each on one thread (``num_threads=1``) and on every processor (``num_threads=0``). Between paced
+each on one thread (``num_threads=1``) and on every processor (``num_threads=0``); the same for a DEM
+without overhangs (collapse, then the map; edge 0.5 m, sigma 5, crop as in ``bench_elevation.py``)
+followed by its classes: three calls that take threads per scan. Between paced
 calls the library's thread pool, the caches and the (virtual) processors go idle, which back-to-back
 timing never shows: with GCC's OpenMP pool, which the library used before its own, two threads took
 11.6-12.8 ms per call every 100 ms on the shared VM (in two runs of three) where one thread took
@@ -20,7 +22,7 @@ JSON object instead (for ``bench/ab_python.sh``, which alternates two builds' pr
 
 Reproduce
 ---------
-    python bench/bench_threads.py                   # about 10 s
+    python bench/bench_threads.py                   # about 20 s
     python bench/bench_threads.py --quick           # every 4th point, fewer calls
     bash bench/ab_python.sh BASE [NEW] bench/bench_threads.py --json   # two builds, alternating
 """
@@ -36,6 +38,9 @@ import time
 import terracube as tc
 from _common import parse_benchmark_args, print_header, processors
 from bench_elevation import (
+    DEM_CROP,
+    DEM_EDGE,
+    DEM_SIGMA,
     SENSOR_HEIGHT,
     cpp_classify,
     cpp_map,
@@ -66,20 +71,30 @@ def timed_calls(call, cadence: str, calls: int, before) -> float:
     return statistics.median(times) * 1e3
 
 
+def workloads(points, threads: int) -> dict:
+    """The calls timed, on ``threads`` threads: map + classify (two calls that take threads), and
+    a DEM without overhangs + classify (three: collapse, map, classes), as a robot would per scan."""
+    params = elevation_params(num_threads=threads)
+    terrain = tc.TerrainParams(sensor_height=SENSOR_HEIGHT, num_threads=threads)
+    collapse = tc.CollapseParams(DEM_EDGE, DEM_SIGMA, crop=DEM_CROP, num_threads=threads)
+    return {
+        "map + classify": lambda: cpp_classify(cpp_map(points, params), terrain),
+        "DEM without overhangs + classify": lambda: cpp_classify(
+            tc.dem_without_overhangs(points, collapse=collapse, elevation=params)[0], terrain
+        ),
+    }
+
+
 def measure(points, repeat: int) -> dict[str, float]:
     results = {}
     for threads in (1, 0):
-        params = elevation_params(num_threads=threads)
-        terrain = tc.TerrainParams(sensor_height=SENSOR_HEIGHT, num_threads=threads)
         label = "1 thread" if threads == 1 else f"{processors()} threads"
-        for cadence in CADENCES:
-            calls = min(repeat, 25) if cadence == "every 100 ms" else repeat
-            results[f"{cadence}, {label}"] = timed_calls(
-                lambda p=params, t=terrain: cpp_classify(cpp_map(points, p), t),
-                cadence,
-                calls,
-                lambda: numpy_classify(numpy_elevation_map(points)),
-            )
+        for workload, call in workloads(points, threads).items():
+            for cadence in CADENCES:
+                calls = min(repeat, 25) if cadence == "every 100 ms" else repeat
+                results[f"{workload}, {cadence}, {label}"] = timed_calls(
+                    call, cadence, calls, lambda: numpy_classify(numpy_elevation_map(points))
+                )
     return results
 
 
@@ -113,10 +128,10 @@ def main(argv: list[str] | None = None) -> int:
         "every 4th point",
         threads=f"1 thread and {processors()} (num_threads=0), at most 25 calls every 100 ms",
     )
-    print(f"\n{scan.name}: {len(scan.points):,} points, a fresh map per call")
+    print(f"\n{scan.name}: {len(scan.points):,} points, a fresh map per call, median ms")
     width = max(len(name) for name in results)
     for name, ms in results.items():
-        print(f"  {name:<{width}} {ms:7.2f} ms")
+        print(f"  {name:<{width}} {ms:7.2f}")
     return 0
 
 

@@ -46,10 +46,10 @@ constexpr int kMaxThreads = 256;
 /// classes every 100 ms). Calls that come more often than this keep the threads awake, spinning on
 /// a processor each in between (as OpenMP runtimes do); rarer ones never wake them (below).
 constexpr std::chrono::milliseconds kSpin{20};
-/// Sleeping threads are woken (or the first ones started) only for a call that is the third in a
-/// row each within kSpin of the one before (a robot's map and classes every 100 ms never wake
-/// them), or that has at least this many times the work of one part.
-constexpr int kStreak = 2;
+/// Sleeping threads are woken (or the first ones started) only when calls have kept coming, each
+/// within kSpin of the one before, for kSpin or longer (a workload that will keep them busy; a
+/// robot's few calls per scan every 100 ms never wake them), or for a call that has at least this
+/// many times the work of one part.
 constexpr std::size_t kLargeWork = 32;
 
 inline void pause() {
@@ -75,7 +75,7 @@ struct Pool {
   std::atomic<std::uint32_t> alarm{0};        // raised to wake sleeping threads without a job
   std::atomic<unsigned> wakeups{0};           // for tests
   std::atomic<std::int64_t> last_request{0};  // when thread_count last asked for several parts
-  std::atomic<int> streak{0};                 // requests in a row, each within kSpin of the one before
+  std::atomic<std::int64_t> burst_start{0};   // first of the requests since, each within kSpin of the last
   std::atomic<bool> busy{false};              // a call owns the job below
   // The job: written by its caller before it publishes the ticket, read after a claim.
   std::atomic<std::uint64_t> ticket{0};
@@ -202,20 +202,17 @@ int thread_count(int num_threads, std::size_t work, std::size_t min_work) {
   const int parts = static_cast<int>(std::min<std::size_t>(static_cast<std::size_t>(wanted), useful));
   if (parts <= 1 || helpers_required.load(std::memory_order_relaxed)) return std::max(parts, 1);
   // Only the pool threads that are awake now take part. Sleeping ones are woken for the calls
-  // that follow when calls come in a burst, or this one is large.
+  // that follow when calls have kept coming for kSpin, or this one is large.
   Pool& p = pool();
   const std::int64_t now =
       std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::steady_clock::now().time_since_epoch()).count();
+  const std::int64_t spin = std::chrono::nanoseconds(kSpin).count();
   const std::int64_t previous = p.last_request.exchange(now);
-  int streak = 0;
-  if (now - previous < std::chrono::nanoseconds(kSpin).count()) {
-    streak = p.streak.fetch_add(1) + 1;
-  } else {
-    p.streak.store(0);
-  }
+  if (now - previous >= spin) p.burst_start.store(now);  // a new burst (or the first request)
+  const bool busy_burst = now - p.burst_start.load() >= spin;
   const int started = p.started.load(std::memory_order_relaxed);
   const int asleep = p.sleeping.load();
-  if (streak >= kStreak || useful >= kLargeWork) {
+  if (busy_burst || useful >= kLargeWork) {
     if (started < parts - 1) start_threads(p, parts - 1);  // new threads are not counted awake yet
     if (asleep > 0) {
       p.alarm.fetch_add(1);

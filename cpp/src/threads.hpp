@@ -18,8 +18,10 @@ int processor_count();
 /// but no more than one per `min_work` units of `work`, nor more than one plus the pool's threads
 /// that are awake now, and at least 1. A pool thread sleeps after 20 ms without work, and waking it
 /// costs tens of microseconds, on a virtual machine up to milliseconds: a call that finds the
-/// threads asleep (or not yet started: the first call) runs on fewer, and wakes (or starts) them
-/// for the calls that follow. The parts of a call never change its result. When `num_threads` and
+/// threads asleep (or not yet started: the first calls) runs on fewer. They are woken (or started)
+/// for the calls that follow once calls have kept coming, each within 20 ms of the one before, for
+/// 20 ms or more, or by a call of 32 parts' worth of work or more (which then gets every part it
+/// asks for: threads that wake late join in). The parts of a call never change its result. When `num_threads` and
 /// the work allow 1 only, no thread is started or woken, so a process that never asks for more
 /// never starts the pool. The pool's threads do not survive fork(): in a forked child of a process
 /// that started them, always 1. With require_helpers_in_tests on, the pool's state is ignored.

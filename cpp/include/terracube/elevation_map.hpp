@@ -98,7 +98,7 @@ struct ElevationParams {
   /// Threads: 1 runs on the calling thread alone, 0 uses one per processor. The map is the same
   /// bit for bit whatever the number; clouds under about 32,000 points per thread use fewer
   /// threads, and so do calls that find the pool's threads asleep (they sleep after 20 ms without
-  /// work; only a burst of calls, the third in a row each within 20 ms of the one before, or a
+  /// work; only calls that keep coming, each within 20 ms of the one before, for 20 ms or more, or a
   /// call of about a million points or more wakes them). The pool's threads do not survive fork():
   /// in a forked child of a process that used several threads, calls run on one.
   int num_threads = 1;
