@@ -16,9 +16,9 @@ followed by its classes: three calls that take threads per scan. Between paced
 calls the library's thread pool, the caches and the (virtual) processors go idle, which back-to-back
 timing never shows: with GCC's OpenMP pool, which the library used before its own, two threads took
 11.6-12.8 ms per call every 100 ms on the shared VM (in two runs of three) where one thread took
-1.4 ms. Each line is the median
-of ``--repeat`` calls (at most 25 at 100 ms) after one warm-up; ``--json`` prints the medians as one
-JSON object instead (for ``bench/ab_python.sh``, which alternates two builds' processes).
+1.4 ms. Each line is the median of ``--repeat`` calls (at most 25 at 100 ms) after 0.1 s of calls
+back to back; ``--json`` prints the medians as one JSON object instead (for ``bench/ab_python.sh``,
+which alternates two builds' processes).
 
 Reproduce
 ---------
@@ -51,12 +51,17 @@ from bench_elevation import (
 )
 
 CADENCES = ("back to back", "after numpy", "every 10 ms", "every 100 ms")
+# Before each cadence, calls back to back for this long: the pool's threads start (or wake) once
+# calls have kept coming for 20 ms, so without it the first back-to-back calls run on one thread.
+WARM_UP_S = 0.1
 
 
 def timed_calls(call, cadence: str, calls: int, before) -> float:
     """Median ms of ``call`` at ``cadence``; ``before`` is the numpy work of "after numpy"."""
     period = {"every 10 ms": 0.01, "every 100 ms": 0.1}.get(cadence, 0.0)
-    call()
+    warm_until = time.perf_counter() + WARM_UP_S  # calls back to back: the pool's steady state
+    while time.perf_counter() < warm_until:
+        call()
     times = []
     next_start = time.perf_counter()
     for _ in range(calls):
