@@ -48,8 +48,8 @@ the system).
 A robot's loop is timed too: map + classify once every 100 ms (a 10 Hz LiDAR) and once every 10 ms,
 the thread asleep in between (median of up to 25 calls, on one thread and on every processor). There
 the pool's threads, the caches and the processors go idle between calls, which back-to-back timing
-never shows: GCC's OpenMP pool, which the library used before its own, took 11.6-12.8 ms per call
-on two threads at 100 ms in two runs of three, where one thread took 1.4 ms.
+never shows: GCC's OpenMP pool, which the library used before its own, took 2.1-12.8 ms per call
+on two threads at 100 ms in four runs, where one thread took 1.4 ms.
 
 Reproduce
 ---------

@@ -12,13 +12,13 @@ layers, then the Table 1 classes; a fresh map per call), called
 
 each on one thread (``num_threads=1``) and on every processor (``num_threads=0``); the same for a DEM
 without overhangs (collapse, then the map; edge 0.5 m, sigma 5, crop as in ``bench_elevation.py``)
-followed by its classes: three calls that take threads per scan. Between paced
-calls the library's thread pool, the caches and the (virtual) processors go idle, which back-to-back
-timing never shows: with GCC's OpenMP pool, which the library used before its own, two threads took
-11.6-12.8 ms per call every 100 ms on the shared VM (in two runs of three) where one thread took
-1.4 ms. Each line is the median of ``--repeat`` calls (at most 25 at 100 ms) after 0.1 s of calls
-back to back; ``--json`` prints the medians as one JSON object instead (for ``bench/ab_python.sh``,
-which alternates two builds' processes).
+followed by its classes: three calls that take threads per scan. Between paced calls the library's
+thread pool, the caches and the (virtual) processors go idle, which back-to-back timing never shows:
+with GCC's OpenMP pool, which the library used before its own, two threads took 2.1-12.8 ms per
+map + classify every 100 ms on the shared VM (four runs; the host decides how long a sleeping
+processor takes to wake), where one thread took 1.4 ms. Each line is the median of ``--repeat``
+calls (at most 25 at 100 ms) after 0.1 s of calls back to back; ``--json`` prints the medians as one
+JSON object instead (for ``bench/ab_python.sh``, which alternates two builds' processes).
 
 Reproduce
 ---------
