@@ -46,6 +46,9 @@ constexpr int kMaxThreads = 256;
 /// classes every 100 ms). Calls that come more often than this keep the threads awake, spinning on
 /// a processor each in between (as OpenMP runtimes do); rarer ones never wake them (below).
 constexpr std::chrono::milliseconds kSpin{20};
+/// The spin of pool threads beyond one per processor but one (a num_threads above the processor
+/// count): spinning there would take the processors from the threads that have work.
+constexpr std::chrono::microseconds kOversubscribedSpin{50};
 /// Sleeping threads are woken (or the first ones started) only when calls have kept coming, each
 /// within kSpin of the one before, for kSpin or longer (a workload that will keep them busy; a
 /// robot's few calls per scan every 100 ms never wake them), or for a call that has at least this
@@ -68,6 +71,7 @@ constexpr std::uint64_t parts_of(std::uint64_t ticket) { return (ticket >> 16) &
 constexpr bool claimable(std::uint64_t ticket) { return next_of(ticket) < parts_of(ticket); }
 
 struct Pool {
+  const int processors = processor_count();   // at the pool's creation
   std::mutex mutex;                           // guards starting threads, and the sleep of pool threads
   std::condition_variable wake;               // pool threads sleep on it
   std::atomic<int> started{0};                // pool threads running (never stopped)
@@ -133,7 +137,8 @@ bool claim_and_run(Pool& p, std::uint32_t* joined) {
   return false;
 }
 
-void pool_thread(Pool& p) {
+void pool_thread(Pool& p, int index) {
+  const std::chrono::microseconds spin = index + 1 < p.processors ? kSpin : kOversubscribedSpin;
   std::uint32_t joined = 0;
   auto idle_since = std::chrono::steady_clock::now();
   for (unsigned spins = 1;; ++spins) {
@@ -142,7 +147,7 @@ void pool_thread(Pool& p) {
       continue;
     }
     pause();
-    if (spins % 64 != 0 || std::chrono::steady_clock::now() - idle_since < kSpin) continue;
+    if (spins % 64 != 0 || std::chrono::steady_clock::now() - idle_since < spin) continue;
     std::unique_lock<std::mutex> lock(p.mutex);
     const std::uint32_t alarm = p.alarm.load();
     p.sleeping.fetch_add(1);  // before the check below: see run_parts
@@ -160,7 +165,7 @@ void start_threads(Pool& p, int wanted) {
   std::lock_guard<std::mutex> lock(p.mutex);
   while (p.started.load(std::memory_order_relaxed) < wanted) {
     try {
-      std::thread(pool_thread, std::ref(p)).detach();
+      std::thread(pool_thread, std::ref(p), p.started.load(std::memory_order_relaxed)).detach();
     } catch (...) {  // std::system_error (no more threads), std::bad_alloc
       return;        // the calling thread runs what no pool thread claims
     }
