@@ -9,6 +9,7 @@
 #include <string>
 #include <vector>
 
+#include "layer_memory.hpp"
 #include "threads.hpp"
 
 namespace terracube {
@@ -48,26 +49,29 @@ void running_min(const float* in, float* out, Eigen::Index n, Eigen::Index strid
   for (Eigen::Index j = 0; j < n; ++j) out[j * stride] = std::min(suffix[j], prefix[j + w - 1]);
 }
 
-/// Lowest value within `radius` cells (a square window), ignoring NaN; NaN where the window holds
-/// no value. Separable: running minima along j, then along i, each O(1) per cell.
-Layer window_min(const Layer& layer, int radius) {
+/// Lowest value within `radius` cells (a square window) of `layer`, ignoring NaN, into every cell of
+/// `out` (not `layer`); NaN where the window holds no value. Separable: running minima along j,
+/// then along i, each O(1) per cell. The two intermediate layers come from (and go back to) the
+/// thread's kept layer buffers: fresh 320 kB buffers would cost page faults at every call.
+void window_min(const Layer& layer, int radius, Layer& out) {
   constexpr float kInf = std::numeric_limits<float>::infinity();
   const Eigen::Index nx = layer.rows();
   const Eigen::Index ny = layer.cols();
   // A radius of max(nx, ny) already spans the whole map: larger ones change nothing.
   const Eigen::Index r = std::min<Eigen::Index>(radius, std::max(nx, ny));
-  Layer values = layer.array().isNaN().select(kInf, layer.array()).matrix();
-  Layer along_y(nx, ny);
+  Layer values = detail::uninitialised_layer(nx, ny);
+  Layer along_y = detail::uninitialised_layer(nx, ny);
+  values.array() = layer.array().isNaN().select(kInf, layer.array());
   std::vector<float> prefix(static_cast<std::size_t>(std::max(nx, ny) + 2 * r));
   std::vector<float> suffix(prefix.size());
   for (Eigen::Index i = 0; i < nx; ++i)
     running_min(values.data() + i * ny, along_y.data() + i * ny, ny, 1, r, prefix, suffix);
-  Layer out(nx, ny);
   for (Eigen::Index j = 0; j < ny; ++j) running_min(along_y.data() + j, out.data() + j, nx, ny, r, prefix, suffix);
   for (Eigen::Index k = 0; k < out.size(); ++k) {
     if (out.data()[k] == kInf) out.data()[k] = std::numeric_limits<float>::quiet_NaN();
   }
-  return out;
+  detail::recycle_layer(std::move(values));
+  detail::recycle_layer(std::move(along_y));
 }
 
 /// The smallest float that is >= `threshold`: for every float v, v < threshold (compared in
@@ -88,10 +92,11 @@ TerrainClasses classify_terrain_layers(ElevationMap& map, const TerrainParams& p
   map.get("discontinuity");
   if (params.reference == GroundReference::kLocalGround) map.get("min");
   // Results go straight into the map's layers (reused in place when the map was classified
-  // before: fresh 320 kB buffers per call cost page faults). Adding layers can move them, so every
-  // reference is taken after the last add.
+  // before: fresh 320 kB buffers per call cost page faults). New ones are not filled first: every
+  // cell of all three is written below (filling them would write about 1 MB more on a fresh KITTI
+  // map). Adding layers can move them, so every reference is taken after the last add.
   for (const char* name : {"class", "relative_height", "ground"}) {
-    if (!map.exists(name)) map.add(name);
+    if (!map.exists(name)) map.add(name, detail::uninitialised_layer(map.geometry().size.x(), map.geometry().size.y()));
   }
   const Layer& highest = map.get("max");
   const Layer& spread = map.get("std_dev");
@@ -105,7 +110,7 @@ TerrainClasses classify_terrain_layers(ElevationMap& map, const TerrainParams& p
   TerrainClasses out(nx, ny);
   if (cells == 0) return out;
   if (params.reference == GroundReference::kLocalGround) {
-    ground = window_min(map.get("min"), params.local_ground_radius_cells);
+    window_min(map.get("min"), params.local_ground_radius_cells, ground);
   }
 
   // Table 1. The thresholds are doubles (a 0.7 m threshold means 0.7, not float(0.7) =

@@ -646,6 +646,69 @@ TEST(TerrainLayers, ClassifyingAgainOverwritesTheLayers) {
   EXPECT_EQ(map.get("ground"), Layer::Constant(1, 2, -2.0F));
 }
 
+TEST(TerrainLayers, NewLayersOnBuffersOfDroppedMapsAreWrittenInEveryCell) {
+  // classify_terrain does not fill the layers it adds: their buffers may be those of a dropped map
+  // (garbage here). Every cell of all three must still be written, in both ground references.
+  for (const GroundReference reference : {GroundReference::kSensorHeight, GroundReference::kLocalGround}) {
+    SCOPED_TRACE(reference == GroundReference::kSensorHeight ? "sensor height" : "local ground");
+    {
+      ElevationMap garbage = uniform_map(9, 11, 0.0F, 0.0F);
+      for (int k = 0; k < 12; ++k) garbage.add("garbage" + std::to_string(k), 777.0F);
+    }  // dropped: its 18 buffers of 9 x 11 cells are kept for the next layers of that size
+    ElevationMap map = uniform_map(9, 11, 0.0F, 0.0F);
+    std::mt19937 rng(17);
+    for (int i = 0; i < 9; ++i) {
+      for (int j = 0; j < 11; ++j) {
+        if (rng() % 5 == 0) {
+          clear_cell(map, i, j);
+        } else {
+          const float top = static_cast<float>(rng() % 300) / 100.0F;
+          set_cell(map, i, j, top, static_cast<float>(rng() % 3) / 4.0F);
+          map.get("min")(i, j) = top - static_cast<float>(rng() % 50) / 100.0F;
+        }
+      }
+    }
+    TerrainParams params = exact_params(0.25);
+    params.reference = reference;
+    params.local_ground_radius_cells = 1;
+    const TerrainClassification result = classify_terrain(map, params);
+    for (int i = 0; i < 9; ++i) {
+      for (int j = 0; j < 11; ++j) {
+        SCOPED_TRACE("cell (" + std::to_string(i) + ", " + std::to_string(j) + ")");
+        float ground = -0.25F;
+        if (reference == GroundReference::kLocalGround) {
+          ground = std::numeric_limits<float>::infinity();
+          for (int a = std::max(0, i - 1); a <= std::min(8, i + 1); ++a) {
+            for (int b = std::max(0, j - 1); b <= std::min(10, j + 1); ++b) {
+              if (!std::isnan(map.get("min")(a, b))) ground = std::min(ground, map.get("min")(a, b));
+            }
+          }
+          if (std::isinf(ground)) ground = kNaN;
+        }
+        const float top = map.get("max")(i, j);
+        const std::uint8_t c = result.classes(i, j);
+        if (std::isnan(ground)) {
+          EXPECT_TRUE(std::isnan(map.get("ground")(i, j)));
+        } else {
+          EXPECT_EQ(map.get("ground")(i, j), ground);
+        }
+        if (std::isnan(top) || std::isnan(ground)) {
+          EXPECT_TRUE(std::isnan(map.get("relative_height")(i, j)));
+          EXPECT_EQ(c, 0);
+        } else {
+          EXPECT_EQ(map.get("relative_height")(i, j), top - ground);
+          EXPECT_NE(c, 0);
+        }
+        if (c == 0) {
+          EXPECT_TRUE(std::isnan(map.get("class")(i, j)));
+        } else {
+          EXPECT_EQ(map.get("class")(i, j), static_cast<float>(c));
+        }
+      }
+    }
+  }
+}
+
 TEST(TerrainLayers, EmptyMapGivesEmptyClassification) {
   ElevationMap map = uniform_map(0, 0, 0.0F, 0.0F);
   const TerrainClassification result = classify_terrain(map, exact_params());
