@@ -162,5 +162,36 @@ TEST(ThreadPool, SleepingThreadsAreWokenForBurstsOfCallsAndForLargeOnes) {
   EXPECT_EQ(detail::thread_count(1, 1000000, 1), 1);
 }
 
+TEST(ThreadPool, ACallerThatWasBusySinceItsLastCallWakesTheSleepingThreads) {
+  detail::require_helpers_in_tests(true);
+  detail::for_each_part(3, [](int) {});  // two pool threads at least
+  detail::require_helpers_in_tests(false);
+  const int started = detail::pool_state().started;
+  ASSERT_GE(started, 2);
+  const auto all_asleep = [&] { return detail::pool_state().asleep == started; };
+  // A caller that slept since its last request (a robot's loop) leaves the threads asleep.
+  ASSERT_TRUE(eventually(all_asleep)) << "idle pool threads never slept";
+  detail::thread_count(3, 3, 1);
+  std::this_thread::sleep_for(std::chrono::milliseconds(30));
+  const unsigned wakeups = detail::pool_state().wakeups;
+  EXPECT_EQ(detail::thread_count(3, 3, 1), 1) << "an idle caller's call runs on the awake threads";
+  EXPECT_EQ(detail::pool_state().wakeups, wakeups);
+  // One that computed for 30 ms since (a program between its calls) gets them woken, and every
+  // part it asks for: those that wake late join in. A host that takes the processor away for half
+  // the time makes the caller look idle: up to five tries.
+  bool woken = false;
+  for (int attempt = 0; attempt < 5 && !woken; ++attempt) {
+    ASSERT_TRUE(eventually(all_asleep));
+    detail::thread_count(3, 3, 1);
+    const auto busy_until = std::chrono::steady_clock::now() + std::chrono::milliseconds(30);
+    volatile unsigned spin = 0;
+    while (std::chrono::steady_clock::now() < busy_until) spin = spin + 1;
+    const unsigned before_busy = detail::pool_state().wakeups;
+    if (detail::thread_count(3, 3, 1) != 3) continue;
+    woken = eventually([&] { return detail::pool_state().wakeups >= before_busy + static_cast<unsigned>(started); });
+  }
+  EXPECT_TRUE(woken) << "a caller busy for 30 ms did not get every part and the pool threads woken";
+}
+
 }  // namespace
 }  // namespace terracube
