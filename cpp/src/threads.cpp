@@ -240,7 +240,8 @@ int thread_count(int num_threads, std::size_t work, std::size_t min_work) {
   const int parts = static_cast<int>(std::min<std::size_t>(static_cast<std::size_t>(wanted), useful));
   if (parts <= 1 || helpers_required.load(std::memory_order_relaxed)) return std::max(parts, 1);
   // Only the pool threads that are awake now take part. Sleeping ones are woken for the calls
-  // that follow when calls have kept coming for kSpin, or this one is large.
+  // that follow when calls have kept coming for kSpin; for this one too (late ones join in) when
+  // its caller was busy since its previous call, or this one is large.
   Pool& p = pool();
   const std::int64_t now =
       std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::steady_clock::now().time_since_epoch()).count();

@@ -23,10 +23,11 @@ int processor_count();
 /// 20 ms or more. They are woken at once, and the call gets every part it asks for (threads that
 /// wake late join in), when its thread ran for at least half the time since its previous call,
 /// made 20 ms or more before (a program that computes between its calls, not a robot's loop that
-/// waits for its next scan), or for a call of 32 parts' worth of work or more. The parts of a call never change its
-/// result. When `num_threads` and the work allow 1 only, no thread is started or woken, so a process that never asks
-/// for more never starts the pool. The pool's threads do not survive fork(): in a forked child of a process that
-/// started them, always 1. With require_helpers_in_tests on, the pool's state is ignored.
+/// waits for its next scan), or for a call of 32 parts' worth of work or more. The parts of a call
+/// never change its result. When `num_threads` and the work allow 1 only, no thread is started or
+/// woken, so a process that never asks for more never starts the pool. The pool's threads do not
+/// survive fork(): in a forked child of a process that started them, always 1. With
+/// require_helpers_in_tests on, the pool's state is ignored.
 int thread_count(int num_threads, std::size_t work, std::size_t min_work);
 
 /// The most threads that took part in one for_each_part call since the last reset (tests use it
