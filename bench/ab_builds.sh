@@ -41,6 +41,8 @@ fi
 # -fopenmp for revisions before the library's own thread pool (bfb696c and earlier used OpenMP). Two
 # threads across that change put both pools in one process, each spinning while the other works:
 # compare such revisions on two threads in separate processes instead (bench_maps_cpp, alternately).
+# Between revisions that both have the own pool, ab_maps.cpp lets the other side's threads fall
+# asleep before each round (see there).
 flags=(-std=c++17 -pthread -fopenmp -isystem /usr/include/eigen3)
 # Both revisions are compiled in both namespaces and linked into two programs, the second with the
 # sides swapped: code placement alone moves a side by up to about 5 % (an A/A run of one program

@@ -7,6 +7,12 @@
 // so that both see the same stretch of the shared machine; the ratio B / A of each round is kept and
 // their median and quartiles printed. Code placement alone moves a side by up to about 5 %, which
 // is why ab_builds.sh also runs the two builds with the sides swapped.
+//
+// On several threads each side has its own thread pool (revisions since the library's own pool).
+// Before a side's round the program sleeps 25 ms, so that the other side's pool threads stop
+// spinning (they sleep after 20 ms without work), then makes one untimed call that wakes this
+// side's threads. The side's test switch (detail::require_helpers_in_tests, when the revision has
+// it) makes every call give its parts to them: without it a call could run on one thread.
 #include <cstddef>
 
 #ifdef TERRACUBE_AB_SIDE
@@ -16,6 +22,12 @@
 
 #define TERRACUBE_AB_CAT2(a, b) a##b
 #define TERRACUBE_AB_CAT(a, b) TERRACUBE_AB_CAT2(a, b)
+
+// The test switch of revisions with the library's own thread pool (cpp/src/threads.hpp); null in
+// older ones.
+namespace terracube::detail {
+void require_helpers_in_tests(bool on) __attribute__((weak));
+}
 
 namespace {
 struct Side {
@@ -46,6 +58,7 @@ std::size_t TERRACUBE_AB_CAT(run_, TERRACUBE_AB_SIDE)(const float* xyzi, std::si
   }
   s.map.num_threads = threads;
   s.terrain.num_threads = threads;
+  if (terracube::detail::require_helpers_in_tests != nullptr) terracube::detail::require_helpers_in_tests(threads != 1);
   std::size_t sum = 0;
   for (int r = 0; r < reps; ++r) {
     if (what == 0) {
@@ -70,6 +83,7 @@ std::size_t TERRACUBE_AB_CAT(run_, TERRACUBE_AB_SIDE)(const float* xyzi, std::si
 #include <cstdlib>
 #include <fstream>
 #include <string>
+#include <thread>
 #include <vector>
 
 std::size_t run_A(const float* xyzi, std::size_t rows, int what, int reps, int threads);
@@ -110,6 +124,10 @@ int main(int argc, char** argv) {
   std::vector<std::uint64_t> other(cold ? std::size_t{8} << 20 : 0, 1);
   std::uint64_t sink = 0;
   const auto timed = [&](int which) {
+    if (threads != 1) {  // the other side's pool threads asleep, this side's awake (see the top)
+      std::this_thread::sleep_for(std::chrono::milliseconds(25));
+      which == 0 ? run_A(xyzi.data(), rows, call, 1, threads) : run_B(xyzi.data(), rows, call, 1, threads);
+    }
     if (!cold) {
       const auto start = std::chrono::steady_clock::now();
       which == 0 ? run_A(xyzi.data(), rows, call, reps, threads) : run_B(xyzi.data(), rows, call, reps, threads);
