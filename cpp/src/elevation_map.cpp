@@ -1452,9 +1452,13 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     make_layers();
     range.write(layers, stale, params.discontinuity_m);
   } else {
-    // Bin: each part takes a run of blocks, and counts the codes of every kSample-th row in
-    // buckets of 2^shift cells (at least 64, at most 4096 buckets) for the split below.
-    constexpr std::size_t kSample = 4;
+    // Bin: each part takes a run of blocks, and counts the codes of every sample-th row in
+    // buckets of 2^shift cells (at least 64, at most 4096 buckets) for the split below: about
+    // 1024 sampled rows per part, every row to every 64th (a split within a few per cent of even
+    // work; counting more rows costs more than it balances: KITTI frame 0 on two threads,
+    // bench/ab_builds.sh, every 4th row against every 64th took 2-3 % longer).
+    const std::size_t sample =
+        std::clamp<std::size_t>(cloud.size() / (std::size_t{1024} * static_cast<std::size_t>(parts)), 1, 64);
     int shift = 6;
     while ((cells >> shift) >= 4096) ++shift;
     const std::size_t num_buckets = (cells >> shift) + 1;
@@ -1467,7 +1471,7 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
         const std::size_t begin = b * block;
         const std::size_t end = std::min(cloud.size(), begin + block);
         bin_block(begin, end, codes + begin, non_finite[k]);
-        for (std::size_t row = begin; row < end; row += kSample) {
+        for (std::size_t row = (begin + sample - 1) / sample * sample; row < end; row += sample) {
           const std::uint32_t code = codes[row];
           if (code != kOutside) ++histogram[code >> shift];
         }
@@ -1477,14 +1481,14 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     for (const NonFiniteRows& counted : non_finite) all.merge(counted);
     check_non_finite(all);
     make_layers();
-    // Split the cells at bucket borders into parts of about equal work: kSample rows per sampled
+    // Split the cells at bucket borders into parts of about equal work: `sample` rows per sampled
     // code, plus a quarter of a row per cell for the layers.
     std::vector<double> work(num_buckets, 0.0);
     double total = 0.0;
     for (std::size_t b = 0; b < num_buckets; ++b) {
       const std::size_t first = b << shift;
       const std::size_t bucket_cells = first < cells ? std::min(cells - first, std::size_t{1} << shift) : 0;
-      for (int part = 0; part < parts; ++part) work[b] += kSample * sampled[part * num_buckets + b];
+      for (int part = 0; part < parts; ++part) work[b] += static_cast<double>(sample * sampled[part * num_buckets + b]);
       work[b] += 0.25 * static_cast<double>(bucket_cells);
       total += work[b];
     }
