@@ -136,11 +136,17 @@ bool eventually(const Ready& ready) {
   return false;
 }
 
-TEST(ThreadPool, SleepingThreadsAreWokenForBurstsOfCallsAndForLargeOnes) {
+/// Has the pool start two threads at least (a call of three parts, which the test switch gives to
+/// them) and returns how many it has.
+int start_pool_threads() {
   detail::require_helpers_in_tests(true);
-  detail::for_each_part(3, [](int) {});  // two pool threads at least
+  detail::for_each_part(3, [](int) {});
   detail::require_helpers_in_tests(false);
-  const int started = detail::pool_state().started;
+  return detail::pool_state().started;
+}
+
+TEST(ThreadPool, SleepingThreadsAreWokenForBurstsOfCallsAndForLargeOnes) {
+  const int started = start_pool_threads();
   ASSERT_GE(started, 2);
   const auto all_asleep = [&] { return detail::pool_state().asleep == started; };
   ASSERT_TRUE(eventually(all_asleep)) << "idle pool threads never slept";
@@ -163,10 +169,7 @@ TEST(ThreadPool, SleepingThreadsAreWokenForBurstsOfCallsAndForLargeOnes) {
 }
 
 TEST(ThreadPool, ACallerThatWasBusySinceItsLastCallWakesTheSleepingThreads) {
-  detail::require_helpers_in_tests(true);
-  detail::for_each_part(3, [](int) {});  // two pool threads at least
-  detail::require_helpers_in_tests(false);
-  const int started = detail::pool_state().started;
+  const int started = start_pool_threads();
   ASSERT_GE(started, 2);
   const auto all_asleep = [&] { return detail::pool_state().asleep == started; };
   // A caller that slept since its last request (a robot's loop) leaves the threads asleep.
