@@ -1062,6 +1062,54 @@ struct NonFiniteRows {
 /// Rows binned and listed at a time (their rows still in L1).
 constexpr std::size_t kListBlock = 1024;
 
+#if defined(__x86_64__) && defined(__GNUC__)
+/// CellRange::list_block's loop, eight rows at a time: a range's rows come in long runs (a scan
+/// sweeps in azimuth, and rows outside the map or in another thread's cells come in runs too), so
+/// eight rows of which none is the range's cost one compare, and eight that all are take no branch
+/// per row. Returns the first row not listed (the rest go through the scalar loop); `listed` is
+/// advanced by the rows listed.
+template <typename HeightOf, typename Height>
+__attribute__((target("avx2"))) std::size_t list_rows_avx2(const std::uint32_t* codes, std::size_t begin,
+                                                           std::size_t end, std::uint32_t lo, std::uint32_t span,
+                                                           const HeightOf& height_of, std::uint32_t* __restrict counts,
+                                                           std::uint32_t* __restrict row_cell,
+                                                           std::uint32_t* __restrict row_rank,
+                                                           Height* __restrict row_heights, std::size_t& listed) {
+  const __m256i first = _mm256_set1_epi32(static_cast<int>(lo));
+  const __m256i last = _mm256_set1_epi32(static_cast<int>(span - 1));
+  std::size_t at = listed;
+  std::size_t row = begin;
+  for (; row + 8 <= end; row += 8) {
+    // cell - lo wraps for cells below the range: in the range iff min(cell, span - 1) == cell.
+    const __m256i cell =
+        _mm256_sub_epi32(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(codes + (row - begin))), first);
+    const __m256i inside = _mm256_cmpeq_epi32(_mm256_min_epu32(cell, last), cell);
+    auto mask = static_cast<unsigned>(_mm256_movemask_ps(_mm256_castsi256_ps(inside)));
+    if (mask == 0) continue;
+    alignas(32) std::uint32_t cells[8];
+    _mm256_store_si256(reinterpret_cast<__m256i*>(cells), cell);
+    if (mask == 0xFFU) {
+      for (int k = 0; k < 8; ++k) {
+        row_cell[at + k] = cells[k];
+        row_rank[at + k] = counts[cells[k]]++;
+        row_heights[at + k] = static_cast<Height>(height_of(row + k));
+      }
+      at += 8;
+      continue;
+    }
+    for (; mask != 0; mask &= mask - 1) {
+      const int k = __builtin_ctz(mask);
+      row_cell[at] = cells[k];
+      row_rank[at] = counts[cells[k]]++;
+      row_heights[at] = static_cast<Height>(height_of(row + k));
+      ++at;
+    }
+  }
+  listed = at;
+  return row;
+}
+#endif
+
 /// The cells [lo, hi) of a map (lo a multiple of 64) as one thread builds them, by a counting sort
 /// of the range's heights by cell. list_rows() goes over the cell codes of all rows and lists the
 /// range's rows in row order (cell, height, and the rank of the row among its cell's rows), counting
@@ -1223,7 +1271,13 @@ class CellRange {
     const auto lo = static_cast<std::uint32_t>(lo_);
     const auto span = static_cast<std::uint32_t>(span_);
     const RowHeights<Cloud> height_of(cloud_);
-    for (std::size_t row = begin; row < end; ++row) {
+    std::size_t row = begin;
+#if defined(__x86_64__) && defined(__GNUC__)
+    if (detail::has_avx2() && span > 0) {
+      row = list_rows_avx2(codes, begin, end, lo, span, height_of, counts, row_cell, row_rank, row_heights, listed);
+    }
+#endif
+    for (; row < end; ++row) {
       const std::uint32_t cell = codes[row - begin] - lo;  // wraps for cells below the range (and kOutside)
       if (cell >= span) continue;
       row_cell[listed] = cell;
