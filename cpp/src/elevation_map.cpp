@@ -642,6 +642,21 @@ bool bin_rows_avx2(const Scalar* data, std::size_t rows, int stride, const Binni
   }
 }
 
+/// The rows of `codes[0, rows)` that got kSlow, listed into `slow_rows` from slow_rows[num_slow],
+/// eight codes at a time (a block on a fine map holds a few such rows among a thousand). Returns
+/// the rows gone through (a multiple of 8).
+__attribute__((target("avx2"))) std::size_t list_slow_rows_avx2(const std::uint32_t* codes, std::size_t rows,
+                                                                std::uint32_t* slow_rows, std::size_t& num_slow) {
+  const __m256i slow_code = _mm256_set1_epi32(static_cast<std::int32_t>(kSlow));
+  std::size_t k = 0;
+  for (; k + 8 <= rows; k += 8) {
+    const __m256i code = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(codes + k));
+    auto mask = static_cast<unsigned>(_mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpeq_epi32(code, slow_code))));
+    for (; mask != 0; mask &= mask - 1) slow_rows[num_slow++] = static_cast<std::uint32_t>(k + __builtin_ctz(mask));
+  }
+  return k;
+}
+
 /// The defining formula (MapGeometry::index_of, AxisBinning::exact: floor((coordinate - origin) /
 /// resolution) on each axis) for the listed rows `rows[0, count)` of rows `kStride` scalars apart,
 /// four at a time: IEEE division and floor round as the scalar code does. Writes the cell or
@@ -1447,7 +1462,11 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
       // rows sit on 0.1 m cell borders, at random), then binned by the checking path.
       std::uint32_t slow_rows[kListBlock];  // from begin
       std::size_t num_slow = 0;
-      for (std::size_t k = 0; k < end - begin; ++k) {
+      std::size_t k = 0;
+#if defined(__x86_64__) && defined(__GNUC__)
+      if (detail::has_avx2()) k = list_slow_rows_avx2(out, end - begin, slow_rows, num_slow);
+#endif
+      for (; k < end - begin; ++k) {
         slow_rows[num_slow] = static_cast<std::uint32_t>(k);
         num_slow += out[k] == kSlow ? 1 : 0;
       }
