@@ -806,7 +806,7 @@ __attribute__((target("avx2"))) inline float lane_max(__m256 v) {
 
 /// cell_sums_scalar in AVX2 (no FMA: the products are rounded as there). Reads up to 7 heights past
 /// z + n (the sorted heights are padded); those lanes are masked out.
-__attribute__((target("avx2"))) CellSums<float> cell_sums_avx2(const float* z, std::uint32_t n) {
+__attribute__((target("avx2"))) inline CellSums<float> cell_sums_avx2(const float* z, std::uint32_t n) {
   const __m256i lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
   const __m256 first = _mm256_set1_ps(z[0]);
   const __m256d shift = _mm256_set1_pd(static_cast<double>(z[0]));
@@ -829,7 +829,7 @@ __attribute__((target("avx2"))) CellSums<float> cell_sums_avx2(const float* z, s
 }
 
 /// The same for double heights, four to a register.
-__attribute__((target("avx2"))) CellSums<double> cell_sums_avx2(const double* z, std::uint32_t n) {
+__attribute__((target("avx2"))) inline CellSums<double> cell_sums_avx2(const double* z, std::uint32_t n) {
   const __m256i lane_low = _mm256_setr_epi64x(0, 1, 2, 3);
   const __m256i lane_high = _mm256_setr_epi64x(4, 5, 6, 7);
   const __m256d first = _mm256_set1_pd(z[0]);
@@ -885,6 +885,60 @@ __attribute__((target("avx2"))) void finish_cells_avx2(const double* firsts, con
     _mm_store_ps(std_devs + k, _mm256_cvtpd_ps(_mm256_sqrt_pd(variance)));
   }
   finish_cells(firsts, sums, squares, counts, k, end, means, std_devs);
+}
+#endif
+
+/// The sums (CellSums) of the occupied cells of one bitmap word (`bits`, cells base + bit), from
+/// their heights grouped by cell (`start`: where each cell's begin): the cells in bit order, their
+/// first elevation and count, and the sums, in the arrays of the word (WordSums). One call per
+/// word, not per cell: the per-cell sums are inlined and the caller's loop keeps its registers.
+template <typename Height>
+struct WordSums {
+  std::uint32_t cells[64];
+  alignas(32) double firsts[64], sums[64], squares[64], counts[64];
+  Height lowest[64], highest[64];
+};
+
+template <typename Height>
+int word_sums_scalar(const Height* heights, const std::uint32_t* start, std::uint64_t bits, std::size_t base,
+                     WordSums<Height>& out) {
+  int listed = 0;
+  for (; bits != 0; bits &= bits - 1) {
+    const std::size_t cell = base + static_cast<std::size_t>(__builtin_ctzll(bits));
+    const std::uint32_t first = start[cell];
+    const std::uint32_t count = start[cell + 1] - first;
+    const CellSums<Height> s = cell_sums_scalar(heights + first, count);
+    out.cells[listed] = static_cast<std::uint32_t>(cell);
+    out.firsts[listed] = static_cast<double>(heights[first]);
+    out.sums[listed] = s.sum;
+    out.squares[listed] = s.squares;
+    out.counts[listed] = static_cast<double>(count);
+    out.lowest[listed] = s.lowest;
+    out.highest[listed++] = s.highest;
+  }
+  return listed;
+}
+
+#if defined(__x86_64__) && defined(__GNUC__)
+/// word_sums_scalar with cell_sums_avx2 (the same sums, bit for bit).
+template <typename Height>
+__attribute__((target("avx2"))) int word_sums_avx2(const Height* heights, const std::uint32_t* start,
+                                                   std::uint64_t bits, std::size_t base, WordSums<Height>& out) {
+  int listed = 0;
+  for (; bits != 0; bits &= bits - 1) {
+    const std::size_t cell = base + static_cast<std::size_t>(__builtin_ctzll(bits));
+    const std::uint32_t first = start[cell];
+    const std::uint32_t count = start[cell + 1] - first;
+    const CellSums<Height> s = cell_sums_avx2(heights + first, count);
+    out.cells[listed] = static_cast<std::uint32_t>(cell);
+    out.firsts[listed] = static_cast<double>(heights[first]);
+    out.sums[listed] = s.sum;
+    out.squares[listed] = s.squares;
+    out.counts[listed] = static_cast<double>(count);
+    out.lowest[listed] = s.lowest;
+    out.highest[listed++] = s.highest;
+  }
+  return listed;
 }
 #endif
 
@@ -1204,6 +1258,7 @@ class CellRange {
 #if defined(__x86_64__) && defined(__GNUC__)
     const bool avx2 = detail::has_avx2();
 #endif
+    WordSums<Height> word;
     for (std::size_t w = 0; w < words_; ++w) {
       const std::size_t base = w * 64;
       if (base + 64 <= span_) {  // a whole word: fills of a constant length, unrolled (no loop exit to mispredict)
@@ -1214,45 +1269,38 @@ class CellRange {
         std::fill_n(count_layer + base, length, 0.0F);
         for (float* layer : {min, max, mean, std_dev, discontinuity}) std::fill_n(layer + base, length, kNaN);
       }
-      // The word's occupied cells: sums, count, min, max and the gap test first, then mean and
-      // std-dev in a second loop, whose divisions and square roots (long latencies) overlap.
-      std::uint32_t cells[64];
-      alignas(32) double firsts[64], sums[64], squares[64], counts[64];
-      alignas(16) float means[64], std_devs[64];
-      int listed = 0;
-      for (std::uint64_t bits = occupied[w]; bits != 0; bits &= bits - 1) {
-        const std::size_t cell = base + static_cast<std::size_t>(__builtin_ctzll(bits));
-        const std::uint32_t first = start[cell];
-        const std::uint32_t count = start[cell + 1] - first;
-        const Height* z = heights + first;
+      // The word's occupied cells: sums (word_sums), then count, min, max and the gap test, then mean
+      // and std-dev in a loop of their own, whose divisions and square roots (long latencies) overlap.
+      alignas(32) float means[64], std_devs[64];
 #if defined(__x86_64__) && defined(__GNUC__)
-        const CellSums<Height> s = avx2 ? cell_sums_avx2(z, count) : cell_sums_scalar(z, count);
+      const int listed = avx2 ? word_sums_avx2(heights, start, occupied[w], base, word)
+                              : word_sums_scalar(heights, start, occupied[w], base, word);
 #else
-        const CellSums<Height> s = cell_sums_scalar(z, count);
+      const int listed = word_sums_scalar(heights, start, occupied[w], base, word);
 #endif
-        cells[listed] = static_cast<std::uint32_t>(cell);
-        firsts[listed] = static_cast<double>(z[0]);
-        sums[listed] = s.sum;
-        squares[listed] = s.squares;
-        counts[listed++] = static_cast<double>(count);
-        count_layer[cell] = static_cast<float>(count);
-        min[cell] = static_cast<float>(s.lowest);
-        max[cell] = static_cast<float>(s.highest);
-        const bool wide =
-            std::isgreater(static_cast<double>(s.highest) - static_cast<double>(s.lowest), discontinuity_m);
-        discontinuity[cell] = wide && has_gap(as_doubles(z, count), static_cast<double>(s.lowest),
-                                              static_cast<double>(s.highest), discontinuity_m, scratch_.buckets)
-                                  ? 1.0F
-                                  : 0.0F;
+      const std::uint32_t* cells = word.cells;
+      for (int k = 0; k < listed; ++k) {
+        const std::uint32_t cell = cells[k];
+        const auto lowest = static_cast<double>(word.lowest[k]);
+        const auto highest = static_cast<double>(word.highest[k]);
+        count_layer[cell] = static_cast<float>(word.counts[k]);
+        min[cell] = static_cast<float>(word.lowest[k]);
+        max[cell] = static_cast<float>(word.highest[k]);
+        const bool wide = std::isgreater(highest - lowest, discontinuity_m);
+        discontinuity[cell] =
+            wide && has_gap(as_doubles(heights + start[cell], static_cast<std::uint32_t>(word.counts[k])), lowest,
+                            highest, discontinuity_m, scratch_.buckets)
+                ? 1.0F
+                : 0.0F;
       }
 #if defined(__x86_64__) && defined(__GNUC__)
       if (avx2) {
-        finish_cells_avx2(firsts, sums, squares, counts, listed, means, std_devs);
+        finish_cells_avx2(word.firsts, word.sums, word.squares, word.counts, listed, means, std_devs);
       } else {
-        finish_cells(firsts, sums, squares, counts, 0, listed, means, std_devs);
+        finish_cells(word.firsts, word.sums, word.squares, word.counts, 0, listed, means, std_devs);
       }
 #else
-      finish_cells(firsts, sums, squares, counts, 0, listed, means, std_devs);
+      finish_cells(word.firsts, word.sums, word.squares, word.counts, 0, listed, means, std_devs);
 #endif
       for (int k = 0; k < listed; ++k) {
         mean[cells[k]] = means[k];
