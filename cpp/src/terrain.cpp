@@ -9,6 +9,7 @@
 #include <string>
 #include <vector>
 
+#include "cpu_features.hpp"
 #include "layer_memory.hpp"
 #include "threads.hpp"
 
@@ -83,6 +84,105 @@ float smallest_float_at_least(double threshold) {
   return rounded;
 }
 
+constexpr std::uint8_t kUnknown = static_cast<std::uint8_t>(TerrainClass::kUnknown);
+constexpr std::uint8_t kGround = static_cast<std::uint8_t>(TerrainClass::kGround);
+constexpr std::uint8_t kObstacle = static_cast<std::uint8_t>(TerrainClass::kObstacle);
+constexpr std::uint8_t kOverhanging = static_cast<std::uint8_t>(TerrainClass::kOverhangingObject);
+constexpr std::uint8_t kVertical = static_cast<std::uint8_t>(TerrainClass::kVerticalObject);
+constexpr std::uint8_t kEdge = static_cast<std::uint8_t>(TerrainClass::kHorizontalEdge);
+
+/// What Table 1 reads and writes, per cell (see classify_terrain_layers).
+struct Table1 {
+  const float* top;        ///< "max"
+  const float* deviation;  ///< "std_dev"
+  const float* flag;       ///< "discontinuity"
+  const float* reference;  ///< "ground"
+  float* height;           ///< "relative_height"
+  std::uint8_t* classes;   ///< before the edge test
+  float low, high, small;  ///< the thresholds as floats (smallest_float_at_least)
+};
+
+/// Table 1 for the cells [begin, end). Quiet comparisons (std::isless...) leave no branches, so the
+/// loop vectorises; a NaN height (no data) gives unknown whatever the other layers hold. The
+/// pointers are copied to __restrict locals: a byte store may alias them otherwise, which would
+/// keep the loop from vectorising. Inlined into table_1 and table_1_avx2 (the same operations, so
+/// the same results, in SSE2 or AVX2 registers).
+__attribute__((always_inline)) inline void table_1_cells(const Table1& t, Eigen::Index begin, Eigen::Index end) {
+  const float low_height = t.low, high_height = t.high, small_spread_below = t.small;
+  const float* __restrict in_top = t.top;
+  const float* __restrict in_deviation = t.deviation;
+  const float* __restrict in_flag = t.flag;
+  const float* __restrict in_reference = t.reference;
+  float* __restrict out_height = t.height;
+  std::uint8_t* __restrict out_class = t.classes;
+  for (Eigen::Index k = begin; k < end; ++k) {
+    const float h = in_top[k] - in_reference[k];
+    out_height[k] = h;
+    const int small_spread = std::isless(in_deviation[k], small_spread_below);
+    const int ground_cell = std::isless(h, low_height) & small_spread;  // low and smooth
+    const int vertical = std::isgreaterequal(h, high_height) & (1 - small_spread);
+    const int overhanging = in_flag[k] == 1.0F;
+    const int c = overhanging ? kOverhanging : kObstacle - ground_cell + (kVertical - kObstacle) * vertical;
+    out_class[k] = static_cast<std::uint8_t>(std::isunordered(h, h) ? kUnknown : c);
+  }
+}
+
+void table_1(const Table1& t, Eigen::Index begin, Eigen::Index end) { table_1_cells(t, begin, end); }
+
+/// A row of the edge test (classify_terrain_layers' pass 2): `in` (the row's classes before it)
+/// with ground cells next to an object (`above`, `here` or `below` non-zero: the widened object
+/// masks of rows i - 1, i, i + 1) made edges, into `row`, and as floats into `values` (the bits of
+/// float(c), a quiet NaN's for unknown).
+__attribute__((always_inline)) inline void edge_row_cells(
+    const std::uint8_t* __restrict above, const std::uint8_t* __restrict here, const std::uint8_t* __restrict below,
+    const std::uint8_t* __restrict in, std::uint8_t* __restrict row, float* __restrict values, Eigen::Index n) {
+  for (Eigen::Index j = 0; j < n; ++j) {
+    const bool near = (above[j] | here[j] | below[j]) != 0;
+    row[j] = in[j] == kGround && near ? kEdge : in[j];
+  }
+  for (Eigen::Index j = 0; j < n; ++j) {
+    const float value = static_cast<float>(row[j]);
+    std::uint32_t bits = 0;
+    std::memcpy(&bits, &value, sizeof bits);
+    bits |= row[j] == kUnknown ? 0x7fc00000U : 0U;
+    std::memcpy(values + j, &bits, sizeof bits);
+  }
+}
+
+/// Row i's objects (classes >= obstacle) widened along j into `row` (a 1 x 3 dilation); `object`
+/// is scratch of n bytes.
+__attribute__((always_inline)) inline void widen_cells(const std::uint8_t* __restrict in,
+                                                       std::uint8_t* __restrict object, std::uint8_t* __restrict row,
+                                                       Eigen::Index n) {
+  for (Eigen::Index j = 0; j < n; ++j) object[j] = in[j] >= kObstacle ? 1 : 0;
+  row[0] = object[0] | (n > 1 ? object[1] : 0);
+  for (Eigen::Index j = 1; j + 1 < n; ++j) row[j] = object[j - 1] | object[j] | object[j + 1];
+  if (n > 1) row[n - 1] = object[n - 2] | object[n - 1];
+}
+
+void edge_row(const std::uint8_t* above, const std::uint8_t* here, const std::uint8_t* below, const std::uint8_t* in,
+              std::uint8_t* row, float* values, Eigen::Index n) {
+  edge_row_cells(above, here, below, in, row, values, n);
+}
+void widen(const std::uint8_t* in, std::uint8_t* object, std::uint8_t* row, Eigen::Index n) {
+  widen_cells(in, object, row, n);
+}
+
+#if defined(__x86_64__) && defined(__GNUC__)
+__attribute__((target("avx2"))) void table_1_avx2(const Table1& t, Eigen::Index begin, Eigen::Index end) {
+  table_1_cells(t, begin, end);
+}
+__attribute__((target("avx2"))) void edge_row_avx2(const std::uint8_t* above, const std::uint8_t* here,
+                                                   const std::uint8_t* below, const std::uint8_t* in, std::uint8_t* row,
+                                                   float* values, Eigen::Index n) {
+  edge_row_cells(above, here, below, in, row, values, n);
+}
+__attribute__((target("avx2"))) void widen_avx2(const std::uint8_t* in, std::uint8_t* object, std::uint8_t* row,
+                                                Eigen::Index n) {
+  widen_cells(in, object, row, n);
+}
+#endif
+
 }  // namespace
 
 TerrainClasses classify_terrain_layers(ElevationMap& map, const TerrainParams& params) {
@@ -120,12 +220,6 @@ TerrainClasses classify_terrain_layers(ElevationMap& map, const TerrainParams& p
   const float high = smallest_float_at_least(params.robot_height_m);
   const float small = smallest_float_at_least(params.std_dev_m);
   const bool sensor_height = params.reference == GroundReference::kSensorHeight;
-  constexpr std::uint8_t kUnknown = static_cast<std::uint8_t>(TerrainClass::kUnknown);
-  constexpr std::uint8_t kGround = static_cast<std::uint8_t>(TerrainClass::kGround);
-  constexpr std::uint8_t kObstacle = static_cast<std::uint8_t>(TerrainClass::kObstacle);
-  constexpr std::uint8_t kOverhanging = static_cast<std::uint8_t>(TerrainClass::kOverhangingObject);
-  constexpr std::uint8_t kVertical = static_cast<std::uint8_t>(TerrainClass::kVerticalObject);
-  constexpr std::uint8_t kEdge = static_cast<std::uint8_t>(TerrainClass::kHorizontalEdge);
   const auto sensor_ground = static_cast<float>(-params.sensor_height_m);
   const float* top = highest.data();
   const float* deviation = spread.data();
@@ -153,37 +247,24 @@ TerrainClasses classify_terrain_layers(ElevationMap& map, const TerrainParams& p
   constexpr std::size_t kCellsPerThread = std::size_t{1} << 15;
   const int parts = detail::thread_count(params.num_threads, static_cast<std::size_t>(cells), kCellsPerThread);
   const auto rows_of = [&](int part) { return std::make_pair(nx * part / parts, nx * (part + 1) / parts); };
-  // Pass 1: ground reference, relative height ("max" minus the ground; NaN stays NaN) and Table 1.
-  // Quiet comparisons (std::isless...) leave no branches, so the loop vectorises; a NaN height
-  // (no data) gives unknown whatever the other layers hold.
-  // The lambdas copy what their loops read into locals: a byte store may alias a captured reference,
-  // which would keep the loops from vectorising.
-  const auto table_1 = [&](Eigen::Index begin, Eigen::Index end) {
-    const float low_height = low, high_height = high, small_spread_below = small;
-    const float* __restrict in_top = top;
-    const float* __restrict in_deviation = deviation;
-    const float* __restrict in_flag = flag;
-    const float* __restrict in_reference = reference;
-    float* __restrict out_height = height;
-    std::uint8_t* __restrict out_class = first;
-    for (Eigen::Index k = begin; k < end; ++k) {
-      const float h = in_top[k] - in_reference[k];
-      out_height[k] = h;
-      const int small_spread = std::isless(in_deviation[k], small_spread_below);
-      const int ground_cell = std::isless(h, low_height) & small_spread;  // low and smooth
-      const int vertical = std::isgreaterequal(h, high_height) & (1 - small_spread);
-      const int overhanging = in_flag[k] == 1.0F;
-      const int c = overhanging ? kOverhanging : kObstacle - ground_cell + (kVertical - kObstacle) * vertical;
-      out_class[k] = static_cast<std::uint8_t>(std::isunordered(h, h) ? kUnknown : c);
-    }
+  // Pass 1: ground reference, relative height ("max" minus the ground; NaN stays NaN) and Table 1
+  // (table_1), in AVX2 where the processor has it.
+  const Table1 cells_in{top, deviation, flag, reference, height, first, low, high, small};
+#if defined(__x86_64__) && defined(__GNUC__)
+  const bool avx2 = detail::has_avx2();
+  const auto table_1_of = [&](Eigen::Index begin, Eigen::Index end) {
+    avx2 ? table_1_avx2(cells_in, begin, end) : table_1(cells_in, begin, end);
   };
+#else
+  const auto table_1_of = [&](Eigen::Index begin, Eigen::Index end) { table_1(cells_in, begin, end); };
+#endif
   detail::for_each_part(parts, [&](int part) {
     const auto [row_begin, row_end] = rows_of(part);
     constexpr Eigen::Index kChunk = 2048;  // the ground of a chunk is written, then read from L1
     for (Eigen::Index begin = row_begin * ny; begin < row_end * ny; begin += kChunk) {
       const Eigen::Index end = std::min(row_end * ny, begin + kChunk);
       if (sensor_height) std::fill(reference + begin, reference + end, sensor_ground);
-      table_1(begin, end);
+      table_1_of(begin, end);
     }
   });
   // Pass 2: horizontal edges, ground cells with an obstacle, overhanging or vertical cell (2, 3,
@@ -194,39 +275,29 @@ TerrainClasses classify_terrain_layers(ElevationMap& map, const TerrainParams& p
     const auto [row_begin, row_end] = rows_of(part);
     std::vector<std::uint8_t> objects(static_cast<std::size_t>(ny));
     std::vector<std::uint8_t> widened(static_cast<std::size_t>(3 * ny));
-    const Eigen::Index n = ny;                   // a local copy (see above)
-    const auto widen = [&, n](Eigen::Index i) {  // row i's objects widened along j, into slot i % 3
-      const std::uint8_t* in = first + i * n;
-      std::uint8_t* object = objects.data();
+    const Eigen::Index n = ny;
+    const auto widen_row = [&, n](Eigen::Index i) {  // row i's objects widened along j, into slot i % 3
       std::uint8_t* row = widened.data() + (i % 3) * n;
-      for (Eigen::Index j = 0; j < n; ++j) object[j] = in[j] >= kObstacle ? 1 : 0;
-      row[0] = object[0] | (n > 1 ? object[1] : 0);
-      for (Eigen::Index j = 1; j + 1 < n; ++j) row[j] = object[j - 1] | object[j] | object[j + 1];
-      if (n > 1) row[n - 1] = object[n - 2] | object[n - 1];
+#if defined(__x86_64__) && defined(__GNUC__)
+      avx2 ? widen_avx2(first + i * n, objects.data(), row, n) : widen(first + i * n, objects.data(), row, n);
+#else
+      widen(first + i * n, objects.data(), row, n);
+#endif
     };
     if (row_begin < row_end) {
-      if (row_begin > 0) widen(row_begin - 1);
-      widen(row_begin);
+      if (row_begin > 0) widen_row(row_begin - 1);
+      widen_row(row_begin);
     }
     for (Eigen::Index i = row_begin; i < row_end; ++i) {
-      if (i + 1 < nx) widen(i + 1);  // the ring buffer holds rows i - 1, i and i + 1
+      if (i + 1 < nx) widen_row(i + 1);  // the ring buffer holds rows i - 1, i and i + 1
       const std::uint8_t* above = widened.data() + (std::max<Eigen::Index>(i - 1, 0) % 3) * n;
       const std::uint8_t* here = widened.data() + (i % 3) * n;
       const std::uint8_t* below = widened.data() + (std::min(i + 1, nx - 1) % 3) * n;
-      const std::uint8_t* __restrict in = first + i * n;
-      std::uint8_t* __restrict row = classes + i * n;
-      float* __restrict values = class_value + i * n;
-      for (Eigen::Index j = 0; j < n; ++j) {
-        const bool near = (above[j] | here[j] | below[j]) != 0;
-        row[j] = in[j] == kGround && near ? kEdge : in[j];
-      }
-      for (Eigen::Index j = 0; j < n; ++j) {
-        const float value = static_cast<float>(row[j]);
-        std::uint32_t bits = 0;
-        std::memcpy(&bits, &value, sizeof bits);
-        bits |= row[j] == kUnknown ? 0x7fc00000U : 0U;
-        std::memcpy(values + j, &bits, sizeof bits);
-      }
+#if defined(__x86_64__) && defined(__GNUC__)
+      (avx2 ? edge_row_avx2 : edge_row)(above, here, below, first + i * n, classes + i * n, class_value + i * n, n);
+#else
+      edge_row(above, here, below, first + i * n, classes + i * n, class_value + i * n, n);
+#endif
     }
   });
   return out;
