@@ -1604,22 +1604,27 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
     make_layers();
     // Split the cells at bucket borders into parts of about equal work: `sample` rows per sampled
     // code, plus a quarter of a row per cell for the layers.
-    std::vector<double> work(num_buckets, 0.0);
-    double total = 0.0;
-    for (std::size_t b = 0; b < num_buckets; ++b) {
-      const std::size_t first = b << shift;
-      const std::size_t bucket_cells = first < cells ? std::min(cells - first, std::size_t{1} << shift) : 0;
-      for (int part = 0; part < parts; ++part) work[b] += static_cast<double>(sample * sampled[part * num_buckets + b]);
-      work[b] += 0.25 * static_cast<double>(bucket_cells);
-      total += work[b];
+    // In quarter rows, in integers: the calling thread does this alone between the two steps (on
+    // KITTI frame 0 about 4 us, against 6 us in doubles).
+    std::uint64_t* work = sampled.data();  // part 0's counts become the buckets' work
+    for (int part = 1; part < parts; ++part) {
+      const std::uint64_t* counted = sampled.data() + static_cast<std::size_t>(part) * num_buckets;
+      for (std::size_t b = 0; b < num_buckets; ++b) work[b] += counted[b];
     }
+    const std::uint64_t per_code = 4 * static_cast<std::uint64_t>(sample);
+    for (std::size_t b = 0; b < num_buckets; ++b) work[b] *= per_code;
+    for (std::size_t b = 0; (b << shift) < cells; ++b)
+      work[b] += std::min(cells - (b << shift), std::size_t{1} << shift);
+    std::uint64_t total = 0;
+    for (std::size_t b = 0; b < num_buckets; ++b) total += work[b];
     std::vector<std::size_t> cut(static_cast<std::size_t>(parts) + 1, cells);
     cut[0] = 0;
-    double done = 0.0;
+    std::uint64_t done = 0;
     std::size_t next_cut = 1;
     for (std::size_t b = 0; b < num_buckets && next_cut < static_cast<std::size_t>(parts); ++b) {
       done += work[b];
-      while (next_cut < static_cast<std::size_t>(parts) && done >= total * next_cut / parts) {
+      while (next_cut < static_cast<std::size_t>(parts) &&
+             done * static_cast<std::uint64_t>(parts) >= total * next_cut) {
         cut[next_cut++] = std::min(cells, (b + 1) << shift);
       }
     }
