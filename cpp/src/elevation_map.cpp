@@ -1245,6 +1245,31 @@ class CellRange {
              double discontinuity_m) {
     for (float* layer : stale) std::fill_n(layer + lo_, span_, std::numeric_limits<float>::quiet_NaN());
     place_heights();
+#if defined(__x86_64__) && defined(__GNUC__)
+    if (detail::has_avx2()) {
+      write_words_avx2(layers, discontinuity_m);
+    } else {
+      write_words<false>(layers, discontinuity_m);
+    }
+#else
+    write_words<false>(layers, discontinuity_m);
+#endif
+    std::fill_n(scratch_.slot.begin(), span_ + 1, 0U);
+    clean_ = true;
+  }
+
+ private:
+#if defined(__x86_64__) && defined(__GNUC__)
+  /// write_words compiled for AVX2 with everything it calls inlined (flatten), the AVX2 kernels too.
+  __attribute__((target("avx2"), flatten, noinline)) void write_words_avx2(
+      const std::array<float*, kBuiltLayers.size()>& layers, double discontinuity_m) {
+    write_words<true>(layers, discontinuity_m);
+  }
+#endif
+
+  /// write()'s cells, a bitmap word at a time (kAvx2: with the AVX2 kernels).
+  template <bool kAvx2>
+  void write_words(const std::array<float*, kBuiltLayers.size()>& layers, double discontinuity_m) {
     constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
     const std::uint32_t* start = scratch_.slot.data();
     const Height* heights = scratch_.by_cell<Height>().data();
@@ -1255,9 +1280,6 @@ class CellRange {
     float* mean = layers[3] + lo_;
     float* std_dev = layers[4] + lo_;
     float* discontinuity = layers[5] + lo_;
-#if defined(__x86_64__) && defined(__GNUC__)
-    const bool avx2 = detail::has_avx2();
-#endif
     WordSums<Height> word;
     for (std::size_t w = 0; w < words_; ++w) {
       const std::size_t base = w * 64;
@@ -1273,8 +1295,12 @@ class CellRange {
       // and std-dev in a loop of their own, whose divisions and square roots (long latencies) overlap.
       alignas(32) float means[64], std_devs[64];
 #if defined(__x86_64__) && defined(__GNUC__)
-      const int listed = avx2 ? word_sums_avx2(heights, start, occupied[w], base, word)
-                              : word_sums_scalar(heights, start, occupied[w], base, word);
+      int listed = 0;
+      if constexpr (kAvx2) {
+        listed = word_sums_avx2(heights, start, occupied[w], base, word);
+      } else {
+        listed = word_sums_scalar(heights, start, occupied[w], base, word);
+      }
 #else
       const int listed = word_sums_scalar(heights, start, occupied[w], base, word);
 #endif
@@ -1294,7 +1320,7 @@ class CellRange {
                 : 0.0F;
       }
 #if defined(__x86_64__) && defined(__GNUC__)
-      if (avx2) {
+      if constexpr (kAvx2) {
         finish_cells_avx2(word.firsts, word.sums, word.squares, word.counts, listed, means, std_devs);
       } else {
         finish_cells(word.firsts, word.sums, word.squares, word.counts, 0, listed, means, std_devs);
@@ -1308,11 +1334,8 @@ class CellRange {
       }
       occupied[w] = 0;
     }
-    std::fill_n(scratch_.slot.begin(), span_ + 1, 0U);
-    clean_ = true;
   }
 
- private:
   static constexpr std::size_t kPadding = 8;  ///< heights read past a cell's last by cell_sums_avx2
 
   /// The heights [z, z + n) as doubles, in the scratch (has_gap may reorder them).
