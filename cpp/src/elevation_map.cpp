@@ -889,9 +889,9 @@ __attribute__((target("avx2"))) void finish_cells_avx2(const double* firsts, con
 #endif
 
 /// The sums (CellSums) of the occupied cells of one bitmap word (`bits`, cells base + bit), from
-/// their heights grouped by cell (`start`: where each cell's begin): the cells in bit order, their
-/// first elevation and count, and the sums, in the arrays of the word (WordSums). One call per
-/// word, not per cell: the per-cell sums are inlined and the caller's loop keeps its registers.
+/// their heights grouped by cell (`start`: where each cell begins): the cells in bit order, their
+/// first elevation and count, and the sums, in the arrays of the word (WordSums). kAvx2: with
+/// cell_sums_avx2, for CellRange::write_words_avx2, which inlines it all (flatten).
 template <typename Height>
 struct WordSums {
   std::uint32_t cells[64];
@@ -899,37 +899,24 @@ struct WordSums {
   Height lowest[64], highest[64];
 };
 
-template <typename Height>
-int word_sums_scalar(const Height* heights, const std::uint32_t* start, std::uint64_t bits, std::size_t base,
-                     WordSums<Height>& out) {
+template <bool kAvx2, typename Height>
+int word_sums(const Height* heights, const std::uint32_t* start, std::uint64_t bits, std::size_t base,
+              WordSums<Height>& out) {
   int listed = 0;
   for (; bits != 0; bits &= bits - 1) {
     const std::size_t cell = base + static_cast<std::size_t>(__builtin_ctzll(bits));
     const std::uint32_t first = start[cell];
     const std::uint32_t count = start[cell + 1] - first;
-    const CellSums<Height> s = cell_sums_scalar(heights + first, count);
-    out.cells[listed] = static_cast<std::uint32_t>(cell);
-    out.firsts[listed] = static_cast<double>(heights[first]);
-    out.sums[listed] = s.sum;
-    out.squares[listed] = s.squares;
-    out.counts[listed] = static_cast<double>(count);
-    out.lowest[listed] = s.lowest;
-    out.highest[listed++] = s.highest;
-  }
-  return listed;
-}
-
+    CellSums<Height> s;
 #if defined(__x86_64__) && defined(__GNUC__)
-/// word_sums_scalar with cell_sums_avx2 (the same sums, bit for bit).
-template <typename Height>
-__attribute__((target("avx2"))) int word_sums_avx2(const Height* heights, const std::uint32_t* start,
-                                                   std::uint64_t bits, std::size_t base, WordSums<Height>& out) {
-  int listed = 0;
-  for (; bits != 0; bits &= bits - 1) {
-    const std::size_t cell = base + static_cast<std::size_t>(__builtin_ctzll(bits));
-    const std::uint32_t first = start[cell];
-    const std::uint32_t count = start[cell + 1] - first;
-    const CellSums<Height> s = cell_sums_avx2(heights + first, count);
+    if constexpr (kAvx2) {
+      s = cell_sums_avx2(heights + first, count);
+    } else {
+      s = cell_sums_scalar(heights + first, count);
+    }
+#else
+    s = cell_sums_scalar(heights + first, count);
+#endif
     out.cells[listed] = static_cast<std::uint32_t>(cell);
     out.firsts[listed] = static_cast<double>(heights[first]);
     out.sums[listed] = s.sum;
@@ -940,7 +927,6 @@ __attribute__((target("avx2"))) int word_sums_avx2(const Height* heights, const 
   }
   return listed;
 }
-#endif
 
 #if defined(__x86_64__) && defined(__GNUC__)
 /// CellRange::place_heights' first loop over the first `words` whole bitmap words, eight counts at a
@@ -1295,12 +1281,7 @@ class CellRange {
       // and std-dev in a loop of their own, whose divisions and square roots (long latencies) overlap.
       alignas(32) float means[64], std_devs[64];
 #if defined(__x86_64__) && defined(__GNUC__)
-      int listed = 0;
-      if constexpr (kAvx2) {
-        listed = word_sums_avx2(heights, start, occupied[w], base, word);
-      } else {
-        listed = word_sums_scalar(heights, start, occupied[w], base, word);
-      }
+      const int listed = word_sums<kAvx2>(heights, start, occupied[w], base, word);
 #else
       const int listed = word_sums_scalar(heights, start, occupied[w], base, word);
 #endif
