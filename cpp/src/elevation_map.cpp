@@ -1114,6 +1114,16 @@ struct NonFiniteRows {
   }
 };
 
+/// Asks for the cache lines of [data, data + bytes) ahead of scattered reads and writes: one
+/// prefetch per 64-byte line, which the processor streams in at memory bandwidth, where the
+/// scattered accesses themselves would each wait for memory in turn when the caches are cold (after
+/// other work: the common case in a program that does more than build maps). Where the lines are
+/// cached already, this costs a few thousand prefetch instructions.
+inline void prefetch_lines(const void* data, std::size_t bytes) {
+  const char* begin = static_cast<const char*>(data);
+  for (std::size_t offset = 0; offset < bytes; offset += 64) __builtin_prefetch(begin + offset, 1, 3);
+}
+
 /// Rows binned and listed at a time (their rows still in L1).
 constexpr std::size_t kListBlock = 1024;
 
@@ -1206,6 +1216,7 @@ class CellRange {
   void list_rows(const BinBlock& bin_block) {
     const std::size_t rows = cloud_.size();
     clean_ = false;
+    prefetch_lines(scratch_.slot.data(), 4 * (span_ + 1));  // the counts, scattered below
     for (std::size_t begin = 0; begin < rows; begin += kListBlock) {
       const std::size_t end = std::min(rows, begin + kListBlock);
       const std::uint32_t* codes = bin_block(begin, end);
@@ -1380,6 +1391,7 @@ class CellRange {
     std::vector<Height>& by_cell = scratch_.by_cell<Height>();
     if (by_cell.size() < num_rows_ + kPadding) by_cell.resize(num_rows_ + kPadding, Height{0});
     Height* __restrict placed = by_cell.data();
+    prefetch_lines(placed, sizeof(Height) * num_rows_);
     const std::uint32_t* __restrict start = slot;
     const std::uint32_t* __restrict row_cell = scratch_.row_cell.data();
     const std::uint32_t* __restrict row_rank = scratch_.row_rank.data();
