@@ -930,8 +930,8 @@ int word_sums(const Height* heights, const std::uint32_t* start, std::uint64_t b
 
 #if defined(__x86_64__) && defined(__GNUC__)
 /// CellRange::place_heights' first loop over the first `words` whole bitmap words, eight counts at a
-/// time: each becomes the running total up to and including it (slot[cell + 1]), and its bit is
-/// set when it is not 0. Returns the words done; `total` carries the running total on.
+/// time: each becomes the running total up to and including it (slot[cell + 1], `slot` as given),
+/// and its bit is set when it is not 0. Returns the words done; `total` carries the running total on.
 __attribute__((target("avx2"))) std::size_t count_to_starts_avx2(std::uint32_t* slot, std::size_t words,
                                                                  std::uint64_t* occupied, std::uint32_t& total) {
   const __m256i zero = _mm256_setzero_si256();
@@ -1019,10 +1019,9 @@ bool has_gap(std::pair<double*, double*> elevations, double lowest, double highe
 /// over kKeepBytes are released after the call.
 struct BuildScratch {
   std::vector<std::uint32_t> cell_of_point;
-  std::vector<std::uint32_t> slot;       // per cell + 1: counts, then where each cell's heights start
+  std::vector<std::uint32_t> slot;       // per cell + 2: counts, then where each cell's heights start
   std::vector<std::uint64_t> occupied;   // one bit per cell
   std::vector<std::uint32_t> row_cell;   // per row of the range, in row order: its cell (from lo)
-  std::vector<std::uint32_t> row_rank;   // ... and how many rows of its cell came before it
   std::vector<float> row_heights_float;  // ... and its height
   std::vector<double> row_heights_double;
   std::vector<float> by_cell_float;  // the heights grouped by cell (row order within a cell), padded
@@ -1051,7 +1050,7 @@ struct BuildScratch {
 
   void release_if_large() {
     const std::size_t bytes = 4 * (cell_of_point.capacity() + slot.capacity() + row_cell.capacity() +
-                                   row_rank.capacity() + row_heights_float.capacity() + by_cell_float.capacity()) +
+                                   row_heights_float.capacity() + by_cell_float.capacity()) +
                               8 * (occupied.capacity() + row_heights_double.capacity() + by_cell_double.capacity() +
                                    heights.capacity() + buckets.capacity());
     if (bytes > kKeepBytes) *this = BuildScratch();
@@ -1138,7 +1137,6 @@ __attribute__((target("avx2"))) std::size_t list_rows_avx2(const std::uint32_t* 
                                                            std::size_t end, std::uint32_t lo, std::uint32_t span,
                                                            const HeightOf& height_of, std::uint32_t* __restrict counts,
                                                            std::uint32_t* __restrict row_cell,
-                                                           std::uint32_t* __restrict row_rank,
                                                            Height* __restrict row_heights, std::size_t& listed) {
   const __m256i first = _mm256_set1_epi32(static_cast<int>(lo));
   const __m256i last = _mm256_set1_epi32(static_cast<int>(span - 1));
@@ -1156,7 +1154,7 @@ __attribute__((target("avx2"))) std::size_t list_rows_avx2(const std::uint32_t* 
     if (mask == 0xFFU) {
       for (int k = 0; k < 8; ++k) {
         row_cell[at + k] = cells[k];
-        row_rank[at + k] = counts[cells[k]]++;
+        ++counts[cells[k]];
         row_heights[at + k] = static_cast<Height>(height_of(row + k));
       }
       at += 8;
@@ -1165,7 +1163,7 @@ __attribute__((target("avx2"))) std::size_t list_rows_avx2(const std::uint32_t* 
     for (; mask != 0; mask &= mask - 1) {
       const int k = __builtin_ctz(mask);
       row_cell[at] = cells[k];
-      row_rank[at] = counts[cells[k]]++;
+      ++counts[cells[k]];
       row_heights[at] = static_cast<Height>(height_of(row + k));
       ++at;
     }
@@ -1177,9 +1175,9 @@ __attribute__((target("avx2"))) std::size_t list_rows_avx2(const std::uint32_t* 
 
 /// The cells [lo, hi) of a map (lo a multiple of 64) as one thread builds them, by a counting sort
 /// of the range's heights by cell. list_rows() goes over the cell codes of all rows and lists the
-/// range's rows in row order (cell, height, and the rank of the row among its cell's rows), counting
-/// the rows of each cell; write() turns the counts into where each cell's heights start, places
-/// every height there (a cell's heights stay in row order, its first one first) and then writes the
+/// range's rows in row order (cell and height), counting the rows of each cell; write() turns the
+/// counts into where each cell's heights start, places every height there in list order (a cell's
+/// heights stay in row order, its first one first) and then writes the
 /// range's layers, each cell from its contiguous heights (cell_sums). No branch depends on where a
 /// cell's rows begin or end (on a scan they alternate between cells every few rows, and such a
 /// branch was mispredicted once per run), and each cell's sums come from its heights alone, in one
@@ -1196,7 +1194,7 @@ class CellRange {
 
   CellRange(const Cloud& cloud, std::size_t lo, std::size_t hi, BuildScratch& scratch)
       : cloud_(cloud), lo_(lo), span_(hi - lo), words_((span_ + 63) / 64), scratch_(scratch) {
-    if (scratch.slot.size() < span_ + 1) scratch.slot.resize(span_ + 1, 0);  // old entries were left at 0
+    if (scratch.slot.size() < span_ + 2) scratch.slot.resize(span_ + 2, 0);  // old entries were left at 0
     if (scratch.occupied.size() < words_) scratch.occupied.resize(words_, 0);
   }
   CellRange(const CellRange&) = delete;
@@ -1206,7 +1204,7 @@ class CellRange {
   /// scratch's owner releases oversized buffers (release_if_large) once no range uses them.
   ~CellRange() {
     if (clean_) return;
-    std::fill_n(scratch_.slot.begin(), span_ + 1, 0U);
+    std::fill_n(scratch_.slot.begin(), span_ + 2, 0U);
     std::fill_n(scratch_.occupied.begin(), words_, std::uint64_t{0});
   }
 
@@ -1216,7 +1214,7 @@ class CellRange {
   void list_rows(const BinBlock& bin_block) {
     const std::size_t rows = cloud_.size();
     clean_ = false;
-    prefetch_lines(scratch_.slot.data(), 4 * (span_ + 1));  // the counts, scattered below
+    prefetch_lines(scratch_.slot.data(), 4 * (span_ + 2));  // the counts, scattered below
     for (std::size_t begin = 0; begin < rows; begin += kListBlock) {
       const std::size_t end = std::min(rows, begin + kListBlock);
       const std::uint32_t* codes = bin_block(begin, end);
@@ -1226,7 +1224,6 @@ class CellRange {
       if (scratch_.row_cell.size() < least || row_heights.size() < least) {
         const std::size_t size = std::min(rows, std::max(least, 2 * row_heights.size()));
         if (scratch_.row_cell.size() < size) scratch_.row_cell.resize(size);
-        if (scratch_.row_rank.size() < size) scratch_.row_rank.resize(size);
         row_heights.resize(size);
       }
       list_block(begin, end, codes);
@@ -1251,7 +1248,7 @@ class CellRange {
 #else
     write_words<false>(layers, discontinuity_m);
 #endif
-    std::fill_n(scratch_.slot.begin(), span_ + 1, 0U);
+    std::fill_n(scratch_.slot.begin(), span_ + 2, 0U);
     clean_ = true;
   }
 
@@ -1338,12 +1335,11 @@ class CellRange {
     return {heights.data(), heights.data() + n};
   }
 
-  /// The rows [begin, end) of list_rows(): each row of the range is listed, and counted in the
-  /// slot after its cell's (slot[cell + 1]; slot[0] stays 0 for the starts below).
+  /// The rows [begin, end) of list_rows(): each row of the range is listed, and counted in
+  /// slot[cell + 2] (slot[0] and slot[1] stay 0 for the starts, see place_heights).
   __attribute__((noinline)) void list_block(std::size_t begin, std::size_t end, const std::uint32_t* __restrict codes) {
-    std::uint32_t* __restrict counts = scratch_.slot.data() + 1;
+    std::uint32_t* __restrict counts = scratch_.slot.data() + 2;
     std::uint32_t* __restrict row_cell = scratch_.row_cell.data();
-    std::uint32_t* __restrict row_rank = scratch_.row_rank.data();
     Height* __restrict row_heights = scratch_.row_heights<Height>().data();
     std::size_t listed = num_rows_;
     const auto lo = static_cast<std::uint32_t>(lo_);
@@ -1352,39 +1348,45 @@ class CellRange {
     std::size_t row = begin;
 #if defined(__x86_64__) && defined(__GNUC__)
     if (detail::has_avx2() && span > 0) {
-      row = list_rows_avx2(codes, begin, end, lo, span, height_of, counts, row_cell, row_rank, row_heights, listed);
+      row = list_rows_avx2(codes, begin, end, lo, span, height_of, counts, row_cell, row_heights, listed);
     }
 #endif
     for (; row < end; ++row) {
       const std::uint32_t cell = codes[row - begin] - lo;  // wraps for cells below the range (and kOutside)
       if (cell >= span) continue;
       row_cell[listed] = cell;
-      row_rank[listed] = counts[cell]++;
+      ++counts[cell];
       row_heights[listed] = static_cast<Height>(height_of(row));
       ++listed;
     }
     num_rows_ = listed;
   }
 
-  /// Counts to starts (slot[cell] = where the cell's heights start, slot[span] = all of them; the
-  /// bitmap marks the cells with any), then every listed height to its place.
+  /// Counts to starts, then every listed height to its place. The counts are in slot[cell + 2]; they
+  /// become the starts shifted by one (slot[cell + 1] = where the cell's heights start; the bitmap
+  /// marks the cells with any), and each height placed advances its cell's entry, which so ends as
+  /// the start of the next cell: slot[cell] = where the cell's heights start, slot[span] = all of
+  /// them. (A rank per listed row, computed while counting, avoided the advancing entries' chain of
+  /// loads and stores, but writing and reading it back cost more: bench/ab_builds.sh, 0.96-0.97
+  /// without it on KITTI frame 0, one and two threads.)
   void place_heights() {
-    std::uint32_t* slot = scratch_.slot.data();
+    std::uint32_t* const slot = scratch_.slot.data();
+    std::uint32_t* const counted = slot + 1;  // counted[cell + 1]: the cell's count, then its start
     std::uint64_t* occupied = scratch_.occupied.data();
     std::uint32_t total = 0;
     std::size_t w = 0;
 #if defined(__x86_64__) && defined(__GNUC__)
-    if (detail::has_avx2()) w = count_to_starts_avx2(slot, span_ / 64, occupied, total);
+    if (detail::has_avx2()) w = count_to_starts_avx2(counted, span_ / 64, occupied, total);
 #endif
     for (; w < words_; ++w) {
       const std::size_t base = w * 64;
       const std::size_t length = std::min<std::size_t>(64, span_ - base);
       std::uint64_t bits = 0;
       for (std::size_t k = 0; k < length; ++k) {
-        const std::uint32_t count = slot[base + k + 1];
+        const std::uint32_t count = counted[base + k + 1];
         bits |= static_cast<std::uint64_t>(count != 0) << k;
         total += count;
-        slot[base + k + 1] = total;
+        counted[base + k + 1] = total;
       }
       occupied[w] = bits;
     }
@@ -1392,11 +1394,10 @@ class CellRange {
     if (by_cell.size() < num_rows_ + kPadding) by_cell.resize(num_rows_ + kPadding, Height{0});
     Height* __restrict placed = by_cell.data();
     prefetch_lines(placed, sizeof(Height) * num_rows_);
-    const std::uint32_t* __restrict start = slot;
+    std::uint32_t* __restrict next = slot + 1;  // next[cell]: where the cell's next height goes
     const std::uint32_t* __restrict row_cell = scratch_.row_cell.data();
-    const std::uint32_t* __restrict row_rank = scratch_.row_rank.data();
     const Height* __restrict row_heights = scratch_.row_heights<Height>().data();
-    for (std::size_t k = 0; k < num_rows_; ++k) placed[start[row_cell[k]] + row_rank[k]] = row_heights[k];
+    for (std::size_t k = 0; k < num_rows_; ++k) placed[next[row_cell[k]]++] = row_heights[k];
   }
 
   const Cloud& cloud_;
