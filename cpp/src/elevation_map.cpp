@@ -892,11 +892,13 @@ __attribute__((target("avx2"))) void finish_cells_avx2(const double* firsts, con
 /// their heights grouped by cell (`start`: where each cell begins): the cells in bit order, their
 /// first elevation and count, and the sums, in the arrays of the word (WordSums). kAvx2: with
 /// cell_sums_avx2, for CellRange::write_words_avx2, which inlines it all (flatten).
+/// Room for 64 cells and the three more that word_sums_small_avx2 may write past the last.
 template <typename Height>
 struct WordSums {
-  std::uint32_t cells[64];
-  alignas(32) double firsts[64], sums[64], squares[64], counts[64];
-  Height lowest[64], highest[64];
+  static constexpr int kRoom = 68;
+  std::uint32_t cells[kRoom];
+  alignas(32) double firsts[kRoom], sums[kRoom], squares[kRoom], counts[kRoom];
+  Height lowest[kRoom], highest[kRoom];
 };
 
 template <bool kAvx2, typename Height>
@@ -929,6 +931,95 @@ int word_sums(const Height* heights, const std::uint32_t* start, std::uint64_t b
 }
 
 #if defined(__x86_64__) && defined(__GNUC__)
+/// word_sums<true> for float heights: the cells of at most eight heights (95 % of the occupied cells
+/// of a KITTI scan on a 10 cm map; 69 % hold at most four) four at a time, one cell per lane, the
+/// others by cell_sums_avx2. Lane j of a cell (cell_sums_scalar's order) ends as 0 + (d[j] + d[j + 4])
+/// for such a cell, so the sums are (T0 + T2) + (T1 + T3) with T_j = 0 + (D_j + D_(j+4)), D_j the
+/// vector of the four cells' d[j] (0 past a cell's count): the same operations on the same values,
+/// so the same bits. The heights are gathered, and only while a cell of the four has any left.
+__attribute__((target("avx2"))) inline int word_sums_small_avx2(const float* heights, const std::uint32_t* start,
+                                                                std::uint64_t bits, std::size_t base,
+                                                                WordSums<float>& out) {
+  alignas(16) std::uint32_t small_cell[64 + 3], small_first[64 + 3], small_count[64 + 3];
+  int num_small = 0;
+  int listed = 0;
+  for (; bits != 0; bits &= bits - 1) {
+    const std::size_t cell = base + static_cast<std::size_t>(__builtin_ctzll(bits));
+    const std::uint32_t first = start[cell];
+    const std::uint32_t count = start[cell + 1] - first;
+    if (count <= 8) {
+      small_cell[num_small] = static_cast<std::uint32_t>(cell);
+      small_first[num_small] = first;
+      small_count[num_small++] = count;
+      continue;
+    }
+    const CellSums<float> s = cell_sums_avx2(heights + first, count);
+    out.cells[listed] = static_cast<std::uint32_t>(cell);
+    out.firsts[listed] = static_cast<double>(heights[first]);
+    out.sums[listed] = s.sum;
+    out.squares[listed] = s.squares;
+    out.counts[listed] = static_cast<double>(count);
+    out.lowest[listed] = s.lowest;
+    out.highest[listed++] = s.highest;
+  }
+  if (num_small == 0) return listed;
+  for (int k = num_small; k < (num_small + 3) / 4 * 4; ++k) {  // lanes past the last: a copy of it
+    small_cell[k] = small_cell[num_small - 1];
+    small_first[k] = small_first[num_small - 1];
+    small_count[k] = small_count[num_small - 1];
+  }
+  const auto* z = reinterpret_cast<const float*>(heights);
+  const __m256d zero = _mm256_setzero_pd();
+  for (int g = 0; g < num_small; g += 4) {
+    const __m128i count = _mm_load_si128(reinterpret_cast<const __m128i*>(small_count + g));
+    // The four cells' first eight heights (the heights are padded: reading past the last is safe),
+    // transposed: h[j] holds the j-th height of each cell.
+    const __m256 r0 = _mm256_loadu_ps(z + small_first[g]);
+    const __m256 r1 = _mm256_loadu_ps(z + small_first[g + 1]);
+    const __m256 r2 = _mm256_loadu_ps(z + small_first[g + 2]);
+    const __m256 r3 = _mm256_loadu_ps(z + small_first[g + 3]);
+    const __m256 u0 = _mm256_unpacklo_ps(r0, r1);  // a0 b0 a1 b1 | a4 b4 a5 b5
+    const __m256 u1 = _mm256_unpackhi_ps(r0, r1);  // a2 b2 a3 b3 | a6 b6 a7 b7
+    const __m256 u2 = _mm256_unpacklo_ps(r2, r3);
+    const __m256 u3 = _mm256_unpackhi_ps(r2, r3);
+    const __m256 c0 = _mm256_shuffle_ps(u0, u2, 0x44);  // a0 b0 c0 d0 | a4 b4 c4 d4
+    const __m256 c1 = _mm256_shuffle_ps(u0, u2, 0xEE);  // a1 b1 c1 d1 | a5 ...
+    const __m256 c2 = _mm256_shuffle_ps(u1, u3, 0x44);
+    const __m256 c3 = _mm256_shuffle_ps(u1, u3, 0xEE);
+    const __m128 h[8] = {_mm256_castps256_ps128(c0),   _mm256_castps256_ps128(c1),   _mm256_castps256_ps128(c2),
+                         _mm256_castps256_ps128(c3),   _mm256_extractf128_ps(c0, 1), _mm256_extractf128_ps(c1, 1),
+                         _mm256_extractf128_ps(c2, 1), _mm256_extractf128_ps(c3, 1)};
+    const __m128 z0 = h[0];
+    const __m256d shift = _mm256_cvtps_pd(z0);
+    __m128 lowest = z0;
+    __m128 highest = z0;
+    __m256d d[8] = {zero, zero, zero, zero, zero, zero, zero, zero};  // d[0] = z0 - shift = +0
+    for (int j = 1; j < 8; ++j) {
+      const __m128i left = _mm_cmpgt_epi32(count, _mm_set1_epi32(j));
+      if (_mm_movemask_epi8(left) == 0) break;  // counts are at most j in all four cells
+      const __m128 zj = _mm_blendv_ps(z0, h[j], _mm_castsi128_ps(left));
+      lowest = _mm_min_ps(lowest, zj);
+      highest = _mm_max_ps(highest, zj);
+      d[j] = _mm256_sub_pd(_mm256_cvtps_pd(zj), shift);  // 0 where the cell has no j-th height
+    }
+    __m256d t[4], q[4];
+    for (int j = 0; j < 4; ++j) {
+      t[j] = _mm256_add_pd(zero, _mm256_add_pd(d[j], d[j + 4]));
+      q[j] = _mm256_add_pd(zero, _mm256_add_pd(_mm256_mul_pd(d[j], d[j]), _mm256_mul_pd(d[j + 4], d[j + 4])));
+    }
+    _mm_storeu_si128(reinterpret_cast<__m128i*>(out.cells + listed),
+                     _mm_load_si128(reinterpret_cast<const __m128i*>(small_cell + g)));
+    _mm256_storeu_pd(out.firsts + listed, shift);
+    _mm256_storeu_pd(out.sums + listed, _mm256_add_pd(_mm256_add_pd(t[0], t[2]), _mm256_add_pd(t[1], t[3])));
+    _mm256_storeu_pd(out.squares + listed, _mm256_add_pd(_mm256_add_pd(q[0], q[2]), _mm256_add_pd(q[1], q[3])));
+    _mm256_storeu_pd(out.counts + listed, _mm256_cvtepi32_pd(count));
+    _mm_storeu_ps(out.lowest + listed, lowest);
+    _mm_storeu_ps(out.highest + listed, highest);
+    listed += std::min(4, num_small - g);
+  }
+  return listed;
+}
+
 /// CellRange::place_heights' first loop over the first `words` whole bitmap words, eight counts at a
 /// time: each becomes the running total up to and including it (slot[cell + 1], `slot` as given),
 /// and its bit is set when it is not 0. Returns the words done; `total` carries the running total on.
@@ -1289,9 +1380,14 @@ class CellRange {
       // and std-dev in a loop of their own, whose divisions and square roots (long latencies) overlap.
       alignas(32) float means[64], std_devs[64];
 #if defined(__x86_64__) && defined(__GNUC__)
-      const int listed = word_sums<kAvx2>(heights, start, occupied[w], base, word);
+      int listed = 0;
+      if constexpr (kAvx2 && std::is_same_v<Height, float>) {
+        listed = word_sums_small_avx2(heights, start, occupied[w], base, word);
+      } else {
+        listed = word_sums<kAvx2>(heights, start, occupied[w], base, word);
+      }
 #else
-      const int listed = word_sums_scalar(heights, start, occupied[w], base, word);
+      const int listed = word_sums<false>(heights, start, occupied[w], base, word);
 #endif
       const std::uint32_t* cells = word.cells;
       for (int k = 0; k < listed; ++k) {

@@ -923,37 +923,57 @@ std::pair<float, float> documented_mean_and_std(const std::vector<double>& z, bo
   return {static_cast<float>(z[0] + offset), static_cast<float>(std::sqrt(variance))};
 }
 
-TEST(BuildElevationMapFastPaths, CellSumsFollowTheDocumentedOrderBitForBitWithAndWithoutAvx2) {
-  // Cells of 1 to 40 elevations (every tail length of the eight lanes), +-1e10 m apart so that the
-  // order of the additions shows in the float mean and std-dev; rows of the cells interleaved. The
-  // map must give the documented order's bits (this binary also runs with TERRACUBE_DISABLE_AVX2),
-  // and row order must give other bits in some cells (else the test could not tell them apart).
+/// Cells of 1 to 40 elevations, eight of each count (every tail length of the eight lanes; float
+/// clouds take one path for cells of up to eight elevations and another for the rest): pairs of
+/// +-`magnitude` and small elevations, shuffled, so that the order of the additions shows in the
+/// float mean (a small elevation added next to an uncancelled large one is lost); rows of the cells
+/// interleaved. The map must give the documented
+/// order's bits (this binary also runs with TERRACUBE_DISABLE_AVX2), and row order must give other
+/// bits in some cells of each path (else the test could not tell the orders apart).
+template <typename Scalar>
+void expect_documented_order(double magnitude) {
   std::mt19937 rng(97);
   std::uniform_real_distribution<double> small(0.0, 1.0);
-  constexpr int kCells = 40;
-  std::vector<std::vector<double>> heights(kCells);
-  std::vector<Eigen::Vector3d> points;
+  constexpr int kCells = 320;
+  const auto count_of = [](int k) { return k % 40 + 1; };
+  const auto large = static_cast<double>(static_cast<Scalar>(magnitude));
+  std::vector<std::vector<double>> heights(kCells);  // the cloud's values (float clouds: rounded)
+  std::vector<Scalar> rows;
   for (int k = 0; k < kCells; ++k) {
-    for (int m = 0; m <= k; ++m) heights[k].push_back((m % 2 == 0 ? 1e10 : -1e10) * (m % 3 != 0) + small(rng));
+    std::vector<double>& z = heights[k];
+    for (int pair = 0; pair < count_of(k) / 3; ++pair) z.insert(z.end(), {large, -large});
+    while (static_cast<int>(z.size()) < count_of(k)) z.push_back(static_cast<double>(static_cast<Scalar>(small(rng))));
+    std::shuffle(z.begin(), z.end(), rng);
   }
-  for (int m = 0; m < kCells; ++m) {  // row m of every cell that has one, cells in turn
+  for (int m = 0; m < 40; ++m) {  // row m of every cell that has one, cells in turn
     for (int k = 0; k < kCells; ++k) {
-      if (m <= k) points.emplace_back(k + 0.5, 0.5, heights[k][m]);
+      if (m < count_of(k)) {
+        rows.insert(rows.end(), {static_cast<Scalar>(k + 0.5), Scalar(0.5), static_cast<Scalar>(heights[k][m])});
+      }
     }
   }
   const ElevationParams params = fixed_extent(1.0, {0.0, 0.0}, {kCells, 1});
-  const ElevationMap map = build_elevation_map(PointsView<double>(points), params);
-  int differ_in_row_order = 0;
+  const ElevationMap map = build_elevation_map(PointsView<Scalar>(rows.data(), rows.size() / 3), params);
+  int differ_in_row_order[2] = {0, 0};  // cells of up to 8 elevations, of more
   for (int k = 0; k < kCells; ++k) {
-    SCOPED_TRACE("cell of " + std::to_string(k + 1) + " elevations");
+    SCOPED_TRACE("cell " + std::to_string(k) + " of " + std::to_string(count_of(k)) + " elevations");
     const auto [mean, std_dev] = documented_mean_and_std(heights[k], false);
-    EXPECT_EQ(map.get("count")(k, 0), static_cast<float>(k + 1));
+    EXPECT_EQ(map.get("count")(k, 0), static_cast<float>(count_of(k)));
     EXPECT_EQ(map.get("mean")(k, 0), mean);
     EXPECT_EQ(map.get("std_dev")(k, 0), std_dev);
     const auto [row_mean, row_std_dev] = documented_mean_and_std(heights[k], true);
-    differ_in_row_order += row_mean != mean || row_std_dev != std_dev;
+    differ_in_row_order[count_of(k) > 8] += row_mean != mean || row_std_dev != std_dev;
   }
-  EXPECT_GT(differ_in_row_order, 3);
+  EXPECT_GT(differ_in_row_order[0], 3);
+  EXPECT_GT(differ_in_row_order[1], 3);
+}
+
+TEST(BuildElevationMapFastPaths, CellSumsFollowTheDocumentedOrderBitForBitWithAndWithoutAvx2) {
+  expect_documented_order<double>(1e10);
+}
+
+TEST(BuildElevationMapFastPaths, FloatCellSumsFollowTheDocumentedOrderBitForBitWithAndWithoutAvx2) {
+  expect_documented_order<float>(1e30);
 }
 
 // --- build_elevation_map against the naive reference ----------------------------------------------
