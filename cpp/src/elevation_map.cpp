@@ -899,6 +899,17 @@ struct WordSums {
   std::uint32_t cells[kRoom];
   alignas(32) double firsts[kRoom], sums[kRoom], squares[kRoom], counts[kRoom];
   Height lowest[kRoom], highest[kRoom];
+
+  /// Appends a cell at `listed` (and advances it): its first elevation, count and sums.
+  void add(int& listed, std::size_t cell, Height first, std::uint32_t count, const CellSums<Height>& s) {
+    cells[listed] = static_cast<std::uint32_t>(cell);
+    firsts[listed] = static_cast<double>(first);
+    sums[listed] = s.sum;
+    squares[listed] = s.squares;
+    counts[listed] = static_cast<double>(count);
+    lowest[listed] = s.lowest;
+    highest[listed++] = s.highest;
+  }
 };
 
 template <bool kAvx2, typename Height>
@@ -919,13 +930,7 @@ int word_sums(const Height* heights, const std::uint32_t* start, std::uint64_t b
 #else
     s = cell_sums_scalar(heights + first, count);
 #endif
-    out.cells[listed] = static_cast<std::uint32_t>(cell);
-    out.firsts[listed] = static_cast<double>(heights[first]);
-    out.sums[listed] = s.sum;
-    out.squares[listed] = s.squares;
-    out.counts[listed] = static_cast<double>(count);
-    out.lowest[listed] = s.lowest;
-    out.highest[listed++] = s.highest;
+    out.add(listed, cell, heights[first], count, s);
   }
   return listed;
 }
@@ -936,7 +941,8 @@ int word_sums(const Height* heights, const std::uint32_t* start, std::uint64_t b
 /// others by cell_sums_avx2. Lane j of a cell (cell_sums_scalar's order) ends as 0 + (d[j] + d[j + 4])
 /// for such a cell, so the sums are (T0 + T2) + (T1 + T3) with T_j = 0 + (D_j + D_(j+4)), D_j the
 /// vector of the four cells' d[j] (0 past a cell's count): the same operations on the same values,
-/// so the same bits. The heights are gathered, and only while a cell of the four has any left.
+/// so the same bits. Each cell's first eight heights are loaded (the heights are padded) and the
+/// four cells' transposed; positions past every count of the four are skipped.
 __attribute__((target("avx2"))) inline int word_sums_small_avx2(const float* heights, const std::uint32_t* start,
                                                                 std::uint64_t bits, std::size_t base,
                                                                 WordSums<float>& out) {
@@ -954,13 +960,7 @@ __attribute__((target("avx2"))) inline int word_sums_small_avx2(const float* hei
       continue;
     }
     const CellSums<float> s = cell_sums_avx2(heights + first, count);
-    out.cells[listed] = static_cast<std::uint32_t>(cell);
-    out.firsts[listed] = static_cast<double>(heights[first]);
-    out.sums[listed] = s.sum;
-    out.squares[listed] = s.squares;
-    out.counts[listed] = static_cast<double>(count);
-    out.lowest[listed] = s.lowest;
-    out.highest[listed++] = s.highest;
+    out.add(listed, cell, heights[first], count, s);
   }
   if (num_small == 0) return listed;
   for (int k = num_small; k < (num_small + 3) / 4 * 4; ++k) {  // lanes past the last: a copy of it
