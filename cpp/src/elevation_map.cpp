@@ -891,8 +891,8 @@ __attribute__((target("avx2"))) void finish_cells_avx2(const double* firsts, con
 /// The sums (CellSums) of the occupied cells of one bitmap word (`bits`, cells base + bit), from
 /// their heights grouped by cell (`start`: where each cell begins): the cells in bit order, their
 /// first elevation and count, and the sums, in the arrays of the word (WordSums). kAvx2: with
-/// cell_sums_avx2, for CellRange::write_words_avx2, which inlines it all (flatten).
-/// Room for 64 cells and the three more that word_sums_small_avx2 may write past the last.
+/// cell_sums_avx2, for CellRange::write_words_avx2, which inlines it all (flatten). The arrays have
+/// room for the word's 64 cells and the three more that word_sums_small_avx2 may write past the last.
 template <typename Height>
 struct WordSums {
   static constexpr int kRoom = 68;
@@ -968,7 +968,7 @@ __attribute__((target("avx2"))) inline int word_sums_small_avx2(const float* hei
     small_first[k] = small_first[num_small - 1];
     small_count[k] = small_count[num_small - 1];
   }
-  const auto* z = reinterpret_cast<const float*>(heights);
+  const float* z = heights;
   const __m256d zero = _mm256_setzero_pd();
   for (int g = 0; g < num_small; g += 4) {
     const __m128i count = _mm_load_si128(reinterpret_cast<const __m128i*>(small_count + g));
@@ -1268,13 +1268,13 @@ __attribute__((target("avx2"))) std::size_t list_rows_avx2(const std::uint32_t* 
 /// of the range's heights by cell. list_rows() goes over the cell codes of all rows and lists the
 /// range's rows in row order (cell and height), counting the rows of each cell; write() turns the
 /// counts into where each cell's heights start, places every height there in list order (a cell's
-/// heights stay in row order, its first one first) and then writes the
-/// range's layers, each cell from its contiguous heights (cell_sums). No branch depends on where a
-/// cell's rows begin or end (on a scan they alternate between cells every few rows, and such a
-/// branch was mispredicted once per run), and each cell's sums come from its heights alone, in one
-/// fixed order, so the map is the same bit for bit however the cells are split between threads.
-/// Several threads build disjoint ranges with their own scratch. The scratch's per-cell buffers are
-/// indexed from lo, and left clean when the range is destroyed, whatever happens.
+/// heights stay in row order, its first one first) and then writes the range's layers, each cell
+/// from its contiguous heights (cell_sums). No branch depends on where a cell's rows begin or end
+/// (on a scan they alternate between cells every few rows, and such a branch was mispredicted once
+/// per run), and each cell's sums come from its heights alone, in one fixed order, so the map is the
+/// same bit for bit however the cells are split between threads. Several threads build disjoint
+/// ranges with their own scratch. The scratch's per-cell buffers are indexed from lo, and left clean
+/// when the range is destroyed, whatever happens.
 template <typename Cloud>
 class CellRange {
  public:
