@@ -927,9 +927,9 @@ std::pair<float, float> documented_mean_and_std(const std::vector<double>& z, bo
 /// clouds take one path for cells of up to eight elevations and another for the rest): pairs of
 /// +-`magnitude` and small elevations, shuffled, so that the order of the additions shows in the
 /// float mean (a small elevation added next to an uncancelled large one is lost); rows of the cells
-/// interleaved. The map must give the documented
-/// order's bits (this binary also runs with TERRACUBE_DISABLE_AVX2), and row order must give other
-/// bits in some cells of each path (else the test could not tell the orders apart).
+/// interleaved. The map must give the documented order's bits (this binary also runs with
+/// TERRACUBE_DISABLE_AVX2), and row order must give other bits in some cells of each path (else the
+/// test could not tell the orders apart).
 template <typename Scalar>
 void expect_documented_order(double magnitude) {
   std::mt19937 rng(97);
