@@ -328,6 +328,32 @@ def _reference_text(terrain) -> str:
     return f"local ground, {terrain.local_ground_radius} cells"
 
 
+#: How far [m] the cells' typical lowest point may lie from the sensor-height ground plane before
+#: ``classify`` suggests another sensor height (a KITTI scan classified with the default 0 m).
+_GROUND_PLANE_HINT_M = 0.5
+
+
+def _ground_plane_hint(elevation_map, terrain) -> str | None:
+    """A note when the sensor-height reference looks wrong for the scan: the median of the cells'
+    lowest elevations (mostly ground cells on a ground robot's scan) lies more than
+    :data:`_GROUND_PLANE_HINT_M` from the plane z = -sensor_height that Table 1 measures from."""
+    if terrain.reference != "sensor_height":
+        return None
+    lowest = elevation_map["min"]
+    lowest = lowest[~np.isnan(lowest)]
+    if lowest.size == 0:
+        return None
+    typical = float(np.median(lowest))
+    plane = -float(terrain.sensor_height)
+    if abs(typical - plane) <= _GROUND_PLANE_HINT_M:
+        return None
+    return (
+        f"  note: half the cells' lowest points lie at or below z = {typical:.2f} m, "
+        f"{abs(typical - plane):.2f} m from the ground plane z = {plane + 0.0:g} m of the sensor height; "
+        f"if that is the ground, pass --sensor-height {-typical:.2f}, or --reference local_ground"
+    )
+
+
 def _run_classify(
     points,
     name,
@@ -360,6 +386,9 @@ def _run_classify(
         count = int(counts[int(terrain_class)])
         share = f" ({count / known:.1%} of cells with data)" if terrain_class and known else ""
         report.lines.append(f"  {terrain_class.name.lower().replace('_', ' '):<20} {count:>10,}{share}")
+    hint = _ground_plane_hint(elevation_map, config.terrain)
+    if hint is not None:
+        report.lines.append(hint)
     report.outputs.append(elevation_map.save(output_dir / f"{name}_classes.npz"))
     report.lines.append(f"  map: {report.outputs[-1]}")
     if cloud_format is not None:

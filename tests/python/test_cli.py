@@ -75,6 +75,31 @@ def test_classify_writes_classes_and_a_class_picture(runner, tmp_path):
     assert (out / "scan_classes.png").read_bytes()[:8] == PNG_MAGIC
 
 
+def test_classify_notes_a_sensor_height_that_misses_the_ground(runner, tmp_path):
+    # The synthetic scan's ground is at z = 0; a sensor 1.7 m above it sees it at z = -1.7.
+    _, points = _scan(tmp_path)
+    lowered = points - np.float32([0.0, 0.0, 1.7])
+    path = tmp_path / "lowered.npy"
+    np.save(path, lowered)
+    args = ["classify", str(path), "-o", str(tmp_path / "out"), "-r", "0.5", "--no-cloud", "--no-png"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    note = [line for line in result.output.splitlines() if "note:" in line]
+    assert len(note) == 1, result.output
+    # The median lowest point per cell is the ground (about -1.7 m; a few cells are wall or canopy).
+    suggested = float(note[0].split("--sensor-height ")[1].split(",")[0])
+    assert suggested == pytest.approx(1.7, abs=0.1)
+    for fitting in (["--sensor-height", "1.7"], ["--reference", "local_ground"]):
+        result = runner.invoke(app, args + fitting)
+        assert result.exit_code == 0, result.output
+        assert "note:" not in result.output, fitting
+    # The unlowered scan fits the default (ground at z = 0): no note either.
+    result = runner.invoke(
+        app, ["classify", str(_scan(tmp_path)[0]), "-o", str(tmp_path / "o2"), "-r", "0.5"]
+    )
+    assert result.exit_code == 0 and "note:" not in result.output, result.output
+
+
 @pytest.mark.parametrize("command", ["collapse", "dem", "classify"])
 def test_a_missing_file_exits_with_code_2_and_names_it(runner, tmp_path, command):
     result = runner.invoke(app, [command, str(tmp_path / "nope.bin"), "-o", str(tmp_path)])
