@@ -563,12 +563,18 @@ __attribute__((target("avx2"))) bool bin_float_rows_avx2_8(const float* data, st
   const __m256 origin_x = _mm256_set1_ps(static_cast<float>(k.origin_x));
   const __m256 origin_y = _mm256_set1_ps(static_cast<float>(k.origin_y));
   const __m256 inverse = _mm256_set1_ps(static_cast<float>(k.inverse));
-  const __m256 upper_x = _mm256_set1_ps(static_cast<float>(k.upper_x));
-  const __m256 upper_y = _mm256_set1_ps(static_cast<float>(k.upper_y));
-  const __m256 minus_one = _mm256_set1_ps(-1.0F), one = _mm256_set1_ps(1.0F), half = _mm256_set1_ps(0.5F);
+  // Estimates + 1 are clamped to [0.5, cells + 1.5] (exact: there is a float margin only for
+  // fewer than 2^16 cells). A row clamped at either end lands half a cell outside the map, clear
+  // of the margin, and is outside: its quotient is below -0.5 or above cells + 0.5 within the
+  // margin. (Without the clamp, cvtt would overflow past 2^31.)
+  const __m256 top_x = _mm256_set1_ps(static_cast<float>(k.nx) + 1.5F);
+  const __m256 top_y = _mm256_set1_ps(static_cast<float>(k.ny) + 1.5F);
+  const __m256 one = _mm256_set1_ps(1.0F), half = _mm256_set1_ps(0.5F);
   const __m256 zero = _mm256_setzero_ps();
-  const __m256 margin = _mm256_set1_ps(k.float_margin), one_minus_margin = _mm256_set1_ps(1.0F - k.float_margin);
-  const __m256i minus_one_i = _mm256_set1_epi32(-1), nx = _mm256_set1_epi32(k.nx), ny = _mm256_set1_epi32(k.ny);
+  const __m256 margin = _mm256_set1_ps(k.float_margin);
+  const __m256 magnitude = _mm256_castsi256_ps(_mm256_set1_epi32(0x7FFFFFFF));
+  const __m256i minus_one_i = _mm256_set1_epi32(-1), ny = _mm256_set1_epi32(k.ny);
+  const __m256i last_i = _mm256_set1_epi32(k.nx - 1), last_j = _mm256_set1_epi32(k.ny - 1);
   const __m256i outside_code = _mm256_set1_epi32(static_cast<std::int32_t>(kOutside));
   const __m256i slow_code = _mm256_set1_epi32(static_cast<std::int32_t>(kSlow));
   // A 16-byte load at row r reads up to data[r * kStride + 3]: with 3 scalars a row, the last
@@ -592,36 +598,34 @@ __attribute__((target("avx2"))) bool bin_float_rows_avx2_8(const float* data, st
     const __m256 x = _mm256_shuffle_ps(ab_low, cd_low, _MM_SHUFFLE(1, 0, 1, 0));
     const __m256 y = _mm256_shuffle_ps(ab_low, cd_low, _MM_SHUFFLE(3, 2, 3, 2));
     const __m256 z = _mm256_shuffle_ps(ab_high, cd_high, _MM_SHUFFLE(1, 0, 1, 0));
-    const __m256 residue = _mm256_add_ps(_mm256_add_ps(_mm256_sub_ps(x, x), _mm256_sub_ps(y, y)), _mm256_sub_ps(z, z));
-    const __m256 finite = _mm256_cmp_ps(residue, zero, _CMP_EQ_OQ);
+    // x + y + z is finite when all three are (NaN or an infinity makes it NaN or infinite); a
+    // finite row whose sum overflows is sent to the exact formula, which bins it.
+    const __m256 sum = _mm256_add_ps(_mm256_add_ps(x, y), z);
+    const __m256i finite = _mm256_castps_si256(_mm256_cmp_ps(_mm256_sub_ps(sum, sum), zero, _CMP_EQ_OQ));
+    // Estimate + 1, clamped (max gives its second operand for NaN, then the finite mask decides).
     const __m256 ex = _mm256_mul_ps(_mm256_sub_ps(x, origin_x), inverse);
     const __m256 ey = _mm256_mul_ps(_mm256_sub_ps(y, origin_y), inverse);
-    const __m256 near_x =
-        _mm256_and_ps(_mm256_cmp_ps(ex, minus_one, _CMP_GT_OQ), _mm256_cmp_ps(ex, upper_x, _CMP_LT_OQ));
-    const __m256 near_y =
-        _mm256_and_ps(_mm256_cmp_ps(ey, minus_one, _CMP_GT_OQ), _mm256_cmp_ps(ey, upper_y, _CMP_LT_OQ));
-    const __m256 sx = _mm256_blendv_ps(half, _mm256_add_ps(ex, one), near_x);
-    const __m256 sy = _mm256_blendv_ps(half, _mm256_add_ps(ey, one), near_y);
+    const __m256 sx = _mm256_min_ps(_mm256_max_ps(_mm256_add_ps(ex, one), half), top_x);
+    const __m256 sy = _mm256_min_ps(_mm256_max_ps(_mm256_add_ps(ey, one), half), top_y);
     const __m256i wx = _mm256_cvttps_epi32(sx);
     const __m256i wy = _mm256_cvttps_epi32(sy);
-    const __m256 fx = _mm256_sub_ps(sx, _mm256_cvtepi32_ps(wx));  // exact: sx - trunc(sx)
-    const __m256 fy = _mm256_sub_ps(sy, _mm256_cvtepi32_ps(wy));
-    const __m256i clear_x = _mm256_castps_si256(
-        _mm256_and_ps(_mm256_cmp_ps(fx, margin, _CMP_GT_OQ), _mm256_cmp_ps(fx, one_minus_margin, _CMP_LT_OQ)));
-    const __m256i clear_y = _mm256_castps_si256(
-        _mm256_and_ps(_mm256_cmp_ps(fy, margin, _CMP_GT_OQ), _mm256_cmp_ps(fy, one_minus_margin, _CMP_LT_OQ)));
+    // Clear of a border: more than the margin from the nearest whole number (the difference is
+    // exact). The same rows as sx - trunc(sx) in (margin, 1 - margin).
+    const __m256 round_x = _mm256_round_ps(sx, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    const __m256 round_y = _mm256_round_ps(sy, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    const __m256i clear_x =
+        _mm256_castps_si256(_mm256_cmp_ps(_mm256_and_ps(_mm256_sub_ps(sx, round_x), magnitude), margin, _CMP_GT_OQ));
+    const __m256i clear_y =
+        _mm256_castps_si256(_mm256_cmp_ps(_mm256_and_ps(_mm256_sub_ps(sy, round_y), magnitude), margin, _CMP_GT_OQ));
     const __m256i i = _mm256_add_epi32(wx, minus_one_i);
     const __m256i j = _mm256_add_epi32(wy, minus_one_i);
-    const __m256i in_x = _mm256_and_si256(_mm256_cmpgt_epi32(i, minus_one_i), _mm256_cmpgt_epi32(nx, i));
-    const __m256i in_y = _mm256_and_si256(_mm256_cmpgt_epi32(j, minus_one_i), _mm256_cmpgt_epi32(ny, j));
-    const __m256i finite_i = _mm256_castps_si256(finite);
-    const __m256i near = _mm256_castps_si256(_mm256_and_ps(near_x, near_y));
+    // 0 <= i < nx: i (-1 wraps to 2^32 - 1) is at most nx - 1, unsigned.
+    const __m256i in_x = _mm256_cmpeq_epi32(_mm256_min_epu32(i, last_i), i);
+    const __m256i in_y = _mm256_cmpeq_epi32(_mm256_min_epu32(j, last_j), j);
     const __m256i decided =
-        _mm256_and_si256(_mm256_and_si256(_mm256_and_si256(clear_x, clear_y), _mm256_and_si256(in_x, in_y)), finite_i);
+        _mm256_and_si256(_mm256_and_si256(_mm256_and_si256(clear_x, clear_y), _mm256_and_si256(in_x, in_y)), finite);
     const __m256i outside = _mm256_and_si256(
-        _mm256_or_si256(_mm256_or_si256(_mm256_andnot_si256(near, minus_one_i), _mm256_andnot_si256(in_x, clear_x)),
-                        _mm256_andnot_si256(in_y, clear_y)),
-        finite_i);
+        _mm256_or_si256(_mm256_andnot_si256(in_x, clear_x), _mm256_andnot_si256(in_y, clear_y)), finite);
     const __m256i cell = _mm256_add_epi32(_mm256_mullo_epi32(i, ny), j);
     const __m256i code = _mm256_blendv_epi8(_mm256_blendv_epi8(slow_code, outside_code, outside), cell, decided);
     _mm256_storeu_si256(reinterpret_cast<__m256i*>(out + r), code);
