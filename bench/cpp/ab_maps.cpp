@@ -18,6 +18,7 @@
 
 #include <terracube/elevation_map.hpp>
 #include <terracube/terrain.hpp>
+#include <vector>
 
 #define TERRACUBE_AB_CAT2(a, b) a##b
 #define TERRACUBE_AB_CAT(a, b) TERRACUBE_AB_CAT2(a, b)
@@ -27,6 +28,7 @@ struct Side {
   terracube::ElevationParams map;
   terracube::TerrainParams terrain;
   terracube::ElevationMap refilled;
+  std::vector<double> xyz;  ///< the scan as float64 x y z rows (numpy's default dtype), for WHAT 4
   bool ready = false;
 };
 Side& side() {
@@ -35,8 +37,8 @@ Side& side() {
 }
 }  // namespace
 
-/// `reps` calls of `what` (0: refill one map + classes, 1: fresh map + classes, 2: fresh map) on
-/// `threads` threads; returns a checksum.
+/// `reps` calls of `what` (0: refill one map + classes, 1: fresh map + classes, 2: fresh map, 4:
+/// fresh map + classes from float64 x y z rows) on `threads` threads; returns a checksum.
 std::size_t TERRACUBE_AB_CAT(run_, TERRACUBE_AB_SIDE)(const float* xyzi, std::size_t rows, int what, int reps,
                                                       int threads) {
   const terracube::PointsView<float> view(xyzi, rows, 4, 1);
@@ -47,6 +49,10 @@ std::size_t TERRACUBE_AB_CAT(run_, TERRACUBE_AB_SIDE)(const float* xyzi, std::si
     s.map.size = terracube::CellIndex(400, 200);
     s.terrain.sensor_height_m = 1.73;
     s.refilled = terracube::build_elevation_map(view, s.map);
+    s.xyz.resize(3 * rows);
+    for (std::size_t row = 0; row < rows; ++row) {
+      for (std::size_t axis = 0; axis < 3; ++axis) s.xyz[3 * row + axis] = xyzi[4 * row + axis];
+    }
     s.ready = true;
   }
   s.map.num_threads = threads;
@@ -56,8 +62,10 @@ std::size_t TERRACUBE_AB_CAT(run_, TERRACUBE_AB_SIDE)(const float* xyzi, std::si
     if (what == 0) {
       terracube::build_elevation_map_into(s.refilled, view, s.map);
       sum += static_cast<std::size_t>(terracube::classify_terrain_layers(s.refilled, s.terrain)(200, 100));
-    } else if (what == 1) {
-      terracube::ElevationMap fresh = terracube::build_elevation_map(view, s.map);
+    } else if (what == 1 || what == 4) {
+      terracube::ElevationMap fresh =
+          what == 1 ? terracube::build_elevation_map(view, s.map)
+                    : terracube::build_elevation_map(terracube::PointsView<double>(s.xyz.data(), rows, 3, 1), s.map);
       sum += static_cast<std::size_t>(terracube::classify_terrain_layers(fresh, s.terrain)(200, 100));
     } else {
       sum += static_cast<std::size_t>(terracube::build_elevation_map(view, s.map).get("count")(200, 100));
@@ -91,7 +99,8 @@ double quantile(std::vector<double> values, double q) {
 int main(int argc, char** argv) {
   if (argc != 6) {
     std::fprintf(stderr,
-                 "usage: %s KITTI_BIN WHAT(0 refill+classes, 1 fresh+classes, 2 fresh map, 3 fresh+classes cold) "
+                 "usage: %s KITTI_BIN WHAT(0 refill+classes, 1 fresh+classes, 2 fresh map, 3 fresh+classes cold, 4 "
+                 "fresh+classes from float64) "
                  "THREADS ROUNDS REPS\n",
                  argv[0]);
     return 2;
@@ -101,7 +110,7 @@ int main(int argc, char** argv) {
   const int rounds = std::atoi(argv[4]);
   const int reps = std::atoi(argv[5]);
   std::ifstream file(argv[1], std::ios::binary | std::ios::ate);
-  if (!file || what < 0 || what > 3 || threads < 0 || rounds < 1 || reps < 1) {
+  if (!file || what < 0 || what > 4 || threads < 0 || rounds < 1 || reps < 1) {
     std::fprintf(stderr, "cannot read %s, or a bad argument\n", argv[1]);
     return 2;
   }
@@ -152,7 +161,7 @@ int main(int argc, char** argv) {
     ratio.push_back(time[1] / time[0]);
   }
   static const char* const kWhat[] = {"refilled map + classes", "fresh map + classes", "fresh map",
-                                      "fresh map + classes, cold caches"};
+                                      "fresh map + classes, cold caches", "fresh map + classes from float64 rows"};
   std::printf("%s, %d thread(s), %d rounds of %d calls: A %.3f ms, B %.3f ms (medians); B / A %.3f [%.3f, %.3f]%s\n",
               kWhat[what], threads, rounds, reps, quantile(a, 0.5), quantile(b, 0.5), quantile(ratio, 0.5),
               quantile(ratio, 0.25), quantile(ratio, 0.75), check_a == check_b ? "" : "  (results differ!)");
