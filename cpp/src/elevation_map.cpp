@@ -428,58 +428,62 @@ bool bin_rows_default(const Scalar* data, std::size_t rows, int stride, const Bi
 
 #if defined(__x86_64__) && defined(__GNUC__)
 #define TERRACUBE_HAVE_AVX2_BINNING 1
-/// bin_rows_body's decision for four rows whose x, y and z are in AVX2 doubles: the same operations
-/// in the same order (no FMA target, so every product and sum rounds as in the scalar code). Writes
-/// the four codes to `out` and returns the mask of rows that got kSlow.
+/// bin_rows_body's decision for four rows whose x, y and z are in AVX2 doubles: the same estimate
+/// (no FMA target, so every product and sum rounds as in the scalar code), hence the same codes, with
+/// fewer operations: the estimate + 1 is clamped to [0.5, cells + 1.5] instead of tested against
+/// both ends (a row clamped at either end lands half a cell outside the map, clear of the margin,
+/// and is outside: its quotient is below -0.5 or above cells + 0.5 within the margin; bin_rows_body
+/// may send some of these rows to the exact formula instead, which puts them outside too), the
+/// margin is a distance to the nearest whole number, and 0 <= i < cells one unsigned compare.
+/// Writes the four codes to `out` and returns the mask of rows that got kSlow.
 struct Avx2Binning {
-  __m256d origin_x, origin_y, inverse, upper_x, upper_y, minus_one, one, half, zero, margin, one_minus_margin;
-  __m128i minus_one_i, nx, ny;
+  __m256d origin_x, origin_y, inverse, top_x, top_y, one, half, zero, margin, magnitude;
+  __m128i minus_one_i, last_i, last_j, ny;
 
   __attribute__((target("avx2"))) explicit Avx2Binning(const BinningConstants& k)
       : origin_x(_mm256_set1_pd(k.origin_x)),
         origin_y(_mm256_set1_pd(k.origin_y)),
         inverse(_mm256_set1_pd(k.inverse)),
-        upper_x(_mm256_set1_pd(k.upper_x)),
-        upper_y(_mm256_set1_pd(k.upper_y)),
-        minus_one(_mm256_set1_pd(-1.0)),
+        top_x(_mm256_set1_pd(static_cast<double>(k.nx) + 1.5)),
+        top_y(_mm256_set1_pd(static_cast<double>(k.ny) + 1.5)),
         one(_mm256_set1_pd(1.0)),
         half(_mm256_set1_pd(0.5)),
         zero(_mm256_setzero_pd()),
         margin(_mm256_set1_pd(1.0 / 65536.0)),
-        one_minus_margin(_mm256_set1_pd(1.0 - 1.0 / 65536.0)),
+        magnitude(_mm256_castsi256_pd(_mm256_set1_epi64x(0x7FFFFFFFFFFFFFFF))),
         minus_one_i(_mm_set1_epi32(-1)),
-        nx(_mm_set1_epi32(k.nx)),
+        last_i(_mm_set1_epi32(k.nx - 1)),
+        last_j(_mm_set1_epi32(k.ny - 1)),
         ny(_mm_set1_epi32(k.ny)) {}
 
   __attribute__((target("avx2"), always_inline)) inline int decide(__m256d x, __m256d y, __m256d z,
                                                                    std::uint32_t* out) const {
-    const __m256d residue = _mm256_add_pd(_mm256_add_pd(_mm256_sub_pd(x, x), _mm256_sub_pd(y, y)), _mm256_sub_pd(z, z));
-    const int finite = _mm256_movemask_pd(_mm256_cmp_pd(residue, zero, _CMP_EQ_OQ));
+    // x + y + z is finite when all three are; a finite row whose sum overflows goes to the exact
+    // formula, which bins it.
+    const __m256d sum = _mm256_add_pd(_mm256_add_pd(x, y), z);
+    const int finite = _mm256_movemask_pd(_mm256_cmp_pd(_mm256_sub_pd(sum, sum), zero, _CMP_EQ_OQ));
     const __m256d ex = _mm256_mul_pd(_mm256_sub_pd(x, origin_x), inverse);
     const __m256d ey = _mm256_mul_pd(_mm256_sub_pd(y, origin_y), inverse);
-    const __m256d near_x =
-        _mm256_and_pd(_mm256_cmp_pd(ex, minus_one, _CMP_GT_OQ), _mm256_cmp_pd(ex, upper_x, _CMP_LT_OQ));
-    const __m256d near_y =
-        _mm256_and_pd(_mm256_cmp_pd(ey, minus_one, _CMP_GT_OQ), _mm256_cmp_pd(ey, upper_y, _CMP_LT_OQ));
-    const __m256d sx = _mm256_blendv_pd(half, _mm256_add_pd(ex, one), near_x);
-    const __m256d sy = _mm256_blendv_pd(half, _mm256_add_pd(ey, one), near_y);
+    // max gives its second operand (0.5) for NaN; the finite mask then decides.
+    const __m256d sx = _mm256_min_pd(_mm256_max_pd(_mm256_add_pd(ex, one), half), top_x);
+    const __m256d sy = _mm256_min_pd(_mm256_max_pd(_mm256_add_pd(ey, one), half), top_y);
     const __m128i wx = _mm256_cvttpd_epi32(sx);
     const __m128i wy = _mm256_cvttpd_epi32(sy);
-    const __m256d fx = _mm256_sub_pd(sx, _mm256_cvtepi32_pd(wx));
-    const __m256d fy = _mm256_sub_pd(sy, _mm256_cvtepi32_pd(wy));
-    const int clear_x = _mm256_movemask_pd(
-        _mm256_and_pd(_mm256_cmp_pd(fx, margin, _CMP_GT_OQ), _mm256_cmp_pd(fx, one_minus_margin, _CMP_LT_OQ)));
-    const int clear_y = _mm256_movemask_pd(
-        _mm256_and_pd(_mm256_cmp_pd(fy, margin, _CMP_GT_OQ), _mm256_cmp_pd(fy, one_minus_margin, _CMP_LT_OQ)));
+    // sx - trunc(sx) in (margin, 1 - margin) is: more than the margin from the nearest whole number
+    // (both differences exact).
+    const __m256d round_x = _mm256_round_pd(sx, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    const __m256d round_y = _mm256_round_pd(sy, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    const int clear_x =
+        _mm256_movemask_pd(_mm256_cmp_pd(_mm256_and_pd(_mm256_sub_pd(sx, round_x), magnitude), margin, _CMP_GT_OQ));
+    const int clear_y =
+        _mm256_movemask_pd(_mm256_cmp_pd(_mm256_and_pd(_mm256_sub_pd(sy, round_y), magnitude), margin, _CMP_GT_OQ));
     const __m128i i = _mm_add_epi32(wx, minus_one_i);
     const __m128i j = _mm_add_epi32(wy, minus_one_i);
-    const int in_x =
-        _mm_movemask_ps(_mm_castsi128_ps(_mm_and_si128(_mm_cmpgt_epi32(i, minus_one_i), _mm_cmpgt_epi32(nx, i))));
-    const int in_y =
-        _mm_movemask_ps(_mm_castsi128_ps(_mm_and_si128(_mm_cmpgt_epi32(j, minus_one_i), _mm_cmpgt_epi32(ny, j))));
-    const int near = _mm256_movemask_pd(_mm256_and_pd(near_x, near_y));
+    // 0 <= i < nx: i (-1 wraps to 2^32 - 1) is at most nx - 1, unsigned.
+    const int in_x = _mm_movemask_ps(_mm_castsi128_ps(_mm_cmpeq_epi32(_mm_min_epu32(i, last_i), i)));
+    const int in_y = _mm_movemask_ps(_mm_castsi128_ps(_mm_cmpeq_epi32(_mm_min_epu32(j, last_j), j)));
     const int decided = clear_x & clear_y & in_x & in_y & finite;
-    const int outside = (~near | (clear_x & ~in_x) | (clear_y & ~in_y)) & finite & 0xF;
+    const int outside = ((clear_x & ~in_x) | (clear_y & ~in_y)) & finite & 0xF;
     const __m128i cell = _mm_add_epi32(_mm_mullo_epi32(i, ny), j);
     if (decided == 0xF) {
       _mm_storeu_si128(reinterpret_cast<__m128i*>(out), cell);
