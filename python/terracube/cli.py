@@ -749,7 +749,7 @@ def classify(
     robot_height: float | None = typer.Option(
         None,
         "--robot-height",
-        help=_help("Cells this high above the ground [m] or more are high.", "terrain", "robot_height"),
+        help=_help("Cells higher than this above the ground [m] are high.", "terrain", "robot_height"),
         show_default=False,
     ),
     roll: float | None = _ROLL,

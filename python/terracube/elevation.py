@@ -332,7 +332,12 @@ _REFERENCES = {
 
 @dataclass
 class TerrainParams:
-    """Thresholds of the classification paper's Table 1 (defaults are its values).
+    """Thresholds of [TC] Table 1 (defaults are the paper's values, section 3.2).
+
+    The rule: a discontinuity gives an overhanging object; otherwise a large spread gives a
+    vertical object at any height; a small spread gives ground when low, an obstacle when middle
+    and an overhanging object when high; ground beside another known class becomes a horizontal
+    edge.
 
     Attributes
     ----------
@@ -341,7 +346,8 @@ class TerrainParams:
     std_dev : float
         A "small" spread of elevations is a std-dev below this [m] (0.1).
     robot_height : float
-        "High" cells reach this relative height [m] or more (0.7); "middle" lies between.
+        "High" cells are strictly higher than this [m] (0.7); "middle" lies between, both ends
+        included.
     reference : {"sensor_height", "local_ground"}
         What the highest elevation is measured from: the plane ``z = -sensor_height`` of a leveled
         sensor frame (the paper), or the lowest ``min`` elevation within ``local_ground_radius``

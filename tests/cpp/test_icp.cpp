@@ -59,8 +59,16 @@ std::vector<Eigen::Vector3d> transformed(const std::vector<Eigen::Vector3d>& poi
 /// parked boxes and a tree canopy on a trunk, sampled every `step_m`.
 std::vector<Eigen::Vector3d> street(double step_m) {
   std::vector<Eigen::Vector3d> w;
+  const auto under_a_planter = [](double x, double y) {
+    for (double cx : {-15.0, 7.0, 20.0}) {
+      if (x >= cx - 0.2 && x < cx + 4.2 && y >= -7.2 && y < -5.0) return true;
+    }
+    return false;
+  };
   for (double x = -35; x < 35; x += step_m) {
-    for (double y = -20; y < 20; y += step_m) w.emplace_back(x, y, 0.0);
+    for (double y = -20; y < 20; y += step_m) {
+      if (!under_a_planter(x, y)) w.emplace_back(x, y, 0.0);
+    }
   }
   for (double x = -35; x < 35; x += step_m) {
     if (std::fmod(x + 35.0, 12.0) > 9.0) continue;  // gaps between the houses
@@ -76,12 +84,12 @@ std::vector<Eigen::Vector3d> street(double step_m) {
       }
     }
   }
-  for (double cx : {-15.0, 7.0, 20.0}) {  // parked boxes 4 x 1.8 x 1.5 (tops only)
+  for (double cx : {-15.0, 7.0, 20.0}) {  // low planters 4 x 1.8 x 0.4-0.6 (tops only): obstacle cells
     for (double x = cx; x < cx + 4.0; x += step_m) {
-      for (double y = -7.0; y < -5.2; y += step_m) w.emplace_back(x, y, 1.5 + 0.05 * (x - cx));
+      for (double y = -7.0; y < -5.2; y += step_m) w.emplace_back(x, y, 0.4 + 0.05 * (x - cx));
     }
   }
-  for (double x = -30; x < 30; x += step_m) {  // a kerb 0.3 m high (tops only): obstacle cells
+  for (double x = -30; x < 30; x += step_m) {  // a kerb 0.3 m high (tops only)
     if (std::fmod(x + 30.0, 10.0) < 7.0) w.emplace_back(x, -4.5, 0.3);
   }
   for (double x = -4; x < 0; x += step_m) {  // canopy over the road at 3.5 m, trunk at (-2, -3)

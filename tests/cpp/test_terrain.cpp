@@ -103,38 +103,51 @@ void expect_throw_with(const std::function<void()>& call, const std::string& par
 
 // --- Table 1, one row at a time -----------------------------------------------------------------
 
-TEST(TerrainRule, DiscontinuityMakesOverhangingEvenWhenLowAndSmooth) {
-  const TerrainParams params = exact_params();
-  EXPECT_EQ(classify_cell(0.0F, 0.0F, 1.0F, params), TerrainClass::kOverhangingObject);     // low, small std
-  EXPECT_EQ(classify_cell(0.125F, 0.75F, 1.0F, params), TerrainClass::kOverhangingObject);  // low, large std
-  EXPECT_EQ(classify_cell(0.5F, 0.0F, 1.0F, params), TerrainClass::kOverhangingObject);     // middle
-  EXPECT_EQ(classify_cell(2.0F, 0.75F, 1.0F, params), TerrainClass::kOverhangingObject);    // high, large std
-  EXPECT_EQ(classify_cell(2.0F, 0.25F, 1.0F, params), TerrainClass::kOverhangingObject);    // high, small std
-}
+// [TC] Table 1: rows "Small"/"Large" spread, columns "Low"/"Middle"/"High" highest elevation.
+// With exact_params: low < 0.25 <= middle <= 1.0 < high, small std-dev < 0.5.
 
-TEST(TerrainRule, LowAndSmallSpreadIsGround) {
+TEST(TerrainRule, SmallSpreadAndLowIsGround) {
   const TerrainParams params = exact_params();
   EXPECT_EQ(classify_cell(0.125F, 0.25F, 0.0F, params), TerrainClass::kGround);
   EXPECT_EQ(classify_cell(0.0F, 0.0F, 0.0F, params), TerrainClass::kGround);
   EXPECT_EQ(classify_cell(-3.0F, 0.0F, 0.0F, params), TerrainClass::kGround) << "below the ground plane is low";
 }
 
-TEST(TerrainRule, LowAndLargeSpreadIsObstacle) {
-  EXPECT_EQ(classify_cell(0.125F, 0.75F, 0.0F, exact_params()), TerrainClass::kObstacle);
-}
-
-TEST(TerrainRule, MiddleHeightIsObstacleWhateverTheSpread) {
+TEST(TerrainRule, SmallSpreadAndMiddleIsObstacle) {
   const TerrainParams params = exact_params();
   EXPECT_EQ(classify_cell(0.5F, 0.0F, 0.0F, params), TerrainClass::kObstacle);
-  EXPECT_EQ(classify_cell(0.5F, 0.75F, 0.0F, params), TerrainClass::kObstacle);
+  EXPECT_EQ(classify_cell(0.75F, 0.25F, 0.0F, params), TerrainClass::kObstacle);
 }
 
-TEST(TerrainRule, HighAndLargeSpreadIsVerticalObject) {
-  EXPECT_EQ(classify_cell(2.0F, 0.75F, 0.0F, exact_params()), TerrainClass::kVerticalObject);
+TEST(TerrainRule, SmallSpreadAndHigherThanTheRobotIsOverhanging) {
+  // Eaves, crowns and car roofs seen from below: "higher than the robot" with a small spread.
+  const TerrainParams params = exact_params();
+  EXPECT_EQ(classify_cell(2.0F, 0.25F, 0.0F, params), TerrainClass::kOverhangingObject);
+  EXPECT_EQ(classify_cell(1.5F, 0.0F, 0.0F, params), TerrainClass::kOverhangingObject);
 }
 
-TEST(TerrainRule, HighAndSmallSpreadIsObstacle) {
-  EXPECT_EQ(classify_cell(2.0F, 0.25F, 0.0F, exact_params()), TerrainClass::kObstacle);
+TEST(TerrainRule, LargeSpreadWithoutDiscontinuityIsVerticalInEveryHeightColumn) {
+  // The "Large" row's entries span the Low, Middle and High columns.
+  const TerrainParams params = exact_params();
+  EXPECT_EQ(classify_cell(0.125F, 0.75F, 0.0F, params), TerrainClass::kVerticalObject);  // low
+  EXPECT_EQ(classify_cell(0.5F, 0.75F, 0.0F, params), TerrainClass::kVerticalObject);    // middle
+  EXPECT_EQ(classify_cell(2.0F, 0.75F, 0.0F, params), TerrainClass::kVerticalObject);    // high
+}
+
+TEST(TerrainRule, LargeSpreadWithDiscontinuityIsOverhangingInEveryHeightColumn) {
+  const TerrainParams params = exact_params();
+  EXPECT_EQ(classify_cell(0.125F, 0.75F, 1.0F, params), TerrainClass::kOverhangingObject);  // low
+  EXPECT_EQ(classify_cell(0.5F, 0.75F, 1.0F, params), TerrainClass::kOverhangingObject);    // middle
+  EXPECT_EQ(classify_cell(2.0F, 0.75F, 1.0F, params), TerrainClass::kOverhangingObject);    // high
+}
+
+TEST(TerrainRule, DiscontinuityWithASmallSpreadIsStillOverhanging) {
+  // Not in the table (a 1 m gap rarely leaves a small spread); class 3's text decides: a grid
+  // with a discontinuity is an overhanging object.
+  const TerrainParams params = exact_params();
+  EXPECT_EQ(classify_cell(0.0F, 0.0F, 1.0F, params), TerrainClass::kOverhangingObject);
+  EXPECT_EQ(classify_cell(0.5F, 0.0F, 1.0F, params), TerrainClass::kOverhangingObject);
+  EXPECT_EQ(classify_cell(2.0F, 0.25F, 1.0F, params), TerrainClass::kOverhangingObject);
 }
 
 TEST(TerrainRule, EmptyCellIsUnknown) {
@@ -147,35 +160,35 @@ TEST(TerrainRule, RelativeHeightEqualToGroundHeightIsMiddleNotLow) {
   EXPECT_EQ(classify_cell(std::nextafter(0.25F, 0.0F), 0.0F, 0.0F, params), TerrainClass::kGround);
 }
 
-TEST(TerrainRule, RelativeHeightEqualToRobotHeightIsHigh) {
-  // With a large spread, high gives vertical while middle would give obstacle.
+TEST(TerrainRule, HigherThanTheRobotIsStrict) {
+  // Exactly the robot height is middle (obstacle); the next float up is high (overhanging).
   const TerrainParams params = exact_params();
-  EXPECT_EQ(classify_cell(1.0F, 0.75F, 0.0F, params), TerrainClass::kVerticalObject);
-  EXPECT_EQ(classify_cell(std::nextafter(1.0F, 0.0F), 0.75F, 0.0F, params), TerrainClass::kObstacle);
+  EXPECT_EQ(classify_cell(1.0F, 0.0F, 0.0F, params), TerrainClass::kObstacle);
+  EXPECT_EQ(classify_cell(std::nextafter(1.0F, 2.0F), 0.0F, 0.0F, params), TerrainClass::kOverhangingObject);
 }
 
 TEST(TerrainRule, StdDevEqualToTheThresholdIsLarge) {
   const TerrainParams params = exact_params();
-  EXPECT_EQ(classify_cell(0.125F, 0.5F, 0.0F, params), TerrainClass::kObstacle);      // low, large
-  EXPECT_EQ(classify_cell(2.0F, 0.5F, 0.0F, params), TerrainClass::kVerticalObject);  // high, large
+  EXPECT_EQ(classify_cell(0.125F, 0.5F, 0.0F, params), TerrainClass::kVerticalObject);  // low, large
+  EXPECT_EQ(classify_cell(2.0F, 0.5F, 0.0F, params), TerrainClass::kVerticalObject);    // high, large
   EXPECT_EQ(classify_cell(0.125F, std::nextafter(0.5F, 0.0F), 0.0F, params), TerrainClass::kGround);
-  EXPECT_EQ(classify_cell(2.0F, std::nextafter(0.5F, 0.0F), 0.0F, params), TerrainClass::kObstacle);
+  EXPECT_EQ(classify_cell(2.0F, std::nextafter(0.5F, 0.0F), 0.0F, params), TerrainClass::kOverhangingObject);
 }
 
 TEST(TerrainRule, ThresholdsApplyToHeightAboveTheSensorGroundPlane) {
   // Sensor 1.5 m up: the ground plane is z = -1.5, so max = -1.25 is exactly 0.25 above it.
   const TerrainParams params = exact_params(1.5);
-  EXPECT_EQ(classify_cell(-1.375F, 0.0F, 0.0F, params), TerrainClass::kGround);         // 0.125
-  EXPECT_EQ(classify_cell(-1.25F, 0.0F, 0.0F, params), TerrainClass::kObstacle);        // 0.25: middle
-  EXPECT_EQ(classify_cell(-0.5F, 0.75F, 0.0F, params), TerrainClass::kVerticalObject);  // 1.0: high
-  EXPECT_EQ(classify_cell(-0.5F, 0.25F, 0.0F, params), TerrainClass::kObstacle);
+  EXPECT_EQ(classify_cell(-1.375F, 0.0F, 0.0F, params), TerrainClass::kGround);             // 0.125
+  EXPECT_EQ(classify_cell(-1.25F, 0.0F, 0.0F, params), TerrainClass::kObstacle);            // 0.25: middle
+  EXPECT_EQ(classify_cell(-0.5F, 0.0F, 0.0F, params), TerrainClass::kObstacle);             // 1.0: middle
+  EXPECT_EQ(classify_cell(-0.25F, 0.25F, 0.0F, params), TerrainClass::kOverhangingObject);  // 1.25: high
   EXPECT_EQ(classify_cell(0.125F, 0.0F, 0.0F, exact_params()), TerrainClass::kGround);
-  EXPECT_EQ(classify_cell(0.125F, 0.0F, 0.0F, params), TerrainClass::kObstacle)  // 1.625: high, small std
+  EXPECT_EQ(classify_cell(0.125F, 0.0F, 0.0F, params), TerrainClass::kOverhangingObject)  // 1.625: high
       << "the same cell is no longer low once the sensor is 1.5 m up";
 }
 
 TEST(TerrainRule, PaperDefaultsOnValuesAwayFromTheThresholds) {
-  TerrainParams params;  // 0.2 / 0.1 / 0.7
+  TerrainParams params;  // [TC] section 3.2: 20 cm, 10 cm, robot 70 cm
   EXPECT_EQ(params.ground_height_m, 0.2);
   EXPECT_EQ(params.std_dev_m, 0.1);
   EXPECT_EQ(params.robot_height_m, 0.7);
@@ -183,21 +196,23 @@ TEST(TerrainRule, PaperDefaultsOnValuesAwayFromTheThresholds) {
   params.sensor_height_m = 1.73;
   const float ground = -1.73F;
   EXPECT_EQ(classify_cell(ground + 0.05F, 0.02F, 0.0F, params), TerrainClass::kGround);
-  EXPECT_EQ(classify_cell(ground + 0.05F, 0.3F, 0.0F, params), TerrainClass::kObstacle);
+  EXPECT_EQ(classify_cell(ground + 0.05F, 0.3F, 0.0F, params), TerrainClass::kVerticalObject);
   EXPECT_EQ(classify_cell(ground + 0.45F, 0.02F, 0.0F, params), TerrainClass::kObstacle);
-  EXPECT_EQ(classify_cell(ground + 0.45F, 0.3F, 0.0F, params), TerrainClass::kObstacle);
+  EXPECT_EQ(classify_cell(ground + 0.45F, 0.3F, 0.0F, params), TerrainClass::kVerticalObject);
   EXPECT_EQ(classify_cell(ground + 1.5F, 0.5F, 0.0F, params), TerrainClass::kVerticalObject);
-  EXPECT_EQ(classify_cell(ground + 1.5F, 0.03F, 0.0F, params), TerrainClass::kObstacle);
+  EXPECT_EQ(classify_cell(ground + 1.5F, 0.03F, 0.0F, params), TerrainClass::kOverhangingObject);
+  EXPECT_EQ(classify_cell(ground + 1.5F, 0.5F, 1.0F, params), TerrainClass::kOverhangingObject);
   EXPECT_EQ(classify_cell(ground + 0.05F, 0.02F, 1.0F, params), TerrainClass::kOverhangingObject);
   EXPECT_EQ(classify_cell(kNaN, kNaN, kNaN, params), TerrainClass::kUnknown);
   // With the default sensor height 0 the plane is z = 0 and a cell 1.6 m below the sensor is low.
   EXPECT_EQ(classify_cell(-1.6F, 0.02F, 0.0F, TerrainParams{}), TerrainClass::kGround);
 }
 
-TEST(TerrainRule, RobotHeightEqualToGroundHeightLeavesNoMiddleBand) {
+TEST(TerrainRule, RobotHeightEqualToGroundHeightLeavesAOnePointMiddleBand) {
   TerrainParams params = exact_params();
   params.robot_height_m = params.ground_height_m;
-  EXPECT_EQ(classify_cell(0.25F, 0.75F, 0.0F, params), TerrainClass::kVerticalObject);
+  EXPECT_EQ(classify_cell(0.25F, 0.0F, 0.0F, params), TerrainClass::kObstacle);
+  EXPECT_EQ(classify_cell(0.5F, 0.0F, 0.0F, params), TerrainClass::kOverhangingObject);
   EXPECT_EQ(classify_cell(0.125F, 0.0F, 0.0F, params), TerrainClass::kGround);
 }
 
@@ -209,7 +224,7 @@ TEST(TerrainEdges, GroundBesideAnObjectBecomesEdgeIncludingDiagonals) {
     char letter;
   };
   for (const Object object : {Object{0.5F, 0.0F, 0.0F, 'o'}, Object{2.0F, 0.0F, 1.0F, 'h'},
-                              Object{2.0F, 0.75F, 0.0F, 'v'}, Object{2.0F, 0.0F, 0.0F, 'o'}}) {
+                              Object{2.0F, 0.75F, 0.0F, 'v'}, Object{2.0F, 0.0F, 0.0F, 'h'}}) {
     SCOPED_TRACE(std::string("object ") + object.letter);
     ElevationMap map = uniform_map(5, 5, 0.0F, 0.0F);
     set_cell(map, 2, 2, object.max, object.std_dev, object.discontinuity);
@@ -270,14 +285,18 @@ Eigen::Matrix<std::uint8_t, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> nai
       } else if (gap(i, j) == 1.0F) {
         c = TerrainClass::kOverhangingObject;
       } else {
+        // Table 1 as printed: the "Large" row is vertical whatever the height; the "Small" row
+        // reads the Low / Middle / High columns ("higher than" the robot is strict).
         const double h = relative;
         const bool small = static_cast<double>(std_dev(i, j)) < params.std_dev_m;
-        if (h < params.ground_height_m) {
-          c = small ? TerrainClass::kGround : TerrainClass::kObstacle;
-        } else if (h < params.robot_height_m) {
+        if (!small) {
+          c = TerrainClass::kVerticalObject;
+        } else if (h < params.ground_height_m) {
+          c = TerrainClass::kGround;
+        } else if (h <= params.robot_height_m) {
           c = TerrainClass::kObstacle;
         } else {
-          c = small ? TerrainClass::kObstacle : TerrainClass::kVerticalObject;
+          c = TerrainClass::kOverhangingObject;
         }
       }
       classes(i, j) = static_cast<std::uint8_t>(c);
@@ -529,7 +548,7 @@ TEST(TerrainReference, LocalGroundFollowsASlopeThatTheSensorPlaneCallsHigh) {
   TerrainParams params = exact_params();
   // The sensor plane z = 0: every cell is over 2 m high with a small spread.
   const TerrainClassification flat = classify_terrain(map, params);
-  EXPECT_TRUE((flat.classes.array() == static_cast<std::uint8_t>(TerrainClass::kObstacle)).all());
+  EXPECT_TRUE((flat.classes.array() == static_cast<std::uint8_t>(TerrainClass::kOverhangingObject)).all());
   EXPECT_TRUE((flat.relative_height.array() >= 2.0F).all());
   // The local ground (radius 1): relative height 0.125 + i' / 16 + j' / 32 with i' = min(i, 1),
   // j' = min(j, 1), at most 0.21875 < 0.25: every cell is ground.
@@ -642,13 +661,13 @@ TEST(TerrainLayers, ClassifyingAgainOverwritesTheLayers) {
   classify_terrain(map, exact_params());
   classify_terrain(map, exact_params(2.0));  // the cells are now 2 m above the ground plane
   EXPECT_EQ(map.layers().size(), 9U);
-  EXPECT_EQ(map.get("class"), Layer::Constant(1, 2, 2.0F));  // high, small std: obstacle
+  EXPECT_EQ(map.get("class"), Layer::Constant(1, 2, 3.0F));  // high, small std: overhanging
   EXPECT_EQ(map.get("ground"), Layer::Constant(1, 2, -2.0F));
 }
 
 TEST(TerrainLayers, NewLayersOnBuffersOfDroppedMapsAreWrittenInEveryCell) {
-  // classify_terrain does not fill the layers it adds: their buffers may be those of a dropped map
-  // (garbage here). Every cell of all three must still be written, in both ground references.
+  // Every cell of the three added layers is written, in both ground references, even when the
+  // memory a dropped map left holds garbage.
   for (const GroundReference reference : {GroundReference::kSensorHeight, GroundReference::kLocalGround}) {
     SCOPED_TRACE(reference == GroundReference::kSensorHeight ? "sensor height" : "local ground");
     {
@@ -779,7 +798,7 @@ TEST(TerrainBadInput, MissingLayerThrowsOutOfRangeNamingIt) {
 
 // SemanticKITTI label ids (low 16 bits).
 constexpr std::uint16_t kCar = 10, kRoad = 40, kParking = 44, kSidewalk = 48, kBuilding = 50, kFence = 51,
-                        kVegetation = 70, kTrunk = 71;
+                        kVegetation = 70, kTrunk = 71, kPole = 80, kTrafficSign = 81;
 
 struct Tally {
   std::size_t cells = 0;
@@ -802,7 +821,8 @@ TEST(TerrainKitti, ClassesAgreeWithTheSemanticKittiLabels) {
   if (!data) GTEST_SKIP() << "../shared/data not found (set TERRACUBE_DATA_DIR)";
   const std::set<std::uint16_t> road_like = {kRoad, kSidewalk};
   const std::set<std::uint16_t> wall_like = {kBuilding, kFence};
-  Tally road, wall, car, parking, vegetation, trunk;
+  const std::set<std::uint16_t> thin = {kTrunk, kPole, kTrafficSign};
+  Tally road, wall, car, parking, crown, trunk;
   for (const std::string frame : {"000000", "000001", "000002"}) {
     const test::XyziScan scan = test::read_xyzi_bin(*data + "/kitti_seq00/velodyne/" + frame + ".bin");
     const std::vector<std::uint16_t> labels =
@@ -843,27 +863,38 @@ TEST(TerrainKitti, ClassesAgreeWithTheSemanticKittiLabels) {
       if (wall_like.count(majority)) tally(wall, c == TerrainClass::kVerticalObject);
       if (majority == kCar) tally(car, c == TerrainClass::kObstacle);
       if (majority == kParking) tally(parking, c == TerrainClass::kGround || c == TerrainClass::kHorizontalEdge);
-      if (majority == kVegetation) tally(vegetation, c != TerrainClass::kGround);
-      if (majority == kTrunk) tally(trunk, c == TerrainClass::kVerticalObject);
+      // A crown: vegetation whose lowest return in the cell is over 1 m above the road (seen from below).
+      const bool lifted = map.get("min")(cell.first, cell.second) > 1.0F - 1.73F;
+      if (majority == kVegetation && lifted) tally(crown, c == TerrainClass::kOverhangingObject);
+      if (thin.count(majority)) tally(trunk, c == TerrainClass::kVerticalObject);
     }
   }
   std::cout << "road/sidewalk -> ground or edge: " << describe(road) << "\n"
             << "building/fence -> vertical:      " << describe(wall) << "\n"
             << "car -> obstacle:                 " << describe(car) << "\n"
-            << "(info) parking -> ground/edge:   " << describe(parking) << "\n"
-            << "(info) vegetation -> not ground: " << describe(vegetation) << "\n"
-            << "(info) trunk -> vertical:        " << describe(trunk) << "\n";
+            << "crown -> overhanging:            " << describe(crown) << "\n"
+            << "trunk/pole/sign -> vertical:     " << describe(trunk) << "\n"
+            << "(info) parking -> ground/edge:   " << describe(parking) << "\n";
   RecordProperty("road_sidewalk_ground_or_edge_rate", std::to_string(road.rate()));
   RecordProperty("building_fence_vertical_rate", std::to_string(wall.rate()));
   RecordProperty("car_obstacle_rate", std::to_string(car.rate()));
+  RecordProperty("crown_overhanging_rate", std::to_string(crown.rate()));
+  RecordProperty("trunk_pole_vertical_rate", std::to_string(trunk.rate()));
   ASSERT_GT(road.cells, 1000U);
   ASSERT_GT(wall.cells, 100U);
   ASSERT_GT(car.cells, 100U);
-  // Measured on frames 000000-000002 (pooled): road/sidewalk 0.9218 of 42270 cells, building/fence
-  // 0.6807 of 1879, car 0.5498 of 1264. The floors sit 0.03 below so that a regression fails.
+  ASSERT_GT(crown.cells, 100U);
+  ASSERT_GT(trunk.cells, 100U);
+  // [TC] Table 1 as printed, measured on frames 000000-000002 (pooled, every cell with a labelled
+  // point): road/sidewalk 0.9218, building/fence 0.6807, crowns 0.9901, trunks/poles 0.4801 (the
+  // sparse beams leave many trunk cells a small spread). KITTI's cars (1.5 m) are higher than the
+  // paper's 0.7 m robot: their roofs are overhanging objects and their flanks vertical, so
+  // car -> obstacle is 0.0854. The floors sit 0.03 below so that a regression fails.
   EXPECT_GE(road.rate(), 0.89);
   EXPECT_GE(wall.rate(), 0.65);
-  EXPECT_GE(car.rate(), 0.52);
+  EXPECT_GE(car.rate(), 0.055);
+  EXPECT_GE(crown.rate(), 0.96);
+  EXPECT_GE(trunk.rate(), 0.45);
 }
 
 }  // namespace

@@ -40,11 +40,19 @@ def errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3])), float(angle)
 
 
+PLANTERS = (-15.0, 7.0, 20.0)  # x of the planters' corners
+
+
 def street(step: float = 0.1) -> np.ndarray:
     """World-frame street points, ground at z = 0."""
     parts = []
     gx, gy = np.meshgrid(np.arange(-35, 35, step), np.arange(-20, 20, step), indexing="ij")
-    parts.append(np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)]))
+    under_a_planter = np.zeros(gx.shape, dtype=bool)
+    for cx in PLANTERS:
+        under_a_planter |= (gx >= cx - 0.2) & (gx < cx + 4.2) & (gy >= -7.2) & (gy < -5.0)
+    parts.append(
+        np.column_stack([gx[~under_a_planter], gy[~under_a_planter], np.zeros((~under_a_planter).sum())])
+    )
     xs = np.arange(-35, 35, step)
     xs = xs[np.mod(xs + 35.0, 12.0) <= 9.0]
     for x in xs:
@@ -60,9 +68,9 @@ def street(step: float = 0.1) -> np.ndarray:
     kx = np.arange(-30, 30, step)
     kx = kx[np.mod(kx + 30.0, 10.0) < 7.0]
     parts.append(np.column_stack([kx, np.full(kx.size, -4.5), np.full(kx.size, 0.3)]))
-    for cx in (-15.0, 7.0, 20.0):
+    for cx in PLANTERS:  # low planters 0.4-0.6 m (tops only, no ground under them): obstacle cells
         bx, by = np.meshgrid(np.arange(cx, cx + 4.0, step), np.arange(-7.0, -5.2, step), indexing="ij")
-        parts.append(np.column_stack([bx.ravel(), by.ravel(), 1.5 + 0.05 * (bx.ravel() - cx)]))
+        parts.append(np.column_stack([bx.ravel(), by.ravel(), 0.4 + 0.05 * (bx.ravel() - cx)]))
     cx, cy = np.meshgrid(np.arange(-4, 0, step), np.arange(-5, -1, step), indexing="ij")
     parts.append(np.column_stack([cx.ravel(), cy.ravel(), 3.5 + 0.2 * np.cos(cx.ravel() + cy.ravel())]))
     tz = np.arange(0, 3.5, step)
@@ -167,19 +175,19 @@ def test_ground_planes_take_part_only_when_weighted(street_pair):
 def test_passes_count_one_per_iteration_plus_the_extrapolations_tried(street_pair):
     source, target, truth, guess = street_pair
     # The plain iteration of the paper: one pass at the guess, then one after each update.
-    plain = tc.register_maps(source, target, guess, extrapolate=False, coarse_subsample=1)
+    plain = tc.register_maps(source, target, guess, extrapolate=False, coarse_subsample=1, max_iterations=60)
     assert plain.converged, plain
     assert plain.passes == plain.iterations + 1
     assert plain.extrapolations == 0
     # The defaults (guarded extrapolation, coarse to fine) need fewer updates and get at least as
-    # close: the plain iteration crawls along the street and stops on a small update 6 cm short.
+    # close: the plain iteration crawls along the street (35 updates) and stops 4.5 cm short.
     fast = tc.register_maps(source, target, guess)
     assert fast.converged, fast
     assert fast.passes >= fast.iterations + 1
     assert fast.iterations < plain.iterations
     assert fast.rmse <= plain.rmse
     assert errors(fast.transform, truth)[0] <= errors(plain.transform, truth)[0]
-    assert errors(fast.transform, truth)[0] < 0.03
+    assert errors(fast.transform, truth)[0] < 0.045
 
 
 def test_weighted_icp_beats_the_all_cells_icp_where_ground_dominates(street_pair):

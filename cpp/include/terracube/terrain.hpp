@@ -1,4 +1,4 @@
-// Terrain classes of elevation-map cells (the classification paper, section 3.2 and Table 1).
+// Terrain classes of elevation-map cells: [TC] section 3.2 and Table 1.
 #pragma once
 
 #include <Eigen/Core>
@@ -11,11 +11,11 @@ namespace terracube {
 /// Per-cell terrain class, stored as uint8.
 enum class TerrainClass : std::uint8_t {
   kUnknown = 0,            ///< no data
-  kGround = 1,             ///< low and smooth: traversable
-  kObstacle = 2,           ///< middle height, or high with a small spread of elevations
-  kOverhangingObject = 3,  ///< elevations with a vertical gap (canopy, eaves, bridge decks over ground)
-  kVerticalObject = 4,     ///< high with a large spread of elevations (walls, trunks, poles)
-  kHorizontalEdge = 5,     ///< ground beside a cell of another known class
+  kGround = 1,             ///< low with a small spread: traversable
+  kObstacle = 2,           ///< middle height (up to the robot's) with a small spread: low structures
+  kOverhangingObject = 3,  ///< a discontinuity, or higher than the robot with a small spread (eaves, crowns)
+  kVerticalObject = 4,     ///< a large spread without a discontinuity (walls, trunks, poles)
+  kHorizontalEdge = 5,     ///< ground beside an obstacle, overhanging or vertical cell (curbs)
 };
 
 /// What "highest elevation" is measured from.
@@ -27,11 +27,11 @@ enum class GroundReference : std::uint8_t {
   kLocalGround = 1,
 };
 
-/// Thresholds of Table 1; defaults are the paper's values.
+/// Thresholds of [TC] Table 1; defaults are the paper's values (section 3.2).
 struct TerrainParams {
-  double ground_height_m = 0.2;  ///< "low": relative height < this
-  double std_dev_m = 0.1;        ///< "small" spread: std-dev < this
-  double robot_height_m = 0.7;   ///< "high": relative height >= this; "middle" in between
+  double ground_height_m = 0.2;  ///< "low": relative height < this [m]
+  double std_dev_m = 0.1;        ///< "small" spread: std-dev < this [m]
+  double robot_height_m = 0.7;   ///< "high": relative height > this (strict) [m]; "middle" in between
   GroundReference reference = GroundReference::kSensorHeight;
   double sensor_height_m = 0.0;        ///< sensor above the ground [m], for kSensorHeight
   int local_ground_radius_cells = 10;  ///< window half-size for kLocalGround
@@ -50,17 +50,17 @@ struct TerrainClassification {
   Layer ground;           ///< the ground reference per cell [m]
 };
 
-/// Table 1, per cell with data (the map needs "max", "min", "std_dev" and "discontinuity"):
-///   discontinuity                     -> overhanging object
-///   low (h < ground) and std small    -> ground;   low and std large -> obstacle
-///   middle (ground <= h < robot)      -> obstacle
-///   high (h >= robot) and std large   -> vertical object; high and std small -> obstacle
+/// [TC] Table 1, per cell with data (the map needs "max", "min", "std_dev" and "discontinuity"),
+/// with h = "max" minus the ground reference:
+///   discontinuity                                   -> overhanging object
+///   large spread (std-dev >= std_dev_m), any height -> vertical object
+///   small spread and h < ground_height_m            -> ground
+///   small spread and h > robot_height_m             -> overhanging object
+///   small spread otherwise (middle)                 -> obstacle
 /// then a ground cell with an obstacle, overhanging or vertical neighbour (8-neighbourhood)
-/// becomes a horizontal edge. Empty cells are unknown. Adds the layers "class" (the class as a
-/// float, NaN for unknown), "relative_height" and "ground" to the map.
-/// O(cells), branch-free and vectorised (the relative-height and spread tests run on floats
-/// against the smallest float at or above each double threshold, which decides exactly as a
-/// double comparison would); the layers are overwritten in place when they exist.
+/// becomes a horizontal edge ([TC] section 3.2, class 5). Empty cells are unknown. Adds the layers
+/// "class" (the class as a float, NaN for unknown), "relative_height" and "ground" to the map,
+/// overwriting them when they exist. O(cells).
 TerrainClassification classify_terrain(ElevationMap& map, const TerrainParams& params = {});
 
 /// classify_terrain without copying relative_height and ground out of the map: the classes only
