@@ -73,6 +73,9 @@ void bind_evaluation(py::module_& m) {
       .value("none", TrajectoryAlignment::kNone)
       .value("first_pose", TrajectoryAlignment::kFirstPose)
       .value("rigid", TrajectoryAlignment::kRigid);
+  py::enum_<RegionRelations>(m, "RegionRelations")
+      .value("consecutive", RegionRelations::kConsecutive)
+      .value("all_pairs", RegionRelations::kAllPairs);
 
   py::class_<ErrorStatistics>(m, "ErrorStatistics")
       .def_readonly("rmse", &ErrorStatistics::rmse)
@@ -209,13 +212,13 @@ void bind_evaluation(py::module_& m) {
       py::arg("estimate"), py::arg("ground_truth"), py::arg("params"));
   m.def(
       "compare_region_layouts",
-      [](const py::array& map_centres, const py::array& dsm_centres) {
+      [](const py::array& map_centres, const py::array& dsm_centres, RegionRelations relations) {
         const auto map = centres_from_array(map_centres, "map_centres");
         const auto dsm = centres_from_array(dsm_centres, "dsm_centres");
         py::gil_scoped_release release;
-        return compare_region_layouts(map, dsm);
+        return compare_region_layouts(map, dsm, relations);
       },
-      py::arg("map_centres"), py::arg("dsm_centres"));
+      py::arg("map_centres"), py::arg("dsm_centres"), py::arg("relations") = RegionRelations::kConsecutive);
 }
 
 }  // namespace terracube::python

@@ -3,6 +3,7 @@
 #include <Eigen/Geometry>
 #include <Eigen/SVD>
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <limits>
 #include <stdexcept>
@@ -237,7 +238,8 @@ RelativePoseError relative_pose_error(const std::vector<Eigen::Matrix4d>& estima
 }
 
 RegionLayoutComparison compare_region_layouts(const std::vector<Eigen::VectorXd>& map_centres,
-                                              const std::vector<Eigen::VectorXd>& dsm_centres) {
+                                              const std::vector<Eigen::VectorXd>& dsm_centres,
+                                              RegionRelations relations) {
   if (map_centres.size() != dsm_centres.size()) {
     throw std::invalid_argument("map has " + std::to_string(map_centres.size()) + " region centres but the DSM has " +
                                 std::to_string(dsm_centres.size()));
@@ -264,36 +266,44 @@ RegionLayoutComparison compare_region_layouts(const std::vector<Eigen::VectorXd>
     }
   }
 
-  RegionLayoutComparison result;
-  std::vector<double> distance_errors, angle_errors;
-  for (std::size_t i = 0; i < count; ++i) {
-    for (std::size_t j = i + 1; j < count; ++j) {
-      RegionPairError pair;  // eq. (5), our reading
-      pair.i = i;
-      pair.j = j;
-      pair.map_distance_m = (map_centres[i] - map_centres[j]).norm();
-      pair.dsm_distance_m = (dsm_centres[i] - dsm_centres[j]).norm();
-      pair.error_m = std::abs(pair.map_distance_m - pair.dsm_distance_m);
-      distance_errors.push_back(pair.error_m);
-      result.pairs.push_back(pair);
+  // The (i, j) pairs and (i, j, k) triples to compare, j the vertex of a triple.
+  std::vector<std::array<std::size_t, 2>> pair_indices;
+  std::vector<std::array<std::size_t, 3>> triple_indices;
+  if (relations == RegionRelations::kConsecutive) {
+    for (std::size_t i = 0; i < count; ++i) {
+      if (count > 2 || i == 0) pair_indices.push_back({i, (i + 1) % count});                   // 1-2, ..., K-1
+      if (count > 2) triple_indices.push_back({(i + count - 1) % count, i, (i + 1) % count});  // K-1-2, ...
     }
-  }
-  for (std::size_t i = 0; i < count; ++i) {
-    for (std::size_t j = i + 1; j < count; ++j) {
-      for (std::size_t k = j + 1; k < count; ++k) {
-        RegionTripleError triple;  // eq. (6), our reading: the angle at the middle region j
-        triple.i = i;
-        triple.j = j;
-        triple.k = k;
-        triple.map_angle_deg =
-            angle_between(map_centres[i] - map_centres[j], map_centres[k] - map_centres[j]) * kRadToDeg;
-        triple.dsm_angle_deg =
-            angle_between(dsm_centres[i] - dsm_centres[j], dsm_centres[k] - dsm_centres[j]) * kRadToDeg;
-        triple.error_deg = std::abs(triple.map_angle_deg - triple.dsm_angle_deg);
-        angle_errors.push_back(triple.error_deg);
-        result.triples.push_back(triple);
+  } else {
+    for (std::size_t i = 0; i < count; ++i) {
+      for (std::size_t j = i + 1; j < count; ++j) {
+        pair_indices.push_back({i, j});
+        for (std::size_t k = j + 1; k < count; ++k) triple_indices.push_back({i, j, k});
       }
     }
+  }
+  RegionLayoutComparison result;
+  std::vector<double> distance_errors, angle_errors;  // absolute values, for the averages
+  for (const auto& [i, j] : pair_indices) {
+    RegionPairError pair;  // [TC] eq. (5)
+    pair.i = i;
+    pair.j = j;
+    pair.map_distance_m = (map_centres[i] - map_centres[j]).norm();
+    pair.dsm_distance_m = (dsm_centres[i] - dsm_centres[j]).norm();
+    pair.error_m = pair.map_distance_m - pair.dsm_distance_m;
+    distance_errors.push_back(std::abs(pair.error_m));
+    result.pairs.push_back(pair);
+  }
+  for (const auto& [i, j, k] : triple_indices) {
+    RegionTripleError triple;  // [TC] eq. (6): the angle at the middle region j
+    triple.i = i;
+    triple.j = j;
+    triple.k = k;
+    triple.map_angle_deg = angle_between(map_centres[i] - map_centres[j], map_centres[k] - map_centres[j]) * kRadToDeg;
+    triple.dsm_angle_deg = angle_between(dsm_centres[i] - dsm_centres[j], dsm_centres[k] - dsm_centres[j]) * kRadToDeg;
+    triple.error_deg = triple.map_angle_deg - triple.dsm_angle_deg;
+    angle_errors.push_back(std::abs(triple.error_deg));
+    result.triples.push_back(triple);
   }
   result.mean_distance_error_m = mean_of(distance_errors);
   result.max_distance_error_m =

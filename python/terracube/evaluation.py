@@ -5,12 +5,10 @@
 * :func:`relative_pose_error`: the KITTI odometry devkit's measure, translation error in % of the
   segment length and rotation error in degrees per 100 m, averaged over segments of given
   path lengths (100-800 m by default; short sequences need e.g. 5, 10, 20 m).
-* :func:`compare_region_layouts`: section 4.2 of the terrain-classification paper compares the
-  global elevation map with an aerial DSM through the distances between matched regions (eq. 5)
-  and the angles they form (eq. 6). The paper's text was not available to us; the definitions
-  here are OUR READING: pair error ``| |m_i - m_j| - |d_i - d_j| |`` over every pair i < j, and
-  triple error ``|angle_j(m) - angle_j(d)|`` with the angle at the middle region j between the
-  rays to i and k, over every triple i < j < k.
+* :func:`compare_region_layouts`: [TC] section 4.2 compares the global elevation map with an
+  aerial DSM through the distances between matched regions ([TC] eq. (5)) and the angles they
+  form ([TC] eq. (6)), over the consecutive pairs 1-2, ..., K-1 and triples K-1-2, ..., (K-1)-K-1
+  of Tables 4-5 (or every pair and triple, ``relations="all_pairs"``).
 
 Pose files (KITTI, TUM) are read and written by :mod:`terracube.poses`, re-exported here.
 """
@@ -137,29 +135,40 @@ def relative_pose_error(
     return _core.relative_pose_error(np.asarray(estimate), np.asarray(ground_truth), params.to_core())
 
 
-def compare_region_layouts(map_centres, dsm_centres) -> RegionLayoutComparison:
-    """The DSM comparison of the terrain-classification paper, section 4.2 (our reading of eqs. 5-6).
+def compare_region_layouts(
+    map_centres, dsm_centres, relations: str = "consecutive"
+) -> RegionLayoutComparison:
+    """The DSM comparison of [TC] section 4.2: distance errors (eq. 5) and angle errors (eq. 6).
 
     Parameters
     ----------
     map_centres, dsm_centres : (K, 2) or (K, 3) array
-        The same K regions located in the global elevation map and in the reference DSM [m].
+        The same K regions, listed in order around the site, located in the global elevation map
+        and in the reference DSM [m]. [TC] Table 3 gives 3-D centres.
+    relations : {"consecutive", "all_pairs"}
+        ``"consecutive"`` (the paper's Tables 4-5): the K pairs 1-2, 2-3, ..., K-1 and the K
+        triples K-1-2, 1-2-3, ..., (K-1)-K-1, wrapping around. ``"all_pairs"``: every pair
+        i < j and every triple i < j < k (angle at j).
 
     Returns
     -------
     RegionLayoutComparison
-        ``pairs`` (every i < j: ``map_distance``, ``dsm_distance``, ``error`` [m]), ``triples``
-        (every i < j < k: ``map_angle``, ``dsm_angle``, ``error`` [deg], angle at region j),
-        ``mean_distance_error``, ``max_distance_error`` [m], ``mean_angle_error``,
-        ``max_angle_error`` [deg] (NaN without triples).
+        ``pairs`` (``i``, ``j`` 0-based, ``map_distance``, ``dsm_distance``, signed ``error`` =
+        map - DSM [m], as Table 4), ``triples`` (``i``, ``j``, ``k``, the angle at ``j``:
+        ``map_angle``, ``dsm_angle``, signed ``error`` [deg], as Table 5), and the mean and
+        maximum of the absolute errors: ``mean_distance_error``, ``max_distance_error`` [m],
+        ``mean_angle_error``, ``max_angle_error`` [deg] (NaN without triples: K = 2).
 
     Raises
     ------
     ValueError
-        Fewer than two regions, unequal counts or dimensions, non-finite coordinates, or two
-        regions at the same place.
+        Fewer than two regions, unequal counts or dimensions, non-finite coordinates, two
+        regions at the same place, or an unknown ``relations``.
     """
-    return _core.compare_region_layouts(np.asarray(map_centres), np.asarray(dsm_centres))
+    choices = {"consecutive": _core.RegionRelations.consecutive, "all_pairs": _core.RegionRelations.all_pairs}
+    if relations not in choices:
+        raise ValueError(f"relations must be one of {sorted(choices)}, got {relations!r}")
+    return _core.compare_region_layouts(np.asarray(map_centres), np.asarray(dsm_centres), choices[relations])
 
 
 def rigid_alignment(source, target) -> np.ndarray:

@@ -318,26 +318,131 @@ std::vector<Eigen::VectorXd> points(std::initializer_list<std::vector<double>> r
   return out;
 }
 
-TEST(RegionLayout, HandComputedPairAndTripleErrors) {
+TEST(RegionLayout, HandComputedConsecutivePairsAndTriplesWrapAround) {
   // Map: (0,0), (10,0), (10,10). DSM: the third region at (9,10).
   const auto map = points({{0, 0}, {10, 0}, {10, 10}});
   const auto dsm = points({{0, 0}, {10, 0}, {9, 10}});
-  const RegionLayoutComparison c = compare_region_layouts(map, dsm);
+  const RegionLayoutComparison c = compare_region_layouts(map, dsm);  // consecutive by default
   ASSERT_EQ(c.pairs.size(), 3u);
-  ASSERT_EQ(c.triples.size(), 1u);
-  // Pair (0,1): 10 vs 10. Pair (0,2): sqrt(200) vs sqrt(181). Pair (1,2): 10 vs sqrt(101).
+  ASSERT_EQ(c.triples.size(), 3u);
+  // Pairs 1-2, 2-3, 3-1 (0-based 0-1, 1-2, 2-0), signed map - DSM as [TC] Table 4.
+  EXPECT_EQ(c.pairs[2].i, 2u);
+  EXPECT_EQ(c.pairs[2].j, 0u);
   EXPECT_NEAR(c.pairs[0].error_m, 0.0, 1e-12);
-  EXPECT_NEAR(c.pairs[1].error_m, std::sqrt(200.0) - std::sqrt(181.0), 1e-12);
-  EXPECT_NEAR(c.pairs[2].error_m, std::sqrt(101.0) - 10.0, 1e-12);
-  EXPECT_EQ(c.pairs[1].i, 0u);
-  EXPECT_EQ(c.pairs[1].j, 2u);
+  EXPECT_NEAR(c.pairs[1].error_m, 10.0 - std::sqrt(101.0), 1e-12);
+  EXPECT_NEAR(c.pairs[2].error_m, std::sqrt(200.0) - std::sqrt(181.0), 1e-12);
   EXPECT_NEAR(c.mean_distance_error_m, (std::sqrt(200.0) - std::sqrt(181.0) + std::sqrt(101.0) - 10.0) / 3.0, 1e-12);
   EXPECT_NEAR(c.max_distance_error_m, std::sqrt(200.0) - std::sqrt(181.0), 1e-12);
-  // Triple (0,1,2), angle at region 1: 90 degrees in the map, 90 - atan(1/10) in the DSM.
-  EXPECT_NEAR(c.triples[0].map_angle_deg, 90.0, 1e-12);
-  EXPECT_NEAR(c.triples[0].dsm_angle_deg, 90.0 - std::atan(0.1) / kDeg, 1e-12);
+  // Triples 3-1-2, 1-2-3, 2-3-1: the three interior angles, each at its middle region.
+  EXPECT_EQ(c.triples[0].i, 2u);
+  EXPECT_EQ(c.triples[0].j, 0u);
+  EXPECT_EQ(c.triples[0].k, 1u);
+  EXPECT_NEAR(c.triples[0].map_angle_deg, 45.0, 1e-12);
+  EXPECT_NEAR(c.triples[0].dsm_angle_deg, std::atan2(10.0, 9.0) / kDeg, 1e-12);
+  EXPECT_NEAR(c.triples[1].map_angle_deg, 90.0, 1e-12);
+  EXPECT_NEAR(c.triples[1].dsm_angle_deg, 90.0 - std::atan(0.1) / kDeg, 1e-12);
+  EXPECT_NEAR(c.triples[1].error_deg, std::atan(0.1) / kDeg, 1e-12);
+  double angles = 0.0, errors = 0.0;
+  for (const RegionTripleError& t : c.triples) {
+    angles += t.dsm_angle_deg;
+    errors += std::abs(t.error_deg);
+  }
+  EXPECT_NEAR(angles, 180.0, 1e-9) << "a triangle's interior angles";
+  EXPECT_NEAR(c.mean_angle_error_deg, errors / 3.0, 1e-12);
+}
+
+TEST(RegionLayout, AllPairsVariantFormsEveryPairAndTriple) {
+  const auto map = points({{0, 0}, {10, 0}, {10, 10}});
+  const auto dsm = points({{0, 0}, {10, 0}, {9, 10}});
+  const RegionLayoutComparison c = compare_region_layouts(map, dsm, RegionRelations::kAllPairs);
+  ASSERT_EQ(c.pairs.size(), 3u);
+  ASSERT_EQ(c.triples.size(), 1u);
+  EXPECT_EQ(c.pairs[1].i, 0u);
+  EXPECT_EQ(c.pairs[1].j, 2u);
+  EXPECT_NEAR(c.pairs[1].error_m, std::sqrt(200.0) - std::sqrt(181.0), 1e-12);
   EXPECT_NEAR(c.triples[0].error_deg, std::atan(0.1) / kDeg, 1e-12);
-  EXPECT_NEAR(c.mean_angle_error_deg, std::atan(0.1) / kDeg, 1e-12);
+}
+
+// [TC] Table 3: the mean coordinates of the eight regions in the DSM and in the SLAM map.
+const double kTable3Dsm[8][3] = {{116.25, 122.5, 102.54}, {79.75, 171.75, 101.62}, {47.25, 145, 102.76},
+                                 {16.25, 124.25, 103.48}, {48.5, 69.5, 103.43},    {79, 28, 103.39},
+                                 {113.25, 47.75, 103.12}, {147, 73, 102.08}};
+const double kTable3Slam[8][3] = {{51.8, 124.6, 0.603}, {53.2, 186.6, 0.002}, {97, 191, 0.474},     {141, 192.4, 0.273},
+                                  {149, 129.8, -0.70},  {151, 69.8, -0.016},  {105.8, 66.6, 0.342}, {57.2, 67, 0.125}};
+
+std::vector<Eigen::VectorXd> table_3(const double (&rows)[8][3]) {
+  std::vector<Eigen::VectorXd> out;
+  for (const auto& row : rows) out.emplace_back(Eigen::Vector3d(row[0], row[1], row[2]));
+  return out;
+}
+
+TEST(RegionLayout, ReproducesTables4And5FromTable3) {
+  const RegionLayoutComparison c = compare_region_layouts(table_3(kTable3Slam), table_3(kTable3Dsm));
+  // [TC] Table 4 rows: pair, d_DSM, d_SLAM, error (printed to 0.01 m, the errors of 2-3 and 4-5 to
+  // fewer digits). The coordinates are themselves rounded, so each value may be off by a little.
+  struct Row {
+    std::size_t i, j;
+    double dsm, slam, error;
+  };
+  const Row table_4[] = {{1, 2, 61.31, 62.02, 0.71},  {2, 3, 42.11, 44.11, 2},    {3, 4, 37.31, 44.02, 6.71},
+                         {4, 5, 63.54, 63.11, -0.43}, {5, 6, 51.50, 60.04, 8.54}, {6, 7, 39.54, 45.31, 5.77},
+                         {7, 8, 42.16, 48.60, 6.44},  {8, 1, 58.28, 57.85, -0.43}};
+  ASSERT_EQ(c.pairs.size(), 8u);
+  for (std::size_t r = 0; r < 8; ++r) {
+    const Row& row = table_4[r];
+    SCOPED_TRACE("Table 4 row " + std::to_string(row.i) + "-" + std::to_string(row.j));
+    EXPECT_EQ(c.pairs[r].i + 1, row.i);
+    EXPECT_EQ(c.pairs[r].j + 1, row.j);
+    EXPECT_NEAR(c.pairs[r].dsm_distance_m, row.dsm, 0.015);
+    if (row.i == 2) {
+      // The paper disagrees with itself here: Table 3's coordinates give 44.02 m for pair 2-3
+      // (sqrt(43.8^2 + 4.4^2 + 0.472^2)), Table 4 prints 44.11 m and an error of 2 m.
+      EXPECT_NEAR(c.pairs[r].map_distance_m, 44.02, 0.005);
+      EXPECT_NEAR(c.pairs[r].error_m, 1.91, 0.01);
+      continue;
+    }
+    EXPECT_NEAR(c.pairs[r].map_distance_m, row.slam, 0.015);
+    EXPECT_NEAR(c.pairs[r].error_m, row.error, 0.015);
+  }
+  // "Avg." 3.88 m is the mean of the absolute errors; with Table 4's own 2 m for pair 2-3 the
+  // recomputed errors give 3.88 exactly, with Table 3's 1.91 m they give 3.87.
+  double with_table_4_row = 0.0;
+  for (std::size_t r = 0; r < 8; ++r) with_table_4_row += r == 1 ? 2.0 : std::abs(c.pairs[r].error_m);
+  EXPECT_NEAR(with_table_4_row / 8.0, 3.88, 0.005);
+  EXPECT_NEAR(c.mean_distance_error_m, 3.866, 0.005);
+
+  // [TC] Table 5 rows: triple (vertex in the middle), theta_DSM, theta_SLAM, error [deg].
+  struct Angle {
+    std::size_t i, j, k;
+    double dsm, slam, error;
+  };
+  const Angle table_5[] = {{8, 1, 2, 175.13, 173.27, -1.86}, {1, 2, 3, 87.06, 97.02, 9.96},
+                           {2, 3, 4, 174.3, 176, 1.7},       {3, 4, 5, 93.30, 95.46, 2.16},
+                           {4, 5, 6, 174.19, 174.41, 0.22},  {5, 6, 7, 96.34, 92.15, -4.19},
+                           {6, 7, 8, 173.09, 175.42, 2.33},  {7, 8, 1, 94.94, 95.83, 0.89}};
+  ASSERT_EQ(c.triples.size(), 8u);
+  for (std::size_t r = 0; r < 8; ++r) {
+    const Angle& row = table_5[r];
+    SCOPED_TRACE("Table 5 row " + std::to_string(row.i) + "-" + std::to_string(row.j) + "-" + std::to_string(row.k));
+    EXPECT_EQ(c.triples[r].i + 1, row.i);
+    EXPECT_EQ(c.triples[r].j + 1, row.j);
+    EXPECT_EQ(c.triples[r].k + 1, row.k);
+    // Row 2-3-4 is printed to 0.1 deg; the others to 0.01 deg.
+    const double tolerance = row.j == 3 ? 0.05 : 0.015;
+    EXPECT_NEAR(c.triples[r].dsm_angle_deg, row.dsm, tolerance);
+    EXPECT_NEAR(c.triples[r].map_angle_deg, row.slam, tolerance);
+    EXPECT_NEAR(c.triples[r].error_deg, row.error, 2 * tolerance);
+  }
+  EXPECT_NEAR(c.mean_angle_error_deg, 2.91, 0.005);
+}
+
+TEST(RegionLayout, AllPairsOnTable3GivesTheLargerAverages) {
+  // Every pair and triple of Table 3 (28 and 56 relations) mixes distant regions: not the paper's.
+  const RegionLayoutComparison c =
+      compare_region_layouts(table_3(kTable3Slam), table_3(kTable3Dsm), RegionRelations::kAllPairs);
+  EXPECT_EQ(c.pairs.size(), 28u);
+  EXPECT_EQ(c.triples.size(), 56u);
+  EXPECT_GT(c.mean_distance_error_m, 5.0);
 }
 
 TEST(RegionLayout, CountsAllPairsAndTriplesAndIgnoresARigidMotionIn3D) {
@@ -350,19 +455,26 @@ TEST(RegionLayout, CountsAllPairsAndTriplesAndIgnoresARigidMotionIn3D) {
     map.emplace_back(p);
     dsm.emplace_back(Eigen::Vector3d(motion.topLeftCorner<3, 3>() * p + motion.topRightCorner<3, 1>()));
   }
-  const RegionLayoutComparison c = compare_region_layouts(map, dsm);
-  EXPECT_EQ(c.pairs.size(), 15u);    // 6 choose 2
-  EXPECT_EQ(c.triples.size(), 20u);  // 6 choose 3
-  EXPECT_LT(c.max_distance_error_m, 1e-9);
-  EXPECT_LT(c.max_angle_error_deg, 1e-6);
-  EXPECT_EQ(c.triples.back().i, 3u);
-  EXPECT_EQ(c.triples.back().j, 4u);
-  EXPECT_EQ(c.triples.back().k, 5u);
-  // Two regions only: one pair, no triple (NaN angle averages).
-  const RegionLayoutComparison two = compare_region_layouts({map[0], map[1]}, {dsm[0], dsm[1]});
-  EXPECT_EQ(two.pairs.size(), 1u);
-  EXPECT_TRUE(two.triples.empty());
-  EXPECT_TRUE(std::isnan(two.mean_angle_error_deg));
+  const RegionLayoutComparison all = compare_region_layouts(map, dsm, RegionRelations::kAllPairs);
+  EXPECT_EQ(all.pairs.size(), 15u);    // 6 choose 2
+  EXPECT_EQ(all.triples.size(), 20u);  // 6 choose 3
+  EXPECT_LT(all.max_distance_error_m, 1e-9);
+  EXPECT_LT(all.max_angle_error_deg, 1e-6);
+  EXPECT_EQ(all.triples.back().i, 3u);
+  EXPECT_EQ(all.triples.back().j, 4u);
+  EXPECT_EQ(all.triples.back().k, 5u);
+  const RegionLayoutComparison consecutive = compare_region_layouts(map, dsm);
+  EXPECT_EQ(consecutive.pairs.size(), 6u);
+  EXPECT_EQ(consecutive.triples.size(), 6u);
+  EXPECT_LT(consecutive.max_distance_error_m, 1e-9);
+  EXPECT_LT(consecutive.max_angle_error_deg, 1e-6);
+  // Two regions only: one pair, no triple (NaN angle averages), in both variants.
+  for (const RegionRelations relations : {RegionRelations::kConsecutive, RegionRelations::kAllPairs}) {
+    const RegionLayoutComparison two = compare_region_layouts({map[0], map[1]}, {dsm[0], dsm[1]}, relations);
+    EXPECT_EQ(two.pairs.size(), 1u);
+    EXPECT_TRUE(two.triples.empty());
+    EXPECT_TRUE(std::isnan(two.mean_angle_error_deg));
+  }
 }
 
 TEST(RegionLayout, BadInputThrows) {

@@ -237,25 +237,67 @@ def test_kitti_ground_truth_against_itself_and_against_a_drifting_copy(shared_da
 # --- DSM region layouts ---------------------------------------------------------------------
 
 
-def test_region_layout_hand_computed_pair_and_triple_errors():
-    c = ev.compare_region_layouts([[0, 0], [10, 0], [10, 10]], [[0, 0], [10, 0], [9, 10]])
+def test_region_layout_all_pairs_hand_computed_errors():
+    c = ev.compare_region_layouts(
+        [[0, 0], [10, 0], [10, 10]], [[0, 0], [10, 0], [9, 10]], relations="all_pairs"
+    )
     assert [(p.i, p.j) for p in c.pairs] == [(0, 1), (0, 2), (1, 2)]
-    errors = [p.error for p in c.pairs]
-    assert errors == pytest.approx([0.0, math.sqrt(200) - math.sqrt(181), math.sqrt(101) - 10], abs=1e-12)
-    assert c.mean_distance_error == pytest.approx(sum(errors) / 3, abs=1e-12)
+    errors = [p.error for p in c.pairs]  # signed: map - DSM
+    assert errors == pytest.approx([0.0, math.sqrt(200) - math.sqrt(181), 10 - math.sqrt(101)], abs=1e-12)
+    assert c.mean_distance_error == pytest.approx(sum(map(abs, errors)) / 3, abs=1e-12)
     (triple,) = c.triples
     assert (triple.i, triple.j, triple.k) == (0, 1, 2)
     assert triple.map_angle == pytest.approx(90.0, abs=1e-12)
     assert triple.error == pytest.approx(math.degrees(math.atan(0.1)), abs=1e-12)
 
 
-def test_region_layout_is_blind_to_a_rigid_motion_and_counts_every_pair_and_triple():
+# [TC] Table 3: region centres in the DSM and in the SLAM map (x, y, z) [m].
+TABLE_3_DSM = [
+    (116.25, 122.5, 102.54), (79.75, 171.75, 101.62), (47.25, 145, 102.76), (16.25, 124.25, 103.48),
+    (48.5, 69.5, 103.43), (79, 28, 103.39), (113.25, 47.75, 103.12), (147, 73, 102.08),
+]  # fmt: skip
+TABLE_3_SLAM = [
+    (51.8, 124.6, 0.603), (53.2, 186.6, 0.002), (97, 191, 0.474), (141, 192.4, 0.273),
+    (149, 129.8, -0.70), (151, 69.8, -0.016), (105.8, 66.6, 0.342), (57.2, 67, 0.125),
+]  # fmt: skip
+
+
+def test_region_layout_reproduces_the_papers_tables_4_and_5():
+    c = ev.compare_region_layouts(TABLE_3_SLAM, TABLE_3_DSM)
+    # Table 4 (signed errors, m); pair 2-3 prints 2 m where Table 3 gives 44.02 - 42.11 = 1.91 m.
+    table_4 = [0.71, 1.91, 6.71, -0.43, 8.54, 5.77, 6.44, -0.43]
+    assert [(p.i + 1, p.j + 1) for p in c.pairs] == [
+        (1, 2),
+        (2, 3),
+        (3, 4),
+        (4, 5),
+        (5, 6),
+        (6, 7),
+        (7, 8),
+        (8, 1),
+    ]
+    assert [p.error for p in c.pairs] == pytest.approx(table_4, abs=0.015)
+    table_5 = [-1.86, 9.96, 1.7, 2.16, 0.22, -4.19, 2.33, 0.89]
+    assert [(t.i + 1, t.j + 1, t.k + 1) for t in c.triples] == [
+        (8, 1, 2), (1, 2, 3), (2, 3, 4), (3, 4, 5), (4, 5, 6), (5, 6, 7), (6, 7, 8), (7, 8, 1)
+    ]  # fmt: skip
+    assert [t.error for t in c.triples] == pytest.approx(table_5, abs=0.05)
+    assert c.mean_angle_error == pytest.approx(2.91, abs=0.005)
+    assert c.mean_distance_error == pytest.approx(3.866, abs=0.005)  # 3.88 with Table 4's 2 m row
+
+
+def test_region_layout_is_blind_to_a_rigid_motion_and_counts_relations():
     rng = np.random.default_rng(2)
     centres = rng.uniform(-50, 50, size=(7, 3))
     moved = centres @ rotation([0.2, 0.1, 1.0], 1.1).T + (100.0, -40.0, 5.0)
-    c = ev.compare_region_layouts(centres, moved)
+    c = ev.compare_region_layouts(centres, moved, relations="all_pairs")
     assert len(c.pairs) == 21 and len(c.triples) == 35
     assert c.max_distance_error < 1e-9 and c.max_angle_error < 1e-6
+    c = ev.compare_region_layouts(centres, moved)
+    assert len(c.pairs) == 7 and len(c.triples) == 7
+    assert c.max_distance_error < 1e-9 and c.max_angle_error < 1e-6
+    with pytest.raises(ValueError, match="relations must be one of"):
+        ev.compare_region_layouts(centres, moved, relations="every")
 
 
 def test_region_layout_bad_input():

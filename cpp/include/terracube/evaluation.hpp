@@ -1,12 +1,12 @@
 // Accuracy measures for trajectories and maps: the absolute trajectory error (with optional
 // rigid alignment), the KITTI-devkit relative pose error over path-length segments, and the DSM
-// comparison of the terrain-classification paper (section 4.2: distance errors between pairs of
-// matched regions, eq. (5), and angle errors over triples, eq. (6); see compare_region_layouts
-// for how we read those equations).
+// comparison of [TC] section 4.2 (distance errors of region pairs, [TC] eq. (5), and angle errors
+// of region triples, [TC] eq. (6)).
 #pragma once
 
 #include <Eigen/Core>
 #include <cstddef>
+#include <cstdint>
 #include <vector>
 
 namespace terracube {
@@ -99,43 +99,52 @@ RelativePoseError relative_pose_error(const std::vector<Eigen::Matrix4d>& estima
                                       const std::vector<Eigen::Matrix4d>& ground_truth,
                                       const RelativePoseErrorParams& params = {});
 
+/// Which region relations compare_region_layouts forms.
+enum class RegionRelations : std::uint8_t {
+  /// [TC] Tables 4-5: the K consecutive pairs 1-2, 2-3, ..., K-1 (wrapping around) and the K
+  /// consecutive triples K-1-2, 1-2-3, ..., (K-1)-K-1, the angle at the middle region.
+  kConsecutive = 0,
+  /// Every pair i < j and every triple i < j < k (angle at j): more relations, not the paper's.
+  kAllPairs = 1,
+};
+
 /// One pair of regions in compare_region_layouts.
 struct RegionPairError {
-  std::size_t i = 0, j = 0;     ///< i < j
+  std::size_t i = 0, j = 0;     ///< the regions, 0-based
   double map_distance_m = 0.0;  ///< |m_i - m_j|
   double dsm_distance_m = 0.0;  ///< |d_i - d_j|
-  double error_m = 0.0;         ///< |map_distance - dsm_distance|
+  double error_m = 0.0;         ///< [TC] eq. (5), signed as Table 4: map_distance - dsm_distance
 };
 
 /// One triple of regions: the angle at the middle region j between the rays to i and to k.
 struct RegionTripleError {
-  std::size_t i = 0, j = 0, k = 0;  ///< i < j < k
+  std::size_t i = 0, j = 0, k = 0;  ///< the regions, 0-based; j is the vertex
   double map_angle_deg = 0.0;       ///< angle(m_i - m_j, m_k - m_j) in [0, 180]
   double dsm_angle_deg = 0.0;       ///< angle(d_i - d_j, d_k - d_j)
-  double error_deg = 0.0;           ///< |map_angle - dsm_angle|
+  double error_deg = 0.0;           ///< [TC] eq. (6), signed as Table 5: map_angle - dsm_angle
 };
 
-/// Outcome of compare_region_layouts.
+/// Outcome of compare_region_layouts. The means and maxima are of the absolute errors, as the
+/// "Avg." rows of [TC] Tables 4-5 (3.88 m and 2.91 deg).
 struct RegionLayoutComparison {
-  std::vector<RegionPairError> pairs;      ///< every pair i < j, lexicographic
-  std::vector<RegionTripleError> triples;  ///< every triple i < j < k, lexicographic
-  double mean_distance_error_m = 0.0;      ///< NaN without pairs
-  double max_distance_error_m = 0.0;       ///< NaN without pairs
-  double mean_angle_error_deg = 0.0;       ///< NaN without triples
-  double max_angle_error_deg = 0.0;        ///< NaN without triples
+  std::vector<RegionPairError> pairs;      ///< in the order of RegionRelations
+  std::vector<RegionTripleError> triples;  ///< in the order of RegionRelations
+  double mean_distance_error_m = 0.0;      ///< mean |error_m|, NaN without pairs
+  double max_distance_error_m = 0.0;       ///< max |error_m|, NaN without pairs
+  double mean_angle_error_deg = 0.0;       ///< mean |error_deg|, NaN without triples
+  double max_angle_error_deg = 0.0;        ///< max |error_deg|, NaN without triples
 };
 
-/// The DSM comparison of the terrain-classification paper, section 4.2: the same K regions are
-/// located in the robot's global elevation map (map_centres) and in a reference aerial DSM
-/// (dsm_centres); the layouts are compared without registering one to the other.
-/// OUR READING of eqs. (5) and (6) (the paper's text was not available to us): eq. (5) is the
-/// distance error of a pair, | |m_i - m_j| - |d_i - d_j| |, over every pair i < j; eq. (6) is the
-/// angle error of a triple, |angle_j(m) - angle_j(d)|, where angle_j is the angle at the middle
-/// region j between the rays to regions i and k, over every triple i < j < k. Both are reported
-/// per pair/triple and averaged. Points may be 2D (x, y) or 3D; both sets must have the same
-/// dimension. Throws std::invalid_argument for fewer than two regions, unequal counts, non-finite
-/// coordinates, or two regions at the same place in one set (their angles are undefined).
+/// The DSM comparison of [TC] section 4.2: the same K regions, listed in order around the site,
+/// are located in the robot's global elevation map (map_centres) and in an aerial DSM
+/// (dsm_centres); the layouts are compared without registering one to the other, by the distance
+/// errors of region pairs ([TC] eq. (5)) and the angle errors of region triples ([TC] eq. (6)).
+/// `relations` picks the paper's consecutive relations (default) or every pair and triple. With
+/// K = 2 there is one pair and no triple. Points may be 2D (x, y) or 3D (the paper's, Table 3);
+/// both sets must have the same dimension. Throws std::invalid_argument for fewer than two
+/// regions, unequal counts, non-finite coordinates, or two regions at the same place in one set.
 RegionLayoutComparison compare_region_layouts(const std::vector<Eigen::VectorXd>& map_centres,
-                                              const std::vector<Eigen::VectorXd>& dsm_centres);
+                                              const std::vector<Eigen::VectorXd>& dsm_centres,
+                                              RegionRelations relations = RegionRelations::kConsecutive);
 
 }  // namespace terracube
