@@ -8,8 +8,8 @@ of the shared machine, until each has ``--repeat`` calls; the median per method,
 of four ways to flag overhang points (five timings):
 
 1. ``terracube.collapse_overhangs`` -- Algorithm 1 of Reina et al. (IEEE AIM 2014) in C++;
-2. ``terracube.point_gap_overhangs`` -- the point-based per-cell gap search the paper compares
-   against, in C++, with ``cell = edge`` and ``min_gap = sigma * edge``;
+2. ``terracube.point_based_overhangs`` -- the point-based method the paper compares against
+   (variance test, then a gap search of sigma empty steps on the same grid), in C++;
 3. ``terracube.octomap_column_overhangs`` -- Algorithm 1's column rule on an OctoMap OcTree, in C++;
 4. :func:`numpy_collapse` -- Algorithm 1 vectorised with numpy, defined in this file; like the C++
    "auto" storage it keeps a bool per cube while the grid is small and falls back to np.unique
@@ -357,7 +357,7 @@ def check_agreement(cloud: Cloud, edge: float, sigma: int, measurement: Measurem
             np.array_equal(getattr(threaded, field_name), getattr(result, field_name)),
             f"{cloud.name}: num_threads=0 gives another {field_name} than one thread",
         )
-    point_gap = tc.point_gap_overhangs(points, edge, sigma * edge)
+    point_gap = tc.point_based_overhangs(points, edge, sigma)
     measurement.point_gap_agreement = float(np.mean(point_gap == result.overhang))
     measurement.overhang_fraction = float(np.mean(result.overhang))
 
@@ -431,7 +431,7 @@ def measure(cloud: Cloud, edge: float, sigma: int, repeat: int) -> Measurement:
     runs = {
         "collapse": lambda: tc.collapse_overhangs(points, edge, sigma),
         "collapse_threads": lambda: tc.collapse_overhangs(points, edge, sigma, num_threads=0),
-        "point_gap": lambda: tc.point_gap_overhangs(points, edge, sigma * edge),
+        "point_gap": lambda: tc.point_based_overhangs(points, edge, sigma),
         "octomap": lambda: tc.octomap_column_overhangs(points, edge, sigma),
         "numpy": lambda: numpy_collapse(points, edge, sigma),
         "numpy_unique": lambda: numpy_collapse_unique(points, edge, sigma),
@@ -476,8 +476,8 @@ def measure(cloud: Cloud, edge: float, sigma: int, repeat: int) -> Measurement:
 def print_collapse_header(args: argparse.Namespace) -> None:
     params = header_line(
         "params",
-        f"edge={args.edge} m, sigma={args.sigma} cubes; point_gap cell={args.edge} m, "
-        f"min_gap={args.sigma * args.edge} m",
+        f"edge={args.edge} m, sigma={args.sigma} cubes; point_based edge={args.edge} m, "
+        "variance threshold 0.01 m^2",
     )
     print_header(
         "terracube overhang-removal benchmark",
@@ -499,7 +499,7 @@ def _cell(measurement: Measurement, method: str) -> tuple[str, str]:
 LABELS = {
     "collapse": "collapse_overhangs (C++)",
     "collapse_threads": f"  same, {processors()} threads",
-    "point_gap": "point_gap_overhangs (C++)",
+    "point_gap": "point_based_overhangs (C++)",
     "octomap": "octomap_column_overhangs (C++)",
     "numpy": "numpy_collapse (numpy)",
     "numpy_unique": "  same, np.unique path",
@@ -539,7 +539,7 @@ def print_measurement(measurement: Measurement) -> None:
         f"  checks: numpy (L, R, mask; both paths) == collapse OK; octomap (mask) == collapse {octomap_check}"
     )
     print(
-        f"  overhang: {measurement.overhang_fraction:.2%} of points; point_gap agrees with collapse on "
+        f"  overhang: {measurement.overhang_fraction:.2%} of points; point_based agrees with collapse on "
         f"{measurement.point_gap_agreement:.2%} of points"
     )
 
@@ -573,13 +573,13 @@ def print_targets(measurements: list[Measurement], quick: bool) -> None:
 
 
 def print_markdown(measurements: list[Measurement]) -> None:
-    heads = [f"collapse, {processors()} threads", "point_gap", "OctoMap", "numpy", "numpy (np.unique)"]
+    heads = [f"collapse, {processors()} threads", "point_based", "OctoMap", "numpy", "numpy (np.unique)"]
     columns = [
         "input",
         "N",
         "collapse ms",
         *(f"{h} ms (ratio)" for h in heads),
-        "point_gap agreement",
+        "point_based agreement",
         "leveled + cropped: collapse ms, numpy ms (ratio)",
         f"memory floor ms, 1 and {processors()} threads (numpy / floor)",
     ]

@@ -18,20 +18,21 @@ py::array to_bool_array(std::vector<std::uint8_t>&& mask) {
 }  // namespace
 
 void bind_baselines(py::module_& m) {
-  py::class_<PointGapParams>(m, "PointGapParams")
+  py::class_<PointBasedParams>(m, "PointBasedParams")
       .def(py::init<>())
-      .def_readwrite("cell_m", &PointGapParams::cell_m)
-      .def_readwrite("min_gap_m", &PointGapParams::min_gap_m)
-      .def_readwrite("transform", &PointGapParams::transform)
-      .def_readwrite("crop", &PointGapParams::crop)
-      .def_readwrite("drop_non_finite", &PointGapParams::drop_non_finite);
+      .def_readwrite("edge_m", &PointBasedParams::edge_m)
+      .def_readwrite("sigma", &PointBasedParams::sigma)
+      .def_readwrite("variance_threshold_m2", &PointBasedParams::variance_threshold_m2)
+      .def_readwrite("transform", &PointBasedParams::transform)
+      .def_readwrite("crop", &PointBasedParams::crop)
+      .def_readwrite("drop_non_finite", &PointBasedParams::drop_non_finite);
 
   m.def(
-      "point_gap_overhangs",
-      [](const py::array& points, const PointGapParams& params) {
+      "point_based_overhangs",
+      [](const py::array& points, const PointBasedParams& params) {
         return to_bool_array(with_points(points, "points", [&](const auto& view) {
           py::gil_scoped_release release;
-          return point_gap_overhangs(view, params);
+          return point_based_overhangs(view, params);
         }));
       },
       py::arg("points"), py::arg("params"));

@@ -718,7 +718,12 @@ int sigma_from_robot_height(double robot_height_m, double edge_m) {
   if (!(edge_m > 0.0) || !std::isfinite(edge_m)) {
     throw std::invalid_argument("edge must be a positive finite length in metres");
   }
-  const double cubes = std::ceil(robot_height_m / edge_m);
+  // [CBC] section IV-B: sigma = ceil(robot height / E). Decimal lengths are not exact in binary
+  // (2.1 / 0.3 = 7.000000000000001), so a ratio within 1e-9 (relative) of a whole number is that
+  // number: 2.1 / 0.3 gives 7, not 8.
+  const double ratio = robot_height_m / edge_m;
+  const double nearest = std::round(ratio);
+  const double cubes = std::abs(ratio - nearest) <= 1e-9 * std::max(1.0, nearest) ? nearest : std::ceil(ratio);
   if (cubes > static_cast<double>(std::numeric_limits<int>::max())) {
     throw std::invalid_argument("robot height / edge is too large for sigma");
   }

@@ -5,11 +5,11 @@ from .collapse import (
     CollapseParams,
     CollapseResult,
     CubeGrid,
-    PointGapParams,
+    PointBasedParams,
     collapse_overhangs,
     leveling_transform,
     octomap_column_overhangs,
-    point_gap_overhangs,
+    point_based_overhangs,
     sigma_from_robot_height,
 )
 from .elevation import (
@@ -91,10 +91,10 @@ __all__ = [
     "classify_terrain",
     "dem_without_overhangs",
     "fit_fuzzy_elevation_map",
-    "PointGapParams",
+    "PointBasedParams",
     "collapse_overhangs",
     "leveling_transform",
     "octomap_column_overhangs",
-    "point_gap_overhangs",
+    "point_based_overhangs",
     "sigma_from_robot_height",
 ]

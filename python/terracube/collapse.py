@@ -11,9 +11,9 @@ from . import _core
 
 __all__ = [
     "CollapseParams",
-    "PointGapParams",
+    "PointBasedParams",
     "collapse_overhangs",
-    "point_gap_overhangs",
+    "point_based_overhangs",
     "octomap_column_overhangs",
     "sigma_from_robot_height",
     "leveling_transform",
@@ -127,29 +127,34 @@ class CollapseParams:
 
 
 @dataclass
-class PointGapParams:
-    """Parameters of :func:`point_gap_overhangs`, mirroring ``terracube::PointGapParams``.
+class PointBasedParams:
+    """Parameters of :func:`point_based_overhangs`, mirroring ``terracube::PointBasedParams``.
 
     Attributes
     ----------
-    cell : float
-        Edge of the square 2D cells [m], > 0, aligned like the CBC columns.
-    min_gap : float
-        A vertical gap strictly larger than this [m] separates ground from overhang.
+    edge : float
+        Cell edge and height step E [m], > 0: the same grid as the CBC cubes.
+    sigma : int
+        The gap: ``sigma`` or more empty steps of E between consecutive points of a cell, >= 1.
+    variance_threshold : float
+        Cells whose height variance is at most this [m^2] are not searched (refs. [3], [7] of
+        [CBC]; the value is ours: a 10 cm standard deviation).
     transform, crop, drop_non_finite
         As in :class:`CollapseParams`.
     """
 
-    cell: float = 0.5
-    min_gap: float = 1.0
+    edge: float = 0.5
+    sigma: int = 2
+    variance_threshold: float = 0.01
     transform: np.ndarray | None = None
     crop: Sequence[Sequence[float]] | None = None
     drop_non_finite: bool = False
 
-    def to_core(self) -> _core.PointGapParams:
-        params = _core.PointGapParams()
-        params.cell_m = float(self.cell)
-        params.min_gap_m = float(self.min_gap)
+    def to_core(self) -> _core.PointBasedParams:
+        params = _core.PointBasedParams()
+        params.edge_m = float(self.edge)
+        params.sigma = int(self.sigma)
+        params.variance_threshold_m2 = float(self.variance_threshold)
         _set_frame(params, self.transform, self.crop)
         params.drop_non_finite = bool(self.drop_non_finite)
         return params
@@ -197,17 +202,30 @@ def collapse_overhangs(
     return _core.collapse_overhangs(_as_points(points), params.to_core())
 
 
-def point_gap_overhangs(
-    points, cell: float = 0.5, min_gap: float = 1.0, *, params: PointGapParams | None = None, **kwargs
+def point_based_overhangs(
+    points,
+    edge: float = 0.5,
+    sigma: int = 2,
+    *,
+    variance_threshold: float = 0.01,
+    params: PointBasedParams | None = None,
+    **kwargs,
 ) -> np.ndarray:
-    """The point-based per-cell gap search the paper compares against.
+    """The point-based method [CBC] compares collapsible cubes with (its refs. [3], [7]).
 
-    In each 2D cell the heights are sorted; points above the first gap larger than ``min_gap`` [m]
-    are overhang. Returns an (N,) bool mask in input order.
+    Per 2D cell of the CBC grid, cells whose height variance exceeds ``variance_threshold`` [m^2]
+    are searched bottom-up for a gap of ``sigma`` or more empty steps of ``edge`` between
+    consecutive points; everything above the first such gap is overhang. It agrees with
+    :func:`collapse_overhangs` except in cells that hold a gap but a small variance.
+
+    Returns
+    -------
+    (N,) bool array
+        True for overhang points, in input order.
     """
     if params is None:
-        params = PointGapParams(cell, min_gap, **kwargs)
-    return _core.point_gap_overhangs(_as_points(points), params.to_core())
+        params = PointBasedParams(edge, sigma, variance_threshold, **kwargs)
+    return _core.point_based_overhangs(_as_points(points), params.to_core())
 
 
 def octomap_column_overhangs(

@@ -7,7 +7,8 @@
 namespace terracube {
 namespace {
 
-TEST(CubeGrid, IndexFollowsEquation7AndInvertsExactly) {
+TEST(CubeGrid, IndexFollowsEquation1AndEquations7To9InvertIt) {
+  // [CBC] eq. (1): I = ix + iy ixmax + iz ixmax iymax; eqs. (7)-(9) recover (ix, iy, iz).
   CubeGrid grid;
   grid.edge_m = 0.5;
   grid.ixmax = 7;
@@ -24,7 +25,7 @@ TEST(CubeGrid, IndexFollowsEquation7AndInvertsExactly) {
   }
 }
 
-TEST(CubeGrid, QuantizeRoundsHalfUpFromTheMinimum) {
+TEST(CubeGrid, QuantizeRoundsHalfUpFromTheMinimumAsEquations4To6) {
   // The bounding-box minimum is the centre of cube 0: [-E/2, E/2) maps to 0.
   EXPECT_EQ(quantize(1.0, 1.0, 2.0), 0);
   EXPECT_EQ(quantize(1.24, 1.0, 2.0), 0);
@@ -33,7 +34,8 @@ TEST(CubeGrid, QuantizeRoundsHalfUpFromTheMinimum) {
   EXPECT_EQ(quantize(1.75, 1.0, 2.0), 2);
 }
 
-TEST(CubeGrid, CollapseReportsGeometryOfEquations4To6) {
+TEST(CubeGrid, CollapseReportsGeometryOfEquations2And3) {
+  // [CBC] eqs. (2)-(3) give ixmax and iymax; izmax is ours, by the same rule.
   // x spans 0..2.3 at E = 0.5: round(4.6) + 1 = 6 cubes; y spans 0..0.2: round(0.4) + 1 = 1;
   // z spans -1..0.26: round(2.52) + 1 = 4.
   const std::vector<Eigen::Vector3d> points = {{0.0, 0.0, -1.0}, {2.3, 0.2, 0.26}};
@@ -55,6 +57,19 @@ TEST(CubeGrid, SigmaFromRobotHeightIsCeiling) {
   EXPECT_EQ(sigma_from_robot_height(1.0, 0.5), 2);
   EXPECT_EQ(sigma_from_robot_height(1.01, 0.5), 3);
   EXPECT_EQ(sigma_from_robot_height(0.1, 0.5), 1);
+  EXPECT_EQ(sigma_from_robot_height(0.9, 0.5), 2);  // [CBC] section IV-B: ceil(0.9 m / 0.5 m) = 2
+}
+
+TEST(CubeGrid, SigmaIsExactForDecimalLengths) {
+  // In binary 2.1 / 0.3 = 7.000000000000001 and 2.7 / 0.3 = 9.000000000000002; a plain ceil gives
+  // 8 and 10. Decimal lengths that divide evenly give the whole number.
+  EXPECT_EQ(sigma_from_robot_height(2.1, 0.3), 7);
+  EXPECT_EQ(sigma_from_robot_height(2.1, 0.7), 3);
+  EXPECT_EQ(sigma_from_robot_height(2.7, 0.3), 9);
+  EXPECT_EQ(sigma_from_robot_height(0.3, 0.1), 3);
+  EXPECT_EQ(sigma_from_robot_height(0.7, 0.1), 7);
+  EXPECT_EQ(sigma_from_robot_height(2.1000001, 0.3), 8) << "just above a whole number still rounds up";
+  EXPECT_EQ(sigma_from_robot_height(2.0999999, 0.3), 7);
   EXPECT_THROW(sigma_from_robot_height(0.0, 0.5), std::invalid_argument);
   EXPECT_THROW(sigma_from_robot_height(1.0, -0.5), std::invalid_argument);
   EXPECT_THROW(sigma_from_robot_height(NAN, 0.5), std::invalid_argument);

@@ -15,6 +15,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -591,8 +592,21 @@ def test_sigma_from_robot_height_is_ceil_of_height_over_edge_and_at_least_one():
     height=st.floats(0.01, 50.0, allow_nan=False),
     edge=st.floats(0.01, 5.0, allow_nan=False),
 )
-def test_sigma_from_robot_height_matches_math_ceil(height, edge):
-    assert tc.sigma_from_robot_height(height, edge) == max(1, math.ceil(height / edge))
+def test_sigma_from_robot_height_is_the_ceil_of_the_decimal_ratio(height, edge):
+    # The reference divides the decimal lengths exactly (fractions); a ratio within 1e-9 of a
+    # whole number counts as that number (documented tolerance: 2.1 / 0.3 is 7).
+    ratio = Fraction(repr(height)) / Fraction(repr(edge))
+    nearest = round(ratio)
+    expected = nearest if abs(ratio - nearest) <= Fraction(1, 10**9) * max(1, nearest) else math.ceil(ratio)
+    assert tc.sigma_from_robot_height(height, edge) == max(1, expected)
+
+
+def test_sigma_from_robot_height_is_exact_for_decimal_lengths():
+    # Binary floating point gives 2.1 / 0.3 = 7.000000000000001 (a plain ceil: 8).
+    assert tc.sigma_from_robot_height(2.1, 0.3) == 7
+    assert tc.sigma_from_robot_height(2.1, 0.7) == 3
+    assert tc.sigma_from_robot_height(2.7, 0.3) == 9
+    assert tc.sigma_from_robot_height(0.9, 0.5) == 2  # [CBC] section IV-B
 
 
 # --------------------------------------------------------------------------------------------
@@ -726,8 +740,11 @@ def test_subnormal_edge_raises_value_error_saying_it_is_too_small():
     ("call", "text"),
     [
         (lambda: tc.collapse_overhangs(np.zeros((1, 3)), -0.25, 2), "edge must be .*, got -0.25$"),
-        (lambda: tc.point_gap_overhangs(np.zeros((1, 3)), cell=0.0), "cell must be .*, got 0$"),
-        (lambda: tc.point_gap_overhangs(np.zeros((1, 3)), min_gap=np.inf), "min_gap must be .*, got inf$"),
+        (lambda: tc.point_based_overhangs(np.zeros((1, 3)), edge=0.0), "edge must be .*, got 0$"),
+        (
+            lambda: tc.point_based_overhangs(np.zeros((1, 3)), variance_threshold=np.inf),
+            "variance threshold must be .*, got inf$",
+        ),
         (lambda: tc.build_elevation_map(np.zeros((1, 3)), 1e-400), "resolution must be .*, got 0$"),
         (lambda: tc.build_elevation_map(np.zeros((1, 3)), -3e-9), "resolution must be .*, got -3e-09$"),
     ],
@@ -864,9 +881,9 @@ def _main_thread_increments_during_call(call) -> tuple:
         lambda cloud: tc.collapse_overhangs(cloud, 0.5, 2),
         lambda cloud: tc.collapse_overhangs(cloud, 0.5, 2, storage="sparse"),
         lambda cloud: tc.octomap_column_overhangs(cloud, 5.0, 2),
-        lambda cloud: tc.point_gap_overhangs(cloud, 0.5, 1.0),
+        lambda cloud: tc.point_based_overhangs(cloud, 0.5, 2),
     ],
-    ids=["collapse_dense", "collapse_sparse", "octomap", "point_gap"],
+    ids=["collapse_dense", "collapse_sparse", "octomap", "point_based"],
 )
 def test_calls_release_the_gil_while_they_run(function):
     """The main thread keeps running Python while the call works in another thread. Up to three
