@@ -13,6 +13,7 @@ void bind_fuzzy(py::module_& m) {
   py::enum_<MembershipFamily>(m, "MembershipFamily")
       .value("triangular", MembershipFamily::kTriangularPartition)
       .value("gaussian", MembershipFamily::kGaussian);
+  py::enum_<StepRule>(m, "StepRule").value("guarded", StepRule::kGuarded).value("jang", StepRule::kJang);
 
   py::class_<FuzzyParams>(m, "FuzzyParams")
       .def(py::init<>())
@@ -21,6 +22,7 @@ void bind_fuzzy(py::module_& m) {
       .def_readwrite("membership", &FuzzyParams::membership)
       .def_readwrite("gaussian_width", &FuzzyParams::gaussian_width)
       .def_readwrite("epochs", &FuzzyParams::epochs)
+      .def_readwrite("step_rule", &FuzzyParams::step_rule)
       .def_readwrite("learning_rate", &FuzzyParams::learning_rate)
       .def_readwrite("ridge", &FuzzyParams::ridge)
       .def_readwrite("smoothness", &FuzzyParams::smoothness)

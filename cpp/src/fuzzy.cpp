@@ -20,6 +20,24 @@ constexpr int kGaussianHalfWindow = 2;
 constexpr double kMinGapFraction = 0.05;
 constexpr int kMaxStepTries = 4;
 
+/// Jang (1993), section V: the step length grows by 10 % after four reductions of the error in a
+/// row and shrinks by 10 % after two increase-reduction alternations in a row. `changes` holds
+/// whether each earlier step raised the error; `raised` is this step's.
+double jang_step_factor(bool raised, std::vector<bool>& changes) {
+  changes.push_back(raised);
+  const std::size_t n = changes.size();
+  if (n >= 4 && !changes[n - 1] && !changes[n - 2] && !changes[n - 3] && !changes[n - 4]) {
+    changes.clear();
+    return 1.1;
+  }
+  if (n >= 4 && changes[n - 1] != changes[n - 2] && changes[n - 2] != changes[n - 3] &&
+      changes[n - 3] != changes[n - 4]) {
+    changes.clear();
+    return 0.9;
+  }
+  return 1.0;
+}
+
 /// The normalised degrees of the MFs of one axis at one coordinate: MFs first..first+count-1.
 struct AxisWindow {
   int first = 0;
@@ -232,6 +250,7 @@ struct FuzzyFitter {
                                   (extent.max_m.y() - extent.min_m.y()) / (params.rules_y - 1));
     double kappa = params.learning_rate * spacing.minCoeff();  // step length [m] (Jang's k)
     Eigen::VectorXd grad_x, grad_y;
+    std::vector<bool> changes;  // StepRule::kJang: whether each step raised the error, oldest first
     for (int epoch = 0; epoch < params.epochs; ++epoch) {
       // Backward pass: a normalised gradient step on the centres, consequents fixed.
       centre_gradient(grad_x, grad_y);
@@ -240,6 +259,16 @@ struct FuzzyFitter {
         const Eigen::VectorXd old_x = model.centers_x_;
         const Eigen::VectorXd old_y = model.centers_y_;
         bool accepted = false;
+        if (params.step_rule == StepRule::kJang) {
+          model.centers_x_ = old_x - (kappa / norm) * grad_x;
+          model.centers_y_ = old_y - (kappa / norm) * grad_y;
+          project_centers(model.centers_x_, extent.min_m.x(), extent.max_m.x(), kMinGapFraction * spacing.x());
+          project_centers(model.centers_y_, extent.min_m.y(), extent.max_m.y(), kMinGapFraction * spacing.y());
+          const double trial = squared_error();
+          kappa *= jang_step_factor(trial > sse, changes);
+          sse = trial;
+          accepted = true;
+        }
         for (int attempt = 0; attempt < kMaxStepTries && !accepted; ++attempt) {
           model.centers_x_ = old_x - (kappa / norm) * grad_x;
           model.centers_y_ = old_y - (kappa / norm) * grad_y;

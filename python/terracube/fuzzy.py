@@ -57,6 +57,11 @@ class FuzzyParams:
         The fit needs at least this many points per rule on average (2).
     min_confidence : float
         :meth:`FuzzyElevationMap.to_layer` leaves cells with less rule support empty [points] (3).
+    step_rule : {"guarded", "jang"}
+        ``"guarded"``: a centre step is kept only if the training error does not grow (step +10 %),
+        else retried at half the step. ``"jang"``: every step is taken and the step adapts by
+        Jang's heuristic (+10 % after four error reductions in a row, -10 % after two
+        increase-reduction alternations): plain ANFIS, with ``ridge=0, smoothness=0``.
     """
 
     rules_x: int = 19
@@ -70,6 +75,7 @@ class FuzzyParams:
     extent: Sequence[Sequence[float]] | None = None
     min_points_per_rule: float = 2.0
     min_confidence: float = 3.0
+    step_rule: str = "guarded"
 
     def to_core(self) -> _core.FuzzyParams:
         if self.membership not in _FAMILIES:
@@ -90,6 +96,10 @@ class FuzzyParams:
             params.set_extent(*extent[0], *extent[1])
         params.min_points_per_rule = float(self.min_points_per_rule)
         params.min_confidence = float(self.min_confidence)
+        rules = {"guarded": _core.StepRule.guarded, "jang": _core.StepRule.jang}
+        if self.step_rule not in rules:
+            raise ValueError(f"step_rule must be one of {sorted(rules)}, got {self.step_rule!r}")
+        params.step_rule = rules[self.step_rule]
         return params
 
     @classmethod
@@ -105,6 +115,7 @@ class FuzzyParams:
             smoothness=core.smoothness,
             min_points_per_rule=core.min_points_per_rule,
             min_confidence=core.min_confidence,
+            step_rule=core.step_rule.name,
         )
 
 

@@ -191,6 +191,35 @@ TEST(FitFuzzyElevationMap, TrainingErrorNeverIncreasesAcrossEpochs) {
   }
 }
 
+TEST(FitFuzzyElevationMap, JangStepRuleIsPlainAnfisTakingEveryStep) {
+  // Plain ANFIS (no regularisation, Jang's step-size heuristic) learns a known surface.
+  const FuzzyElevationMap truth = known_surface(MembershipFamily::kTriangularPartition);
+  const std::vector<Eigen::Vector3d> points = sample(truth, 4000, 5);
+  FuzzyParams params = truth.params();
+  params.epochs = 40;
+  params.ridge = 0.0;
+  params.smoothness = 0.0;
+  params.step_rule = StepRule::kJang;
+  const FuzzyElevationMap learned = fit_fuzzy_elevation_map(PointsView<double>(points), params);
+  ASSERT_EQ(learned.rmse_history().size(), 41U);
+  EXPECT_LT(learned.rmse_history().back(), 0.5 * learned.rmse_history().front());
+  // One epoch takes the first step whatever it does to the error: the centres move by exactly
+  // kappa = learning_rate x the smaller spacing along the normalised gradient (no clipping here).
+  const std::vector<Eigen::Vector3d> noisy = sample(truth, 2000, 21, 0.05);
+  FuzzyParams one = params_over(0, 0, 10, 5, 8, 5);
+  one.epochs = 1;
+  one.learning_rate = 0.05;
+  one.ridge = 0.0;
+  one.smoothness = 0.0;
+  one.step_rule = StepRule::kJang;
+  const FuzzyElevationMap stepped = fit_fuzzy_elevation_map(PointsView<double>(noisy), one);
+  const Eigen::VectorXd start_x = Eigen::VectorXd::LinSpaced(8, 0.0, 10.0);
+  const Eigen::VectorXd start_y = Eigen::VectorXd::LinSpaced(5, 0.0, 5.0);
+  const double moved =
+      std::sqrt((stepped.centers_x() - start_x).squaredNorm() + (stepped.centers_y() - start_y).squaredNorm());
+  EXPECT_NEAR(moved, 0.05 * std::min(10.0 / 7.0, 5.0 / 4.0), 1e-9);
+}
+
 TEST(FitFuzzyElevationMap, IsDeterministicAndFloatAgreesWithDouble) {
   const std::vector<Eigen::Vector3d> points = test::random_scene(4, 5000, 20.0);
   FuzzyParams params;

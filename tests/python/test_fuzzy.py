@@ -121,6 +121,14 @@ def test_training_error_does_not_increase_across_epochs(family):
     assert model.centers_x[0] >= 0 and model.centers_x[-1] <= 10
 
 
+def test_plain_anfis_with_jangs_step_rule_learns_a_known_surface():
+    truth = known_surface("triangular")
+    plain = {"ridge": 0.0, "smoothness": 0.0, "step_rule": "jang", "extent": EXTENT}
+    fitted = tc.FuzzyElevationMap.fit(samples(truth, 4000, 5), rules_x=6, rules_y=4, epochs=40, **plain)
+    assert fitted.rmse_history[-1] < 0.5 * fitted.rmse_history[0]
+    assert fitted.params.step_rule == "jang"
+
+
 def test_fit_is_reproducible():
     points = samples(known_surface(), 3000, 4, noise=0.05)
     a = tc.fit_fuzzy_elevation_map(points, rules_x=8, rules_y=5, epochs=5)
@@ -193,6 +201,8 @@ def test_bad_input_gives_clear_errors():
         tc.fit_fuzzy_elevation_map(bad, rules_x=4, rules_y=4)
     with pytest.raises(ValueError, match="membership"):
         tc.fit_fuzzy_elevation_map(points, membership="trapezoid")
+    with pytest.raises(ValueError, match="step_rule must be one of"):
+        tc.fit_fuzzy_elevation_map(points, rules_x=4, rules_y=4, step_rule="adam")
     with pytest.raises(ValueError, match="at least 2 x 2 rules"):
         tc.fit_fuzzy_elevation_map(points, rules_x=1)
     with pytest.raises(ValueError, match="extent"):

@@ -23,9 +23,10 @@
 // are the defaults).
 //
 // Hybrid learning, one epoch: (1) a gradient step on the centres with the consequents fixed, step
-// length kappa along the normalised gradient of the squared error (Jang's rule), kept when the
+// length kappa along the normalised gradient of the squared error, by default kept when the
 // training error does not increase (then kappa grows by 10 %), rejected with kappa halved
-// otherwise (up to 4 tries); centres stay ordered inside the extent; (2) the consequents by
+// otherwise (up to 4 tries) (StepRule::kJang: Jang's heuristic, every step taken); centres stay
+// ordered inside the extent; (2) the consequents by
 // regularised linear least squares,
 //   min sum_p (f(p) - z_p)^2 + lambda sum_r (c_r - mean z)^2 + mu sum_{r~s} (c_r - c_s)^2
 // (r~s: rules adjacent along x or y; the mu term is a membrane that keeps rules with little data,
@@ -58,6 +59,16 @@ enum class MembershipFamily {
   kGaussian = 1,             ///< normalised Gaussians of fixed width
 };
 
+/// How hybrid learning adapts the gradient step on the centres.
+enum class StepRule {
+  /// A step is kept only when the training error does not grow (kappa +10 %), else retried with
+  /// kappa halved (up to 4 tries): the training error never increases.
+  kGuarded = 0,
+  /// Jang (1993), section V: every step is taken; kappa +10 % after four reductions of the error
+  /// in a row, -10 % after two increase-reduction alternations in a row. Plain ANFIS.
+  kJang = 1,
+};
+
 /// The rectangle a fuzzy surface is identified over [m].
 struct Extent2d {
   Eigen::Vector2d min_m = Eigen::Vector2d::Zero();
@@ -73,6 +84,7 @@ struct FuzzyParams {
   double gaussian_width = 0.5;
   /// Hybrid-learning epochs, >= 0; 0 = least squares only on uniformly spaced centres.
   int epochs = 10;
+  StepRule step_rule = StepRule::kGuarded;
   /// Initial gradient step kappa as a fraction of the smaller initial centre spacing, > 0.
   double learning_rate = 0.1;
   /// Ridge weight lambda = ridge * (training points / rules), >= 0: pulls rules with little data
