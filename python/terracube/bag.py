@@ -505,6 +505,9 @@ class BagClouds:
         self.fixed_frame = fixed_frame.lstrip("/") if fixed_frame else None
         self.keep_invalid = keep_invalid
         self.no_returns: list[int] = []
+        #: The frame the poses map points into (the odometry's frame, the TF fixed frame or
+        #: ``base_frame``), known once a cloud with a pose was read; None before or without poses.
+        self.pose_frame: str | None = None
         with _Bag(self.path) as bag:  # fail early: a missing bag, topic or pose source
             self.count = bag.topic(points, (POINTCLOUD2,), "point-cloud topic").count
             if poses is not None and poses not in ("tf", TF_TOPIC):
@@ -555,7 +558,7 @@ class BagClouds:
             tree.finish()
         series = None
         if self.poses is not None and self.poses not in ("tf", TF_TOPIC):
-            stamps, translations, quaternions, frames = [], [], [], set()
+            stamps, translations, quaternions = [], [], []
             child = None
             for _, msgtype, _, message in bag.messages([self.poses]):
                 if msgtype == ODOMETRY:
@@ -571,7 +574,7 @@ class BagClouds:
                 stamps.append(_stamp_ns(message.header))
                 translations.append(translation)
                 quaternions.append(quaternion)
-                frames.add(message.header.frame_id.lstrip("/"))
+                self.pose_frame = self.pose_frame or message.header.frame_id.lstrip("/")
             if not stamps:
                 raise ValueError(f"{self.path}: the pose topic {self.poses!r} holds no message")
             series = (_PoseSeries(f"the poses of {self.poses}", stamps, translations, quaternions), child)
@@ -581,10 +584,14 @@ class BagClouds:
         where = f"{self.path}: cloud at {_seconds(stamp_ns)} s in frame {frame!r}"
         try:
             if self.poses is None:
-                return None if self.base_frame is None else tree.lookup(self.base_frame, frame, stamp_ns)
+                if self.base_frame is None:
+                    return None
+                self.pose_frame = self.base_frame
+                return tree.lookup(self.base_frame, frame, stamp_ns)
             if self.poses in ("tf", TF_TOPIC):
                 base = self.base_frame or frame
                 fixed = self.fixed_frame or tree.root(base)
+                self.pose_frame = fixed
                 return tree.lookup(fixed, base, stamp_ns) @ tree.lookup(base, frame, stamp_ns)
             poses, child = series
             base = self.base_frame or child or frame

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 import struct
 import subprocess
@@ -708,3 +709,127 @@ def test_a_failed_write_leaves_nothing_behind(tmp_path):
         writer.write_grid_map(elevation_map, layers=["max"])
     assert [t.name for t in bag_info(tmp_path / "maps")] == ["/terracube/grid_map"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["maps"]
+
+
+# ------------------------------------------------------------------------------ the command line
+
+
+@pytest.fixture(scope="module")
+def cli():
+    from terracube.cli import app
+    from typer.testing import CliRunner
+
+    runner = CliRunner()
+
+    def run(*args):
+        return runner.invoke(app, [str(a) for a in args])
+
+    return run
+
+
+def test_bag_info_command_lists_topics(cli, bags):
+    result = cli("bag-info", bags / "ouster_os1_pointcloudset_ros1.mcap")
+    assert result.exit_code == 0, result.output
+    assert re.search(r"\n/os1_cloud_node/points +2  sensor_msgs/msg/PointCloud2\n", result.output)
+    assert re.search(r"\n/tf_static +1  tf2_msgs/msg/TFMessage\n", result.output)
+    result = cli("bag-info", bags / "missing.bag")
+    assert result.exit_code == 2 and "no such bag" in result.output
+
+
+def test_map_on_a_kitti_bag_gives_the_map_of_the_loose_files_and_pose_file(cli, kitti_bags, tmp_path):
+    from terracube.poses import write_tum_poses
+
+    root = kitti_bags["root"]
+    truth = kitti_velodyne_poses(root)[:FRAMES]
+    tum = tmp_path / "velodyne_tum.txt"
+    write_tum_poses(tum, [stamp_of(f) * 1e-9 for f in range(FRAMES)], truth)
+    options = ["--keyframe-distance", "0.5", "--no-png"]
+    loose = cli(
+        "map",
+        root / "kitti_seq00" / "velodyne",
+        "--poses",
+        tum,
+        "--limit",
+        FRAMES,
+        "-o",
+        tmp_path / "loose",
+        *options,
+    )
+    assert loose.exit_code == 0, loose.output
+    expected = tc.ElevationMap.load(tmp_path / "loose" / "global_map.npz")
+    runs = {
+        "odom": ["--odom", "/odom"],
+        "tf": ["--tf", "base_link"],
+    }
+    for name, pose_options in runs.items():
+        bag = kitti_bags["odometry" if name == "odom" else "tf"]
+        result = cli(
+            "map", bag, "--points", "/velodyne_points", *pose_options, "--out", tmp_path / name, *options
+        )
+        assert result.exit_code == 0, result.output
+        assert f"{FRAMES} clouds of /velodyne_points, {FRAMES} keyframes" in result.output
+        got = tc.ElevationMap.load(tmp_path / name / "global_map.npz")
+        assert got.layers == expected.layers
+        np.testing.assert_allclose(got.geometry.origin, expected.geometry.origin, atol=1e-9)
+        assert tuple(got.geometry.size) == tuple(expected.geometry.size)
+        np.testing.assert_array_equal(got["count"], expected["count"], err_msg=name)
+        for layer in expected.layers:
+            np.testing.assert_allclose(got[layer], expected[layer], atol=1e-5, equal_nan=True, err_msg=layer)
+        np.testing.assert_allclose(
+            np.loadtxt(tmp_path / name / "trajectory_kitti.txt"),
+            np.loadtxt(tmp_path / "loose" / "trajectory_kitti.txt"),
+            atol=1e-6,
+        )
+        # The bag beside the files holds the map as GridMap and its classes as OccupancyGrid.
+        topics = {t.name: t.msgtype for t in bag_info(tmp_path / name / "global_map")}
+        assert topics == {
+            "/terracube/grid_map": "grid_map_msgs/msg/GridMap",
+            "/terracube/occupancy": "nav_msgs/msg/OccupancyGrid",
+        }
+
+
+def test_classify_on_every_cloud_of_a_bag_writes_files_and_a_bag(cli, bags, tmp_path):
+    from rosbags.highlevel import AnyReader
+
+    out = tmp_path / "out"
+    result = cli(
+        "classify",
+        bags / "ouster_os1_pointcloudset_ros1.mcap",
+        "--points",
+        OUSTER_TOPIC,
+        "--out",
+        out,
+        "--no-png",
+        "--resolution",
+        "0.2",
+    )
+    assert result.exit_code == 0, result.output
+    assert "85,356 no-returns dropped" in result.output
+    stem = "ouster_os1_pointcloudset_ros1"
+    for index in range(2):
+        assert (out / f"{stem}_{index:04d}_classes.npz").is_file()
+    with AnyReader([out / f"{stem}_classify"]) as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+        clouds = [
+            reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages() if c.topic.endswith("cloud")
+        ]
+    assert counts == {"/terracube/grid_map": 2, "/terracube/occupancy": 2, "/terracube/classified_cloud": 2}
+    points, fields, _ = decode_pointcloud2(clouds[0])
+    assert len(points) == 45716 and set(np.unique(fields["label"])) <= set(range(6))
+    assert clouds[0].header.frame_id == "os1_lidar"
+
+
+def test_map_on_a_bag_reports_bad_input(cli, kitti_bags, bags, tmp_path):
+    result = cli("map", kitti_bags["odometry"], "--points", "/velodyne_points", "-o", tmp_path)
+    assert result.exit_code == 2 and "--odom TOPIC" in result.output
+    result = cli("map", kitti_bags["odometry"], "--points", "/lidar", "--odom", "/odom", "-o", tmp_path)
+    assert (
+        result.exit_code == 2
+        and "no point-cloud topic '/lidar'" in result.output
+        and "/velodyne_points" in result.output
+    )
+    result = cli("map", kitti_bags["tf"], "--tf", "base_footprint", "-o", tmp_path / "x")
+    assert result.exit_code == 2 and "'base_footprint' is not in the TF tree" in result.output
+    assert not (tmp_path / "x").exists()
+    result = cli("dem", bags / "luminar_embag.bag", "--tf", "base_link")
+    assert result.exit_code != 0
