@@ -363,6 +363,7 @@ def write_kitti_odometry_bag(
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         clouds = writer.add_connection("/velodyne_points", "sensor_msgs/msg/PointCloud2", typestore=store)
         odom = writer.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=store)
+        pose_topic = writer.add_connection("/pose", "geometry_msgs/msg/PoseStamped", typestore=store)
         static = writer.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=store)
         tf = store.types["tf2_msgs/msg/TFMessage"](
             transforms=[transform_message(store, "base_link", "velodyne", mount, T0_NS)]
@@ -371,6 +372,10 @@ def write_kitti_odometry_bag(
         for frame in odometry_frames:
             msg = odometry_message(store, truth[frame] @ np.linalg.inv(mount), stamp_of(frame))
             writer.write(odom, stamp_of(frame), store.serialize_cdr(msg, "nav_msgs/msg/Odometry"))
+            stamped = store.types["geometry_msgs/msg/PoseStamped"](header=msg.header, pose=msg.pose.pose)
+            writer.write(
+                pose_topic, stamp_of(frame), store.serialize_cdr(stamped, "geometry_msgs/msg/PoseStamped")
+            )
         for frame in cloud_frames:
             msg, _ = kitti_cloud_message(store, root, frame, stamp_of(frame))
             writer.write(clouds, stamp_of(frame), store.serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
@@ -427,6 +432,11 @@ def test_kitti_bag_poses_from_odometry_and_static_mount_are_the_velodyne_poses(k
         xyzi = np.fromfile(kitti_bags["root"] / f"kitti_seq00/velodyne/{frame:06d}.bin", np.float32)
         np.testing.assert_array_equal(points, xyzi.reshape(-1, 4)[:, :3])
         np.testing.assert_allclose(pose, truth[frame], atol=1e-9)
+    # A PoseStamped names no child frame: base_frame says which frame it poses.
+    poses = [
+        p for _, _, p in read_bag(kitti_bags["odometry"], "/velodyne_points", "/pose", base_frame="base_link")
+    ]
+    np.testing.assert_allclose(np.stack(poses), truth[:FRAMES], atol=1e-9)
 
 
 def test_kitti_bag_poses_from_a_tf_chain_are_the_velodyne_poses(kitti_bags):
