@@ -182,9 +182,9 @@ class _Bag:
             for connection, timestamp, raw in self._reader.messages(connections=connections):
                 message = self._reader.deserialize(raw, connection.msgtype)
                 yield connection.topic, connection.msgtype, int(timestamp), message
-        except ValueError:
-            raise
         except Exception as error:
+            if isinstance(error, ValueError) and str(error).startswith(str(self.path)):
+                raise
             raise ValueError(f"{self.path}: cannot read its messages: {_describe(error)}") from error
 
     def _ros1_mcap_messages(self, topics):
@@ -547,8 +547,7 @@ class BagClouds:
     def _pose_sources(self, bag: _Bag) -> tuple[_TfTree | None, tuple | None]:
         tree = None
         names = {t.name for t in bag.topics()}
-        need_tree = self.poses in ("tf", TF_TOPIC) or self.base_frame is not None or self.poses is not None
-        if need_tree:
+        if self.poses is not None or self.base_frame is not None:
             tree = _TfTree(str(self.path))
             topics = [t for t in (TF_TOPIC, TF_STATIC_TOPIC) if t in names]
             for topic in topics:

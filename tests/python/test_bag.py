@@ -639,6 +639,7 @@ with rosbag.Bag(sys.argv[1]) as bag:
         if msg._type == "grid_map_msgs/GridMap":
             info = msg.info
             entry.update(
+                info_md5=info._md5sum,
                 frame=info.header.frame_id, stamp=info.header.stamp.to_nsec(), layers=list(msg.layers),
                 basic=list(msg.basic_layers), resolution=info.resolution,
                 length=[info.length_x, info.length_y], centre=[info.pose.position.x, info.pose.position.y],
@@ -677,6 +678,7 @@ def test_ros1_bag_round_trip_through_debians_python3_rosbag(tmp_path):
     grid = topics["/terracube/grid_map"]
     # The upstream grid_map_msgs/GridMap MD5 sum: our definition is the one ROS 1 nodes expect.
     assert grid["type"] == "grid_map_msgs/GridMap" and grid["md5"] == "95681e052b1f73bf87b7eb984382b401"
+    assert grid["info_md5"] == "43ee5430e1c253682111cb6bedac0ef9"
     assert grid["frame"] == "odom" and grid["stamp"] == 12_250_000_000 == grid["time"]
     assert grid["layers"] == ["max", "class"] and grid["basic"] == ["max"]
     assert grid["resolution"] == 0.5 and grid["length"] == [2.0, 1.5] and grid["centre"] == [11.0, -1.25]
