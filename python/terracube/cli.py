@@ -501,10 +501,6 @@ def run_stage(
 
 
 def _run_and_print(stage: str, input_path: Path, output_dir: Path, config, **options) -> None:
-    from .cli_bag import is_bag, run_stage_on_bag
-
-    if is_bag(input_path):  # every cloud of a ROS bag topic (cli_bag adds the bag options)
-        return run_stage_on_bag(stage, input_path, output_dir, config, **options)
     points = _read_points(input_path)
     with _exit_on_bad_input(input_path.stem):
         report = run_stage(stage, points, input_path.stem, output_dir, config, **options)

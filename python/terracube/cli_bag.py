@@ -4,17 +4,18 @@
 :func:`register` adds the ``bag-info`` command and gives each of those five commands the options
 ``--points TOPIC`` (the PointCloud2 topic; optional when the bag has one), ``--out DIR`` (write the
 usual files there, and the results as a bag beside them), ``--bag-storage`` and, for ``map``,
-``--odom TOPIC`` or ``--tf BASE_FRAME`` (where the poses come from). The commands keep their own
-code: a wrapper takes the bag options off each callback. Given a bag, ``map`` runs :func:`map_bag`;
-the stages run as usual and their ``_run_and_print`` hands the bag to :func:`run_stage_on_bag`, which
-runs the stage on every cloud of the topic (in the cloud's own frame: the per-scan stages use no pose).
+``--odom TOPIC`` or ``--tf BASE_FRAME`` (where the poses come from). The commands' own code is left
+as it is: a wrapper takes the bag options off each callback. Given a bag, ``map`` runs
+:func:`map_bag`; a per-scan stage runs its unchanged command once per cloud, on the cloud saved as a
+temporary ``BAGNAME_0000.npy`` (so outputs are named as for loose files), in the cloud's own frame
+(the per-scan stages use no pose).
 """
 
 from __future__ import annotations
 
-import contextvars
 import functools
 import inspect
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,9 +37,6 @@ class BagOptions:
     tf: str | None = None
     out: Path | None = None
     storage: str = "mcap"
-
-
-_OPTIONS: contextvars.ContextVar[BagOptions] = contextvars.ContextVar("terracube_bag_options")
 
 
 def is_bag(path: Path) -> bool:
@@ -76,15 +74,14 @@ def _progress(iterable, total: int, what: str):
 # ------------------------------------------------------------------------------------------ stages
 
 
-def _write_stage_results(writer, report, cloud) -> None:
-    """Every map (.npz) of a stage report as a GridMap (and an OccupancyGrid of its classes), every
+def _write_stage_results(writer, outputs: list[Path], cloud) -> None:
+    """Every map (.npz) a stage wrote as a GridMap (and an OccupancyGrid of its classes), every
     labelled cloud as a PointCloud2 with a label field, stamped and framed like the input cloud."""
     from .bag import occupancy_from_classes
     from .elevation import ElevationMap
     from .io import read_cloud
 
-    for path in report.outputs:
-        path = Path(path)
+    for path in outputs:
         if path.suffix in (".png", ".tif"):
             continue
         try:
@@ -103,30 +100,43 @@ def _write_stage_results(writer, report, cloud) -> None:
             writer.write_cloud(fields["xyz"], fields.get("label"), stamp=cloud.stamp, frame_id=cloud.frame_id)
 
 
-def run_stage_on_bag(stage: str, bag: Path, output_dir: Path, config, **options) -> None:
-    """Run ``stage`` on every cloud of the bag's point topic (``NAME_0000``, ``NAME_0001``, ...) and,
-    with ``--out``, write the results as a bag named ``NAME_STAGE`` too."""
-    from .bag import read_bag
-    from .cli import _exit_on_bad_input, run_stage
+def _outputs_since(directory: Path, name: str, before: dict[Path, int]) -> list[Path]:
+    """Files ``NAME_*`` in ``directory`` that are new or changed since the ``before`` snapshot."""
+    return sorted(path for path in directory.glob(f"{name}_*") if before.get(path) != path.stat().st_mtime_ns)
 
-    bag_options = _OPTIONS.get(BagOptions())
-    output_dir = bag_options.out or output_dir
+
+def _snapshot(directory: Path, name: str) -> dict[Path, int]:
+    return {path: path.stat().st_mtime_ns for path in directory.glob(f"{name}_*")}
+
+
+def run_stage_on_bag(callback, input_name: str, values: dict, bag: Path, bag_options: BagOptions) -> None:
+    """Run a per-scan command (``callback`` with its option ``values``) on every cloud of the bag's
+    point topic as ``NAME_0000``, ``NAME_0001``, ... and, with ``--out``, write what each run wrote
+    (maps as GridMap + OccupancyGrid, labelled clouds as PointCloud2) into a bag ``NAME_STAGE``."""
+    from .bag import read_bag
+    from .cli import _exit_on_bad_input
+
+    output_dir = Path(bag_options.out or values.get("output_dir") or ".")
+    values = {**values, "output_dir": output_dir} if "output_dir" in values else values
+    stage = callback.__name__
     with _exit_on_bad_input(str(bag)):
         topic = _points_topic(bag, bag_options.points)
         clouds = read_bag(bag, topic)
     writer = _output_bag(output_dir, f"{bag.stem}_{stage}", bag_options.storage) if bag_options.out else None
     try:
-        with _exit_on_bad_input(str(bag)):
-            for index, cloud in enumerate(_progress(clouds.clouds(), len(clouds), stage)):
-                name = f"{bag.stem}_{index:04d}"
-                with _exit_on_bad_input(name):
-                    report = run_stage(stage, cloud.points, name, output_dir, config, **options)
-                for line in report.lines:
-                    typer.echo(line)
-                if cloud.no_returns:
-                    typer.echo(f"  {cloud.no_returns:,} no-returns dropped")
-                if writer is not None:
-                    _write_stage_results(writer, report, cloud)
+        with tempfile.TemporaryDirectory(prefix="terracube-bag-") as scratch:
+            with _exit_on_bad_input(str(bag)):
+                for index, cloud in enumerate(_progress(clouds.clouds(), len(clouds), stage)):
+                    name = f"{bag.stem}_{index:04d}"
+                    scan = Path(scratch) / f"{name}.npy"
+                    np.save(scan, cloud.points)
+                    before = _snapshot(output_dir, name)
+                    callback(**{**values, input_name: scan})
+                    scan.unlink()
+                    if cloud.no_returns:
+                        typer.echo(f"  {cloud.no_returns:,} no-returns dropped")
+                    if writer is not None:
+                        _write_stage_results(writer, _outputs_since(output_dir, name, before), cloud)
     except BaseException:
         if writer is not None:
             writer.abort()
@@ -138,10 +148,20 @@ def run_stage_on_bag(stage: str, bag: Path, output_dir: Path, config, **options)
 # ------------------------------------------------------------------------------------------ map
 
 
+def _mapper_params(config):
+    """The mapper's parameters of a configuration, as ``terracube map`` makes them."""
+    try:  # where the CLI's helpers move once the command line is a layer over terracube.pipeline
+        from .pipeline import mapper_params
+    except ImportError:
+        from .cli import _mapper_params as mapper_params
+    return mapper_params(config)
+
+
 def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     """``terracube map BAG``: the mapper over every cloud of the topic, posed by --odom or --tf."""
     from .bag import occupancy_from_classes, read_bag
-    from .cli import _config, _exit_on_bad_input, _fail, _mapper_params
+    from .cli import _exit_on_bad_input, _fail
+    from .config import ConfigError, load_config
     from .mapping import Mapper
     from .poses import write_kitti_poses, write_tum_poses
 
@@ -150,15 +170,18 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
             raise _fail(f"{flag} is for a folder of scans; a bag takes its poses from --odom or --tf")
     if (bag_options.odom is None) == (bag_options.tf is None):
         raise _fail("a bag needs one pose source: --odom TOPIC (Odometry or PoseStamped) or --tf BASE_FRAME")
-    cfg = _config(
-        values.get("config"),
-        mapper={
-            "keyframe_distance": values.get("keyframe_distance"),
-            "resolution": values.get("resolution"),
-            "loop_closing": values.get("loop_closing"),
-            "use_registration": values.get("registration"),
-        },
-    )
+    try:
+        cfg = load_config(values.get("config"))
+    except ConfigError as error:
+        raise _fail(str(error)) from error
+    with _exit_on_bad_input("command line"):
+        cfg = cfg.replace(
+            "mapper",
+            keyframe_distance=values.get("keyframe_distance"),
+            resolution=values.get("resolution"),
+            loop_closing=values.get("loop_closing"),
+            use_registration=values.get("registration"),
+        )
     output_dir = bag_options.out or values["output_dir"]
     with _exit_on_bad_input(str(bag)):
         topic = _points_topic(bag, bag_options.points)
@@ -323,11 +346,7 @@ def _with_bag_input(callback, is_map: bool):
             return callback(**values)
         if is_map:
             return map_bag(source, values, bag_options)
-        token = _OPTIONS.set(bag_options)
-        try:
-            return callback(**values)
-        finally:
-            _OPTIONS.reset(token)
+        return run_stage_on_bag(callback, input_name, values, source, bag_options)
 
     input_help = (
         "\n\nA ROS bag (.bag, .mcap or a ROS 2 bag folder) as input: --points TOPIC picks the "

@@ -845,3 +845,25 @@ def test_map_on_a_bag_reports_bad_input(cli, kitti_bags, bags, tmp_path):
     assert not (tmp_path / "x").exists()
     result = cli("dem", bags / "luminar_embag.bag", "--tf", "base_link")
     assert result.exit_code != 0
+
+
+def test_collapse_on_every_cloud_of_a_ros2_bag_writes_a_ros1_bag(cli, bags, tmp_path):
+    out = tmp_path / "out"
+    result = cli(
+        "collapse", bags / "luminar_embag_ros2_db3", "--out", out, "--bag-storage", "ros1", "--no-png"
+    )
+    assert result.exit_code == 0, result.output
+    assert all(f"luminar_embag_ros2_db3_{i:04d}: " in result.output for i in range(5))
+    clouds = list(
+        read_bag(out / "luminar_embag_ros2_db3_collapse.bag", "/terracube/classified_cloud").clouds()
+    )
+    assert [len(c.points) for c in clouds] == LUMINAR_COUNTS
+    assert all(set(np.unique(c.fields["label"])) <= {0, 1} for c in clouds)
+    assert {c.frame_id for c in clouds} == {"luminar_lidar"}
+    assert sorted(p.name for p in out.iterdir())[:2] == [
+        "luminar_embag_ros2_db3_0000_classified.ply",
+        "luminar_embag_ros2_db3_0001_classified.ply",
+    ]
+    # Bag options on a loose file are refused.
+    result = cli("dem", bags / "LICENSE.embag", "--points", "/x")
+    assert result.exit_code == 2 and "--points: only for a bag input" in result.output
