@@ -643,7 +643,8 @@ def read_bag(
     -------
     BagClouds
         Iterable of ``(stamp [s], (N, 3) float32/float64 points in the cloud's frame, 4x4 float64
-        pose or None)``; ``len()`` is the number of clouds. The pose maps the cloud's points into the
+        pose or None)``, in bag order; the stamp is the cloud header's (the bag's record time when
+        that is zero); ``len()`` is the number of clouds. The pose maps the cloud's points into the
         fixed (world) frame, or into ``base_frame`` without a pose source.
     """
     return BagClouds(

@@ -54,7 +54,7 @@ def _points_topic(bag: Path, topic: str | None) -> str:
     clouds = [t.name for t in bag_info(bag) if t.msgtype == POINTCLOUD2]
     if len(clouds) != 1:
         found = ", ".join(clouds) or "none"
-        raise ValueError(f"pass --points TOPIC: the bag's PointCloud2 topics are {found}")
+        raise ValueError(f"{bag}: pass --points TOPIC; the bag's PointCloud2 topics: {found}")
     return clouds[0]
 
 
@@ -119,13 +119,13 @@ def run_stage_on_bag(callback, input_name: str, values: dict, bag: Path, bag_opt
     output_dir = Path(bag_options.out or values.get("output_dir") or ".")
     values = {**values, "output_dir": output_dir} if "output_dir" in values else values
     stage = callback.__name__
-    with _exit_on_bad_input(str(bag)):
+    with _exit_on_bad_input():  # the bag's errors name it
         topic = _points_topic(bag, bag_options.points)
         clouds = read_bag(bag, topic)
     writer = _output_bag(output_dir, f"{bag.stem}_{stage}", bag_options.storage) if bag_options.out else None
     try:
         with tempfile.TemporaryDirectory(prefix="terracube-bag-") as scratch:
-            with _exit_on_bad_input(str(bag)):
+            with _exit_on_bad_input():  # the bag's errors name it
                 for index, cloud in enumerate(_progress(clouds.clouds(), len(clouds), stage)):
                     name = f"{bag.stem}_{index:04d}"
                     scan = Path(scratch) / f"{name}.npy"
@@ -183,7 +183,7 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
             use_registration=values.get("registration"),
         )
     output_dir = bag_options.out or values["output_dir"]
-    with _exit_on_bad_input(str(bag)):
+    with _exit_on_bad_input():  # the bag's errors name it
         topic = _points_topic(bag, bag_options.points)
         clouds = read_bag(bag, topic, bag_options.odom or "/tf", base_frame=bag_options.tf)
         mapper = Mapper(_mapper_params(cfg))
@@ -191,7 +191,7 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     total = len(clouds) if limit is None else min(len(clouds), max(limit, 0))
     stamps: list[float] = []
     start = time.perf_counter()
-    with _exit_on_bad_input(str(bag)):
+    with _exit_on_bad_input():  # the bag's errors name it
         for stamp, points, pose in _progress(clouds, total, "mapping"):
             if len(stamps) >= total:
                 break
