@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Sets up everything terracube needs on Debian 12, idempotently:
-#   1. Debian's -dev packages and python3-rosbag (apt-get update first, noninteractive; skipped when all are present),
+#   1. Debian's -dev packages and python3-rosbag (apt-get update first, noninteractive; skipped
+#      when all are present),
 #   2. a virtual environment .venv with terracube and its test tools installed by pip.
 # Environment: PYTHON (default python3) picks the interpreter for .venv.
 set -euo pipefail

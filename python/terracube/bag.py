@@ -508,6 +508,8 @@ class BagClouds:
         #: The frame the poses map points into (the odometry's frame, the TF fixed frame or
         #: ``base_frame``), known once a cloud with a pose was read; None before or without poses.
         self.pose_frame: str | None = None
+        if self.fixed_frame is not None and poses not in ("tf", TF_TOPIC):
+            raise ValueError("fixed_frame applies to poses='/tf' only (a pose topic names its own frame)")
         with _Bag(self.path) as bag:  # fail early: a missing bag, topic or pose source
             self.count = bag.topic(points, (POINTCLOUD2,), "point-cloud topic").count
             if poses is not None and poses not in ("tf", TF_TOPIC):
