@@ -470,7 +470,8 @@ class _TfTree:
 
 @dataclass
 class BagCloud:
-    """One decoded cloud: stamp [s], frame, points (N, 3), pose (4x4 or None), other fields."""
+    """One decoded cloud: stamp [s], frame, points (N, 3), pose (4x4 or None), other fields, the
+    count of invalid points dropped, and the stamp [ns]."""
 
     stamp: float
     frame_id: str
@@ -478,6 +479,14 @@ class BagCloud:
     pose: np.ndarray | None
     fields: dict[str, np.ndarray] = field(default_factory=dict)
     no_returns: int = 0
+    stamp_ns: int = 0  #: the stamp in whole nanoseconds (a float of seconds keeps ~0.2 us)
+
+    def __repr__(self) -> str:
+        return (
+            f"BagCloud(stamp={_seconds(self.stamp_ns)} s, frame_id={self.frame_id!r}, "
+            f"{len(self.points)} points, pose={'yes' if self.pose is not None else 'None'}, "
+            f"fields={sorted(self.fields)}, no_returns={self.no_returns})"
+        )
 
 
 class BagClouds:
@@ -544,7 +553,7 @@ class BagClouds:
                     ) from None
                 pose = self._pose(tree, series, frame, stamp_ns)
                 self.no_returns.append(no_returns)
-                yield BagCloud(stamp_ns * 1e-9, frame, xyz, pose, fields, no_returns)
+                yield BagCloud(stamp_ns * 1e-9, frame, xyz, pose, fields, no_returns, stamp_ns)
 
     def _pose_sources(self, bag: _Bag) -> tuple[_TfTree | None, tuple | None]:
         tree = None

@@ -165,7 +165,7 @@ def test_ouster_organised_cloud_drops_and_counts_no_returns(bags):
     path = bags / "ouster_os1_pointcloudset_ros1.mcap"
     clouds = read_bag(path, OUSTER_TOPIC)
     first = next(clouds.clouds())
-    assert first.frame_id == "os1_lidar"
+    assert first.frame_id == "os1_lidar" and first.stamp_ns == 1588075038_629915872
     assert first.no_returns == 85356 and len(first.points) == 64 * 2048 - 85356
     assert not (first.points == 0).all(axis=1).any() and np.isfinite(first.points).all()
     # The range field (uint32 at offset 32, millimetres) is the norm of x, y, z at offsets 0, 4, 8.
