@@ -363,7 +363,9 @@ def _with_bag_input(callback, is_map: bool):
 
 
 def register(app: typer.Typer) -> None:
-    """Add ``bag-info`` and the bag input of map, collapse, dem, classify and fem to ``app``."""
+    """Add ``bag-info`` and the bag input of map, collapse, dem, classify and fem to ``app`` (once)."""
+    if any(info.name == "bag-info" for info in app.registered_commands):
+        return
     for info in app.registered_commands:
         name = info.name or (info.callback.__name__ if info.callback else None)
         if name in ("map", "collapse", "dem", "classify", "fem"):
