@@ -252,6 +252,24 @@ def test_pointcloud2_layouts_decode_to_the_same_points():
     assert fields["ring"].dtype == np.dtype("=u2")
 
 
+def test_pointcloud2_empty_clouds_and_fields_of_several_values():
+    store = typestore()
+    layout = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("normal", "<f4", (3,))])
+    fields = [("x", 0, 7), ("y", 4, 7), ("z", 8, 7)]
+    empty = cloud_message(store, np.zeros(0, layout), fields)
+    points, extra, dropped = decode_pointcloud2(empty)
+    assert points.shape == (0, 3) and extra == {} and dropped == 0
+    records = np.zeros(2, layout)
+    records["x"], records["normal"] = [1.0, 2.0], [[0.0, 0.0, 1.0], [0.6, 0.8, 0.0]]
+    msg = cloud_message(store, records, fields)
+    msg.fields.append(
+        store.types["sensor_msgs/msg/PointField"](name="normal", offset=12, datatype=7, count=3)
+    )
+    points, extra, _ = decode_pointcloud2(msg)
+    np.testing.assert_array_equal(points, [[1, 0, 0], [2, 0, 0]])
+    np.testing.assert_array_equal(extra["normal"], np.float32([[0, 0, 1], [0.6, 0.8, 0]]))
+
+
 def test_pointcloud2_without_xyz_or_short_data_is_refused():
     store = typestore()
     records = np.zeros(4, np.dtype([("a", "<f4"), ("b", "<f4")]))
