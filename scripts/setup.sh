@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Sets up everything terracube needs on Debian 12, idempotently:
-#   1. Debian's -dev packages (apt-get update first, noninteractive; skipped when all are present),
+#   1. Debian's -dev packages and python3-rosbag (apt-get update first, noninteractive; skipped
+#      when all are present),
 #   2. a virtual environment .venv with terracube and its test tools installed by pip.
 # Environment: PYTHON (default python3) picks the interpreter for .venv.
 set -euo pipefail
@@ -10,6 +11,7 @@ packages=(
   build-essential cmake ninja-build pkg-config git
   libeigen3-dev libpcl-dev liboctomap-dev libceres-dev libgtest-dev libbenchmark-dev pybind11-dev
   python3-dev python3-venv python3-pip
+  python3-rosbag  # ROS 1's reference bag reader: tests check the ROS 1 bags we write with it
 )
 missing=()
 for package in "${packages[@]}"; do

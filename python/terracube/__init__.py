@@ -1,6 +1,6 @@
 """terracube: navigable 2.5D elevation maps from ground-robot 3D LiDAR scans."""
 
-from . import config, evaluation, io, pose_graph, poses, simulation
+from . import bag, config, evaluation, io, pose_graph, poses, simulation
 from .collapse import (
     CollapseParams,
     CollapseResult,
@@ -46,6 +46,7 @@ from .registration import (
 __version__ = "0.1.0"
 
 __all__ = [
+    "bag",
     "config",
     "evaluation",
     "io",

@@ -1476,6 +1476,11 @@ def version() -> None:
     typer.echo(__version__)
 
 
+from .cli_bag import register as _register_bag_commands  # noqa: E402 - after every command
+
+_register_bag_commands(app)  # bag-info, and ROS bags as the input of map, collapse, dem, classify, fem
+
+
 def main() -> None:  # pragma: no cover
     app()
 

@@ -15,6 +15,9 @@ suffix                  read                                  write (``write_cla
 ``.txt`` ``.xyz`` ...   whitespace/comma separated text       ``# x y z <label>`` header, one row each
 ======================  ====================================  =========================================
 
+ROS bags (ROS 1 ``.bag``, ROS 2 folders, ``.mcap``) are read by :func:`read_bag` and listed by
+:func:`bag_info`, both from :mod:`terracube.bag` (the ``ros`` extra).
+
 Every reader raises ``FileNotFoundError`` for a missing file and ``ValueError`` naming the file and the
 problem for a malformed, truncated or unknown one.
 """
@@ -27,7 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .bag import bag_info, read_bag
+
 __all__ = [
+    "read_bag",
+    "bag_info",
     "read_points",
     "read_cloud",
     "write_classified",

@@ -1,0 +1,373 @@
+"""ROS bags on the command line: ``terracube bag-info BAG``, and a bag as the input of ``map``,
+``collapse``, ``dem``, ``classify`` and ``fem``.
+
+:func:`register` adds the ``bag-info`` command and gives each of those five commands the options
+``--points TOPIC`` (the PointCloud2 topic; optional when the bag has one), ``--out DIR`` (write the
+usual files there, and the results as a bag beside them), ``--bag-storage`` and, for ``map``,
+``--odom TOPIC`` or ``--tf BASE_FRAME`` (where the poses come from). The commands' own code is left
+as it is: a wrapper takes the bag options off each callback. Given a bag, ``map`` runs
+:func:`map_bag`; a per-scan stage runs its unchanged command once per cloud, on the cloud saved as a
+temporary ``BAGNAME_0000.npy`` (so outputs are named as for loose files), in the cloud's own frame
+(the per-scan stages use no pose).
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import typer
+
+__all__ = ["BagOptions", "is_bag", "map_bag", "register", "run_stage_on_bag"]
+
+BAG_STORAGES = ("mcap", "sqlite3", "ros1")
+
+
+@dataclass(frozen=True)
+class BagOptions:
+    """The bag options of one command call."""
+
+    points: str | None = None
+    odom: str | None = None
+    tf: str | None = None
+    out: Path | None = None
+    storage: str = "mcap"
+
+
+def is_bag(path: Path) -> bool:
+    """A ROS 1 ``.bag``, an ``.mcap`` file or a ROS 2 bag folder (one holding metadata.yaml)."""
+    path = Path(path)
+    return path.suffix.lower() in (".bag", ".mcap") or (path.is_dir() and (path / "metadata.yaml").is_file())
+
+
+def _points_topic(bag: Path, topic: str | None) -> str:
+    """``topic``, or the bag's only PointCloud2 topic."""
+    from .bag import POINTCLOUD2, bag_info
+
+    if topic is not None:
+        return topic
+    clouds = [t.name for t in bag_info(bag) if t.msgtype == POINTCLOUD2]
+    if len(clouds) != 1:
+        found = ", ".join(clouds) or "none"
+        raise ValueError(f"{bag}: pass --points TOPIC; the bag's PointCloud2 topics: {found}")
+    return clouds[0]
+
+
+def _output_bag(directory: Path, stem: str, storage: str):
+    from .bag import MapBagWriter
+
+    name = f"{stem}.bag" if storage == "ros1" else stem
+    return MapBagWriter(Path(directory) / name, storage, overwrite=True)
+
+
+def _progress(iterable, total: int, what: str):
+    from tqdm import tqdm
+
+    return tqdm(iterable, total=total, unit="cloud", desc=what, disable=total < 2)
+
+
+# ------------------------------------------------------------------------------------------ stages
+
+
+def _write_stage_results(writer, outputs: list[Path], cloud) -> None:
+    """Every map (.npz) a stage wrote as a GridMap (and an OccupancyGrid of its classes), every
+    labelled cloud as a PointCloud2 with a label field, stamped and framed like the input cloud."""
+    from .bag import occupancy_from_classes
+    from .elevation import ElevationMap
+    from .io import read_cloud
+
+    for path in outputs:
+        if path.suffix in (".png", ".tif"):
+            continue
+        try:
+            elevation_map = ElevationMap.load(path) if path.suffix == ".npz" else None
+        except ValueError:  # an .npz cloud, not a map
+            elevation_map = None
+        if elevation_map is not None:
+            writer.write_grid_map(elevation_map, stamp=cloud.stamp, frame_id=cloud.frame_id)
+            if "class" in elevation_map:
+                occupancy = occupancy_from_classes(elevation_map["class"])
+                writer.write_occupancy_grid(
+                    elevation_map, occupancy, stamp=cloud.stamp, frame_id=cloud.frame_id
+                )
+        else:
+            fields = read_cloud(path)
+            writer.write_cloud(fields["xyz"], fields.get("label"), stamp=cloud.stamp, frame_id=cloud.frame_id)
+
+
+def _outputs_since(directory: Path, name: str, before: dict[Path, int]) -> list[Path]:
+    """Files ``NAME_*`` in ``directory`` that are new or changed since the ``before`` snapshot."""
+    return sorted(path for path in directory.glob(f"{name}_*") if before.get(path) != path.stat().st_mtime_ns)
+
+
+def _snapshot(directory: Path, name: str) -> dict[Path, int]:
+    return {path: path.stat().st_mtime_ns for path in directory.glob(f"{name}_*")}
+
+
+def run_stage_on_bag(callback, input_name: str, values: dict, bag: Path, bag_options: BagOptions) -> None:
+    """Run a per-scan command (``callback`` with its option ``values``) on every cloud of the bag's
+    point topic as ``NAME_0000``, ``NAME_0001``, ... and, with ``--out``, write what each run wrote
+    (maps as GridMap + OccupancyGrid, labelled clouds as PointCloud2) into a bag ``NAME_STAGE``."""
+    from .bag import read_bag
+    from .cli import _exit_on_bad_input
+
+    output_dir = Path(bag_options.out or values.get("output_dir") or ".")
+    values = {**values, "output_dir": output_dir} if "output_dir" in values else values
+    stage = callback.__name__
+    with _exit_on_bad_input():  # the bag's errors name it
+        topic = _points_topic(bag, bag_options.points)
+        clouds = read_bag(bag, topic)
+    writer = _output_bag(output_dir, f"{bag.stem}_{stage}", bag_options.storage) if bag_options.out else None
+    try:
+        with tempfile.TemporaryDirectory(prefix="terracube-bag-") as scratch:
+            with _exit_on_bad_input():  # the bag's errors name it
+                for index, cloud in enumerate(_progress(clouds.clouds(), len(clouds), stage)):
+                    name = f"{bag.stem}_{index:04d}"
+                    scan = Path(scratch) / f"{name}.npy"
+                    np.save(scan, cloud.points)
+                    before = _snapshot(output_dir, name)
+                    callback(**{**values, input_name: scan})
+                    scan.unlink()
+                    if cloud.no_returns:
+                        typer.echo(f"  {cloud.no_returns:,} no-returns dropped")
+                    if writer is not None:
+                        _write_stage_results(writer, _outputs_since(output_dir, name, before), cloud)
+    except BaseException:
+        if writer is not None:
+            writer.abort()
+        raise
+    if writer is not None:
+        typer.echo(f"bag: {writer.close()} ({', '.join(f'{k} x{v}' for k, v in writer.counts.items())})")
+
+
+# ------------------------------------------------------------------------------------------ map
+
+
+def _mapper_params(config):
+    """The mapper's parameters of a configuration, as ``terracube map`` makes them."""
+    try:  # where the CLI's helpers move once the command line is a layer over terracube.pipeline
+        from .pipeline import mapper_params
+    except ImportError:
+        from .cli import _mapper_params as mapper_params
+    return mapper_params(config)
+
+
+def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
+    """``terracube map BAG``: the mapper over every cloud of the topic, posed by --odom or --tf."""
+    from .bag import occupancy_from_classes, read_bag
+    from .cli import _exit_on_bad_input, _fail
+    from .config import ConfigError, load_config
+    from .mapping import Mapper
+    from .poses import write_kitti_poses, write_tum_poses
+
+    for option, flag in (("poses", "--poses"), ("calib", "--calib"), ("ground_truth", "--ground-truth")):
+        if values.get(option) is not None:
+            raise _fail(f"{flag} is for a folder of scans; a bag takes its poses from --odom or --tf")
+    if (bag_options.odom is None) == (bag_options.tf is None):
+        raise _fail("a bag needs one pose source: --odom TOPIC (Odometry or PoseStamped) or --tf BASE_FRAME")
+    try:
+        cfg = load_config(values.get("config"))
+    except ConfigError as error:
+        raise _fail(str(error)) from error
+    with _exit_on_bad_input("command line"):
+        cfg = cfg.replace(
+            "mapper",
+            keyframe_distance=values.get("keyframe_distance"),
+            resolution=values.get("resolution"),
+            loop_closing=values.get("loop_closing"),
+            use_registration=values.get("registration"),
+        )
+    output_dir = bag_options.out or values["output_dir"]
+    with _exit_on_bad_input():  # the bag's errors name it
+        topic = _points_topic(bag, bag_options.points)
+        clouds = read_bag(bag, topic, bag_options.odom or "/tf", base_frame=bag_options.tf)
+        mapper = Mapper(_mapper_params(cfg))
+    limit = values.get("limit")
+    total = len(clouds) if limit is None else min(len(clouds), max(limit, 0))
+    stamps: list[float] = []
+    start = time.perf_counter()
+    with _exit_on_bad_input():  # the bag's errors name it
+        for stamp, points, pose in _progress(clouds, total, "mapping"):
+            if len(stamps) >= total:
+                break
+            mapper.add_scan(points, pose)
+            stamps.append(stamp)
+        if not stamps:
+            raise ValueError(f"no cloud on {topic}")
+        if mapper.pending_loops:
+            mapper.optimize()
+        dem = mapper.global_map()
+    seconds = time.perf_counter() - start
+    output_dir.mkdir(parents=True, exist_ok=True)
+    written = [dem.save(output_dir / "global_map.npz")]
+    keyframes = mapper.keyframe_poses()
+    key_stamps = np.asarray(stamps)[mapper.keyframe_scan_indices()]
+    write_kitti_poses(output_dir / "trajectory_kitti.txt", keyframes)
+    write_tum_poses(output_dir / "trajectory_tum.txt", key_stamps, keyframes)
+    written += [output_dir / "trajectory_kitti.txt", output_dir / "trajectory_tum.txt"]
+    if values.get("png", True) and dem.geometry.num_cells > 0:
+        from .viz import plot_layer, plot_terrain_classes
+
+        written.append(plot_layer(dem, "max", output_dir / "global_max.png", title="highest elevation [m]"))
+        classes = np.nan_to_num(dem["class"], nan=0).astype(np.uint8)
+        written.append(
+            plot_terrain_classes(dem, classes, output_dir / "global_classes.png", title="terrain classes")
+        )
+    if bag_options.out is not None:
+        frame = clouds.pose_frame or "map"
+        with _output_bag(output_dir, "global_map", bag_options.storage) as writer:
+            writer.write_grid_map(dem, stamp=stamps[-1], frame_id=frame)
+            writer.write_occupancy_grid(
+                dem, occupancy_from_classes(dem["class"]), stamp=stamps[-1], frame_id=frame
+            )
+        written.append(writer.path)
+    g = dem.geometry
+    typer.echo(
+        f"{len(stamps)} clouds of {topic}, {len(mapper)} keyframes, "
+        f"{len(mapper.loop_closures)} loop closures in {seconds:.2f} s; global map "
+        f"{int(g.size[0])} x {int(g.size[1])} cells at {g.resolution} m, "
+        f"{int(np.isfinite(dem['max']).sum())} with data"
+    )
+    dropped = sum(clouds.no_returns)
+    if dropped:
+        typer.echo(f"{dropped:,} no-returns dropped")
+    for path in written:
+        typer.echo(f"written: {path}")
+
+
+# ------------------------------------------------------------------------------------------ bag-info
+
+
+def bag_info_command(
+    bag: Path = typer.Argument(..., help="ROS 1 .bag, ROS 2 bag folder or .mcap file.", show_default=False),
+) -> None:
+    """List the topics of a ROS bag with their message types and counts."""
+    from .bag import bag_info
+    from .cli import _fail
+
+    try:
+        topics = bag_info(bag)
+    except (ValueError, FileNotFoundError, ImportError) as error:
+        raise _fail(str(error)) from error
+    width = max((len(t.name) for t in topics), default=5)
+    typer.echo(f"{'topic':<{width}}  {'count':>7}  type")
+    for topic in topics:
+        typer.echo(f"{topic.name:<{width}}  {topic.count:>7}  {topic.msgtype}")
+
+
+# ------------------------------------------------------------------------------------------ register
+
+_POINTS = typer.Option(
+    None,
+    "--points",
+    help="Bag input: the PointCloud2 topic (default: the bag's only one).",
+    show_default=False,
+)
+_ODOM = typer.Option(
+    None,
+    "--odom",
+    help="Bag input (map): poses from this Odometry/PoseStamped topic, the cloud's mount from /tf_static.",
+    show_default=False,
+)
+_TF = typer.Option(
+    None,
+    "--tf",
+    help="Bag input (map): poses of BASE_FRAME from /tf (in the tree's root), the mount from /tf_static.",
+    metavar="BASE_FRAME",
+    show_default=False,
+)
+_OUT = typer.Option(
+    None,
+    "--out",
+    help="Bag input: write the usual files to DIR and the results as a bag there too (GridMap, "
+    "OccupancyGrid of classes, labelled PointCloud2).",
+    show_default=False,
+)
+_STORAGE = typer.Option("mcap", "--bag-storage", help="Bag written by --out: mcap, sqlite3 (ROS 2) or ros1.")
+
+_BAG_PARAMETERS = {
+    "points": (_POINTS, str | None),
+    "odom": (_ODOM, str | None),
+    "tf": (_TF, str | None),
+    "out": (_OUT, Path | None),
+    "bag_storage": (_STORAGE, str),
+}
+
+
+def _with_bag_input(callback, is_map: bool):
+    """``callback`` with the bag options added to its signature (typer reads ``__signature__``)."""
+    from .cli import _fail
+
+    signature = inspect.signature(callback)
+    names = list(signature.parameters)
+    input_name = names[0]  # every wrapped command takes its scan(s) as the first argument
+    parameters = list(signature.parameters.values())
+    if is_map:  # a bag carries its own poses: --poses becomes optional
+        parameters = [
+            p.replace(default=typer.Option(None, "--poses", "-p", help=p.default.help, show_default=False))
+            if p.name == "poses"
+            else p
+            for p in parameters
+        ]
+    taken = {"odom", "tf"} if is_map else set()
+    for name, (option, annotation) in _BAG_PARAMETERS.items():
+        if name in ("odom", "tf") and not is_map:
+            continue
+        parameters.append(
+            inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=option, annotation=annotation)
+        )
+        taken.add(name)
+
+    @functools.wraps(callback)
+    def command(**values):
+        bag_values = {name: values.pop(name, None) for name in _BAG_PARAMETERS}
+        storage = bag_values["bag_storage"] or "mcap"
+        if storage not in BAG_STORAGES:
+            raise _fail(f"--bag-storage must be one of {', '.join(BAG_STORAGES)}, got {storage!r}")
+        bag_options = BagOptions(
+            bag_values["points"], bag_values["odom"], bag_values["tf"], bag_values["out"], storage
+        )
+        source = Path(values[input_name])
+        if not is_bag(source):
+            given = [
+                f"--{n.replace('_', '-')}"
+                for n in ("points", "odom", "tf", "out")
+                if bag_values[n] is not None
+            ]
+            if given:
+                raise _fail(f"{' '.join(given)}: only for a bag input (.bag, .mcap or a ROS 2 bag folder)")
+            if is_map and values.get("poses") is None:
+                raise _fail("--poses is required for a folder of scans")
+            return callback(**values)
+        if is_map:
+            return map_bag(source, values, bag_options)
+        return run_stage_on_bag(callback, input_name, values, source, bag_options)
+
+    input_help = (
+        "\n\nA ROS bag (.bag, .mcap or a ROS 2 bag folder) as input: --points TOPIC picks the "
+        "PointCloud2 topic"
+        + (", --odom TOPIC or --tf BASE_FRAME the poses" if is_map else ", every cloud is processed")
+        + "; --out DIR writes the files and the results as a bag there."
+    )
+    command.__doc__ = inspect.cleandoc(callback.__doc__ or "") + input_help
+    annotations = dict(getattr(callback, "__annotations__", {}))
+    annotations.update({name: _BAG_PARAMETERS[name][1] for name in taken})
+    command.__annotations__ = annotations
+    command.__signature__ = signature.replace(parameters=parameters)
+    return command
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``bag-info`` and the bag input of map, collapse, dem, classify and fem to ``app`` (once)."""
+    if any(info.name == "bag-info" for info in app.registered_commands):
+        return
+    for info in app.registered_commands:
+        name = info.name or (info.callback.__name__ if info.callback else None)
+        if name in ("map", "collapse", "dem", "classify", "fem"):
+            info.callback = _with_bag_input(info.callback, is_map=name == "map")
+    app.command("bag-info")(bag_info_command)
