@@ -442,7 +442,8 @@ TEST(RegionLayout, AllPairsOnTable3GivesTheLargerAverages) {
       compare_region_layouts(table_3(kTable3Slam), table_3(kTable3Dsm), RegionRelations::kAllPairs);
   EXPECT_EQ(c.pairs.size(), 28u);
   EXPECT_EQ(c.triples.size(), 56u);
-  EXPECT_GT(c.mean_distance_error_m, 5.0);
+  EXPECT_NEAR(c.mean_distance_error_m, 6.86, 0.005);
+  EXPECT_NEAR(c.mean_angle_error_deg, 3.39, 0.005);
 }
 
 TEST(RegionLayout, CountsAllPairsAndTriplesAndIgnoresARigidMotionIn3D) {
