@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import enum
 import math
 import zipfile
 from collections.abc import Sequence
@@ -12,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from . import _core
+from .classes import TERRAIN_COLORS, TerrainClass
 from .collapse import CollapseParams, CollapseResult, _as_points, _num_threads, _set_frame
 
 __all__ = [
@@ -27,28 +27,6 @@ __all__ = [
 ]
 
 MapGeometry = _core.MapGeometry
-
-
-class TerrainClass(enum.IntEnum):
-    """Per-cell terrain class (uint8), mirroring ``terracube::TerrainClass``."""
-
-    UNKNOWN = 0
-    GROUND = 1
-    OBSTACLE = 2
-    OVERHANGING_OBJECT = 3
-    VERTICAL_OBJECT = 4
-    HORIZONTAL_EDGE = 5
-
-
-#: RGB colours used for class pictures.
-TERRAIN_COLORS = {
-    TerrainClass.UNKNOWN: (1.0, 1.0, 1.0),
-    TerrainClass.GROUND: (0.62, 0.80, 0.45),
-    TerrainClass.OBSTACLE: (0.90, 0.35, 0.20),
-    TerrainClass.OVERHANGING_OBJECT: (0.15, 0.55, 0.25),
-    TerrainClass.VERTICAL_OBJECT: (0.30, 0.30, 0.75),
-    TerrainClass.HORIZONTAL_EDGE: (0.95, 0.80, 0.20),
-}
 
 
 class ElevationMap:
