@@ -253,8 +253,8 @@ def _read_ply(path: Path) -> dict[str, np.ndarray]:
 def _read_las(path: Path) -> dict[str, np.ndarray]:
     try:
         import laspy
-    except ImportError as error:  # pragma: no cover - laspy is a dependency
-        raise ImportError("LAS/LAZ reading needs laspy and lazrs: pip install 'laspy[lazrs]'") from error
+    except ImportError as error:
+        raise ImportError("LAS/LAZ reading needs the las extra: pip install 'terracube[las]'") from error
     try:
         with laspy.open(str(path)) as reader:
             header = reader.header
@@ -694,8 +694,8 @@ def _write_las(
 ) -> None:
     try:
         import laspy
-    except ImportError as error:  # pragma: no cover - laspy is a dependency
-        raise ImportError("LAS/LAZ writing needs laspy and lazrs: pip install 'laspy[lazrs]'") from error
+    except ImportError as error:
+        raise ImportError("LAS/LAZ writing needs the las extra: pip install 'terracube[las]'") from error
     if not np.all(np.isfinite(xyz)):
         raise ValueError(f"{path}: LAS cannot store NaN or infinite coordinates; drop those points first")
     header = laspy.LasHeader(point_format=6, version="1.4")

@@ -15,8 +15,8 @@ def _pyplot():
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
-    except ImportError as error:  # pragma: no cover - matplotlib is a core dependency
-        raise ImportError("pictures need matplotlib: pip install matplotlib") from error
+    except ImportError as error:
+        raise ImportError("pictures need the plot extra: pip install 'terracube[plot]'") from error
     return plt
 
 
