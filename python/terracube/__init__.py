@@ -1,6 +1,11 @@
 """terracube: navigable 2.5D elevation maps from ground-robot 3D LiDAR scans."""
 
-from . import config, evaluation, io, pose_graph, poses, simulation
+from . import _core
+
+if getattr(_core, "__file__", None) is None:  # only the stubs' folder, python/terracube/_core/
+    raise ImportError("terracube._core, the compiled extension, is missing: pip install . (scripts/setup.sh)")
+
+from . import config, evaluation, io, pipeline, pose_graph, poses, simulation
 from .collapse import (
     CollapseParams,
     CollapseResult,
@@ -49,6 +54,7 @@ __all__ = [
     "config",
     "evaluation",
     "io",
+    "pipeline",
     "pose_graph",
     "poses",
     "simulation",
