@@ -257,7 +257,8 @@ def build_elevation_map(
 
     Parameters
     ----------
-    points : (N, 3) float32 or float64 array
+    points : (N, 3) or wider float32 or float64 array
+        x, y, z [m] in the first three columns, any row stride.
     resolution : float
         Cell edge [m]; other options as in :class:`ElevationParams` (``params`` overrides them).
     use : (N,) bool, optional
@@ -268,6 +269,13 @@ def build_elevation_map(
         it earlier stay valid and show the new values. The build's size must be the map's (give
         a fixed ``origin`` and ``size``); layers other than the six (``classify_terrain``'s, say)
         are reset to NaN. ValueError on a size mismatch, leaving the map unchanged.
+
+    Returns
+    -------
+    ElevationMap
+        Layers of shape (nx, ny), float32: ``count`` (points per cell), ``min``, ``max``, ``mean``
+        and ``std_dev`` of the heights [m], ``discontinuity`` (1 where sorted heights jump by more
+        than ``discontinuity`` [m]); NaN where no point falls.
     """
     if params is None:
         params = ElevationParams(resolution, **kwargs)
@@ -292,9 +300,28 @@ def dem_without_overhangs(
     """The collapsible-cubes paper's DEM without overhangs, plus ``clearance`` and ``step`` layers.
 
     Runs :func:`terracube.collapse_overhangs`, then maps the points it kept in the same (leveled,
-    cropped) frame. Extra layers: ``overhang_min`` (lowest overhang point), ``clearance`` (from the
-    top of the kept points to the lowest overhang above them, +inf where none) and ``step`` (largest
-    height difference of ``max`` to the 8 neighbours). Returns (map, collapse result).
+    cropped) frame.
+
+    Parameters
+    ----------
+    points : (N, 3) or wider float32/float64 array
+        x, y, z [m] in the first three columns.
+    edge : float
+        Cube edge E [m] (ignored when ``collapse`` is given).
+    sigma : int
+        σ [cubes] (ignored when ``collapse`` is given).
+    resolution : float
+        Cell edge [m] (ignored when ``elevation`` is given).
+    collapse, elevation : CollapseParams, ElevationParams, optional
+        All parameters of each step; the collapse's transform and crop box apply to the map too.
+
+    Returns
+    -------
+    (ElevationMap, CollapseResult)
+        The map of the kept points with the layers of :func:`build_elevation_map` plus
+        ``overhang_min`` (lowest overhang point [m]), ``clearance`` (from the top of the kept points
+        to the lowest overhang above them [m], +inf where none) and ``step`` (largest height
+        difference of ``max`` to the 8 neighbours [m]); and the overhang mask with its cubes.
     """
     collapse = collapse or CollapseParams(edge, sigma)
     elevation = elevation or ElevationParams(resolution)
