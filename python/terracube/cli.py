@@ -14,7 +14,6 @@ import inspect
 import json
 import math
 import re
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -24,7 +23,7 @@ from typing import Any
 import numpy as np
 import typer
 
-from .pipeline import CLOUD_FORMATS, STAGE_OUTPUT_OPTIONS, STAGES, read_scan
+from .pipeline import CLOUD_FORMATS, REGISTRATION_METHODS, STAGE_OUTPUT_OPTIONS, STAGES, read_scan
 
 app = typer.Typer(
     help="Navigable 2.5D elevation maps from ground-robot 3D LiDAR scans.\n\n"
@@ -37,7 +36,6 @@ app = typer.Typer(
     rich_markup_mode=None,  # help texts say "[m]" and "[config collapse.edge ...]": no markup
 )
 
-REGISTRATION_METHODS = ("classes", "all-cells", "pcl")
 TERRAIN_REFERENCES = ("sensor_height", "local_ground")
 
 
@@ -566,40 +564,6 @@ def parse_initial(text: str | None) -> np.ndarray:
     return _pose_xy_yaw(*values)
 
 
-def _register_record(method: str, source: Path, target: Path, result) -> dict[str, Any]:
-    from . import TerrainClass
-
-    transform = np.asarray(result.transform)
-    yaw = math.degrees(math.atan2(transform[1, 0], transform[0, 0]))
-    record: dict[str, Any] = {
-        "source": str(source),
-        "target": str(target),
-        "method": method,
-        "transform": transform.tolist(),
-        "yaw_deg": yaw,
-        "converged": bool(result.converged),
-        "iterations": int(result.iterations),
-    }
-    if method == "pcl":
-        record["reason"] = "converged" if result.converged else "not converged"
-        record["fitness"] = float(result.fitness)
-        return record
-    counts = list(result.correspondences_per_class)
-    record.update(
-        reason=result.reason.name,
-        rmse=float(result.rmse),
-        num_correspondences=int(result.num_correspondences),
-        correspondences_per_class={c.name.lower(): int(counts[int(c)]) for c in TerrainClass},
-    )
-    if np.any(np.asarray(result.constraint_matrix)):
-        from .registration import constrained_directions
-
-        record["constraints"] = [
-            {"along": along, "held": held} for along, held, _ in constrained_directions(result)
-        ]
-    return record
-
-
 def _print_register_record(record: dict[str, Any], elapsed_ms: float, source: Path, target: Path) -> None:
     method = record["method"]
     typer.echo(f"{source.stem} -> {target.stem} ({method}, {elapsed_ms:.1f} ms):")
@@ -661,10 +625,7 @@ def register(
     Prints the transform, whether it converged and why, iterations, RMSE and the correspondences per
     terrain class; with --structure-radius also the two motions the scene holds least firmly.
     """
-    from tqdm import tqdm
-
-    from .pipeline import classified_map
-    from .registration import pcl_icp, points_of_map, register_maps, register_maps_all_cells
+    from .pipeline import register_scans
 
     if method not in REGISTRATION_METHODS:
         raise _fail(f"--method must be one of {', '.join(REGISTRATION_METHODS)}, got {method!r}")
@@ -673,24 +634,19 @@ def register(
     config = command_config("register", options)
     with _exit_on_bad_input():
         guess = parse_initial(initial)
-    maps = []
-    for path in tqdm([source, target], desc="mapping scans", unit="scan", leave=False):
-        points = _read_scan(path)
-        with _exit_on_bad_input(path.stem):
-            maps.append(classified_map(points, path.stem, config, options["remove_overhangs"])[0])
+    points = [_read_scan(source), _read_scan(target)]
     with _exit_on_bad_input("registration"):
-        start = time.perf_counter()
-        if method == "classes":
-            result = register_maps(maps[0], maps[1], guess, config.registration)
-        elif method == "all-cells":
-            result = register_maps_all_cells(maps[0], maps[1], guess, config.registration)
-        else:
-            try:
-                result = pcl_icp(points_of_map(maps[0])[0], points_of_map(maps[1])[0], guess, config.pcl_icp)
-            except RuntimeError as error:
-                raise _fail(str(error)) from error
-        elapsed_ms = 1e3 * (time.perf_counter() - start)
-    record = _register_record(method, source, target, result)
+        try:
+            record, elapsed_ms = register_scans(
+                *points,
+                config,
+                method=method,
+                initial=guess,
+                remove_overhangs=options["remove_overhangs"],
+                names=(str(source), str(target)),
+            )
+        except RuntimeError as error:  # PCL absent from this build
+            raise _fail(str(error)) from error
     _print_register_record(record, elapsed_ms, source, target)
     if output is not None:
         output.parent.mkdir(parents=True, exist_ok=True)
@@ -881,37 +837,24 @@ def map_command(
     """
     from tqdm import tqdm
 
-    from .config import ConfigError, load_config
-    from .mapping import (
-        Mapper,
-        detect_pose_format,
-        match_scans_to_poses,
-        read_kitti_calibration,
-        read_pose_file,
-    )
-    from .pipeline import SCAN_SUFFIXES, expand_inputs, mapper_params
-    from .poses import write_kitti_poses, write_tum_poses
+    from .mapping import detect_pose_format, match_scans_to_poses, read_kitti_calibration, read_pose_file
+    from .pipeline import SCAN_SUFFIXES, build_global_map, expand_inputs
 
-    try:
-        cfg = load_config(config).replace(
-            "mapper",
-            keyframe_distance=keyframe_distance,
-            resolution=resolution,
-            loop_closing=loop_closing,
-            use_registration=registration,
-        )
-    except ConfigError as error:
-        raise _fail(str(error)) from error
+    cfg = command_config("map", {"config": config}).replace(
+        "mapper",
+        keyframe_distance=keyframe_distance,
+        resolution=resolution,
+        loop_closing=loop_closing,
+        use_registration=registration,
+    )
     if scans.is_dir():
         files = sorted(p for p in scans.iterdir() if p.is_file() and not p.name.startswith("."))
     else:
-        try:
+        with _exit_on_bad_input():
             files = expand_inputs([str(scans)])
-        except (ValueError, FileNotFoundError) as error:
-            raise _fail(str(error)) from error
-    files = [f for f in files if f.suffix.lower() in SCAN_SUFFIXES]
-    if limit is not None:
-        files = files[: max(limit, 0)]
+    files = [f for f in files if f.suffix.lower() in SCAN_SUFFIXES][
+        : None if limit is None else max(limit, 0)
+    ]
     if not files:
         raise _fail(f"{scans}: no scans found")
     if not poses.is_file():
@@ -924,63 +867,24 @@ def map_command(
         calibration = read_kitti_calibration(calib) if calib is not None else None
         stamps, odometry = read_pose_file(poses, pose_format, calibration)
         indices = match_scans_to_poses(files, len(odometry))
-        mapper = Mapper(mapper_params(cfg))
+    truth = None
+    if ground_truth is not None:
+        with _exit_on_bad_input(str(ground_truth)):
+            truth = read_pose_file(ground_truth, pose_format, calibration)[1]
     if calibration is not None:
         typer.echo(f"calibration: {calib} (camera poses -> Velodyne)")
-    start = time.perf_counter()
-    for path, index in tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="mapping"):
-        points = _read_scan(path)
-        with _exit_on_bad_input(str(path)):
-            mapper.add_scan(points, odometry[index])
-    if mapper.pending_loops:
-        mapper.optimize()
-    seconds = time.perf_counter() - start
+    sequence = tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="mapping")
     with _exit_on_bad_input("global map"):
-        dem = mapper.global_map()
-    output_dir.mkdir(parents=True, exist_ok=True)
-    written = [dem.save(output_dir / "global_map.npz")]
-    keyframes = mapper.keyframe_poses()
-    key_scans = [indices[k] for k in mapper.keyframe_scan_indices()]
-    write_kitti_poses(output_dir / "trajectory_kitti.txt", keyframes)
-    write_tum_poses(output_dir / "trajectory_tum.txt", stamps[key_scans], keyframes)
-    written += [output_dir / "trajectory_kitti.txt", output_dir / "trajectory_tum.txt"]
-    if png and dem.geometry.num_cells > 0:
-        from .viz import plot_layer, plot_terrain_classes
-
-        written.append(plot_layer(dem, "max", output_dir / "global_max.png", title="highest elevation [m]"))
-        classes = np.nan_to_num(dem["class"], nan=0).astype(np.uint8)
-        written.append(
-            plot_terrain_classes(dem, classes, output_dir / "global_classes.png", title="terrain classes")
+        report = build_global_map(
+            ((str(path), _read_scan(path), index) for path, index in sequence),
+            odometry,
+            stamps,
+            output_dir,
+            cfg,
+            png=png,
+            ground_truth=truth,
         )
-    t = mapper.timings
-    typer.echo(
-        f"{len(files)} scans, {len(mapper)} keyframes, {len(mapper.loop_closures)} loop closures "
-        f"in {seconds:.2f} s ({len(files) / seconds:.1f} scans/s incl. reading)"
-    )
-    typer.echo(
-        f"time [ms]: map building {t.map_building_ms:.0f}, classification {t.classification_ms:.0f}, "
-        f"registration {t.registration_ms:.0f}, fusion {t.fusion_ms:.0f}, "
-        f"loop closing {t.loop_closing_ms:.0f}"
-    )
-    g = dem.geometry
-    typer.echo(
-        f"global map: {int(g.size[0])} x {int(g.size[1])} cells at {g.resolution} m, "
-        f"{int(np.isfinite(dem['max']).sum())} with data, "
-        f"{mapper.global_memory_bytes / 2**20:.1f} MiB of tiles"
-    )
-    if ground_truth is not None:
-        from .evaluation import absolute_trajectory_error
-
-        with _exit_on_bad_input(str(ground_truth)):
-            _, truth = read_pose_file(ground_truth, pose_format, calibration)
-            key_truth = truth[key_scans]
-            estimate = absolute_trajectory_error(keyframes, key_truth, "first_pose").translation
-            odom = absolute_trajectory_error(mapper.keyframe_odometry(), key_truth, "first_pose").translation
-        typer.echo(
-            f"ATE (first pose aligned): mapper RMSE {estimate.rmse:.3f} m, odometry RMSE {odom.rmse:.3f} m"
-        )
-    for path in written:
-        typer.echo(f"written: {path}")
+    _echo_report(report)
 
 
 # ------------------------------------------------------------------------------------------ config, batch

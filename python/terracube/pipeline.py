@@ -1,10 +1,12 @@
-"""The per-scan stages behind the ``terracube`` command line and ``terracube batch``.
+"""The work behind the ``terracube`` command line and ``terracube batch``, without the printing.
 
-Each stage (collapse, dem, classify, fem) reads nothing and prints nothing: :func:`run_stage` takes
-the points, runs the stage with a :class:`terracube.config.Config`, writes the outputs as
-``NAME_...`` files and returns a :class:`StageReport` (summary lines, written files). The command
-line prints the report; batch workers collect it. Both find their scans with :func:`read_scan` and
-:func:`expand_inputs`, so a new input source (a ROS bag topic, say) is added in one place.
+Each per-scan stage (collapse, dem, classify, fem) reads nothing and prints nothing:
+:func:`run_stage` takes the points, runs the stage with a :class:`terracube.config.Config`, writes
+the outputs as ``NAME_...`` files and returns a :class:`StageReport` (summary lines, written files).
+The command line prints the report; batch workers collect it. :func:`register_scans` and
+:func:`build_global_map` do the same for ``terracube register`` and ``terracube map``. Scans are found
+with :func:`read_scan` and :func:`expand_inputs`, so a new input source (a ROS bag topic, say) is
+added in one place.
 
 Example
 -------
@@ -27,9 +29,11 @@ import numpy as np
 
 __all__ = [
     "CLOUD_FORMATS",
+    "REGISTRATION_METHODS",
     "SCAN_SUFFIXES",
     "STAGES",
     "StageReport",
+    "build_global_map",
     "collapse_params",
     "elevation_params",
     "expand_inputs",
@@ -37,6 +41,8 @@ __all__ = [
     "mapper_params",
     "point_classes",
     "read_scan",
+    "register_scans",
+    "registration_record",
     "run_stage",
 ]
 
@@ -514,3 +520,200 @@ def run_stage(
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     return _RUNNERS[stage](points, name, output_dir, config or default_config(), **options)
+
+
+# ------------------------------------------------------------------------------------------ register
+
+#: Registration methods of :func:`register_scans`.
+REGISTRATION_METHODS = ("classes", "all-cells", "pcl")
+
+
+def registration_record(method: str, source: str, target: str, result) -> dict:
+    """A JSON-ready summary of one registration: transform (4, 4), yaw [deg], convergence and why,
+    iterations, RMSE [m] or PCL's fitness [m^2], correspondences per terrain class, constraints."""
+    from . import TerrainClass
+
+    transform = np.asarray(result.transform)
+    record: dict = {
+        "source": str(source),
+        "target": str(target),
+        "method": method,
+        "transform": transform.tolist(),
+        "yaw_deg": float(np.degrees(np.arctan2(transform[1, 0], transform[0, 0]))),
+        "converged": bool(result.converged),
+        "iterations": int(result.iterations),
+    }
+    if method == "pcl":
+        record["reason"] = "converged" if result.converged else "not converged"
+        record["fitness"] = float(result.fitness)
+        return record
+    counts = list(result.correspondences_per_class)
+    record.update(
+        reason=result.reason.name,
+        rmse=float(result.rmse),
+        num_correspondences=int(result.num_correspondences),
+        correspondences_per_class={c.name.lower(): int(counts[int(c)]) for c in TerrainClass},
+    )
+    if np.any(np.asarray(result.constraint_matrix)):
+        from .registration import constrained_directions
+
+        record["constraints"] = [
+            {"along": along, "held": held} for along, held, _ in constrained_directions(result)
+        ]
+    return record
+
+
+def register_scans(
+    source: np.ndarray,
+    target: np.ndarray,
+    config=None,
+    *,
+    method: str = "classes",
+    initial: np.ndarray | None = None,
+    remove_overhangs: bool = False,
+    names: tuple[str, str] = ("source", "target"),
+) -> tuple[dict, float]:
+    """Map and classify two scans, then move ``source`` onto ``target``.
+
+    Parameters
+    ----------
+    source, target : (N, 3) and (M, 3) or wider float arrays
+        The scans' points [m], each in its sensor frame.
+    config
+        A :class:`terracube.config.Config` (defaults when None): frame, elevation, terrain,
+        registration and pcl_icp sections.
+    method
+        ``classes`` (the paper's class-weighted ICP), ``all-cells`` (every cell, unit weight) or
+        ``pcl`` (PCL's point-to-point ICP on the same cell points; RuntimeError without PCL).
+    initial : (4, 4) array, optional
+        Guess of the source -> target transform (identity when None).
+    remove_overhangs
+        Map each scan without its overhangs first.
+    names
+        The scans' names in the record and in error messages.
+
+    Returns
+    -------
+    (dict, float)
+        :func:`registration_record` of the result, and the registration's time [ms].
+    """
+    from .config import default_config
+    from .registration import pcl_icp, points_of_map, register_maps, register_maps_all_cells
+
+    if method not in REGISTRATION_METHODS:
+        raise ValueError(f"the method must be one of {', '.join(REGISTRATION_METHODS)}, got {method!r}")
+    config = config or default_config()
+    guess = np.eye(4) if initial is None else np.asarray(initial, dtype=np.float64)
+    maps = [
+        classified_map(points, name, config, remove_overhangs)[0]
+        for points, name in zip((source, target), names, strict=True)
+    ]
+    start = time.perf_counter()
+    if method == "classes":
+        result = register_maps(maps[0], maps[1], guess, config.registration)
+    elif method == "all-cells":
+        result = register_maps_all_cells(maps[0], maps[1], guess, config.registration)
+    else:
+        result = pcl_icp(points_of_map(maps[0])[0], points_of_map(maps[1])[0], guess, config.pcl_icp)
+    return registration_record(method, names[0], names[1], result), _elapsed_ms(start)
+
+
+# ------------------------------------------------------------------------------------------ map
+
+
+def build_global_map(
+    scans: Iterable[tuple[str, np.ndarray, int]],
+    odometry: np.ndarray,
+    stamps: np.ndarray,
+    output_dir: str | Path,
+    config=None,
+    *,
+    png: bool = True,
+    ground_truth: np.ndarray | None = None,
+) -> StageReport:
+    """Chain a scan sequence into a global elevation map with :class:`terracube.Mapper` and write it.
+
+    Parameters
+    ----------
+    scans
+        ``(name, points, pose index)`` per scan, in order: (N, 3) or wider points [m] in the sensor
+        frame and the row of ``odometry`` taken when it was recorded. Read lazily, so a generator
+        that reads files keeps one scan in memory.
+    odometry : (P, 4, 4) array
+        Odometry poses world <- sensor [m].
+    stamps : (P,) array
+        Their times [s], for the TUM trajectory.
+    output_dir
+        Writes ``global_map.npz``, ``trajectory_kitti.txt``, ``trajectory_tum.txt`` (keyframes) and,
+        with ``png``, ``global_max.png`` and ``global_classes.png``.
+    config
+        A :class:`terracube.config.Config`: the mapper, terrain and registration sections.
+    ground_truth : (P, 4, 4) array, optional
+        True poses: the report adds the ATE of the estimate and of the odometry (first pose aligned).
+
+    Returns
+    -------
+    StageReport
+        Summary lines (scans, keyframes, loops, time per step, the map) and the written files.
+    """
+    from .config import default_config
+    from .mapping import Mapper
+    from .poses import write_kitti_poses, write_tum_poses
+
+    mapper = Mapper(mapper_params(config or default_config()))
+    indices: list[int] = []
+    start = time.perf_counter()
+    for name, points, index in scans:
+        try:
+            mapper.add_scan(points, odometry[index])
+        except (ValueError, TypeError) as error:
+            raise ValueError(f"{name}: {error}") from error
+        indices.append(index)
+    if mapper.pending_loops:
+        mapper.optimize()
+    seconds = time.perf_counter() - start
+    if not indices:
+        raise ValueError("no scan to map")
+    dem = mapper.global_map()
+    output_dir = Path(output_dir)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    report = StageReport("global map", len(indices))
+    report.outputs.append(dem.save(output_dir / "global_map.npz"))
+    keyframes = mapper.keyframe_poses()
+    key_scans = [indices[k] for k in mapper.keyframe_scan_indices()]
+    write_kitti_poses(output_dir / "trajectory_kitti.txt", keyframes)
+    write_tum_poses(output_dir / "trajectory_tum.txt", stamps[key_scans], keyframes)
+    report.outputs += [output_dir / "trajectory_kitti.txt", output_dir / "trajectory_tum.txt"]
+    if png and dem.geometry.num_cells > 0:
+        from .viz import plot_layer, plot_terrain_classes
+
+        classes = np.nan_to_num(dem["class"], nan=0).astype(np.uint8)
+        report.outputs += _pictures(
+            lambda: plot_layer(dem, "max", output_dir / "global_max.png", title="highest elevation [m]"),
+            lambda: plot_terrain_classes(
+                dem, classes, output_dir / "global_classes.png", title="terrain classes"
+            ),
+        )
+    t = mapper.timings
+    g = dem.geometry
+    report.lines += [
+        f"{len(indices)} scans, {len(mapper)} keyframes, {len(mapper.loop_closures)} loop closures "
+        f"in {seconds:.2f} s ({len(indices) / seconds:.1f} scans/s incl. reading)",
+        f"time [ms]: map building {t.map_building_ms:.0f}, classification {t.classification_ms:.0f}, "
+        f"registration {t.registration_ms:.0f}, fusion {t.fusion_ms:.0f}, "
+        f"loop closing {t.loop_closing_ms:.0f}",
+        f"global map: {int(g.size[0])} x {int(g.size[1])} cells at {g.resolution} m, "
+        f"{int(np.isfinite(dem['max']).sum())} with data, "
+        f"{mapper.global_memory_bytes / 2**20:.1f} MiB of tiles",
+    ]
+    if ground_truth is not None:
+        from .evaluation import absolute_trajectory_error
+
+        truth = np.asarray(ground_truth)[key_scans]
+        estimate = absolute_trajectory_error(keyframes, truth, "first_pose").translation
+        odom = absolute_trajectory_error(mapper.keyframe_odometry(), truth, "first_pose").translation
+        report.lines.append(
+            f"ATE (first pose aligned): mapper RMSE {estimate.rmse:.3f} m, odometry RMSE {odom.rmse:.3f} m"
+        )
+    report.lines += [f"written: {path}" for path in report.outputs]
+    return report
