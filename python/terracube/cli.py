@@ -1,9 +1,15 @@
 """The ``terracube`` command line: a thin typer layer over :mod:`terracube.pipeline`.
 
-Every option is defined once in :data:`OPTIONS` and named by the commands that take it
-(:data:`STAGE_OPTIONS`); ``terracube batch`` takes the options of every stage. Parameters come from
-``--config FILE`` (see ``terracube config``) with the options given on the command line over it.
-Bad input or parameters exit with code 2 and a message naming the problem.
+Every shared option is defined once in :data:`OPTIONS` (with the config keys it sets) and named by
+the commands that take it (:data:`STAGE_OPTIONS`); :func:`with_options` adds them to a command and
+:func:`command_config` turns their values into a :class:`terracube.config.Config`. ``terracube
+batch`` takes the options of every stage. Parameters come from ``--config FILE`` (see ``terracube
+config``) with the options given on the command line over it. Bad input or parameters exit with
+code 2 and a message naming the problem.
+
+To give several commands a new option, add it to :data:`OPTIONS` and name it in
+:data:`STAGE_OPTIONS`; a new kind of input belongs in :func:`terracube.pipeline.read_scan`, which
+every command reads its scans through.
 """
 
 from __future__ import annotations
