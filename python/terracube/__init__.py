@@ -1,6 +1,11 @@
 """terracube: navigable 2.5D elevation maps from ground-robot 3D LiDAR scans."""
 
-from . import bag, config, evaluation, io, pose_graph, poses, simulation
+from . import _core
+
+if getattr(_core, "__file__", None) is None:  # only the stubs' folder, python/terracube/_core/
+    raise ImportError("terracube._core, the compiled extension, is missing: pip install . (scripts/setup.sh)")
+
+from . import bag, config, evaluation, io, pipeline, pose_graph, poses, simulation
 from .collapse import (
     CollapseParams,
     CollapseResult,
@@ -50,6 +55,7 @@ __all__ = [
     "config",
     "evaluation",
     "io",
+    "pipeline",
     "pose_graph",
     "poses",
     "simulation",

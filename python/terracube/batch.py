@@ -1,10 +1,11 @@
-"""Run one stage over many scans in parallel with Dask distributed.
+"""Run one stage over many scans in parallel: a local process pool, or Dask.
 
-Each scan is one task: read it, run the stage (:func:`terracube.cli.run_stage`), write the outputs
-to one folder, and return a :class:`FileRecord`. A task never raises: a file that fails comes back
-with ``status == "failed"`` and its error, and the others go on. The tasks run on a
-``LocalCluster`` (processes by default; ``workers`` of them) or on a running cluster given by its
-scheduler address.
+Each scan is one task: read it, run the stage (:func:`terracube.pipeline.run_stage`), write the
+outputs to one folder, and return a :class:`FileRecord`. A task never raises: a file that fails
+comes back with ``status == "failed"`` and its error, and the others go on. The tasks run on a
+``concurrent.futures`` pool of this machine (processes by default) or, with the ``batch`` extra
+(``dask[distributed]``), on a Dask ``LocalCluster`` or a running cluster given by its scheduler
+address.
 
 Example
 -------
@@ -15,18 +16,19 @@ Example
 
 from __future__ import annotations
 
-import glob
+import multiprocessing
 import time
 import traceback
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import as_completed as as_completed_futures
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = ["FileRecord", "expand_inputs", "process_file", "run_batch", "format_summary", "SCAN_SUFFIXES"]
+from .pipeline import SCAN_SUFFIXES, STAGES, expand_inputs, read_scan, run_stage
 
-#: Suffixes of the scans a folder contributes (the readable point-cloud formats).
-SCAN_SUFFIXES = (".pcd", ".ply", ".las", ".laz", ".bin", ".npy", ".npz", ".txt", ".xyz", ".csv", ".asc")
+__all__ = ["FileRecord", "expand_inputs", "process_file", "run_batch", "format_summary", "SCAN_SUFFIXES"]
 
 
 @dataclass
@@ -45,34 +47,6 @@ class FileRecord:
     @property
     def ok(self) -> bool:
         return self.status == "ok"
-
-
-def expand_inputs(inputs: Iterable[str | Path]) -> list[Path]:
-    """The scans named by ``inputs``: files as given, folders' scans (by suffix, sorted), glob matches.
-
-    Duplicates are dropped, order kept. ValueError when an input matches nothing or no scan at all.
-    """
-    files: list[Path] = []
-    for item in inputs:
-        path = Path(item)
-        if path.is_dir():
-            found = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in SCAN_SUFFIXES)
-            if not found:
-                raise ValueError(f"{path}: the folder holds no scan ({', '.join(SCAN_SUFFIXES)})")
-            files.extend(found)
-        elif path.is_file():
-            files.append(path)
-        elif glob.has_magic(str(item)):
-            found = sorted(Path(p) for p in glob.glob(str(item), recursive=True) if Path(p).is_file())
-            if not found:
-                raise ValueError(f"{item}: the pattern matches no file")
-            files.extend(found)
-        else:
-            raise ValueError(f"{path}: no such file or folder")
-    unique = list(dict.fromkeys(files))
-    if not unique:
-        raise ValueError("no scan to process")
-    return unique
 
 
 def _output_name(path: Path, names: dict[str, int]) -> str:
@@ -96,10 +70,7 @@ def process_file(
     start = time.perf_counter()
     record = FileRecord(str(path), stage, "failed")
     try:
-        from .cli import run_stage
-        from .io import read_points
-
-        points = read_points(path)
+        points = read_scan(path)
         record.points = int(len(points))
         report = run_stage(stage, points, name or path.stem, Path(output_dir), config, **(options or {}))
         record.outputs = [str(p) for p in report.outputs]
@@ -116,19 +87,58 @@ def process_file(
     return record
 
 
-def _client(scheduler: str | None, workers: int | None, processes: bool):
+BACKENDS = ("auto", "dask", "pool")
+
+
+def _dask_available() -> bool:
     try:
-        from dask.distributed import Client, LocalCluster
-    except ImportError as error:  # pragma: no cover - dask[distributed] is a dependency
-        raise ImportError("batch processing needs Dask: pip install 'dask[distributed]'") from error
+        import dask.distributed  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _dask_jobs(submit_args, scheduler, workers, processes):
+    """Yield (index, record or exception) as the Dask tasks finish."""
+    try:
+        from dask.distributed import Client, LocalCluster, as_completed
+    except ImportError as error:
+        raise ImportError("batch on Dask needs the batch extra: pip install 'terracube[batch]'") from error
     if scheduler is not None:
-        return Client(scheduler), None
-    # Worker processes talk over TCP on the loopback interface only; threads use in-process transport.
-    where = {"host": "127.0.0.1"} if processes else {}
-    cluster = LocalCluster(
-        n_workers=workers, threads_per_worker=1, processes=processes, dashboard_address=None, **where
-    )
-    return Client(cluster), cluster
+        client, cluster = Client(scheduler), None
+    else:  # worker processes talk over TCP on the loopback interface only
+        where = {"host": "127.0.0.1"} if processes else {}
+        cluster = LocalCluster(
+            n_workers=workers, threads_per_worker=1, processes=processes, dashboard_address=None, **where
+        )
+        client = Client(cluster)
+    try:
+        futures = {
+            client.submit(
+                process_file, *args, key=f"terracube-{args[0]}-{index}-{args[-1]}", pure=False
+            ): index
+            for index, args in enumerate(submit_args)
+        }
+        for future in as_completed(futures):
+            outcome = future.result() if future.status == "finished" else future.exception()
+            yield futures[future], outcome
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _pool_jobs(submit_args, workers, processes):
+    """Yield (index, record or exception) as the local pool's tasks finish."""
+    if processes:  # spawn: a fork would copy this process's threads' state into the workers
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    else:
+        pool = ThreadPoolExecutor(max_workers=workers)
+    with pool:
+        futures = {pool.submit(process_file, *args): index for index, args in enumerate(submit_args)}
+        for future in as_completed_futures(futures):
+            error = future.exception()
+            yield futures[future], error if error is not None else future.result()
 
 
 def run_batch(
@@ -142,86 +152,75 @@ def run_batch(
     workers: int | None = None,
     processes: bool = True,
     progress: bool = True,
+    backend: str = "auto",
 ) -> list[FileRecord]:
-    """Run ``stage`` (collapse, dem, classify or fem) on every scan of ``inputs`` with Dask.
+    """Run ``stage`` (collapse, dem, classify or fem) on every scan of ``inputs`` in parallel.
 
     Parameters
     ----------
+    stage
+        One of :data:`terracube.pipeline.STAGES`.
     inputs
-        Files, folders (their scans) and glob patterns; see :func:`expand_inputs`.
+        Files, folders (their scans) and glob patterns; see :func:`terracube.pipeline.expand_inputs`.
     output_dir
         Every file's outputs go here, named after the file (``NAME_dem.npz`` ...).
     config
         A :class:`terracube.config.Config`; the defaults when None.
     options
-        The stage's output options (see :func:`terracube.cli.run_stage`).
+        The stage's output options (see :func:`terracube.pipeline.run_stage`).
     scheduler
-        Address of a running Dask scheduler; None starts a ``LocalCluster`` on 127.0.0.1.
+        Address of a running Dask scheduler (needs the ``batch`` extra); None runs on this machine.
     workers, processes
-        Workers of the local cluster (None: Dask's default, one per core) and whether they are
-        processes (default) or threads of this process.
+        Local workers (None: one per core) and whether they are processes (default) or threads of
+        this process.
     progress
         Show a tqdm bar on stderr as files finish.
+    backend
+        ``"dask"`` (a Dask ``LocalCluster`` or ``scheduler``), ``"pool"`` (a ``concurrent.futures``
+        pool) or ``"auto"``: Dask when a scheduler is given or Dask is installed, else the pool.
 
     Returns
     -------
     list of FileRecord
         One per scan, in input order; failed files have ``status == "failed"`` and ``error``.
     """
-    from .cli import BATCH_STAGES
-
-    if stage not in BATCH_STAGES:
-        raise ValueError(f"unknown stage {stage!r}: batch runs {', '.join(BATCH_STAGES)}")
+    if stage not in STAGES:
+        raise ValueError(f"unknown stage {stage!r}: batch runs {', '.join(STAGES)}")
     if workers is not None and workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if backend == "pool" and scheduler is not None:
+        raise ValueError("a Dask scheduler needs the dask backend")
     files = expand_inputs(inputs)
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     names: dict[str, int] = {}
-    jobs = [(path, _output_name(path, names)) for path in files]
+    submit_args = [
+        (stage, str(path.resolve()), str(output_dir.resolve()), config, options, _output_name(path, names))
+        for path in files
+    ]
+    if backend == "auto":
+        backend = "dask" if scheduler is not None or _dask_available() else "pool"
+    if backend == "dask":
+        jobs = _dask_jobs(submit_args, scheduler, workers, processes)
+    else:
+        jobs = _pool_jobs(submit_args, workers, processes)
 
-    from dask.distributed import as_completed
     from tqdm import tqdm
 
-    client, cluster = _client(scheduler, workers, processes)
     records: dict[int, FileRecord] = {}
-    try:
-        futures = {
-            client.submit(
-                process_file,
-                stage,
-                str(path.resolve()),
-                str(output_dir.resolve()),
-                config,
-                options,
-                name,
-                key=f"terracube-{stage}-{index}-{name}",
-                pure=False,
-            ): index
-            for index, (path, name) in enumerate(jobs)
-        }
-        bar = tqdm(total=len(futures), desc=stage, unit="scan", disable=not progress)
-        failed = 0
-        for future in as_completed(futures):
-            index = futures[future]
-            if future.status == "finished":
-                record = future.result()
-                record.path = str(jobs[index][0])
+    with tqdm(total=len(files), desc=stage, unit="scan", disable=not progress) as bar:
+        for index, outcome in jobs:
+            path = files[index]
+            if isinstance(outcome, FileRecord):
+                outcome.path = str(path)
+                records[index] = outcome
             else:  # the task itself died (worker lost, unpicklable result ...)
-                error = future.exception()
-                record = FileRecord(
-                    str(jobs[index][0]), stage, "failed", error=f"{jobs[index][0]}: {error!r}"
-                )
-            records[index] = record
-            failed += not record.ok
-            bar.set_postfix(failed=failed, refresh=False)
+                records[index] = FileRecord(str(path), stage, "failed", error=f"{path}: {outcome!r}")
+            bar.set_postfix(failed=sum(not r.ok for r in records.values()), refresh=False)
             bar.update(1)
-        bar.close()
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
-    return [records[index] for index in range(len(jobs))]
+    return [records[index] for index in range(len(files))]
 
 
 def format_summary(records: Sequence[FileRecord], *, width: int = 70) -> str:

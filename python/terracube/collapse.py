@@ -234,7 +234,23 @@ def octomap_column_overhangs(
     """Algorithm 1's column rule evaluated on an OctoMap OcTree aligned to the CBC grid.
 
     An independent reference that agrees with :func:`collapse_overhangs` point for point; OctoMap's
-    16-bit keys limit it to 65536 cubes per axis. Returns an (N,) bool mask in input order.
+    16-bit keys limit it to 65536 cubes per axis.
+
+    Parameters
+    ----------
+    points : (N, 3) or wider float32/float64 array
+        x, y, z [m] in the first three columns.
+    edge : float
+        Cube edge E [m].
+    sigma : int
+        σ [cubes].
+    params : CollapseParams, optional
+        Everything at once (transform, crop ...); ``edge``, ``sigma`` and ``kwargs`` are then ignored.
+
+    Returns
+    -------
+    (N,) bool array
+        True for an overhang point, in input order.
     """
     if params is None:
         params = CollapseParams(edge, sigma, **kwargs)
@@ -247,5 +263,17 @@ def sigma_from_robot_height(robot_height: float, edge: float) -> int:
 
 
 def leveling_transform(roll: float, pitch: float) -> np.ndarray:
-    """4x4 transform R = Ry(pitch) Rx(roll) that levels a sensor with attitude (roll, pitch) [rad]."""
+    """The rigid transform R = Ry(pitch) Rx(roll) that levels a sensor with attitude (roll, pitch).
+
+    Parameters
+    ----------
+    roll, pitch : float
+        Sensor attitude [rad].
+
+    Returns
+    -------
+    (4, 4) float64 array
+        Rotation only (zero translation), for ``CollapseParams.transform`` or
+        ``ElevationParams.transform``.
+    """
     return _core.leveling_transform(float(roll), float(pitch))

@@ -1,10 +1,12 @@
 """Every stage's parameters in one YAML file: commented defaults, loading with clear errors.
 
 A configuration is one section per registered parameter dataclass (``frame``, ``collapse``,
-``elevation``, ``terrain``, ``fuzzy``, ``registration``, ``pcl_icp``). ``default_config()`` holds
-the defaults, :func:`dump_config` writes them as commented YAML (the comments come from each
-dataclass's numpy-style ``Attributes`` docstring) and :func:`load_config` merges a YAML file over
-the defaults: a file gives only the keys it changes.
+``elevation``, ``terrain``, ``fuzzy``, ``registration``, ``pcl_icp``, ``mapper``). Each section's
+YAML is checked by a pydantic model made from its dataclass's fields, so the two cannot drift;
+the dataclass itself then checks the values it refuses (``__post_init__`` or ``to_core``).
+``default_config()`` holds the defaults, :func:`dump_config` writes them as commented YAML (the
+comments come from each dataclass's numpy-style ``Attributes`` docstring) and :func:`load_config`
+merges a YAML file over the defaults: a file gives only the keys it changes.
 
 A later stage registers its parameters with one line, e.g.::
 
@@ -21,10 +23,10 @@ Example
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import difflib
 import enum
+import functools
 import inspect
 import math
 import textwrap
@@ -33,9 +35,10 @@ import typing
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
+import pydantic
 
 __all__ = [
     "Config",
@@ -43,6 +46,7 @@ __all__ = [
     "FrameParams",
     "Section",
     "SECTIONS",
+    "config_from_dict",
     "default_config",
     "dump_config",
     "load_config",
@@ -92,13 +96,13 @@ class FrameParams:
                 )
 
     def transform(self) -> np.ndarray:
-        """The 4x4 leveling transform of ``roll_deg`` and ``pitch_deg``."""
+        """The (4, 4) float64 leveling transform of ``roll_deg`` and ``pitch_deg``."""
         from .collapse import leveling_transform
 
         return leveling_transform(math.radians(self.roll_deg), math.radians(self.pitch_deg))
 
     def crop_box(self) -> tuple[tuple[float, ...], tuple[float, ...]] | None:
-        """The crop box as ((xmin, ymin, zmin), (xmax, ymax, zmax)) or None."""
+        """The crop box as ((xmin, ymin, zmin), (xmax, ymax, zmax)) [m] or None."""
         if self.crop is None:
             return None
         return tuple(float(v) for v in self.crop[0]), tuple(float(v) for v in self.crop[1])
@@ -157,6 +161,7 @@ def _register_defaults() -> None:
     from .collapse import CollapseParams
     from .elevation import ElevationParams, TerrainParams
     from .fuzzy import FuzzyParams
+    from .mapping import MapperParams
     from .registration import PclIcpParams, RegistrationParams
 
     frame_reason = "set the leveling and crop box in the 'frame' section (roll_deg, pitch_deg, crop)"
@@ -191,8 +196,6 @@ def _register_defaults() -> None:
         "Class-weighted ICP between classified maps (eq. (4) weights, Table 2).",
     )
     register_section("pcl_icp", PclIcpParams, "PCL's point-to-point ICP baseline (register --method pcl).")
-    from .mapping import MapperParams
-
     register_section(
         "mapper",
         MapperParams,
@@ -221,7 +224,7 @@ class Config:
             values[name] = params
         object.__setattr__(self, "_sections", values)
 
-    def __reduce__(self):  # pickles (for Dask workers) through the constructor
+    def __reduce__(self):  # pickles (for batch workers) through the constructor
         return (Config, (dict(self._sections),))
 
     def __getattr__(self, name: str) -> Any:
@@ -239,7 +242,7 @@ class Config:
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Config):
             return NotImplemented
-        return set(self) == set(other) and all(_same(self[name], other[name]) for name in self._sections)
+        return list(self) == list(other) and all(_values(self[n]) == _values(other[n]) for n in self)
 
     def __setattr__(self, name: str, value: Any) -> None:
         raise AttributeError("Config is immutable: use config.replace(section, field=value)")
@@ -264,15 +267,9 @@ class Config:
         return "Config(" + ", ".join(f"{name}={self[name]!r}" for name in self._sections) + ")"
 
 
-def _same(a: Any, b: Any) -> bool:
-    """Dataclass equality that also copes with numpy array fields."""
-    if dataclasses.is_dataclass(a) and dataclasses.is_dataclass(b):
-        if type(a) is not type(b):
-            return False
-        return all(_same(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a))
-    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-        return a is not None and b is not None and np.array_equal(np.asarray(a), np.asarray(b))
-    return _plain(a) == _plain(b)
+def _values(params: Any) -> dict[str, Any]:
+    """Every field of a parameter dataclass, arrays as lists, for comparisons."""
+    return {f.name: _plain(getattr(params, f.name)) for f in dataclasses.fields(params)}
 
 
 def default_config() -> Config:
@@ -287,58 +284,42 @@ def _plain(value: Any) -> Any:
     """A value as YAML-native data: enums by lower-case name, tuples and arrays as lists."""
     if isinstance(value, enum.Enum):
         return value.name.lower()
-    if isinstance(value, np.ndarray):
+    if isinstance(value, np.ndarray | np.generic):
         return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
     if isinstance(value, Mapping):
         return {_plain(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
+    if isinstance(value, list | tuple):
         return [_plain(v) for v in value]
     return value
 
 
 def _field_docs(params_type: type) -> dict[str, str]:
     """Field descriptions from the ``Attributes`` section of a numpy-style class docstring."""
-    doc = inspect.getdoc(params_type) or ""
-    lines = doc.splitlines()
-    try:
-        start = next(i for i, line in enumerate(lines) if line.strip() == "Attributes") + 2
-    except StopIteration:
+    lines = (inspect.getdoc(params_type) or "").splitlines()
+    if "Attributes" not in (line.strip() for line in lines):
         return {}
+    start = [line.strip() for line in lines].index("Attributes") + 2
     docs: dict[str, str] = {}
     names: list[str] = []
-    text: list[str] = []
-
-    def flush() -> None:
-        for name in names:
-            docs[name] = " ".join(text).strip()
-
     for line in lines[start:]:
         if line and not line.startswith(" "):
             if set(line.strip()) <= {"-"}:  # an underline: the next docstring section began
-                names = []
                 break
-            flush()
             names = [n.strip() for n in line.split(" : ")[0].split(",")]
-            text = []
+            docs.update(dict.fromkeys(names, ""))
         elif line.strip():
-            text.append(line.strip())
-    flush()
+            for name in names:
+                docs[name] = (docs[name] + " " + line.strip()).strip()
     return docs
 
 
-def _yaml_value(key: str, value: Any) -> list[str]:
+def _yaml_lines(key: str, value: Any) -> list[str]:
     import yaml
 
     if isinstance(value, Mapping) and value:
-        text = yaml.safe_dump({key: value}, default_flow_style=False, sort_keys=False)
-    else:
-        text = yaml.safe_dump({key: value}, default_flow_style=True, sort_keys=False, width=1000)
-        text = text.strip()
-        if text.startswith("{") and text.endswith("}"):  # flow style wraps the whole mapping
-            text = text[1:-1]
-    return text.rstrip("\n").splitlines()
+        return yaml.safe_dump({key: value}, default_flow_style=False, sort_keys=False).splitlines()
+    text = yaml.safe_dump({key: value}, default_flow_style=True, sort_keys=False, width=1000).strip()
+    return [text[1:-1]]  # flow style wraps the whole mapping in braces
 
 
 def dump_config(config: Config | None = None) -> str:
@@ -346,8 +327,7 @@ def dump_config(config: Config | None = None) -> str:
 
     ``load_config`` of the text gives back an equal :class:`Config`.
     """
-    config = config or default_config()
-    values = config.to_dict()
+    values = (config or default_config()).to_dict()
     out = [
         "# terracube configuration: every stage's parameters, here at their defaults.",
         "# Use it with `terracube <stage> --config FILE`; options given on the command line win.",
@@ -355,10 +335,8 @@ def dump_config(config: Config | None = None) -> str:
     ]
     for name, section in SECTIONS.items():
         out.append("")
-        out.extend(
-            textwrap.wrap(
-                f"{name}: {section.description}", 100, initial_indent="# ", subsequent_indent="#   "
-            )
+        out += textwrap.wrap(
+            f"{name}: {section.description}", 100, initial_indent="# ", subsequent_indent="#   "
         )
         if section.excluded:
             out.append(f"#   ({', '.join(section.excluded)}: {section.excluded_reason})")
@@ -368,127 +346,132 @@ def dump_config(config: Config | None = None) -> str:
         for f in section.fields():
             doc = docs.get(f.name)
             if doc and doc != previous:  # a doc shared by several fields is written once, above the first
-                out.extend(textwrap.wrap(doc, 98, initial_indent="  # ", subsequent_indent="  # "))
+                out += textwrap.wrap(doc, 98, initial_indent="  # ", subsequent_indent="  # ")
             previous = doc
-            out.extend("  " + line for line in _yaml_value(f.name, values[name][f.name]))
+            out += ["  " + line for line in _yaml_lines(f.name, values[name][f.name])]
     return "\n".join(out) + "\n"
 
 
 # ------------------------------------------------------------------------------------------ YAML in
+#
+# Each section's YAML is validated by a pydantic model built from its dataclass's type hints. YAML
+# is stricter than pydantic's lax mode in three places: true/false is no number, a number no
+# string and 1 no boolean; and enums are written by lower-case name.
+
+
+def _not_bool(value: Any) -> Any:
+    if isinstance(value, bool):
+        raise ValueError("a boolean is not a number")
+    return value
+
+
+def _whole_number(value: Any) -> Any:
+    if isinstance(value, bool | str):
+        raise ValueError("not a whole number")
+    return value
+
+
+def _enum_by_name(enum_type: type[enum.Enum]):
+    def parse(value: Any) -> Any:
+        if isinstance(value, str) and value.upper() in enum_type.__members__:
+            return enum_type[value.upper()]
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError("not a member name")
+        return value
+
+    return parse
+
+
+def _is_sequence(origin: Any) -> bool:
+    return isinstance(origin, type) and issubclass(origin, Sequence) and not issubclass(origin, str)
+
+
+def _validation_type(hint: Any) -> Any:
+    """The pydantic type that reads the YAML of a dataclass field typed ``hint``."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if hint is bool:
+        return pydantic.StrictBool
+    if hint is int:
+        return Annotated[int, pydantic.BeforeValidator(_whole_number)]
+    if hint is float:  # lax: YAML 1.1 reads 1e-4 (no dot) as a string
+        return Annotated[float, pydantic.BeforeValidator(_not_bool)]
+    if hint is str:
+        return pydantic.StrictStr
+    if isinstance(hint, type) and issubclass(hint, enum.Enum):
+        return Annotated[hint, pydantic.BeforeValidator(_enum_by_name(hint))]
+    if origin in (typing.Union, types.UnionType):
+        return typing.Union[tuple(_validation_type(a) for a in args)]  # noqa: UP007
+    if isinstance(origin, type) and issubclass(origin, Mapping):
+        key, value = args if len(args) == 2 else (Any, Any)
+        return dict[_validation_type(key), _validation_type(value)]
+    if origin is tuple and args and args[-1] is not Ellipsis:
+        return tuple[tuple(_validation_type(a) for a in args)]
+    if _is_sequence(origin) or hint in (list, tuple, np.ndarray):
+        return list[_validation_type(args[0])] if args else list[Any]
+    if hint is type(None) or hint is Any:
+        return hint
+    return pydantic.SkipValidation[hint]  # e.g. a nested dataclass: the dataclass checks it
+
+
+@functools.cache
+def _section_model(section: Section) -> type[pydantic.BaseModel]:
+    """The pydantic model of one section's YAML: its dataclass's fields, each optional."""
+    hints = typing.get_type_hints(section.params_type)
+    fields = {f.name: (_validation_type(hints[f.name]), None) for f in section.fields()}
+    config = pydantic.ConfigDict(extra="forbid", arbitrary_types_allowed=True)
+    return pydantic.create_model(f"{section.params_type.__name__}Yaml", __config__=config, **fields)
 
 
 def _type_name(hint: Any) -> str:
+    """What a field typed ``hint`` takes, in words: "a list of whole numbers or null"."""
     if hint is type(None):
         return "null"
-    if isinstance(hint, type):
-        if issubclass(hint, enum.Enum):
-            return "one of " + ", ".join(m.name.lower() for m in hint)
-        return {bool: "true or false", int: "a whole number", float: "a number", str: "a string"}.get(
-            hint, hint.__name__
-        )
-    origin = typing.get_origin(hint)
+    if isinstance(hint, type) and issubclass(hint, enum.Enum):
+        return "one of " + ", ".join(m.name.lower() for m in hint)
+    names = {bool: "true or false", int: "a whole number", float: "a number", str: "a string"}
+    if hint in names:
+        return names[hint]
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
     if origin in (typing.Union, types.UnionType):
-        return " or ".join(_type_name(a) for a in typing.get_args(hint))
-    if origin is not None and isinstance(origin, type) and issubclass(origin, Mapping):
-        args = typing.get_args(hint)
-        if len(args) == 2:
-            return f"a mapping of {_type_name(args[0])} to {_plural(args[1])}"
-        return "a mapping"
-    return "a list" + (f" of {_plural(typing.get_args(hint)[0])}" if typing.get_args(hint) else "")
+        return " or ".join(_type_name(a) for a in args)
+    if isinstance(origin, type) and issubclass(origin, Mapping):
+        return f"a mapping of {_type_name(args[0])} to {_plural(args[1])}" if len(args) == 2 else "a mapping"
+    return "a list" + (f" of {_plural(args[0])}" if args else "")
 
 
 def _plural(hint: Any) -> str:
     names = {int: "whole numbers", float: "numbers", str: "strings", bool: "true/false values"}
     if hint in names:
         return names[hint]
-    origin = typing.get_origin(hint)
-    if origin is not None and isinstance(origin, type) and issubclass(origin, Sequence):
+    if _is_sequence(typing.get_origin(hint)):
         args = typing.get_args(hint)
         return "lists" + (f" of {_plural(args[0])}" if args else "")
     return "values"
 
 
-class _Mismatch(Exception):
-    """A YAML value that does not fit a field's type."""
+def _unknown(kind: str, name: Any, known: Sequence[str]) -> str:
+    close = difflib.get_close_matches(str(name), list(known), n=1)
+    hint = f"; did you mean {close[0]!r}?" if close else ""
+    return f"unknown {kind} {name!r}{hint} (known: {', '.join(known)})"
 
 
-def _coerce(value: Any, hint: Any) -> Any:
-    """``value`` (from YAML) as the type ``hint``; _Mismatch when it does not fit."""
-    if hint is Any:
-        return value
-    origin = typing.get_origin(hint)
-    if origin in (typing.Union, types.UnionType):
-        arms = typing.get_args(hint)
-        if value is None:
-            if type(None) in arms:
-                return None
-            raise _Mismatch
-        for arm in arms:
-            if arm is type(None):
-                continue
-            try:
-                return _coerce(value, arm)
-            except _Mismatch:
-                pass
-        raise _Mismatch
-    if hint is np.ndarray:
-        return _coerce(value, list)
-    if hint is bool:
-        if isinstance(value, bool):
-            return value
-        raise _Mismatch
-    if hint is int:
-        if isinstance(value, bool):
-            raise _Mismatch
-        if isinstance(value, int):
-            return value
-        if isinstance(value, float) and value.is_integer():
-            return int(value)
-        raise _Mismatch
-    if hint is float:
-        if isinstance(value, bool):
-            raise _Mismatch
-        if isinstance(value, (int, float)):
-            return float(value)
-        if isinstance(value, str):  # YAML 1.1 reads 1e-4 (no dot) as a string
-            try:
-                return float(value)
-            except ValueError:
-                raise _Mismatch from None
-        raise _Mismatch
-    if hint is str:
-        if isinstance(value, str):
-            return value
-        raise _Mismatch
-    if isinstance(hint, type) and issubclass(hint, enum.Enum):
-        if isinstance(value, str) and value.upper() in hint.__members__:
-            return hint[value.upper()]
-        if isinstance(value, int) and not isinstance(value, bool):
-            try:
-                return hint(value)
-            except ValueError:
-                raise _Mismatch from None
-        raise _Mismatch
-    args = typing.get_args(hint)
-    if origin is not None and isinstance(origin, type) and issubclass(origin, Mapping):
-        if not isinstance(value, Mapping):
-            raise _Mismatch
-        key_hint, value_hint = args if len(args) == 2 else (Any, Any)
-        return {_coerce(k, key_hint): _coerce(v, value_hint) for k, v in value.items()}
-    if hint in (list, tuple) or (
-        origin is not None and isinstance(origin, type) and issubclass(origin, Sequence)
-    ):
-        if not isinstance(value, list):
-            raise _Mismatch
-        if origin is tuple and args and args[-1] is not Ellipsis:  # fixed length
-            if len(value) != len(args):
-                raise _Mismatch
-            return [_coerce(v, a) for v, a in zip(value, args, strict=True)]
-        item_hint = args[0] if args else Any
-        if item_hint is Any:  # a plain list or array: numbers or nested lists of numbers
-            return [_coerce(v, list if isinstance(v, list) else float) for v in value]
-        return [_coerce(v, item_hint) for v in value]
-    raise _Mismatch
+def _section_changes(section: Section, values: Mapping[str, Any], source: str) -> dict[str, Any]:
+    """The validated fields a file's section sets; ConfigError naming the first bad key."""
+    try:
+        return _section_model(section).model_validate(values).model_dump(exclude_unset=True)
+    except pydantic.ValidationError as error:
+        key = error.errors()[0]["loc"][0]
+    name = section.name
+    if key in section.excluded:
+        raise ConfigError(f"{source}: key {key!r} is not read in section {name!r}: {section.excluded_reason}")
+    known = [f.name for f in section.fields()]
+    if key not in known:
+        raise ConfigError(f"{source}: {_unknown(f'key in section {name!r}', key, known)}")
+    value = values[key]
+    hint = typing.get_type_hints(section.params_type)[key]
+    raise ConfigError(
+        f"{source}: {name}.{key} must be {_type_name(hint)}, got {value!r} ({type(value).__name__})"
+    )
 
 
 def _read_yaml(path: Path) -> Any:
@@ -509,12 +492,6 @@ def _read_yaml(path: Path) -> Any:
         raise ConfigError(f"{path}: not valid YAML{line}: {problem}") from error
 
 
-def _unknown(kind: str, name: Any, known: Sequence[str]) -> str:
-    close = difflib.get_close_matches(str(name), list(known), n=1)
-    hint = f"; did you mean {close[0]!r}?" if close else ""
-    return f"unknown {kind} {name!r}{hint} (known: {', '.join(known)})"
-
-
 def config_from_dict(data: Any, source: str = "<dict>", base: Config | None = None) -> Config:
     """Merge a nested mapping ``{section: {key: value}}`` over ``base`` (the defaults when None).
 
@@ -527,11 +504,10 @@ def config_from_dict(data: Any, source: str = "<dict>", base: Config | None = No
         raise ConfigError(
             f"{source}: expected a mapping of sections (e.g. 'collapse:'), got {type(data).__name__}"
         )
-    sections = {name: copy.deepcopy(config[name]) for name in config}
+    sections = {name: config[name] for name in config}
     for name, values in data.items():
         if name not in SECTIONS:
             raise ConfigError(f"{source}: {_unknown('section', name, list(SECTIONS))}")
-        section = SECTIONS[name]
         if values is None:
             continue
         if not isinstance(values, Mapping):
@@ -539,24 +515,8 @@ def config_from_dict(data: Any, source: str = "<dict>", base: Config | None = No
                 f"{source}: section {name!r} must be a mapping of keys, "
                 f"got {type(values).__name__} {values!r}"
             )
-        hints = typing.get_type_hints(section.params_type)
-        known = [f.name for f in section.fields()]
-        changes = {}
-        for key, value in values.items():
-            if key in section.excluded:
-                raise ConfigError(
-                    f"{source}: key {key!r} is not read in section {name!r}: {section.excluded_reason}"
-                )
-            if key not in known:
-                raise ConfigError(f"{source}: {_unknown(f'key in section {name!r}', key, known)}")
-            try:
-                changes[key] = _coerce(value, hints[key])
-            except _Mismatch:
-                raise ConfigError(
-                    f"{source}: {name}.{key} must be {_type_name(hints[key])}, "
-                    f"got {value!r} ({type(value).__name__})"
-                ) from None
-        try:
+        changes = _section_changes(SECTIONS[name], values, source)
+        try:  # the dataclass checks what types cannot: ranges, names, origin without size ...
             params = dataclasses.replace(sections[name], **changes)
             check = getattr(params, "to_core", None)
             if check is not None:

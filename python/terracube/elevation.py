@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import enum
 import math
 import zipfile
 from collections.abc import Sequence
@@ -12,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from . import _core
+from .classes import TERRAIN_COLORS, TerrainClass
 from .collapse import CollapseParams, CollapseResult, _as_points, _num_threads, _set_frame
 
 __all__ = [
@@ -27,28 +27,6 @@ __all__ = [
 ]
 
 MapGeometry = _core.MapGeometry
-
-
-class TerrainClass(enum.IntEnum):
-    """Per-cell terrain class (uint8), mirroring ``terracube::TerrainClass``."""
-
-    UNKNOWN = 0
-    GROUND = 1
-    OBSTACLE = 2
-    OVERHANGING_OBJECT = 3
-    VERTICAL_OBJECT = 4
-    HORIZONTAL_EDGE = 5
-
-
-#: RGB colours used for class pictures.
-TERRAIN_COLORS = {
-    TerrainClass.UNKNOWN: (1.0, 1.0, 1.0),
-    TerrainClass.GROUND: (0.62, 0.80, 0.45),
-    TerrainClass.OBSTACLE: (0.90, 0.35, 0.20),
-    TerrainClass.OVERHANGING_OBJECT: (0.15, 0.55, 0.25),
-    TerrainClass.VERTICAL_OBJECT: (0.30, 0.30, 0.75),
-    TerrainClass.HORIZONTAL_EDGE: (0.95, 0.80, 0.20),
-}
 
 
 class ElevationMap:
@@ -279,7 +257,8 @@ def build_elevation_map(
 
     Parameters
     ----------
-    points : (N, 3) float32 or float64 array
+    points : (N, 3) or wider float32 or float64 array
+        x, y, z [m] in the first three columns, any row stride.
     resolution : float
         Cell edge [m]; other options as in :class:`ElevationParams` (``params`` overrides them).
     use : (N,) bool, optional
@@ -290,6 +269,13 @@ def build_elevation_map(
         it earlier stay valid and show the new values. The build's size must be the map's (give
         a fixed ``origin`` and ``size``); layers other than the six (``classify_terrain``'s, say)
         are reset to NaN. ValueError on a size mismatch, leaving the map unchanged.
+
+    Returns
+    -------
+    ElevationMap
+        Layers of shape (nx, ny), float32: ``count`` (points per cell), ``min``, ``max``, ``mean``
+        and ``std_dev`` of the heights [m], ``discontinuity`` (1 where sorted heights jump by more
+        than ``discontinuity`` [m]); NaN where no point falls.
     """
     if params is None:
         params = ElevationParams(resolution, **kwargs)
@@ -314,9 +300,28 @@ def dem_without_overhangs(
     """The collapsible-cubes paper's DEM without overhangs, plus ``clearance`` and ``step`` layers.
 
     Runs :func:`terracube.collapse_overhangs`, then maps the points it kept in the same (leveled,
-    cropped) frame. Extra layers: ``overhang_min`` (lowest overhang point), ``clearance`` (from the
-    top of the kept points to the lowest overhang above them, +inf where none) and ``step`` (largest
-    height difference of ``max`` to the 8 neighbours). Returns (map, collapse result).
+    cropped) frame.
+
+    Parameters
+    ----------
+    points : (N, 3) or wider float32/float64 array
+        x, y, z [m] in the first three columns.
+    edge : float
+        Cube edge E [m] (ignored when ``collapse`` is given).
+    sigma : int
+        σ [cubes] (ignored when ``collapse`` is given).
+    resolution : float
+        Cell edge [m] (ignored when ``elevation`` is given).
+    collapse, elevation : CollapseParams, ElevationParams, optional
+        All parameters of each step; the collapse's transform and crop box apply to the map too.
+
+    Returns
+    -------
+    (ElevationMap, CollapseResult)
+        The map of the kept points with the layers of :func:`build_elevation_map` plus
+        ``overhang_min`` (lowest overhang point [m]), ``clearance`` (from the top of the kept points
+        to the lowest overhang above them [m], +inf where none) and ``step`` (largest height
+        difference of ``max`` to the 8 neighbours [m]); and the overhang mask with its cubes.
     """
     collapse = collapse or CollapseParams(edge, sigma)
     elevation = elevation or ElevationParams(resolution)

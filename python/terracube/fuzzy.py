@@ -257,6 +257,12 @@ def fit_fuzzy_elevation_map(
     use : (N,) bool, optional
         Only these points take part, e.g. ``~collapse.overhang`` for the points collapsible cubes kept.
 
+    Returns
+    -------
+    FuzzyElevationMap
+        ``evaluate((K, 2) x, y [m])`` gives (K,) heights [m]; ``to_layer(map)`` adds the ``fem``
+        and ``fem_confidence`` layers; ``rmse_history`` [m] per epoch.
+
     Raises
     ------
     ValueError

@@ -260,8 +260,8 @@ def _read_ply(path: Path) -> dict[str, np.ndarray]:
 def _read_las(path: Path) -> dict[str, np.ndarray]:
     try:
         import laspy
-    except ImportError as error:  # pragma: no cover - laspy is a dependency
-        raise ImportError("LAS/LAZ reading needs laspy and lazrs: pip install 'laspy[lazrs]'") from error
+    except ImportError as error:
+        raise ImportError("LAS/LAZ reading needs the las extra: pip install 'terracube[las]'") from error
     try:
         with laspy.open(str(path)) as reader:
             header = reader.header
@@ -298,201 +298,133 @@ def _read_las(path: Path) -> dict[str, np.ndarray]:
     return fields
 
 
-# PCD (Point Cloud Library), https://pointclouds.org/documentation/tutorials/pcd_file_format.html
+# PCD (Point Cloud Library), https://pointclouds.org/documentation/tutorials/pcd_file_format.html.
+# pypcd4 decodes and encodes the data; the checks here turn a truncated or corrupt file into a
+# message naming the problem instead of a short or garbled cloud.
 
-_PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8"}
-_PCD_TYPES.update({("U", n): f"u{n}" for n in (1, 2, 4, 8)})
-_PCD_TYPES.update({("I", n): f"i{n}" for n in (1, 2, 4, 8)})
 _PCD_ENCODINGS = ("ascii", "binary", "binary_compressed")
 _PCD_MAX_HEADER = 1 << 16
 
 
-def _parse_pcd_header(data: bytes) -> tuple[dict[str, list[str]], int]:
-    """The header entries of a PCD file and the offset of its data (just after the DATA line)."""
-    header: dict[str, list[str]] = {}
-    offset = 0
-    while True:
+def _pcd_header(data: bytes):
+    """pypcd4's MetaData of a PCD file and the offset of its data (just after the DATA line)."""
+    from pydantic import ValidationError
+    from pypcd4.pypcd4 import MetaData
+
+    lines, offset = [], 0
+    while not (lines and lines[-1].upper().startswith("DATA")):
         end = data.find(b"\n", offset)
-        if end < 0 or end - offset > _PCD_MAX_HEADER:
-            if "FIELDS" in header or "VERSION" in header:
-                raise _FormatError("truncated PCD header: no DATA line")
-            raise _FormatError("not a PCD file: no header")
+        if end < 0 or end > _PCD_MAX_HEADER:
+            known = any(line.upper().startswith(("FIELDS", "VERSION")) for line in lines)
+            raise _FormatError("truncated PCD header: no DATA line" if known else "not a PCD file: no header")
         line = data[offset:end].decode("ascii", errors="replace").strip()
         offset = end + 1
-        if not line or line.startswith("#"):
-            continue
-        key, *values = line.split()
-        key = key.upper()
-        if key == "COLUMNS":  # PCD v0.5
-            key = "FIELDS"
-        if key not in (
-            "VERSION",
-            "FIELDS",
-            "SIZE",
-            "TYPE",
-            "COUNT",
-            "WIDTH",
-            "HEIGHT",
-            "VIEWPOINT",
-            "POINTS",
-            "DATA",
-        ):
-            raise _FormatError(f"not a PCD file: unexpected header line {line[:60]!r}")
-        header[key] = values
-        if key == "DATA":
-            return header, offset
-        if offset > _PCD_MAX_HEADER:
-            raise _FormatError("not a PCD file: header too long")
-
-
-def _pcd_layout(header: dict[str, list[str]]) -> tuple[list[str], list[np.dtype], list[int], int, str]:
-    """Field names, dtypes and counts, the number of points and the encoding of a PCD header."""
-    for key in ("FIELDS", "SIZE", "TYPE", "DATA"):
-        if key not in header or not header[key]:
-            raise _FormatError(f"PCD header has no {key} line")
-    names = header["FIELDS"]
-    sizes, types = header["SIZE"], [t.upper() for t in header["TYPE"]]
-    counts = header.get("COUNT", ["1"] * len(names))
-    if not len(names) == len(sizes) == len(types) == len(counts):
+        if line and not line.startswith("#"):
+            if line.split()[0].upper() not in _PCD_HEADER_KEYS:
+                raise _FormatError(f"not a PCD file: unexpected header line {line[:60]!r}")
+            lines.append(line)
+    try:
+        metadata = MetaData.parse_header(lines)
+    except (ValidationError, ValueError) as error:
+        raise _FormatError(f"bad PCD header: {error}".splitlines()[0]) from None
+    fields = metadata.fields
+    if not len(fields) == len(metadata.size) == len(metadata.type) == len(metadata.count):
         raise _FormatError(
             f"PCD header: FIELDS, SIZE, TYPE and COUNT differ in length "
-            f"({len(names)}, {len(sizes)}, {len(types)}, {len(counts)})"
+            f"({len(fields)}, {len(metadata.size)}, {len(metadata.type)}, {len(metadata.count)})"
         )
-    try:
-        sizes_i, counts_i = [int(s) for s in sizes], [int(c) for c in counts]
-        if "POINTS" in header:
-            points = int(header["POINTS"][0])
-        else:
-            points = int(header["WIDTH"][0]) * int(header.get("HEIGHT", ["1"])[0])
-    except (ValueError, KeyError, IndexError) as error:
-        raise _FormatError(f"PCD header: bad SIZE, COUNT, POINTS, WIDTH or HEIGHT ({error})") from None
-    dtypes = []
-    for name, kind, size, count in zip(names, types, sizes_i, counts_i, strict=True):
-        if (kind, size) not in _PCD_TYPES or count < 1:
-            raise _FormatError(
-                f"PCD header: field {name!r} has an unsupported TYPE/SIZE/COUNT {kind}{size}x{count}"
-            )
-        dtypes.append(np.dtype("<" + _PCD_TYPES[(kind, size)]))
-    if points < 0:
-        raise _FormatError(f"PCD header: negative POINTS {points}")
-    encoding = header["DATA"][0].lower()
-    if encoding not in _PCD_ENCODINGS:
+    if not {"x", "y", "z"} <= set(fields):
+        raise _FormatError(f"PCD has no x, y, z fields (has {', '.join(fields)})")
+    if metadata.data.value not in _PCD_ENCODINGS:
+        raise _FormatError(f"unknown PCD DATA encoding {metadata.data.value!r} ({', '.join(_PCD_ENCODINGS)})")
+    return metadata, offset
+
+
+_PCD_HEADER_KEYS = (
+    "VERSION",
+    "FIELDS",
+    "SIZE",
+    "TYPE",
+    "COUNT",
+    "WIDTH",
+    "HEIGHT",
+    "VIEWPOINT",
+    "POINTS",
+    "DATA",
+)
+
+
+def _check_pcd_body(body: bytes, metadata) -> None:
+    """_FormatError when the data after the header is shorter than the header announces."""
+    points, encoding = metadata.points, metadata.data.value
+    need = points * metadata.build_dtype().itemsize
+    if encoding == "ascii":
+        rows = sum(1 for line in body.splitlines() if line.strip())
+        if rows < points:
+            raise _FormatError(f"truncated ascii PCD: {points} points announced, {rows} rows found")
+    elif encoding == "binary" and len(body) < need:
         raise _FormatError(
-            f"PCD header: unknown DATA encoding {encoding!r} (ascii, binary, binary_compressed)"
+            f"truncated binary PCD: {points} points need {need} bytes of data, the file holds {len(body)}"
         )
-    if not {"x", "y", "z"} <= set(names):
-        raise _FormatError(f"PCD has no x, y, z fields (has {', '.join(names)})")
-    return names, dtypes, counts_i, points, encoding
+    elif encoding == "binary_compressed" and points:
+        if len(body) < 8:
+            raise _FormatError("truncated binary_compressed PCD: no compressed-size header after DATA")
+        compressed, uncompressed = (int(v) for v in np.frombuffer(body, dtype="<u4", count=2))
+        if uncompressed != need:
+            raise _FormatError(
+                f"binary_compressed PCD: the data header gives {uncompressed} uncompressed bytes, "
+                f"{points} points need {need}"
+            )
+        if len(body) - 8 < compressed:
+            raise _FormatError(
+                f"truncated binary_compressed PCD: {compressed} compressed bytes announced, "
+                f"the file holds {len(body) - 8}"
+            )
 
 
 def _read_pcd(path: Path) -> dict[str, np.ndarray]:
+    import io
+
+    from pypcd4 import PointCloud
+
     data = path.read_bytes()
-    header, offset = _parse_pcd_header(data)
-    names, dtypes, counts, points, encoding = _pcd_layout(header)
-    record = np.dtype(
-        [(n, d, (c,)) if c > 1 else (n, d) for n, d, c in zip(names, dtypes, counts, strict=True)]
-    )
-    body = memoryview(data)[offset:]
-    if encoding == "binary":
-        need = points * record.itemsize
-        if len(body) < need:
-            raise _FormatError(
-                f"truncated binary PCD: {points} points of {record.itemsize} bytes need {need} bytes "
-                f"of data, the file holds {len(body)}"
-            )
-        rows = np.frombuffer(body, dtype=record, count=points)
-        columns = {name: rows[name] for name in names}
-    elif encoding == "binary_compressed":
-        columns = _pcd_decompress(body, names, dtypes, counts, points)
-    else:
-        columns = _pcd_ascii(bytes(body), names, dtypes, counts, points)
-    fields = {"xyz": np.column_stack([columns[n] for n in "xyz"])}
+    metadata, offset = _pcd_header(data)
+    _check_pcd_body(data[offset:], metadata)
+    try:
+        rows = np.atleast_1d(PointCloud.from_fileobj(io.BufferedReader(io.BytesIO(data))).pc_data)
+    except (ValueError, RuntimeError) as error:
+        if metadata.data.value == "binary_compressed":
+            raise _FormatError(f"corrupt binary_compressed PCD data ({error})") from None
+        raise _FormatError(
+            f"{metadata.data.value} PCD: rows of unequal length or non-numbers ({error})"
+        ) from None
+    columns = {}
+    for name, count in zip(metadata.fields, metadata.count, strict=True):
+        if count == 1:
+            columns[name] = np.array(rows[name])
+        else:  # pypcd4 splits a field of COUNT k into k columns name__0000 ...
+            columns[name] = np.column_stack([rows[f"{name}__{i:04d}"] for i in range(count)])
+    fields = {"xyz": np.column_stack([columns.pop(axis) for axis in "xyz"])}
     if fields["xyz"].dtype not in (np.float32, np.float64):
         fields["xyz"] = fields["xyz"].astype(np.float64)
-    fields.update({n: np.array(columns[n]) for n in names if n not in ("x", "y", "z")})
+    fields.update(columns)
     return fields
-
-
-def _pcd_decompress(body, names, dtypes, counts, points) -> dict[str, np.ndarray]:
-    import lzf
-
-    if len(body) < 8:
-        raise _FormatError("truncated binary_compressed PCD: no compressed-size header after DATA")
-    compressed, uncompressed = (int(v) for v in np.frombuffer(body, dtype="<u4", count=2))
-    need = points * sum(d.itemsize * c for d, c in zip(dtypes, counts, strict=True))
-    if uncompressed != need:
-        raise _FormatError(
-            f"binary_compressed PCD: the data header gives {uncompressed} uncompressed bytes, "
-            f"{points} points need {need}"
-        )
-    if len(body) - 8 < compressed:
-        raise _FormatError(
-            f"truncated binary_compressed PCD: {compressed} compressed bytes announced, "
-            f"the file holds {len(body) - 8}"
-        )
-    if need == 0:
-        raw = b""
-    else:
-        try:
-            raw = lzf.decompress(bytes(body[8 : 8 + compressed]), need)
-        except ValueError as error:
-            raise _FormatError(f"corrupt binary_compressed PCD data ({error})") from None
-        if raw is None or len(raw) != need:
-            got = 0 if raw is None else len(raw)
-            raise _FormatError(f"corrupt binary_compressed PCD data: {got} of {need} bytes decompressed")
-    columns, start = {}, 0
-    for name, dtype, count in zip(names, dtypes, counts, strict=True):
-        column = np.frombuffer(raw, dtype=dtype, count=points * count, offset=start)
-        columns[name] = column.reshape(points, count) if count > 1 else column
-        start += points * count * dtype.itemsize
-    return columns
-
-
-def _pcd_ascii(body: bytes, names, dtypes, counts, points) -> dict[str, np.ndarray]:
-    lines = [line for line in body.decode("ascii", errors="replace").splitlines() if line.strip()]
-    width = sum(counts)
-    if len(lines) < points:
-        raise _FormatError(f"truncated ascii PCD: {points} points announced, {len(lines)} rows found")
-    if points == 0:
-        table = np.zeros((0, width))
-    else:
-        try:
-            table = np.array([line.split() for line in lines[:points]], dtype=np.float64)
-        except ValueError as error:
-            raise _FormatError(f"ascii PCD: rows of unequal length or non-numbers ({error})") from None
-    if table.shape[1] != width:
-        raise _FormatError(f"ascii PCD: rows hold {table.shape[1]} values, the header says {width}")
-    columns, start = {}, 0
-    for name, dtype, count in zip(names, dtypes, counts, strict=True):
-        column = table[:, start : start + count].astype(dtype)
-        columns[name] = column if count > 1 else column[:, 0]
-        start += count
-    return columns
 
 
 # --------------------------------------------------------------------------------------------- writers
 
 
-def _lzf_literal(raw: bytes) -> bytes:
-    """LZF stream of literal runs only (for data LZF cannot shrink); any LZF decoder reads it."""
-    data = np.frombuffer(raw, dtype=np.uint8)
-    full, tail = divmod(data.size, 32)
-    chunks = np.empty((full, 33), dtype=np.uint8)
-    chunks[:, 0] = 31
-    chunks[:, 1:] = data[: full * 32].reshape(full, 32)
-    out = chunks.tobytes()
-    if tail:
-        out += bytes([tail - 1]) + data[full * 32 :].tobytes()
-    return out
-
-
 def write_pcd(path: PathLike, fields: dict[str, np.ndarray], encoding: str = "binary") -> Path:
-    """Write a PCD v0.7 file of named per-point fields (each (N,) or (N, COUNT), numeric).
+    """Write a PCD v0.7 file of named per-point fields (each (N,) or (N, COUNT), numeric), with pypcd4.
 
     ``fields`` must hold ``x``, ``y`` and ``z``, or ``xyz`` ((N, 3)), which is split into them.
-    ``encoding`` is ``ascii``, ``binary`` or ``binary_compressed`` (LZF, as PCL writes it). Booleans are
-    stored as U1. The cloud is unorganised (WIDTH = N, HEIGHT = 1).
+    ``encoding`` is ``ascii``, ``binary`` or ``binary_compressed`` (LZF, as PCL writes it; data LZF
+    cannot shrink is stored as ``binary``, as pypcd4 does). Booleans are stored as U1. The cloud is
+    unorganised (WIDTH = N, HEIGHT = 1).
     """
+    from pypcd4 import Encoding, PointCloud
+    from pypcd4.pypcd4 import MetaData
+
     path = Path(path)
     if encoding not in _PCD_ENCODINGS:
         raise ValueError(f"{path}: unknown PCD encoding {encoding!r} (use {', '.join(_PCD_ENCODINGS)})")
@@ -506,54 +438,43 @@ def write_pcd(path: PathLike, fields: dict[str, np.ndarray], encoding: str = "bi
     if not {"x", "y", "z"} <= set(columns):
         raise ValueError(f"{path}: a PCD needs x, y and z fields")
     n = len(columns["x"])
-    names, types, sizes, counts = [], [], [], []
+    types, counts = [], []
     for name, value in columns.items():
         if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
             raise ValueError(f"{path}: {name!r} is not a valid PCD field name")
         if value.shape[:1] != (n,) or value.ndim > 2:
             raise ValueError(f"{path}: field {name!r} has shape {value.shape}, expected ({n},) or ({n}, k)")
         kind = {"f": "F", "u": "U", "i": "I"}.get(value.dtype.kind)
-        if kind is None or (kind, value.dtype.itemsize) not in _PCD_TYPES:
+        if kind is None or (kind == "F" and value.dtype.itemsize not in (4, 8)):
             raise ValueError(f"{path}: field {name!r} has dtype {value.dtype}, not storable in a PCD")
-        columns[name] = value.astype(value.dtype.newbyteorder("<"), copy=False)
-        names.append(name)
         types.append(kind)
-        sizes.append(value.dtype.itemsize)
         counts.append(1 if value.ndim == 1 else value.shape[1])
-    header = (
-        "# .PCD v0.7 - Point Cloud Data file format (written by terracube)\nVERSION 0.7\n"
-        f"FIELDS {' '.join(names)}\nSIZE {' '.join(map(str, sizes))}\nTYPE {' '.join(types)}\n"
-        f"COUNT {' '.join(map(str, counts))}\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
-        f"POINTS {n}\nDATA {encoding}\n"
-    ).encode("ascii")
-    if encoding == "binary":
-        record = np.dtype(
-            [
-                (nm, columns[nm].dtype, (c,)) if c > 1 else (nm, columns[nm].dtype)
-                for nm, c in zip(names, counts, strict=True)
-            ]
-        )
-        rows = np.empty(n, dtype=record)
-        for name in names:
-            rows[name] = columns[name]
-        body = rows.tobytes()
-    elif encoding == "binary_compressed":
-        import lzf
-
-        raw = b"".join(np.ascontiguousarray(columns[name]).tobytes() for name in names)
-        packed = (lzf.compress(raw) if raw else b"") or _lzf_literal(raw)
-        body = np.array([len(packed), len(raw)], dtype="<u4").tobytes() + packed
-    else:
-        formats = []
-        for name, count in zip(names, counts, strict=True):
-            kind = columns[name].dtype
-            fmt = "%.9g" if kind == np.float32 else "%.17g" if kind.kind == "f" else "%d"
-            formats += [fmt] * count
-        table = np.column_stack([columns[name].astype(object) for name in names]) if n else []
-        lines = [" ".join(f % v for f, v in zip(formats, row, strict=True)) for row in table]
-        body = ("\n".join(lines) + ("\n" if lines else "")).encode("ascii")
+    metadata = MetaData(
+        fields=tuple(columns),
+        size=tuple(v.dtype.itemsize for v in columns.values()),
+        type=tuple(types),
+        count=tuple(counts),
+        points=n,
+        width=n,
+        height=1,
+        data=Encoding(encoding),
+    )
+    rows = np.empty(n, dtype=metadata.build_dtype())
+    for (name, value), count in zip(columns.items(), counts, strict=True):
+        for i in range(count):
+            rows[name if count == 1 else f"{name}__{i:04d}"] = value if count == 1 else value[:, i]
+    cloud = PointCloud(metadata, rows)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(header + body)
+    if encoding != "ascii":
+        cloud.save(path, encoding=Encoding(encoding))
+        return path
+    # pypcd4 writes floats as %.10f, which rounds small values; these formats read back bit for bit.
+    formats = ["%.9g" if rows.dtype[i] == np.float32 else "%.17g" if rows.dtype[i].kind == "f" else "%d"
+               for i in range(len(rows.dtype))]  # fmt: skip
+    with path.open("wb") as stream:
+        stream.write(metadata.compose_header(data=Encoding.ASCII).encode("ascii"))
+        if n:
+            np.savetxt(stream, rows, fmt=formats)
     return path
 
 
@@ -701,8 +622,8 @@ def _write_las(
 ) -> None:
     try:
         import laspy
-    except ImportError as error:  # pragma: no cover - laspy is a dependency
-        raise ImportError("LAS/LAZ writing needs laspy and lazrs: pip install 'laspy[lazrs]'") from error
+    except ImportError as error:
+        raise ImportError("LAS/LAZ writing needs the las extra: pip install 'terracube[las]'") from error
     if not np.all(np.isfinite(xyz)):
         raise ValueError(f"{path}: LAS cannot store NaN or infinite coordinates; drop those points first")
     header = laspy.LasHeader(point_format=6, version="1.4")

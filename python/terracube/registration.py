@@ -221,7 +221,8 @@ def register_maps_all_cells(
 ) -> RegistrationResult:
     """The paper's conventional ICP: every cell with data, unit weight, any class.
 
-    Same arguments and result as :func:`register_maps`; ``use_classes`` is forced off.
+    Same arguments and result as :func:`register_maps` (source and target maps, a (4, 4) guess of
+    the source -> target transform [m], parameters); ``use_classes`` is forced off.
     """
     params = params or RegistrationParams(**kwargs)
     core = params.to_core()
@@ -239,7 +240,24 @@ def register_points(
     target_classes=None,
     **kwargs,
 ) -> RegistrationResult:
-    """The same ICP on (N, 3) point arrays with optional (N,) uint8 classes (unknown when None)."""
+    """The weighted ICP of :func:`register_maps` on point arrays instead of maps.
+
+    Parameters
+    ----------
+    source, target : (N, 3) and (M, 3) float64 arrays
+        Points [m]; ``source`` is moved onto ``target``.
+    initial : (4, 4) array, optional
+        Guess of the source -> target transform (identity when None).
+    params : RegistrationParams, optional
+        Every setting; ``kwargs`` set fields of a default one instead.
+    source_classes, target_classes : (N,) and (M,) uint8 arrays, optional
+        :class:`terracube.TerrainClass` of each point (unknown when None).
+
+    Returns
+    -------
+    RegistrationResult
+        ``transform`` (4, 4), ``converged``, ``reason``, ``iterations``, ``rmse`` [m] ...
+    """
     params = params or RegistrationParams(**kwargs)
     return _core.register_points(
         np.asarray(source),
@@ -252,13 +270,37 @@ def register_points(
 
 
 def points_of_map(elevation_map: ElevationMap) -> tuple[np.ndarray, np.ndarray]:
-    """The registration's point set: (N, 3) float64 cell centres at ``max`` and (N,) uint8 classes."""
+    """The points the registration uses for a classified map.
+
+    Returns
+    -------
+    points : (N, 3) float64 array
+        Centre x, y and ``max`` elevation [m] of each cell with data.
+    classes : (N,) uint8 array
+        Its :class:`terracube.TerrainClass`.
+    """
     return _core.points_of_map(_core_map(elevation_map))
 
 
 @dataclass
 class PclIcpParams:
-    """Settings of ``pcl::IterativeClosestPoint`` (see ``terracube::PclIcpParams``)."""
+    """Settings of ``pcl::IterativeClosestPoint``, mirroring ``terracube::PclIcpParams``.
+
+    Attributes
+    ----------
+    max_correspondence_distance : float
+        Pairs farther apart than this [m] are ignored.
+    max_iterations : int
+        Iterations at most.
+    transformation_epsilon : float
+        Stop when the squared translation of an iteration falls below this [m^2].
+    rotation_epsilon : float
+        Stop when the cosine of an iteration's rotation angle exceeds this.
+    euclidean_fitness_epsilon : float
+        Stop when the mean squared pair distance changes by less than this [m^2] (0: off).
+    relative_mse_epsilon : float
+        Stop when the mean squared pair distance changes by less than this share of itself.
+    """
 
     max_correspondence_distance: float = 1.0
     max_iterations: int = 30
@@ -281,10 +323,22 @@ class PclIcpParams:
 
 
 def pcl_icp(source, target, initial=None, params: PclIcpParams | None = None, **kwargs):
-    """PCL's point-to-point ICP (SVD estimation) on (N, 3) arrays; RuntimeError without PCL.
+    """PCL's point-to-point ICP (SVD estimation), the baseline of the registration benchmarks.
 
-    Returns a result with ``transform`` (4, 4), ``converged``, ``iterations`` and ``fitness``
-    (mean squared pair distance [m^2]).
+    Parameters
+    ----------
+    source, target : (N, 3) and (M, 3) float arrays
+        Points [m]; ``source`` is moved onto ``target``.
+    initial : (4, 4) array, optional
+        Guess of the source -> target transform (identity when None).
+    params : PclIcpParams, optional
+        Every setting; ``kwargs`` set fields of a default one instead.
+
+    Returns
+    -------
+    PclIcpResult
+        ``transform`` (4, 4), ``converged``, ``iterations`` and ``fitness`` (mean squared pair
+        distance [m^2]). RuntimeError when this build has no PCL.
     """
     params = params or PclIcpParams(**kwargs)
     core = params.to_core()

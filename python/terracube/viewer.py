@@ -86,7 +86,7 @@ def show_cloud(
 def show_map(elevation_map, *, name: str = "map", save: str | Path | None = None) -> Path | None:
     """Log an elevation map as one point per cell with data at (x, y, max), coloured by terrain class
     when the map has a ``class`` layer, else by height. Returns the recording path when ``save`` is given."""
-    from .elevation import TERRAIN_COLORS, TerrainClass
+    from .classes import TERRAIN_COLORS, TerrainClass
 
     rr = _rerun()
     layer = "max" if "max" in elevation_map else elevation_map.layers[0]

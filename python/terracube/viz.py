@@ -15,8 +15,8 @@ def _pyplot():
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
-    except ImportError as error:  # pragma: no cover - matplotlib is a core dependency
-        raise ImportError("pictures need matplotlib: pip install matplotlib") from error
+    except ImportError as error:
+        raise ImportError("pictures need the plot extra: pip install 'terracube[plot]'") from error
     return plt
 
 
@@ -347,7 +347,7 @@ def plot_terrain_classes(
 ) -> Path:
     """Save a PNG of an (nx, ny) class map (:func:`terracube.classify_terrain`), x right and y up,
     in :data:`terracube.TERRAIN_COLORS`, with a legend naming every class and its cell count."""
-    from .elevation import TERRAIN_COLORS, TerrainClass
+    from .classes import TERRAIN_COLORS, TerrainClass
 
     plt = _pyplot()
     from matplotlib.colors import BoundaryNorm, ListedColormap

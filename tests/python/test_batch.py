@@ -1,4 +1,4 @@
-"""Batch processing with Dask: a folder of three small scans and one corrupt file.
+"""Batch processing (Dask, or a local process pool): a folder of three small scans and one corrupt file.
 
 Each good file's outputs equal the single-file API's; the corrupt file is reported with its name
 and problem while the others finish; the command exits 1. Local clusters are small (1-2 workers).
@@ -179,3 +179,49 @@ def test_the_console_script_runs_a_batch_on_local_worker_processes(tmp_path, sca
     assert "broken.pcd: truncated binary PCD" in completed.stdout
     assert "1 of 4 files failed" in completed.stderr
     _check_dem_outputs(out, scans)
+
+
+@pytest.mark.parametrize("processes", [False, True], ids=["threads", "processes"])
+def test_the_local_pool_writes_the_same_maps_as_the_single_file_api(tmp_path, scan_folder, processes):
+    folder, scans = scan_folder
+    out = tmp_path / "out"
+    records = run_batch(
+        "dem",
+        [folder],
+        out,
+        config=default_config().replace("elevation", resolution=0.25),
+        options={"png": False},
+        workers=2,
+        processes=processes,
+        progress=False,
+        backend="pool",
+    )
+    assert [r.ok for r in records] == [False, True, True, True]
+    assert "broken.pcd: truncated binary PCD" in records[0].error
+    _check_dem_outputs(out, scans)
+
+
+def test_without_dask_batch_runs_on_the_local_pool(tmp_path, scan_folder, monkeypatch):
+    import terracube.batch as batch
+
+    def no_dask(*args):
+        raise AssertionError("Dask was used")
+
+    monkeypatch.setattr(batch, "_dask_available", lambda: False)
+    monkeypatch.setattr(batch, "_dask_jobs", no_dask)
+    records = run_batch("collapse", [scan_folder[0] / "scan_a.npy"], tmp_path, options={"png": False},
+                        workers=1, processes=False, progress=False)  # fmt: skip
+    assert records[0].ok, records[0].error
+    with pytest.raises(ValueError, match="a Dask scheduler needs the dask backend"):
+        run_batch("dem", [scan_folder[0]], tmp_path, scheduler="tcp://127.0.0.1:1", backend="pool")
+
+
+def test_terracube_batch_takes_the_stage_options_of_the_single_file_command(tmp_path, scan_folder):
+    folder, scans = scan_folder
+    out = tmp_path / "out"
+    args = ["batch", "dem", str(folder), "--out", str(out), "-w", "1", "--threads", "--backend", "pool"]
+    result = CliRunner().invoke(app, [*args, "-r", "0.25", "--no-png", "--edge", "0.5", "--sigma", "2"])
+    assert result.exit_code == 1, result.output  # broken.pcd
+    _check_dem_outputs(out, scans)
+    result = CliRunner().invoke(app, [*args, "--reference", "nowhere"])
+    assert result.exit_code == 2 and "--reference must be one of" in result.output

@@ -431,3 +431,25 @@ def test_a_negative_number_of_threads_exits_with_status_2_naming_it(runner, tmp_
     result = runner.invoke(app, ["dem", str(path), "-o", str(tmp_path / "out"), "--num-threads", "-1"])
     assert result.exit_code == 2
     assert "num_threads" in result.output
+
+
+def test_a_missing_extra_exits_2_naming_it(runner, tmp_path, monkeypatch):
+    import sys
+
+    path, _ = _scan(tmp_path)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # pictures need the plot extra
+    monkeypatch.setitem(sys.modules, "matplotlib.pyplot", None)
+    result = runner.invoke(app, ["collapse", str(path), "-o", str(tmp_path)])
+    assert result.exit_code == 2 and "terracube[plot]" in result.output
+    result = runner.invoke(app, ["collapse", str(path), "-o", str(tmp_path), "--no-png"])
+    assert result.exit_code == 0, result.output
+
+
+@pytest.mark.parametrize("command", ["collapse", "dem", "classify", "fem"])
+def test_every_stage_command_lists_its_shared_options_in_help(runner, command):
+    from terracube.cli import STAGE_OPTIONS
+
+    result = runner.invoke(app, [command, "--help"], terminal_width=200)
+    assert result.exit_code == 0
+    assert "--config" in result.output and "--crop" in result.output and "--png" in result.output
+    assert len(STAGE_OPTIONS[command]) >= 10

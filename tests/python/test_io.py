@@ -353,3 +353,26 @@ def test_collapse_reads_a_real_pcd_and_writes_each_new_format(tmp_path, shared_d
     assert result.exit_code == 0, result.output
     cloud = read_cloud(tmp_path / f"ouster128_000000_classified.{fmt}")
     assert len(cloud["xyz"]) == 1875 * 128 and 0 < cloud["label"].sum() < len(cloud["xyz"])
+
+
+def test_las_without_its_extra_names_the_extra_to_install(tmp_path, monkeypatch):
+    import sys
+
+    path = write_classified(tmp_path / "scan.las", np.zeros((3, 3)), np.zeros(3, bool))
+    monkeypatch.setitem(sys.modules, "laspy", None)  # import laspy now raises ImportError
+    with pytest.raises(ImportError, match=r"pip install 'terracube\[las\]'"):
+        read_points(path)
+    with pytest.raises(ImportError, match=r"pip install 'terracube\[las\]'"):
+        write_classified(tmp_path / "again.laz", np.zeros((3, 3)), np.zeros(3, bool))
+
+
+def test_pictures_without_their_extra_name_the_extra_to_install(tmp_path, monkeypatch):
+    import sys
+
+    import terracube as tc
+
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    monkeypatch.setitem(sys.modules, "matplotlib.pyplot", None)
+    elevation_map = tc.build_elevation_map(np.random.default_rng(0).uniform(0, 1, (100, 3)), 0.1)
+    with pytest.raises(ImportError, match=r"pip install 'terracube\[plot\]'"):
+        elevation_map.to_png("max", tmp_path / "max.png")
