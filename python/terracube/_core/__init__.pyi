@@ -7,7 +7,7 @@ import numpy
 import numpy.typing
 import typing
 from . import simulation
-__all__: list[str] = ['AbsoluteTrajectoryError', 'CollapseParams', 'CollapseResult', 'CropBox', 'CubeGrid', 'CubeStorage', 'ElevationMap', 'ElevationParams', 'ErrorStatistics', 'FuzzyElevationMap', 'FuzzyParams', 'GroundReference', 'LoopClosure', 'MapGeometry', 'Mapper', 'MapperParams', 'MapperTimings', 'MembershipFamily', 'OverhangFreeMap', 'PclIcpParams', 'PclIcpResult', 'PointGapParams', 'PoseGraphEdge', 'PoseGraphParams', 'PoseGraphResult', 'PoseSegmentError', 'RegionLayoutComparison', 'RegionPairError', 'RegionTripleError', 'RegistrationParams', 'RegistrationResult', 'RelativePoseError', 'RelativePoseErrorParams', 'RobustLoss', 'ScanReport', 'SegmentLengthError', 'StopReason', 'TerrainParams', 'TrajectoryAlignment', 'absolute_trajectory_error', 'build_elevation_map', 'build_elevation_map_into', 'build_overhang_free_map', 'classify_terrain', 'collapse_overhangs', 'compare_region_layouts', 'error_statistics', 'fit_fuzzy_elevation_map', 'has_pcl', 'leveling_transform', 'octomap_column_overhangs', 'optimize_pose_graph', 'pcl_gicp', 'pcl_icp', 'point_gap_overhangs', 'points_of_map', 'register_maps', 'register_points', 'relative_pose_error', 'rigid_alignment', 'sigma_from_robot_height', 'simulation', 'step_layer']
+__all__: list[str] = ['AbsoluteTrajectoryError', 'CollapseParams', 'CollapseResult', 'CropBox', 'CubeGrid', 'CubeStorage', 'ElevationMap', 'ElevationParams', 'ErrorStatistics', 'FuzzyElevationMap', 'FuzzyParams', 'GroundReference', 'LoopClosure', 'MapGeometry', 'Mapper', 'MapperParams', 'MapperTimings', 'MembershipFamily', 'OverhangFreeMap', 'PclIcpParams', 'PclIcpResult', 'PointBasedParams', 'PoseGraphEdge', 'PoseGraphParams', 'PoseGraphResult', 'PoseSegmentError', 'RegionLayoutComparison', 'RegionPairError', 'RegionRelations', 'RegionTripleError', 'RegistrationParams', 'RegistrationResult', 'RelativePoseError', 'RelativePoseErrorParams', 'RobustLoss', 'ScanReport', 'SegmentLengthError', 'StepRule', 'StopReason', 'TerrainParams', 'TrajectoryAlignment', 'absolute_trajectory_error', 'build_elevation_map', 'build_elevation_map_into', 'build_overhang_free_map', 'classify_terrain', 'collapse_overhangs', 'compare_region_layouts', 'error_statistics', 'fit_fuzzy_elevation_map', 'has_pcl', 'leveling_transform', 'octomap_column_overhangs', 'optimize_pose_graph', 'pcl_gicp', 'pcl_icp', 'point_based_overhangs', 'points_of_map', 'register_maps', 'register_points', 'relative_pose_error', 'rigid_alignment', 'sigma_from_robot_height', 'simulation', 'step_layer']
 class CubeGrid:
     """
     CBC grid geometry (eqs. 1-9); cube (0,0,0) is centred on min_corner.
@@ -196,28 +196,34 @@ class CollapseResult:
     @property
     def storage_used(self) -> str:
         ...
-class PointGapParams:
+class PointBasedParams:
     crop: CropBox | None
     drop_non_finite: bool
     def __init__(self) -> None:
         ...
     @property
-    def cell_m(self) -> float:
+    def edge_m(self) -> float:
         ...
-    @cell_m.setter
-    def cell_m(self, arg0: typing.SupportsFloat | typing.SupportsIndex) -> None:
+    @edge_m.setter
+    def edge_m(self, arg0: typing.SupportsFloat | typing.SupportsIndex) -> None:
         ...
     @property
-    def min_gap_m(self) -> float:
+    def sigma(self) -> int:
         ...
-    @min_gap_m.setter
-    def min_gap_m(self, arg0: typing.SupportsFloat | typing.SupportsIndex) -> None:
+    @sigma.setter
+    def sigma(self, arg0: typing.SupportsInt | typing.SupportsIndex) -> None:
         ...
     @property
     def transform(self) -> typing.Annotated[numpy.typing.NDArray[numpy.float64], "[4, 4]"]:
         ...
     @transform.setter
     def transform(self, arg0: typing.Annotated[numpy.typing.ArrayLike, numpy.float64, "[4, 4]"]) -> None:
+        ...
+    @property
+    def variance_threshold_m2(self) -> float:
+        ...
+    @variance_threshold_m2.setter
+    def variance_threshold_m2(self, arg0: typing.SupportsFloat | typing.SupportsIndex) -> None:
         ...
 class MapGeometry:
     """
@@ -456,8 +462,54 @@ class MembershipFamily:
     @property
     def value(self) -> int:
         ...
+class StepRule:
+    """
+    Members:
+    
+      guarded
+    
+      jang
+    """
+    __members__: typing.ClassVar[dict[str, StepRule]]
+    guarded: typing.ClassVar[StepRule]
+    jang: typing.ClassVar[StepRule]
+    @typing.overload
+    def __eq__(self, other: StepRule) -> bool:
+        ...
+    @typing.overload
+    def __eq__(self, other: typing.Any) -> bool:
+        ...
+    def __getstate__(self) -> int:
+        ...
+    def __hash__(self) -> int:
+        ...
+    def __index__(self) -> int:
+        ...
+    def __init__(self, value: typing.SupportsInt | typing.SupportsIndex) -> None:
+        ...
+    def __int__(self) -> int:
+        ...
+    @typing.overload
+    def __ne__(self, other: StepRule) -> bool:
+        ...
+    @typing.overload
+    def __ne__(self, other: typing.Any) -> bool:
+        ...
+    def __repr__(self) -> str:
+        ...
+    def __setstate__(self, state: typing.SupportsInt | typing.SupportsIndex) -> None:
+        ...
+    def __str__(self) -> str:
+        ...
+    @property
+    def name(self) -> str:
+        ...
+    @property
+    def value(self) -> int:
+        ...
 class FuzzyParams:
     membership: MembershipFamily
+    step_rule: StepRule
     def __init__(self) -> None:
         ...
     def clear_extent(self) -> None:
@@ -871,6 +923,51 @@ class TrajectoryAlignment:
         ...
     @typing.overload
     def __ne__(self, other: TrajectoryAlignment) -> bool:
+        ...
+    @typing.overload
+    def __ne__(self, other: typing.Any) -> bool:
+        ...
+    def __repr__(self) -> str:
+        ...
+    def __setstate__(self, state: typing.SupportsInt | typing.SupportsIndex) -> None:
+        ...
+    def __str__(self) -> str:
+        ...
+    @property
+    def name(self) -> str:
+        ...
+    @property
+    def value(self) -> int:
+        ...
+class RegionRelations:
+    """
+    Members:
+    
+      consecutive
+    
+      all_pairs
+    """
+    __members__: typing.ClassVar[dict[str, RegionRelations]]
+    all_pairs: typing.ClassVar[RegionRelations]
+    consecutive: typing.ClassVar[RegionRelations]
+    @typing.overload
+    def __eq__(self, other: RegionRelations) -> bool:
+        ...
+    @typing.overload
+    def __eq__(self, other: typing.Any) -> bool:
+        ...
+    def __getstate__(self) -> int:
+        ...
+    def __hash__(self) -> int:
+        ...
+    def __index__(self) -> int:
+        ...
+    def __init__(self, value: typing.SupportsInt | typing.SupportsIndex) -> None:
+        ...
+    def __int__(self) -> int:
+        ...
+    @typing.overload
+    def __ne__(self, other: RegionRelations) -> bool:
         ...
     @typing.overload
     def __ne__(self, other: typing.Any) -> bool:
@@ -1491,7 +1588,7 @@ def classify_terrain(map: ElevationMap, params: TerrainParams) -> numpy.typing.N
     """
 def collapse_overhangs(points: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], params: CollapseParams) -> CollapseResult:
     ...
-def compare_region_layouts(map_centres: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], dsm_centres: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]]) -> RegionLayoutComparison:
+def compare_region_layouts(map_centres: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], dsm_centres: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], relations: RegionRelations = ...) -> RegionLayoutComparison:
     ...
 def error_statistics(errors: collections.abc.Sequence[typing.SupportsFloat | typing.SupportsIndex]) -> ErrorStatistics:
     ...
@@ -1507,7 +1604,7 @@ def pcl_gicp(source: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], target:
     ...
 def pcl_icp(source: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], target: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], initial: typing.Annotated[numpy.typing.ArrayLike, numpy.float64, "[4, 4]"], params: PclIcpParams) -> PclIcpResult:
     ...
-def point_gap_overhangs(points: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], params: PointGapParams) -> numpy.ndarray[typing.Any, numpy.dtype[typing.Any]]:
+def point_based_overhangs(points: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], params: PointBasedParams) -> numpy.ndarray[typing.Any, numpy.dtype[typing.Any]]:
     ...
 def points_of_map(map: ElevationMap) -> tuple[numpy.typing.NDArray[numpy.float64], numpy.typing.NDArray[numpy.uint8]]:
     """
