@@ -1,4 +1,4 @@
-"""Overhang removal with collapsible cubes (Reina et al., IEEE AIM 2014) and its baselines."""
+"""Overhang removal with collapsible cubes ([CBC]) and its baselines."""
 
 from __future__ import annotations
 
@@ -172,7 +172,7 @@ def collapse_overhangs(
     num_threads: int = 1,
     params: CollapseParams | None = None,
 ) -> CollapseResult:
-    """Remove overhangs with collapsible cubes (Algorithm 1 of Reina et al. 2014).
+    """Remove overhangs with collapsible cubes ([CBC] Algorithm 1).
 
     Parameters
     ----------

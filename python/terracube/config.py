@@ -171,7 +171,7 @@ def _register_defaults() -> None:
     register_section(
         "collapse",
         CollapseParams,
-        "Collapsible cubes overhang removal (Reina et al. 2014, Algorithm 1).",
+        "Collapsible cubes overhang removal ([CBC] Algorithm 1).",
         excluded=("transform", "crop"),
         excluded_reason=frame_reason,
     )
@@ -182,9 +182,7 @@ def _register_defaults() -> None:
         excluded=("transform", "crop"),
         excluded_reason=frame_reason,
     )
-    register_section(
-        "terrain", TerrainParams, "Terrain classes of the map cells (classification paper, Table 1)."
-    )
+    register_section("terrain", TerrainParams, "Terrain classes of the map cells ([TC] Table 1).")
     register_section(
         "fuzzy",
         FuzzyParams,
@@ -193,7 +191,7 @@ def _register_defaults() -> None:
     register_section(
         "registration",
         RegistrationParams,
-        "Class-weighted ICP between classified maps (eq. (4) weights, Table 2).",
+        "Class-weighted ICP between classified maps ([TC] eq. (4) weights, [TC] Table 2).",
     )
     register_section("pcl_icp", PclIcpParams, "PCL's point-to-point ICP baseline (register --method pcl).")
     register_section(

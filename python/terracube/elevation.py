@@ -297,7 +297,7 @@ def dem_without_overhangs(
     collapse: CollapseParams | None = None,
     elevation: ElevationParams | None = None,
 ) -> tuple[ElevationMap, CollapseResult]:
-    """The collapsible-cubes paper's DEM without overhangs, plus ``clearance`` and ``step`` layers.
+    """The DEM without overhangs of [CBC] section IV-C, plus ``clearance`` and ``step`` layers.
 
     Runs :func:`terracube.collapse_overhangs`, then maps the points it kept in the same (leveled,
     cropped) frame.
@@ -391,7 +391,7 @@ class TerrainParams:
 def classify_terrain(
     elevation_map: ElevationMap, params: TerrainParams | None = None, **kwargs
 ) -> np.ndarray:
-    """Classify every cell (Table 1) and return an (nx, ny) uint8 array of :class:`TerrainClass`.
+    """Classify every cell ([TC] Table 1) and return an (nx, ny) uint8 array of :class:`TerrainClass`.
 
     Also adds the layers ``class`` (float, NaN for unknown), ``relative_height`` and ``ground``.
     """

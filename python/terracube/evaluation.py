@@ -8,7 +8,7 @@
 * :func:`compare_region_layouts`: [TC] section 4.2 compares the global elevation map with an
   aerial DSM through the distances between matched regions ([TC] eq. (5)) and the angles they
   form ([TC] eq. (6)), over the consecutive pairs 1-2, ..., K-1 and triples K-1-2, ..., (K-1)-K-1
-  of Tables 4-5 (or every pair and triple, ``relations="all_pairs"``).
+  of [TC] Tables 4-5 (or every pair and triple, ``relations="all_pairs"``).
 
 Pose files (KITTI, TUM) are read and written by :mod:`terracube.poses`, re-exported here.
 """
@@ -146,7 +146,7 @@ def compare_region_layouts(
         The same K regions, listed in order around the site, located in the global elevation map
         and in the reference DSM [m]. [TC] Table 3 gives 3-D centres.
     relations : {"consecutive", "all_pairs"}
-        ``"consecutive"`` (the paper's Tables 4-5): the K pairs 1-2, 2-3, ..., K-1 and the K
+        ``"consecutive"`` ([TC] Tables 4-5): the K pairs 1-2, 2-3, ..., K-1 and the K
         triples K-1-2, 1-2-3, ..., (K-1)-K-1, wrapping around. ``"all_pairs"``: every pair
         i < j and every triple i < j < k (angle at j).
 
@@ -154,8 +154,8 @@ def compare_region_layouts(
     -------
     RegionLayoutComparison
         ``pairs`` (``i``, ``j`` 0-based, ``map_distance``, ``dsm_distance``, signed ``error`` =
-        map - DSM [m], as Table 4), ``triples`` (``i``, ``j``, ``k``, the angle at ``j``:
-        ``map_angle``, ``dsm_angle``, signed ``error`` [deg], as Table 5), and the mean and
+        map - DSM [m], as [TC] Table 4), ``triples`` (``i``, ``j``, ``k``, the angle at ``j``:
+        ``map_angle``, ``dsm_angle``, signed ``error`` [deg], as [TC] Table 5), and the mean and
         maximum of the absolute errors: ``mean_distance_error``, ``max_distance_error`` [m],
         ``mean_angle_error``, ``max_angle_error`` [deg] (NaN without triples: K = 2).
 

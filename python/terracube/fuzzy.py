@@ -1,6 +1,6 @@
 """Fuzzy elevation maps (FEM): an ANFIS-identified Takagi-Sugeno surface z = f(x, y).
 
-The collapsible-cubes paper (Reina et al., IEEE AIM 2014) builds, beside the DEM, a fuzzy
+[CBC] builds, beside the DEM, a fuzzy
 elevation map that filters sensor noise and interpolates small shadowed areas. The model and the
 hybrid learning are documented in ``cpp/include/terracube/fuzzy.hpp``: 19 x 10 zero-order rules
 over a grid of membership functions (one free centre each) give the paper's 190 + 29 = 219

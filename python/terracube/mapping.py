@@ -57,13 +57,13 @@ class MapperParams:
     discontinuity : float
         Gap between sorted elevations that flags a cell discontinuous [m] (the paper: 1 m).
     terrain : TerrainParams
-        Table 1 thresholds; heights are measured from the local ground by default (slopes), the
+        [TC] Table 1 thresholds; heights are measured from the local ground by default (slopes), the
         lowest elevation within 5 cells (1 m at 0.2 m: on a slope the window minimum lies
         slope x radius below the cell, so a wider window calls ramps obstacles).
     use_registration : bool
         False chains local maps by odometry alone (a baseline).
     registration : RegistrationParams
-        The class-weighted ICP (Table 2 weights by default).
+        The class-weighted ICP ([TC] Table 2 weights by default).
     yaw_only_registration : bool
         Keep only the translation and yaw of each registration: local maps are leveled by odometry's
         roll and pitch, so their relative rotation is a yaw (the ground-free ICP leaves roll and pitch

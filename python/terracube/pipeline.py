@@ -340,7 +340,7 @@ _GROUND_PLANE_HINT_M = 0.5
 def _ground_plane_hint(elevation_map, terrain) -> str | None:
     """A note when the sensor-height reference looks wrong for the scan: the median of the cells'
     lowest elevations (mostly ground cells on a ground robot's scan) lies more than
-    :data:`_GROUND_PLANE_HINT_M` from the plane z = -sensor_height that Table 1 measures from."""
+    :data:`_GROUND_PLANE_HINT_M` from the plane z = -sensor_height that [TC] Table 1 measures from."""
     if terrain.reference != "sensor_height":
         return None
     lowest = elevation_map["min"]

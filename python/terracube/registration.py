@@ -1,8 +1,8 @@
 """Class-weighted ICP between classified elevation maps, its all-cells baseline and PCL's ICP.
 
-The terrain-classification paper, sections 2.2 and 3.3 and its appendix: each cell with data is
+[TC] sections 2.2 and 3.3 and its appendix: each cell with data is
 the point (x centre, y centre, max) carrying its terrain class; a source point pairs only with the
-nearest target point of its class, each class with the weight of eq. (4) (Table 2), ground taking
+nearest target point of its class, each class with its [TC] eq. (4) weight ([TC] Table 2), ground taking
 no part. ``register_maps_all_cells`` is the paper's "conventional" ICP (every cell, unit weight);
 ``pcl_icp`` runs ``pcl::IterativeClosestPoint`` on the same points (``pcl_gicp`` PCL's GICP).
 """
@@ -40,7 +40,7 @@ RegistrationResult = _core.RegistrationResult
 #: The unknowns of the 6x6 matrices, in order: rotation about x, y, z, then translation.
 UNKNOWNS = ("roll", "pitch", "yaw", "x", "y", "z")
 
-#: Table 2 of the classification paper; classes not listed (unknown, ground) weigh 0.
+#: [TC] Table 2; classes not listed (unknown, ground) weigh 0.
 DEFAULT_CLASS_WEIGHTS: dict[TerrainClass, float] = {
     TerrainClass.OBSTACLE: 0.8,
     TerrainClass.OVERHANGING_OBJECT: 0.5,
@@ -64,7 +64,7 @@ class RegistrationParams:
         True: pair only within a class, weighted by ``class_weights``; False: the conventional
         ICP (nearest cell of any class, unit weight).
     class_weights : mapping TerrainClass -> float
-        Eq. (4) weights (>= 0); classes not given weigh 0 and take no part (Table 2 by default).
+        [TC] eq. (4) weights (>= 0); classes not given weigh 0 and take no part (Table 2 by default).
     max_correspondence_distance, min_correspondence_distance : float
         Pairs farther apart take no part [m]; at iteration k the limit is
         ``max(min, max * decay**k)`` (1.5 m shrinking to 0.3 m).
@@ -84,7 +84,7 @@ class RegistrationParams:
     extrapolate : bool
         Guarded acceleration after Besl and McKay (not in the paper): when two successive updates
         point the same way and shrink, try a jump along them (at most 10 steps) and keep it only if
-        the eq. (4) error truncated at the next distance limit (class pairs; ground planes left
+        the [TC] eq. (4) error truncated at the next distance limit (class pairs; ground planes left
         out) is no larger than after the plain step (both evaluated: one more correspondence pass
         per try). False: the plain iteration.
     coarse_subsample : int
@@ -98,7 +98,7 @@ class RegistrationParams:
         out). Positive: the target's ground points are binned into square cells of
         ``ground_cell`` m, each fitted with a plane, and the mean of each source cell's ground
         points is paired with the plane of the target cell it moves into (no search), weighted
-        this much in eq. (4), its residual the distance along the plane's normal. That fixes
+        this much in [TC] eq. (4), its residual the distance along the plane's normal. That fixes
         height, roll and pitch, which the other classes leave loose, without the pull along the
         road of point-to-point ground pairs. Counted under ground in the per-class
         correspondences, the RMSE and the normal matrix. Needs ``use_classes``.
