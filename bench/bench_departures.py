@@ -87,7 +87,8 @@ def icp_part(data_dir, quick: bool) -> None:
     rng = np.random.default_rng(5)
     guesses = {name: [perturbation(rng) @ truth for _ in range(2)] for name, _, _, truth in pairs}
     print(
-        "\nWeighted ICP: median translation error [mm] over pairs and guesses, median iterations, mean time [ms]"
+        "\nWeighted ICP: median translation error [mm] over pairs and guesses, "
+        "median iterations, mean time [ms]"
     )
     print(f"  {'variant':24s} {'KITTI err':>10s} {'sim err':>9s} {'iters':>6s} {'ms':>7s} {'converged':>10s}")
     for label, overrides in ICP_VARIANTS.items():
