@@ -58,7 +58,7 @@ class MapperParams:
         Gap between sorted elevations that flags a cell discontinuous [m] (the paper: 1 m).
     terrain : TerrainParams
         [TC] Table 1 thresholds; heights are measured from the local ground by default (slopes), the
-        lowest elevation within 5 cells (1 m at 0.2 m: on a slope the window minimum lies
+        lowest elevation within 5 cells (0.5 m at 0.1 m: on a slope the window minimum lies
         slope x radius below the cell, so a wider window calls ramps obstacles).
     use_registration : bool
         False chains local maps by odometry alone (a baseline).
@@ -106,7 +106,7 @@ class MapperParams:
 
     keyframe_distance: float = 3.0
     keyframe_rotation: float = 0.5
-    resolution: float = 0.2
+    resolution: float = 0.1
     local_map_size: float = 40.0
     max_scans_per_local_map: int = 1
     num_threads: int = 1

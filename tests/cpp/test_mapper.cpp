@@ -430,6 +430,7 @@ TEST(Mapper, LoopClosingCutsTheErrorOfDriftingOdometry) {
 
 TEST(Mapper, GlobalMapMemoryGrowsWithTheAreaCovered) {
   MapperParams params;
+  params.resolution_m = 0.2;  // 12.8 m tiles: an 8 m scan touches at most 4
   params.use_registration = false;
   params.loop_closing = false;
   params.local_map_size_m = 10.0;

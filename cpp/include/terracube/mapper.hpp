@@ -29,8 +29,9 @@ struct MapperParams {
   /// A new local map also when odometry turned by this much since the last one [rad]. > 0.
   double keyframe_rotation_rad = 0.5;
 
-  /// Local maps: cell size [m] (also the global map's) and the square extent centred on the sensor [m].
-  double resolution_m = 0.2;
+  /// Local maps: cell size [m] (also the global map's; [TC] section 2.1: 0.1 m) and the square
+  /// extent centred on the sensor [m].
+  double resolution_m = 0.1;
   double local_map_size_m = 40.0;
   /// A local map is built from the keyframe's scan and the scans since the previous keyframe (at most
   /// this many scans in all, the newest), moved into the keyframe's leveled frame by odometry. Denser
@@ -50,8 +51,8 @@ struct MapperParams {
   double discontinuity_m = 1.0;
   /// Table 1 thresholds. The default measures heights from the local ground (lowest elevations around
   /// the cell), which keeps classes right on slopes; the paper's sensor-height reference is available.
-  /// The window is 5 cells (1 m at 0.2 m, as terrain's 10 cells at 0.1 m): the window minimum lies
-  /// slope x radius below a cell on a slope, so a larger window calls ramps obstacles.
+  /// The window is 5 cells (0.5 m at 0.1 m): the window minimum lies slope x radius below a cell
+  /// on a slope, so a larger window calls ramps obstacles.
   TerrainParams terrain = [] {
     TerrainParams t;
     t.reference = GroundReference::kLocalGround;
@@ -146,7 +147,7 @@ class TiledElevationMap {
  public:
   static constexpr int kTileCells = 64;  ///< cells along each tile side
 
-  explicit TiledElevationMap(double resolution_m = 0.2);
+  explicit TiledElevationMap(double resolution_m = 0.1);
   ~TiledElevationMap();
   TiledElevationMap(TiledElevationMap&&) noexcept;
   TiledElevationMap& operator=(TiledElevationMap&&) noexcept;
