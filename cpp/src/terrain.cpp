@@ -9,9 +9,7 @@
 #include <string>
 #include <vector>
 
-#include "cpu_features.hpp"
-#include "layer_memory.hpp"
-#include "threads.hpp"
+#include "parallel.hpp"
 
 namespace terracube {
 
@@ -60,8 +58,8 @@ void window_min(const Layer& layer, int radius, Layer& out) {
   const Eigen::Index ny = layer.cols();
   // A radius of max(nx, ny) already spans the whole map: larger ones change nothing.
   const Eigen::Index r = std::min<Eigen::Index>(radius, std::max(nx, ny));
-  Layer values = detail::uninitialised_layer(nx, ny);
-  Layer along_y = detail::uninitialised_layer(nx, ny);
+  Layer values = Layer(nx, ny);
+  Layer along_y = Layer(nx, ny);
   values.array() = layer.array().isNaN().select(kInf, layer.array());
   std::vector<float> prefix(static_cast<std::size_t>(std::max(nx, ny) + 2 * r));
   std::vector<float> suffix(prefix.size());
@@ -71,8 +69,6 @@ void window_min(const Layer& layer, int radius, Layer& out) {
   for (Eigen::Index k = 0; k < out.size(); ++k) {
     if (out.data()[k] == kInf) out.data()[k] = std::numeric_limits<float>::quiet_NaN();
   }
-  detail::recycle_layer(std::move(values));
-  detail::recycle_layer(std::move(along_y));
 }
 
 /// The smallest float that is >= `threshold`: for every float v, v < threshold (compared in
@@ -196,7 +192,7 @@ TerrainClasses classify_terrain_layers(ElevationMap& map, const TerrainParams& p
   // cell of all three is written below (filling them would write about 1 MB more on a fresh KITTI
   // map). Adding layers can move them, so every reference is taken after the last add.
   for (const char* name : {"class", "relative_height", "ground"}) {
-    if (!map.exists(name)) map.add(name, detail::uninitialised_layer(map.geometry().size.x(), map.geometry().size.y()));
+    if (!map.exists(name)) map.add(name, Layer(map.geometry().size.x(), map.geometry().size.y()));
   }
   const Layer& highest = map.get("max");
   const Layer& spread = map.get("std_dev");
@@ -245,20 +241,20 @@ TerrainClasses classify_terrain_layers(ElevationMap& map, const TerrainParams& p
   // map's classes from 0.18 to 0.09 ms (bench/bench_elevation.py). Sleeping ones are not woken for
   // a call this small alone (see detail::thread_count).
   constexpr std::size_t kCellsPerThread = std::size_t{1} << 15;
-  const int parts = detail::thread_count(params.num_threads, static_cast<std::size_t>(cells), kCellsPerThread);
+  const int parts = detail::fixed_parts(static_cast<std::size_t>(cells), kCellsPerThread);
   const auto rows_of = [&](int part) { return std::make_pair(nx * part / parts, nx * (part + 1) / parts); };
   // Pass 1: ground reference, relative height ("max" minus the ground; NaN stays NaN) and Table 1
   // (table_1), in AVX2 where the processor has it.
   const Table1 cells_in{top, deviation, flag, reference, height, first, low, high, small};
 #if defined(__x86_64__) && defined(__GNUC__)
-  const bool avx2 = detail::has_avx2();
+  const bool avx2 = __builtin_cpu_supports("avx2");
   const auto table_1_of = [&](Eigen::Index begin, Eigen::Index end) {
     avx2 ? table_1_avx2(cells_in, begin, end) : table_1(cells_in, begin, end);
   };
 #else
   const auto table_1_of = [&](Eigen::Index begin, Eigen::Index end) { table_1(cells_in, begin, end); };
 #endif
-  detail::for_each_part(parts, [&](int part) {
+  detail::for_each_part(params.num_threads, parts, [&](int part) {
     const auto [row_begin, row_end] = rows_of(part);
     constexpr Eigen::Index kChunk = 2048;  // the ground of a chunk is written, then read from L1
     for (Eigen::Index begin = row_begin * ny; begin < row_end * ny; begin += kChunk) {
@@ -271,7 +267,7 @@ TerrainClasses classify_terrain_layers(ElevationMap& map, const TerrainParams& p
   // 4) among their 8 neighbours -- a 3 x 3 dilation of the object mask, separable: each row's mask
   // widened along j, then rows i - 1, i and i + 1 combined -- and the class as a float, NaN for
   // unknown (the bits of float(c), or a quiet NaN's for c = 0).
-  detail::for_each_part(parts, [&](int part) {
+  detail::for_each_part(params.num_threads, parts, [&](int part) {
     const auto [row_begin, row_end] = rows_of(part);
     std::vector<std::uint8_t> objects(static_cast<std::size_t>(ny));
     std::vector<std::uint8_t> widened(static_cast<std::size_t>(3 * ny));

@@ -1,4 +1,4 @@
-// Coarse binary cubes (CBC) geometry: Reina et al., "Collapsible cubes", IEEE AIM 2014, eqs. (1)-(9).
+// Coarse binary cubes (CBC) geometry: [CBC] = Reina et al., "Collapsible cubes", IEEE AIM 2014, eqs. (1)-(9).
 #pragma once
 
 #include <Eigen/Core>
@@ -38,12 +38,12 @@ using CubeCoordinates = Eigen::Matrix<std::int64_t, 3, 1>;
 
 /// The CBC grid over a leveled cloud.
 ///
-/// Eqs. (1)-(3): a point p falls into cube (ix, iy, iz) with ix = round((x - xmin) / E), where
+/// [CBC] eqs. (4)-(6): a point p falls into cube (ix, iy, iz) with ix = round((x - xmin) / E), where
 /// round() is round-half-up computed in double as floor((x - xmin) * (1 / E) + 0.5). Cube
 /// (ix, iy, iz) is therefore centred on min_corner + E * (ix, iy, iz): the bounding-box minimum
 /// is the centre of cube (0, 0, 0), not its corner.
-/// Eqs. (4)-(6): ixmax = round((xmax - xmin) / E) + 1 cubes along x (likewise y, z).
-/// Eq. (7): the cube index I = ix + iy * ixmax + iz * ixmax * iymax, 64-bit. Sorting by I sweeps
+/// [CBC] eqs. (2)-(3): ixmax = round((xmax - xmin) / E) + 1 cubes along x (likewise y, and z).
+/// [CBC] eq. (1): the cube index I = ix + iy * ixmax + iz * ixmax * iymax, 64-bit. Sorting by I sweeps
 /// layer by layer bottom-up; the column of a cube is I mod (ixmax * iymax).
 struct CubeGrid {
   Eigen::Vector3d min_corner = Eigen::Vector3d::Zero();  ///< (xmin, ymin, zmin) [m]
@@ -54,11 +54,11 @@ struct CubeGrid {
 
   std::int64_t num_columns() const { return ixmax * iymax; }
   std::int64_t num_cubes() const { return ixmax * iymax * izmax; }
-  /// Eq. (7).
+  /// [CBC] eq. (1).
   std::int64_t index(std::int64_t ix, std::int64_t iy, std::int64_t iz) const {
     return ix + iy * ixmax + iz * ixmax * iymax;
   }
-  /// Inverse of eq. (7).
+  /// [CBC] eqs. (7)-(9), the inverse of eq. (1).
   CubeCoordinates coordinates(std::int64_t index) const {
     const std::int64_t columns = num_columns();
     const std::int64_t column = index % columns;
@@ -68,7 +68,7 @@ struct CubeGrid {
   Eigen::Vector3d center(std::int64_t index) const { return min_corner + edge_m * coordinates(index).cast<double>(); }
 };
 
-/// Eqs. (1)-(3): the cube coordinate of one coordinate value along one axis.
+/// [CBC] eqs. (4)-(6): the cube coordinate of one coordinate value along one axis.
 inline std::int64_t quantize(double value, double min_value, double inverse_edge) {
   // value >= min_value, so the truncation below is floor(): round-half-up.
   return static_cast<std::int64_t>((value - min_value) * inverse_edge + 0.5);
