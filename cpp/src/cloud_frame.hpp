@@ -120,13 +120,17 @@ struct CloudExtent {
 template <typename Cloud>
 CloudExtent extent_of_rows(const Cloud& cloud, std::size_t begin, std::size_t end, const std::uint8_t* use = nullptr) {
   CloudExtent extent;
+  constexpr double kInf = std::numeric_limits<double>::infinity();
+  double lo[3] = {kInf, kInf, kInf}, hi[3] = {-kInf, -kInf, -kInf};
   Eigen::Vector3d p;
   for (std::size_t row = begin; row < end; ++row) {
     if (use != nullptr && use[row] == 0) continue;
     const int status = cloud.map(row, p);
     if (status == 0) {
-      extent.min = extent.min.cwiseMin(p);
-      extent.max = extent.max.cwiseMax(p);
+      for (int axis = 0; axis < 3; ++axis) {
+        lo[axis] = p[axis] < lo[axis] ? p[axis] : lo[axis];
+        hi[axis] = p[axis] > hi[axis] ? p[axis] : hi[axis];
+      }
       ++extent.num_used;
     } else if (status == 1) {
       extent.non_finite.add(row);
@@ -134,6 +138,8 @@ CloudExtent extent_of_rows(const Cloud& cloud, std::size_t begin, std::size_t en
       ++extent.num_cropped;
     }
   }
+  extent.min = {lo[0], lo[1], lo[2]};
+  extent.max = {hi[0], hi[1], hi[2]};
   return extent;
 }
 

@@ -98,28 +98,50 @@ detail::CloudExtent measure_extent_in_parts(const Cloud& cloud, bool drop_non_fi
   return extent;
 }
 
-/// The cube index I of every row (kNoCube for rows that take no part), computed in parts.
+/// The buffers of one call, kept by the calling thread for its next call: on the VMs this project
+/// is measured on, first touching fresh memory costs about 2.5 us per 4 kB page, which for a scan's
+/// cube indices alone is more than the rest of the call. Released after a call that needed over 64 MB.
+struct Workspace {
+  std::vector<std::int64_t> cubes;       ///< I per row
+  std::vector<std::uint64_t> occupancy;  ///< V, dense storage
+  std::vector<std::int32_t> ground;      ///< M, dense storage
+
+  void release_if_large() {
+    const std::size_t bytes = 8 * (cubes.capacity() + occupancy.capacity()) + 4 * ground.capacity();
+    if (bytes > (std::size_t{64} << 20)) *this = Workspace();
+  }
+};
+
+Workspace& thread_workspace() {
+  thread_local Workspace workspace;
+  return workspace;
+}
+
+/// The cube index I of every row (kNoCube for rows that take no part) into `cubes`, in parts.
 template <typename Cloud>
-std::vector<std::int64_t> cube_of_rows(const Cloud& cloud, const CubeGrid& grid, int num_threads) {
+void cube_of_rows(const Cloud& cloud, const CubeGrid& grid, int num_threads, std::vector<std::int64_t>& cubes) {
   const CubeIndexer index_of(grid);
-  std::vector<std::int64_t> cubes(cloud.size());
+  cubes.resize(cloud.size());
   const int parts = detail::fixed_parts(cloud.size(), kRowsPerPart);
   detail::for_each_part(num_threads, parts, [&](int part) {
     const auto [begin, end] = detail::part_range(cloud.size(), part, parts);
     Eigen::Vector3d p;
     for (std::size_t row = begin; row < end; ++row) cubes[row] = cloud.map(row, p) == 0 ? index_of(p) : kNoCube;
   });
-  return cubes;
 }
 
 /// The overhang mask: rows whose cube `is_removed`, computed in parts; returns how many.
 template <typename IsRemoved>
-std::size_t write_mask(const std::vector<std::int64_t>& cubes, int num_threads, const IsRemoved& is_removed,
-                       std::vector<std::uint8_t>& overhang) {
-  const int parts = detail::fixed_parts(cubes.size(), kRowsPerPart);
+std::size_t write_mask(const std::vector<std::int64_t>& cube_of_row, int num_threads, const IsRemoved& is_removed,
+                       std::vector<std::uint8_t>& overhang_of_row) {
+  const int parts = detail::fixed_parts(cube_of_row.size(), kRowsPerPart);
   std::vector<std::size_t> counts(static_cast<std::size_t>(parts), 0);
+  // Plain pointers: a byte store may alias anything, so through the vectors the compiler would
+  // reload their data pointers on every row.
+  const std::int64_t* const cubes = cube_of_row.data();
+  std::uint8_t* const overhang = overhang_of_row.data();
   detail::for_each_part(num_threads, parts, [&](int part) {
-    const auto [begin, end] = detail::part_range(cubes.size(), part, parts);
+    const auto [begin, end] = detail::part_range(cube_of_row.size(), part, parts);
     std::size_t count = 0;
     for (std::size_t row = begin; row < end; ++row) {
       const std::uint8_t removed = cubes[row] != kNoCube && is_removed(cubes[row]) ? 1 : 0;
@@ -135,19 +157,30 @@ std::size_t write_mask(const std::vector<std::int64_t>& cubes, int num_threads, 
 
 /// Dense storage: V is a bit per cube of the grid, M a layer per column. Reading V in index order
 /// lists L already sorted (a bucket sort, O(cubes / 64 + |L|)).
-void collapse_dense(const std::vector<std::int64_t>& cubes, int sigma, int num_threads, CollapseResult& result) {
+void collapse_dense(Workspace& workspace, int sigma, int num_threads, CollapseResult& result) {
   const CubeGrid& grid = result.grid;
-  std::vector<std::uint64_t> occupancy(static_cast<std::size_t>((grid.num_cubes() + 63) / 64), 0);  // V
-  for (const std::int64_t cube : cubes) {
+  const std::vector<std::int64_t>& cubes = workspace.cubes;
+  workspace.occupancy.assign(static_cast<std::size_t>((grid.num_cubes() + 63) / 64), 0);
+  std::uint64_t* const occupancy = workspace.occupancy.data();  // V
+  const auto mark = [occupancy](std::int64_t cube) {
     if (cube != kNoCube) occupancy[static_cast<std::size_t>(cube >> 6)] |= std::uint64_t{1} << (cube & 63);
+  };
+  // Rows in two interleaved halves: neighbouring rows of a scan often set bits of one word, and
+  // each such update would wait for the one before.
+  const std::size_t half = cubes.size() / 2;
+  for (std::size_t row = 0; row < half; ++row) {
+    mark(cubes[row]);
+    mark(cubes[half + row]);
   }
+  if (cubes.size() % 2 == 1) mark(cubes.back());
   std::vector<std::int64_t>& occupied = result.occupied_cubes;  // L, sorted
-  for (std::size_t word = 0; word < occupancy.size(); ++word) {
+  for (std::size_t word = 0; word < workspace.occupancy.size(); ++word) {
     for (std::uint64_t bits = occupancy[word]; bits != 0; bits &= bits - 1) {
       occupied.push_back(static_cast<std::int64_t>(word * 64) + __builtin_ctzll(bits));
     }
   }
-  std::vector<std::int32_t> ground(static_cast<std::size_t>(grid.num_columns()), -1);  // M
+  std::vector<std::int32_t>& ground = workspace.ground;  // M
+  ground.assign(static_cast<std::size_t>(grid.num_columns()), -1);
   result.removed_cubes = collapse_columns(
       occupied, grid.num_columns(),
       sigma, [&](std::int64_t column) -> auto& { return ground[static_cast<std::size_t>(column)]; });
@@ -157,7 +190,9 @@ void collapse_dense(const std::vector<std::int64_t>& cubes, int sigma, int num_t
   }
   result.num_overhang = write_mask(
       cubes, num_threads,
-      [&](std::int64_t cube) { return ((occupancy[static_cast<std::size_t>(cube >> 6)] >> (cube & 63)) & 1U) == 0; },
+      [occupancy](std::int64_t cube) {
+        return ((occupancy[static_cast<std::size_t>(cube >> 6)] >> (cube & 63)) & 1U) == 0;
+      },
       result.overhang);
 }
 
@@ -203,11 +238,16 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
     result.grid = detail::make_grid(extent, params.edge_m);
     result.storage_used = choose_storage(result.grid, params, extent.num_used);
     // One O(N) pass computes I for every point ([CBC] section III-B); V and L follow from them.
-    const std::vector<std::int64_t> cubes = cube_of_rows(cloud, result.grid, params.num_threads);
+    Workspace& workspace = thread_workspace();
+    struct ReleaseOnExit {
+      Workspace& workspace;
+      ~ReleaseOnExit() { workspace.release_if_large(); }
+    } release_on_exit{workspace};
+    cube_of_rows(cloud, result.grid, params.num_threads, workspace.cubes);
     if (result.storage_used == CubeStorage::kDense) {
-      collapse_dense(cubes, params.sigma, params.num_threads, result);
+      collapse_dense(workspace, params.sigma, params.num_threads, result);
     } else {
-      collapse_sparse(cubes, params.sigma, params.num_threads, result);
+      collapse_sparse(workspace.cubes, params.sigma, params.num_threads, result);
     }
   });
   return result;

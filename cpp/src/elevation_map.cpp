@@ -172,78 +172,54 @@ MapGeometry make_geometry(const ElevationParams& params, const detail::CloudExte
   return geometry;
 }
 
-/// Exact cell coordinate along one axis: floor((coordinate - origin) / resolution), the formula of
-/// MapGeometry::index_of. Dividing costs several cycles per point, so the quotient is first
-/// estimated by multiplying with 1 / resolution: estimate and quotient differ by at most three
-/// roundings (|q| * 3.4e-16 < 1e-6 for the |q| < 2^31 + 1 that matter), so their floors agree
-/// unless the estimate lies within 2^-16 of a whole number; only such points (and points on cell
-/// borders, the same case) are divided.
-class AxisBinning {
- public:
-  AxisBinning(double origin_m, double resolution_m, std::int64_t cells)
-      : origin_(origin_m),
-        resolution_(resolution_m),
-        inverse_(1.0 / resolution_m),
-        cells_(cells),
-        upper_(static_cast<double>(cells) + 1.0) {}
-
-  /// The cell index in [0, cells), or -1 when the coordinate lies outside.
-  std::int64_t operator()(double coordinate) const {
-    const double offset = coordinate - origin_;
-    const double estimate = offset * inverse_;
-    if (!(estimate > -1.0 && estimate < upper_)) return -1;  // outside by about a cell or more (or NaN)
-    // estimate + 1 lies in (0, cells + 2), where truncation is floor. Its rounding is far below
-    // the margin, so it too can only move the floor when the exact path takes over.
-    const double shifted = estimate + 1.0;
-    const auto whole = static_cast<std::int64_t>(shifted);
-    const double fraction = shifted - static_cast<double>(whole);
-    constexpr double kMargin = 1.0 / 65536.0;
-    if (!(fraction > kMargin && fraction < 1.0 - kMargin)) return exact(offset);
-    const std::int64_t index = whole - 1;
-    return index < cells_ ? index : -1;  // index >= -1 here
-  }
-
-  /// The defining formula, division and floor.
-  std::int64_t exact(double offset) const {
-    const double cell = std::floor(offset / resolution_);
-    return cell >= 0.0 && cell < static_cast<double>(cells_) ? static_cast<std::int64_t>(cell) : -1;
-  }
-
- private:
-  double origin_;
-  double resolution_;
-  double inverse_;
-  std::int64_t cells_;
-  double upper_;
-};
-
-/// Both axes of a geometry: the row-major cell i * ny + j of a point, or kOutside.
+/// The row-major cell i * ny + j of a point by the formula of MapGeometry::index_of,
+/// floor((coordinate - origin) / resolution) on each axis, or kOutside.
 struct CellBinning {
   explicit CellBinning(const MapGeometry& geometry)
-      : along_x(geometry.origin_m.x(), geometry.resolution_m, geometry.size.x()),
-        along_y(geometry.origin_m.y(), geometry.resolution_m, geometry.size.y()),
+      : origin_x(geometry.origin_m.x()),
+        origin_y(geometry.origin_m.y()),
+        resolution(geometry.resolution_m),
+        nx(geometry.size.x()),
         ny(geometry.size.y()) {}
 
   std::uint32_t operator()(const Eigen::Vector3d& p) const {
-    const std::int64_t i = along_x(p.x());
-    const std::int64_t j = along_y(p.y());
-    return i >= 0 && j >= 0 ? static_cast<std::uint32_t>(i * ny + j) : kOutside;
+    const double i = std::floor((p.x() - origin_x) / resolution);
+    const double j = std::floor((p.y() - origin_y) / resolution);
+    const bool inside = (i >= 0.0) & (j >= 0.0) & (i < nx) & (j < ny);
+    return inside ? static_cast<std::uint32_t>(i) * static_cast<std::uint32_t>(ny) + static_cast<std::uint32_t>(j)
+                  : kOutside;
   }
 
-  AxisBinning along_x, along_y;
-  std::int64_t ny;
+  double origin_x, origin_y, resolution, nx, ny;
 };
 
-/// The cell and the height of every row (kOutside for rows that take no part).
-struct BinnedRows {
-  std::vector<std::uint32_t> cell;
-  std::vector<double> height;
+/// The buffers of one build, kept by the calling thread for its next build: on the VMs this
+/// project is measured on, first touching fresh memory costs about 2.5 us per 4 kB page, which for
+/// a scan's worth of buffers is more than the whole computation. Released after a build that
+/// needed over 64 MB.
+struct Workspace {
+  std::vector<std::uint32_t> cell;  ///< per row: its cell, or kOutside
+  std::vector<double> height;       ///< per row: its height (when it has a cell)
+  /// Counting sort by cell: cell c holds heights[start[c], start[c + 1]), rows in row order.
+  std::vector<std::uint32_t> start;
+  std::vector<double> heights;
+
+  void release_if_large() {
+    const std::size_t bytes = 4 * (cell.capacity() + start.capacity()) + 8 * (height.capacity() + heights.capacity());
+    if (bytes > (std::size_t{64} << 20)) *this = Workspace();
+  }
 };
 
-/// Bins the rows selected by `use` (null: all) in parts; returns the NaN/Inf rows among them.
+Workspace& thread_workspace() {
+  thread_local Workspace workspace;
+  return workspace;
+}
+
+/// Bins the rows selected by `use` (null: all) in parts into `out.cell` and `out.height`; returns
+/// the NaN/Inf rows among them.
 template <typename Cloud>
 detail::NonFiniteRows bin_rows(const Cloud& cloud, const MapGeometry& geometry, const std::uint8_t* use,
-                               int num_threads, BinnedRows& out) {
+                               int num_threads, Workspace& out) {
   const CellBinning cell_of(geometry);
   out.cell.resize(cloud.size());
   out.height.resize(cloud.size());
@@ -251,15 +227,17 @@ detail::NonFiniteRows bin_rows(const Cloud& cloud, const MapGeometry& geometry, 
   std::vector<detail::NonFiniteRows> non_finite(static_cast<std::size_t>(parts));
   detail::for_each_part(num_threads, parts, [&](int part) {
     const auto [begin, end] = detail::part_range(cloud.size(), part, parts);
+    std::uint32_t* cell = out.cell.data();
+    double* height = out.height.data();
     Eigen::Vector3d p;
     for (std::size_t row = begin; row < end; ++row) {
-      out.cell[row] = kOutside;
+      cell[row] = kOutside;
       if (use != nullptr && use[row] == 0) continue;
       const int status = cloud.map(row, p);
       if (status == 1) non_finite[static_cast<std::size_t>(part)].add(row);
       if (status != 0) continue;
-      out.cell[row] = cell_of(p);
-      out.height[row] = p.z();
+      cell[row] = cell_of(p);
+      height[row] = p.z();
     }
   });
   detail::NonFiniteRows all;
@@ -267,27 +245,25 @@ detail::NonFiniteRows bin_rows(const Cloud& cloud, const MapGeometry& geometry, 
   return all;
 }
 
-/// The heights grouped by cell with a counting sort (row order within a cell): cell c holds
-/// heights[start[c], start[c + 1]).
-struct CellHeights {
-  std::vector<std::uint32_t> start;
-  std::vector<double> heights;
-};
-
-CellHeights group_by_cell(const BinnedRows& rows, std::size_t cells) {
-  CellHeights out;
-  out.start.assign(cells + 1, 0);
-  for (const std::uint32_t cell : rows.cell) {
-    if (cell != kOutside) ++out.start[cell + 1];
+/// The counting sort of the binned heights by cell (row order within a cell) into `w.start` and
+/// `w.heights`.
+void group_by_cell(std::size_t cells, Workspace& w) {
+  // Counts go to start[c + 2]; their prefix sums make start[c + 1] the first slot of cell c, which
+  // advances as its heights are placed and so ends as the first slot of cell c + 1.
+  w.start.assign(cells + 2, 0);
+  std::uint32_t* start = w.start.data();
+  const std::uint32_t* cell = w.cell.data();
+  const std::size_t rows = w.cell.size();
+  for (std::size_t row = 0; row < rows; ++row) {
+    if (cell[row] != kOutside) ++start[cell[row] + 2];
   }
-  for (std::size_t cell = 0; cell < cells; ++cell) out.start[cell + 1] += out.start[cell];
-  std::vector<std::uint32_t> next(out.start.begin(), out.start.end() - 1);
-  out.heights.resize(out.start[cells]);
-  for (std::size_t row = 0; row < rows.cell.size(); ++row) {
-    const std::uint32_t cell = rows.cell[row];
-    if (cell != kOutside) out.heights[next[cell]++] = rows.height[row];
+  for (std::size_t c = 2; c < cells + 2; ++c) start[c] += start[c - 1];
+  w.heights.resize(start[cells + 1]);
+  double* heights = w.heights.data();
+  const double* height = w.height.data();
+  for (std::size_t row = 0; row < rows; ++row) {
+    if (cell[row] != kOutside) heights[start[cell[row] + 1]++] = height[row];
   }
-  return out;
 }
 
 /// The layers build_map writes, in the order a fresh map gets them.
@@ -307,7 +283,7 @@ bool has_gap(std::vector<double>& z, double threshold) {
 /// elevations relative to the cell's first one, added in row order (a shifted one-pass variance:
 /// with `first` one of the samples, it stays accurate at large absolute heights). Only a cell whose
 /// elevations span more than the threshold can hold a longer gap: only those are sorted.
-void write_cells(const CellHeights& cells, std::size_t begin, std::size_t end, double discontinuity_m,
+void write_cells(const Workspace& cells, std::size_t begin, std::size_t end, double discontinuity_m,
                  const BuiltLayers& layers) {
   constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
   const auto [count, min, max, mean, std_dev, discontinuity] = layers;
@@ -387,10 +363,14 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   const std::size_t cells = geometry.num_cells();
   if (cells >= kOutside) throw std::invalid_argument("build_elevation_map handles maps of fewer than 2^32 - 1 cells");
 
-  BinnedRows rows;
-  const detail::NonFiniteRows non_finite = bin_rows(cloud, geometry, selected, params.num_threads, rows);
+  Workspace& workspace = thread_workspace();
+  struct ReleaseOnExit {
+    Workspace& workspace;
+    ~ReleaseOnExit() { workspace.release_if_large(); }
+  } release_on_exit{workspace};
+  const detail::NonFiniteRows non_finite = bin_rows(cloud, geometry, selected, params.num_threads, workspace);
   if (non_finite.count > 0 && !params.drop_non_finite) detail::throw_non_finite_rows(non_finite, cloud.size());
-  const CellHeights heights = group_by_cell(rows, cells);
+  group_by_cell(cells, workspace);
 
   // Only now, past every check, is the map touched: a call that throws leaves it unchanged.
   ElevationMap fresh;
@@ -403,7 +383,7 @@ ElevationMap build_map(const Cloud& cloud, const ElevationParams& params, const 
   const int parts = detail::fixed_parts(cells, kCellsPerPart);
   detail::for_each_part(params.num_threads, parts, [&](int part) {
     const auto [begin, end] = detail::part_range(cells, part, parts);
-    write_cells(heights, begin, end, params.discontinuity_m, layers);
+    write_cells(workspace, begin, end, params.discontinuity_m, layers);
   });
   return fresh;
 }
