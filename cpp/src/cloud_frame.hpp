@@ -120,17 +120,20 @@ struct CloudExtent {
 template <typename Cloud>
 CloudExtent extent_of_rows(const Cloud& cloud, std::size_t begin, std::size_t end, const std::uint8_t* use = nullptr) {
   CloudExtent extent;
+  // Six running bounds in plain doubles: independent chains the compiler keeps in registers.
   constexpr double kInf = std::numeric_limits<double>::infinity();
-  double lo[3] = {kInf, kInf, kInf}, hi[3] = {-kInf, -kInf, -kInf};
+  double min_x = kInf, min_y = kInf, min_z = kInf, max_x = -kInf, max_y = -kInf, max_z = -kInf;
   Eigen::Vector3d p;
   for (std::size_t row = begin; row < end; ++row) {
     if (use != nullptr && use[row] == 0) continue;
     const int status = cloud.map(row, p);
     if (status == 0) {
-      for (int axis = 0; axis < 3; ++axis) {
-        lo[axis] = p[axis] < lo[axis] ? p[axis] : lo[axis];
-        hi[axis] = p[axis] > hi[axis] ? p[axis] : hi[axis];
-      }
+      min_x = p.x() < min_x ? p.x() : min_x;
+      min_y = p.y() < min_y ? p.y() : min_y;
+      min_z = p.z() < min_z ? p.z() : min_z;
+      max_x = p.x() > max_x ? p.x() : max_x;
+      max_y = p.y() > max_y ? p.y() : max_y;
+      max_z = p.z() > max_z ? p.z() : max_z;
       ++extent.num_used;
     } else if (status == 1) {
       extent.non_finite.add(row);
@@ -138,12 +141,12 @@ CloudExtent extent_of_rows(const Cloud& cloud, std::size_t begin, std::size_t en
       ++extent.num_cropped;
     }
   }
-  extent.min = {lo[0], lo[1], lo[2]};
-  extent.max = {hi[0], hi[1], hi[2]};
+  extent.min = {min_x, min_y, min_z};
+  extent.max = {max_x, max_y, max_z};
   return extent;
 }
 
-/// [CBC] eqs. (1)-(3) need xmin, ymin, zmin: the bounding box of the rows that take part, and
+/// [CBC] eqs. (2)-(6) need the bounding box: that of the rows that take part, and
 /// their counts. Throws std::invalid_argument on NaN/Inf rows unless drop_non_finite.
 template <typename Cloud>
 CloudExtent measure_extent(const Cloud& cloud, bool drop_non_finite) {
@@ -152,7 +155,7 @@ CloudExtent measure_extent(const Cloud& cloud, bool drop_non_finite) {
   return extent;
 }
 
-/// [CBC] eqs. (4)-(6): the grid over a non-empty extent. Throws std::invalid_argument when the
+/// [CBC] eqs. (2)-(3) (and the same for z): the grid over a non-empty extent. Throws std::invalid_argument when the
 /// cube count would overflow a 64-bit index.
 CubeGrid make_grid(const CloudExtent& extent, double edge_m);
 

@@ -136,15 +136,16 @@ std::size_t write_mask(const std::vector<std::int64_t>& cube_of_row, int num_thr
                        std::vector<std::uint8_t>& overhang_of_row) {
   const int parts = detail::fixed_parts(cube_of_row.size(), kRowsPerPart);
   std::vector<std::size_t> counts(static_cast<std::size_t>(parts), 0);
-  // Plain pointers: a byte store may alias anything, so through the vectors the compiler would
-  // reload their data pointers on every row.
-  const std::int64_t* const cubes = cube_of_row.data();
-  std::uint8_t* const overhang = overhang_of_row.data();
   detail::for_each_part(num_threads, parts, [&](int part) {
     const auto [begin, end] = detail::part_range(cube_of_row.size(), part, parts);
+    // Plain local pointers and a local copy of the test: a byte store may alias anything, so
+    // through references the compiler would reload them on every row.
+    const std::int64_t* const cubes = cube_of_row.data();
+    std::uint8_t* const overhang = overhang_of_row.data();
+    const IsRemoved removed_cube = is_removed;
     std::size_t count = 0;
     for (std::size_t row = begin; row < end; ++row) {
-      const std::uint8_t removed = cubes[row] != kNoCube && is_removed(cubes[row]) ? 1 : 0;
+      const std::uint8_t removed = cubes[row] != kNoCube && removed_cube(cubes[row]) ? 1 : 0;
       overhang[row] = removed;
       count += removed;
     }
@@ -229,7 +230,7 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
   result.grid.edge_m = params.edge_m;
   result.storage_used = params.storage == CubeStorage::kSparse ? CubeStorage::kSparse : CubeStorage::kDense;
   detail::visit_leveled(points, params.transform, params.crop, [&](const auto& cloud) {
-    // The bounding box ([CBC] section II needs xmin, ymin, zmin), then the grid, eqs. (2)-(3).
+    // The bounding box ([CBC] section II needs xmin, ymin, zmin), then the grid, [CBC] eqs. (2)-(3).
     const detail::CloudExtent extent = measure_extent_in_parts(cloud, params.drop_non_finite, params.num_threads);
     result.num_used = extent.num_used;
     result.num_cropped = extent.num_cropped;

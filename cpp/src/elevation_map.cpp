@@ -183,8 +183,10 @@ struct CellBinning {
         ny(geometry.size.y()) {}
 
   std::uint32_t operator()(const Eigen::Vector3d& p) const {
-    const double i = std::floor((p.x() - origin_x) / resolution);
-    const double j = std::floor((p.y() - origin_y) / resolution);
+    const double i = (p.x() - origin_x) / resolution;
+    const double j = (p.y() - origin_y) / resolution;
+    // Inside the map both are >= 0, where truncation is floor (and cheaper: without SSE4.1,
+    // std::floor is a call).
     const bool inside = (i >= 0.0) & (j >= 0.0) & (i < nx) & (j < ny);
     return inside ? static_cast<std::uint32_t>(i) * static_cast<std::uint32_t>(ny) + static_cast<std::uint32_t>(j)
                   : kOutside;

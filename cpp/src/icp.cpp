@@ -753,18 +753,28 @@ ClassifiedPoints cells_of_map(const ElevationMap& map, const ClassWeights* weigh
   const Layer& highest = map.get("max");
   const Layer* classes = map.exists("class") ? &map.get("class") : nullptr;
   const MapGeometry& geometry = map.geometry();
-  ClassifiedPoints set;
+  const auto takes_part = [&](Eigen::Index i, Eigen::Index j) {
+    const std::uint8_t c = classes != nullptr ? class_of((*classes)(i, j)) : 0;
+    return std::isfinite(highest(i, j)) && (weights == nullptr || (*weights)[c] > 0.0);
+  };
+  // Counted first, so that the points are allocated once.
+  std::size_t count = 0;
   cells_with_data = 0;
   for (Eigen::Index i = 0; i < highest.rows(); ++i) {
     for (Eigen::Index j = 0; j < highest.cols(); ++j) {
-      const float z = highest(i, j);
-      if (!std::isfinite(z)) continue;
-      ++cells_with_data;
-      const std::uint8_t c = classes != nullptr ? class_of((*classes)(i, j)) : 0;
-      if (weights != nullptr && !((*weights)[c] > 0.0)) continue;
+      cells_with_data += std::isfinite(highest(i, j)) ? 1 : 0;
+      count += takes_part(i, j) ? 1 : 0;
+    }
+  }
+  ClassifiedPoints set;
+  set.points.reserve(count);
+  set.classes.reserve(count);
+  for (Eigen::Index i = 0; i < highest.rows(); ++i) {
+    for (Eigen::Index j = 0; j < highest.cols(); ++j) {
+      if (!takes_part(i, j)) continue;
       const Eigen::Vector2d centre = geometry.position_of(CellIndex(static_cast<int>(i), static_cast<int>(j)));
-      set.points.emplace_back(centre.x(), centre.y(), static_cast<double>(z));
-      set.classes.push_back(c);
+      set.points.emplace_back(centre.x(), centre.y(), static_cast<double>(highest(i, j)));
+      set.classes.push_back(classes != nullptr ? class_of((*classes)(i, j)) : 0);
     }
   }
   return set;
