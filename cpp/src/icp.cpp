@@ -753,29 +753,31 @@ ClassifiedPoints cells_of_map(const ElevationMap& map, const ClassWeights* weigh
   const Layer& highest = map.get("max");
   const Layer* classes = map.exists("class") ? &map.get("class") : nullptr;
   const MapGeometry& geometry = map.geometry();
-  const auto takes_part = [&](Eigen::Index i, Eigen::Index j) {
-    const std::uint8_t c = classes != nullptr ? class_of((*classes)(i, j)) : 0;
-    return std::isfinite(highest(i, j)) && (weights == nullptr || (*weights)[c] > 0.0);
-  };
-  // Counted first, so that the points are allocated once.
+  // Row-major: cell (i, j) at i * cols + j.
+  const float* z = highest.data();
+  const float* class_values = classes != nullptr ? classes->data() : nullptr;
+  const auto cells = static_cast<std::size_t>(highest.size());
+  const auto cols = static_cast<std::size_t>(highest.cols());
+  std::vector<std::uint8_t> class_of_cell(cells, 0);  // kNumTerrainClasses: takes no part
   std::size_t count = 0;
   cells_with_data = 0;
-  for (Eigen::Index i = 0; i < highest.rows(); ++i) {
-    for (Eigen::Index j = 0; j < highest.cols(); ++j) {
-      cells_with_data += std::isfinite(highest(i, j)) ? 1 : 0;
-      count += takes_part(i, j) ? 1 : 0;
-    }
+  for (std::size_t k = 0; k < cells; ++k) {
+    const std::uint8_t c = class_values != nullptr ? class_of(class_values[k]) : 0;
+    const bool has_data = std::isfinite(z[k]);
+    const bool takes_part = has_data && (weights == nullptr || (*weights)[c] > 0.0);
+    class_of_cell[k] = takes_part ? c : static_cast<std::uint8_t>(kNumTerrainClasses);
+    cells_with_data += has_data ? 1 : 0;
+    count += takes_part ? 1 : 0;
   }
   ClassifiedPoints set;
   set.points.reserve(count);
   set.classes.reserve(count);
-  for (Eigen::Index i = 0; i < highest.rows(); ++i) {
-    for (Eigen::Index j = 0; j < highest.cols(); ++j) {
-      if (!takes_part(i, j)) continue;
-      const Eigen::Vector2d centre = geometry.position_of(CellIndex(static_cast<int>(i), static_cast<int>(j)));
-      set.points.emplace_back(centre.x(), centre.y(), static_cast<double>(highest(i, j)));
-      set.classes.push_back(classes != nullptr ? class_of((*classes)(i, j)) : 0);
-    }
+  for (std::size_t k = 0; k < cells; ++k) {
+    if (class_of_cell[k] == kNumTerrainClasses) continue;
+    const Eigen::Vector2d centre =
+        geometry.position_of(CellIndex(static_cast<int>(k / cols), static_cast<int>(k % cols)));
+    set.points.emplace_back(centre.x(), centre.y(), static_cast<double>(z[k]));
+    set.classes.push_back(class_of_cell[k]);
   }
   return set;
 }
