@@ -20,6 +20,8 @@ new=${2:-}
 data=${TERRACUBE_DATA_DIR:-$repo/../shared/data}
 kitti=$data/kitti_seq00/velodyne/000000.bin
 [ -f "$kitti" ] || { echo "ab_builds.sh: $kitti not found (set TERRACUBE_DATA_DIR)" >&2; exit 2; }
+# The map path's sources; a revision compiles those it has (cpu_features, threads and
+# quantize_kernels exist only before the simplification of issue 33).
 sources="elevation_map cloud_frame cpu_features threads quantize_kernels collapse terrain"
 
 work=$(mktemp -d)
@@ -50,6 +52,7 @@ flags=(-std=c++17 -pthread -fopenmp -isystem /usr/include/eigen3)
 compile() {  # compile TREE NAMESPACE OUTDIR
   mkdir -p "$3"
   for f in $sources; do
+    [ -f "$1/cpp/src/$f.cpp" ] || continue
     g++ -O3 -DNDEBUG "${flags[@]}" -Dterracube=$2 -I "$1/cpp/include" -I "$1/cpp/src" -c "$1/cpp/src/$f.cpp" \
       -o "$3/$f.o" &
   done
@@ -62,7 +65,7 @@ compile "$tree_b" tcB "$work/new_B"
 compile "$tree_b" tcA "$work/new_A"
 compile "$work/A" tcB "$work/base_B"
 link() {  # link A_OBJECTS B_OBJECTS PROGRAM
-  g++ -O2 "${flags[@]}" "$repo/bench/cpp/ab_maps.cpp" "$1"/*.o "$2"/*.o -loctomap -loctomath -o "$3"
+  g++ -O2 "${flags[@]}" "$repo/bench/cpp/ab_maps.cpp" "$1"/*.o "$2"/*.o -ltbb -o "$3"
 }
 link "$work/base_A" "$work/new_B" "$work/base_new"
 link "$work/new_A" "$work/base_B" "$work/new_base"

@@ -21,8 +21,8 @@ processor the process may use (``num_threads=0``; its result is first checked eq
 thread's), shown as "same, N threads" and as a second numpy ratio. Ratios are
 ``method time / collapse_overhangs time``.
 
-The memory floor (:func:`memory_floor`): per input, bare C++ loops (``terracube._core._memory_floor``,
-private to this benchmark) time the memory traffic any exact implementation of Algorithm 1 must do
+The memory floor (:func:`memory_floor`): per input, bare C++ loops (``terracube._bench._memory_floor``,
+a module built only with ``TERRACUBE_BUILD_BENCH=ON``, skipped without it; private to this benchmark) time the memory traffic any exact implementation of Algorithm 1 must do
 -- read the rows for the bounding box, read them again while storing a byte per point at its cube,
 then load that byte per point and write the mask -- with no arithmetic at all, once on one thread
 and once with each loop split over every processor (each thread its own share of the rows and its
@@ -62,6 +62,11 @@ from pathlib import Path
 
 import numpy as np
 import terracube as tc
+
+try:  # the memory-floor probe, built only with TERRACUBE_BUILD_BENCH=ON
+    from terracube import _bench
+except ImportError:
+    _bench = None
 from _common import (
     QUICK_STRIDE,
     SYNTHETIC_SEED,
@@ -416,9 +421,11 @@ def memory_floor(points: np.ndarray, edge: float, sigma: int, threads: int = 1) 
     Algorithm 1; the stores may overlap that read) and, once R is known, looks up every point's
     cube for the mask: ``floor_ms`` = read + max(read, store) + load, with no arithmetic at all.
     """
+    if _bench is None:
+        return {}
     occupied = tc.collapse_overhangs(points, edge, sigma).occupied_cubes
     entry = np.searchsorted(occupied, cube_indices(points, edge).per_point).astype(np.uint32)
-    probe = dict(tc._core._memory_floor(points, entry, len(occupied), FLOOR_RUNS, threads))
+    probe = dict(_bench._memory_floor(points, entry, len(occupied), FLOOR_RUNS, threads))
     read, store, load = probe["read_ms"], probe["store_ms"], probe["load_ms"]
     probe["floor_ms"] = read + max(read, store) + load
     return probe
@@ -523,6 +530,9 @@ def print_measurement(measurement: Measurement) -> None:
         (measurement.floor, "one core"),
         (measurement.floor_threads, f"{processors()} threads"),
     ):
+        if not floor:
+            print(f"  memory floor on {where}: n/a (terracube._bench is built with TERRACUBE_BUILD_BENCH=ON)")
+            continue
         print(
             f"  memory floor on {where} (bare C++ loops, fastest of {FLOOR_RUNS}): read the rows "
             f"{floor['read_ms']:.3f} ms, a store per point {floor['store_ms']:.3f} ms, "
@@ -556,6 +566,8 @@ def print_targets(measurements: list[Measurement], quick: bool) -> None:
         f"  (collapse on {processors()} threads, numpy on one)", threaded_ratios, lambda r: r >= 20.0, "x"
     )
     for attribute, where in (("floor", "one core"), ("floor_threads", f"{processors()} threads")):
+        if not all(getattr(m, attribute) for m in measurements):
+            continue
         bounds = [m.ms["numpy"] / getattr(m, attribute)["floor_ms"] for m in measurements]
         allowed = ", ".join(f"{bound:.1f}x" for bound in bounds)
         print(f"    the memory floor on {where} allows at most: {allowed}")
@@ -596,7 +608,7 @@ def print_markdown(measurements: list[Measurement]) -> None:
                     f"{m.point_gap_agreement:.2%}",
                     f"{leveled:.2f}, {numpy_leveled:.2f} ({numpy_leveled / leveled:.1f}x)",
                     "; ".join(
-                        f"{floor['floor_ms']:.3f} ({m.ms['numpy'] / floor['floor_ms']:.0f}x)"
+                        f"{floor['floor_ms']:.3f} ({m.ms['numpy'] / floor['floor_ms']:.0f}x)" if floor else "n/a"
                         for floor in (m.floor, m.floor_threads)
                     ),
                 ]

@@ -13,8 +13,6 @@ void bind_simulation(py::module_& m);
 void bind_evaluation(py::module_& m);
 void bind_pose_graph(py::module_& m);
 void bind_mapper(py::module_& m);
-void bind_bench(py::module_& m);
-void bind_threads(py::module_& m);
 }  // namespace terracube::python
 
 PYBIND11_MODULE(_core, m) {
@@ -28,6 +26,4 @@ PYBIND11_MODULE(_core, m) {
   terracube::python::bind_evaluation(m);
   terracube::python::bind_pose_graph(m);
   terracube::python::bind_mapper(m);
-  terracube::python::bind_bench(m);
-  terracube::python::bind_threads(m);
 }

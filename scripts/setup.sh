@@ -9,7 +9,7 @@ cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
 packages=(
   build-essential cmake ninja-build pkg-config git
-  libeigen3-dev libpcl-dev liboctomap-dev libceres-dev libgtest-dev libbenchmark-dev pybind11-dev
+  libeigen3-dev libtbb-dev libpcl-dev liboctomap-dev libceres-dev libgtest-dev libbenchmark-dev pybind11-dev
   python3-dev python3-venv python3-pip
   python3-rosbag  # ROS 1's reference bag reader: tests check the ROS 1 bags we write with it
 )

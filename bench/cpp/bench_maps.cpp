@@ -6,6 +6,7 @@
 #include <terracube/collapse.hpp>
 #include <terracube/elevation_map.hpp>
 #include <terracube/icp.hpp>
+#include <terracube/mapper.hpp>
 #include <terracube/terrain.hpp>
 
 #include <Eigen/Geometry>
@@ -207,6 +208,25 @@ void BM_RegisterKitti(benchmark::State& state) {
   state.counters["iterations"] = iterations;
 }
 BENCHMARK(BM_RegisterKitti)->Args({0, 1})->Args({2, 3})->Args({0, 5})->Unit(benchmark::kMillisecond);
+
+/// The Mapper with its defaults over KITTI frames 0-5 (the ground truth as odometry), on
+/// `state.range(0)` threads: the time of one scan, averaged over the six (a fresh Mapper per round).
+void BM_MapperPerScanKitti(benchmark::State& state) {
+  if (skip_without_kitti(state)) return;
+  const std::vector<Eigen::Matrix4d> world = kitti_world_velo();
+  constexpr int kScans = 6;
+  terracube::MapperParams params;
+  params.num_threads = static_cast<int>(state.range(0));
+  for (int frame = 0; frame < kScans; ++frame) kitti_scan(frame);  // read before the timing
+  for (auto _ : state) {
+    terracube::Mapper mapper(params);
+    for (int frame = 0; frame < kScans; ++frame) {
+      benchmark::DoNotOptimize(mapper.add_scan(view_of(kitti_scan(frame)), world.at(static_cast<std::size_t>(frame))));
+    }
+  }
+  state.SetItemsProcessed(state.iterations() * kScans);
+}
+BENCHMARK(BM_MapperPerScanKitti)->Arg(1)->Unit(benchmark::kMillisecond);
 
 }  // namespace
 

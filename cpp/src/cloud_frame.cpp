@@ -5,19 +5,14 @@
 #include <stdexcept>
 
 #include "number_text.hpp"
-#include "threads.hpp"
+#include "parallel.hpp"
 
 namespace terracube::detail {
 
-PackedRows& packed_rows_scratch() {
-  thread_local PackedRows scratch;
-  return scratch;
-}
-
-void release_packed_rows_if_large() {
-  PackedRows& scratch = packed_rows_scratch();
-  const std::size_t bytes = 8 * scratch.xyz.capacity() + 4 * (scratch.xyz_float.capacity() + scratch.rows.capacity());
-  if (bytes > (std::size_t{64} << 20)) scratch = PackedRows{};
+void throw_non_finite_rows(const NonFiniteRows& rows, std::size_t num_rows) {
+  throw std::invalid_argument(std::to_string(rows.count) + " of " + std::to_string(num_rows) +
+                              " point rows contain NaN or Inf (first at row " + std::to_string(rows.first_row) +
+                              "); clean the cloud or set drop_non_finite=True to drop them");
 }
 
 void check_rigid_transform(const Eigen::Matrix4d& transform, const char* what) {
@@ -59,7 +54,7 @@ CubeGrid make_grid(const CloudExtent& extent, double edge_m) {
   grid.edge_m = edge_m;
   grid.min_corner = extent.min;
   const double inverse_edge = 1.0 / edge_m;
-  // Keep every count and their product below 2^62 so that eq. (7) never overflows.
+  // Keep every count and their product below 2^62 so that [CBC] eq. (7) never overflows.
   constexpr double kLimit = 4.611686018427388e18;  // 2^62
   double counts[3];
   long double product = 1.0L;

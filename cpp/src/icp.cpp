@@ -11,27 +11,18 @@
 #include <stdexcept>
 #include <string>
 
-#if defined(__x86_64__) && defined(__GNUC__)
-#include <immintrin.h>
-#define TERRACUBE_HAVE_AVX2_ICP 1
-#endif
-
 #include "cloud_frame.hpp"
-#include "cpu_features.hpp"
 
 namespace terracube {
 
 namespace {
 
-constexpr std::uint32_t kLeafSize = 8;
 // Rounding allowance of the nearest-neighbour certificates [m]: far above the error of the
 // distances (about 1e-15 m at map scale), far below any distance that matters.
 constexpr double kCertificateSlack = 1e-9;
 // A search that finds nothing within the certificate reach looks this many times the distance
 // limit far (see Registration::search).
 constexpr double kEmptyReach = 1.5;
-// The number of set bits of a 4-bit lane mask.
-constexpr std::uint8_t kLaneCount[16] = {0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4};
 
 using Matrix6d = Eigen::Matrix<double, 6, 6>;
 using Vector6d = Eigen::Matrix<double, 6, 1>;
@@ -142,20 +133,6 @@ struct ClassMoments {
 struct Motion {
   double r[9], t[3], o[3];
 };
-
-#if defined(TERRACUBE_HAVE_AVX2_ICP)
-/// a^2 + b^2 + c^2 lane by lane, in that order.
-__attribute__((target("avx2"), always_inline)) inline __m256d squared_norm4(__m256d a, __m256d b, __m256d c) {
-  return _mm256_add_pd(_mm256_add_pd(_mm256_mul_pd(a, a), _mm256_mul_pd(b, b)), _mm256_mul_pd(c, c));
-}
-
-/// The sum of the four lanes, (0 + 1) + (2 + 3).
-__attribute__((target("avx2"), always_inline)) inline double lane_total(__m256d v) {
-  alignas(32) double lanes[4];
-  _mm256_store_pd(lanes, v);
-  return (lanes[0] + lanes[1]) + (lanes[2] + lanes[3]);
-}
-#endif
 
 /// Square cells of side `cell` over (x, y), cell (kx, ky) = (floor(x / cell), floor(y / cell)),
 /// numbered in the order their first point comes. Dense (an entry per cell of the points'
@@ -337,11 +314,45 @@ class Registration {
   bool has_common_class() const { return class_begin_[kNumTerrainClasses] > 0; }
   std::size_t active_size() const { return class_begin_[kNumTerrainClasses]; }
 
-  /// The eq. (4) error of a pass truncated at `max_distance`: sum over the active source points of
+  /// The [TC] eq. (4) error of a pass truncated at `max_distance`: sum over the active source points of
   /// w min(d^2, max_distance^2), d the distance to the nearest target point of the class. A proper
   /// objective to compare poses with (unlike the RMSE, it does not fall when pairs drop out).
   double truncated_error(const Pass& pass, double max_distance) const {
     return pass.class_squared_error + (total_weight_ - pass.class_weight_sum) * max_distance * max_distance;
+  }
+
+  /// The ground terms of a pass about o (unweighted).
+  struct GroundTerms {
+    Matrix6d normal = Matrix6d::Zero();
+    Vector6d gradient = Vector6d::Zero();
+    std::size_t count = 0;
+    double error = 0.0;
+  };
+
+  /// Ground as planes (RegistrationParams::ground_weight): each source sample with the plane of
+  /// the target cell under it, residual along the plane's normal n. About o, v = (a x n, n) with a
+  /// the moved sample; about the centroid c of a pass, J = M v with M = [I, -[c]x; 0, I].
+  GroundTerms ground_terms(const Motion& motion, const Eigen::Vector3d& o, double max_squared,
+                           std::size_t stride) const {
+    GroundTerms out;
+    for (std::size_t k = 0; k < ground_x_.size(); k += stride) {
+      const double x = ground_x_[k], y = ground_y_[k], z = ground_z_[k];
+      const Eigen::Vector3d moved(motion.r[0] * x + motion.r[1] * y + motion.r[2] * z + motion.t[0],
+                                  motion.r[3] * x + motion.r[4] * y + motion.r[5] * z + motion.t[1],
+                                  motion.r[6] * x + motion.r[7] * y + motion.r[8] * z + motion.t[2]);
+      const std::int64_t cell = ground_cells_.find(moved.x(), moved.y());
+      if (cell < 0) continue;
+      const GroundPlane& plane = ground_planes_[static_cast<std::size_t>(cell)];
+      const double d = plane.normal.dot(moved - plane.point);
+      if (!(d * d <= max_squared)) continue;
+      Vector6d v;
+      v << (moved - o).cross(plane.normal), plane.normal;
+      out.normal.noalias() += v * v.transpose();
+      out.gradient -= d * v;
+      out.error += d * d;
+      ++out.count;
+    }
+    return out;
   }
 
   /// Correspondences of the source moved by `transform`, each source point paired with its nearest
@@ -369,11 +380,7 @@ class Registration {
       ClassMoments m;
       std::size_t num_deferred = 0;
       if (stride == 1) {
-        std::size_t slot = begin;
-#if defined(TERRACUBE_HAVE_AVX2_ICP)
-        if (detail::has_avx2()) slot = check_avx2(begin, end, motion, max_distance, m, num_deferred);
-#endif
-        for (; slot < end; ++slot) check_one(slot, motion, max_distance, m, num_deferred);
+        for (std::size_t slot = begin; slot < end; ++slot) check_one(slot, motion, max_distance, m, num_deferred);
       } else {
         for (std::size_t k = coarse_begin_[c]; k < coarse_begin_[c + 1]; ++k) {
           check_one(coarse_[k], motion, max_distance, m, num_deferred);
@@ -389,7 +396,7 @@ class Registration {
           m.add(moved - o, Eigen::Vector3d(first_x_[s], first_y_[s], first_z_[s]) - o, squared);
         }
       }
-      // Eq. (4): the class's weight on each of its correspondences.
+      // [TC] eq. (4): the class's weight on each of its correspondences.
       const double w = class_weight_[c];
       result.count += m.count;
       result.per_class[c] += m.count;
@@ -398,43 +405,20 @@ class Registration {
       for (int i = 0; i < 3; ++i) sp[i] += w * m.p[i], sq[i] += w * m.q[i], spxq[i] += w * m.pxq[i];
       for (int i = 0; i < 6; ++i) spp[i] += w * m.pp[i];
     }
-    // Ground as planes (RegistrationParams::ground_weight): each source sample with the plane of
-    // the target cell under it, residual along the plane's normal n. About o, v = (a x n, n) with a
-    // the moved sample; about the centroid c below, J = M v with M = [I, -[c]x; 0, I].
-    Matrix6d ground_normal = Matrix6d::Zero();
-    Vector6d ground_gradient = Vector6d::Zero();
-    std::size_t ground_count = 0;
-    double ground_error = 0.0;
-    for (std::size_t k = 0; k < ground_x_.size(); k += stride) {
-      const double x = ground_x_[k], y = ground_y_[k], z = ground_z_[k];
-      const Eigen::Vector3d moved(motion.r[0] * x + motion.r[1] * y + motion.r[2] * z + motion.t[0],
-                                  motion.r[3] * x + motion.r[4] * y + motion.r[5] * z + motion.t[1],
-                                  motion.r[6] * x + motion.r[7] * y + motion.r[8] * z + motion.t[2]);
-      const std::int64_t cell = ground_cells_.find(moved.x(), moved.y());
-      if (cell < 0) continue;
-      const GroundPlane& plane = ground_planes_[static_cast<std::size_t>(cell)];
-      const double d = plane.normal.dot(moved - plane.point);
-      if (!(d * d <= max_squared)) continue;
-      Vector6d v;
-      v << (moved - o).cross(plane.normal), plane.normal;
-      ground_normal.noalias() += v * v.transpose();
-      ground_gradient -= d * v;
-      ground_error += d * d;
-      ++ground_count;
-    }
+    const GroundTerms ground = ground_terms(motion, o, max_squared, stride);
     const double class_w_sum = w_sum;
     result.class_weight_sum = w_sum;
     result.class_squared_error = error;
-    if (ground_count > 0) {
-      result.count += ground_count;
-      result.per_class[static_cast<std::size_t>(TerrainClass::kGround)] += ground_count;
-      w_sum += ground_weight_ * static_cast<double>(ground_count);
-      error += ground_weight_ * ground_error;
+    if (ground.count > 0) {
+      result.count += ground.count;
+      result.per_class[static_cast<std::size_t>(TerrainClass::kGround)] += ground.count;
+      w_sum += ground_weight_ * static_cast<double>(ground.count);
+      error += ground_weight_ * ground.error;
     }
     result.weight_sum = w_sum;
     result.weighted_squared_error = error;
     if (result.count == 0) return result;
-    // Eq. (A6) with per-class weights (eq. 4). Unknowns x = (omega, t) about the weighted centroid
+    // [TC] eq. (A6) with per-class weights ([TC] eq. (4)). Unknowns x = (omega, t) about the weighted centroid
     // c of the moved source points; residual r_i = p_i + omega x (p_i - c) + t - q_i, so
     // J_i = [-[p_i - c]x, I], H = sum w J^T J and g = sum w J^T (q_i - p_i). From the moments
     // (p, q relative to o, c = sum w p / W):
@@ -457,11 +441,11 @@ class Registration {
         class_w_sum > 0.0
             ? std::sqrt(std::max(result.normal.topLeftCorner<3, 3>().trace() / (2.0 * class_w_sum), 1e-12))
             : 1e-6;
-    if (ground_count > 0) {
+    if (ground.count > 0) {
       Matrix6d shift = Matrix6d::Identity();
       shift.topRightCorner<3, 3>() = -skew(c);
-      result.normal += ground_weight_ * (shift * ground_normal * shift.transpose());
-      result.gradient += ground_weight_ * (shift * ground_gradient);
+      result.normal += ground_weight_ * (shift * ground.normal * shift.transpose());
+      result.gradient += ground_weight_ * (shift * ground.gradient);
     }
     result.centroid = c + o;
     return result;
@@ -586,7 +570,7 @@ class Registration {
     coarse_stride_ = stride;
   }
 
-  /// Source point `slot` moved, in the operations of check_avx2.
+  /// Source point `slot` moved, .
   Eigen::Vector3d move(const Motion& m, std::size_t slot) const {
     const double x = x_[slot], y = y_[slot], z = z_[slot];
     return {m.r[0] * x + m.r[1] * y + m.r[2] * z + m.t[0], m.r[3] * x + m.r[4] * y + m.r[5] * z + m.t[1],
@@ -622,89 +606,6 @@ class Registration {
       m.add(moved - o, (nearer_second ? second : first) - o, squared);
     }
   }
-
-#if defined(TERRACUBE_HAVE_AVX2_ICP)
-  /// check_one four points at a time, from `begin` while four remain before `end`; returns the
-  /// first slot not checked. The same IEEE operations lane by lane; only the order in which the
-  /// moments are summed differs (four running sums, added up at the end).
-  __attribute__((target("avx2"))) std::size_t check_avx2(std::size_t begin, std::size_t end, const Motion& motion,
-                                                         double max_distance, ClassMoments& m,
-                                                         std::size_t& num_deferred) {
-    __m256d r[9], t[3], o[3];
-    for (int i = 0; i < 9; ++i) r[i] = _mm256_set1_pd(motion.r[i]);
-    for (int i = 0; i < 3; ++i) t[i] = _mm256_set1_pd(motion.t[i]), o[i] = _mm256_set1_pd(motion.o[i]);
-    const __m256d zero = _mm256_setzero_pd(), slack = _mm256_set1_pd(kCertificateSlack);
-    const __m256d limit = _mm256_set1_pd(max_distance), limit_squared = _mm256_set1_pd(max_distance * max_distance);
-    const __m256i none = _mm256_set1_epi64x(-1);
-    __m256d sum_squared = zero, sum_p[3] = {zero, zero, zero}, sum_q[3] = {zero, zero, zero};
-    __m256d sum_pxq[3] = {zero, zero, zero}, sum_pp[6] = {zero, zero, zero, zero, zero, zero};
-    std::size_t count = 0;
-    std::size_t s = begin;
-    for (; s + 4 <= end; s += 4) {
-      const __m256d x = _mm256_loadu_pd(&x_[s]), y = _mm256_loadu_pd(&y_[s]), z = _mm256_loadu_pd(&z_[s]);
-      __m256d moved[3];
-      for (int i = 0; i < 3; ++i) {
-        moved[i] =
-            _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(_mm256_mul_pd(r[3 * i], x), _mm256_mul_pd(r[3 * i + 1], y)),
-                                        _mm256_mul_pd(r[3 * i + 2], z)),
-                          t[i]);
-      }
-      const __m256d shift = _mm256_sqrt_pd(squared_norm4(_mm256_sub_pd(moved[0], _mm256_loadu_pd(&anchor_x_[s])),
-                                                         _mm256_sub_pd(moved[1], _mm256_loadu_pd(&anchor_y_[s])),
-                                                         _mm256_sub_pd(moved[2], _mm256_loadu_pd(&anchor_z_[s]))));
-      const __m256d margin = _mm256_sub_pd(_mm256_sub_pd(_mm256_loadu_pd(&clearance_[s]), shift), slack);
-      const __m256d first[3] = {_mm256_loadu_pd(&first_x_[s]), _mm256_loadu_pd(&first_y_[s]),
-                                _mm256_loadu_pd(&first_z_[s])};
-      const __m256d second[3] = {_mm256_loadu_pd(&second_x_[s]), _mm256_loadu_pd(&second_y_[s]),
-                                 _mm256_loadu_pd(&second_z_[s])};
-      const __m256d d0 = squared_norm4(_mm256_sub_pd(moved[0], first[0]), _mm256_sub_pd(moved[1], first[1]),
-                                       _mm256_sub_pd(moved[2], first[2]));
-      const __m256d d1 = squared_norm4(_mm256_sub_pd(moved[0], second[0]), _mm256_sub_pd(moved[1], second[1]),
-                                       _mm256_sub_pd(moved[2], second[2]));
-      const __m256d has_first = _mm256_castsi256_pd(
-          _mm256_cmpgt_epi64(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(&first_[s])), none));
-      const __m256d has_second = _mm256_castsi256_pd(
-          _mm256_cmpgt_epi64(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(&second_[s])), none));
-      const __m256d nearer_second = _mm256_and_pd(has_second, _mm256_cmp_pd(d1, d0, _CMP_LT_OQ));
-      const __m256d squared = _mm256_blendv_pd(d0, d1, nearer_second);
-      const __m256d holds_with = _mm256_and_pd(_mm256_cmp_pd(margin, zero, _CMP_GE_OQ),
-                                               _mm256_cmp_pd(squared, _mm256_mul_pd(margin, margin), _CMP_LE_OQ));
-      const __m256d holds = _mm256_blendv_pd(_mm256_cmp_pd(margin, limit, _CMP_GT_OQ), holds_with, has_first);
-      const int search = ~_mm256_movemask_pd(holds) & 0xF;
-      for (int lane = 0; lane < 4; ++lane) {  // branch-free append of the lanes to search
-        deferred_[num_deferred] = static_cast<std::uint32_t>(s + static_cast<std::size_t>(lane));
-        num_deferred += static_cast<std::size_t>((search >> lane) & 1);
-      }
-      const __m256d take =
-          _mm256_and_pd(_mm256_and_pd(holds, has_first), _mm256_cmp_pd(squared, limit_squared, _CMP_LE_OQ));
-      count += kLaneCount[_mm256_movemask_pd(take)];
-      __m256d p[3], q[3];
-      for (int i = 0; i < 3; ++i) {
-        p[i] = _mm256_and_pd(_mm256_sub_pd(moved[i], o[i]), take);
-        q[i] = _mm256_and_pd(_mm256_sub_pd(_mm256_blendv_pd(first[i], second[i], nearer_second), o[i]), take);
-        sum_p[i] = _mm256_add_pd(sum_p[i], p[i]);
-        sum_q[i] = _mm256_add_pd(sum_q[i], q[i]);
-      }
-      sum_squared = _mm256_add_pd(sum_squared, _mm256_and_pd(squared, take));
-      sum_pp[0] = _mm256_add_pd(sum_pp[0], _mm256_mul_pd(p[0], p[0]));
-      sum_pp[1] = _mm256_add_pd(sum_pp[1], _mm256_mul_pd(p[0], p[1]));
-      sum_pp[2] = _mm256_add_pd(sum_pp[2], _mm256_mul_pd(p[0], p[2]));
-      sum_pp[3] = _mm256_add_pd(sum_pp[3], _mm256_mul_pd(p[1], p[1]));
-      sum_pp[4] = _mm256_add_pd(sum_pp[4], _mm256_mul_pd(p[1], p[2]));
-      sum_pp[5] = _mm256_add_pd(sum_pp[5], _mm256_mul_pd(p[2], p[2]));
-      sum_pxq[0] = _mm256_add_pd(sum_pxq[0], _mm256_sub_pd(_mm256_mul_pd(p[1], q[2]), _mm256_mul_pd(p[2], q[1])));
-      sum_pxq[1] = _mm256_add_pd(sum_pxq[1], _mm256_sub_pd(_mm256_mul_pd(p[2], q[0]), _mm256_mul_pd(p[0], q[2])));
-      sum_pxq[2] = _mm256_add_pd(sum_pxq[2], _mm256_sub_pd(_mm256_mul_pd(p[0], q[1]), _mm256_mul_pd(p[1], q[0])));
-    }
-    m.count += count;
-    m.squared += lane_total(sum_squared);
-    for (int i = 0; i < 3; ++i) {
-      m.p[i] += lane_total(sum_p[i]), m.q[i] += lane_total(sum_q[i]), m.pxq[i] += lane_total(sum_pxq[i]);
-    }
-    for (int i = 0; i < 6; ++i) m.pp[i] += lane_total(sum_pp[i]);
-    return s;
-  }
-#endif
 
   /// A fresh search from `moved` within the limit; records the certificate of `slot` and returns
   /// the squared distance to its nearest candidate in `squared`.
@@ -751,7 +652,7 @@ class Registration {
 
   std::array<NearestNeighborGrid, kNumTerrainClasses> grids_;
   // The active source points (those that can take part), grouped by class: class c's are
-  // [class_begin_[c], class_begin_[c + 1]), with its weight (eq. 4; 0: none take part) and grid.
+  // [class_begin_[c], class_begin_[c + 1]), with its weight ([TC] eq. (4); 0: none take part) and grid.
   std::array<std::size_t, kNumTerrainClasses + 1> class_begin_{};
   std::array<double, kNumTerrainClasses> class_weight_{};
   std::array<std::uint8_t, kNumTerrainClasses> class_grid_{};
@@ -841,130 +742,42 @@ const char* to_string(StopReason reason) {
 
 namespace {
 
-/// The class code of a "class" value, branch-free: NaN or out of range is unknown (0). On the
-/// bits: the non-negative floats below 6 are exactly the bit patterns below 6.0F's (negative
-/// values, -0, Inf and NaN are above it as unsigned integers).
-static_assert(kNumTerrainClasses == 6, "0x40C00000 is 6.0F");
-constexpr std::uint32_t kSixBits = 0x40C00000U;
-
-inline std::uint32_t class_code(const float* value) {
-  std::uint32_t bits;
-  std::memcpy(&bits, value, sizeof bits);
-  bits &= 0U - static_cast<std::uint32_t>(bits < kSixBits);  // out of range: +0, unknown
-  float c;
-  std::memcpy(&c, &bits, sizeof c);
-  return static_cast<std::uint32_t>(static_cast<std::int32_t>(c));  // 0 <= c < 6
-}
-
-/// Of `length` (at most 64) cells from `z` and `classes` (null: all unknown), bit k of `finite`:
-/// z[k] is finite; bit k of the result: also its class is in `keep` (bit c for class c).
-std::uint64_t take_bits_scalar(const float* z, const float* classes, std::size_t length, std::uint32_t keep,
-                               std::uint64_t& finite) {
-  constexpr float kLargest = std::numeric_limits<float>::max();
-  std::uint64_t finite_bits = 0, bits = 0;
-  for (std::size_t k = 0; k < length; ++k) {
-    const std::uint64_t is_finite = std::fabs(z[k]) <= kLargest ? 1 : 0;  // 0 for NaN and Inf
-    const std::uint32_t code = classes != nullptr ? class_code(classes + k) : 0;
-    finite_bits |= is_finite << k;
-    bits |= (is_finite & ((keep >> code) & 1U)) << k;
-  }
-  finite = finite_bits;
-  return bits;
-}
-
-#if defined(TERRACUBE_HAVE_AVX2_ICP)
-/// take_bits_scalar eight cells at a time.
-__attribute__((target("avx2"))) std::uint64_t take_bits_avx2(const float* z, const float* classes, std::size_t length,
-                                                             std::uint32_t keep, std::uint64_t& finite) {
-  const __m256 magnitude = _mm256_castsi256_ps(_mm256_set1_epi32(0x7FFFFFFF));
-  const __m256 largest = _mm256_set1_ps(std::numeric_limits<float>::max());
-  const __m256i six = _mm256_set1_epi32(static_cast<int>(kSixBits)), minus_one = _mm256_set1_epi32(-1);
-  const __m256i keep_vector = _mm256_set1_epi32(static_cast<int>(keep)), one = _mm256_set1_epi32(1);
-  const int keep_unknown = (keep & 1U) != 0 ? 0xFF : 0;
-  std::uint64_t finite_bits = 0, bits = 0;
-  std::size_t k = 0;
-  for (; k + 8 <= length; k += 8) {
-    const __m256 height = _mm256_and_ps(_mm256_loadu_ps(z + k), magnitude);
-    const auto is_finite = static_cast<std::uint64_t>(_mm256_movemask_ps(_mm256_cmp_ps(height, largest, _CMP_LE_OQ)));
-    std::uint64_t kept = static_cast<std::uint64_t>(keep_unknown);
-    if (classes != nullptr) {
-      // As signed integers the class values' bits are in [0, 6.0F's) exactly when in range.
-      const __m256i value = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(classes + k));
-      const __m256i in_range = _mm256_and_si256(_mm256_cmpgt_epi32(six, value), _mm256_cmpgt_epi32(value, minus_one));
-      const __m256i code = _mm256_cvttps_epi32(_mm256_castsi256_ps(_mm256_and_si256(value, in_range)));
-      const __m256i take = _mm256_and_si256(_mm256_srlv_epi32(keep_vector, code), one);
-      kept = static_cast<std::uint64_t>(_mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpeq_epi32(take, one))));
-    }
-    finite_bits |= is_finite << k;
-    bits |= (is_finite & kept) << k;
-  }
-  finite = finite_bits;
-  if (k == length) return bits;
-  std::uint64_t tail_finite = 0;  // k < 64 from here
-  const std::uint64_t tail =
-      take_bits_scalar(z + k, classes != nullptr ? classes + k : nullptr, length - k, keep, tail_finite);
-  finite |= tail_finite << k;
-  return bits | (tail << k);
-}
-#endif
-
-std::uint64_t take_bits(const float* z, const float* classes, std::size_t length, std::uint32_t keep,
-                        std::uint64_t& finite) {
-#if defined(TERRACUBE_HAVE_AVX2_ICP)
-  if (detail::has_avx2()) return take_bits_avx2(z, classes, length, keep, finite);
-#endif
-  return take_bits_scalar(z, classes, length, keep, finite);
+/// The class of a "class" value: NaN or out of range is unknown (0).
+std::uint8_t class_of(float value) {
+  return value >= 0.0F && value < static_cast<float>(kNumTerrainClasses) ? static_cast<std::uint8_t>(value) : 0;
 }
 
 /// The cells of points_of_map, only those of classes with a positive weight when `weights` is
 /// given; `cells_with_data` receives the number of all cells with data.
 ClassifiedPoints cells_of_map(const ElevationMap& map, const ClassWeights* weights, std::size_t& cells_with_data) {
   const Layer& highest = map.get("max");
-  const float* classes = map.exists("class") ? map.get("class").data() : nullptr;
+  const Layer* classes = map.exists("class") ? &map.get("class") : nullptr;
   const MapGeometry& geometry = map.geometry();
-  const auto rows = static_cast<std::size_t>(highest.rows()), cols = static_cast<std::size_t>(highest.cols());
-  const float* z = highest.data();  // row-major: cell (i, j) at i * cols + j
-  std::uint32_t keep = 0;           // bit c: class c takes part
-  for (std::size_t c = 0; c < kNumTerrainClasses; ++c) {
-    if (weights == nullptr || (*weights)[c] > 0.0) keep |= std::uint32_t{1} << c;
-  }
-  // Pass 1: a bit per cell that takes part (finite "max", a kept class), 64 cells of a row per
-  // word, and the exact number of points, so that they are allocated once.
-  const std::size_t words_per_row = (cols + 63) / 64;
-  std::vector<std::uint64_t> takes_part(rows * words_per_row);
-  std::size_t total = 0, with_data = 0;
-  for (std::size_t i = 0; i < rows; ++i) {
-    for (std::size_t w = 0; w < words_per_row; ++w) {
-      const std::size_t first = i * cols + w * 64;
-      std::uint64_t finite = 0;
-      const std::uint64_t bits = take_bits(z + first, classes != nullptr ? classes + first : nullptr,
-                                           std::min<std::size_t>(64, cols - w * 64), keep, finite);
-      takes_part[i * words_per_row + w] = bits;
-      with_data += static_cast<std::size_t>(__builtin_popcountll(finite));
-      total += static_cast<std::size_t>(__builtin_popcountll(bits));
-    }
-  }
-  cells_with_data = with_data;
-  // Pass 2: the cell centres of MapGeometry::position_of, one coordinate at a time.
-  std::vector<double> ys(cols);
-  for (std::size_t j = 0; j < cols; ++j) {
-    ys[j] = geometry.origin_m.y() + (static_cast<double>(j) + 0.5) * geometry.resolution_m;
+  // Row-major: cell (i, j) at i * cols + j.
+  const float* z = highest.data();
+  const float* class_values = classes != nullptr ? classes->data() : nullptr;
+  const auto cells = static_cast<std::size_t>(highest.size());
+  const auto cols = static_cast<std::size_t>(highest.cols());
+  std::vector<std::uint8_t> class_of_cell(cells, 0);  // kNumTerrainClasses: takes no part
+  std::size_t count = 0;
+  cells_with_data = 0;
+  for (std::size_t k = 0; k < cells; ++k) {
+    const std::uint8_t c = class_values != nullptr ? class_of(class_values[k]) : 0;
+    const bool has_data = std::isfinite(z[k]);
+    const bool takes_part = has_data && (weights == nullptr || (*weights)[c] > 0.0);
+    class_of_cell[k] = takes_part ? c : static_cast<std::uint8_t>(kNumTerrainClasses);
+    cells_with_data += has_data ? 1 : 0;
+    count += takes_part ? 1 : 0;
   }
   ClassifiedPoints set;
-  set.points.resize(total);
-  set.classes.resize(total);
-  std::size_t next = 0;
-  for (std::size_t i = 0; i < rows; ++i) {
-    const double x = geometry.origin_m.x() + (static_cast<double>(i) + 0.5) * geometry.resolution_m;
-    for (std::size_t w = 0; w < words_per_row; ++w) {
-      for (std::uint64_t bits = takes_part[i * words_per_row + w]; bits != 0; bits &= bits - 1) {
-        const std::size_t j = w * 64 + static_cast<std::size_t>(__builtin_ctzll(bits));
-        const std::size_t cell = i * cols + j;
-        set.points[next] = Eigen::Vector3d(x, ys[j], static_cast<double>(z[cell]));
-        set.classes[next] = static_cast<std::uint8_t>(classes != nullptr ? class_code(classes + cell) : 0);
-        ++next;
-      }
-    }
+  set.points.reserve(count);
+  set.classes.reserve(count);
+  for (std::size_t k = 0; k < cells; ++k) {
+    if (class_of_cell[k] == kNumTerrainClasses) continue;
+    const Eigen::Vector2d centre =
+        geometry.position_of(CellIndex(static_cast<int>(k / cols), static_cast<int>(k % cols)));
+    set.points.emplace_back(centre.x(), centre.y(), static_cast<double>(z[k]));
+    set.classes.push_back(class_of_cell[k]);
   }
   return set;
 }
@@ -992,6 +805,61 @@ RegistrationResult register_points(const ClassifiedPoints& source, const Classif
 
 namespace {
 
+/// Besl and McKay's accelerated ICP (1992, sec. IV-C), in its geometric-series form: when two
+/// successive updates point the same way (within 10 degrees) and shrink by a ratio rho, the
+/// remaining steps sum to about rho / (1 - rho) times the last one; try them at once (at most
+/// kMaxExtrapolation times the step), then start a new pair. Updates are compared as
+/// (rotation * rms radius, motion of the first centroid) so that both parts weigh alike.
+struct Extrapolation {
+  Eigen::Vector3d pivot = Eigen::Vector3d::Zero();  ///< the first pass's centroid
+  double radius = 1.0;                              ///< its rms radius (the length scale)
+  Vector6d previous_step = Vector6d::Zero();
+  bool has_previous_step = false;
+  int passes = 0;  ///< passes evaluated here
+  int jumps = 0;   ///< jumps kept
+
+  /// After the update `x` (about pass.centroid) that gave `plain`: when a jump is due, evaluates
+  /// the plain step and the jump at `next_distance`, keeps the better one in `plain` and its pass
+  /// in `pass`, and returns true; else records the step and returns false.
+  bool try_jump(Registration& registration, const Vector6d& x, double next_distance, Eigen::Matrix4d& plain,
+                Pass& pass) {
+    const Eigen::Vector3d pivot_motion =
+        rotation_of(x.head<3>()) * (pivot - pass.centroid) + pass.centroid + x.tail<3>() - pivot;
+    Vector6d step;
+    step << x.head<3>() * radius, pivot_motion;
+    if (!has_previous_step) {
+      previous_step = step;
+      has_previous_step = true;
+      return false;
+    }
+    const double norm = step.norm(), previous_norm = previous_step.norm();
+    const double rho = previous_norm > 0.0 ? norm / previous_norm : 1.0;
+    if (!(rho < 1.0 && step.dot(previous_step) > kCosExtrapolation * norm * previous_norm)) {
+      previous_step = step;
+      return false;
+    }
+    // Guard (a departure from Besl and McKay): keep the jump only if the [TC] eq. (4) error it
+    // reaches, truncated at the next limit, is no larger than the plain step's.
+    const double factor = std::min(rho / (1.0 - rho), kMaxExtrapolation);
+    Eigen::Matrix4d jumped = update_about(pass.centroid, x, factor) * plain;
+    jumped.topLeftCorner<3, 3>() = orthonormalised(jumped.topLeftCorner<3, 3>());
+    // The plain step first: the search certificates are then anchored at the jump, which is kept
+    // more often than not.
+    Pass at_plain = registration.pass(plain, next_distance);
+    Pass at_jump = registration.pass(jumped, next_distance);
+    passes += 2;
+    if (registration.truncated_error(at_jump, next_distance) <= registration.truncated_error(at_plain, next_distance)) {
+      plain = jumped;
+      pass = std::move(at_jump);
+      ++jumps;
+    } else {
+      pass = std::move(at_plain);
+    }
+    has_previous_step = false;
+    return true;
+  }
+};
+
 RegistrationResult register_checked(const ClassifiedPoints& source, const ClassifiedPoints& target,
                                     const Eigen::Matrix4d& initial, const RegistrationParams& params, bool source_empty,
                                     bool target_empty) {
@@ -1017,12 +885,7 @@ RegistrationResult register_checked(const ClassifiedPoints& source, const Classi
   if (registration.active_size() / stride < kMinCoarsePoints) stride = 1;
   Pass pass = registration.pass(transform, distance, stride);
   int passes = 1;
-  int extrapolations = 0;
-  // Extrapolation state: the last update as a 6-vector, the pivot and the length scale.
-  Vector6d previous_step = Vector6d::Zero();
-  bool has_previous_step = false;
-  Eigen::Vector3d pivot = Eigen::Vector3d::Zero();
-  double radius = 1.0;
+  Extrapolation extrapolation;
   const auto finish = [&](StopReason reason) {
     if (params.structure_radius_m > 0.0 && pass.count > 0 && result.num_correspondences > 0) {
       result.constraint_matrix = registration.constraints(result.transform, result.correspondence_distance_m,
@@ -1033,8 +896,8 @@ RegistrationResult register_checked(const ClassifiedPoints& source, const Classi
     }
     result.reason = reason;
     result.converged = reason == StopReason::kConverged || reason == StopReason::kErrorBelowThreshold;
-    result.passes = passes;
-    result.extrapolations = extrapolations;
+    result.passes = passes + extrapolation.passes;
+    result.extrapolations = extrapolation.jumps;
     return result;
   };
   for (int iteration = 0;; ++iteration) {
@@ -1062,11 +925,11 @@ RegistrationResult register_checked(const ClassifiedPoints& source, const Classi
       continue;
     }
     if (iteration == 0) {
-      pivot = pass.centroid;
+      extrapolation.pivot = pass.centroid;
       // rms distance of the class correspondences from their centroid (Pass::class_radius)
-      radius = pass.class_radius;
+      extrapolation.radius = pass.class_radius;
     }
-    // Eq. (A6): H x = g, solved by LDLT.
+    // [TC] eq. (A6): H x = g, solved by LDLT.
     const Vector6d x = pass.normal.ldlt().solve(pass.gradient);
     if (!x.allFinite()) return finish(StopReason::kDegenerate);
     // The update about the centroid c: p -> R (p - c) + c + t, composed exactly (no small-angle matrix).
@@ -1075,54 +938,14 @@ RegistrationResult register_checked(const ClassifiedPoints& source, const Classi
     const double next_distance = limit_of(iteration + 1);
     bool evaluated = false;  // `pass` already holds the correspondences at the new transform
     const bool coarse = stride > 1;
-    const bool leave_coarse = coarse && x.tail<3>().norm() + x.head<3>().norm() * radius < params.coarse_until_motion_m;
+    const bool leave_coarse =
+        coarse && x.tail<3>().norm() + x.head<3>().norm() * extrapolation.radius < params.coarse_until_motion_m;
     if (leave_coarse) {
       stride = 1;
-      has_previous_step = false;  // the objective changes: start a new pair of updates
+      extrapolation.has_previous_step = false;  // the objective changes: start a new pair of updates
     }
     // Extrapolation only on the fine iterations: on the subsample it was seen to converge early.
-    if (params.extrapolate && !coarse) {
-      // Besl and McKay's accelerated ICP (1992, sec. IV-C), in its geometric-series form: when two
-      // successive updates point the same way (within 10 degrees) and shrink by a ratio rho, the
-      // remaining steps sum to about rho / (1 - rho) times the last one; try them at once (at most
-      // kMaxExtrapolation times the step), then start a new pair. Updates are compared as
-      // (rotation * rms radius, motion of the first centroid) so that both parts weigh alike.
-      const Eigen::Vector3d pivot_motion =
-          rotation_of(x.head<3>()) * (pivot - pass.centroid) + pass.centroid + x.tail<3>() - pivot;
-      Vector6d step;
-      step << x.head<3>() * radius, pivot_motion;
-      if (has_previous_step) {
-        const double norm = step.norm(), previous_norm = previous_step.norm();
-        const double rho = previous_norm > 0.0 ? norm / previous_norm : 1.0;
-        if (rho < 1.0 && step.dot(previous_step) > kCosExtrapolation * norm * previous_norm) {
-          // Guard (a departure from Besl and McKay): keep the jump only if the eq. (4) error it
-          // reaches, truncated at the next limit, is no larger than the plain step's.
-          const double factor = std::min(rho / (1.0 - rho), kMaxExtrapolation);
-          Eigen::Matrix4d jumped = update_about(pass.centroid, x, factor) * plain;
-          jumped.topLeftCorner<3, 3>() = orthonormalised(jumped.topLeftCorner<3, 3>());
-          // The plain step first: the search certificates are then anchored at the jump, which
-          // is kept more often than not.
-          Pass at_plain = registration.pass(plain, next_distance);
-          Pass at_jump = registration.pass(jumped, next_distance);
-          passes += 2;
-          if (registration.truncated_error(at_jump, next_distance) <=
-              registration.truncated_error(at_plain, next_distance)) {
-            plain = jumped;
-            pass = std::move(at_jump);
-            ++extrapolations;
-          } else {
-            pass = std::move(at_plain);
-          }
-          evaluated = true;
-          has_previous_step = false;
-        } else {
-          previous_step = step;
-        }
-      } else {
-        previous_step = step;
-        has_previous_step = true;
-      }
-    }
+    if (params.extrapolate && !coarse) evaluated = extrapolation.try_jump(registration, x, next_distance, plain, pass);
     transform = plain;
     distance = next_distance;
     if (!evaluated) {
@@ -1166,297 +989,6 @@ RegistrationResult register_maps_all_cells(const ElevationMap& source, const Ele
                                            const Eigen::Matrix4d& initial, RegistrationParams params) {
   params.use_classes = false;
   return register_maps(source, target, initial, params);
-}
-
-// --- k-d tree ---------------------------------------------------------------------------------
-
-NearestNeighbor3d::NearestNeighbor3d(std::vector<Eigen::Vector3d> points) {
-  if (points.size() >= std::numeric_limits<std::uint32_t>::max()) {
-    throw std::invalid_argument("too many points for the nearest-neighbour index");
-  }
-  points_ = std::move(points);
-  original_.resize(points_.size());
-  std::iota(original_.begin(), original_.end(), std::uint32_t{0});
-  if (points_.empty()) return;
-  nodes_.reserve(2 * (points_.size() / kLeafSize + 1));
-  build(0, static_cast<std::uint32_t>(points_.size()));
-  // Store the points in leaf order so that a leaf scan reads contiguous memory.
-  std::vector<Eigen::Vector3d> ordered(points_.size());
-  position_.resize(points_.size());
-  for (std::size_t k = 0; k < points_.size(); ++k) {
-    ordered[k] = points_[original_[k]];
-    position_[original_[k]] = static_cast<std::uint32_t>(k);
-  }
-  points_ = std::move(ordered);
-}
-
-std::int32_t NearestNeighbor3d::build(std::uint32_t begin, std::uint32_t end) {
-  // original_ holds the permutation being partitioned; points_ is still in input order.
-  const auto index = static_cast<std::int32_t>(nodes_.size());
-  nodes_.emplace_back();
-  if (end - begin <= kLeafSize) {
-    nodes_[static_cast<std::size_t>(index)].begin = begin;
-    nodes_[static_cast<std::size_t>(index)].end = end;
-    return index;
-  }
-  Eigen::Vector3d low = points_[original_[begin]], high = low;
-  for (std::uint32_t k = begin + 1; k < end; ++k) {
-    low = low.cwiseMin(points_[original_[k]]);
-    high = high.cwiseMax(points_[original_[k]]);
-  }
-  int axis = 0;
-  (high - low).maxCoeff(&axis);
-  const std::uint32_t middle = begin + (end - begin) / 2;
-  std::nth_element(original_.begin() + begin, original_.begin() + middle, original_.begin() + end,
-                   [&](std::uint32_t a, std::uint32_t b) { return points_[a][axis] < points_[b][axis]; });
-  const double split = points_[original_[middle]][axis];
-  const std::int32_t left = build(begin, middle);
-  const std::int32_t right = build(middle, end);
-  Node& node = nodes_[static_cast<std::size_t>(index)];
-  node.axis = static_cast<std::int8_t>(axis);
-  node.split = split;
-  node.left = left;
-  node.right = right;
-  return index;
-}
-
-std::ptrdiff_t NearestNeighbor3d::nearest(const Eigen::Vector3d& query, double max_squared_distance,
-                                          double& squared_distance) const {
-  std::ptrdiff_t best = -1;
-  double best_squared = max_squared_distance;
-  if (nodes_.empty()) return best;
-  // Depth-first with an explicit stack of (node, lower bound on its squared distance).
-  struct Entry {
-    std::int32_t node;
-    double bound;
-  };
-  Entry stack[64];
-  int top = 0;
-  stack[top++] = {0, 0.0};
-  while (top > 0) {
-    const Entry entry = stack[--top];
-    if (entry.bound > best_squared) continue;
-    // Descend to the leaf on the query's side, pushing each far side that may still hold a
-    // nearer point (its bound: the squared distance to the splitting plane).
-    const Node* node = &nodes_[static_cast<std::size_t>(entry.node)];
-    while (node->axis >= 0) {
-      const double offset = query[node->axis] - node->split;
-      const double far_bound = std::max(entry.bound, offset * offset);
-      if (far_bound <= best_squared) stack[top++] = {offset < 0.0 ? node->right : node->left, far_bound};
-      node = &nodes_[static_cast<std::size_t>(offset < 0.0 ? node->left : node->right)];
-    }
-    for (std::uint32_t k = node->begin; k < node->end; ++k) {
-      const double d = (points_[k] - query).squaredNorm();
-      if (d <= best_squared) {
-        best_squared = d;
-        best = static_cast<std::ptrdiff_t>(k);
-      }
-    }
-  }
-  if (best >= 0) {
-    squared_distance = best_squared;
-    return static_cast<std::ptrdiff_t>(original_[static_cast<std::size_t>(best)]);
-  }
-  return -1;
-}
-
-// --- 2D bucket grid -------------------------------------------------------------------------
-
-namespace {
-// Slack on the pruning bounds [buckets]: a point whose bucket was computed with rounding on the
-// other side of a boundary is still examined, so the search stays exact.
-constexpr double kBucketSlack = 1e-6;
-}  // namespace
-
-NearestNeighborGrid::NearestNeighborGrid(std::vector<Eigen::Vector3d> points, double bucket_size_m) {
-  if (points.size() >= std::numeric_limits<std::uint32_t>::max()) {
-    throw std::invalid_argument("too many points for the nearest-neighbour grid");
-  }
-  if (!(bucket_size_m >= 0.0 && std::isfinite(bucket_size_m))) {
-    throw std::invalid_argument("nearest-neighbour grid bucket size must be finite and >= 0 [m]");
-  }
-  for (std::size_t k = 0; k < points.size(); ++k) {
-    if (!points[k].allFinite()) {
-      throw std::invalid_argument("nearest-neighbour grid point " + std::to_string(k) + " is NaN or Inf");
-    }
-  }
-  const std::size_t n = points.size();
-  if (n == 0) return;
-  Eigen::Vector2d low = points[0].head<2>(), high = low;
-  for (const Eigen::Vector3d& p : points) {
-    low = low.cwiseMin(p.head<2>());
-    high = high.cwiseMax(p.head<2>());
-  }
-  const Eigen::Vector2d extent = high - low;
-  if (bucket_size_m == 0.0) {
-    // Half the mean spacing over the box (about four buckets per point); a line of points (zero
-    // area) gets a quarter of its spacing; a single column one bucket.
-    const auto count = static_cast<double>(n);
-    bucket_size_m = std::max(0.5 * std::sqrt(extent.x() * extent.y() / count), extent.maxCoeff() / (4.0 * count));
-    if (!(bucket_size_m > 0.0)) bucket_size_m = 1.0;
-  }
-  const double columns = std::floor(extent.x() / bucket_size_m) + 1.0;
-  const double rows = std::floor(extent.y() / bucket_size_m) + 1.0;
-  if (columns * rows > static_cast<double>(std::numeric_limits<std::int32_t>::max())) {
-    throw std::invalid_argument("nearest-neighbour grid bucket size " + std::to_string(bucket_size_m) +
-                                " m gives more than 2^31 buckets over the points' extent");
-  }
-  bucket_size_m_ = bucket_size_m;
-  inverse_bucket_size_ = 1.0 / bucket_size_m;
-  origin_ = low;
-  columns_ = static_cast<std::int64_t>(columns);
-  rows_ = static_cast<std::int64_t>(rows);
-  // Counting sort of the points by bucket.
-  const auto bucket_of = [&](const Eigen::Vector3d& p) {
-    const auto column = std::min(columns_ - 1, static_cast<std::int64_t>((p.x() - low.x()) * inverse_bucket_size_));
-    const auto row = std::min(rows_ - 1, static_cast<std::int64_t>((p.y() - low.y()) * inverse_bucket_size_));
-    return static_cast<std::size_t>(row * columns_ + column);
-  };
-  start_.assign(static_cast<std::size_t>(columns_ * rows_) + 1, 0);
-  std::vector<std::uint32_t> bucket(n);
-  for (std::size_t k = 0; k < n; ++k) {
-    bucket[k] = static_cast<std::uint32_t>(bucket_of(points[k]));
-    ++start_[bucket[k] + 1];
-  }
-  std::partial_sum(start_.begin(), start_.end(), start_.begin());
-  std::vector<std::uint32_t> next(start_.begin(), start_.end() - 1);
-  points_.resize(n);
-  original_.resize(n);
-  position_.resize(n);
-  for (std::size_t k = 0; k < n; ++k) {
-    const std::uint32_t slot = next[bucket[k]]++;
-    points_[slot] = points[k];
-    original_[slot] = static_cast<std::uint32_t>(k);
-    position_[k] = slot;
-  }
-}
-
-std::ptrdiff_t NearestNeighborGrid::nearest(const Eigen::Vector3d& query, double max_squared_distance,
-                                            double& squared_distance) const {
-  std::ptrdiff_t found[1] = {-1};
-  double best[1];
-  search<1, false>(query, max_squared_distance, found, best);
-  if (found[0] < 0) return -1;
-  squared_distance = best[0];
-  return found[0];
-}
-
-std::ptrdiff_t NearestNeighborGrid::nearest_two(const Eigen::Vector3d& query, double max_squared_distance,
-                                                std::array<std::ptrdiff_t, 2>& indices,
-                                                std::array<double, 2>& squared_distances,
-                                                double& others_squared_distance) const {
-  std::ptrdiff_t found[2] = {-1, -1};
-  double best[3];
-  search<2, true>(query, max_squared_distance, found, best);
-  indices = {found[0], found[1]};
-  squared_distances = {best[0], best[1]};
-  others_squared_distance = best[2];
-  return found[0];
-}
-
-void NearestNeighborGrid::within(const Eigen::Vector3d& query, double radius, std::vector<std::uint32_t>& out) const {
-  if (points_.empty() || !(radius >= 0.0)) return;
-  // The buckets that can hold a point within the radius (with slack; the distance decides).
-  const double reach = radius * inverse_bucket_size_ + kBucketSlack;
-  const double u = (query.x() - origin_.x()) * inverse_bucket_size_;
-  const double v = (query.y() - origin_.y()) * inverse_bucket_size_;
-  const auto clamp_to = [](double value, std::int64_t count) {
-    return static_cast<std::int64_t>(std::clamp(std::floor(value), 0.0, static_cast<double>(count - 1)));
-  };
-  if (u + reach < 0.0 || v + reach < 0.0 || u - reach >= static_cast<double>(columns_) ||
-      v - reach >= static_cast<double>(rows_)) {
-    return;
-  }
-  const std::int64_t first_column = clamp_to(u - reach, columns_), last_column = clamp_to(u + reach, columns_);
-  const std::int64_t first_row = clamp_to(v - reach, rows_), last_row = clamp_to(v + reach, rows_);
-  const double squared = radius * radius;
-  for (std::int64_t row = first_row; row <= last_row; ++row) {
-    const auto base = static_cast<std::size_t>(row * columns_);
-    const std::uint32_t end = start_[base + static_cast<std::size_t>(last_column) + 1];
-    for (std::uint32_t k = start_[base + static_cast<std::size_t>(first_column)]; k < end; ++k) {
-      if ((points_[k] - query).squaredNorm() <= squared) out.push_back(original_[k]);
-    }
-  }
-}
-
-template <int kKeep, bool kBound>
-void NearestNeighborGrid::search(const Eigen::Vector3d& query, double max_squared_distance, std::ptrdiff_t* found_out,
-                                 double* best_out) const {
-  constexpr int kLast = kBound ? kKeep : kKeep - 1;  // best[kLast] is the pruning distance
-  // Kept in locals (registers) while scanning, copied out at the end.
-  double best[kLast + 1];
-  std::ptrdiff_t found[kKeep];
-  for (int k = 0; k <= kLast; ++k) best[k] = max_squared_distance;
-  for (int k = 0; k < kKeep; ++k) found[k] = -1;
-  const auto copy_out = [&] {
-    for (int k = 0; k <= kLast; ++k) best_out[k] = best[k];
-    for (int k = 0; k < kKeep; ++k) {
-      found_out[k] = found[k] >= 0 ? static_cast<std::ptrdiff_t>(original_[static_cast<std::size_t>(found[k])]) : -1;
-    }
-  };
-  if (points_.empty()) return copy_out();
-  // Pruning uses the largest distance kept: every point nearer than it is examined.
-  double& prune = best[kLast];
-  // The query in bucket units (it may lie outside the grid).
-  const double u = (query.x() - origin_.x()) * inverse_bucket_size_;
-  const double v = (query.y() - origin_.y()) * inverse_bucket_size_;
-  const double bucket_squared = bucket_size_m_ * bucket_size_m_;
-  const double last_column = static_cast<double>(columns_ - 1);
-  const double qx = query.x(), qy = query.y(), qz = query.z();
-  const Eigen::Vector3d* points = points_.data();
-  // Scans the buckets of `row` whose x range can hold a point within `prune`, given that every
-  // point of the row is at least `gap` buckets away in y. Points of consecutive buckets are
-  // contiguous, so the scan is one loop.
-  const auto scan_row = [&](std::int64_t row, double gap) {
-    const double reach_squared = prune / bucket_squared - gap * gap;
-    if (reach_squared < 0.0) return;
-    const double reach = std::sqrt(reach_squared) + kBucketSlack;
-    const double low = u - reach, high = u + reach;
-    if (high < 0.0 || low >= static_cast<double>(columns_)) return;
-    // Truncation of a non-negative value is floor.
-    const std::size_t first = low <= 0.0 ? 0 : static_cast<std::size_t>(low);
-    const std::size_t last =
-        high >= last_column ? static_cast<std::size_t>(columns_ - 1) : static_cast<std::size_t>(high);
-    const std::size_t base = static_cast<std::size_t>(row * columns_);
-    const std::uint32_t end = start_[base + last + 1];
-    for (std::uint32_t k = start_[base + first]; k < end; ++k) {
-      const Eigen::Vector3d& point = points[k];
-      const double dx = point.x() - qx, dy = point.y() - qy, dz = point.z() - qz;
-      const double d = dx * dx + dy * dy + dz * dz;
-      // Insert into the sorted best[] (the nearest first; a tie puts the new point first), without
-      // branches: whether a point is nearer than those kept is data, not a pattern a branch
-      // predictor learns, so the choices are masks (-1: take) and min/max. A point beyond
-      // best[kLast] changes nothing. Slots go from the last down, each from old values.
-      const auto index = static_cast<std::ptrdiff_t>(k);
-      for (int slot = kLast; slot > 0; --slot) {
-        if (slot < kKeep) {
-          const std::ptrdiff_t shift = -static_cast<std::ptrdiff_t>(d <= best[slot - 1]);
-          const std::ptrdiff_t take = -static_cast<std::ptrdiff_t>(d <= best[slot]);
-          const std::ptrdiff_t kept = (index & take) | (found[slot] & ~take);
-          found[slot] = (found[slot - 1] & shift) | (kept & ~shift);
-        }
-        best[slot] = std::min(std::max(d, best[slot - 1]), best[slot]);
-      }
-      const std::ptrdiff_t take = -static_cast<std::ptrdiff_t>(d <= best[0]);
-      found[0] = (index & take) | (found[0] & ~take);
-      best[0] = std::min(d, best[0]);
-    }
-  };
-  // floor(v) clamped to [-1, rows_]: truncation of the non-negative v + 1 is its floor.
-  const auto row_of_query = static_cast<std::int64_t>(std::clamp(v, -1.0, static_cast<double>(rows_)) + 1.0) - 1;
-  // Upward from the query's row (gap 0 within it), then downward; a row whose gap alone exceeds
-  // the pruning distance ends its direction.
-  for (std::int64_t row = std::max<std::int64_t>(row_of_query, 0); row < rows_; ++row) {
-    const double gap = std::max(0.0, static_cast<double>(row) - v - kBucketSlack);
-    if (gap * gap * bucket_squared > prune) break;
-    scan_row(row, gap);
-  }
-  for (std::int64_t row = std::min(row_of_query - 1, rows_ - 1); row >= 0; --row) {
-    const double gap = std::max(0.0, v - static_cast<double>(row + 1) - kBucketSlack);
-    if (gap * gap * bucket_squared > prune) break;
-    scan_row(row, gap);
-  }
-  copy_out();
 }
 
 }  // namespace terracube

@@ -16,7 +16,7 @@
 
 #include "terracube/collapse.hpp"
 #include "terracube/pose_graph.hpp"
-#include "threads.hpp"
+#include "parallel.hpp"
 
 namespace terracube {
 

@@ -40,7 +40,7 @@ std::vector<std::uint8_t> octomap_mask(const Cloud& cloud, const CollapseParams&
   }
   const double inverse_edge = 1.0 / grid.edge_m;
   // The tree's voxel with key k spans [(k - 32768) E, (k - 32768 + 1) E): the centre of CBC cube
-  // (ix, iy, iz), eqs. (1)-(3), is placed at the centre of the voxel with key (ix, iy, iz).
+  // (ix, iy, iz), [CBC] eqs. (4)-(6), is placed at the centre of the voxel with key (ix, iy, iz).
   octomap::OcTree occupied_tree(grid.edge_m);
   const auto cube_centre_in_tree = [&](const Eigen::Vector3d& p) {
     octomap::point3d centre;

@@ -7,7 +7,7 @@
 #include <stdexcept>
 #include <vector>
 
-#include "threads.hpp"
+#include "parallel.hpp"
 
 namespace terracube {
 
@@ -108,8 +108,8 @@ template <typename Rows>
 void for_row_blocks(Eigen::Index nx, Eigen::Index ny, int num_threads, const Rows& rows) {
   constexpr std::size_t kCellsPerPart = std::size_t{1} << 15;
   const auto cells = static_cast<std::size_t>(nx * ny);
-  const int parts = detail::thread_count(num_threads, cells, kCellsPerPart);
-  detail::for_each_part(parts, [&](int part) { rows(nx * part / parts, nx * (part + 1) / parts); });
+  const int parts = detail::fixed_parts(cells, kCellsPerPart);
+  detail::for_each_part(num_threads, parts, [&](int part) { rows(nx * part / parts, nx * (part + 1) / parts); });
 }
 
 }  // namespace

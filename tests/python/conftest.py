@@ -84,21 +84,3 @@ def shared_data() -> SharedData:
         searched = ", ".join(str(c) for c in data_dir_candidates())
         pytest.skip(f"real data folder not found (set TERRACUBE_DATA_DIR); searched: {searched}")
     return SharedData(root)
-
-
-@pytest.fixture
-def pool_threads():
-    """While the test runs, every call with several parts runs all but its first on the pool's threads
-    (a private test switch: otherwise a call that finds them asleep may rightly run on one). Yields a
-    function returning the most threads that took part in one call so far."""
-    from terracube import _core
-
-    def team() -> int:
-        return _core._largest_team()
-
-    _core._largest_team(True)
-    _core._require_pool_threads(True)
-    try:
-        yield team
-    finally:
-        _core._require_pool_threads(False)

@@ -36,8 +36,8 @@ struct PointBasedParams {
 std::vector<std::uint8_t> point_based_overhangs(const PointsView<float>& points, const PointBasedParams& params);
 std::vector<std::uint8_t> point_based_overhangs(const PointsView<double>& points, const PointBasedParams& params);
 
-/// [CBC] Algorithm 1's rule on an OctoMap OcTree: each used point's cube centre (same quantisation
-/// as CubeGrid, [CBC] eqs. (1)-(6)) is inserted into an octomap::OcTree of resolution E aligned to the CBC
+/// [CBC] Algorithm 1's rule on an OctoMap OcTree: each used point's cube centre (same quantisation as
+/// CubeGrid, [CBC] eqs. (4)-(6)) is inserted into an octomap::OcTree of resolution E aligned to the CBC
 /// grid, each column of occupied leaves is swept bottom-up with the same σ rule, collapsed keys
 /// go into a second OcTree, and each point is looked up there. Must agree with
 /// collapse_overhangs point for point. OctoMap keys are 16-bit: at most 65536 cubes per axis.

@@ -1,4 +1,4 @@
-// Collapsible cubes: overhang removal, Reina et al., IEEE AIM 2014, section III, Algorithm 1.
+// Collapsible cubes: overhang removal, [CBC] = Reina et al., IEEE AIM 2014, section III, Algorithm 1.
 #pragma once
 
 #include <Eigen/Core>
@@ -39,11 +39,9 @@ struct CollapseParams {
   CubeStorage storage = CubeStorage::kAuto;
   /// Largest V + M allowed for the dense storage [bytes].
   std::size_t dense_budget_bytes = std::size_t{256} << 20;
-  /// Threads for the passes over the points (bounding box of an untransformed, uncropped
-  /// cloud, cube indices, the mask) on the dense storage: 1 is the calling thread alone, 0 one per
-  /// processor; clouds under about 32,000 points per thread use fewer. V, L, the sweep and the
-  /// sparse storage stay on the calling thread. The result is the same whatever the number. As with
-  /// ElevationParams::num_threads, a forked child of a process that used several runs on one.
+  /// Threads for the passes over the points (bounding box, cube indices, the mask): 1 is the
+  /// calling thread alone (the default), 0 one per processor. V, L, Algorithm 1 and the sparse
+  /// storage stay on the calling thread. The result is the same whatever the number.
   int num_threads = 1;
 };
 
@@ -59,7 +57,7 @@ struct CollapseResult {
   CubeGrid grid;
   /// One flag per input point, in input order: 1 = the point lies in a collapsed cube.
   std::vector<std::uint8_t> overhang;
-  /// L, sorted ascending: indices I of the occupied cubes (eq. 7).
+  /// L, sorted ascending: indices I of the occupied cubes ([CBC] eq. (1)).
   std::vector<std::int64_t> occupied_cubes;
   /// R, sorted ascending: indices I of the collapsed cubes.
   std::vector<std::int64_t> removed_cubes;
@@ -71,7 +69,7 @@ struct CollapseResult {
   CubeStorage storage_used = CubeStorage::kDense;
 };
 
-/// Algorithm 1: builds the CBC (V and L in one O(N) pass), sorts L, sweeps every column
+/// [CBC] Algorithm 1: builds the CBC (V and L in one O(N) pass), sorts L, sweeps every column
 /// bottom-up keeping its ground in M and collapses the cubes σ or more empty cubes above it.
 /// Throws std::invalid_argument on a non-positive edge, σ < 1, a non-rigid transform, NaN/Inf
 /// rows (unless dropped) or an extent whose cube count would overflow a 64-bit index.

@@ -52,9 +52,6 @@ class ElevationMap {
   ElevationMap(ElevationMap&&) = default;
   ElevationMap& operator=(const ElevationMap&) = default;
   ElevationMap& operator=(ElevationMap&&) = default;
-  /// Leaves the layers' buffers to this thread's next maps (up to 64 MB per thread, the most
-  /// recently dropped first): a map built and dropped per scan then touches no fresh page.
-  ~ElevationMap();
 
   const MapGeometry& geometry() const { return geometry_; }
   /// Moves the map to `geometry` without touching its layers' values (as grid_map's
@@ -95,25 +92,18 @@ struct ElevationParams {
   bool drop_non_finite = false;
   /// Largest number of cells allowed (memory guard): 64 M cells = 256 MB per float layer.
   std::size_t max_cells = std::size_t{1} << 26;
-  /// Threads: 1 runs on the calling thread alone, 0 uses one per processor. The map is the same
-  /// bit for bit whatever the number; clouds under about 32,000 points per thread use fewer
-  /// threads, and so do calls that find the pool's threads asleep (they sleep after 20 ms without
-  /// work; only calls that keep coming, each within 20 ms of the one before, for 20 ms or more, or a
-  /// call of about a million points or more wakes them). The pool's threads do not survive fork():
-  /// in a forked child of a process that used several threads, calls run on one.
+  /// Threads: 1 runs on the calling thread alone (the default), 0 uses one per processor. The
+  /// work is cut into parts by its size alone, so the map is the same bit for bit whatever the number.
   int num_threads = 1;
 };
 
-/// Builds the map in O(N + cells): one pass over the points for count, min, max and the sums of z
-/// and z^2 shifted by each cell's first elevation (a one-pass variance that stays accurate at large
-/// absolute heights), one pass over the cells for the layers, and a sort of the elevations of only
-/// those cells whose max - min exceeds the discontinuity threshold (no other cell can hold a longer
-/// gap). Layers: "count" (0 for empty), "min", "max", "mean" (the DEM), "std_dev" (population),
-/// "discontinuity" (1 or 0); NaN where a cell holds no point. Points outside the map are ignored.
-/// `use` (optional, one flag per point) selects the points that take part. Thread-safe; each
-/// calling thread keeps its scratch buffers (about 12 N + 32 min(N, cells) + 9 cells bytes,
-/// released after a call needing over 32 MB) for the next call, as fresh buffers would cost a
-/// page fault per 4 kB.
+/// Builds the map in O(N + cells): one pass bins the points, a counting sort groups their
+/// elevations by cell, and one pass over the cells writes the layers; only cells whose max - min
+/// exceeds the discontinuity threshold (no other cell can hold a longer gap) are sorted.
+/// Layers: "count" (0 for empty), "min", "max", "mean" (the DEM), "std_dev" (population, from the
+/// elevations relative to the cell's first, added in row order), "discontinuity" (1 or 0); NaN
+/// where a cell holds no point. Points outside the map are ignored. `use` (optional, one flag per
+/// point) selects the points that take part. Thread-safe.
 ElevationMap build_elevation_map(const PointsView<float>& points, const ElevationParams& params,
                                  const std::vector<std::uint8_t>* use = nullptr);
 ElevationMap build_elevation_map(const PointsView<double>& points, const ElevationParams& params,

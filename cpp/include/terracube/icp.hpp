@@ -1,7 +1,7 @@
 // Class-weighted ICP between classified elevation maps (the terrain-classification paper,
 // sections 2.2 and 3.3 and its appendix): point-to-point ICP whose correspondences pair a source
 // cell only with the nearest target cell of the same terrain class, each class with its own
-// weight (eq. 4), ground taking no part. With classes off and unit weights it is the paper's
+// weight ([TC] eq. (4)), ground taking no part. With classes off and unit weights it is the paper's
 // "conventional" ICP over all cells.
 #pragma once
 
@@ -23,7 +23,7 @@ inline constexpr std::size_t kNumTerrainClasses = 6;
 /// One weight per TerrainClass, indexed by its value.
 using ClassWeights = std::array<double, kNumTerrainClasses>;
 
-/// Table 2 of the classification paper: obstacle 0.8, overhanging 0.5, vertical 0.5, horizontal
+/// [TC] Table 2: obstacle 0.8, overhanging 0.5, vertical 0.5, horizontal
 /// edge 0.8; unknown and ground 0 (they take no part).
 inline constexpr ClassWeights kDefaultClassWeights = {0.0, 0.0, 0.8, 0.5, 0.5, 0.8};
 
@@ -45,7 +45,7 @@ struct RegistrationParams {
   /// weight (classes of weight 0 take no part). false: the conventional ICP, every point pairs
   /// with the nearest target point of any class at unit weight.
   bool use_classes = true;
-  ClassWeights class_weights = kDefaultClassWeights;  ///< eq. (4) weights, >= 0
+  ClassWeights class_weights = kDefaultClassWeights;  ///< [TC] eq. (4) weights, >= 0
   /// Correspondences farther apart than this take no part [m]. At iteration k (from 0) the limit
   /// is max(min_correspondence_distance_m, max_correspondence_distance_m * decay^k).
   double max_correspondence_distance_m = 1.5;
@@ -56,7 +56,7 @@ struct RegistrationParams {
   /// translation_tolerance_m [m].
   double rotation_tolerance_rad = 5e-4;
   double translation_tolerance_m = 5e-4;
-  /// Stop (converged) when the weighted RMSE of eq. (2)/(4) falls below this [m]; 0 disables it.
+  /// Stop (converged) when the weighted RMSE of [TC] eq. (2)/(4) falls below this [m]; 0 disables it.
   double error_threshold_m = 0.0;
   std::size_t min_correspondences = 10;  ///< fewer: stop with kTooFewCorrespondences, >= 3
   /// The 6x6 normal matrix is degenerate when its smallest eigenvalue divided by its largest is
@@ -68,7 +68,7 @@ struct RegistrationParams {
   double degeneracy_threshold = 1e-6;
   /// Acceleration after Besl and McKay (the ICP paper, sec. IV-C), guarded (not in either
   /// paper): when two successive updates point the same way and shrink, try a jump along them by
-  /// the geometric series' remainder (at most 10 steps) and keep it only if the eq. (4) error
+  /// the geometric series' remainder (at most 10 steps) and keep it only if the [TC] eq. (4) error
   /// truncated at the next distance limit, sum w min(d^2, limit^2) over the source points that
   /// take part (class pairs; the ground planes' are left out), is no larger there than after the
   /// plain step (both are evaluated, so a try costs one more correspondence pass). false: the
@@ -86,7 +86,7 @@ struct RegistrationParams {
   /// squares z = a + b x + c y; a horizontal plane at the mean below three points or when
   /// ill-conditioned); the source's ground points are binned alike and each occupied cell's mean
   /// point is one sample, paired with the plane of the target cell its moved (x, y) falls in
-  /// (no search) and weighted ground_weight in eq. (4), its residual the distance along the
+  /// (no search) and weighted ground_weight in [TC] eq. (4), its residual the distance along the
   /// plane's normal. Such pairs fix height, roll and pitch, which the non-ground classes leave
   /// loose, without the pull along the road of point-to-point ground pairs. They count in
   /// correspondences_per_class[ground], the RMSE and the normal matrix. Independent of
@@ -129,12 +129,12 @@ struct RegistrationResult {
   int passes = 0;
   int extrapolations = 0;  ///< extrapolated jumps accepted by the guard
   /// sqrt(sum w_i |R p_i + t - q_i|^2 / sum w_i) over the correspondences at `transform` [m]
-  /// (eq. (2), weighted as eq. (4)); NaN without correspondences.
+  /// ([TC] eq. (2), weighted as [TC] eq. (4)); NaN without correspondences.
   double rmse_m = 0.0;
   double correspondence_distance_m = 0.0;  ///< the distance limit of the last pass [m]
   std::size_t num_correspondences = 0;
   std::array<std::size_t, kNumTerrainClasses> correspondences_per_class{};  ///< by source class
-  /// The weighted normal matrix H = sum w_i J_i^T J_i of eq. (A6) at `transform`, unknowns
+  /// The weighted normal matrix H = sum w_i J_i^T J_i of [TC] eq. (A6) at `transform`, unknowns
   /// (rotation [rad], translation [m]) about the correspondences' weighted source centroid.
   Eigen::Matrix<double, 6, 6> normal_matrix = Eigen::Matrix<double, 6, 6>::Zero();
   Eigen::Matrix<double, 6, 1> eigenvalues = Eigen::Matrix<double, 6, 1>::Zero();  ///< of H, ascending
@@ -157,7 +157,7 @@ struct RegistrationResult {
 /// Registers `source` onto `target` starting from `initial` (a rigid 4x4, e.g. odometry).
 /// Each iteration pairs every source point (moved by the current estimate) with its nearest
 /// target point within the current distance limit (of its class when use_classes), builds the
-/// linearised weighted normal equations of eq. (A6), solves them with LDLT and composes the
+/// linearised weighted normal equations of [TC] eq. (A6), solves them with LDLT and composes the
 /// update as an exact rotation (Rodrigues). Throws std::invalid_argument for invalid parameters,
 /// a non-finite or non-rigid `initial`, non-finite points or class values >= 6.
 RegistrationResult register_points(const ClassifiedPoints& source, const ClassifiedPoints& target,

@@ -49,7 +49,7 @@ struct MapperParams {
   double min_range_m = 0.5;
   /// Discontinuity threshold of the elevations within a cell [m] (the paper: 1 m).
   double discontinuity_m = 1.0;
-  /// Table 1 thresholds. The default measures heights from the local ground (lowest elevations around
+  /// [TC] Table 1 thresholds. The default measures heights from the local ground (lowest elevations around
   /// the cell), which keeps classes right on slopes; the paper's sensor-height reference is available.
   /// The window is 5 cells (0.5 m at 0.1 m): the window minimum lies slope x radius below a cell
   /// on a slope, so a larger window calls ramps obstacles.
