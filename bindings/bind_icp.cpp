@@ -48,6 +48,9 @@ std::vector<Eigen::Vector3d> plain_points(const py::array& points, const char* n
 }  // namespace
 
 void bind_icp(py::module_& m) {
+  py::enum_<Pairing>(m, "Pairing")
+      .value("source_to_target", Pairing::kSourceToTarget)
+      .value("target_to_source", Pairing::kTargetToSource);
   py::enum_<StopReason>(m, "StopReason")
       .value("converged", StopReason::kConverged)
       .value("error_below_threshold", StopReason::kErrorBelowThreshold)
@@ -70,6 +73,7 @@ void bind_icp(py::module_& m) {
       .def_readwrite("min_correspondences", &RegistrationParams::min_correspondences)
       .def_readwrite("degeneracy_threshold", &RegistrationParams::degeneracy_threshold)
       .def_readwrite("extrapolate", &RegistrationParams::extrapolate)
+      .def_readwrite("pairing", &RegistrationParams::pairing)
       .def_readwrite("coarse_subsample", &RegistrationParams::coarse_subsample)
       .def_readwrite("coarse_until_motion_m", &RegistrationParams::coarse_until_motion_m)
       .def_readwrite("ground_weight", &RegistrationParams::ground_weight)

@@ -308,6 +308,12 @@ class Registration {
     second_.assign(n, -1);
     deferred_.resize(n + 4);
     certificate_reach_ = params.min_correspondence_distance_m;
+    from_target_ = params.pairing == Pairing::kTargetToSource;
+    for (std::size_t c = 0; c < kNumTerrainClasses; ++c) {  // each target point's weight, for from_target_
+      if (params.use_classes) target_weight_ += class_weight_[c] * static_cast<double>(grids_[c].size());
+    }
+    if (!params.use_classes && class_begin_[kNumTerrainClasses] > 0)
+      target_weight_ = static_cast<double>(grids_[0].size());
     if (params.use_classes && params.ground_weight > 0.0) set_up_ground(source, target, params);
   }
 
@@ -318,7 +324,8 @@ class Registration {
   /// w min(d^2, max_distance^2), d the distance to the nearest target point of the class. A proper
   /// objective to compare poses with (unlike the RMSE, it does not fall when pairs drop out).
   double truncated_error(const Pass& pass, double max_distance) const {
-    return pass.class_squared_error + (total_weight_ - pass.class_weight_sum) * max_distance * max_distance;
+    const double all = from_target_ ? target_weight_ : total_weight_;
+    return pass.class_squared_error + (all - pass.class_weight_sum) * max_distance * max_distance;
   }
 
   /// The ground terms of a pass about o (unweighted).
@@ -374,12 +381,17 @@ class Registration {
     double w_sum = 0.0, error = 0.0;
     double sp[3] = {0, 0, 0}, sq[3] = {0, 0, 0}, spxq[3] = {0, 0, 0};
     double spp[6] = {0, 0, 0, 0, 0, 0};  // xx xy xz yy yz zz
+    const std::array<ClassMoments, kNumTerrainClasses> from_target =
+        from_target_ ? moments_from_target(motion, o, max_squared, stride)
+                     : std::array<ClassMoments, kNumTerrainClasses>{};
     for (std::size_t c = 0; c < kNumTerrainClasses; ++c) {
       const std::size_t begin = class_begin_[c], end = class_begin_[c + 1];
       if (begin == end) continue;
-      ClassMoments m;
+      ClassMoments m = from_target[c];
       std::size_t num_deferred = 0;
-      if (stride == 1) {
+      if (from_target_) {
+        // paired from the target's side above
+      } else if (stride == 1) {
         for (std::size_t slot = begin; slot < end; ++slot) check_one(slot, motion, max_distance, m, num_deferred);
       } else {
         for (std::size_t k = coarse_begin_[c]; k < coarse_begin_[c + 1]; ++k) {
@@ -570,6 +582,35 @@ class Registration {
     coarse_stride_ = stride;
   }
 
+  /// [TC] section 2.2, step 2: each target point of a grid pairs with its nearest moved source
+  /// point among the classes that search that grid (its own class; every class without classes)
+  /// within the limit; the moments go to the source point's class. With `stride` > 1 every
+  /// stride-th target point takes part.
+  std::array<ClassMoments, kNumTerrainClasses> moments_from_target(const Motion& motion, const Eigen::Vector3d& o,
+                                                                   double max_squared, std::size_t stride) const {
+    std::array<ClassMoments, kNumTerrainClasses> out;
+    for (std::size_t g = 0; g < kNumTerrainClasses; ++g) {
+      const NearestNeighborGrid& target = grids_[g];
+      std::vector<Eigen::Vector3d> moved;
+      std::vector<std::uint8_t> class_of;
+      for (std::size_t c = 0; c < kNumTerrainClasses; ++c) {
+        if (class_grid_[c] != g) continue;
+        for (std::size_t slot = class_begin_[c]; slot < class_begin_[c + 1]; ++slot) {
+          moved.push_back(move(motion, slot));
+          class_of.push_back(static_cast<std::uint8_t>(c));
+        }
+      }
+      if (target.size() == 0 || moved.empty()) continue;
+      const NearestNeighborGrid source(moved);
+      for (std::size_t k = 0; k < target.size(); k += stride) {
+        double squared = 0.0;
+        const std::ptrdiff_t s = source.nearest(target.point(k), max_squared, squared);
+        if (s >= 0) out[class_of[s]].add(moved[s] - o, target.point(k) - o, squared);
+      }
+    }
+    return out;
+  }
+
   /// Source point `slot` moved, .
   Eigen::Vector3d move(const Motion& m, std::size_t slot) const {
     const double x = x_[slot], y = y_[slot], z = z_[slot];
@@ -663,6 +704,8 @@ class Registration {
   std::array<std::size_t, kNumTerrainClasses + 1> coarse_begin_{};
   Eigen::Vector3d reference_ = Eigen::Vector3d::Zero();
   double total_weight_ = 0.0;       // of the active source points
+  bool from_target_ = false;        // RegistrationParams::pairing is kTargetToSource
+  double target_weight_ = 0.0;      // of the target points that take part, for from_target_
   double certificate_reach_ = 0.0;  // widest search for a certificate [m]
   // Per active source point, what its last search proved (see check_one): the query (anchor),
   // its two nearest target points (first, second; index -1: none) and a bound below which no

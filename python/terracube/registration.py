@@ -87,6 +87,10 @@ class RegistrationParams:
         the [TC] eq. (4) error truncated at the next distance limit (class pairs; ground planes left
         out) is no larger than after the plain step (both evaluated: one more correspondence pass
         per try). False: the plain iteration.
+    pairing : {"source_to_target", "target_to_source"}
+        Who looks for partners: each moving (source) point its nearest reference point, or, as
+        [TC] section 2.2 step 2, each reference (target) point its nearest moved source point
+        (the moved points are indexed again every pass: slower).
     coarse_subsample : int
         Coarse to fine (not in the paper): the first iterations pair only every n-th source point
         (>= 1; 1 disables it; off when fewer than 500 points would remain) ...
@@ -128,6 +132,7 @@ class RegistrationParams:
     ground_weight: float = 0.0
     ground_cell: float = 0.5
     structure_radius: float = 0.0
+    pairing: str = "source_to_target"
 
     def to_core(self) -> _core.RegistrationParams:
         params = _core.RegistrationParams()
@@ -155,6 +160,11 @@ class RegistrationParams:
         params.ground_weight = float(self.ground_weight)
         params.ground_cell_m = float(self.ground_cell)
         params.structure_radius_m = float(self.structure_radius)
+        if self.pairing not in ("source_to_target", "target_to_source"):
+            raise ValueError(
+                f"pairing must be 'source_to_target' or 'target_to_source', got {self.pairing!r}"
+            )
+        params.pairing = getattr(_core.Pairing, self.pairing)
         return params
 
 

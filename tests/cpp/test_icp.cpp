@@ -614,6 +614,11 @@ StreetPair street_pair() {
           pose(0.25, -0.15, 0.05, 3.0, 0.5, -0.5) * target_pose.inverse() * source_pose};
 }
 
+/// The street pair's true motion, source -> target.
+Eigen::Matrix4d street_truth() {
+  return pose(1.95, 0.5, kSensorHeight, 10.0).inverse() * pose(-1.0, 0.0, kSensorHeight, -10.0);
+}
+
 TEST(RegisterMaps, SameResultAsRegisterPointsOnAllTheMapsPoints) {
   // register_maps passes only the cells that can take part; the result must not change.
   const std::vector<Eigen::Vector3d> world = street(0.1);
@@ -699,6 +704,58 @@ TEST(RegisterMaps, NormalEquationsEqualANaiveSumOverBruteForcePairs) {
     Eigen::Matrix<double, 3, 6> jacobian;  // d(residual)/d(omega, t) about the centroid
     const Eigen::Vector3d r = p[k] - centroid;
     jacobian.leftCols<3>() << 0.0, r.z(), -r.y(), -r.z(), 0.0, r.x(), r.y(), -r.x(), 0.0;  // -[r]x
+    jacobian.rightCols<3>().setIdentity();
+    naive += w[k] * jacobian.transpose() * jacobian;
+  }
+  EXPECT_LT((result.normal_matrix - naive).cwiseAbs().maxCoeff(), 1e-9 * naive.cwiseAbs().maxCoeff());
+  EXPECT_NEAR(result.rmse_m, std::sqrt(error / w_sum), 1e-12);
+}
+
+TEST(RegisterMaps, PairingFromTheTargetAsThePaperEqualsANaiveSumOverBruteForcePairs) {
+  // [TC] section 2.2, step 2: each reference point (target, P) pairs with its nearest moved source
+  // point (Q) of its class. The moments against eq. (A6) summed pair by pair at the final estimate.
+  const StreetPair pair = street_pair();
+  const ClassifiedPoints& source = pair.source;
+  const ClassifiedPoints& target = pair.target;
+  RegistrationParams params;
+  params.pairing = Pairing::kTargetToSource;
+  const RegistrationResult result = register_points(source, target, pair.guess, params);
+  ASSERT_TRUE(result.converged) << to_string(result.reason);
+  const Eigen::Matrix4d truth = street_truth();
+  EXPECT_LT(translation_error(result.transform, truth), 0.1);
+  EXPECT_LT(rotation_error_deg(result.transform, truth), 0.5);
+  const double limit = result.correspondence_distance_m;
+  std::vector<Eigen::Vector3d> p, q;
+  std::vector<double> w;
+  for (std::size_t j = 0; j < target.size(); ++j) {
+    const double weight = params.class_weights[target.classes[j]];
+    if (weight == 0.0) continue;
+    std::vector<Eigen::Vector3d> same_class;
+    for (std::size_t k = 0; k < source.size(); ++k) {
+      if (source.classes[k] != target.classes[j]) continue;
+      same_class.push_back(result.transform.topLeftCorner<3, 3>() * source.points[k] +
+                           result.transform.topRightCorner<3, 1>());
+    }
+    const auto [index, squared] = brute_nearest(same_class, target.points[j], limit * limit);
+    if (index < 0) continue;
+    p.push_back(same_class[static_cast<std::size_t>(index)]);
+    q.push_back(target.points[j]);
+    w.push_back(weight);
+  }
+  ASSERT_EQ(p.size(), result.num_correspondences);
+  double w_sum = 0.0, error = 0.0;
+  Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
+  for (std::size_t k = 0; k < p.size(); ++k) {
+    w_sum += w[k];
+    centroid += w[k] * p[k];
+    error += w[k] * (p[k] - q[k]).squaredNorm();
+  }
+  centroid /= w_sum;
+  Eigen::Matrix<double, 6, 6> naive = Eigen::Matrix<double, 6, 6>::Zero();
+  for (std::size_t k = 0; k < p.size(); ++k) {
+    Eigen::Matrix<double, 3, 6> jacobian;
+    const Eigen::Vector3d r = p[k] - centroid;
+    jacobian.leftCols<3>() << 0.0, r.z(), -r.y(), -r.z(), 0.0, r.x(), r.y(), -r.x(), 0.0;
     jacobian.rightCols<3>().setIdentity();
     naive += w[k] * jacobian.transpose() * jacobian;
   }

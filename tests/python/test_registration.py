@@ -124,6 +124,7 @@ def test_params_mirror_the_cpp_defaults():
         "ground_weight",
         "ground_cell_m",
         "structure_radius_m",
+        "pairing",
     ):
         assert getattr(core, name) == getattr(default, name), name
     assert list(core.class_weights) == list(default.class_weights) == [0.0, 0.0, 0.8, 0.5, 0.5, 0.8]

@@ -39,6 +39,16 @@ struct ClassifiedPoints {
 /// Throws std::out_of_range when the map has no "max" layer.
 ClassifiedPoints points_of_map(const ElevationMap& map);
 
+/// Which set's points look for partners in a correspondence pass.
+enum class Pairing : std::uint8_t {
+  /// Each point of the moving map (source, [TC]'s Q) pairs with its nearest in the reference
+  /// (target, P): one search per source point, with certificates that skip most searches.
+  kSourceToTarget = 0,
+  /// [TC] section 2.2, step 2: each point of the reference P pairs with its nearest moved point of
+  /// Q. The moved points are indexed again at every pass.
+  kTargetToSource = 1,
+};
+
 /// Parameters of register_maps / register_points; defaults follow the paper where it gives them.
 struct RegistrationParams {
   /// true: a source point pairs only with target points of its class and carries its class's
@@ -74,6 +84,8 @@ struct RegistrationParams {
   /// plain step (both are evaluated, so a try costs one more correspondence pass). false: the
   /// plain iteration of the paper.
   bool extrapolate = true;
+  /// Who looks for partners (a departure: the paper searches from the reference map's points).
+  Pairing pairing = Pairing::kSourceToTarget;
   /// Coarse to fine (not in the paper): the first iterations pair only every n-th source point
   /// (>= 1; 1 disables it; also off when fewer than 500 points would remain), until an update
   /// moves the points by less than coarse_until_motion_m (|t| + |omega| * rms radius) [m]. Every

@@ -7,7 +7,7 @@ import numpy
 import numpy.typing
 import typing
 from . import simulation
-__all__: list[str] = ['AbsoluteTrajectoryError', 'CollapseParams', 'CollapseResult', 'CropBox', 'CubeGrid', 'CubeStorage', 'ElevationMap', 'ElevationParams', 'ErrorStatistics', 'FuzzyElevationMap', 'FuzzyParams', 'GroundReference', 'LoopClosure', 'MapGeometry', 'Mapper', 'MapperParams', 'MapperTimings', 'MembershipFamily', 'OverhangFreeMap', 'PclIcpParams', 'PclIcpResult', 'PointBasedParams', 'PoseGraphEdge', 'PoseGraphParams', 'PoseGraphResult', 'PoseSegmentError', 'RegionLayoutComparison', 'RegionPairError', 'RegionRelations', 'RegionTripleError', 'RegistrationParams', 'RegistrationResult', 'RelativePoseError', 'RelativePoseErrorParams', 'RobustLoss', 'ScanReport', 'SegmentLengthError', 'StepRule', 'StopReason', 'TerrainParams', 'TrajectoryAlignment', 'absolute_trajectory_error', 'build_elevation_map', 'build_elevation_map_into', 'build_overhang_free_map', 'classify_terrain', 'collapse_overhangs', 'compare_region_layouts', 'error_statistics', 'fit_fuzzy_elevation_map', 'has_pcl', 'leveling_transform', 'octomap_column_overhangs', 'optimize_pose_graph', 'pcl_gicp', 'pcl_icp', 'point_based_overhangs', 'points_of_map', 'register_maps', 'register_points', 'relative_pose_error', 'rigid_alignment', 'sigma_from_robot_height', 'simulation', 'step_layer']
+__all__: list[str] = ['AbsoluteTrajectoryError', 'CollapseParams', 'CollapseResult', 'CropBox', 'CubeGrid', 'CubeStorage', 'ElevationMap', 'ElevationParams', 'ErrorStatistics', 'FuzzyElevationMap', 'FuzzyParams', 'GroundReference', 'LoopClosure', 'MapGeometry', 'Mapper', 'MapperParams', 'MapperTimings', 'MembershipFamily', 'OverhangFreeMap', 'Pairing', 'PclIcpParams', 'PclIcpResult', 'PointBasedParams', 'PoseGraphEdge', 'PoseGraphParams', 'PoseGraphResult', 'PoseSegmentError', 'RegionLayoutComparison', 'RegionPairError', 'RegionRelations', 'RegionTripleError', 'RegistrationParams', 'RegistrationResult', 'RelativePoseError', 'RelativePoseErrorParams', 'RobustLoss', 'ScanReport', 'SegmentLengthError', 'StepRule', 'StopReason', 'TerrainParams', 'TrajectoryAlignment', 'absolute_trajectory_error', 'build_elevation_map', 'build_elevation_map_into', 'build_overhang_free_map', 'classify_terrain', 'collapse_overhangs', 'compare_region_layouts', 'error_statistics', 'fit_fuzzy_elevation_map', 'has_pcl', 'leveling_transform', 'octomap_column_overhangs', 'optimize_pose_graph', 'pcl_gicp', 'pcl_icp', 'point_based_overhangs', 'points_of_map', 'register_maps', 'register_points', 'relative_pose_error', 'rigid_alignment', 'sigma_from_robot_height', 'simulation', 'step_layer']
 class CubeGrid:
     """
     CBC grid geometry (eqs. 1-9); cube (0,0,0) is centred on min_corner.
@@ -617,6 +617,51 @@ class FuzzyElevationMap:
     @property
     def rule_support(self) -> typing.Annotated[numpy.typing.NDArray[numpy.float64], "[m, n]"]:
         ...
+class Pairing:
+    """
+    Members:
+    
+      source_to_target
+    
+      target_to_source
+    """
+    __members__: typing.ClassVar[dict[str, Pairing]]
+    source_to_target: typing.ClassVar[Pairing]
+    target_to_source: typing.ClassVar[Pairing]
+    @typing.overload
+    def __eq__(self, other: Pairing) -> bool:
+        ...
+    @typing.overload
+    def __eq__(self, other: typing.Any) -> bool:
+        ...
+    def __getstate__(self) -> int:
+        ...
+    def __hash__(self) -> int:
+        ...
+    def __index__(self) -> int:
+        ...
+    def __init__(self, value: typing.SupportsInt | typing.SupportsIndex) -> None:
+        ...
+    def __int__(self) -> int:
+        ...
+    @typing.overload
+    def __ne__(self, other: Pairing) -> bool:
+        ...
+    @typing.overload
+    def __ne__(self, other: typing.Any) -> bool:
+        ...
+    def __repr__(self) -> str:
+        ...
+    def __setstate__(self, state: typing.SupportsInt | typing.SupportsIndex) -> None:
+        ...
+    def __str__(self) -> str:
+        ...
+    @property
+    def name(self) -> str:
+        ...
+    @property
+    def value(self) -> int:
+        ...
 class StopReason:
     """
     Members:
@@ -676,6 +721,7 @@ class StopReason:
         ...
 class RegistrationParams:
     extrapolate: bool
+    pairing: Pairing
     use_classes: bool
     def __init__(self) -> None:
         ...
@@ -1562,18 +1608,6 @@ class Mapper:
     @property
     def timings(self) -> MapperTimings:
         ...
-def _largest_team(reset: bool = False) -> int:
-    """
-    Tests only: the most threads that took part in one call since the last reset.
-    """
-def _memory_floor(points: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], entry_of_point: typing.Annotated[numpy.typing.ArrayLike, numpy.uint32], num_entries: typing.SupportsInt | typing.SupportsIndex, repeat: typing.SupportsInt | typing.SupportsIndex = 15, threads: typing.SupportsInt | typing.SupportsIndex = 1) -> dict:
-    """
-    Private, for bench/bench_collapse.py: the fastest of `repeat` runs of three bare loops over the cloud (read its rows; a byte store per point at entry_of_point; a byte load per point there plus a mask byte written), in ms, each split into `threads` equal parts run at once (a run as long as its slowest part).
-    """
-def _require_pool_threads(on: bool) -> None:
-    """
-    Tests only: while on, every call with several parts runs all but its first on pool threads.
-    """
 def absolute_trajectory_error(estimate: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], ground_truth: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], alignment: TrajectoryAlignment) -> AbsoluteTrajectoryError:
     ...
 def build_elevation_map(points: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], params: ElevationParams, use: typing.Annotated[numpy.typing.ArrayLike, numpy.bool] | None = None) -> ElevationMap:
