@@ -165,7 +165,7 @@ void bind_bench(py::module_& m) {
         py::dict out;
         {
           py::gil_scoped_release release;
-          // Eqs. (1)-(3) need the bounding box before any cube index: a first pass that reads the
+          // [CBC] eqs. (2)-(6) need the bounding box before any cube index: a first pass that reads the
           // rows, then a second one that reads them again.
           const double read = fastest_parallel_ms(repeat, threads, [&](int part) {
             if (row_bytes > 32) {
@@ -176,7 +176,7 @@ void bind_bench(py::module_& m) {
               sinks[8 * part] = or_bytes(first + begin, end - begin);
             }
           });
-          // Line 3 of Algorithm 1: the point's cube marked occupied, a store per point (into a
+          // Line 3 of [CBC] Algorithm 1: the point's cube marked occupied, a store per point (into a
           // byte per occupied cube, the smallest table there is; a table per thread, and merging
           // them is not timed).
           const double store = fastest_parallel_ms(repeat, threads, [&](int part) {

@@ -25,7 +25,7 @@ const char* storage_name(CubeStorage storage) {
 }  // namespace
 
 void bind_collapse(py::module_& m) {
-  py::class_<CubeGrid>(m, "CubeGrid", "CBC grid geometry (eqs. 1-9); cube (0,0,0) is centred on min_corner.")
+  py::class_<CubeGrid>(m, "CubeGrid", "CBC grid geometry ([CBC] eqs. (1)-(9)); cube (0,0,0) is centred on min_corner.")
       .def(py::init<>())
       .def_readonly("min_corner", &CubeGrid::min_corner, "(3,) float64: (xmin, ymin, zmin) [m]")
       .def_readonly("edge", &CubeGrid::edge_m, "cube edge E [m]")
@@ -50,7 +50,7 @@ void bind_collapse(py::module_& m) {
             }
             return out;
           },
-          py::arg("index"), "(K,) int64 cube indices I -> (K, 3) int64 (ix, iy, iz), inverse of eq. (7)")
+          py::arg("index"), "(K,) int64 cube indices I -> (K, 3) int64 (ix, iy, iz), [CBC] eqs. (7)-(9)")
       .def(
           "centers",
           [](const CubeGrid& grid, const py::array_t<std::int64_t, py::array::c_style | py::array::forcecast>& index) {

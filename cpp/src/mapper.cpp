@@ -1,5 +1,5 @@
 // Mapper: local classified elevation maps chained by class-weighted ICP into a global elevation
-// map, with loop closing on a Ceres pose graph (the classification paper, sections 3.3 and 4).
+// map, with loop closing on a Ceres pose graph ([TC] sections 3.3 and 4).
 #include "terracube/mapper.hpp"
 
 #include <Eigen/Geometry>
@@ -14,9 +14,9 @@
 #include <string>
 #include <unordered_map>
 
+#include "parallel.hpp"
 #include "terracube/collapse.hpp"
 #include "terracube/pose_graph.hpp"
-#include "parallel.hpp"
 
 namespace terracube {
 

@@ -1,4 +1,4 @@
-// Algorithm 1's column rule evaluated on OctoMap's OcTree: an independent storage and sweep that
+// [CBC] Algorithm 1's column rule evaluated on OctoMap's OcTree: an independent storage and sweep that
 // collapse_overhangs must agree with point for point.
 #include <octomap/OcTree.h>
 

@@ -13,7 +13,7 @@
 namespace terracube {
 namespace {
 
-// Algorithm 1 of Reina et al. (2014) written out loop by loop, as the paper states it: V as a
+// [CBC] Algorithm 1 written out loop by loop, as the paper states it: V as a
 // std::vector<bool>, the unsorted list L, std::sort, M holding the ground cube's index I.
 struct NaiveResult {
   std::vector<std::uint8_t> overhang;
@@ -540,7 +540,7 @@ TEST(CollapseVsNaive, FloatRowsAreQuantisedByTheDoubleFormulaForEdgesCornersAndE
   // Plain float rows are quantised eight at a time in float arithmetic where the float estimate's
   // error bound allows (a margin of 2^-12 to 2^-7 cubes), else in doubles; rows whose estimate
   // lies within the margin of a cube border take the double formula. Either way every cube index
-  // must be eqs. (1)-(3)'s in doubles: random rows, and rows on and up to 16 float ulps either
+  // must be [CBC] eqs. (4)-(6)'s in doubles: random rows, and rows on and up to 16 float ulps either
   // side of cube borders, for grids whose margin ranges over the whole span and past it (a corner
   // 3e5 m away, the 20,000-cube axis), on rows of 3 and 4 scalars and lengths that end inside and
   // after an 8-row block.

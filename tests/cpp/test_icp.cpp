@@ -975,7 +975,7 @@ TEST(RegisterPoints, ExtrapolationReachesTheSameAnswerInFewerIterations) {
 
 /// Brute-force reference for one ICP step: same-class partners within `limit` at `transform`,
 /// eq. (A6) summed pair by pair about the weighted centroid, solved by LDLT, applied as an exact
-/// rotation about the centroid; and the truncated eq. (4) error sum w min(d^2, limit^2).
+/// rotation about the centroid; and the truncated [TC] eq. (4) error sum w min(d^2, limit^2).
 struct NaiveIcp {
   NaiveIcp(const ClassifiedPoints& source_points, const ClassifiedPoints& target_points,
            const RegistrationParams& registration_params)
@@ -1049,7 +1049,7 @@ struct NaiveIcp {
 
 TEST(RegisterMaps, GuardedExtrapolationNeverEndsAStepAboveThePlainStepsError) {
   // Step by step (a run stopped after n updates continues the run stopped after n - 1): each
-  // update must reach an eq. (4) error, truncated at the next limit, no larger than the plain
+  // update must reach a [TC] eq. (4) error, truncated at the next limit, no larger than the plain
   // step computed here by brute force; where no jump was kept it must be that plain step.
   const StreetPair pair = street_pair();
   const ClassifiedPoints& source = pair.source;

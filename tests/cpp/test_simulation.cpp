@@ -602,7 +602,7 @@ Rates collapse_rates(const SyntheticWorld& world, const Trajectory& t, const Eig
   std::vector<Eigen::Vector3d> points;
   for (const Eigen::Vector3f& p : scan.points) points.push_back(p.cast<double>());
   const CollapseResult result = collapse_overhangs(points, params);
-  // Column contents, with the CBC's own column quantisation (eqs. (1)-(2)).
+  // Column contents, with the CBC's own column quantisation ([CBC] eqs. (4)-(5)).
   const auto column = [&](const Eigen::Vector3d& leveled) {
     return std::make_pair(quantize(leveled.x(), result.grid.min_corner.x(), 1.0 / params.edge_m),
                           quantize(leveled.y(), result.grid.min_corner.y(), 1.0 / params.edge_m));

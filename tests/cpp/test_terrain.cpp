@@ -100,7 +100,7 @@ void expect_throw_with(const std::function<void()>& call, const std::string& par
   }
 }
 
-// --- Table 1, one row at a time -----------------------------------------------------------------
+// --- [TC] Table 1, one row at a time -----------------------------------------------------------------
 
 // [TC] Table 1: rows "Small"/"Large" spread, columns "Low"/"Middle"/"High" highest elevation.
 // With exact_params: low < 0.25 <= middle <= 1.0 < high, small std-dev < 0.5.
@@ -266,7 +266,7 @@ TEST(TerrainEdges, OnlyGroundBecomesEdgeNeverAnotherClass) {
 
 // --- the vectorised passes against a naive per-cell reference ----------------------------------
 
-/// Table 1 and the edge rule written out cell by cell, comparing in double as the paper's
+/// [TC] Table 1 and the edge rule written out cell by cell, comparing in double as the paper's
 /// thresholds are given: the independent reference for the float, branch-free implementation.
 Eigen::Matrix<std::uint8_t, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> naive_classes(
     const ElevationMap& map, const TerrainParams& params) {

@@ -1,6 +1,6 @@
 // 2.5D elevation maps: one grid geometry plus named float layers, NaN for empty cells (in the
-// manner of grid_map_core). The DEM of Reina et al. (2014) is the "mean" layer; the per-cell
-// statistics of the terrain-classification paper (highest elevation, std-dev, discontinuity) are
+// manner of grid_map_core). The DEM of [CBC] is the "mean" layer; the per-cell
+// statistics of [TC] (highest elevation, std-dev, discontinuity) are
 // the "max", "std_dev" and "discontinuity" layers.
 #pragma once
 
@@ -121,7 +121,7 @@ void build_elevation_map_into(ElevationMap& map, const PointsView<float>& points
 void build_elevation_map_into(ElevationMap& map, const PointsView<double>& points, const ElevationParams& params,
                               const std::vector<std::uint8_t>* use = nullptr);
 
-/// The collapsible-cubes paper's "DEM without overhangs" plus planner layers:
+/// [CBC]'s "DEM without overhangs" plus planner layers:
 /// collapse_overhangs, then build_elevation_map from the points it kept, then
 ///  - "clearance": from the highest kept point below the cell's lowest overhang point up to that
 ///    point [m] (the free height under the overhang, never negative), +inf where the cell has no

@@ -140,7 +140,7 @@ struct RegionLayoutComparison {
 /// (dsm_centres); the layouts are compared without registering one to the other, by the distance
 /// errors of region pairs ([TC] eq. (5)) and the angle errors of region triples ([TC] eq. (6)).
 /// `relations` picks the paper's consecutive relations (default) or every pair and triple. With
-/// K = 2 there is one pair and no triple. Points may be 2D (x, y) or 3D (the paper's, Table 3);
+/// K = 2 there is one pair and no triple. Points may be 2D (x, y) or 3D ([TC] Table 3);
 /// both sets must have the same dimension. Throws std::invalid_argument for fewer than two
 /// regions, unequal counts, non-finite coordinates, or two regions at the same place in one set.
 RegionLayoutComparison compare_region_layouts(const std::vector<Eigen::VectorXd>& map_centres,

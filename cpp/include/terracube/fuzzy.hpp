@@ -1,4 +1,4 @@
-// Fuzzy elevation maps (FEM): Reina et al., "Collapsible cubes", IEEE AIM 2014, section IV. The
+// Fuzzy elevation maps (FEM): [CBC] section IV-C. The
 // terrain is a zero-order Takagi-Sugeno fuzzy surface z = f(x, y), identified from the points that
 // collapse_overhangs kept by ANFIS hybrid learning (Jang 1993): least squares for the consequents,
 // gradient steps for the membership functions. The surface filters sensor noise and interpolates

@@ -1,5 +1,5 @@
-// Class-weighted ICP between classified elevation maps (the terrain-classification paper,
-// sections 2.2 and 3.3 and its appendix): point-to-point ICP whose correspondences pair a source
+// Class-weighted ICP between classified elevation maps ([TC] sections 2.2 and 3.3 and its
+// appendix): point-to-point ICP whose correspondences pair a source
 // cell only with the nearest target cell of the same terrain class, each class with its own
 // weight ([TC] eq. (4)), ground taking no part. With classes off and unit weights it is the paper's
 // "conventional" ICP over all cells.

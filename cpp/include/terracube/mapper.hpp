@@ -1,4 +1,4 @@
-// Global elevation maps from scan sequences (the terrain-classification paper, sections 3.3 and 4):
+// Global elevation maps from scan sequences ([TC] sections 3.3 and 4):
 // every ~3 m of travel a local classified elevation map is built from the scan, registered to the
 // previous local map by the class-weighted ICP (odometry as the initial guess) and fused into a
 // global elevation map that grows with the area covered. Revisits are detected (pose proximity,
