@@ -5,6 +5,7 @@
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
+#include <exception>
 #include <limits>
 #include <stdexcept>
 #include <string>
@@ -157,11 +158,15 @@ std::size_t write_mask(const std::vector<std::int64_t>& cube_of_row, int num_thr
 }
 
 /// Dense storage: V is a bit per cube of the grid, M a layer per column. Reading V in index order
-/// lists L already sorted (a bucket sort, O(cubes / 64 + |L|)).
+/// lists L already sorted (a bucket sort, O(cubes / 64 + |L|)). The workspace keeps V all 0 and M
+/// all -1 between calls: a call clears only what it set, O(|L|), not the whole grid.
 void collapse_dense(Workspace& workspace, int sigma, int num_threads, CollapseResult& result) {
   const CubeGrid& grid = result.grid;
   const std::vector<std::int64_t>& cubes = workspace.cubes;
-  workspace.occupancy.assign(static_cast<std::size_t>((grid.num_cubes() + 63) / 64), 0);
+  const auto words = static_cast<std::size_t>((grid.num_cubes() + 63) / 64);
+  const auto num_columns = static_cast<std::size_t>(grid.num_columns());
+  if (workspace.occupancy.size() < words) workspace.occupancy.resize(words, 0);
+  if (workspace.ground.size() < num_columns) workspace.ground.resize(num_columns, -1);
   std::uint64_t* const occupancy = workspace.occupancy.data();  // V
   const auto mark = [occupancy](std::int64_t cube) {
     if (cube != kNoCube) occupancy[static_cast<std::size_t>(cube >> 6)] |= std::uint64_t{1} << (cube & 63);
@@ -175,13 +180,12 @@ void collapse_dense(Workspace& workspace, int sigma, int num_threads, CollapseRe
   }
   if (cubes.size() % 2 == 1) mark(cubes.back());
   std::vector<std::int64_t>& occupied = result.occupied_cubes;  // L, sorted
-  for (std::size_t word = 0; word < workspace.occupancy.size(); ++word) {
+  for (std::size_t word = 0; word < words; ++word) {
     for (std::uint64_t bits = occupancy[word]; bits != 0; bits &= bits - 1) {
       occupied.push_back(static_cast<std::int64_t>(word * 64) + __builtin_ctzll(bits));
     }
   }
   std::vector<std::int32_t>& ground = workspace.ground;  // M
-  ground.assign(static_cast<std::size_t>(grid.num_columns()), -1);
   result.removed_cubes = collapse_columns(
       occupied, grid.num_columns(),
       sigma, [&](std::int64_t column) -> auto& { return ground[static_cast<std::size_t>(column)]; });
@@ -195,6 +199,10 @@ void collapse_dense(Workspace& workspace, int sigma, int num_threads, CollapseRe
         return ((occupancy[static_cast<std::size_t>(cube >> 6)] >> (cube & 63)) & 1U) == 0;
       },
       result.overhang);
+  for (const std::int64_t cube : occupied) {  // V and M cleared for the next call
+    occupancy[static_cast<std::size_t>(cube >> 6)] = 0;
+    ground[static_cast<std::size_t>(cube % grid.num_columns())] = -1;
+  }
 }
 
 /// Sparse storage: L is the sorted distinct cubes of the rows and M a hash map over the columns
@@ -240,9 +248,16 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
     result.storage_used = choose_storage(result.grid, params, extent.num_used);
     // One O(N) pass computes I for every point ([CBC] section III-B); V and L follow from them.
     Workspace& workspace = thread_workspace();
-    struct ReleaseOnExit {
+    struct ReleaseOnExit {  // and drops the workspace when a call throws (V and M may be dirty)
       Workspace& workspace;
-      ~ReleaseOnExit() { workspace.release_if_large(); }
+      int exceptions = std::uncaught_exceptions();
+      ~ReleaseOnExit() {
+        if (std::uncaught_exceptions() > exceptions) {
+          workspace = Workspace();
+        } else {
+          workspace.release_if_large();
+        }
+      }
     } release_on_exit{workspace};
     cube_of_rows(cloud, result.grid, params.num_threads, workspace.cubes);
     if (result.storage_used == CubeStorage::kDense) {

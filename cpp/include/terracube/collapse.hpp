@@ -71,6 +71,8 @@ struct CollapseResult {
 
 /// [CBC] Algorithm 1: builds the CBC (V and L in one O(N) pass), sorts L, sweeps every column
 /// bottom-up keeping its ground in M and collapses the cubes σ or more empty cubes above it.
+/// Each calling thread keeps its work buffers (the cube indices, and V and M of the dense storage)
+/// for its next call, released after a call that needed over 64 MB.
 /// Throws std::invalid_argument on a non-positive edge, σ < 1, a non-rigid transform, NaN/Inf
 /// rows (unless dropped) or an extent whose cube count would overflow a 64-bit index.
 CollapseResult collapse_overhangs(const PointsView<float>& points, const CollapseParams& params = {});
