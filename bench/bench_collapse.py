@@ -22,7 +22,8 @@ thread's), shown as "same, N threads" and as a second numpy ratio. Ratios are
 ``method time / collapse_overhangs time``.
 
 The memory floor (:func:`memory_floor`): per input, bare C++ loops (``terracube._bench._memory_floor``,
-a module built only with ``TERRACUBE_BUILD_BENCH=ON``, skipped without it; private to this benchmark) time the memory traffic any exact implementation of Algorithm 1 must do
+a module built only with ``TERRACUBE_BUILD_BENCH=ON``, skipped without it; private to this
+benchmark) time the memory traffic any exact implementation of Algorithm 1 must do
 -- read the rows for the bounding box, read them again while storing a byte per point at its cube,
 then load that byte per point and write the mask -- with no arithmetic at all, once on one thread
 and once with each loop split over every processor (each thread its own share of the rows and its
@@ -32,7 +33,7 @@ bound: tighter loops could lower the floor a little, and the shared machine is n
 section names the inputs where it is below 20x.
 
 Correctness is asserted, not timed: the numpy mask and its occupied and removed cube lists (both
-paths) must equal ``collapse_overhangs``' on every input, and so must OctoMap's mask; the point-gap
+paths) must equal ``collapse_overhangs``' on every input, and so must OctoMap's mask; the point-based
 baseline solves a different problem, so only its agreement rate is printed. Before anything is timed, the
 vectorised column rule is checked against a plain-Python transcription of Algorithm 1 on small
 random clouds. Timing targets are reported as MET / NOT MET and never asserted.
@@ -321,7 +322,7 @@ def load_inputs(data_dir: Path, quick: bool) -> list[Cloud]:
 # Timing and checks
 # --------------------------------------------------------------------------------------------
 
-METHODS = ("collapse", "collapse_threads", "point_gap", "octomap", "numpy", "numpy_unique")
+METHODS = ("collapse", "collapse_threads", "point_based", "octomap", "numpy", "numpy_unique")
 
 
 @dataclass
@@ -329,7 +330,7 @@ class Measurement:
     cloud: Cloud
     ms: dict = field(default_factory=dict)  # method -> median ms, None for n/a
     octomap_error: str = ""
-    point_gap_agreement: float = float("nan")
+    point_based_agreement: float = float("nan")
     overhang_fraction: float = float("nan")
     floor: dict = field(default_factory=dict)  # see memory_floor
     floor_threads: dict = field(default_factory=dict)  # the same on every processor
@@ -340,7 +341,7 @@ MAX_CHECKED_DENSE_CUBES = 1 << 28  # the check runs the dense numpy path too whi
 
 def check_agreement(cloud: Cloud, edge: float, sigma: int, measurement: Measurement) -> None:
     """Asserts numpy == C++ (mask, L, R; both numpy paths) and OctoMap == C++ (mask); records the
-    point-gap agreement. OctoMap refusing the cloud (ValueError: too many cubes per axis) is n/a."""
+    point-based agreement. OctoMap refusing the cloud (ValueError: too many cubes per axis) is n/a."""
     points = cloud.points
     result = tc.collapse_overhangs(points, edge, sigma)
     affordable = cube_indices(points, edge).num_cubes <= MAX_CHECKED_DENSE_CUBES
@@ -362,8 +363,8 @@ def check_agreement(cloud: Cloud, edge: float, sigma: int, measurement: Measurem
             np.array_equal(getattr(threaded, field_name), getattr(result, field_name)),
             f"{cloud.name}: num_threads=0 gives another {field_name} than one thread",
         )
-    point_gap = tc.point_based_overhangs(points, edge, sigma)
-    measurement.point_gap_agreement = float(np.mean(point_gap == result.overhang))
+    point_based = tc.point_based_overhangs(points, edge, sigma)
+    measurement.point_based_agreement = float(np.mean(point_based == result.overhang))
     measurement.overhang_fraction = float(np.mean(result.overhang))
 
 
@@ -438,7 +439,7 @@ def measure(cloud: Cloud, edge: float, sigma: int, repeat: int) -> Measurement:
     runs = {
         "collapse": lambda: tc.collapse_overhangs(points, edge, sigma),
         "collapse_threads": lambda: tc.collapse_overhangs(points, edge, sigma, num_threads=0),
-        "point_gap": lambda: tc.point_based_overhangs(points, edge, sigma),
+        "point_based": lambda: tc.point_based_overhangs(points, edge, sigma),
         "octomap": lambda: tc.octomap_column_overhangs(points, edge, sigma),
         "numpy": lambda: numpy_collapse(points, edge, sigma),
         "numpy_unique": lambda: numpy_collapse_unique(points, edge, sigma),
@@ -506,7 +507,7 @@ def _cell(measurement: Measurement, method: str) -> tuple[str, str]:
 LABELS = {
     "collapse": "collapse_overhangs (C++)",
     "collapse_threads": f"  same, {processors()} threads",
-    "point_gap": "point_based_overhangs (C++)",
+    "point_based": "point_based_overhangs (C++)",
     "octomap": "octomap_column_overhangs (C++)",
     "numpy": "numpy_collapse (numpy)",
     "numpy_unique": "  same, np.unique path",
@@ -550,7 +551,7 @@ def print_measurement(measurement: Measurement) -> None:
     )
     print(
         f"  overhang: {measurement.overhang_fraction:.2%} of points; point_based agrees with collapse on "
-        f"{measurement.point_gap_agreement:.2%} of points"
+        f"{measurement.point_based_agreement:.2%} of points"
     )
 
 
@@ -605,10 +606,12 @@ def print_markdown(measurements: list[Measurement]) -> None:
             markdown_row(
                 [
                     *row,
-                    f"{m.point_gap_agreement:.2%}",
+                    f"{m.point_based_agreement:.2%}",
                     f"{leveled:.2f}, {numpy_leveled:.2f} ({numpy_leveled / leveled:.1f}x)",
                     "; ".join(
-                        f"{floor['floor_ms']:.3f} ({m.ms['numpy'] / floor['floor_ms']:.0f}x)" if floor else "n/a"
+                        f"{floor['floor_ms']:.3f} ({m.ms['numpy'] / floor['floor_ms']:.0f}x)"
+                        if floor
+                        else "n/a"
                         for floor in (m.floor, m.floor_threads)
                     ),
                 ]

@@ -75,17 +75,16 @@ void BM_Kitti(benchmark::State& state) {
   }
   const terracube::PointsView<float> view(values.data(), values.size() / 4, 4, 1);
   terracube::CollapseParams params;
-  terracube::PointGapParams gap;
-  gap.min_gap_m = params.sigma * params.edge_m;
+  const terracube::PointBasedParams point_based;  // E = 0.5 m, sigma = 2, as params
   for (auto _ : state) {
     if constexpr (kMethod == 0) benchmark::DoNotOptimize(terracube::collapse_overhangs(view, params));
-    if constexpr (kMethod == 1) benchmark::DoNotOptimize(terracube::point_gap_overhangs(view, gap));
+    if constexpr (kMethod == 1) benchmark::DoNotOptimize(terracube::point_based_overhangs(view, point_based));
     if constexpr (kMethod == 2) benchmark::DoNotOptimize(terracube::octomap_column_overhangs(view, params));
   }
   state.SetItemsProcessed(state.iterations() * static_cast<std::int64_t>(view.size));
 }
 BENCHMARK(BM_Kitti<0>)->Name("BM_KittiCollapse")->Unit(benchmark::kMillisecond);
-BENCHMARK(BM_Kitti<1>)->Name("BM_KittiPointGap")->Unit(benchmark::kMillisecond);
+BENCHMARK(BM_Kitti<1>)->Name("BM_KittiPointBased")->Unit(benchmark::kMillisecond);
 BENCHMARK(BM_Kitti<2>)->Name("BM_KittiOctomap")->Unit(benchmark::kMillisecond);
 
 /// The bundled-size Ouster OS-128 scan of bench_collapse.py, on `state.range(0)` threads.

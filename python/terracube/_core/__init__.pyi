@@ -10,7 +10,7 @@ from . import simulation
 __all__: list[str] = ['AbsoluteTrajectoryError', 'CollapseParams', 'CollapseResult', 'CropBox', 'CubeGrid', 'CubeStorage', 'ElevationMap', 'ElevationParams', 'ErrorStatistics', 'FuzzyElevationMap', 'FuzzyParams', 'GroundReference', 'LoopClosure', 'MapGeometry', 'Mapper', 'MapperParams', 'MapperTimings', 'MembershipFamily', 'OverhangFreeMap', 'Pairing', 'PclIcpParams', 'PclIcpResult', 'PointBasedParams', 'PoseGraphEdge', 'PoseGraphParams', 'PoseGraphResult', 'PoseSegmentError', 'RegionLayoutComparison', 'RegionPairError', 'RegionRelations', 'RegionTripleError', 'RegistrationParams', 'RegistrationResult', 'RelativePoseError', 'RelativePoseErrorParams', 'RobustLoss', 'ScanReport', 'SegmentLengthError', 'StepRule', 'StopReason', 'TerrainParams', 'TrajectoryAlignment', 'absolute_trajectory_error', 'build_elevation_map', 'build_elevation_map_into', 'build_overhang_free_map', 'classify_terrain', 'collapse_overhangs', 'compare_region_layouts', 'error_statistics', 'fit_fuzzy_elevation_map', 'has_pcl', 'leveling_transform', 'octomap_column_overhangs', 'optimize_pose_graph', 'pcl_gicp', 'pcl_icp', 'point_based_overhangs', 'points_of_map', 'register_maps', 'register_points', 'relative_pose_error', 'rigid_alignment', 'sigma_from_robot_height', 'simulation', 'step_layer']
 class CubeGrid:
     """
-    CBC grid geometry (eqs. 1-9); cube (0,0,0) is centred on min_corner.
+    CBC grid geometry ([CBC] eqs. (1)-(9)); cube (0,0,0) is centred on min_corner.
     """
     def __init__(self) -> None:
         ...
@@ -22,7 +22,7 @@ class CubeGrid:
         """
     def coordinates(self, index: typing.Annotated[numpy.typing.ArrayLike, numpy.int64]) -> numpy.typing.NDArray[numpy.int64]:
         """
-        (K,) int64 cube indices I -> (K, 3) int64 (ix, iy, iz), inverse of eq. (7)
+        (K,) int64 cube indices I -> (K, 3) int64 (ix, iy, iz), [CBC] eqs. (7)-(9)
         """
     @property
     def edge(self) -> float:
