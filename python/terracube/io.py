@@ -24,8 +24,13 @@ problem for a malformed, truncated or unknown one.
 
 from __future__ import annotations
 
+import contextlib
+import os
 import re
+import secrets
+import struct
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +50,7 @@ __all__ = [
     "load_sample_scan",
     "OVERHANG_LAS_CLASS",
     "RETAINED_LAS_CLASS",
+    "atomic_path",
 ]
 
 PathLike = str | Path
@@ -69,6 +75,26 @@ TERRAIN_LAS_CLASSES = {0: 1, 1: 2, 2: 65, 3: 66, 4: 67, 5: 68}
 
 class _FormatError(Exception):
     pass
+
+
+@contextlib.contextmanager
+def atomic_path(path: PathLike) -> Iterator[Path]:
+    """A temporary name in ``path``'s folder to write to; renamed to ``path`` when the block succeeds.
+
+    A failure (or a kill) half-way leaves neither ``path`` nor the temporary file behind (a kill may
+    leave a hidden ``.NAME.*.tmp``), so a file under its final name is always whole. The temporary
+    name keeps ``path``'s suffix (numpy's ``savez`` would append ``.npz`` otherwise). Creates the
+    folder. Example: ``with atomic_path(out) as tmp: np.savez(tmp, ...)``.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # A fresh name rather than mkstemp's file, so the writer creates it with the usual permissions.
+    temporary = path.with_name(f".{path.stem[:100]}.{secrets.token_hex(6)}.tmp{path.suffix}")
+    try:
+        yield temporary
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
 
 
 def sample_scan_path() -> Path:
@@ -158,10 +184,10 @@ def read_cloud(path: PathLike) -> dict[str, np.ndarray]:
 
 
 def _read_bin(path: Path) -> dict[str, np.ndarray]:
-    raw = np.fromfile(path, dtype=np.float32)
-    if raw.size % 4 != 0:
-        raise _FormatError(f"{path.stat().st_size} bytes is not a whole number of float32 (x, y, z, i) rows")
-    rows = raw.reshape(-1, 4)
+    size = path.stat().st_size
+    if size % 16 != 0:  # np.fromfile would drop the trailing bytes silently
+        raise _FormatError(f"{size} bytes is not a whole number of 16-byte float32 (x, y, z, i) rows")
+    rows = np.fromfile(path, dtype="<f4").reshape(-1, 4)
     fields = {"xyz": rows[:, :3], "intensity": rows[:, 3]}
     label_path = path.with_suffix(".label")
     if label_path.is_file():  # a SemanticKITTI label file beside the scan: uint32, class in the low 16 bits
@@ -257,13 +283,106 @@ def _read_ply(path: Path) -> dict[str, np.ndarray]:
     return fields
 
 
+# The byte layout of the LAS public header block (LAS 1.0-1.4) and of the LAZ records, checked before
+# laspy and lazrs see a file: a header may claim 2^32 VLRs (laspy loops on them), a LAZ chunk table of
+# 0x7FFFFFFF chunks (lazrs aborts the process) or 10^8 points in a 200 kB file (gigabytes allocated).
+_LAS_VLR_HEADER = 54  # bytes: reserved, user_id[16], record_id, record_length, description[32]
+_LAS_EVLR_HEADER = 60
+_LAZ_VLR = (b"laszip encoded", 22204)
+_LAZ_VARIABLE_CHUNKS = 0xFFFFFFFF
+
+
+def _check_las_layout(path: Path) -> None:
+    """_FormatError when the header's counts and offsets do not fit in the file."""
+    size = path.stat().st_size
+    with path.open("rb") as stream:
+        head = stream.read(375)
+        if len(head) < 227 or head[:4] != b"LASF":
+            return  # laspy names the problem
+        version = (head[24], head[25])
+        header_size, point_offset, vlr_count = struct.unpack_from("<HII", head, 94)
+        point_format, record_length, count = struct.unpack_from("<BHI", head, 104)
+        if version >= (1, 4) and len(head) >= 255:
+            evlr_start, evlr_count, count64 = struct.unpack_from("<QIQ", head, 235)
+            count = count64 or count
+        else:
+            evlr_start, evlr_count = 0, 0
+        if point_offset > size:
+            raise _FormatError(
+                f"truncated LAS: the point data starts at byte {point_offset}, the file holds {size}"
+            )
+        if header_size > point_offset:
+            raise _FormatError(
+                f"corrupt LAS header: point data at byte {point_offset}, header of {header_size} bytes, "
+                f"file of {size} bytes"
+            )
+        if vlr_count * _LAS_VLR_HEADER > point_offset - header_size:
+            raise _FormatError(
+                f"corrupt LAS header: {vlr_count} VLRs of at least {_LAS_VLR_HEADER} bytes each do not fit "
+                f"in the {point_offset - header_size} bytes before the point data"
+            )
+        if evlr_count and (evlr_start > size or evlr_count * _LAS_EVLR_HEADER > size - evlr_start):
+            raise _FormatError(
+                f"corrupt LAS header: {evlr_count} extended VLRs from byte {evlr_start} do not fit in "
+                f"the file of {size} bytes"
+            )
+        if not point_format & 0xC0:  # uncompressed: checked against the size after laspy's header
+            return
+        chunk_size = None
+        stream.seek(header_size)
+        vlrs = stream.read(point_offset - header_size)
+        position = 0
+        for _ in range(vlr_count):
+            if position + _LAS_VLR_HEADER > len(vlrs):
+                raise _FormatError("corrupt LAS header: the VLRs run into the point data")
+            user_id = vlrs[position + 2 : position + 18].split(b"\0")[0]
+            record_id, length = struct.unpack_from("<HH", vlrs, position + 18)
+            if (user_id, record_id) == _LAZ_VLR and length >= 16:
+                (chunk_size,) = struct.unpack_from("<I", vlrs, position + _LAS_VLR_HEADER + 12)
+            position += _LAS_VLR_HEADER + length
+        if chunk_size is None:
+            raise _FormatError("corrupt LAZ: compressed points but no 'laszip encoded' VLR")
+        if count == 0:
+            return
+        stream.seek(point_offset)
+        raw = stream.read(8)
+        table = struct.unpack("<q", raw)[0] if len(raw) == 8 else -2
+        if table == -1 and size >= 8:  # written to a stream: the offset is in the last 8 bytes
+            stream.seek(size - 8)
+            table = struct.unpack("<q", stream.read(8))[0]
+        data_bytes = table - (point_offset + 8)
+        if data_bytes >= 0 and table + 8 > size:
+            raise _FormatError(
+                f"truncated LAZ: the chunk table at byte {table} lies past the end of the file ({size} bytes)"
+            )
+        if data_bytes < 0:
+            raise _FormatError(
+                f"corrupt LAZ chunk table: offset {table} outside the point data (bytes {point_offset + 8}"
+                f"..{size - 8})"
+            )
+        stream.seek(table)
+        _, chunks = struct.unpack("<II", stream.read(8))
+    if chunks < 1 or chunks > data_bytes:  # every chunk holds at least one point of several bytes
+        raise _FormatError(
+            f"corrupt LAZ chunk table: {chunks} chunks for {count} points in {data_bytes} bytes of data"
+        )
+    if chunk_size != _LAZ_VARIABLE_CHUNKS and chunk_size and chunks != -(-count // chunk_size):
+        raise _FormatError(
+            f"corrupt LAZ: the header promises {count} points, {chunks} chunks of {chunk_size} hold "
+            f"{(chunks - 1) * chunk_size + 1}..{chunks * chunk_size}"
+        )
+
+
 def _read_las(path: Path) -> dict[str, np.ndarray]:
     try:
         import laspy
     except ImportError as error:
         raise ImportError("LAS/LAZ reading needs the las extra: pip install 'terracube[las]'") from error
+    _check_las_layout(path)
+    # lazrs' single-threaded backend: the parallel one (rayon's thread pool) deadlocks a forked child.
+    backend = laspy.LazBackend.Lazrs
     try:
-        with laspy.open(str(path)) as reader:
+        with laspy.open(str(path), laz_backend=backend) as reader:
             header = reader.header
     except Exception as error:
         raise _FormatError(f"not a valid LAS/LAZ file ({type(error).__name__}: {error})") from None
@@ -277,7 +396,7 @@ def _read_las(path: Path) -> dict[str, np.ndarray]:
                 f"from byte {header.offset_to_point_data} ({need} bytes), the file holds {size}"
             )
     try:
-        las = laspy.read(str(path))
+        las = laspy.read(str(path), laz_backend=backend)
     except Exception as error:
         raise _FormatError(
             f"truncated or corrupt LAS/LAZ point data ({type(error).__name__}: {error})"
