@@ -655,16 +655,22 @@ def register(
             raise _fail(str(error)) from error
     _print_register_record(record, elapsed_ms, source, target)
     if output is not None:
-        output.parent.mkdir(parents=True, exist_ok=True)
-        if output.suffix.lower() == ".json":
-            output.write_text(json.dumps(record, indent=2) + "\n")
-        else:
-            header = (
-                f"terracube register {source} -> {target} ({method}): converged {record['converged']} "
-                f"({record['reason']}), {record['iterations']} iterations"
-            )
-            np.savetxt(output, np.asarray(record["transform"]), fmt="%.12g", header=header)
+        from .io import atomic_path
+
+        with atomic_path(output) as temporary:
+            _write_register_record(temporary, output.suffix.lower(), record, source, target, method)
         typer.echo(f"  written: {output}")
+
+
+def _write_register_record(output: Path, suffix: str, record: dict, source, target, method) -> None:
+    if suffix == ".json":
+        output.write_text(json.dumps(record, indent=2) + "\n")
+    else:
+        header = (
+            f"terracube register {source} -> {target} ({method}): converged {record['converged']} "
+            f"({record['reason']}), {record['iterations']} iterations"
+        )
+        np.savetxt(output, np.asarray(record["transform"]), fmt="%.12g", header=header)
 
 
 # ------------------------------------------------------------------------------------------ view
@@ -919,8 +925,10 @@ def config_command(
     if output is None:
         typer.echo(text, nl=False)
     else:
-        output.parent.mkdir(parents=True, exist_ok=True)
-        output.write_text(text)
+        from .io import atomic_path
+
+        with atomic_path(output) as temporary:
+            temporary.write_text(text)
         typer.echo(f"written: {output}")
 
 

@@ -79,9 +79,15 @@ class ElevationMap:
 
     def save(self, path: str | Path) -> Path:
         """Write geometry and every layer to a compressed .npz file."""
+        from .io import atomic_path
+
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
         g = self.geometry
+        with atomic_path(path) as temporary:
+            self._savez(temporary, g)
+        return path
+
+    def _savez(self, path: Path, g) -> None:
         np.savez_compressed(
             path,
             resolution=np.float64(g.resolution),
@@ -90,7 +96,6 @@ class ElevationMap:
             layer_names=np.asarray(self.layers),
             **{f"layer_{name}": self[name] for name in self.layers},
         )
-        return path
 
     @classmethod
     def load(cls, path: str | Path) -> ElevationMap:
@@ -127,20 +132,24 @@ class ElevationMap:
         raster = np.ascontiguousarray(data.T[::-1, :])
         top = g.origin[1] + g.size[1] * g.resolution
         transform = from_origin(g.origin[0], top, g.resolution, g.resolution)
+        from .io import atomic_path
+
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with rasterio.open(
-            path,
-            "w",
-            driver="GTiff",
-            height=raster.shape[0],
-            width=raster.shape[1],
-            count=1,
-            dtype="float32",
-            crs=crs,
-            transform=transform,
-            nodata=np.nan,
-        ) as dataset:
+        with (
+            atomic_path(path) as temporary,
+            rasterio.open(
+                temporary,
+                "w",
+                driver="GTiff",
+                height=raster.shape[0],
+                width=raster.shape[1],
+                count=1,
+                dtype="float32",
+                crs=crs,
+                transform=transform,
+                nodata=np.nan,
+            ) as dataset,
+        ):
             dataset.write(raster, 1)
             dataset.set_band_description(1, name)
         return path

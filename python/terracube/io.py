@@ -583,14 +583,14 @@ def write_pcd(path: PathLike, fields: dict[str, np.ndarray], encoding: str = "bi
         for i in range(count):
             rows[name if count == 1 else f"{name}__{i:04d}"] = value if count == 1 else value[:, i]
     cloud = PointCloud(metadata, rows)
-    path.parent.mkdir(parents=True, exist_ok=True)
     if encoding != "ascii":
-        cloud.save(path, encoding=Encoding(encoding))
+        with atomic_path(path) as temporary:
+            cloud.save(temporary, encoding=Encoding(encoding))
         return path
     # pypcd4 writes floats as %.10f, which rounds small values; these formats read back bit for bit.
     formats = ["%.9g" if rows.dtype[i] == np.float32 else "%.17g" if rows.dtype[i].kind == "f" else "%d"
                for i in range(len(rows.dtype))]  # fmt: skip
-    with path.open("wb") as stream:
+    with atomic_path(path) as temporary, temporary.open("wb") as stream:
         stream.write(metadata.compose_header(data=Encoding.ASCII).encode("ascii"))
         if n:
             np.savetxt(stream, rows, fmt=formats)
@@ -642,8 +642,8 @@ def write_kitti_bin(path: PathLike, points: np.ndarray, intensity: np.ndarray | 
         if intensity.shape != (points.shape[0],):
             raise ValueError(f"{path}: need ({points.shape[0]},) intensities, got shape {intensity.shape}")
         rows[:, 3] = intensity
-    path.parent.mkdir(parents=True, exist_ok=True)
-    rows.tofile(path)
+    with atomic_path(path) as temporary:
+        rows.tofile(temporary)
     return path
 
 
@@ -696,7 +696,27 @@ def write_classified(
     suffix = path.suffix.lower()
     if suffix not in WRITE_SUFFIXES:
         raise ValueError(f"{path}: unknown output format {suffix!r} (use {', '.join(WRITE_SUFFIXES)})")
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if suffix == ".pcd":
+        return write_pcd(path, {"xyz": xyz, name: label_u8}, encoding="binary")
+    if suffix == ".bin":  # the labels first: a scan under its final name always has its labels beside it
+        with atomic_path(path.with_suffix(".label")) as temporary:
+            label_u8.astype("<u4").tofile(temporary)
+        return write_kitti_bin(path, xyz)
+    with atomic_path(path) as temporary:
+        _write_classified(temporary, suffix, xyz, labels, label_u8, is_mask, las_classes)
+    return path
+
+
+def _write_classified(
+    path: Path,
+    suffix: str,
+    xyz: np.ndarray,
+    labels: np.ndarray,
+    label_u8: np.ndarray,
+    is_mask: bool,
+    las_classes: dict[int, int] | None,
+) -> None:
+    name = "overhang" if is_mask else "label"
     if suffix == ".ply":
         from plyfile import PlyData, PlyElement
 
@@ -718,13 +738,8 @@ def write_classified(
         colours = _label_colours(label_u8, is_mask)
         vertex["red"], vertex["green"], vertex["blue"] = colours[:, 0], colours[:, 1], colours[:, 2]
         PlyData([PlyElement.describe(vertex, "vertex")], text=False).write(str(path))
-    elif suffix == ".pcd":
-        write_pcd(path, {"xyz": xyz, name: label_u8}, encoding="binary")
     elif suffix in (".las", ".laz"):
         _write_las(path, xyz, label_u8, is_mask, las_classes)
-    elif suffix == ".bin":
-        write_kitti_bin(path, xyz)
-        label_u8.astype("<u4").tofile(path.with_suffix(".label"))
     elif suffix == ".npz":
         np.savez_compressed(path, xyz=xyz, **{name: labels.astype(bool) if is_mask else label_u8})
     elif suffix == ".npy":
@@ -733,7 +748,6 @@ def write_classified(
         with open(path, "w", encoding="ascii") as stream:
             stream.write(f"# x y z {name}\n")
             np.savetxt(stream, np.column_stack([xyz, label_u8]), fmt=["%.4f", "%.4f", "%.4f", "%d"])
-    return path
 
 
 def _write_las(
