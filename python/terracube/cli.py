@@ -960,6 +960,12 @@ def batch(
         help="Address of a running Dask scheduler (e.g. tcp://HOST:8786); needs terracube[batch].",
         show_default=False,
     ),
+    timeout: float = typer.Option(
+        600.0,
+        "--timeout",
+        help="Seconds one file may take; past it the file fails as timed out and its worker is "
+        "replaced (0: no limit).",
+    ),
     options=None,
 ) -> None:
     """Run one stage over many scans in parallel; print a summary table.
@@ -975,6 +981,8 @@ def batch(
         raise _fail(f"unknown stage {stage!r}: batch runs {', '.join(STAGES)}")
     if workers is not None and workers < 1:
         raise _fail(f"--workers must be at least 1, got {workers}")
+    if not timeout >= 0:
+        raise _fail(f"--timeout must be a number of seconds >= 0 (0: no limit), got {timeout}")
     config = command_config(stage, options)
     outputs = stage_output_options(stage, options)
     with _exit_on_bad_input():
@@ -993,6 +1001,7 @@ def batch(
             processes=not threads,
             progress=True,
             backend=backend,
+            timeout=timeout,
         )
     typer.echo(format_summary(records))
     failed = [r for r in records if r.status != "ok"]

@@ -702,6 +702,8 @@ def write_classified(
         with atomic_path(path.with_suffix(".label")) as temporary:
             label_u8.astype("<u4").tofile(temporary)
         return write_kitti_bin(path, xyz)
+    if suffix in (".las", ".laz"):
+        _check_las(path, xyz, label_u8, is_mask, las_classes)
     with atomic_path(path) as temporary:
         _write_classified(temporary, suffix, xyz, labels, label_u8, is_mask, las_classes)
     return path
@@ -750,6 +752,26 @@ def _write_classified(
             np.savetxt(stream, np.column_stack([xyz, label_u8]), fmt=["%.4f", "%.4f", "%.4f", "%d"])
 
 
+def _check_las(
+    path: Path, xyz: np.ndarray, labels: np.ndarray, is_mask: bool, las_classes: dict[int, int] | None
+) -> np.ndarray | None:
+    """ValueError naming ``path`` for what LAS cannot store; the LAS codes of ``labels`` when
+    ``las_classes`` maps them."""
+    if not np.all(np.isfinite(xyz)):
+        raise ValueError(f"{path}: LAS cannot store NaN or infinite coordinates; drop those points first")
+    if las_classes is None or is_mask:
+        return None
+    lookup = np.full(256, RETAINED_LAS_CLASS, dtype=np.uint8)
+    for label, code in las_classes.items():
+        if not (0 <= int(label) <= 255 and 0 <= int(code) <= 255):
+            raise ValueError(f"{path}: las_classes maps {label} -> {code}; both must lie in 0..255")
+        lookup[int(label)] = int(code)
+    missing = np.setdiff1d(np.unique(labels), list(las_classes))
+    if missing.size:
+        raise ValueError(f"{path}: las_classes has no LAS code for the labels {missing.tolist()}")
+    return lookup[labels]
+
+
 def _write_las(
     path: Path, xyz: np.ndarray, labels: np.ndarray, is_mask: bool, las_classes: dict[int, int] | None
 ) -> None:
@@ -757,21 +779,9 @@ def _write_las(
         import laspy
     except ImportError as error:
         raise ImportError("LAS/LAZ writing needs the las extra: pip install 'terracube[las]'") from error
-    if not np.all(np.isfinite(xyz)):
-        raise ValueError(f"{path}: LAS cannot store NaN or infinite coordinates; drop those points first")
     header = laspy.LasHeader(point_format=6, version="1.4")
     header.offsets, header.scales = _las_scale(np.asarray(xyz, dtype=np.float64))
-    codes = None
-    if las_classes is not None and not is_mask:
-        lookup = np.full(256, RETAINED_LAS_CLASS, dtype=np.uint8)
-        for label, code in las_classes.items():
-            if not (0 <= int(label) <= 255 and 0 <= int(code) <= 255):
-                raise ValueError(f"{path}: las_classes maps {label} -> {code}; both must lie in 0..255")
-            lookup[int(label)] = int(code)
-        missing = np.setdiff1d(np.unique(labels), list(las_classes))
-        if missing.size:
-            raise ValueError(f"{path}: las_classes has no LAS code for the labels {missing.tolist()}")
-        codes = lookup[labels]
+    codes = _check_las(path, xyz, labels, is_mask, las_classes)
     if is_mask:
         header.add_extra_dim(
             laspy.ExtraBytesParams(name="overhang", type=np.uint8, description="1 = overhang")
