@@ -12,7 +12,15 @@ import numpy as np
 
 from . import _core
 from .classes import TERRAIN_COLORS, TerrainClass
-from .collapse import CollapseParams, CollapseResult, _as_points, _num_threads, _set_frame
+from .collapse import (
+    CollapseParams,
+    CollapseResult,
+    _as_points,
+    _as_use_mask,
+    _checked,
+    _num_threads,
+    _set_frame,
+)
 
 __all__ = [
     "ElevationMap",
@@ -239,7 +247,7 @@ class ElevationParams:
     num_threads: int = 1
 
     def to_core(self) -> _core.ElevationParams:
-        params = _core.ElevationParams()
+        params = _checked(_core.ElevationParams)()
         params.resolution_m = float(self.resolution)
         if (self.origin is None) != (self.size is None):
             raise ValueError("give both origin and size for a fixed map extent, or neither")
@@ -270,7 +278,7 @@ def build_elevation_map(
         x, y, z [m] in the first three columns, any row stride.
     resolution : float
         Cell edge [m]; other options as in :class:`ElevationParams` (``params`` overrides them).
-    use : (N,) bool, optional
+    use : (N,) bool (or whole numbers 0 and 1), optional
         Only these points take part.
     out : ElevationMap, optional
         Refill this map instead of making a new one, and return it: its layers' buffers are
@@ -288,7 +296,7 @@ def build_elevation_map(
     """
     if params is None:
         params = ElevationParams(resolution, **kwargs)
-    use_flags = None if use is None else np.asarray(use, dtype=bool)
+    use_flags = _as_use_mask(use)
     if out is not None:
         if not isinstance(out, ElevationMap):
             raise TypeError(f"out must be an ElevationMap, not {type(out).__name__}")
@@ -386,7 +394,7 @@ class TerrainParams:
     def to_core(self) -> _core.TerrainParams:
         if self.reference not in _REFERENCES:
             raise ValueError(f"reference must be one of {sorted(_REFERENCES)}, got {self.reference!r}")
-        params = _core.TerrainParams()
+        params = _checked(_core.TerrainParams)()
         params.ground_height_m = float(self.ground_height)
         params.std_dev_m = float(self.std_dev)
         params.robot_height_m = float(self.robot_height)

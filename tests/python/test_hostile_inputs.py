@@ -101,3 +101,92 @@ def test_pcd_nan_in_an_integer_field_is_refused(tmp_path):
     path.write_text(header + "0 0 0 1\n1 1 1 nan\n")
     with pytest.raises(ValueError, match="nan.pcd: ascii PCD: .*'nan' to uint16"):
         read_cloud(path)
+
+
+# Silent coercions at the core boundary (issue 39, item 10): refused with the parameter's name.
+
+_RNG = np.random.default_rng(10)
+_CLOUD = np.c_[_RNG.uniform(0, 4, (500, 2)), _RNG.normal(0, 0.05, 500)]
+
+
+@pytest.mark.parametrize(
+    "use, detail",
+    [
+        (np.array(["yes", "no"] * 250), "dtype <U3"),
+        (np.full(500, np.nan), "dtype float64"),
+        (np.full(500, 0.5), "dtype float64"),
+        (np.arange(500), "values other than 0 and 1"),
+        (np.full(500, -1), "values other than 0 and 1"),
+    ],
+    ids=["strings", "nan", "floats", "counting", "minus-one"],
+)
+def test_a_use_mask_that_is_not_bool_or_0_1_is_refused(use, detail):
+    import terracube as tc
+
+    with pytest.raises(
+        ValueError, match=f"use must be a bool mask \\(or whole numbers 0 and 1\\), got {detail}"
+    ):
+        tc.build_elevation_map(_CLOUD, 0.5, use=use)
+    with pytest.raises(ValueError, match="use must be a bool mask"):
+        tc.fit_fuzzy_elevation_map(_CLOUD, use=use)
+
+
+def test_a_use_mask_of_0_and_1_means_the_same_as_the_bool_mask():
+    import terracube as tc
+
+    mask = _CLOUD[:, 0] < 2
+    expected = tc.build_elevation_map(_CLOUD, 0.5, use=mask)
+    for use in (mask.astype(np.uint8), mask.astype(np.int64)):
+        got = tc.build_elevation_map(_CLOUD, 0.5, use=use)
+        np.testing.assert_array_equal(got["count"], expected["count"])
+
+
+def test_classes_above_255_are_refused_naming_the_parameter_not_wrapped_to_uint8():
+    from terracube.registration import register_points
+
+    classes = np.full(len(_CLOUD), 258)  # 258 would wrap to 2 (ground)
+    with pytest.raises(
+        ValueError, match=r"source_classes must lie in 0\.\.255 \(terrain classes\), got 258\.\.258"
+    ):
+        register_points(_CLOUD, _CLOUD, source_classes=classes)
+    with pytest.raises(ValueError, match="target_classes must be whole numbers 0..255"):
+        register_points(_CLOUD, _CLOUD, target_classes=np.full(len(_CLOUD), 2.0))
+
+
+@pytest.mark.parametrize(
+    "make, message",
+    [
+        (
+            "ElevationParams(max_cells=-1)",
+            r"max_cells must be a whole number in 0\.\.18446744073709551615, got -1",
+        ),
+        (
+            "ElevationParams(num_threads=2**31)",
+            r"num_threads must be a whole number in -2147483648\.\.2147483647",
+        ),
+        ("CollapseParams(dense_budget_bytes=2**64)", r"dense_budget_bytes must be a whole number in 0\.\."),
+        (
+            "FuzzyParams(epochs=2**40)",
+            r"epochs must be a whole number in -2147483648\.\.2147483647, got 1099511627776",
+        ),
+        ("MapperParams(pose_graph_iterations=2**31)", r"pose_graph_iterations must be a whole number in"),
+    ],
+)
+def test_an_out_of_range_whole_number_names_the_parameter_not_pybind11(make, message):
+    import terracube as tc
+    from terracube.mapping import MapperParams  # noqa: F401 - used by eval
+
+    namespace = {**vars(tc), "MapperParams": MapperParams}
+    with pytest.raises(ValueError, match=message):
+        eval(make, namespace).to_core()
+
+
+def test_an_out_of_range_whole_number_in_a_config_file_names_section_and_key(tmp_path):
+    from terracube.config import ConfigError, load_config
+
+    path = tmp_path / "big.yaml"
+    path.write_text("elevation:\n  max_cells: -1\n")
+    with pytest.raises(
+        ConfigError, match=r"big.yaml: section 'elevation': max_cells must be a whole number in 0\.\."
+    ):
+        load_config(path)
