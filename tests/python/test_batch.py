@@ -294,7 +294,7 @@ def test_a_hanging_file_on_a_thread_worker_times_out(tmp_path, scan_folder, monk
     release = threading.Event()
     real = batch.read_scan
     monkeypatch.setattr(batch, "read_scan", lambda p: release.wait() if "scan_a" in str(p) else real(p))
-    inputs = [folder / "scan_a.npy", folder / "scan_b.pcd"]
+    inputs = [folder / "scan_b.pcd", folder / "scan_a.npy"]
     try:
         records = run_batch(
             "dem",
@@ -304,12 +304,12 @@ def test_a_hanging_file_on_a_thread_worker_times_out(tmp_path, scan_folder, monk
             processes=False,
             progress=False,
             backend="pool",
-            timeout=3,
+            timeout=8,
         )
     finally:
         release.set()
-    assert [r.status for r in records] == ["failed", "ok"]
-    assert "timed out after 3 s" in records[0].error
+    assert [r.status for r in records] == ["ok", "failed"], [r.error for r in records]
+    assert "timed out after 8 s" in records[1].error
 
 
 def test_a_negative_timeout_is_refused(tmp_path, scan_folder):
