@@ -328,7 +328,7 @@ def _check_las_layout(path: Path) -> None:
             )
         if not point_format & 0xC0:  # uncompressed: checked against the size after laspy's header
             return
-        chunk_size = None
+        laszip = None
         stream.seek(header_size)
         vlrs = stream.read(point_offset - header_size)
         position = 0
@@ -337,11 +337,16 @@ def _check_las_layout(path: Path) -> None:
                 raise _FormatError("corrupt LAS header: the VLRs run into the point data")
             user_id = vlrs[position + 2 : position + 18].split(b"\0")[0]
             record_id, length = struct.unpack_from("<HH", vlrs, position + 18)
-            if (user_id, record_id) == _LAZ_VLR and length >= 16:
-                (chunk_size,) = struct.unpack_from("<I", vlrs, position + _LAS_VLR_HEADER + 12)
+            if (user_id, record_id) == _LAZ_VLR and length >= 34:
+                start = position + _LAS_VLR_HEADER
+                laszip = vlrs[start : start + length]
             position += _LAS_VLR_HEADER + length
-        if chunk_size is None:
-            raise _FormatError("corrupt LAZ: compressed points but no 'laszip encoded' VLR")
+        if laszip is None or len(laszip) < 34:
+            raise _FormatError("corrupt LAZ: compressed points but no whole 'laszip encoded' VLR")
+        compressor, chunk_size = (
+            struct.unpack_from("<H", laszip, 0)[0],
+            struct.unpack_from("<I", laszip, 12)[0],
+        )
         if count == 0:
             return
         stream.seek(point_offset)
@@ -362,15 +367,62 @@ def _check_las_layout(path: Path) -> None:
             )
         stream.seek(table)
         _, chunks = struct.unpack("<II", stream.read(8))
-    if chunks < 1 or chunks > data_bytes:  # every chunk holds at least one point of several bytes
+        if chunks < 1 or chunks > data_bytes:  # every chunk holds at least one point of several bytes
+            raise _FormatError(
+                f"corrupt LAZ chunk table: {chunks} chunks for {count} points in {data_bytes} bytes of data"
+            )
+        if chunk_size != _LAZ_VARIABLE_CHUNKS and chunk_size and chunks != -(-count // chunk_size):
+            raise _FormatError(
+                f"corrupt LAZ: the header promises {count} points, {chunks} chunks of {chunk_size} hold "
+                f"{(chunks - 1) * chunk_size + 1}..{chunks * chunk_size}"
+            )
+        if compressor == _LAZ_LAYERED:
+            layers = _laz_layer_count(laszip)
+            _check_laz_layered_chunks(stream, point_offset + 8, table, chunks, count, record_length, layers)
+
+
+_LAZ_LAYERED = 3  # LASzip's compressor for point formats 6..10: each chunk's fields in separate layers
+# Layers per LAZ 1.4 item type: point14 (x/y, z, classification, flags, intensity, scan angle, user
+# data, point source, gps time), rgb14, rgbnir14, wavepacket14; byte14 (extra bytes) has one per byte.
+_LAZ_ITEM_LAYERS = {10: 9, 11: 1, 12: 2, 13: 1}
+_LAZ_BYTE14 = 14
+
+
+def _laz_layer_count(laszip: bytes) -> int:
+    (items,) = struct.unpack_from("<H", laszip, 32)
+    if 34 + 6 * items > len(laszip):
         raise _FormatError(
-            f"corrupt LAZ chunk table: {chunks} chunks for {count} points in {data_bytes} bytes of data"
+            f"corrupt LAZ: the 'laszip encoded' VLR lists {items} items in {len(laszip)} bytes"
         )
-    if chunk_size != _LAZ_VARIABLE_CHUNKS and chunk_size and chunks != -(-count // chunk_size):
-        raise _FormatError(
-            f"corrupt LAZ: the header promises {count} points, {chunks} chunks of {chunk_size} hold "
-            f"{(chunks - 1) * chunk_size + 1}..{chunks * chunk_size}"
-        )
+    layers = 0
+    for i in range(items):
+        kind, item_size, _ = struct.unpack_from("<HHH", laszip, 34 + 6 * i)
+        layers += item_size if kind == _LAZ_BYTE14 else _LAZ_ITEM_LAYERS.get(kind, 0)
+    return layers
+
+
+def _check_laz_layered_chunks(
+    stream, start: int, table: int, chunks: int, count: int, record: int, layers: int
+):
+    """Walks the layered chunks: each is a raw first point, its point count (uint32), the byte size
+    of each layer (uint32) and the layers. _FormatError when a chunk or layer runs past the chunk
+    table or the counts do not add up to the header's (lazrs would allocate what a size claims)."""
+    position, total = start, 0
+    for chunk in range(chunks):
+        stream.seek(position + record)
+        raw = stream.read(4 + 4 * layers)
+        if position + record + len(raw) > table or len(raw) < 4 + 4 * layers:
+            raise _FormatError(f"corrupt LAZ: chunk {chunk} runs past the chunk table at byte {table}")
+        points, *sizes = struct.unpack(f"<I{layers}I", raw)
+        position += record + len(raw) + sum(sizes)
+        total += points
+        if position > table or points == 0 or total > count:
+            raise _FormatError(
+                f"corrupt LAZ: chunk {chunk} claims {points} points in layers of {sum(sizes)} bytes, past "
+                f"the chunk table at byte {table} or the header's {count} points"
+            )
+    if total != count:
+        raise _FormatError(f"corrupt LAZ: the chunks hold {total} points, the header promises {count}")
 
 
 def _read_las(path: Path) -> dict[str, np.ndarray]:

@@ -64,6 +64,46 @@ def test_las_14_header_claiming_too_many_extended_vlrs_is_refused(shared_data, t
         read_points(path)
 
 
+def _layered_laz(tmp_path: Path, points: int) -> tuple[Path, int]:
+    """A LAZ of point format 6 (layered chunks of 50,000 points); and where its first chunk's
+    layer sizes start (after the 8-byte chunk table offset, a 30-byte raw point and the count)."""
+    from terracube.io import write_classified
+
+    rng = np.random.default_rng(points)
+    path = write_classified(
+        tmp_path / "layered.laz", rng.uniform(0, 50, (points, 3)), np.zeros(points, np.uint8)
+    )
+    (point_offset,) = struct.unpack_from("<I", path.read_bytes(), 96)
+    return path, point_offset + 8 + 30 + 4
+
+
+def test_a_layered_laz_of_several_chunks_reads_whole(tmp_path):
+    path, _ = _layered_laz(tmp_path, 120_000)
+    assert read_points(path).shape == (120_000, 3)
+
+
+def test_a_laz_layer_size_past_the_end_is_refused_before_lazrs_allocates_it(tmp_path):
+    # fuzz finding (seed 5, case 3849016369): a layer size of 132 MB in a 2.7 kB file made lazrs
+    # abort the process on a 3.9 GB allocation
+    path, sizes = _layered_laz(tmp_path, 300)
+    data = bytearray(path.read_bytes())
+    data[sizes + 4 * 6 : sizes + 4 * 7] = struct.pack("<I", 0x07E80000)
+    path.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match=r"layered.laz: corrupt LAZ: chunk 0 claims 300 points in layers of"):
+        read_points(path)
+
+
+def test_a_laz_chunk_point_count_that_disagrees_with_the_header_is_refused(tmp_path):
+    path, sizes = _layered_laz(tmp_path, 300)
+    data = bytearray(path.read_bytes())
+    data[sizes - 4 : sizes] = struct.pack("<I", 299)
+    path.write_bytes(bytes(data))
+    with pytest.raises(
+        ValueError, match="layered.laz: corrupt LAZ: the chunks hold 299 points, the header promises 300"
+    ):
+        read_points(path)
+
+
 def _read_count(path: str, queue) -> None:
     queue.put(len(read_points(path)))
 
