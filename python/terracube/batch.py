@@ -96,8 +96,11 @@ BACKENDS = ("auto", "dask", "pool")
 DEFAULT_TIMEOUT_S = 600.0
 
 
-def _timed_out(timeout: float) -> str:
-    return f"timed out after {timeout:g} s (its worker was stopped; raise --timeout for bigger scans)"
+def _timed_out(timeout: float, stopped: bool = True) -> str:
+    worker = (
+        "its worker was stopped" if stopped else "its worker thread, which cannot be stopped, was given up"
+    )
+    return f"timed out after {timeout:g} s ({worker}; raise --timeout for bigger scans)"
 
 
 def _died(exitcode: int | None) -> str:
@@ -172,13 +175,14 @@ def _dask_jobs(submit_args, scheduler, workers, processes, timeout) -> Iterator[
                 del running[future]
                 holders = [w for w, keys in client.processing().items() if future.key in keys]
                 future.cancel()
-                yield index, _timed_out(timeout)
                 try:
                     if not processes or not holders:
                         raise RuntimeError("a thread cannot be stopped")
                     client.restart_workers(holders, timeout=60)
+                    stopped = True
                 except Exception:  # noqa: BLE001 - any failure to restart: give that thread up
-                    slots -= 1
+                    slots, stopped = slots - 1, False
+                yield index, _timed_out(timeout, stopped)
     finally:
         client.close()
         if cluster is not None:
@@ -262,7 +266,7 @@ class _Slot:
             return text
         if time.monotonic() >= self.deadline:
             self.stop()
-            return _timed_out(timeout)
+            return _timed_out(timeout, stopped=self.processes)
         return None
 
     def stop(self) -> None:

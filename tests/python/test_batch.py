@@ -312,6 +312,35 @@ def test_a_hanging_file_on_a_thread_worker_times_out(tmp_path, scan_folder, monk
     assert "timed out after 8 s" in records[1].error
 
 
+def test_a_hanging_file_on_dask_times_out_and_the_summary_says_so(tmp_path, scan_folder, monkeypatch):
+    pytest.importorskip("dask.distributed")
+    import terracube.batch as batch
+
+    folder, _ = scan_folder
+    release = threading.Event()
+    real = batch.read_scan
+    monkeypatch.setattr(batch, "read_scan", lambda p: release.wait() if "scan_a" in str(p) else real(p))
+    inputs = [folder / "scan_b.pcd", folder / "scan_a.npy"]
+    try:  # Dask worker threads in this process (processes=False), so the patch reaches them
+        records = run_batch(
+            "dem",
+            inputs,
+            tmp_path / "out",
+            workers=1,
+            processes=False,
+            progress=False,
+            backend="dask",
+            timeout=8,
+        )
+    finally:
+        release.set()
+    assert [r.status for r in records] == ["ok", "failed"], [r.error for r in records]
+    assert records[1].error.endswith(
+        "timed out after 8 s (its worker thread, which cannot be stopped, was given up; raise --timeout for "
+        "bigger scans)"
+    )
+
+
 def test_a_negative_timeout_is_refused(tmp_path, scan_folder):
     with pytest.raises(ValueError, match="timeout must be a number of seconds >= 0"):
         run_batch("dem", [scan_folder[0]], tmp_path / "out", timeout=-1, backend="pool")
