@@ -133,6 +133,7 @@ def _dask_jobs(submit_args, scheduler, workers, processes, timeout) -> Iterator[
         from dask.distributed import Client, LocalCluster, wait
     except ImportError as error:
         raise ImportError("batch on Dask needs the batch extra: pip install 'terracube[batch]'") from error
+    slots = initial_slots = 0
     if scheduler is not None:
         client, cluster = Client(scheduler), None
     else:  # worker processes talk over TCP on the loopback interface only
@@ -142,7 +143,7 @@ def _dask_jobs(submit_args, scheduler, workers, processes, timeout) -> Iterator[
         )
         client = Client(cluster)
     try:
-        slots = max(sum(client.nthreads().values()), 1)
+        slots = initial_slots = max(sum(client.nthreads().values()), 1)
         pending = list(enumerate(submit_args))[::-1]
         running: dict[Any, tuple[int, float]] = {}
         while pending or running:
@@ -186,7 +187,10 @@ def _dask_jobs(submit_args, scheduler, workers, processes, timeout) -> Iterator[
     finally:
         client.close()
         if cluster is not None:
-            cluster.close()
+            try:  # a worker thread given up would hold a plain close() for 30 s
+                cluster.close(timeout=5 if slots < initial_slots else None)
+            except Exception:  # noqa: BLE001 - closing a cluster with a stuck thread
+                pass
 
 
 _READY = "ready"  # a new worker process's first message: its files' clocks start then, not at spawn
