@@ -165,6 +165,10 @@ def read_cloud(path: PathLike) -> dict[str, np.ndarray]:
         ) from error
     except Exception as error:  # any parser failure: a clear message, never a crash
         raise ValueError(f"{path}: cannot read as {suffix}: {type(error).__name__}: {error}") from error
+    except BaseException as error:  # a Rust decoder's panic (pyo3's PanicException is no Exception)
+        if type(error).__name__ != "PanicException":
+            raise
+        raise ValueError(f"{path}: corrupt {suffix} data (the decoder failed: {error})") from None
     xyz = np.asarray(fields["xyz"])
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ValueError(f"{path}: expected an (N, >=3) array of points, got shape {xyz.shape}")
@@ -376,8 +380,8 @@ def _check_las_layout(path: Path) -> None:
                 f"corrupt LAZ: the header promises {count} points, {chunks} chunks of {chunk_size} hold "
                 f"{(chunks - 1) * chunk_size + 1}..{chunks * chunk_size}"
             )
+        layers = _laz_layer_count(laszip)
         if compressor == _LAZ_LAYERED:
-            layers = _laz_layer_count(laszip)
             _check_laz_layered_chunks(stream, point_offset + 8, table, chunks, count, record_length, layers)
 
 
@@ -390,7 +394,7 @@ _LAZ_BYTE14 = 14
 
 def _laz_layer_count(laszip: bytes) -> int:
     (items,) = struct.unpack_from("<H", laszip, 32)
-    if 34 + 6 * items > len(laszip):
+    if items == 0 or 34 + 6 * items > len(laszip):
         raise _FormatError(
             f"corrupt LAZ: the 'laszip encoded' VLR lists {items} items in {len(laszip)} bytes"
         )

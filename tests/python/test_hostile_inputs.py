@@ -104,6 +104,37 @@ def test_a_laz_chunk_point_count_that_disagrees_with_the_header_is_refused(tmp_p
         read_points(path)
 
 
+@pytest.mark.parametrize("layered", [False, True], ids=["laz-1.2", "laz-1.4-layered"])
+def test_a_laz_vlr_listing_no_items_is_refused_not_a_decoder_panic(shared_data, tmp_path, layered):
+    # fuzz finding (seed 7, case 2423198140): lazrs panicked (pyo3's PanicException, a BaseException)
+    path = _layered_laz(tmp_path, 300)[0] if layered else tmp_path / "pine.laz"
+    if not layered:
+        path.write_bytes(shared_data.path(PINE).read_bytes())
+    data = bytearray(path.read_bytes())
+    (header_size,) = struct.unpack_from("<H", data, 94)
+    vlr = data.find(b"laszip encoded", header_size) - 2
+    data[vlr + 54 + 32 : vlr + 54 + 34] = b"\0\0"
+    path.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match="corrupt LAZ: the 'laszip encoded' VLR lists 0 items"):
+        read_points(path)
+
+
+def test_a_panic_in_a_rust_decoder_is_a_value_error_naming_the_file(shared_data, monkeypatch):
+    import laspy
+
+    class PanicException(BaseException):  # what pyo3 raises for a Rust panic
+        pass
+
+    def panic(*args, **kwargs):
+        raise PanicException("index out of bounds")
+
+    monkeypatch.setattr(laspy, "read", panic)
+    with pytest.raises(
+        ValueError, match=r"TreeLS_pine.laz: corrupt .laz data \(the decoder failed: index out"
+    ):
+        read_points(shared_data.path(PINE))
+
+
 def _read_count(path: str, queue) -> None:
     queue.put(len(read_points(path)))
 
