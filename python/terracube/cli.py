@@ -565,6 +565,7 @@ def demo(
         "demo",
         {"edge": edge, "sigma": sigma, "robot_height": robot_height, "crop": (-100, -100, -1, 100, 100, 40)},
     )
+    _writable_folder(output_dir)
     with _exit_on_bad_input("ouster128_sample"):
         _echo_report(run_stage("collapse", load_sample_scan(), "ouster128_sample", output_dir, config))
 

@@ -19,7 +19,10 @@ ROS bags (ROS 1 ``.bag``, ROS 2 folders, ``.mcap``) are read by :func:`read_bag`
 :func:`bag_info`, both from :mod:`terracube.bag` (the ``ros`` extra).
 
 Every reader raises ``FileNotFoundError`` for a missing file and ``ValueError`` naming the file and the
-problem for a malformed, truncated or unknown one.
+problem for a malformed, truncated or unknown one. LAS/LAZ headers (VLR counts, point counts, the LAZ
+chunk table and layer sizes) are checked against the file size before laspy and lazrs see them, so a
+hostile header costs neither a crash nor gigabytes. Every writer writes a temporary file in the target
+folder and renames it when whole (:func:`atomic_path`).
 """
 
 from __future__ import annotations

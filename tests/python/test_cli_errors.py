@@ -87,3 +87,21 @@ def test_a_bad_path_or_option_is_one_error_line_and_exit_2(workspace, args, mess
     assert len(errors) == 1 and message in errors[0], completed.stderr
     assert errors[0].count(": empty:") <= 1
     assert not (workspace / "out").exists() or args[0] == "map" or not any((workspace / "out").iterdir())
+
+
+def test_a_full_disk_is_an_error_line_and_leaves_no_half_written_map(workspace, monkeypatch):
+    import errno
+
+    from terracube.cli import app
+    from typer.testing import CliRunner
+
+    def disk_full(file, *args, **kwargs):
+        Path(file).write_bytes(b"PK\x03\x04 half")
+        raise OSError(errno.ENOSPC, "No space left on device", str(file))
+
+    monkeypatch.setattr(np, "savez_compressed", disk_full)
+    out = workspace / "out"
+    result = CliRunner().invoke(app, ["dem", str(workspace / "scan.npy"), "-o", str(out), "--no-png"])
+    assert result.exit_code == 2, result.output
+    assert "no space left on device" in result.output and "Traceback" not in result.output
+    assert list(out.iterdir()) == []  # neither scan_dem.npz nor its temporary file
