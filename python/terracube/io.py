@@ -532,6 +532,10 @@ _PCD_HEADER_KEYS = (
 )
 
 
+# LZF's best case: a back-reference of 264 bytes in 3 bytes, so at most ~88 bytes out per byte in.
+_LZF_MAX_RATIO = 90
+
+
 def _check_pcd_body(body: bytes, metadata) -> None:
     """_FormatError when the data after the header is shorter than the header announces."""
     points, encoding = metadata.points, metadata.data.value
@@ -552,6 +556,10 @@ def _check_pcd_body(body: bytes, metadata) -> None:
             raise _FormatError(
                 f"binary_compressed PCD: the data header gives {uncompressed} uncompressed bytes, "
                 f"{points} points need {need}"
+            )
+        if uncompressed > _LZF_MAX_RATIO * compressed + 64:  # a header that asks for gigabytes
+            raise _FormatError(
+                f"binary_compressed PCD: {uncompressed} bytes cannot come from {compressed} bytes of LZF data"
             )
         if len(body) - 8 < compressed:
             raise _FormatError(

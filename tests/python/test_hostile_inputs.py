@@ -261,3 +261,24 @@ def test_an_out_of_range_whole_number_in_a_config_file_names_section_and_key(tmp
         ConfigError, match=r"big.yaml: section 'elevation': max_cells must be a whole number in 0\.\."
     ):
         load_config(path)
+
+
+def test_a_binary_compressed_pcd_asking_for_gigabytes_is_refused_before_decompressing(tmp_path):
+    header = (
+        "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 100000000\nHEIGHT 1\n"
+        "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS 100000000\nDATA binary_compressed\n"
+    )
+    path = tmp_path / "bomb.pcd"
+    path.write_bytes(header.encode() + struct.pack("<II", 100, 1_200_000_000) + bytes(100))
+    with pytest.raises(
+        ValueError, match="bomb.pcd: binary_compressed PCD: 1200000000 bytes cannot come from 100"
+    ):
+        read_points(path)
+
+
+def test_a_real_binary_compressed_pcd_still_reads(tmp_path):
+    from terracube.io import write_pcd
+
+    xyz = np.zeros((50_000, 3), np.float32)  # all zeros: LZF's best case
+    path = write_pcd(tmp_path / "zeros.pcd", {"xyz": xyz}, encoding="binary_compressed")
+    np.testing.assert_array_equal(read_points(path), xyz)
