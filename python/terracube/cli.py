@@ -60,7 +60,7 @@ def _short_path(name: Any, limit: int = 80) -> str:
     return text if len(text) <= limit else f"{text[: limit // 2]}...{text[-limit // 2 :]}"
 
 
-def os_error_message(error: OSError) -> str:
+def _os_error_message(error: OSError) -> str:
     """``PATH: what went wrong`` for a failed file operation (a long path shortened)."""
     if error.strerror is None:  # raised with a message of its own
         return str(error)
@@ -83,7 +83,7 @@ def _exit_on_bad_input(name: str = "") -> Iterator[None]:
         if isinstance(error, KeyError) and error.args:
             text = str(error.args[0])
         elif isinstance(error, OSError) and not isinstance(error, (ValueError, ImportError)):
-            text = os_error_message(error)
+            text = _os_error_message(error)
         else:
             text = str(error)
         prefixed = not name or text.startswith(f"{name}:") or text.startswith(f"{name} ")
@@ -97,7 +97,7 @@ def _writable_folder(folder: Path, option: str = "--output-dir") -> Path:
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as error:
-        raise _fail(f"{option} {os_error_message(error)}") from error
+        raise _fail(f"{option} {_os_error_message(error)}") from error
     if not os.access(folder, os.W_OK | os.X_OK):
         raise _fail(f"{option} {_short_path(folder)}: the folder is not writable")
     return folder
@@ -1079,7 +1079,7 @@ def main() -> None:  # pragma: no cover
     try:
         app()
     except OSError as error:  # a file operation no command anticipated: still an error line
-        raise SystemExit(_fail(os_error_message(error)).exit_code) from None
+        raise SystemExit(_fail(_os_error_message(error)).exit_code) from None
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -84,8 +84,9 @@ class _FormatError(Exception):
 def atomic_path(path: PathLike) -> Iterator[Path]:
     """A temporary name in ``path``'s folder to write to; renamed to ``path`` when the block succeeds.
 
-    A failure (or a kill) half-way leaves neither ``path`` nor the temporary file behind (a kill may
-    leave a hidden ``.NAME.*.tmp``), so a file under its final name is always whole. The temporary
+    An exception half-way leaves neither ``path`` (an older ``path`` stays as it was) nor the
+    temporary file; a kill leaves at most a hidden ``.NAME.*.tmpSUFFIX``, never a truncated file
+    under the final name. The temporary
     name keeps ``path``'s suffix (numpy's ``savez`` would append ``.npz`` otherwise). Creates the
     folder. Example: ``with atomic_path(out) as tmp: np.savez(tmp, ...)``.
     """
