@@ -28,6 +28,7 @@ folder and renames it when whole (:func:`atomic_path`).
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import re
 import secrets
@@ -91,6 +92,11 @@ def atomic_path(path: PathLike) -> Iterator[Path]:
     folder. Example: ``with atomic_path(out) as tmp: np.savez(tmp, ...)``.
     """
     path = Path(path)
+    for folder in (path.parent, *path.parent.parents):  # mkdir would say "file exists" for a file
+        if folder.exists():
+            if not folder.is_dir():
+                raise NotADirectoryError(errno.ENOTDIR, "Not a directory", str(folder))
+            break
     path.parent.mkdir(parents=True, exist_ok=True)
     # A fresh name rather than mkstemp's file, so the writer creates it with the usual permissions.
     temporary = path.with_name(f".{path.stem[:100]}.{secrets.token_hex(6)}.tmp{path.suffix}")

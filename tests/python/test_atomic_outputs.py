@@ -154,3 +154,13 @@ def test_pose_writers_failing_half_way_leave_no_file(tmp_path, monkeypatch):
     with pytest.raises(OSError):
         poses_module.write_tum_poses(tmp_path / "poses.txt", [0.0, 0.1, 0.2], poses)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_atomic_path_under_a_file_says_the_file_is_not_a_folder(tmp_path):
+    (tmp_path / "afile").write_text("x")
+    with (
+        pytest.raises(NotADirectoryError, match="Not a directory") as caught,
+        atomic_path(tmp_path / "afile" / "sub" / "x.npz"),
+    ):
+        pass
+    assert caught.value.filename == str(tmp_path / "afile")
