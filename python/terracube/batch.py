@@ -193,6 +193,7 @@ def _dask_jobs(submit_args, scheduler, workers, processes, timeout) -> Iterator[
                 pass
 
 
+_STARTUP_S = 120.0  # time a new worker process may take to import terracube, on top of the timeout
 _READY = "ready"  # a new worker process's first message: its files' clocks start then, not at spawn
 
 
@@ -232,6 +233,9 @@ class _Slot:
 
     def start(self, index: int, args: tuple, timeout: float | None) -> None:
         if self.processes:
+            if self.process is not None and not self.process.is_alive():  # died while idle
+                self.process.join()
+                self._forget_process()
             if self.process is None:
                 context = multiprocessing.get_context("spawn")  # a fork would copy our threads' state
                 self.connection, child = context.Pipe()
@@ -244,7 +248,10 @@ class _Slot:
             threading.Thread(target=_thread_task, args=(child, args), daemon=True).start()
         self.index = index
         self.ready = self.processes is False or self.ready
-        self.deadline = time.monotonic() + timeout if timeout and self.ready else math.inf
+        # a new worker's clock starts when it has imported terracube (then _READY resets it), but
+        # a worker that never gets there is stopped too
+        startup = 0.0 if self.ready else _STARTUP_S
+        self.deadline = time.monotonic() + timeout + startup if timeout else math.inf
 
     def waitables(self) -> list:
         return [self.connection] + ([self.process.sentinel] if self.process is not None else [])
