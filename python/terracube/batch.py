@@ -16,12 +16,15 @@ Example
 
 from __future__ import annotations
 
+import math
 import multiprocessing
+import multiprocessing.connection
+import os
+import signal
+import threading
 import time
 import traceback
-from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
-from concurrent.futures import as_completed as as_completed_futures
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -89,6 +92,28 @@ def process_file(
 
 BACKENDS = ("auto", "dask", "pool")
 
+#: Seconds one file may take before its worker is stopped and the file reported as timed out.
+DEFAULT_TIMEOUT_S = 600.0
+
+
+def _timed_out(timeout: float, stopped: bool = True) -> str:
+    worker = (
+        "its worker was stopped" if stopped else "its worker thread, which cannot be stopped, was given up"
+    )
+    return f"timed out after {timeout:g} s ({worker}; raise --timeout for bigger scans)"
+
+
+def _died(exitcode: int | None) -> str:
+    """Why a worker process ended without a result: its signal or exit code."""
+    if exitcode is not None and exitcode < 0:
+        try:
+            name = signal.Signals(-exitcode).name
+        except ValueError:
+            name = f"signal {-exitcode}"
+        cause = {"SIGKILL": "killed, e.g. out of memory", "SIGSEGV": "a crash", "SIGABRT": "an abort"}
+        return f"its worker process died of {name} ({cause.get(name, 'a signal')}) while running it"
+    return f"its worker process exited with code {exitcode} while running it"
+
 
 def _dask_available() -> bool:
     try:
@@ -98,12 +123,17 @@ def _dask_available() -> bool:
     return True
 
 
-def _dask_jobs(submit_args, scheduler, workers, processes):
-    """Yield (index, record or exception) as the Dask tasks finish."""
+def _dask_jobs(submit_args, scheduler, workers, processes, timeout) -> Iterator[tuple[int, Any]]:
+    """Yield (index, record, or the task's exception or failure text) as the Dask tasks finish.
+
+    At most one task per worker thread is submitted at a time, so a task's clock starts when it
+    starts. A task past ``timeout`` is reported and its worker restarted (a thread cannot be
+    stopped: then that worker thread is given up, and the files left fail once none is left)."""
     try:
-        from dask.distributed import Client, LocalCluster, as_completed
+        from dask.distributed import Client, LocalCluster, wait
     except ImportError as error:
         raise ImportError("batch on Dask needs the batch extra: pip install 'terracube[batch]'") from error
+    slots = initial_slots = 0
     if scheduler is not None:
         client, cluster = Client(scheduler), None
     else:  # worker processes talk over TCP on the loopback interface only
@@ -113,32 +143,187 @@ def _dask_jobs(submit_args, scheduler, workers, processes):
         )
         client = Client(cluster)
     try:
-        futures = {
-            client.submit(
-                process_file, *args, key=f"terracube-{args[0]}-{index}-{args[-1]}", pure=False
-            ): index
-            for index, args in enumerate(submit_args)
-        }
-        for future in as_completed(futures):
-            outcome = future.result() if future.status == "finished" else future.exception()
-            yield futures[future], outcome
+        slots = initial_slots = max(sum(client.nthreads().values()), 1)
+        pending = list(enumerate(submit_args))[::-1]
+        running: dict[Any, tuple[int, float]] = {}
+        while pending or running:
+            while pending and len(running) < slots:
+                index, args = pending.pop()
+                future = client.submit(
+                    process_file, *args, key=f"terracube-{args[0]}-{index}-{args[-1]}", pure=False
+                )
+                running[future] = (index, time.monotonic() + timeout if timeout else math.inf)
+            if not running:  # every worker thread is stuck on a file that timed out
+                for index, _ in pending[::-1]:
+                    yield index, "not run: every worker was stuck on a file that timed out"
+                return
+            first = min(deadline for _, deadline in running.values())
+            try:
+                done, _ = wait(
+                    list(running),
+                    timeout=None if first == math.inf else max(first - time.monotonic(), 0.01),
+                    return_when="FIRST_COMPLETED",
+                )
+            except TimeoutError:
+                done = set()
+            for future in done:
+                index, _ = running.pop(future)
+                yield index, future.result() if future.status == "finished" else future.exception()
+            now = time.monotonic()
+            for future, (index, deadline) in list(running.items()):
+                if now < deadline:
+                    continue
+                del running[future]
+                holders = [w for w, keys in client.processing().items() if future.key in keys]
+                future.cancel()
+                try:
+                    if not processes or not holders:
+                        raise RuntimeError("a thread cannot be stopped")
+                    client.restart_workers(holders, timeout=60)
+                    stopped = True
+                except Exception:  # noqa: BLE001 - any failure to restart: give that thread up
+                    slots, stopped = slots - 1, False
+                yield index, _timed_out(timeout, stopped)
     finally:
         client.close()
         if cluster is not None:
-            cluster.close()
+            try:  # a worker thread given up would hold a plain close() for 30 s
+                cluster.close(timeout=5 if slots < initial_slots else None)
+            except Exception:  # noqa: BLE001 - closing a cluster with a stuck thread
+                pass
 
 
-def _pool_jobs(submit_args, workers, processes):
-    """Yield (index, record or exception) as the local pool's tasks finish."""
-    if processes:  # spawn: a fork would copy this process's threads' state into the workers
-        pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
-    else:
-        pool = ThreadPoolExecutor(max_workers=workers)
-    with pool:
-        futures = {pool.submit(process_file, *args): index for index, args in enumerate(submit_args)}
-        for future in as_completed_futures(futures):
-            error = future.exception()
-            yield futures[future], error if error is not None else future.result()
+_STARTUP_S = 120.0  # time a new worker process may take to import terracube, on top of the timeout
+_READY = "ready"  # a new worker process's first message: its files' clocks start then, not at spawn
+
+
+def _worker_loop(connection) -> None:
+    """A local worker process: run the tasks sent on ``connection`` and send back their records."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    connection.send(_READY)
+    while True:
+        try:
+            args = connection.recv()
+        except EOFError:
+            return
+        if args is None:
+            return
+        connection.send(process_file(*args))
+
+
+def _thread_task(connection, args: tuple) -> None:
+    record = process_file(*args)
+    try:
+        connection.send(record)
+    except OSError:  # timed out meanwhile: nobody listens any more
+        pass
+
+
+class _Slot:
+    """One local worker: a process that a timeout can kill (and replace), or a daemon thread per
+    task that a timeout abandons (threads cannot be stopped)."""
+
+    def __init__(self, processes: bool):
+        self.processes = processes
+        self.process = None
+        self.connection = None
+        self.index: int | None = None
+        self.deadline = math.inf
+        self.ready = False  # a worker process has imported terracube
+
+    def start(self, index: int, args: tuple, timeout: float | None) -> None:
+        if self.processes:
+            if self.process is not None and not self.process.is_alive():  # died while idle
+                self.process.join()
+                self._forget_process()
+            if self.process is None:
+                context = multiprocessing.get_context("spawn")  # a fork would copy our threads' state
+                self.connection, child = context.Pipe()
+                self.process = context.Process(target=_worker_loop, args=(child,), daemon=True)
+                self.process.start()
+                child.close()
+            self.connection.send(args)
+        else:
+            self.connection, child = multiprocessing.Pipe(duplex=False)
+            threading.Thread(target=_thread_task, args=(child, args), daemon=True).start()
+        self.index = index
+        self.ready = self.processes is False or self.ready
+        # a new worker's clock starts when it has imported terracube (then _READY resets it), but
+        # a worker that never gets there is stopped too
+        startup = 0.0 if self.ready else _STARTUP_S
+        self.deadline = time.monotonic() + timeout + startup if timeout else math.inf
+
+    def waitables(self) -> list:
+        return [self.connection] + ([self.process.sentinel] if self.process is not None else [])
+
+    def outcome(self, timeout: float | None) -> Any:
+        """The task's record or failure text once it has one, else None."""
+        if self.connection.poll():
+            try:
+                message = self.connection.recv()
+                if not (isinstance(message, str) and message == _READY):
+                    return message
+                self.ready = True
+                self.deadline = time.monotonic() + timeout if timeout else math.inf
+                return None
+            except EOFError:
+                pass
+            except Exception as error:  # noqa: BLE001 - e.g. an unpicklable result
+                return error
+        if self.process is not None and not self.process.is_alive():
+            self.process.join()
+            text = _died(self.process.exitcode)
+            self._forget_process()
+            return text
+        if time.monotonic() >= self.deadline:
+            self.stop()
+            return _timed_out(timeout, stopped=self.processes)
+        return None
+
+    def stop(self) -> None:
+        if self.process is not None:
+            self.process.kill()
+            self.process.join()
+            self._forget_process()
+
+    def close(self) -> None:
+        if self.process is not None:
+            try:
+                self.connection.send(None)
+            except OSError:
+                pass
+            self.process.join(timeout=5)
+            self.stop()
+
+    def _forget_process(self) -> None:
+        self.connection.close()
+        self.process, self.connection, self.ready = None, None, False
+
+
+def _pool_jobs(submit_args, workers, processes, timeout) -> Iterator[tuple[int, Any]]:
+    """Yield (index, record or failure text) as the local workers finish their files."""
+    workers = max(min(workers or os.cpu_count() or 1, len(submit_args)), 1)
+    slots = [_Slot(processes) for _ in range(workers)]
+    pending = list(enumerate(submit_args))[::-1]
+    try:
+        while True:
+            for slot in slots:
+                if slot.index is None and pending:
+                    slot.start(*pending.pop(), timeout)
+            busy = [slot for slot in slots if slot.index is not None]
+            if not busy:
+                return
+            first = min(slot.deadline for slot in busy)
+            wait_s = None if first == math.inf else max(first - time.monotonic(), 0.0)
+            multiprocessing.connection.wait([w for slot in busy for w in slot.waitables()], timeout=wait_s)
+            for slot in busy:
+                outcome = slot.outcome(timeout)
+                if outcome is not None:
+                    index, slot.index = slot.index, None
+                    yield index, outcome
+    finally:
+        for slot in slots:
+            slot.close()
 
 
 def run_batch(
@@ -153,6 +338,7 @@ def run_batch(
     processes: bool = True,
     progress: bool = True,
     backend: str = "auto",
+    timeout: float | None = DEFAULT_TIMEOUT_S,
 ) -> list[FileRecord]:
     """Run ``stage`` (collapse, dem, classify or fem) on every scan of ``inputs`` in parallel.
 
@@ -178,6 +364,10 @@ def run_batch(
     backend
         ``"dask"`` (a Dask ``LocalCluster`` or ``scheduler``), ``"pool"`` (a ``concurrent.futures``
         pool) or ``"auto"``: Dask when a scheduler is given or Dask is installed, else the pool.
+    timeout
+        Seconds one file may take [s]; past it the file fails as timed out and its worker process
+        is stopped and replaced (a worker thread cannot be stopped: it is given up). None or 0: no
+        limit.
 
     Returns
     -------
@@ -190,6 +380,8 @@ def run_batch(
         raise ValueError(f"workers must be at least 1, got {workers}")
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if timeout is not None and not timeout >= 0:
+        raise ValueError(f"timeout must be a number of seconds >= 0 (0: no limit), got {timeout}")
     if backend == "pool" and scheduler is not None:
         raise ValueError("a Dask scheduler needs the dask backend")
     files = expand_inputs(inputs)
@@ -203,9 +395,9 @@ def run_batch(
     if backend == "auto":
         backend = "dask" if scheduler is not None or _dask_available() else "pool"
     if backend == "dask":
-        jobs = _dask_jobs(submit_args, scheduler, workers, processes)
+        jobs = _dask_jobs(submit_args, scheduler, workers, processes, timeout or None)
     else:
-        jobs = _pool_jobs(submit_args, workers, processes)
+        jobs = _pool_jobs(submit_args, workers, processes, timeout or None)
 
     from tqdm import tqdm
 
@@ -216,11 +408,22 @@ def run_batch(
             if isinstance(outcome, FileRecord):
                 outcome.path = str(path)
                 records[index] = outcome
-            else:  # the task itself died (worker lost, unpicklable result ...)
-                records[index] = FileRecord(str(path), stage, "failed", error=f"{path}: {outcome!r}")
+            else:  # no record: timed out, its worker died (text), or Dask's exception for the task
+                records[index] = FileRecord(str(path), stage, "failed", error=f"{path}: {_cause(outcome)}")
             bar.set_postfix(failed=sum(not r.ok for r in records.values()), refresh=False)
             bar.update(1)
     return [records[index] for index in range(len(files))]
+
+
+def _cause(outcome: Any) -> str:
+    if isinstance(outcome, str):
+        return outcome
+    if type(outcome).__name__ == "KilledWorker":  # Dask: every worker that tried it died
+        return (
+            "every Dask worker that ran it died (out of memory or a crash; run the file alone with "
+            f"'terracube STAGE FILE' to see why): {outcome}"
+        )
+    return f"{type(outcome).__name__}: {outcome}"
 
 
 def format_summary(records: Sequence[FileRecord], *, width: int = 70) -> str:

@@ -19,6 +19,7 @@ import functools
 import inspect
 import json
 import math
+import os
 import re
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -54,23 +55,64 @@ def _fail(message: str) -> typer.Exit:
     return typer.Exit(2)
 
 
+def _short_path(name: Any, limit: int = 80) -> str:
+    text = str(name)
+    return text if len(text) <= limit else f"{text[: limit // 2]}...{text[-limit // 2 :]}"
+
+
+def _os_error_message(error: OSError) -> str:
+    """``PATH: what went wrong`` for a failed file operation (a long path shortened)."""
+    if error.strerror is None:  # raised with a message of its own
+        return str(error)
+    what = error.strerror.rstrip(".")
+    what = what[:1].lower() + what[1:]
+    if error.filename is None:
+        return what
+    where = _short_path(error.filename)
+    return f"{where}: {what}" + (f" ({_short_path(error.filename2)})" if error.filename2 else "")
+
+
 @contextmanager
 def _exit_on_bad_input(name: str = "") -> Iterator[None]:
-    """Turn a ValueError, TypeError, KeyError or a missing extra (ImportError) into
-    ``error: NAME: ...`` and exit code 2."""
+    """Turn a ValueError, TypeError, KeyError, a missing extra (ImportError) or a failed file
+    operation (OSError: not a folder, no space left, name too long ...) into ``error: NAME: ...``
+    and exit code 2. NAME is left out when the message already starts with it."""
     try:
         yield
-    except (ValueError, TypeError, KeyError, ImportError) as error:
-        text = error.args[0] if isinstance(error, KeyError) and error.args else error
-        raise _fail(f"{name}: {text}" if name else str(text)) from error
+    except (ValueError, TypeError, KeyError, ImportError, OSError) as error:
+        if isinstance(error, KeyError) and error.args:
+            text = str(error.args[0])
+        elif isinstance(error, OSError) and not isinstance(error, (ValueError, ImportError)):
+            text = _os_error_message(error)
+        else:
+            text = str(error)
+        prefixed = not name or text.startswith(f"{name}:") or text.startswith(f"{name} ")
+        raise _fail(text if prefixed else f"{name}: {text}") from error
+
+
+def _writable_folder(folder: Path, option: str = "--output-dir") -> Path:
+    """Create ``folder`` if needed; exit 2 before any work when it cannot hold the outputs."""
+    if folder.exists() and not folder.is_dir():
+        raise _fail(f"{option} {_short_path(folder)}: exists and is not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise _fail(f"{option} {_os_error_message(error)}") from error
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise _fail(f"{option} {_short_path(folder)}: the folder is not writable")
+    return folder
+
+
+def _existing_file(path: Path | None, option: str) -> None:
+    """Exit 2 before any work when an input file given by ``option`` is missing."""
+    if path is not None and not path.is_file():
+        raise _fail(f"{option} {_short_path(path)}: no such file")
 
 
 def _read_scan(path: Path) -> np.ndarray:
     """The points of one scan; a missing or unreadable file exits with code 2."""
-    try:
+    with _exit_on_bad_input():
         return read_scan(path)
-    except (ValueError, FileNotFoundError, ImportError) as error:
-        raise _fail(str(error)) from error
 
 
 # ------------------------------------------------------------------------------------------ options
@@ -488,6 +530,7 @@ def _add_stage_command(stage: str) -> None:
 
         config = command_config(stage, options)
         outputs = stage_output_options(stage, options)
+        _writable_folder(output_dir)
         points = _read_scan(input_path)
         with _exit_on_bad_input(input_path.stem):
             _echo_report(run_stage(stage, points, input_path.stem, output_dir, config, **outputs))
@@ -522,6 +565,7 @@ def demo(
         "demo",
         {"edge": edge, "sigma": sigma, "robot_height": robot_height, "crop": (-100, -100, -1, 100, 100, 40)},
     )
+    _writable_folder(output_dir)
     with _exit_on_bad_input("ouster128_sample"):
         _echo_report(run_stage("collapse", load_sample_scan(), "ouster128_sample", output_dir, config))
 
@@ -655,16 +699,22 @@ def register(
             raise _fail(str(error)) from error
     _print_register_record(record, elapsed_ms, source, target)
     if output is not None:
-        output.parent.mkdir(parents=True, exist_ok=True)
-        if output.suffix.lower() == ".json":
-            output.write_text(json.dumps(record, indent=2) + "\n")
-        else:
-            header = (
-                f"terracube register {source} -> {target} ({method}): converged {record['converged']} "
-                f"({record['reason']}), {record['iterations']} iterations"
-            )
-            np.savetxt(output, np.asarray(record["transform"]), fmt="%.12g", header=header)
+        from .io import atomic_path
+
+        with _exit_on_bad_input("--output"), atomic_path(output) as temporary:
+            _write_register_record(temporary, output.suffix.lower(), record, source, target, method)
         typer.echo(f"  written: {output}")
+
+
+def _write_register_record(output: Path, suffix: str, record: dict, source, target, method) -> None:
+    if suffix == ".json":
+        output.write_text(json.dumps(record, indent=2) + "\n")
+    else:
+        header = (
+            f"terracube register {source} -> {target} ({method}): converged {record['converged']} "
+            f"({record['reason']}), {record['iterations']} iterations"
+        )
+        np.savetxt(output, np.asarray(record["transform"]), fmt="%.12g", header=header)
 
 
 # ------------------------------------------------------------------------------------------ view
@@ -865,6 +915,9 @@ def map_command(
         raise _fail(f"{scans}: no scans found")
     if not poses.is_file():
         raise _fail(f"{poses}: no such pose file")
+    _existing_file(calib, "--calib")
+    _existing_file(ground_truth, "--ground-truth")
+    _writable_folder(output_dir)
     with _exit_on_bad_input():
         if pose_format == "auto":
             pose_format = detect_pose_format(poses)
@@ -919,8 +972,12 @@ def config_command(
     if output is None:
         typer.echo(text, nl=False)
     else:
-        output.parent.mkdir(parents=True, exist_ok=True)
-        output.write_text(text)
+        from .io import atomic_path
+
+        if output.is_dir():
+            raise _fail(f"--output {_short_path(output)}: is a folder; give a file name (e.g. robot.yaml)")
+        with _exit_on_bad_input("--output"), atomic_path(output) as temporary:
+            temporary.write_text(text)
         typer.echo(f"written: {output}")
 
 
@@ -952,6 +1009,12 @@ def batch(
         help="Address of a running Dask scheduler (e.g. tcp://HOST:8786); needs terracube[batch].",
         show_default=False,
     ),
+    timeout: float = typer.Option(
+        600.0,
+        "--timeout",
+        help="Seconds one file may take; past it the file fails as timed out and its worker is "
+        "replaced (0: no limit).",
+    ),
     options=None,
 ) -> None:
     """Run one stage over many scans in parallel; print a summary table.
@@ -967,10 +1030,15 @@ def batch(
         raise _fail(f"unknown stage {stage!r}: batch runs {', '.join(STAGES)}")
     if workers is not None and workers < 1:
         raise _fail(f"--workers must be at least 1, got {workers}")
+    if not timeout >= 0:
+        raise _fail(f"--timeout must be a number of seconds >= 0 (0: no limit), got {timeout}")
+    if scheduler is not None and not re.fullmatch(r"[a-z][a-z0-9+.-]*://\S+", scheduler):
+        raise _fail(f"--scheduler must be an address such as tcp://HOST:8786, got {scheduler!r}")
     config = command_config(stage, options)
     outputs = stage_output_options(stage, options)
     with _exit_on_bad_input():
         files = expand_inputs(inputs)
+    _writable_folder(out, "--out")
     where = scheduler or f"{workers or 'one per core'} local {'threads' if threads else 'processes'}"
     typer.echo(f"{stage}: {len(files)} scans on {where}", err=True)
     with _exit_on_bad_input():
@@ -985,6 +1053,7 @@ def batch(
             processes=not threads,
             progress=True,
             backend=backend,
+            timeout=timeout,
         )
     typer.echo(format_summary(records))
     failed = [r for r in records if r.status != "ok"]
@@ -1007,7 +1076,10 @@ _register_bag_commands(app)  # bag-info, and ROS bags as the input of map, colla
 
 
 def main() -> None:  # pragma: no cover
-    app()
+    try:
+        app()
+    except OSError as error:  # a file operation no command anticipated: still an error line
+        raise SystemExit(_fail(_os_error_message(error)).exit_code) from None
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -50,6 +51,69 @@ def _num_threads(num_threads) -> int:
             f"num_threads must be a whole number >= 0 (0 = one per processor), got {num_threads!r}"
         )
     return int(num_threads)
+
+
+def _as_use_mask(use, name: str = "use") -> np.ndarray | None:
+    """A point mask for the core: a bool array, or whole numbers that are all 0 or 1. Anything
+    else (floats, NaN, strings, other numbers) is a ValueError, as ``astype(bool)`` would make it
+    all True."""
+    if use is None:
+        return None
+    mask = np.asarray(use)
+    if mask.dtype == bool:
+        return mask
+    if mask.dtype.kind in "iu" and not np.any((mask != 0) & (mask != 1)):
+        return mask.astype(bool)
+    detail = f"dtype {mask.dtype}" if mask.dtype.kind not in "iu" else "values other than 0 and 1"
+    raise ValueError(f"{name} must be a bool mask (or whole numbers 0 and 1), got {detail}")
+
+
+def _as_classes(classes, name: str) -> np.ndarray | None:
+    """Terrain classes for the core: whole numbers 0..255 as uint8 (a bigger one is a ValueError,
+    not wrapped around as uint8 would)."""
+    if classes is None:
+        return None
+    values = np.asarray(classes)
+    if values.dtype == np.uint8:
+        return values
+    if values.dtype.kind not in "iu" and not (values.dtype.kind == "b" and values.size == 0):
+        raise ValueError(f"{name} must be whole numbers 0..255 (terrain classes), got dtype {values.dtype}")
+    if values.size and (values.min() < 0 or values.max() > 255):
+        raise ValueError(f"{name} must lie in 0..255 (terrain classes), got {values.min()}..{values.max()}")
+    return values.astype(np.uint8)
+
+
+_INT_LIMITS = (-(2**63), -(2**31), 0, 2**31 - 1, 2**32 - 1, 2**63 - 1, 2**64 - 1)
+
+
+def _core_int_range(core_type: type, name: str) -> tuple[int, int]:
+    """The whole numbers the C++ field ``name`` holds, found by trying the usual limits."""
+    accepted = []
+    for limit in _INT_LIMITS:
+        try:
+            setattr(core_type(), name, limit)
+            accepted.append(limit)
+        except (TypeError, OverflowError):
+            pass
+    return (min(accepted), max(accepted)) if accepted else (0, 0)
+
+
+@functools.cache
+def _checked(core_type: type) -> type:
+    """``core_type`` (a pybind11 parameter struct) whose fields refuse an out-of-range whole number
+    with a ValueError naming the field and its range, where pybind11 says only "incompatible
+    function arguments". Instances are ``core_type`` instances for every C++ function."""
+
+    def __setattr__(self, name: str, value) -> None:
+        try:
+            core_type.__setattr__(self, name, value)
+        except TypeError:
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise
+            low, high = _core_int_range(core_type, name)
+            raise ValueError(f"{name} must be a whole number in {low}..{high}, got {value}") from None
+
+    return type(core_type.__name__, (core_type,), {"__setattr__": __setattr__, "__slots__": ()})
 
 
 def _set_frame(params, transform, crop) -> None:
@@ -115,7 +179,7 @@ class CollapseParams:
             raise ValueError(f"sigma must be a whole number of cubes, got {self.sigma!r}")
         if not 1 <= int(self.sigma) < 2**31:
             raise ValueError(f"sigma must be between 1 and 2**31 - 1 cubes, got {self.sigma!r}")
-        params = _core.CollapseParams()
+        params = _checked(_core.CollapseParams)()
         params.edge_m = float(self.edge)
         params.sigma = int(self.sigma)
         _set_frame(params, self.transform, self.crop)
@@ -151,7 +215,7 @@ class PointBasedParams:
     drop_non_finite: bool = False
 
     def to_core(self) -> _core.PointBasedParams:
-        params = _core.PointBasedParams()
+        params = _checked(_core.PointBasedParams)()
         params.edge_m = float(self.edge)
         params.sigma = int(self.sigma)
         params.variance_threshold_m2 = float(self.variance_threshold)

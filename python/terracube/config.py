@@ -29,6 +29,7 @@ import enum
 import functools
 import inspect
 import math
+import reprlib
 import textwrap
 import types
 import typing
@@ -447,10 +448,22 @@ def _plural(hint: Any) -> str:
     return "values"
 
 
+# A bounded repr for values quoted in error messages: a YAML alias bomb of a few hundred bytes is
+# a value whose full repr has billions of characters.
+_SHORT_REPR = reprlib.Repr()
+_SHORT_REPR.maxlevel, _SHORT_REPR.maxlist, _SHORT_REPR.maxdict = 2, 4, 4
+_SHORT_REPR.maxstring = _SHORT_REPR.maxother = 60
+
+
+def _short(value: Any, limit: int = 120) -> str:
+    text = _SHORT_REPR.repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def _unknown(kind: str, name: Any, known: Sequence[str]) -> str:
     close = difflib.get_close_matches(str(name), list(known), n=1)
     hint = f"; did you mean {close[0]!r}?" if close else ""
-    return f"unknown {kind} {name!r}{hint} (known: {', '.join(known)})"
+    return f"unknown {kind} {_short(name)}{hint} (known: {', '.join(known)})"
 
 
 def _section_changes(section: Section, values: Mapping[str, Any], source: str) -> dict[str, Any]:
@@ -468,8 +481,51 @@ def _section_changes(section: Section, values: Mapping[str, Any], source: str) -
     value = values[key]
     hint = typing.get_type_hints(section.params_type)[key]
     raise ConfigError(
-        f"{source}: {name}.{key} must be {_type_name(hint)}, got {value!r} ({type(value).__name__})"
+        f"{source}: {name}.{key} must be {_type_name(hint)}, got {_short(value)} ({type(value).__name__})"
     )
+
+
+#: Deepest nesting of mappings and lists a configuration file may have (a real one has 4).
+MAX_YAML_DEPTH = 64
+
+
+@functools.cache
+def _yaml_loader() -> type:
+    """yaml.SafeLoader that refuses duplicate keys (naming the key and both lines) and nesting deeper
+    than :data:`MAX_YAML_DEPTH` (PyYAML's composer would recurse until RecursionError)."""
+    import yaml
+    from yaml.composer import ComposerError
+    from yaml.constructor import ConstructorError
+
+    class StrictLoader(yaml.SafeLoader):
+        depth = 0
+
+        def compose_node(self, parent, index):
+            self.depth += 1
+            try:
+                if self.depth > MAX_YAML_DEPTH:
+                    mark = self.peek_event().start_mark
+                    raise ComposerError(None, None, f"nested deeper than {MAX_YAML_DEPTH} levels", mark)
+                return super().compose_node(parent, index)
+            finally:
+                self.depth -= 1
+
+        def construct_mapping(self, node, deep=False):
+            seen: dict[tuple[str, str], Any] = {}
+            for key_node, _ in node.value:
+                if isinstance(key_node, yaml.ScalarNode) and key_node.tag != "tag:yaml.org,2002:merge":
+                    key = (key_node.tag, key_node.value)
+                    if key in seen:
+                        raise ConstructorError(
+                            None,
+                            None,
+                            f"duplicate key {_short(key_node.value)} (first at line {seen[key].line + 1})",
+                            key_node.start_mark,
+                        )
+                    seen[key] = key_node.start_mark
+            return super().construct_mapping(node, deep=deep)
+
+    return StrictLoader
 
 
 def _read_yaml(path: Path) -> Any:
@@ -482,7 +538,9 @@ def _read_yaml(path: Path) -> Any:
     except (OSError, UnicodeDecodeError) as error:
         raise ConfigError(f"{path}: cannot read the configuration file: {error}") from error
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=_yaml_loader())  # noqa: S506 - a SafeLoader subclass
+    except RecursionError:
+        raise ConfigError(f"{path}: not valid YAML: nested too deeply") from None
     except yaml.YAMLError as error:
         where = getattr(error, "problem_mark", None)
         line = f" at line {where.line + 1}, column {where.column + 1}" if where is not None else ""
@@ -511,7 +569,7 @@ def config_from_dict(data: Any, source: str = "<dict>", base: Config | None = No
         if not isinstance(values, Mapping):
             raise ConfigError(
                 f"{source}: section {name!r} must be a mapping of keys, "
-                f"got {type(values).__name__} {values!r}"
+                f"got {type(values).__name__} {_short(values)}"
             )
         changes = _section_changes(SECTIONS[name], values, source)
         try:  # the dataclass checks what types cannot: ranges, names, origin without size ...

@@ -12,7 +12,15 @@ import numpy as np
 
 from . import _core
 from .classes import TERRAIN_COLORS, TerrainClass
-from .collapse import CollapseParams, CollapseResult, _as_points, _num_threads, _set_frame
+from .collapse import (
+    CollapseParams,
+    CollapseResult,
+    _as_points,
+    _as_use_mask,
+    _checked,
+    _num_threads,
+    _set_frame,
+)
 
 __all__ = [
     "ElevationMap",
@@ -79,9 +87,15 @@ class ElevationMap:
 
     def save(self, path: str | Path) -> Path:
         """Write geometry and every layer to a compressed .npz file."""
+        from .io import atomic_path
+
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
         g = self.geometry
+        with atomic_path(path) as temporary:
+            self._savez(temporary, g)
+        return path
+
+    def _savez(self, path: Path, g) -> None:
         np.savez_compressed(
             path,
             resolution=np.float64(g.resolution),
@@ -90,7 +104,6 @@ class ElevationMap:
             layer_names=np.asarray(self.layers),
             **{f"layer_{name}": self[name] for name in self.layers},
         )
-        return path
 
     @classmethod
     def load(cls, path: str | Path) -> ElevationMap:
@@ -127,20 +140,24 @@ class ElevationMap:
         raster = np.ascontiguousarray(data.T[::-1, :])
         top = g.origin[1] + g.size[1] * g.resolution
         transform = from_origin(g.origin[0], top, g.resolution, g.resolution)
+        from .io import atomic_path
+
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with rasterio.open(
-            path,
-            "w",
-            driver="GTiff",
-            height=raster.shape[0],
-            width=raster.shape[1],
-            count=1,
-            dtype="float32",
-            crs=crs,
-            transform=transform,
-            nodata=np.nan,
-        ) as dataset:
+        with (
+            atomic_path(path) as temporary,
+            rasterio.open(
+                temporary,
+                "w",
+                driver="GTiff",
+                height=raster.shape[0],
+                width=raster.shape[1],
+                count=1,
+                dtype="float32",
+                crs=crs,
+                transform=transform,
+                nodata=np.nan,
+            ) as dataset,
+        ):
             dataset.write(raster, 1)
             dataset.set_band_description(1, name)
         return path
@@ -230,7 +247,7 @@ class ElevationParams:
     num_threads: int = 1
 
     def to_core(self) -> _core.ElevationParams:
-        params = _core.ElevationParams()
+        params = _checked(_core.ElevationParams)()
         params.resolution_m = float(self.resolution)
         if (self.origin is None) != (self.size is None):
             raise ValueError("give both origin and size for a fixed map extent, or neither")
@@ -261,7 +278,7 @@ def build_elevation_map(
         x, y, z [m] in the first three columns, any row stride.
     resolution : float
         Cell edge [m]; other options as in :class:`ElevationParams` (``params`` overrides them).
-    use : (N,) bool, optional
+    use : (N,) bool (or whole numbers 0 and 1), optional
         Only these points take part.
     out : ElevationMap, optional
         Refill this map instead of making a new one, and return it: its layers' buffers are
@@ -279,7 +296,7 @@ def build_elevation_map(
     """
     if params is None:
         params = ElevationParams(resolution, **kwargs)
-    use_flags = None if use is None else np.asarray(use, dtype=bool)
+    use_flags = _as_use_mask(use)
     if out is not None:
         if not isinstance(out, ElevationMap):
             raise TypeError(f"out must be an ElevationMap, not {type(out).__name__}")
@@ -377,7 +394,7 @@ class TerrainParams:
     def to_core(self) -> _core.TerrainParams:
         if self.reference not in _REFERENCES:
             raise ValueError(f"reference must be one of {sorted(_REFERENCES)}, got {self.reference!r}")
-        params = _core.TerrainParams()
+        params = _checked(_core.TerrainParams)()
         params.ground_height_m = float(self.ground_height)
         params.std_dev_m = float(self.std_dev)
         params.robot_height_m = float(self.robot_height)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _core
-from .collapse import _as_points
+from .collapse import _as_points, _as_use_mask, _checked
 from .elevation import ElevationMap
 
 __all__ = ["FuzzyParams", "FuzzyElevationMap", "fit_fuzzy_elevation_map"]
@@ -80,7 +80,7 @@ class FuzzyParams:
     def to_core(self) -> _core.FuzzyParams:
         if self.membership not in _FAMILIES:
             raise ValueError(f"membership must be one of {sorted(_FAMILIES)}, got {self.membership!r}")
-        params = _core.FuzzyParams()
+        params = _checked(_core.FuzzyParams)()
         params.rules_x = int(self.rules_x)
         params.rules_y = int(self.rules_y)
         params.membership = _FAMILIES[self.membership]
@@ -254,7 +254,7 @@ def fit_fuzzy_elevation_map(
         x, y, z [m], in the frame of the map (apply any leveling transform first).
     params : FuzzyParams, optional
         Or its fields as keyword arguments.
-    use : (N,) bool, optional
+    use : (N,) bool (or whole numbers 0 and 1), optional
         Only these points take part, e.g. ``~collapse.overhang`` for the points collapsible cubes kept.
 
     Returns
@@ -272,5 +272,5 @@ def fit_fuzzy_elevation_map(
         params = FuzzyParams(**kwargs)
     elif kwargs:
         raise TypeError("give params or keyword arguments, not both")
-    use_flags = None if use is None else np.asarray(use, dtype=bool)
+    use_flags = _as_use_mask(use)
     return FuzzyElevationMap(_core.fit_fuzzy_elevation_map(_as_points(points), params.to_core(), use_flags))

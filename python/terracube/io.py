@@ -19,13 +19,22 @@ ROS bags (ROS 1 ``.bag``, ROS 2 folders, ``.mcap``) are read by :func:`read_bag`
 :func:`bag_info`, both from :mod:`terracube.bag` (the ``ros`` extra).
 
 Every reader raises ``FileNotFoundError`` for a missing file and ``ValueError`` naming the file and the
-problem for a malformed, truncated or unknown one.
+problem for a malformed, truncated or unknown one. LAS/LAZ headers (VLR counts, point counts, the LAZ
+chunk table and layer sizes) are checked against the file size before laspy and lazrs see them, so a
+hostile header costs neither a crash nor gigabytes. Every writer writes a temporary file in the target
+folder and renames it when whole (:func:`atomic_path`).
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import os
 import re
+import secrets
+import struct
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +54,7 @@ __all__ = [
     "load_sample_scan",
     "OVERHANG_LAS_CLASS",
     "RETAINED_LAS_CLASS",
+    "atomic_path",
 ]
 
 PathLike = str | Path
@@ -69,6 +79,32 @@ TERRAIN_LAS_CLASSES = {0: 1, 1: 2, 2: 65, 3: 66, 4: 67, 5: 68}
 
 class _FormatError(Exception):
     pass
+
+
+@contextlib.contextmanager
+def atomic_path(path: PathLike) -> Iterator[Path]:
+    """A temporary name in ``path``'s folder to write to; renamed to ``path`` when the block succeeds.
+
+    An exception half-way leaves neither ``path`` (an older ``path`` stays as it was) nor the
+    temporary file; a kill leaves at most a hidden ``.NAME.*.tmpSUFFIX``, never a truncated file
+    under the final name. The temporary
+    name keeps ``path``'s suffix (numpy's ``savez`` would append ``.npz`` otherwise). Creates the
+    folder. Example: ``with atomic_path(out) as tmp: np.savez(tmp, ...)``.
+    """
+    path = Path(path)
+    for folder in (path.parent, *path.parent.parents):  # mkdir would say "file exists" for a file
+        if folder.exists():
+            if not folder.is_dir():
+                raise NotADirectoryError(errno.ENOTDIR, "Not a directory", str(folder))
+            break
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # A fresh name rather than mkstemp's file, so the writer creates it with the usual permissions.
+    temporary = path.with_name(f".{path.stem[:100]}.{secrets.token_hex(6)}.tmp{path.suffix}")
+    try:
+        yield temporary
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
 
 
 def sample_scan_path() -> Path:
@@ -139,6 +175,10 @@ def read_cloud(path: PathLike) -> dict[str, np.ndarray]:
         ) from error
     except Exception as error:  # any parser failure: a clear message, never a crash
         raise ValueError(f"{path}: cannot read as {suffix}: {type(error).__name__}: {error}") from error
+    except BaseException as error:  # a Rust decoder's panic (pyo3's PanicException is no Exception)
+        if type(error).__name__ != "PanicException":
+            raise
+        raise ValueError(f"{path}: corrupt {suffix} data (the decoder failed: {error})") from None
     xyz = np.asarray(fields["xyz"])
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ValueError(f"{path}: expected an (N, >=3) array of points, got shape {xyz.shape}")
@@ -158,10 +198,10 @@ def read_cloud(path: PathLike) -> dict[str, np.ndarray]:
 
 
 def _read_bin(path: Path) -> dict[str, np.ndarray]:
-    raw = np.fromfile(path, dtype=np.float32)
-    if raw.size % 4 != 0:
-        raise _FormatError(f"{path.stat().st_size} bytes is not a whole number of float32 (x, y, z, i) rows")
-    rows = raw.reshape(-1, 4)
+    size = path.stat().st_size
+    if size % 16 != 0:  # np.fromfile would drop the trailing bytes silently
+        raise _FormatError(f"{size} bytes is not a whole number of 16-byte float32 (x, y, z, i) rows")
+    rows = np.fromfile(path, dtype="<f4").reshape(-1, 4)
     fields = {"xyz": rows[:, :3], "intensity": rows[:, 3]}
     label_path = path.with_suffix(".label")
     if label_path.is_file():  # a SemanticKITTI label file beside the scan: uint32, class in the low 16 bits
@@ -257,13 +297,158 @@ def _read_ply(path: Path) -> dict[str, np.ndarray]:
     return fields
 
 
+# The byte layout of the LAS public header block (LAS 1.0-1.4) and of the LAZ records, checked before
+# laspy and lazrs see a file: a header may claim 2^32 VLRs (laspy loops on them), a LAZ chunk table of
+# 0x7FFFFFFF chunks (lazrs aborts the process) or 10^8 points in a 200 kB file (gigabytes allocated).
+_LAS_VLR_HEADER = 54  # bytes: reserved, user_id[16], record_id, record_length, description[32]
+_LAS_EVLR_HEADER = 60
+_LAZ_VLR = (b"laszip encoded", 22204)
+_LAZ_VARIABLE_CHUNKS = 0xFFFFFFFF
+
+
+def _check_las_layout(path: Path) -> None:
+    """_FormatError when the header's counts and offsets do not fit in the file."""
+    size = path.stat().st_size
+    with path.open("rb") as stream:
+        head = stream.read(375)
+        if len(head) < 227 or head[:4] != b"LASF":
+            return  # laspy names the problem
+        version = (head[24], head[25])
+        header_size, point_offset, vlr_count = struct.unpack_from("<HII", head, 94)
+        point_format, record_length, count = struct.unpack_from("<BHI", head, 104)
+        if version >= (1, 4) and len(head) >= 255:
+            evlr_start, evlr_count, count64 = struct.unpack_from("<QIQ", head, 235)
+            count = count64 or count
+        else:
+            evlr_start, evlr_count = 0, 0
+        if point_offset > size:
+            raise _FormatError(
+                f"truncated LAS: the point data starts at byte {point_offset}, the file holds {size}"
+            )
+        if header_size > point_offset:
+            raise _FormatError(
+                f"corrupt LAS header: point data at byte {point_offset}, header of {header_size} bytes, "
+                f"file of {size} bytes"
+            )
+        if vlr_count * _LAS_VLR_HEADER > point_offset - header_size:
+            raise _FormatError(
+                f"corrupt LAS header: {vlr_count} VLRs of at least {_LAS_VLR_HEADER} bytes each do not fit "
+                f"in the {point_offset - header_size} bytes before the point data"
+            )
+        if evlr_count and (evlr_start > size or evlr_count * _LAS_EVLR_HEADER > size - evlr_start):
+            raise _FormatError(
+                f"corrupt LAS header: {evlr_count} extended VLRs from byte {evlr_start} do not fit in "
+                f"the file of {size} bytes"
+            )
+        if not point_format & 0xC0:  # uncompressed: checked against the size after laspy's header
+            return
+        laszip = None
+        stream.seek(header_size)
+        vlrs = stream.read(point_offset - header_size)
+        position = 0
+        for _ in range(vlr_count):
+            if position + _LAS_VLR_HEADER > len(vlrs):
+                raise _FormatError("corrupt LAS header: the VLRs run into the point data")
+            user_id = vlrs[position + 2 : position + 18].split(b"\0")[0]
+            record_id, length = struct.unpack_from("<HH", vlrs, position + 18)
+            if (user_id, record_id) == _LAZ_VLR and length >= 34:
+                start = position + _LAS_VLR_HEADER
+                laszip = vlrs[start : start + length]
+            position += _LAS_VLR_HEADER + length
+        if laszip is None or len(laszip) < 34:
+            raise _FormatError("corrupt LAZ: compressed points but no whole 'laszip encoded' VLR")
+        compressor, chunk_size = (
+            struct.unpack_from("<H", laszip, 0)[0],
+            struct.unpack_from("<I", laszip, 12)[0],
+        )
+        if count == 0:
+            return
+        stream.seek(point_offset)
+        raw = stream.read(8)
+        table = struct.unpack("<q", raw)[0] if len(raw) == 8 else -2
+        if table == -1 and size >= 8:  # written to a stream: the offset is in the last 8 bytes
+            stream.seek(size - 8)
+            table = struct.unpack("<q", stream.read(8))[0]
+        data_bytes = table - (point_offset + 8)
+        if data_bytes >= 0 and table + 8 > size:
+            raise _FormatError(
+                f"truncated LAZ: the chunk table at byte {table} lies past the end of the file ({size} bytes)"
+            )
+        if data_bytes < 0:
+            raise _FormatError(
+                f"corrupt LAZ chunk table: offset {table} outside the point data (bytes {point_offset + 8}"
+                f"..{size - 8})"
+            )
+        stream.seek(table)
+        _, chunks = struct.unpack("<II", stream.read(8))
+        if chunks < 1 or chunks > data_bytes:  # every chunk holds at least one point of several bytes
+            raise _FormatError(
+                f"corrupt LAZ chunk table: {chunks} chunks for {count} points in {data_bytes} bytes of data"
+            )
+        if chunk_size != _LAZ_VARIABLE_CHUNKS and chunk_size and chunks != -(-count // chunk_size):
+            raise _FormatError(
+                f"corrupt LAZ: the header promises {count} points, {chunks} chunks of {chunk_size} hold "
+                f"{(chunks - 1) * chunk_size + 1}..{chunks * chunk_size}"
+            )
+        layers = _laz_layer_count(laszip)
+        if compressor == _LAZ_LAYERED:
+            _check_laz_layered_chunks(stream, point_offset + 8, table, chunks, count, record_length, layers)
+
+
+_LAZ_LAYERED = 3  # LASzip's compressor for point formats 6..10: each chunk's fields in separate layers
+# Layers per LAZ 1.4 item type: point14 (x/y, z, classification, flags, intensity, scan angle, user
+# data, point source, gps time), rgb14, rgbnir14, wavepacket14; byte14 (extra bytes) has one per byte.
+_LAZ_ITEM_LAYERS = {10: 9, 11: 1, 12: 2, 13: 1}
+_LAZ_BYTE14 = 14
+
+
+def _laz_layer_count(laszip: bytes) -> int:
+    (items,) = struct.unpack_from("<H", laszip, 32)
+    if items == 0 or 34 + 6 * items > len(laszip):
+        raise _FormatError(
+            f"corrupt LAZ: the 'laszip encoded' VLR lists {items} items in {len(laszip)} bytes"
+        )
+    layers = 0
+    for i in range(items):
+        kind, item_size, _ = struct.unpack_from("<HHH", laszip, 34 + 6 * i)
+        layers += item_size if kind == _LAZ_BYTE14 else _LAZ_ITEM_LAYERS.get(kind, 0)
+    return layers
+
+
+def _check_laz_layered_chunks(
+    stream, start: int, table: int, chunks: int, count: int, record: int, layers: int
+):
+    """Walks the layered chunks: each is a raw first point, its point count (uint32), the byte size
+    of each layer (uint32) and the layers. _FormatError when a chunk or layer runs past the chunk
+    table or the counts do not add up to the header's (lazrs would allocate what a size claims)."""
+    position, total = start, 0
+    for chunk in range(chunks):
+        stream.seek(position + record)
+        raw = stream.read(4 + 4 * layers)
+        if position + record + len(raw) > table or len(raw) < 4 + 4 * layers:
+            raise _FormatError(f"corrupt LAZ: chunk {chunk} runs past the chunk table at byte {table}")
+        points, *sizes = struct.unpack(f"<I{layers}I", raw)
+        position += record + len(raw) + sum(sizes)
+        total += points
+        if position > table or points == 0 or total > count:
+            raise _FormatError(
+                f"corrupt LAZ: chunk {chunk} claims {points} points in layers of {sum(sizes)} bytes, past "
+                f"the chunk table at byte {table} or the header's {count} points"
+            )
+    if total != count:
+        raise _FormatError(f"corrupt LAZ: the chunks hold {total} points, the header promises {count}")
+
+
 def _read_las(path: Path) -> dict[str, np.ndarray]:
     try:
         import laspy
     except ImportError as error:
         raise ImportError("LAS/LAZ reading needs the las extra: pip install 'terracube[las]'") from error
+    _check_las_layout(path)
+    # lazrs' single-threaded backend: the parallel one (rayon's thread pool) deadlocks a forked child.
+    backend = laspy.LazBackend.Lazrs
     try:
-        with laspy.open(str(path)) as reader:
+        with laspy.open(str(path), laz_backend=backend) as reader:
             header = reader.header
     except Exception as error:
         raise _FormatError(f"not a valid LAS/LAZ file ({type(error).__name__}: {error})") from None
@@ -277,7 +462,7 @@ def _read_las(path: Path) -> dict[str, np.ndarray]:
                 f"from byte {header.offset_to_point_data} ({need} bytes), the file holds {size}"
             )
     try:
-        las = laspy.read(str(path))
+        las = laspy.read(str(path), laz_backend=backend)
     except Exception as error:
         raise _FormatError(
             f"truncated or corrupt LAS/LAZ point data ({type(error).__name__}: {error})"
@@ -354,6 +539,10 @@ _PCD_HEADER_KEYS = (
 )
 
 
+# LZF's best case: a back-reference of 264 bytes in 3 bytes, so at most ~88 bytes out per byte in.
+_LZF_MAX_RATIO = 90
+
+
 def _check_pcd_body(body: bytes, metadata) -> None:
     """_FormatError when the data after the header is shorter than the header announces."""
     points, encoding = metadata.points, metadata.data.value
@@ -374,6 +563,10 @@ def _check_pcd_body(body: bytes, metadata) -> None:
             raise _FormatError(
                 f"binary_compressed PCD: the data header gives {uncompressed} uncompressed bytes, "
                 f"{points} points need {need}"
+            )
+        if uncompressed > _LZF_MAX_RATIO * compressed + 64:  # a header that asks for gigabytes
+            raise _FormatError(
+                f"binary_compressed PCD: {uncompressed} bytes cannot come from {compressed} bytes of LZF data"
             )
         if len(body) - 8 < compressed:
             raise _FormatError(
@@ -464,14 +657,14 @@ def write_pcd(path: PathLike, fields: dict[str, np.ndarray], encoding: str = "bi
         for i in range(count):
             rows[name if count == 1 else f"{name}__{i:04d}"] = value if count == 1 else value[:, i]
     cloud = PointCloud(metadata, rows)
-    path.parent.mkdir(parents=True, exist_ok=True)
     if encoding != "ascii":
-        cloud.save(path, encoding=Encoding(encoding))
+        with atomic_path(path) as temporary:
+            cloud.save(temporary, encoding=Encoding(encoding))
         return path
     # pypcd4 writes floats as %.10f, which rounds small values; these formats read back bit for bit.
     formats = ["%.9g" if rows.dtype[i] == np.float32 else "%.17g" if rows.dtype[i].kind == "f" else "%d"
                for i in range(len(rows.dtype))]  # fmt: skip
-    with path.open("wb") as stream:
+    with atomic_path(path) as temporary, temporary.open("wb") as stream:
         stream.write(metadata.compose_header(data=Encoding.ASCII).encode("ascii"))
         if n:
             np.savetxt(stream, rows, fmt=formats)
@@ -523,8 +716,8 @@ def write_kitti_bin(path: PathLike, points: np.ndarray, intensity: np.ndarray | 
         if intensity.shape != (points.shape[0],):
             raise ValueError(f"{path}: need ({points.shape[0]},) intensities, got shape {intensity.shape}")
         rows[:, 3] = intensity
-    path.parent.mkdir(parents=True, exist_ok=True)
-    rows.tofile(path)
+    with atomic_path(path) as temporary:
+        rows.tofile(temporary)
     return path
 
 
@@ -577,7 +770,29 @@ def write_classified(
     suffix = path.suffix.lower()
     if suffix not in WRITE_SUFFIXES:
         raise ValueError(f"{path}: unknown output format {suffix!r} (use {', '.join(WRITE_SUFFIXES)})")
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if suffix == ".pcd":
+        return write_pcd(path, {"xyz": xyz, name: label_u8}, encoding="binary")
+    if suffix == ".bin":  # the labels first: a scan under its final name always has its labels beside it
+        with atomic_path(path.with_suffix(".label")) as temporary:
+            label_u8.astype("<u4").tofile(temporary)
+        return write_kitti_bin(path, xyz)
+    if suffix in (".las", ".laz"):
+        _check_las(path, xyz, label_u8, is_mask, las_classes)
+    with atomic_path(path) as temporary:
+        _write_classified(temporary, suffix, xyz, labels, label_u8, is_mask, las_classes)
+    return path
+
+
+def _write_classified(
+    path: Path,
+    suffix: str,
+    xyz: np.ndarray,
+    labels: np.ndarray,
+    label_u8: np.ndarray,
+    is_mask: bool,
+    las_classes: dict[int, int] | None,
+) -> None:
+    name = "overhang" if is_mask else "label"
     if suffix == ".ply":
         from plyfile import PlyData, PlyElement
 
@@ -599,13 +814,8 @@ def write_classified(
         colours = _label_colours(label_u8, is_mask)
         vertex["red"], vertex["green"], vertex["blue"] = colours[:, 0], colours[:, 1], colours[:, 2]
         PlyData([PlyElement.describe(vertex, "vertex")], text=False).write(str(path))
-    elif suffix == ".pcd":
-        write_pcd(path, {"xyz": xyz, name: label_u8}, encoding="binary")
     elif suffix in (".las", ".laz"):
         _write_las(path, xyz, label_u8, is_mask, las_classes)
-    elif suffix == ".bin":
-        write_kitti_bin(path, xyz)
-        label_u8.astype("<u4").tofile(path.with_suffix(".label"))
     elif suffix == ".npz":
         np.savez_compressed(path, xyz=xyz, **{name: labels.astype(bool) if is_mask else label_u8})
     elif suffix == ".npy":
@@ -614,7 +824,26 @@ def write_classified(
         with open(path, "w", encoding="ascii") as stream:
             stream.write(f"# x y z {name}\n")
             np.savetxt(stream, np.column_stack([xyz, label_u8]), fmt=["%.4f", "%.4f", "%.4f", "%d"])
-    return path
+
+
+def _check_las(
+    path: Path, xyz: np.ndarray, labels: np.ndarray, is_mask: bool, las_classes: dict[int, int] | None
+) -> np.ndarray | None:
+    """ValueError naming ``path`` for what LAS cannot store; the LAS codes of ``labels`` when
+    ``las_classes`` maps them."""
+    if not np.all(np.isfinite(xyz)):
+        raise ValueError(f"{path}: LAS cannot store NaN or infinite coordinates; drop those points first")
+    if las_classes is None or is_mask:
+        return None
+    lookup = np.full(256, RETAINED_LAS_CLASS, dtype=np.uint8)
+    for label, code in las_classes.items():
+        if not (0 <= int(label) <= 255 and 0 <= int(code) <= 255):
+            raise ValueError(f"{path}: las_classes maps {label} -> {code}; both must lie in 0..255")
+        lookup[int(label)] = int(code)
+    missing = np.setdiff1d(np.unique(labels), list(las_classes))
+    if missing.size:
+        raise ValueError(f"{path}: las_classes has no LAS code for the labels {missing.tolist()}")
+    return lookup[labels]
 
 
 def _write_las(
@@ -624,21 +853,9 @@ def _write_las(
         import laspy
     except ImportError as error:
         raise ImportError("LAS/LAZ writing needs the las extra: pip install 'terracube[las]'") from error
-    if not np.all(np.isfinite(xyz)):
-        raise ValueError(f"{path}: LAS cannot store NaN or infinite coordinates; drop those points first")
     header = laspy.LasHeader(point_format=6, version="1.4")
     header.offsets, header.scales = _las_scale(np.asarray(xyz, dtype=np.float64))
-    codes = None
-    if las_classes is not None and not is_mask:
-        lookup = np.full(256, RETAINED_LAS_CLASS, dtype=np.uint8)
-        for label, code in las_classes.items():
-            if not (0 <= int(label) <= 255 and 0 <= int(code) <= 255):
-                raise ValueError(f"{path}: las_classes maps {label} -> {code}; both must lie in 0..255")
-            lookup[int(label)] = int(code)
-        missing = np.setdiff1d(np.unique(labels), list(las_classes))
-        if missing.size:
-            raise ValueError(f"{path}: las_classes has no LAS code for the labels {missing.tolist()}")
-        codes = lookup[labels]
+    codes = _check_las(path, xyz, labels, is_mask, las_classes)
     if is_mask:
         header.add_extra_dim(
             laspy.ExtraBytesParams(name="overhang", type=np.uint8, description="1 = overhang")

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import _core
-from .collapse import _num_threads
+from .collapse import _checked, _num_threads
 from .elevation import ElevationMap, TerrainParams
 from .registration import RegistrationParams
 
@@ -140,7 +140,7 @@ class MapperParams:
     optimize_interval_keyframes: int = 5
 
     def to_core(self) -> _core.MapperParams:
-        params = _core.MapperParams()
+        params = _checked(_core.MapperParams)()
         params.keyframe_distance_m = float(self.keyframe_distance)
         params.keyframe_rotation_rad = float(self.keyframe_rotation)
         params.resolution_m = float(self.resolution)

@@ -159,8 +159,10 @@ def _as_poses(poses) -> np.ndarray:
 
 def write_kitti_poses(path: str | PathLike, poses) -> None:
     """Writes (K, 4, 4) or (K, 3, 4) poses as a KITTI pose file (shortest exact decimals)."""
+    from .io import atomic_path
+
     array = _as_poses(poses)
-    with Path(path).open("w", encoding="utf-8") as file:
+    with atomic_path(path) as temporary, temporary.open("w", encoding="utf-8") as file:
         for pose in array:
             file.write(" ".join(repr(float(v)) for v in pose[:3, :].ravel()) + "\n")
 
@@ -173,7 +175,9 @@ def write_tum_poses(path: str | PathLike, timestamps, poses) -> None:
         raise ValueError(f"need one timestamp per pose: {stamps.shape} timestamps for {array.shape[0]} poses")
     if not np.isfinite(stamps).all():
         raise ValueError("timestamps contain NaN or Inf")
-    with Path(path).open("w", encoding="utf-8") as file:
+    from .io import atomic_path
+
+    with atomic_path(path) as temporary, temporary.open("w", encoding="utf-8") as file:
         file.write("# timestamp tx ty tz qx qy qz qw\n")
         for stamp, pose in zip(stamps, array, strict=True):
             values = [stamp, *pose[:3, 3], *quaternion_from_matrix(pose[:3, :3])]

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import _core
+from .collapse import _as_classes, _checked
 from .elevation import ElevationMap, TerrainClass
 
 __all__ = [
@@ -135,7 +136,7 @@ class RegistrationParams:
     pairing: str = "source_to_target"
 
     def to_core(self) -> _core.RegistrationParams:
-        params = _core.RegistrationParams()
+        params = _checked(_core.RegistrationParams)()
         params.use_classes = bool(self.use_classes)
         weights = [0.0] * len(TerrainClass)
         for name, weight in self.class_weights.items():
@@ -261,7 +262,8 @@ def register_points(
     params : RegistrationParams, optional
         Every setting; ``kwargs`` set fields of a default one instead.
     source_classes, target_classes : (N,) and (M,) uint8 arrays, optional
-        :class:`terracube.TerrainClass` of each point (unknown when None).
+        :class:`terracube.TerrainClass` of each point (unknown when None); values above 255 are a
+        ValueError.
 
     Returns
     -------
@@ -271,9 +273,9 @@ def register_points(
     params = params or RegistrationParams(**kwargs)
     return _core.register_points(
         np.asarray(source),
-        source_classes,
+        _as_classes(source_classes, "source_classes"),
         np.asarray(target),
-        target_classes,
+        _as_classes(target_classes, "target_classes"),
         _as_guess(initial),
         params.to_core(),
     )
@@ -322,7 +324,7 @@ class PclIcpParams:
     def to_core(self):
         if not has_pcl():
             raise RuntimeError("this terracube build has no PCL baseline (configure with PCL installed)")
-        params = _core.PclIcpParams()
+        params = _checked(_core.PclIcpParams)()
         params.max_correspondence_distance_m = float(self.max_correspondence_distance)
         params.max_iterations = int(self.max_iterations)
         params.transformation_epsilon = float(self.transformation_epsilon)

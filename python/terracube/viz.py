@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .io import atomic_path
+
 __all__ = ["plot_overhangs", "plot_layer", "plot_dem_comparison", "plot_terrain_classes"]
 
 
@@ -87,9 +89,11 @@ def plot_overhangs(
     n_all = points.shape[0]
     fig.suptitle(title or f"collapsible cubes: {int(overhang.sum()):,} of {n_all:,} points are overhang")
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    try:
+        with atomic_path(path) as temporary:
+            fig.savefig(temporary, dpi=110)
+    finally:
+        plt.close(fig)
     return path
 
 
@@ -208,9 +212,11 @@ def _layout() -> dict:
 def _save(fig, path: str | Path, dpi: int = 130) -> Path:
     plt = _pyplot()
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi, facecolor="white", bbox_inches="tight", pad_inches=0.15)
-    plt.close(fig)
+    try:
+        with atomic_path(path) as temporary:
+            fig.savefig(temporary, dpi=dpi, facecolor="white", bbox_inches="tight", pad_inches=0.15)
+    finally:
+        plt.close(fig)
     return path
 
 

@@ -9,6 +9,8 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -225,3 +227,120 @@ def test_terracube_batch_takes_the_stage_options_of_the_single_file_command(tmp_
     _check_dem_outputs(out, scans)
     result = CliRunner().invoke(app, [*args, "--reference", "nowhere"])
     assert result.exit_code == 2 and "--reference must be one of" in result.output
+
+
+# A file that hangs or kills its worker (issue 39, item 7): reported with its cause; the rest finish.
+
+_SABOTAGE = """
+import os, signal, time
+import terracube.batch as batch
+
+_read_scan = batch.read_scan
+
+def read_scan(path):
+    name = os.path.basename(str(path))
+    if name.startswith("hang"):
+        time.sleep(3600)
+    if name.startswith("crash"):
+        os.kill(os.getpid(), signal.SIGKILL)
+    return _read_scan(path)
+
+batch.read_scan = read_scan
+"""
+
+
+@pytest.fixture
+def sabotaged_workers(tmp_path, monkeypatch):
+    """Worker processes (spawned, so they start from the environment) in which reading a file named
+    hang* sleeps for an hour and reading one named crash* kills the worker (SIGKILL, as the OOM
+    killer does)."""
+    hooks = tmp_path / "hooks"
+    hooks.mkdir()
+    (hooks / "sitecustomize.py").write_text(_SABOTAGE)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(hooks), *sys.path]))
+    return hooks
+
+
+def test_a_hanging_file_times_out_and_the_others_finish(tmp_path, scan_folder, sabotaged_workers):
+    folder, scans = scan_folder
+    np.save(folder / "hang.npy", scans["scan_a"])
+    inputs = [folder / "scan_a.npy", folder / "hang.npy", folder / "scan_b.pcd"]
+    start = time.monotonic()
+    # 8 s: the good files must finish well within it on a loaded machine
+    records = run_batch("dem", inputs, tmp_path / "out", workers=1, progress=False, backend="pool", timeout=8)
+    assert time.monotonic() - start < 90
+    assert [r.status for r in records] == ["ok", "failed", "ok"], [r.error for r in records]
+    assert records[1].error == f"{folder / 'hang.npy'}: timed out after 8 s " + (
+        "(its worker was stopped; raise --timeout for bigger scans)"
+    )
+    assert "timed out after 8 s" in format_summary(records)
+
+
+def test_a_worker_killed_by_a_signal_is_reported_with_the_signal(tmp_path, scan_folder, sabotaged_workers):
+    folder, scans = scan_folder
+    np.save(folder / "crash.npy", scans["scan_a"])
+    inputs = [folder / "crash.npy", folder / "scan_a.npy"]
+    records = run_batch("dem", inputs, tmp_path / "out", workers=1, progress=False, backend="pool")
+    assert [r.status for r in records] == ["failed", "ok"]
+    assert records[0].error.endswith(
+        "its worker process died of SIGKILL (killed, e.g. out of memory) while running it"
+    )
+
+
+def test_a_hanging_file_on_a_thread_worker_times_out(tmp_path, scan_folder, monkeypatch):
+    import terracube.batch as batch
+
+    folder, _ = scan_folder
+    release = threading.Event()
+    real = batch.read_scan
+    monkeypatch.setattr(batch, "read_scan", lambda p: release.wait() if "scan_a" in str(p) else real(p))
+    inputs = [folder / "scan_b.pcd", folder / "scan_a.npy"]
+    try:
+        records = run_batch(
+            "dem",
+            inputs,
+            tmp_path / "out",
+            workers=1,
+            processes=False,
+            progress=False,
+            backend="pool",
+            timeout=8,
+        )
+    finally:
+        release.set()
+    assert [r.status for r in records] == ["ok", "failed"], [r.error for r in records]
+    assert "timed out after 8 s" in records[1].error
+
+
+def test_a_hanging_file_on_dask_times_out_and_the_summary_says_so(tmp_path, scan_folder, monkeypatch):
+    pytest.importorskip("dask.distributed")
+    import terracube.batch as batch
+
+    folder, _ = scan_folder
+    release = threading.Event()
+    real = batch.read_scan
+    monkeypatch.setattr(batch, "read_scan", lambda p: release.wait() if "scan_a" in str(p) else real(p))
+    inputs = [folder / "scan_b.pcd", folder / "scan_a.npy"]
+    try:  # Dask worker threads in this process (processes=False), so the patch reaches them
+        records = run_batch(
+            "dem",
+            inputs,
+            tmp_path / "out",
+            workers=1,
+            processes=False,
+            progress=False,
+            backend="dask",
+            timeout=8,
+        )
+    finally:
+        release.set()
+    assert [r.status for r in records] == ["ok", "failed"], [r.error for r in records]
+    assert records[1].error.endswith(
+        "timed out after 8 s (its worker thread, which cannot be stopped, was given up; raise --timeout for "
+        "bigger scans)"
+    )
+
+
+def test_a_negative_timeout_is_refused(tmp_path, scan_folder):
+    with pytest.raises(ValueError, match="timeout must be a number of seconds >= 0"):
+        run_batch("dem", [scan_folder[0]], tmp_path / "out", timeout=-1, backend="pool")

@@ -262,3 +262,34 @@ def test_every_stage_refuses_a_bad_config_file_naming_it(tmp_path, command):
     result = CliRunner().invoke(app, [command, str(path), "-o", str(tmp_path), "-c", str(config)])
     assert result.exit_code == 2
     assert "wrong.yaml" in result.output and "collapse.edge must be a number" in result.output
+
+
+# Hostile files (issue 39): a clear ConfigError in well under a second, never a hang or a traceback.
+
+_ALIAS_BOMB = (
+    "collapse:\n  edge: [&a [x,x,x,x,x,x,x,x,x]"
+    + "".join(f", &{chr(98 + i)} [" + ",".join([f"*{chr(97 + i)}"] * 9) + "]" for i in range(8))
+    + "]\n"
+)  # 9^9 = 387,420,489 strings when expanded, in 300 bytes
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        (
+            "collapse:\n  edge: 0.1\n  edge: 0.2\n",
+            "line 3, column 3: duplicate key 'edge' \\(first at line 2\\)",
+        ),
+        ("collapse: {edge: 0.1}\ncollapse: {sigma: 1}\n", "line 2, column 1: duplicate key 'collapse'"),
+        ("collapse:\n  edge: " + "[" * 20000 + "]" * 20000 + "\n", "nested deeper than 64 levels"),
+        ("".join("  " * i + "- \n" for i in range(2000)), "nested deeper than 64 levels"),
+        (_ALIAS_BOMB, r"collapse.edge must be a number, got \[\[.*\.\.\."),
+    ],
+    ids=["duplicate-key", "duplicate-section", "deep-flow", "deep-block", "alias-bomb"],
+)
+def test_a_hostile_file_is_a_short_config_error(tmp_path, text, message):
+    path = tmp_path / "hostile.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=message) as caught:
+        load_config(path)
+    assert str(caught.value).startswith(f"{path}: ") and len(str(caught.value)) < 300
