@@ -150,9 +150,13 @@ MapGeometry make_geometry(const ElevationParams& params, const detail::CloudExte
   } else if (extent.num_used > 0) {
     // Snap outwards to whole cells so that every point falls inside.
     for (int axis = 0; axis < 2; ++axis) {
-      double origin = std::floor(extent.min[axis] / params.resolution_m) * params.resolution_m;
-      // first * res can round above the minimum (1.7 / 0.1 = 17, 17 * 0.1 = 1.7000000000000002).
-      while (origin > extent.min[axis]) origin -= params.resolution_m;
+      // Closed form, no loop: first * res can round above the minimum (1.7 / 0.1 = 17, but
+      // 17 * 0.1 = 1.7000000000000002), so one cell lower then. A resolution below the spacing of
+      // doubles near the minimum cannot snap at all; the cell count check below refuses it.
+      const double first = std::floor(extent.min[axis] / params.resolution_m);
+      double origin = first * params.resolution_m;
+      if (origin > extent.min[axis]) origin = (first - 1.0) * params.resolution_m;
+      if (origin > extent.min[axis]) origin = extent.min[axis];
       geometry.origin_m[axis] = origin;
     }
     cells_x = std::floor((extent.max.x() - geometry.origin_m.x()) / params.resolution_m) + 1.0;
@@ -449,6 +453,7 @@ void add_clearance(const Cloud& cloud, const std::vector<std::uint8_t>& overhang
 template <typename Scalar>
 OverhangFreeMap overhang_free_impl(const PointsView<Scalar>& points, const CollapseParams& collapse,
                                    const ElevationParams& elevation) {
+  check_elevation_params(elevation);  // before any geometry is derived from it
   OverhangFreeMap out;
   out.collapse = collapse_overhangs(points, collapse);
   ElevationParams params = elevation;

@@ -1684,6 +1684,26 @@ TEST(BuildElevationMapBadInput, NonPositiveResolutionIsRejected) {
   }
 }
 
+TEST(BuildElevationMapBadInput, ResolutionsBelowTheSpacingOfDoublesEndWithAnErrorNotALoop) {
+  // The auto extent's origin is snapped in closed form: a step below the spacing of doubles near
+  // the minimum (5 - 1e-20 == 5) cannot loop, and the cell count check refuses the map.
+  const std::vector<Eigen::Vector3d> points = {{5.0, 5.0, 0.0}, {7.0, 6.0, 1.0}};
+  for (const double resolution : {1e-20, 1e-300}) {
+    ElevationParams params;
+    params.resolution_m = resolution;
+    expect_throw_with<std::invalid_argument>([&] { build_elevation_map(PointsView<double>(points), params); },
+                                             {"cells", "max_cells"});
+  }
+}
+
+TEST(BuildOverhangFreeMapBadInput, ElevationParamsAreCheckedBeforeTheGeometry) {
+  const std::vector<Eigen::Vector3d> points = {{5.0, 5.0, 0.0}, {7.0, 6.0, 1.0}};
+  ElevationParams params;
+  params.resolution_m = -0.5;  // derived into a geometry first, this looped for ever
+  expect_throw_with<std::invalid_argument>(
+      [&] { build_overhang_free_map(PointsView<double>(points), CollapseParams{}, params); }, {"resolution"});
+}
+
 TEST(BuildElevationMapBadInput, OriginWithoutSizeOrSizeWithoutOriginIsRejected) {
   const std::vector<Eigen::Vector3d> points = {{0, 0, 0}};
   ElevationParams params;

@@ -776,6 +776,15 @@ def test_resolution_that_is_not_positive_and_finite_raises_value_error(resolutio
         tc.build_elevation_map(np.zeros((3, 3)), resolution)
 
 
+def test_bad_resolutions_end_in_errors_not_endless_loops():
+    # issue 39, item 5: both calls used to loop for ever.
+    cloud = np.array([[5.0, 5.0, 0.0], [7.0, 6.0, 1.0]])
+    with pytest.raises(ValueError, match="resolution"):
+        tc.dem_without_overhangs(cloud, resolution=-0.5)
+    with pytest.raises(ValueError, match="max_cells"):
+        tc.build_elevation_map(cloud, 1e-20)
+
+
 @pytest.mark.parametrize("extent", [{"origin": (0.0, 0.0)}, {"size": (4, 4)}])
 def test_origin_without_size_or_size_without_origin_raises_value_error(extent):
     with pytest.raises(ValueError, match="both origin and size"):
