@@ -52,6 +52,7 @@ void bind_mapper(py::module_& m) {
       .def_readwrite("registration", &MapperParams::registration)
       .def_readwrite("yaw_only_registration", &MapperParams::yaw_only_registration)
       .def_readwrite("max_correction_m", &MapperParams::max_correction_m)
+      .def_readwrite("max_odometry_step_m", &MapperParams::max_odometry_step_m)
       .def_readwrite("max_correction_rad", &MapperParams::max_correction_rad)
       .def_readwrite("registration_sigma_m", &MapperParams::registration_sigma_m)
       .def_readwrite("registration_sigma_rad", &MapperParams::registration_sigma_rad)

@@ -43,6 +43,7 @@ void check_params(const MapperParams& p) {
   check_positive(p.local_map_size_m, "local_map_size_m");
   check_positive(p.discontinuity_m, "discontinuity_m");
   check_positive(p.max_correction_m, "max_correction_m");
+  check_positive(p.max_odometry_step_m, "max_odometry_step_m");
   check_positive(p.max_correction_rad, "max_correction_rad");
   check_positive(p.registration_sigma_m, "registration_sigma_m");
   check_positive(p.registration_sigma_rad, "registration_sigma_rad");
@@ -402,6 +403,14 @@ void Mapper::Impl::rebuild() {
 template <typename Scalar>
 ScanReport Mapper::Impl::add(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry) {
   check_pose(odometry);
+  if (have_last) {
+    const double step = (odometry.topRightCorner<3, 1>() - last_odometry.topRightCorner<3, 1>()).norm();
+    if (!(step <= params.max_odometry_step_m)) {
+      throw std::invalid_argument("odometry moved " + std::to_string(step) + " m since the previous scan, over " +
+                                  "max_odometry_step_m = " + std::to_string(params.max_odometry_step_m) +
+                                  " m: a glitch? The scan was not added");
+    }
+  }
   // Bad points throw from the map building below: leave the mapper as it was before this scan.
   struct Rollback {
     Impl& impl;

@@ -38,6 +38,9 @@ class MapperParams:
         A new local map every this much odometry travel [m] (the paper: about 3 m).
     keyframe_rotation : float
         ... or when odometry turned this much since the last one [rad].
+    max_odometry_step : float
+        :meth:`Mapper.add_scan` refuses odometry that moved farther than this since the previous
+        scan [m] (a glitch such as a GPS jump would stretch the global map over kilometres).
     resolution : float
         Cell size of the local and global maps [m].
     local_map_size : float
@@ -106,6 +109,7 @@ class MapperParams:
 
     keyframe_distance: float = 3.0
     keyframe_rotation: float = 0.5
+    max_odometry_step: float = 50.0
     resolution: float = 0.1
     local_map_size: float = 40.0
     max_scans_per_local_map: int = 1
@@ -143,6 +147,7 @@ class MapperParams:
         params = _checked(_core.MapperParams)()
         params.keyframe_distance_m = float(self.keyframe_distance)
         params.keyframe_rotation_rad = float(self.keyframe_rotation)
+        params.max_odometry_step_m = float(self.max_odometry_step)
         params.resolution_m = float(self.resolution)
         params.local_map_size_m = float(self.local_map_size)
         params.max_scans_per_local_map = int(self.max_scans_per_local_map)

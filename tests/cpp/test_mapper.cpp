@@ -445,6 +445,36 @@ TEST(Mapper, GlobalMapMemoryGrowsWithTheAreaCovered) {
   EXPECT_LT(static_cast<double>(tiles), 0.05 * (1000.0 / tile_m) * (1000.0 / tile_m));
 }
 
+TEST(Mapper, AnOdometryJumpIsRefusedAndLeavesTheMapperAsItWas) {
+  // issue 39, item 9: one 2 km glitch must not stretch the global map over kilometres for good.
+  MapperParams params;
+  params.use_registration = false;
+  params.loop_closing = false;
+  Mapper mapper(params);
+  std::vector<Eigen::Vector3f> scan;
+  for (float x = -4; x <= 4; x += 0.2f) {
+    for (float y = -4; y <= 4; y += 0.2f) scan.emplace_back(x, y, -1.0f);
+  }
+  const PointsView<float> view(scan.data()->data(), scan.size());
+  mapper.add_scan(view, pose_xyyaw(0, 0, 0, 0));
+  mapper.add_scan(view, pose_xyyaw(3.5, 0, 0, 0));
+  const std::size_t tiles = mapper.tiles().num_tiles();
+  try {
+    mapper.add_scan(view, pose_xyyaw(2000.0, 0, 0, 0));
+    ADD_FAILURE() << "a 2 km step was accepted";
+  } catch (const std::invalid_argument& error) {
+    EXPECT_NE(std::string(error.what()).find("max_odometry_step_m"), std::string::npos) << error.what();
+  }
+  EXPECT_EQ(mapper.num_keyframes(), 2U);
+  EXPECT_EQ(mapper.tiles().num_tiles(), tiles);
+  mapper.add_scan(view, pose_xyyaw(7.0, 0, 0, 0));  // the drive goes on from where it was
+  EXPECT_EQ(mapper.num_keyframes(), 3U);
+  EXPECT_NO_THROW(mapper.global_map());
+  MapperParams bad;
+  bad.max_odometry_step_m = 0.0;
+  EXPECT_THROW(Mapper{bad}, std::invalid_argument);
+}
+
 TEST(Mapper, BadInputIsRejected) {
   MapperParams bad;
   bad.keyframe_distance_m = 0.0;

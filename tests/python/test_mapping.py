@@ -181,6 +181,15 @@ def test_bad_input_raises_clear_errors():
         Mapper(MapperParams(num_threads=-1))
     with pytest.raises(IndexError):
         mapper.local_map(3)
+    # An odometry glitch (a 2 km jump) is refused and leaves the mapper as it was.
+    ground = np.array([[x, y, -1.5] for x in range(-4, 5) for y in range(-4, 5)], np.float32)
+    mapper.add_scan(ground, np.eye(4))
+    jump = np.eye(4)
+    jump[0, 3] = 2000.0
+    with pytest.raises(ValueError, match="max_odometry_step_m"):
+        mapper.add_scan(ground, jump)
+    assert len(mapper) == 1
+    assert Mapper(MapperParams(max_odometry_step=5000.0)).add_scan(ground, jump).keyframe
 
 
 # ------------------------------------------------------------------------------------------ terracube map

@@ -28,6 +28,9 @@ struct MapperParams {
   double keyframe_distance_m = 3.0;
   /// A new local map also when odometry turned by this much since the last one [rad]. > 0.
   double keyframe_rotation_rad = 0.5;
+  /// add_scan refuses odometry that moved farther than this since the previous scan [m] (a
+  /// glitch, e.g. a GPS jump: one would stretch the global map over kilometres); > 0.
+  double max_odometry_step_m = 50.0;
 
   /// Local maps: cell size [m] (also the global map's; [TC] section 2.1: 0.1 m) and the square
   /// extent centred on the sensor [m].
