@@ -46,18 +46,32 @@ std::vector<std::int64_t> collapse_columns(const std::vector<std::int64_t>& sort
   return removed;
 }
 
-/// [CBC] eqs. (4)-(6) and (1): the index I of the cube holding a leveled point.
+/// [CBC] eqs. (4)-(6) and (1): the index I of the cube holding a leveled point, or kNoCube when
+/// the point lies outside the grid. That cannot happen to a point that was measured into the
+/// grid's extent, but the caller's array may change during a call (another thread, a recycled
+/// driver buffer, a memory map): such a row then takes no part, and nothing is written out of
+/// bounds (nor is an out-of-range double cast to an integer).
 struct CubeIndexer {
   explicit CubeIndexer(const CubeGrid& grid)
-      : min_corner(grid.min_corner), inverse_edge(1.0 / grid.edge_m), ixmax(grid.ixmax), layer(grid.num_columns()) {}
+      : min_corner(grid.min_corner),
+        inverse_edge(1.0 / grid.edge_m),
+        cubes(static_cast<double>(grid.ixmax), static_cast<double>(grid.iymax), static_cast<double>(grid.izmax)),
+        ixmax(grid.ixmax),
+        layer(grid.num_columns()) {}
 
   std::int64_t operator()(const Eigen::Vector3d& p) const {
-    return quantize(p.x(), min_corner.x(), inverse_edge) + quantize(p.y(), min_corner.y(), inverse_edge) * ixmax +
-           quantize(p.z(), min_corner.z(), inverse_edge) * layer;
+    std::int64_t i[3];
+    for (int axis = 0; axis < 3; ++axis) {
+      const double position = (p[axis] - min_corner[axis]) * inverse_edge + 0.5;  // round half up
+      if (!(position >= 0.0 && position < cubes[axis])) return kNoCube;
+      i[axis] = static_cast<std::int64_t>(position);
+    }
+    return i[0] + i[1] * ixmax + i[2] * layer;
   }
 
   Eigen::Vector3d min_corner;
   double inverse_edge;
+  Eigen::Vector3d cubes;  // ixmax, iymax, izmax
   std::int64_t ixmax;
   std::int64_t layer;
 };

@@ -1,12 +1,15 @@
 #include <gtest/gtest.h>
 #include <terracube/collapse.hpp>
+#include <terracube/elevation_map.hpp>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <functional>
 #include <limits>
 #include <random>
 #include <set>
+#include <thread>
 
 #include "test_support.hpp"
 
@@ -920,6 +923,63 @@ TEST(CollapseBadInput, NonRigidTransformsAndBadCropsAreRejected) {
 
 TEST(CollapseBadInput, ViewWithoutDataIsRejected) {
   EXPECT_THROW(collapse_overhangs(PointsView<float>(nullptr, 3), CollapseParams{}), std::invalid_argument);
+}
+
+}  // namespace
+}  // namespace terracube
+
+namespace terracube {
+namespace {
+
+// issue 39, item 2: the caller's array may change while a call reads it (another thread, a
+// recycled driver buffer, a memory map another process writes). Whatever it holds by then, no call
+// may write out of bounds or crash (run under ASan in CI); a row that moved takes no part.
+TEST(ConcurrentInput, AWriterRewritingRowsDuringTheCallsNeverBreaksThem) {
+  const auto scene = test::random_scene(91, 6000, 12.0);
+  std::vector<double> values;
+  for (const Eigen::Vector3d& p : scene) values.insert(values.end(), {p.x(), p.y(), p.z()});
+  std::atomic<bool> stop{false};
+  std::thread writer([&] {  // keeps 64 rows moved far out (or to NaN), moving others back in turn
+    std::mt19937 rng(5);
+    const double wild[] = {100.0, -100.0, 60.0, -60.0, std::numeric_limits<double>::quiet_NaN()};
+    std::vector<std::size_t> moved(64, 0);
+    for (std::size_t turn = 0; !stop.load(std::memory_order_relaxed); ++turn) {
+      volatile double* slots = values.data();  // plain stores another thread races with
+      std::size_t& k = moved[turn % moved.size()];
+      slots[k] = scene[k / 3][static_cast<int>(k % 3)];
+      k = rng() % values.size();
+      slots[k] = wild[rng() % 5];
+    }
+  });
+  const PointsView<double> view(values.data(), scene.size());
+  CollapseParams params;
+  params.drop_non_finite = true;
+  ElevationParams map;
+  map.resolution_m = 0.5;
+  map.drop_non_finite = true;
+  std::size_t calls = 0;
+  for (int round = 0; round < 30; ++round) {
+    for (const CubeStorage storage : {CubeStorage::kDense, CubeStorage::kSparse}) {
+      params.storage = storage;
+      try {  // a clear exception (an extent too large for the grid, say) is fine; a crash is not
+        const CollapseResult result = collapse_overhangs(view, params);
+        EXPECT_EQ(result.overhang.size(), scene.size());
+        for (const std::int64_t cube : result.occupied_cubes) {
+          ASSERT_TRUE(cube >= 0 && cube < result.grid.num_cubes()) << "cube " << cube << " outside the grid";
+        }
+        ++calls;
+      } catch (const std::invalid_argument&) {
+      }
+    }
+    try {
+      build_overhang_free_map(view, params, map);
+      ++calls;
+    } catch (const std::invalid_argument&) {
+    }
+  }
+  stop = true;
+  writer.join();
+  EXPECT_GT(calls, 0U);
 }
 
 }  // namespace
