@@ -38,20 +38,23 @@ def _height_colours(z: np.ndarray) -> np.ndarray:
     return (255 * colormaps["viridis"](np.nan_to_num(scaled))[:, :3]).astype(np.uint8)
 
 
-def _start(rr, name: str, save: str | Path | None) -> Path | None:
+def _record(rr, name: str, save: str | Path | None, log) -> Path | None:
+    """Runs ``log()`` into a spawned viewer, or with ``save`` into a recording written under a
+    temporary name and renamed to ``save`` once rerun has flushed it (nothing half-written)."""
+    from .io import atomic_path
+
     rr.init(f"terracube_{name}", spawn=False)
     if save is None:
         rr.spawn()
+        log()
         return None
     path = Path(save)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    rr.save(str(path))
+    with atomic_path(path) as temporary:
+        rr.save(str(temporary))
+        log()
+        if hasattr(rr, "disconnect"):
+            rr.disconnect()  # flushes and closes the recording file
     return path
-
-
-def _finish(rr, path: Path | None) -> None:
-    if path is not None and hasattr(rr, "disconnect"):
-        rr.disconnect()  # flushes and closes the recording file
 
 
 def show_cloud(
@@ -77,10 +80,12 @@ def show_cloud(
         colours = np.where(mask[:, None], _OVERHANG, _RETAINED).astype(np.uint8)
     else:
         colours = _height_colours(xyz[:, 2])
-    path = _start(rr, name, save)
-    rr.log(f"{name}/points", rr.Points3D(xyz[keep], colors=colours[keep], radii=radius))
-    _finish(rr, path)
-    return path
+    return _record(
+        rr,
+        name,
+        save,
+        lambda: rr.log(f"{name}/points", rr.Points3D(xyz[keep], colors=colours[keep], radii=radius)),
+    )
 
 
 def show_map(elevation_map, *, name: str = "map", save: str | Path | None = None) -> Path | None:
@@ -101,7 +106,7 @@ def show_map(elevation_map, *, name: str = "map", save: str | Path | None = None
         colours = palette[np.minimum(classes, len(palette) - 1)].astype(np.uint8)
     else:
         colours = _height_colours(xyz[:, 2])
-    path = _start(rr, name, save)
-    rr.log(f"{name}/cells", rr.Points3D(xyz, colors=colours, radii=0.4 * elevation_map.resolution))
-    _finish(rr, path)
-    return path
+    radius = 0.4 * elevation_map.resolution
+    return _record(
+        rr, name, save, lambda: rr.log(f"{name}/cells", rr.Points3D(xyz, colors=colours, radii=radius))
+    )

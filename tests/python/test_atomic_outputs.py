@@ -164,3 +164,43 @@ def test_atomic_path_under_a_file_says_the_file_is_not_a_folder(tmp_path):
     ):
         pass
     assert caught.value.filename == str(tmp_path / "afile")
+
+
+class _FakeRerun:
+    """Stands in for the rerun module (an extra): save() opens the recording, log() writes to it."""
+
+    def __init__(self, fail: bool):
+        self.fail, self.file = fail, None
+
+    def init(self, *args, **kwargs):
+        pass
+
+    def save(self, path):
+        self.file = open(path, "wb")  # noqa: SIM115 - closed by disconnect, as rerun does
+
+    def Points3D(self, *args, **kwargs):  # noqa: N802 - rerun's name
+        return b"points"
+
+    def log(self, entity, data):
+        self.file.write(data)
+        if self.fail:
+            raise RuntimeError("the viewer failed half-way")
+
+    def disconnect(self):
+        self.file.close()
+
+
+@pytest.mark.parametrize("fail", [False, True])
+def test_viewer_recordings_are_written_atomically(tmp_path, monkeypatch, fail):
+    from terracube import viewer
+
+    rerun = _FakeRerun(fail)
+    monkeypatch.setattr(viewer, "_rerun", lambda: rerun)
+    target = tmp_path / "scan.rrd"
+    if fail:
+        with pytest.raises(RuntimeError, match="half-way"):
+            viewer.show_cloud(np.zeros((4, 3)), save=target)
+        assert list(tmp_path.iterdir()) == []
+    else:
+        assert viewer.show_cloud(np.zeros((4, 3)), save=target) == target
+        assert target.read_bytes() == b"points" and [p.name for p in tmp_path.iterdir()] == ["scan.rrd"]
