@@ -41,9 +41,20 @@ SHARED_SEEDS = ("forest_tls/TreeLS_pine.laz", "ouster128/ouster128_000000.pcd")
 # ----------------------------------------------------------------------------------------- corpus
 
 
+def package_root() -> Path:
+    """The folder whose ``terracube`` package imports with its compiled core: the installed one
+    (as scripts/setup.sh leaves it), else the source tree's ``python/`` (a developer's build)."""
+    try:
+        import terracube
+    except ImportError:
+        sys.path.insert(0, str(REPO / "python"))
+        import terracube
+    return Path(terracube.__file__).resolve().parents[1]
+
+
 def build_corpus(folder: Path) -> list[Path]:
     """Small seed files of every readable format in ``folder``; returns their paths."""
-    sys.path.insert(0, str(REPO / "python"))
+    package_root()
     from terracube.config import dump_config
     from terracube.io import sample_scan_path, write_classified, write_pcd
 
@@ -177,7 +188,7 @@ class Worker:
     """A subprocess reading the files it is sent, under a memory limit and a per-case alarm."""
 
     def __init__(self, stderr: Path):
-        code = WORKER.format(python=str(REPO / "python"), alarm=int(CASE_SECONDS))
+        code = WORKER.format(python=str(package_root()), alarm=int(CASE_SECONDS))
         self.stderr_path = stderr
         with stderr.open("w") as sink:  # a file, not a pipe nobody reads (which could fill and block)
             self.process = subprocess.Popen(

@@ -10,8 +10,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import terracube
 
-PYTHON_DIR = Path(__file__).resolve().parents[2] / "python"
+# The folder of the terracube these tests import (installed, or the source tree with its built core).
+PYTHON_DIR = Path(terracube.__file__).resolve().parents[1]
 
 
 def _terracube(*args: str, cwd: Path) -> subprocess.CompletedProcess:
