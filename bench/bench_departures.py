@@ -38,6 +38,7 @@ from bench_icp import (
     kitti_world_velo,
     perturbation,
 )
+from bench_mapper import simulated_loop
 from terracube import simulation as sim
 from terracube.mapping import Mapper, MapperParams
 
@@ -114,18 +115,7 @@ def icp_part(data_dir, quick: bool) -> None:
 
 
 def mapper_part(quick: bool) -> None:
-    lidar = sim.RotatingLidar(
-        channels=64, steps_per_revolution=2048, vertical_fov_min=-24.8, vertical_fov_max=2.0, max_range=80.0
-    )
-    trajectory = sim.TrajectoryParams(
-        scan_spacing=1.0,
-        mount_height=1.73,
-        yaw_bias=1e-3,
-        yaw_random_walk=1e-3,
-        translation_scale_error=0.01,
-        seed=7,
-    )
-    sequence = sim.generate_sequence(sim.LoopSceneParams(), trajectory, lidar, seed=3)
+    sequence = simulated_loop()
     count = min(len(sequence), 120) if quick else len(sequence)
     scans = [sequence.scan(k).points for k in range(count)]
     truth, odometry = sequence.poses[:count], sequence.odometry[:count]

@@ -118,7 +118,8 @@ def kitti_part(args, rows) -> list[float]:
     return rates
 
 
-def synthetic_part(args, rows) -> list[float]:
+def simulated_loop() -> sim.SyntheticSequence:
+    """One lap of the loop scene with an HDL-64-like LiDAR, a scan every metre, drifting odometry."""
     lidar = sim.RotatingLidar(
         channels=64, steps_per_revolution=2048, vertical_fov_min=-24.8, vertical_fov_max=2.0, max_range=80.0
     )
@@ -130,7 +131,11 @@ def synthetic_part(args, rows) -> list[float]:
         translation_scale_error=0.01,
         seed=7,
     )
-    sequence = sim.generate_sequence(sim.LoopSceneParams(), trajectory, lidar, seed=3)
+    return sim.generate_sequence(sim.LoopSceneParams(), trajectory, lidar, seed=3)
+
+
+def synthetic_part(args, rows) -> list[float]:
+    sequence = simulated_loop()
     count = len(sequence) if not args.quick else min(len(sequence), 120)
     start = time.perf_counter()
     scans = [sequence.scan(k).points for k in range(count)]

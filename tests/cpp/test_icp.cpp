@@ -662,6 +662,31 @@ TEST(RegisterMaps, MapsWithoutAWeightedClassOrWithoutDataSaySo) {
   EXPECT_NE(register_maps_all_cells(ground_only, ground_only, identity).reason, StopReason::kNoCommonClass);
 }
 
+/// [TC] eq. (A6) summed pair by pair: the weighted normal matrix of the moved source points `p`
+/// paired with `q` (weights `w`), about their weighted centroid, and the weighted RMSE, against
+/// the result's.
+void expect_normal_equations_of_pairs(const RegistrationResult& result, const std::vector<Eigen::Vector3d>& p,
+                                      const std::vector<Eigen::Vector3d>& q, const std::vector<double>& w) {
+  double w_sum = 0.0, error = 0.0;
+  Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
+  for (std::size_t k = 0; k < p.size(); ++k) {
+    w_sum += w[k];
+    centroid += w[k] * p[k];
+    error += w[k] * (p[k] - q[k]).squaredNorm();
+  }
+  centroid /= w_sum;
+  Eigen::Matrix<double, 6, 6> naive = Eigen::Matrix<double, 6, 6>::Zero();
+  for (std::size_t k = 0; k < p.size(); ++k) {
+    Eigen::Matrix<double, 3, 6> jacobian;  // d(residual)/d(omega, t) about the centroid
+    const Eigen::Vector3d r = p[k] - centroid;
+    jacobian.leftCols<3>() << 0.0, r.z(), -r.y(), -r.z(), 0.0, r.x(), r.y(), -r.x(), 0.0;  // -[r]x
+    jacobian.rightCols<3>().setIdentity();
+    naive += w[k] * jacobian.transpose() * jacobian;
+  }
+  EXPECT_LT((result.normal_matrix - naive).cwiseAbs().maxCoeff(), 1e-9 * naive.cwiseAbs().maxCoeff());
+  EXPECT_NEAR(result.rmse_m, std::sqrt(error / w_sum), 1e-12);
+}
+
 TEST(RegisterMaps, NormalEquationsEqualANaiveSumOverBruteForcePairs) {
   // The one-sweep moments against eq. (A6) summed pair by pair, with brute-force partners of the
   // same class at the final estimate and limit.
@@ -691,24 +716,7 @@ TEST(RegisterMaps, NormalEquationsEqualANaiveSumOverBruteForcePairs) {
     w.push_back(weight);
   }
   ASSERT_EQ(p.size(), result.num_correspondences);
-  double w_sum = 0.0, error = 0.0;
-  Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
-  for (std::size_t k = 0; k < p.size(); ++k) {
-    w_sum += w[k];
-    centroid += w[k] * p[k];
-    error += w[k] * (p[k] - q[k]).squaredNorm();
-  }
-  centroid /= w_sum;
-  Eigen::Matrix<double, 6, 6> naive = Eigen::Matrix<double, 6, 6>::Zero();
-  for (std::size_t k = 0; k < p.size(); ++k) {
-    Eigen::Matrix<double, 3, 6> jacobian;  // d(residual)/d(omega, t) about the centroid
-    const Eigen::Vector3d r = p[k] - centroid;
-    jacobian.leftCols<3>() << 0.0, r.z(), -r.y(), -r.z(), 0.0, r.x(), r.y(), -r.x(), 0.0;  // -[r]x
-    jacobian.rightCols<3>().setIdentity();
-    naive += w[k] * jacobian.transpose() * jacobian;
-  }
-  EXPECT_LT((result.normal_matrix - naive).cwiseAbs().maxCoeff(), 1e-9 * naive.cwiseAbs().maxCoeff());
-  EXPECT_NEAR(result.rmse_m, std::sqrt(error / w_sum), 1e-12);
+  expect_normal_equations_of_pairs(result, p, q, w);
 }
 
 TEST(RegisterMaps, PairingFromTheTargetAsThePaperEqualsANaiveSumOverBruteForcePairs) {
@@ -743,24 +751,7 @@ TEST(RegisterMaps, PairingFromTheTargetAsThePaperEqualsANaiveSumOverBruteForcePa
     w.push_back(weight);
   }
   ASSERT_EQ(p.size(), result.num_correspondences);
-  double w_sum = 0.0, error = 0.0;
-  Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
-  for (std::size_t k = 0; k < p.size(); ++k) {
-    w_sum += w[k];
-    centroid += w[k] * p[k];
-    error += w[k] * (p[k] - q[k]).squaredNorm();
-  }
-  centroid /= w_sum;
-  Eigen::Matrix<double, 6, 6> naive = Eigen::Matrix<double, 6, 6>::Zero();
-  for (std::size_t k = 0; k < p.size(); ++k) {
-    Eigen::Matrix<double, 3, 6> jacobian;
-    const Eigen::Vector3d r = p[k] - centroid;
-    jacobian.leftCols<3>() << 0.0, r.z(), -r.y(), -r.z(), 0.0, r.x(), r.y(), -r.x(), 0.0;
-    jacobian.rightCols<3>().setIdentity();
-    naive += w[k] * jacobian.transpose() * jacobian;
-  }
-  EXPECT_LT((result.normal_matrix - naive).cwiseAbs().maxCoeff(), 1e-9 * naive.cwiseAbs().maxCoeff());
-  EXPECT_NEAR(result.rmse_m, std::sqrt(error / w_sum), 1e-12);
+  expect_normal_equations_of_pairs(result, p, q, w);
 }
 
 /// A hilly scene (ground class on z = 0.04 x - 0.03 y + 0.3 sin(0.4 x), boxes as obstacles,
