@@ -9,7 +9,8 @@
 #
 # Environment: THREADS (default "1 2"), WHAT (0 refilled map + classes, 1 fresh map + classes, 2 fresh
 # map, 3 fresh map + classes with cold caches: each call after 64 MB were written and read, untimed;
-# 4 fresh map + classes from the scan as float64 x y z rows, numpy's default dtype; default "0"), ROUNDS (400), REPS (20), TERRACUBE_DATA_DIR (else ../shared/data). Each side's
+# 4 fresh map + classes from the scan as float64 x y z rows, numpy's default dtype; 5 collapse_overhangs, 6 the
+# same from float64 rows; default "0"), ROUNDS (400), REPS (20), TERRACUBE_DATA_DIR (else ../shared/data). Each side's
 # library sources are compiled with -Dterracube=tcA / tcB (so both link into one program); the list
 # below is the map path's, extend it if a build misses a symbol.
 set -euo pipefail

@@ -40,16 +40,12 @@ turning the parameter dataclasses into the C++ structs is printed too. "map + cl
 map" is the same C++ step refilling one map (``out=``, its layers' buffers reused; checked equal to a
 fresh map first), as a loop over scans would; numpy makes its arrays anew (the target is judged on
 the fresh C++ map). The minor page faults per map + classify call are counted too (getrusage), here
-and in a fresh process of terracube calls alone: a refilled map takes none, and neither does a fresh
-one once a dropped map has left its layers' buffers to the thread (before that change, about 670
-per call there, one per 4 kB of its nine 320 kB layers, whenever the allocator had returned them to
-the system).
+and in a fresh process of terracube calls alone: a refilled map should take none.
 
 A robot's loop is timed too: map + classify once every 100 ms (a 10 Hz LiDAR) and once every 10 ms,
 the thread asleep in between (median of up to 25 calls, on one thread and on every processor). There
-the pool's threads, the caches and the processors go idle between calls, which back-to-back timing
-never shows: GCC's OpenMP pool, which the library used before its own, took 2.1-12.8 ms per call
-on two threads at 100 ms in four runs, where one thread took 1.4 ms.
+the worker threads, the caches and the processors go idle between calls, which back-to-back timing
+never shows.
 
 Reproduce
 ---------
@@ -497,7 +493,7 @@ PACED_PERIODS_MS = (100.0, 10.0)  # a 10 Hz LiDAR's scans; a caller 10x as frequ
 
 def paced_ms(call, period_ms: float, samples: int) -> float:
     """Median ms of ``call`` run once every ``period_ms`` (the thread sleeps in between), as a robot's
-    loop calls it once per scan: between calls the pool's threads, caches and processors go idle."""
+    loop calls it once per scan: between calls the worker threads, caches and processors go idle."""
     call()
     times = []
     next_start = time.perf_counter()

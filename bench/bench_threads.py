@@ -12,13 +12,12 @@ layers, then the Table 1 classes; a fresh map per call), called
 
 each on one thread (``num_threads=1``) and on every processor (``num_threads=0``); the same for a DEM
 without overhangs (collapse, then the map; edge 0.5 m, sigma 5, crop as in ``bench_elevation.py``)
-followed by its classes: three calls that take threads per scan. Between paced calls the library's
-thread pool, the caches and the (virtual) processors go idle, which back-to-back timing never shows:
-with GCC's OpenMP pool, which the library used before its own, two threads took 2.1-12.8 ms per
-map + classify every 100 ms on the shared VM (four runs; the host decides how long a sleeping
-processor takes to wake), where one thread took 1.4 ms. Each line is the median of ``--repeat``
-calls (at most 25 at 100 ms) after 0.1 s of calls back to back; ``--json`` prints the medians as one
-JSON object instead (for ``bench/ab_python.sh``, which alternates two builds' processes).
+followed by its classes: three calls that take threads per scan. Between paced calls the worker
+threads (a TBB arena per call), the caches and the (virtual) processors go idle, which back-to-back
+timing never shows (the host decides how long a sleeping processor takes to wake). Each line is
+the median of ``--repeat`` calls (at most 25 at 100 ms) after 0.1 s of calls back to back;
+``--json`` prints the medians as one JSON object instead (for ``bench/ab_python.sh``, which
+alternates two builds' processes).
 
 Reproduce
 ---------
@@ -51,15 +50,14 @@ from bench_elevation import (
 )
 
 CADENCES = ("back to back", "after numpy", "every 10 ms", "every 100 ms")
-# Before each cadence, calls back to back for this long: the pool's threads start (or wake) once
-# calls have kept coming for 20 ms, so without it the first back-to-back calls run on one thread.
+# Before each cadence, calls back to back for this long: caches and worker threads warm.
 WARM_UP_S = 0.1
 
 
 def timed_calls(call, cadence: str, calls: int, before) -> float:
     """Median ms of ``call`` at ``cadence``; ``before`` is the numpy work of "after numpy"."""
     period = {"every 10 ms": 0.01, "every 100 ms": 0.1}.get(cadence, 0.0)
-    warm_until = time.perf_counter() + WARM_UP_S  # calls back to back: the pool's steady state
+    warm_until = time.perf_counter() + WARM_UP_S  # calls back to back: the steady state
     while time.perf_counter() < warm_until:
         call()
     times = []

@@ -16,6 +16,7 @@
 
 #ifdef TERRACUBE_AB_SIDE
 
+#include <terracube/collapse.hpp>
 #include <terracube/elevation_map.hpp>
 #include <terracube/terrain.hpp>
 #include <vector>
@@ -38,7 +39,8 @@ Side& side() {
 }  // namespace
 
 /// `reps` calls of `what` (0: refill one map + classes, 1: fresh map + classes, 2: fresh map, 4:
-/// fresh map + classes from float64 x y z rows) on `threads` threads; returns a checksum.
+/// fresh map + classes from float64 x y z rows, 5: collapse_overhangs with E 0.5 m and sigma 2 as
+/// bench_collapse_cpp, 6: the same from float64 rows) on `threads` threads; returns a checksum.
 std::size_t TERRACUBE_AB_CAT(run_, TERRACUBE_AB_SIDE)(const float* xyzi, std::size_t rows, int what, int reps,
                                                       int threads) {
   const terracube::PointsView<float> view(xyzi, rows, 4, 1);
@@ -59,7 +61,16 @@ std::size_t TERRACUBE_AB_CAT(run_, TERRACUBE_AB_SIDE)(const float* xyzi, std::si
   s.terrain.num_threads = threads;
   std::size_t sum = 0;
   for (int r = 0; r < reps; ++r) {
-    if (what == 0) {
+    if (what == 5 || what == 6) {
+      terracube::CollapseParams collapse;
+      collapse.edge_m = 0.5;
+      collapse.sigma = 2;
+      collapse.num_threads = threads;
+      const terracube::CollapseResult result =
+          what == 5 ? terracube::collapse_overhangs(view, collapse)
+                    : terracube::collapse_overhangs(terracube::PointsView<double>(s.xyz.data(), rows, 3, 1), collapse);
+      sum += result.num_overhang + result.occupied_cubes.size();
+    } else if (what == 0) {
       terracube::build_elevation_map_into(s.refilled, view, s.map);
       sum += static_cast<std::size_t>(terracube::classify_terrain_layers(s.refilled, s.terrain)(200, 100));
     } else if (what == 1 || what == 4) {
@@ -100,7 +111,7 @@ int main(int argc, char** argv) {
   if (argc != 6) {
     std::fprintf(stderr,
                  "usage: %s KITTI_BIN WHAT(0 refill+classes, 1 fresh+classes, 2 fresh map, 3 fresh+classes cold, 4 "
-                 "fresh+classes from float64) "
+                 "fresh+classes from float64, 5 collapse, 6 collapse from float64) "
                  "THREADS ROUNDS REPS\n",
                  argv[0]);
     return 2;
@@ -110,7 +121,7 @@ int main(int argc, char** argv) {
   const int rounds = std::atoi(argv[4]);
   const int reps = std::atoi(argv[5]);
   std::ifstream file(argv[1], std::ios::binary | std::ios::ate);
-  if (!file || what < 0 || what > 4 || threads < 0 || rounds < 1 || reps < 1) {
+  if (!file || what < 0 || what > 6 || threads < 0 || rounds < 1 || reps < 1) {
     std::fprintf(stderr, "cannot read %s, or a bad argument\n", argv[1]);
     return 2;
   }
@@ -161,7 +172,8 @@ int main(int argc, char** argv) {
     ratio.push_back(time[1] / time[0]);
   }
   static const char* const kWhat[] = {"refilled map + classes", "fresh map + classes", "fresh map",
-                                      "fresh map + classes, cold caches", "fresh map + classes from float64 rows"};
+                                      "fresh map + classes, cold caches", "fresh map + classes from float64 rows",
+                                      "collapse", "collapse from float64 rows"};
   std::printf("%s, %d thread(s), %d rounds of %d calls: A %.3f ms, B %.3f ms (medians); B / A %.3f [%.3f, %.3f]%s\n",
               kWhat[what], threads, rounds, reps, quantile(a, 0.5), quantile(b, 0.5), quantile(ratio, 0.5),
               quantile(ratio, 0.25), quantile(ratio, 0.75), check_a == check_b ? "" : "  (results differ!)");
