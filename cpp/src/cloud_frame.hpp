@@ -41,30 +41,51 @@ class LeveledCloud {
 
   std::size_t size() const { return points_.size; }
 
+  /// The leveled point of `row`, unchecked: NaN/Inf coordinates stay NaN/Inf.
+  Eigen::Vector3d level(std::size_t row) const {
+    const Scalar* p = row_data(row);
+    const auto x = static_cast<double>(p[0]);
+    const auto y = static_cast<double>(p[points_.column_stride]);
+    const auto z = static_cast<double>(p[2 * points_.column_stride]);
+    if constexpr (kTransform) {
+      // q_i = ((r_i0 x + r_i1 y) + r_i2 z) + t_i: the one definition every path uses.
+      Eigen::Vector3d q;
+      for (int i = 0; i < 3; ++i)
+        q[i] = transform_(i, 0) * x + transform_(i, 1) * y + transform_(i, 2) * z + transform_(i, 3);
+      return q;
+    } else {
+      return {x, y, z};
+    }
+  }
+
+  /// Whether a leveled point lies in the crop box (always, without one). False for NaN.
+  bool in_crop(const Eigen::Vector3d& q) const {
+    if constexpr (kCrop) {
+      return (q.x() >= crop_.min.x()) & (q.y() >= crop_.min.y()) & (q.z() >= crop_.min.z()) & (q.x() <= crop_.max.x()) &
+             (q.y() <= crop_.max.y()) & (q.z() <= crop_.max.z());
+    } else {
+      return true;
+    }
+  }
+
   /// Writes the leveled point of `row` to `out`: 0 when it takes part, 1 when it is NaN/Inf, 2
   /// when it falls outside the crop box (see RowStatus).
   int map(std::size_t row, Eigen::Vector3d& out) const {
-    const Scalar* p = points_.data + static_cast<std::ptrdiff_t>(row) * points_.row_stride;
+    const Scalar* p = row_data(row);
     const auto x = static_cast<double>(p[0]);
     const auto y = static_cast<double>(p[points_.column_stride]);
     const auto z = static_cast<double>(p[2 * points_.column_stride]);
     // x - x is 0 for finite x and NaN for NaN/Inf: one test for all three coordinates.
     if (!((x - x) + (y - y) + (z - z) == 0.0)) return 1;
-    if constexpr (kTransform) {
-      // q_i = ((r_i0 x + r_i1 y) + r_i2 z) + t_i: the one definition every path uses.
-      for (int i = 0; i < 3; ++i) {
-        out[i] = transform_(i, 0) * x + transform_(i, 1) * y + transform_(i, 2) * z + transform_(i, 3);
-      }
-    } else {
-      out = {x, y, z};
-    }
-    if constexpr (kCrop) {
-      if ((out.array() < crop_.min.array()).any() || (out.array() > crop_.max.array()).any()) return 2;
-    }
-    return 0;
+    out = level(row);
+    return in_crop(out) ? 0 : 2;
   }
 
  private:
+  const Scalar* row_data(std::size_t row) const {
+    return points_.data + static_cast<std::ptrdiff_t>(row) * points_.row_stride;
+  }
+
   PointsView<Scalar> points_;
   Eigen::Matrix4d transform_;
   CropBox crop_;

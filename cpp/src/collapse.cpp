@@ -21,8 +21,14 @@ namespace {
 
 /// Rows per part of the passes over the points (a fixed partition: see parallel.hpp).
 constexpr std::size_t kRowsPerPart = 32768;
+
+/// The cube index I of a row is 32-bit on the dense storage (fewer than 2^31 cubes), which halves
+/// the memory the passes over the rows read and write, and 64-bit on the sparse one.
+using DenseIndex = std::uint32_t;
+using SparseIndex = std::int64_t;
 /// The cube of a row that takes no part.
-constexpr std::int64_t kNoCube = -1;
+template <typename Index>
+constexpr Index kNoCube = std::numeric_limits<Index>::max();
 
 /// [CBC] Algorithm 1: sweeps the occupied cubes L, sorted by I, and returns the collapsed cubes R
 /// (ascending). Sorting by I ([CBC] eq. (1)) visits the layers bottom-up, so every column is seen
@@ -47,33 +53,46 @@ std::vector<std::int64_t> collapse_columns(const std::vector<std::int64_t>& sort
 }
 
 /// [CBC] eqs. (4)-(6) and (1): the index I of the cube holding a leveled point, or kNoCube when
-/// the point lies outside the grid. That cannot happen to a point that was measured into the
-/// grid's extent, but the caller's array may change during a call (another thread, a recycled
-/// driver buffer, a memory map): such a row then takes no part, and nothing is written out of
-/// bounds (nor is an out-of-range double cast to an integer).
+/// the point takes no part or lies outside the grid (NaN compares false: NaN/Inf rows fall out
+/// here too). A measured point lies inside, but the caller's array may change during a call
+/// (another thread, a recycled driver buffer, a memory map): such a row then takes no part, and
+/// nothing is written out of bounds (nor is an out-of-range double cast to an integer). Without
+/// branches: a pass over a scan would otherwise stall on them.
+template <typename Index>
 struct CubeIndexer {
   explicit CubeIndexer(const CubeGrid& grid)
       : min_corner(grid.min_corner),
         inverse_edge(1.0 / grid.edge_m),
         cubes(static_cast<double>(grid.ixmax), static_cast<double>(grid.iymax), static_cast<double>(grid.izmax)),
-        ixmax(grid.ixmax),
-        layer(grid.num_columns()) {}
+        ixmax(static_cast<Index>(grid.ixmax)),
+        layer(static_cast<Index>(grid.num_columns())) {}
 
-  std::int64_t operator()(const Eigen::Vector3d& p) const {
-    std::int64_t i[3];
-    for (int axis = 0; axis < 3; ++axis) {
-      const double position = (p[axis] - min_corner[axis]) * inverse_edge + 0.5;  // round half up
-      if (!(position >= 0.0 && position < cubes[axis])) return kNoCube;
-      i[axis] = static_cast<std::int64_t>(position);
+  Index operator()(const Eigen::Vector3d& p, bool takes_part) const {
+    const double x = (p.x() - min_corner.x()) * inverse_edge + 0.5;  // round half up
+    const double y = (p.y() - min_corner.y()) * inverse_edge + 0.5;
+    const double z = (p.z() - min_corner.z()) * inverse_edge + 0.5;
+    const bool inside =
+        takes_part & (x >= 0.0) & (y >= 0.0) & (z >= 0.0) & (x < cubes.x()) & (y < cubes.y()) & (z < cubes.z());
+    // Inside the grid truncation is the floor of eqs. (4)-(6); outside, 0 is converted instead.
+    const Index cube = floor_of(inside ? x : 0.0) + floor_of(inside ? y : 0.0) * ixmax +
+                       floor_of(inside ? z : 0.0) * layer;  // eq. (1)
+    return inside ? cube : kNoCube<Index>;
+  }
+
+  /// A non-negative coordinate below the grid's cube count on its axis, truncated.
+  static Index floor_of(double position) {
+    if constexpr (std::is_same_v<Index, DenseIndex>) {
+      return static_cast<Index>(static_cast<std::int32_t>(position));  // < 2^31 on the dense storage
+    } else {
+      return static_cast<Index>(position);
     }
-    return i[0] + i[1] * ixmax + i[2] * layer;
   }
 
   Eigen::Vector3d min_corner;
   double inverse_edge;
   Eigen::Vector3d cubes;  // ixmax, iymax, izmax
-  std::int64_t ixmax;
-  std::int64_t layer;
+  Index ixmax;
+  Index layer;
 };
 
 /// V as a bit per cube plus M as a 32-bit layer per column [bytes].
@@ -117,12 +136,14 @@ detail::CloudExtent measure_extent_in_parts(const Cloud& cloud, bool drop_non_fi
 /// is measured on, first touching fresh memory costs about 2.5 us per 4 kB page, which for a scan's
 /// cube indices alone is more than the rest of the call. Released after a call that needed over 64 MB.
 struct Workspace {
-  std::vector<std::int64_t> cubes;       ///< I per row
-  std::vector<std::uint64_t> occupancy;  ///< V, dense storage
-  std::vector<std::int32_t> ground;      ///< M, dense storage
+  std::vector<DenseIndex> dense_cubes;    ///< I per row, dense storage
+  std::vector<SparseIndex> sparse_cubes;  ///< I per row, sparse storage
+  std::vector<std::uint64_t> occupancy;   ///< V, dense storage
+  std::vector<std::int32_t> ground;       ///< M, dense storage
 
   void release_if_large() {
-    const std::size_t bytes = 8 * (cubes.capacity() + occupancy.capacity()) + 4 * ground.capacity();
+    const std::size_t bytes =
+        4 * dense_cubes.capacity() + 8 * (sparse_cubes.capacity() + occupancy.capacity()) + 4 * ground.capacity();
     if (bytes > (std::size_t{64} << 20)) *this = Workspace();
   }
 };
@@ -133,21 +154,24 @@ Workspace& thread_workspace() {
 }
 
 /// The cube index I of every row (kNoCube for rows that take no part) into `cubes`, in parts.
-template <typename Cloud>
-void cube_of_rows(const Cloud& cloud, const CubeGrid& grid, int num_threads, std::vector<std::int64_t>& cubes) {
-  const CubeIndexer index_of(grid);
+template <typename Index, typename Cloud>
+void cube_of_rows(const Cloud& cloud, const CubeGrid& grid, int num_threads, std::vector<Index>& cubes) {
+  const CubeIndexer<Index> index_of(grid);
   cubes.resize(cloud.size());
   const int parts = detail::fixed_parts(cloud.size(), kRowsPerPart);
   detail::for_each_part(num_threads, parts, [&](int part) {
     const auto [begin, end] = detail::part_range(cloud.size(), part, parts);
-    Eigen::Vector3d p;
-    for (std::size_t row = begin; row < end; ++row) cubes[row] = cloud.map(row, p) == 0 ? index_of(p) : kNoCube;
+    Index* const out = cubes.data();  // a local pointer: the stores cannot change it
+    for (std::size_t row = begin; row < end; ++row) {
+      const Eigen::Vector3d p = cloud.level(row);
+      out[row] = index_of(p, cloud.in_crop(p));
+    }
   });
 }
 
 /// The overhang mask: rows whose cube `is_removed`, computed in parts; returns how many.
-template <typename IsRemoved>
-std::size_t write_mask(const std::vector<std::int64_t>& cube_of_row, int num_threads, const IsRemoved& is_removed,
+template <typename Index, typename IsRemoved>
+std::size_t write_mask(const std::vector<Index>& cube_of_row, int num_threads, const IsRemoved& is_removed,
                        std::vector<std::uint8_t>& overhang_of_row) {
   const int parts = detail::fixed_parts(cube_of_row.size(), kRowsPerPart);
   std::vector<std::size_t> counts(static_cast<std::size_t>(parts), 0);
@@ -155,12 +179,12 @@ std::size_t write_mask(const std::vector<std::int64_t>& cube_of_row, int num_thr
     const auto [begin, end] = detail::part_range(cube_of_row.size(), part, parts);
     // Plain local pointers and a local copy of the test: a byte store may alias anything, so
     // through references the compiler would reload them on every row.
-    const std::int64_t* const cubes = cube_of_row.data();
+    const Index* const cubes = cube_of_row.data();
     std::uint8_t* const overhang = overhang_of_row.data();
     const IsRemoved removed_cube = is_removed;
     std::size_t count = 0;
     for (std::size_t row = begin; row < end; ++row) {
-      const std::uint8_t removed = cubes[row] != kNoCube && removed_cube(cubes[row]) ? 1 : 0;
+      const std::uint8_t removed = cubes[row] != kNoCube<Index> && removed_cube(cubes[row]) ? 1 : 0;
       overhang[row] = removed;
       count += removed;
     }
@@ -176,14 +200,14 @@ std::size_t write_mask(const std::vector<std::int64_t>& cube_of_row, int num_thr
 /// all -1 between calls: a call clears only what it set, O(|L|), not the whole grid.
 void collapse_dense(Workspace& workspace, int sigma, int num_threads, CollapseResult& result) {
   const CubeGrid& grid = result.grid;
-  const std::vector<std::int64_t>& cubes = workspace.cubes;
+  const std::vector<DenseIndex>& cubes = workspace.dense_cubes;
   const auto words = static_cast<std::size_t>((grid.num_cubes() + 63) / 64);
   const auto num_columns = static_cast<std::size_t>(grid.num_columns());
   if (workspace.occupancy.size() < words) workspace.occupancy.resize(words, 0);
   if (workspace.ground.size() < num_columns) workspace.ground.resize(num_columns, -1);
   std::uint64_t* const occupancy = workspace.occupancy.data();  // V
-  const auto mark = [occupancy](std::int64_t cube) {
-    if (cube != kNoCube) occupancy[static_cast<std::size_t>(cube >> 6)] |= std::uint64_t{1} << (cube & 63);
+  const auto mark = [occupancy](DenseIndex cube) {
+    if (cube != kNoCube<DenseIndex>) occupancy[cube >> 6] |= std::uint64_t{1} << (cube & 63);
   };
   // Rows in two interleaved halves: neighbouring rows of a scan often set bits of one word, and
   // each such update would wait for the one before.
@@ -208,10 +232,7 @@ void collapse_dense(Workspace& workspace, int sigma, int num_threads, CollapseRe
     occupancy[static_cast<std::size_t>(cube >> 6)] &= ~(std::uint64_t{1} << (cube & 63));
   }
   result.num_overhang = write_mask(
-      cubes, num_threads,
-      [occupancy](std::int64_t cube) {
-        return ((occupancy[static_cast<std::size_t>(cube >> 6)] >> (cube & 63)) & 1U) == 0;
-      },
+      cubes, num_threads, [occupancy](DenseIndex cube) { return ((occupancy[cube >> 6] >> (cube & 63)) & 1U) == 0; },
       result.overhang);
   for (const std::int64_t cube : occupied) {  // V and M cleared for the next call
     occupancy[static_cast<std::size_t>(cube >> 6)] = 0;
@@ -221,11 +242,11 @@ void collapse_dense(Workspace& workspace, int sigma, int num_threads, CollapseRe
 
 /// Sparse storage: L is the sorted distinct cubes of the rows and M a hash map over the columns
 /// that hold points, so memory is O(N) whatever the extent.
-void collapse_sparse(const std::vector<std::int64_t>& cubes, int sigma, int num_threads, CollapseResult& result) {
+void collapse_sparse(const std::vector<SparseIndex>& cubes, int sigma, int num_threads, CollapseResult& result) {
   std::vector<std::int64_t>& occupied = result.occupied_cubes;  // L
   occupied.reserve(cubes.size());
-  for (const std::int64_t cube : cubes) {
-    if (cube != kNoCube) occupied.push_back(cube);
+  for (const SparseIndex cube : cubes) {
+    if (cube != kNoCube<SparseIndex>) occupied.push_back(cube);
   }
   std::sort(occupied.begin(), occupied.end());
   occupied.erase(std::unique(occupied.begin(), occupied.end()), occupied.end());
@@ -236,7 +257,7 @@ void collapse_sparse(const std::vector<std::int64_t>& cubes, int sigma, int num_
       [&](std::int64_t column) -> std::int64_t& { return ground.try_emplace(column, -1).first->second; });
   const std::vector<std::int64_t>& removed = result.removed_cubes;  // sorted, as L is
   result.num_overhang = write_mask(
-      cubes, num_threads, [&](std::int64_t cube) { return std::binary_search(removed.begin(), removed.end(), cube); },
+      cubes, num_threads, [&](SparseIndex cube) { return std::binary_search(removed.begin(), removed.end(), cube); },
       result.overhang);
 }
 
@@ -273,11 +294,12 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
         }
       }
     } release_on_exit{workspace};
-    cube_of_rows(cloud, result.grid, params.num_threads, workspace.cubes);
     if (result.storage_used == CubeStorage::kDense) {
+      cube_of_rows(cloud, result.grid, params.num_threads, workspace.dense_cubes);
       collapse_dense(workspace, params.sigma, params.num_threads, result);
     } else {
-      collapse_sparse(workspace.cubes, params.sigma, params.num_threads, result);
+      cube_of_rows(cloud, result.grid, params.num_threads, workspace.sparse_cubes);
+      collapse_sparse(workspace.sparse_cubes, params.sigma, params.num_threads, result);
     }
   });
   return result;
