@@ -107,27 +107,106 @@ def collapse_params(config):
     return dataclasses.replace(config.collapse, transform=frame.transform(), crop=frame.crop_box())
 
 
-def elevation_params(config, **changes):
-    """The config's elevation section in the config's frame, with ``changes`` applied."""
+#: The automatic map window spans the 1st..99th percentile of the points' x and y, widened by this
+#: share of its span on each side (and never beyond the points): a few far returns (an Ouster scan
+#: reaches 240 m) no longer blow the map up to millions of empty cells.
+AUTO_EXTENT_PERCENTILES = (1.0, 99.0)
+AUTO_EXTENT_MARGIN = 0.1
+#: Below this share of cells with data a stage notes that the map is mostly empty.
+LOW_FILL_RATIO = 0.02
+
+
+def auto_extent(points: np.ndarray, config) -> tuple[list[float], list[int]] | None:
+    """(origin [m], size [cells]) of the automatic map window of ``points`` in the config's frame, or
+    None when no point is inside the crop box. See :data:`AUTO_EXTENT_PERCENTILES`."""
+    leveled, inside = leveled_points(points, config)
+    xy = leveled[inside, :2]
+    if len(xy) == 0:
+        return None
+    resolution = float(config.elevation.resolution)
+    low, high = np.percentile(xy, AUTO_EXTENT_PERCENTILES, axis=0)
+    margin = np.maximum(AUTO_EXTENT_MARGIN * (high - low), 2.0 * resolution)
+    low = np.maximum(low - margin, xy.min(axis=0))
+    high = np.minimum(high + margin, xy.max(axis=0))
+    origin = np.floor(low / resolution) * resolution
+    size = np.maximum(np.floor((high - origin) / resolution).astype(np.int64) + 1, 1)
+    return [float(v) for v in origin], [int(v) for v in size]
+
+
+def elevation_params(config, points: np.ndarray | None = None, **changes):
+    """The config's elevation section in the config's frame, with ``changes`` applied.
+
+    With ``points`` and no fixed extent (origin and size) the map covers :func:`auto_extent`.
+    """
     frame = config.frame
+    if points is not None and config.elevation.origin is None and "origin" not in changes:
+        window = auto_extent(points, config)
+        if window is not None:
+            changes = {**changes, "origin": window[0], "size": window[1]}
     return dataclasses.replace(
         config.elevation, transform=frame.transform(), crop=frame.crop_box(), **changes
     )
 
 
-def mapper_params(config):
-    """MapperParams of the config: the mapper section plus the terrain and registration sections.
+#: Window half-size [m] of the estimated local-ground reference: 5 cells at 0.1 m (all ground on an
+#: 11 deg slope, where the 10-cell window finds 15 %), never under 3 cells.
+ESTIMATED_GROUND_WINDOW_M = 0.5
 
-    An untouched terrain section (the paper's sensor-height reference) gives way to the mapper's
-    terrain defaults (local ground, 1 m window) for maps chained over slopes.
+
+def ground_reference_given(terrain) -> bool:
+    """Whether ``terrain`` names a ground reference: anything but the sensor-height reference at the
+    default height 0 (no real sensor sits on the ground), which means "estimate it"."""
+    return not (terrain.reference == "sensor_height" and float(terrain.sensor_height) == 0.0)
+
+
+def terrain_params(config):
+    """(TerrainParams, description) of the ground reference the classes are measured from.
+
+    The terrain section as given when it names a reference (:func:`ground_reference_given`);
+    otherwise the ground is estimated as the lowest point within :data:`ESTIMATED_GROUND_WINDOW_M`
+    of each cell (the local-ground reference), which holds on slopes and needs no sensor height.
     """
-    from .config import default_config
-    from .mapping import MapperParams
-
     terrain = config.terrain
-    if terrain == default_config().terrain:
-        terrain = MapperParams().terrain
-    return dataclasses.replace(config.mapper, terrain=terrain, registration=config.registration)
+    if ground_reference_given(terrain):
+        if terrain.reference == "sensor_height":
+            return terrain, f"sensor height {terrain.sensor_height:g} m"
+        return terrain, f"local ground, {terrain.local_ground_radius} cells"
+    radius = max(3, round(ESTIMATED_GROUND_WINDOW_M / float(config.elevation.resolution)))
+    estimated = dataclasses.replace(terrain, reference="local_ground", local_ground_radius=radius)
+    return estimated, (
+        f"local ground, {radius} cells (estimated: no sensor height given; "
+        "--sensor-height H or --reference local_ground to choose)"
+    )
+
+
+def range_note(points: np.ndarray, keep: np.ndarray, frame) -> str | None:
+    """A summary line of the points the frame's range limits left out, or None when none were."""
+    dropped = int(len(keep) - np.count_nonzero(keep))
+    if dropped == 0:
+        return None
+    xyz = np.asarray(points)[~keep, :3]
+    zeros = int(np.count_nonzero(np.all(xyz == 0, axis=1)))
+    squared = np.einsum("ij,ij->i", xyz, xyz, dtype=np.float64)
+    far = int(np.count_nonzero(squared > float(frame.max_range) ** 2)) if frame.max_range is not None else 0
+    parts = [f"{zeros:,} no-returns at (0, 0, 0)"] if zeros else []
+    near = dropped - zeros - far
+    if near:
+        parts.append(f"{near:,} nearer than {frame.min_range:g} m or not finite")
+    if far:
+        parts.append(f"{far:,} beyond {frame.max_range:g} m")
+    return f"  range filter: {dropped:,} of {len(keep):,} points left out ({', '.join(parts)})"
+
+
+def fill_note(elevation_map) -> str | None:
+    """A warning line when fewer than :data:`LOW_FILL_RATIO` of the map's cells hold data."""
+    count = np.asarray(elevation_map["count"])
+    filled = int(np.count_nonzero(count > 0))
+    if count.size == 0 or filled >= LOW_FILL_RATIO * count.size:
+        return None
+    return (
+        f"  warning: only {filled / count.size:.1%} of the {count.size:,} cells hold data; a smaller window "
+        "(--max-range, --crop, or --origin with --size) or a coarser --resolution gives a readable map"
+    )
 
 
 def leveled_points(points: np.ndarray, config) -> tuple[np.ndarray, np.ndarray]:
@@ -177,6 +256,32 @@ class StageReport:
         self.lines.append(f"  {label}: {', '.join(map(str, paths))}")
 
 
+@dataclass
+class ScanOutput:
+    """Every point of one input scan, which of them the stage used (in range), and the file it came
+    from: the classified cloud a stage writes holds every input point (the unused ones labelled 0)
+    and, written as LAS/LAZ from a LAS/LAZ input, every dimension and VLR of the input."""
+
+    points: np.ndarray
+    keep: np.ndarray
+    source: Path | None = None
+
+    def labels(self, kept_labels: np.ndarray) -> np.ndarray:
+        """(N,) labels of every input point from those of the kept ones (0 / False elsewhere)."""
+        kept_labels = np.asarray(kept_labels)
+        if len(kept_labels) == len(self.points):
+            return kept_labels
+        labels = np.zeros(len(self.points), dtype=kept_labels.dtype)
+        labels[self.keep] = kept_labels
+        return labels
+
+    def write(self, path: Path, kept_labels: np.ndarray, **kwargs) -> Path:
+        from .io import write_classified
+
+        source = self.source if path.suffix.lower() in (".las", ".laz") else None
+        return write_classified(path, self.points, self.labels(kept_labels), source=source, **kwargs)
+
+
 def _elapsed_ms(start: float) -> float:
     return 1e3 * (time.perf_counter() - start)
 
@@ -196,9 +301,18 @@ def _pictures(*draw: Callable[[], Path]) -> list[Path]:
         return [picture() for picture in draw]
 
 
-def _run_collapse(points, name, output_dir: Path, config, *, output_format="ply", png=True) -> StageReport:
+def _run_collapse(
+    points,
+    name,
+    output_dir: Path,
+    config,
+    *,
+    scan: ScanOutput,
+    output_format="ply",
+    png=True,
+    las_classification=False,
+) -> StageReport:
     from . import collapse_overhangs
-    from .io import write_classified
 
     _check_cloud_format(output_format)
     params = collapse_params(config)
@@ -216,7 +330,7 @@ def _run_collapse(points, name, output_dir: Path, config, *, output_format="ply"
     if result.num_cropped:
         report.lines.append(f"  {result.num_cropped:,} points outside the crop box were left out")
     cloud = output_dir / f"{name}_classified.{output_format}"
-    report.add("classified cloud", write_classified(cloud, points, result.overhang))
+    report.add("classified cloud", scan.write(cloud, result.overhang, as_classification=las_classification))
     if png:
         from .viz import plot_overhangs
 
@@ -230,12 +344,14 @@ def _run_collapse(points, name, output_dir: Path, config, *, output_format="ply"
     return report
 
 
-def _run_dem(points, name, output_dir: Path, config, *, png=True, geotiff=False) -> StageReport:
+def _run_dem(
+    points, name, output_dir: Path, config, *, scan: ScanOutput, png=True, geotiff=False
+) -> StageReport:
     from . import build_elevation_map, dem_without_overhangs
 
     collapse = collapse_params(config)
     start = time.perf_counter()
-    raw = build_elevation_map(points, params=elevation_params(config))
+    raw = build_elevation_map(points, params=elevation_params(config, points))
     raw_ms = _elapsed_ms(start)
     _require_data(name, raw)
     g = raw.geometry
@@ -255,9 +371,10 @@ def _run_dem(points, name, output_dir: Path, config, *, png=True, geotiff=False)
         f"{lower:,} cells lower, {emptied:,} emptied; raw DEM {raw_ms:.1f} ms, DEM without overhangs "
         f"{clean_ms:.1f} ms"
     )
+    _add_notes(report, raw)
     report.add("map", clean.save(output_dir / f"{name}_dem.npz"))
     if geotiff:
-        report.add("GeoTIFF", clean.to_geotiff("max", output_dir / f"{name}_dem_max.tif"))
+        report.add("GeoTIFF", _geotiff(clean, "max", output_dir / f"{name}_dem_max.tif", scan))
     if png:
         from .viz import plot_dem_comparison, plot_layer
 
@@ -300,36 +417,47 @@ def map_of_scan(points, name, config, remove_overhangs: bool):
     if remove_overhangs:
         collapse = collapse_params(config)
         elevation_map, result = dem_without_overhangs(
-            points, collapse=collapse, elevation=elevation_params(config)
+            points, collapse=collapse, elevation=elevation_params(config, points)
         )
         source = (
             f"DEM without overhangs (edge {collapse.edge} m, sigma {collapse.sigma}; "
             f"{result.num_overhang:,} overhang points)"
         )
     else:
-        elevation_map, result = build_elevation_map(points, params=elevation_params(config)), None
+        elevation_map, result = build_elevation_map(points, params=elevation_params(config, points)), None
         source = "raw map"
     _require_data(name, elevation_map)
     return elevation_map, source, result
 
 
 def classified_map(points, name, config, remove_overhangs: bool):
-    """(elevation map, (nx, ny) uint8 classes, description, map ms, classification ms) of one scan."""
+    """(elevation map, (nx, ny) uint8 classes, description, map ms, classification ms) of one scan.
+
+    The classes are measured from :func:`terrain_params`' ground reference.
+    """
     from . import classify_terrain
 
-    config.terrain.to_core()  # checks the thresholds before the map is built
+    terrain, _ = terrain_params(config)
+    terrain.to_core()  # checks the thresholds before the map is built
     start = time.perf_counter()
     elevation_map, source, _ = map_of_scan(points, name, config, remove_overhangs)
     map_ms = _elapsed_ms(start)
     start = time.perf_counter()
-    classes = classify_terrain(elevation_map, config.terrain)
+    classes = classify_terrain(elevation_map, terrain)
     return elevation_map, classes, source, map_ms, _elapsed_ms(start)
 
 
-def _reference_text(terrain) -> str:
-    if terrain.reference == "sensor_height":
-        return f"sensor height {terrain.sensor_height:g} m"
-    return f"local ground, {terrain.local_ground_radius} cells"
+def _add_notes(report: StageReport, elevation_map) -> None:
+    note = fill_note(elevation_map)
+    if note is not None:
+        report.lines.append(note)
+
+
+def _geotiff(elevation_map, layer: str, path: Path, scan: ScanOutput) -> Path:
+    from .io import read_crs, write_geotiff
+
+    crs = read_crs(scan.source) if scan.source is not None else None
+    return write_geotiff(elevation_map, layer, path, crs=crs)
 
 
 #: How far [m] the cells' typical lowest point may lie from the sensor-height ground plane before
@@ -365,12 +493,14 @@ def _run_classify(
     config,
     *,
     remove_overhangs=False,
+    scan: ScanOutput,
+    las_classification=False,
     cloud_format="ply",
     png=True,
     geotiff=False,
 ) -> StageReport:
     from . import TerrainClass
-    from .io import TERRAIN_LAS_CLASSES, write_classified
+    from .io import TERRAIN_LAS_CLASSES
 
     _check_cloud_format(cloud_format)
     elevation_map, classes, source, map_ms, classify_ms = classified_map(
@@ -379,31 +509,35 @@ def _run_classify(
     g = elevation_map.geometry
     counts = np.bincount(classes.ravel(), minlength=len(TerrainClass))
     known = int(classes.size - counts[0])
-    where = _reference_text(config.terrain)
+    terrain, where = terrain_params(config)
     report = StageReport(name, len(points))
     report.lines.append(
         f"{name}: {g.size[0]} x {g.size[1]} cells at {g.resolution:g} m, {known:,} with data; {source}; "
-        f"reference {where}; map {map_ms:.1f} ms, classification {classify_ms:.1f} ms"
+        f"map {map_ms:.1f} ms, classification {classify_ms:.1f} ms"
     )
+    report.lines.append(f"  ground reference: {where}")
     for terrain_class in TerrainClass:
         count = int(counts[int(terrain_class)])
         share = f" ({count / known:.1%} of cells with data)" if terrain_class and known else ""
         report.lines.append(f"  {terrain_class.name.lower().replace('_', ' '):<20} {count:>10,}{share}")
-    hint = _ground_plane_hint(elevation_map, config.terrain)
+    hint = _ground_plane_hint(elevation_map, terrain)
     if hint is not None:
         report.lines.append(hint)
+    _add_notes(report, elevation_map)
     report.add("map", elevation_map.save(output_dir / f"{name}_classes.npz"))
     if cloud_format is not None:
         labels = point_classes(*leveled_points(points, config), elevation_map, classes)
         cloud = output_dir / f"{name}_classes.{cloud_format}"
-        cloud = write_classified(cloud, points, labels, las_classes=TERRAIN_LAS_CLASSES)
+        cloud = scan.write(
+            cloud, labels, las_classes=TERRAIN_LAS_CLASSES, as_classification=las_classification
+        )
         report.add("classified cloud (per-point terrain class)", cloud)
     if geotiff:
-        report.add("GeoTIFF", elevation_map.to_geotiff("class", output_dir / f"{name}_classes.tif"))
+        report.add("GeoTIFF", _geotiff(elevation_map, "class", output_dir / f"{name}_classes.tif", scan))
     if png:
         from .viz import plot_terrain_classes
 
-        title = f"{name}: terrain classes ({source.split(' (')[0]}, {where})"
+        title = f"{name}: terrain classes ({source.split(' (')[0]}, {where.split(' (')[0]})"
         path = output_dir / f"{name}_classes.png"
         report.add(
             "picture", *_pictures(lambda: plot_terrain_classes(elevation_map, classes, path, title=title))
@@ -412,7 +546,15 @@ def _run_classify(
 
 
 def _run_fem(
-    points, name, output_dir: Path, config, *, remove_overhangs=True, png=True, geotiff=False
+    points,
+    name,
+    output_dir: Path,
+    config,
+    *,
+    scan: ScanOutput,
+    remove_overhangs=True,
+    png=True,
+    geotiff=False,
 ) -> StageReport:
     from . import fit_fuzzy_elevation_map
 
@@ -437,11 +579,12 @@ def _run_fem(
         f"{g.size[0] * g.size[1]:,} cells ({g.resolution:g} m) filled, RMSE to the mean DEM {rmse:.3f} m; "
         f"{elapsed_ms:.1f} ms"
     )
+    _add_notes(report, elevation_map)
     report.add(
         "map (layers fem, fem_confidence and the DEM's)", elevation_map.save(output_dir / f"{name}_fem.npz")
     )
     if geotiff:
-        report.add("GeoTIFF", elevation_map.to_geotiff("fem", output_dir / f"{name}_fem.tif"))
+        report.add("GeoTIFF", _geotiff(elevation_map, "fem", output_dir / f"{name}_fem.tif", scan))
     if png:
         from .viz import plot_layer
 
@@ -474,15 +617,28 @@ _RUNNERS: dict[str, Callable[..., StageReport]] = {
 
 #: The output options each stage takes, with their defaults.
 STAGE_OUTPUT_OPTIONS: dict[str, dict[str, object]] = {
-    "collapse": {"output_format": "ply", "png": True},
+    "collapse": {"output_format": "ply", "png": True, "las_classification": False},
     "dem": {"png": True, "geotiff": False},
-    "classify": {"remove_overhangs": False, "cloud_format": "ply", "png": True, "geotiff": False},
+    "classify": {
+        "remove_overhangs": False,
+        "cloud_format": "ply",
+        "png": True,
+        "geotiff": False,
+        "las_classification": False,
+    },
     "fem": {"remove_overhangs": True, "png": True, "geotiff": False},
 }
 
 
 def run_stage(
-    stage: str, points: np.ndarray, name: str, output_dir: str | Path, config=None, **options
+    stage: str,
+    points: np.ndarray,
+    name: str,
+    output_dir: str | Path,
+    config=None,
+    *,
+    source: str | Path | None = None,
+    **options,
 ) -> StageReport:
     """Run one stage on one scan and write its outputs to ``output_dir`` as ``NAME_...`` files.
 
@@ -497,11 +653,18 @@ def run_stage(
     output_dir
         Folder for the outputs; created when missing.
     config
-        A :class:`terracube.config.Config` (the defaults when None).
+        A :class:`terracube.config.Config` (the defaults when None). Points outside its frame's
+        ``min_range`` .. ``max_range`` take no part (reported); a map without a fixed extent covers
+        :func:`auto_extent`; classes use :func:`terrain_params`' ground reference (reported).
+    source
+        The file the points were read from: its CRS goes into GeoTIFFs, and a LAS/LAZ source's
+        dimensions and VLRs into a LAS/LAZ classified cloud.
     **options
         The stage's output options, :data:`STAGE_OUTPUT_OPTIONS` (collapse: ``output_format``,
-        ``png``; dem: ``png``, ``geotiff``; classify: ``remove_overhangs``, ``cloud_format``,
-        ``png``, ``geotiff``; fem: ``remove_overhangs``, ``png``, ``geotiff``).
+        ``png``, ``las_classification``; dem: ``png``, ``geotiff``; classify: ``remove_overhangs``,
+        ``cloud_format``, ``png``, ``geotiff``, ``las_classification``; fem: ``remove_overhangs``,
+        ``png``, ``geotiff``). ``las_classification`` writes terracube's labels into a LAS/LAZ
+        cloud's ``classification`` too (by default they go in an extra dimension only).
 
     Returns
     -------
@@ -519,7 +682,24 @@ def run_stage(
         raise TypeError(f"stage {stage!r} takes no option {', '.join(sorted(unknown))}")
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
-    return _RUNNERS[stage](points, name, output_dir, config or default_config(), **options)
+    config = config or default_config()
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] < 3:
+        raise ValueError(f"{name}: need an (N, 3) or wider array of points, got shape {points.shape}")
+    keep = config.frame.in_range(points)
+    scan = ScanOutput(points, keep, None if source is None else Path(source))
+    kept = points if keep.all() else np.ascontiguousarray(points[keep])
+    report = _RUNNERS[stage](kept, name, output_dir, config, scan=scan, **options)
+    note = range_note(points, keep, config.frame)
+    if note is not None:
+        report.lines.insert(1, note)
+    return report
+
+
+def _in_range(points: np.ndarray, config) -> np.ndarray:
+    points = np.asarray(points)
+    keep = config.frame.in_range(points)
+    return points if keep.all() else np.ascontiguousarray(points[keep])
 
 
 # ------------------------------------------------------------------------------------------ register
@@ -605,7 +785,7 @@ def register_scans(
     config = config or default_config()
     guess = np.eye(4) if initial is None else np.asarray(initial, dtype=np.float64)
     maps = [
-        classified_map(points, name, config, remove_overhangs)[0]
+        classified_map(_in_range(points, config), name, config, remove_overhangs)[0]
         for points, name in zip((source, target), names, strict=True)
     ]
     start = time.perf_counter()
