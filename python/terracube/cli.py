@@ -450,6 +450,10 @@ STAGE_OPTIONS["batch"] = tuple(dict.fromkeys(name for stage in STAGES for name i
 
 #: Where a command's option differs from the shared one: (command, option) -> typer.Option fields.
 _OPTION_CHANGES: dict[tuple[str, str], dict[str, Any]] = {
+    ("batch", "png"): {
+        "default": False,
+        "help": "Also write each scan's pictures (they take most of the time: seconds per scan).",
+    },
     ("classify", "remove_overhangs"): {
         "help": "Classify the DEM without overhangs instead of the raw map (the paper classifies raw maps)."
     },
@@ -940,8 +944,18 @@ def map_command(
         "for KITTI poses, if present).",
         show_default=False,
     ),
+    times: Path | None = typer.Option(
+        None,
+        "--times",
+        help="KITTI times.txt: the time [s] of each pose, for the TUM trajectories (default: times.txt "
+        "beside KITTI --poses, if present; else the pose index).",
+        show_default=False,
+    ),
     output_dir: Path = _OUTPUT_DIR,
     config: Path | None = OPTIONS["config"].info,
+    preset: str | None = OPTIONS["preset"].info,
+    min_range: float | None = OPTIONS["min_range"].info,
+    max_range: float | None = OPTIONS["max_range"].info,
     keyframe_distance: float | None = typer.Option(
         None,
         "--keyframe-distance",
@@ -977,15 +991,19 @@ def map_command(
     Every ~3 m a local classified map is registered to the previous one (class-weighted ICP, odometry
     as the guess) and fused; revisits are registered and the pose graph optimised with Ceres. Writes
     global_map.npz (layers count, min, max, mean, std_dev, discontinuity, class), global_max.png,
-    global_classes.png, and the keyframe trajectory as trajectory_kitti.txt and trajectory_tum.txt
-    (Velodyne frame when a calibration was used).
+    global_classes.png (the trajectory drawn over them), the pose of every scan as
+    trajectory_kitti.txt and trajectory_tum.txt (times from times.txt; evo reads both) and the
+    keyframes' as keyframes_kitti.txt and keyframes_tum.txt (Velodyne frame when a calibration was
+    used; without one KITTI's camera poses are used as they are, with a warning).
     """
     from tqdm import tqdm
 
     from .mapping import detect_pose_format, match_scans_to_poses, read_kitti_calibration, read_pose_file
     from .pipeline import SCAN_SUFFIXES, build_global_map, expand_inputs
 
-    cfg = command_config("map", {"config": config}).replace(
+    cfg = command_config(
+        "map", {"config": config, "preset": preset, "min_range": min_range, "max_range": max_range}
+    ).replace(
         "mapper",
         keyframe_distance=keyframe_distance,
         resolution=resolution,
@@ -1005,6 +1023,7 @@ def map_command(
     if not poses.is_file():
         raise _fail(f"{poses}: no such pose file")
     _existing_file(calib, "--calib")
+    _existing_file(times, "--times")
     _existing_file(ground_truth, "--ground-truth")
     _writable_folder(output_dir)
     with _exit_on_bad_input():
@@ -1015,12 +1034,28 @@ def map_command(
         calibration = read_kitti_calibration(calib) if calib is not None else None
         stamps, odometry = read_pose_file(poses, pose_format, calibration)
         indices = match_scans_to_poses(files, len(odometry))
+        if times is None and pose_format == "kitti" and (poses.parent / "times.txt").is_file():
+            times = poses.parent / "times.txt"
+        if times is not None:
+            from .poses import read_times
+
+            stamps = read_times(times, len(odometry))
     truth = None
     if ground_truth is not None:
         with _exit_on_bad_input(str(ground_truth)):
             truth = read_pose_file(ground_truth, pose_format, calibration)[1]
     if calibration is not None:
         typer.echo(f"calibration: {calib} (camera poses -> Velodyne)")
+    elif pose_format == "kitti":
+        typer.secho(
+            f"warning: no calib.txt beside {poses} and no --calib: the KITTI poses are used as they are "
+            "(KITTI's are the left camera's, not the LiDAR's: the map is skewed and an ATE against "
+            "camera poses measures nothing); give --calib calib.txt",
+            fg=typer.colors.YELLOW,
+            err=True,
+        )
+    if pose_format == "kitti":
+        typer.echo(f"timestamps: {times}" if times is not None else "timestamps: none (the pose index)")
     sequence = tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="mapping")
     with _exit_on_bad_input("global map"):
         report = build_global_map(

@@ -67,7 +67,8 @@ class FrameParams:
 
     Points nearer than ``min_range`` or farther than ``max_range`` from the sensor (the origin of the
     scan's frame, before leveling) take no part: a sensor stores its no-returns as (0, 0, 0), which
-    would otherwise become one "ground" cell at the sensor. The leveling transform R = Ry(pitch) Rx(roll) (``terracube.leveling_transform``) and the crop box
+    would otherwise become one "ground" cell at the sensor. The leveling transform
+    R = Ry(pitch) Rx(roll) (``terracube.leveling_transform``) and the crop box
     are handed to collapsible cubes and to the elevation map alike, so the overhang mask, the DEM and
     the classes of one scan share one frame.
 

@@ -179,6 +179,21 @@ def terrain_params(config):
     )
 
 
+def mapper_params(config):
+    """MapperParams of the config: the mapper section plus the terrain and registration sections.
+
+    A terrain section that names no ground reference (:func:`ground_reference_given`) gives way to
+    the mapper's terrain defaults (local ground, 5-cell window) for maps chained over slopes.
+    """
+    from .config import default_config
+    from .mapping import MapperParams
+
+    terrain = config.terrain
+    if terrain == default_config().terrain or not ground_reference_given(terrain):
+        terrain = MapperParams().terrain
+    return dataclasses.replace(config.mapper, terrain=terrain, registration=config.registration)
+
+
 def range_note(points: np.ndarray, keep: np.ndarray, frame) -> str | None:
     """A summary line of the points the frame's range limits left out, or None when none were."""
     dropped = int(len(keep) - np.count_nonzero(keep))
@@ -801,6 +816,25 @@ def register_scans(
 # ------------------------------------------------------------------------------------------ map
 
 
+def scan_trajectory(
+    keyframe_poses: np.ndarray,
+    keyframe_odometry: np.ndarray,
+    keyframe_scans: np.ndarray,
+    odometry: np.ndarray,
+) -> np.ndarray:
+    """(S, 4, 4) pose of every scan: scan i after keyframe k (the last one at or before it) is
+    ``K_k inv(O_k) O_i``, the keyframe's estimate moved by the odometry since that keyframe.
+
+    ``keyframe_scans`` are the keyframes' positions in ``odometry`` (the scans' odometry, in order).
+    """
+    odometry = np.asarray(odometry, dtype=np.float64)
+    keyframe_scans = np.asarray(keyframe_scans, dtype=np.int64)
+    owner = np.searchsorted(keyframe_scans, np.arange(len(odometry)), side="right") - 1
+    owner = np.maximum(owner, 0)  # scans before the first keyframe (none in practice) follow it
+    corrections = np.asarray(keyframe_poses) @ np.linalg.inv(np.asarray(keyframe_odometry))
+    return corrections[owner] @ odometry
+
+
 def build_global_map(
     scans: Iterable[tuple[str, np.ndarray, int]],
     odometry: np.ndarray,
@@ -822,10 +856,11 @@ def build_global_map(
     odometry : (P, 4, 4) array
         Odometry poses world <- sensor [m].
     stamps : (P,) array
-        Their times [s], for the TUM trajectory.
+        Their times [s], for the TUM trajectories.
     output_dir
-        Writes ``global_map.npz``, ``trajectory_kitti.txt``, ``trajectory_tum.txt`` (keyframes) and,
-        with ``png``, ``global_max.png`` and ``global_classes.png``.
+        Writes ``global_map.npz``, ``trajectory_kitti.txt`` and ``trajectory_tum.txt`` (every scan's
+        pose, :func:`scan_trajectory`), ``keyframes_kitti.txt`` and ``keyframes_tum.txt`` and, with
+        ``png``, ``global_max.png`` and ``global_classes.png`` with the trajectory drawn on them.
     config
         A :class:`terracube.config.Config`: the mapper, terrain and registration sections.
     ground_truth : (P, 4, 4) array, optional
@@ -840,14 +875,24 @@ def build_global_map(
     from .mapping import Mapper
     from .poses import write_kitti_poses, write_tum_poses
 
-    mapper = Mapper(mapper_params(config or default_config()))
+    config = config or default_config()
+    mapper = Mapper(mapper_params(config))
     indices: list[int] = []
+    odometry_steps = 0  # keyframe steps that kept odometry because registration failed or was refused
+    left_out = 0
     start = time.perf_counter()
     for name, points, index in scans:
+        points = np.asarray(points)
+        keep = config.frame.in_range(points)
+        left_out += int(len(keep) - np.count_nonzero(keep))
         try:
-            mapper.add_scan(points, odometry[index])
+            step = mapper.add_scan(
+                points if keep.all() else np.ascontiguousarray(points[keep]), odometry[index]
+            )
         except (ValueError, TypeError) as error:
             raise ValueError(f"{name}: {error}") from error
+        if step.keyframe and step.index > 0 and config.mapper.use_registration and not step.registered:
+            odometry_steps += 1
         indices.append(index)
     if mapper.pending_loops:
         mapper.optimize()
@@ -861,17 +906,33 @@ def build_global_map(
     report.outputs.append(dem.save(output_dir / "global_map.npz"))
     keyframes = mapper.keyframe_poses()
     key_scans = [indices[k] for k in mapper.keyframe_scan_indices()]
-    write_kitti_poses(output_dir / "trajectory_kitti.txt", keyframes)
-    write_tum_poses(output_dir / "trajectory_tum.txt", stamps[key_scans], keyframes)
-    report.outputs += [output_dir / "trajectory_kitti.txt", output_dir / "trajectory_tum.txt"]
+    trajectory = scan_trajectory(
+        keyframes, mapper.keyframe_odometry(), np.asarray(mapper.keyframe_scan_indices()), odometry[indices]
+    )
+    stamps = np.asarray(stamps, dtype=np.float64)
+    written = {
+        "trajectory_kitti.txt": lambda p: write_kitti_poses(p, trajectory),
+        "trajectory_tum.txt": lambda p: write_tum_poses(p, stamps[indices], trajectory),
+        "keyframes_kitti.txt": lambda p: write_kitti_poses(p, keyframes),
+        "keyframes_tum.txt": lambda p: write_tum_poses(p, stamps[key_scans], keyframes),
+    }
+    from .io import atomic_path
+
+    for file_name, write in written.items():
+        with atomic_path(output_dir / file_name) as temporary:
+            write(temporary)
+        report.outputs.append(output_dir / file_name)
     if png and dem.geometry.num_cells > 0:
         from .viz import plot_layer, plot_terrain_classes
 
         classes = np.nan_to_num(dem["class"], nan=0).astype(np.uint8)
+        path_xy = trajectory[:, :2, 3]
         report.outputs += _pictures(
-            lambda: plot_layer(dem, "max", output_dir / "global_max.png", title="highest elevation [m]"),
+            lambda: plot_layer(
+                dem, "max", output_dir / "global_max.png", title="highest elevation [m]", trajectory=path_xy
+            ),
             lambda: plot_terrain_classes(
-                dem, classes, output_dir / "global_classes.png", title="terrain classes"
+                dem, classes, output_dir / "global_classes.png", title="terrain classes", trajectory=path_xy
             ),
         )
     t = mapper.timings
@@ -885,15 +946,25 @@ def build_global_map(
         f"global map: {int(g.size[0])} x {int(g.size[1])} cells at {g.resolution} m, "
         f"{int(np.isfinite(dem['max']).sum())} with data, "
         f"{mapper.global_memory_bytes / 2**20:.1f} MiB of tiles",
+        f"odometry fallbacks: {odometry_steps} of {max(len(mapper) - 1, 0)} keyframe steps kept the "
+        "odometry (registration failed or its correction was refused)"
+        if config.mapper.use_registration
+        else "odometry only: no step was scan-matched (--odometry-only)",
     ]
+    if left_out:
+        report.lines.append(
+            f"range filter: {left_out:,} points left out (nearer than {config.frame.min_range:g} m"
+            + (f" or beyond {config.frame.max_range:g} m)" if config.frame.max_range is not None else ")")
+        )
     if ground_truth is not None:
         from .evaluation import absolute_trajectory_error
 
-        truth = np.asarray(ground_truth)[key_scans]
-        estimate = absolute_trajectory_error(keyframes, truth, "first_pose").translation
-        odom = absolute_trajectory_error(mapper.keyframe_odometry(), truth, "first_pose").translation
+        truth = np.asarray(ground_truth)[indices]
+        estimate = absolute_trajectory_error(trajectory, truth, "first_pose").translation
+        odom = absolute_trajectory_error(odometry[indices], truth, "first_pose").translation
         report.lines.append(
-            f"ATE (first pose aligned): mapper RMSE {estimate.rmse:.3f} m, odometry RMSE {odom.rmse:.3f} m"
+            f"ATE over {len(indices)} scans (first pose aligned): mapper RMSE {estimate.rmse:.3f} m, "
+            f"odometry RMSE {odom.rmse:.3f} m"
         )
     report.lines += [f"written: {path}" for path in report.outputs]
     return report
