@@ -217,6 +217,7 @@ OPTIONS: dict[str, Option] = {
         _Crop | None,
         "--crop",
         help=_help("Crop box XMIN YMIN ZMIN XMAX YMAX ZMAX [m], leveled frame.", "frame", "crop"),
+        metavar="XMIN YMIN ZMIN XMAX YMAX ZMAX",
     ),
     # collapse
     "edge": _option(
@@ -250,20 +251,22 @@ OPTIONS: dict[str, Option] = {
         tuple[float, float] | None,
         "--origin",
         help=_help(
-            "Corner X Y [m] of the map with the smallest x and y, e.g. --origin -20 -20 or "
-            "--origin=-20,-20; needs --size.",
+            "Corner X Y [m] of the map with the smallest x and y, e.g. --origin -20 -20; needs --size.",
             "elevation",
             "origin",
         ),
+        metavar="X Y",
     ),
     "size": _option(
         tuple[int, int] | None,
         "--size",
         help=_help(
-            "Cells NX NY of the map; needs --origin (else the 1st-99th percentile window of the points).",
+            "Cells NX NY of the map, e.g. --size 400 400; needs --origin (else the 1st-99th "
+            "percentile window of the points).",
             "elevation",
             "size",
         ),
+        metavar="NX NY",
     ),
     "num_threads": _option(
         int | None,
@@ -321,6 +324,7 @@ OPTIONS: dict[str, Option] = {
         tuple[int, int] | None,
         "--rules",
         help="Membership functions NX NY along x and y [config fuzzy.rules_x, rules_y: 19 10].",
+        metavar="NX NY",
     ),
     "epochs": _option(
         int | None,
