@@ -966,7 +966,7 @@ def write_geotiff(elevation_map, layer: str, path: PathLike, *, crs: str | None 
     """
     try:
         import rasterio
-        from rasterio.transform import from_origin
+        from affine import Affine
     except ImportError as error:
         raise ImportError("GeoTIFF export needs rasterio: pip install 'terracube[geo]'") from error
     from .classes import TERRAIN_COLORS, TerrainClass
@@ -989,7 +989,7 @@ def write_geotiff(elevation_map, layer: str, path: PathLike, *, crs: str | None 
         count=1,
         dtype="uint8" if is_class else "float32",
         crs=crs,
-        transform=from_origin(g.origin[0], top, g.resolution, g.resolution),
+        transform=Affine(g.resolution, 0.0, g.origin[0], 0.0, -g.resolution, top),  # north up
         nodata=0 if is_class else np.nan,
         compress="deflate",
         predictor=1 if is_class else 3,
