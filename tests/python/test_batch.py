@@ -192,6 +192,13 @@ def test_the_console_script_runs_a_batch_on_local_worker_processes(tmp_path, sca
     assert "3 of 4 files ok, 1 failed" in completed.stdout
     assert "broken.pcd: truncated binary PCD" in completed.stdout
     assert "1 of 4 files failed" in completed.stderr
+    # a normal shutdown of the Dask cluster (or the pool) says nothing: no warnings, no tracebacks
+    noise = [
+        line
+        for line in completed.stderr.splitlines()
+        if "warning" in line.lower() or "distributed." in line or "Traceback" in line
+    ]
+    assert noise == [], completed.stderr
     _check_dem_outputs(out, scans)
 
 

@@ -281,6 +281,22 @@ def test_every_scan_gets_its_keyframe_estimate_moved_by_the_odometry_since():
     np.testing.assert_allclose(trajectory[3:, :3, 3], odometry[3:, :3, 3] + shift)
 
 
+def test_the_trajectory_is_drawn_over_the_map_pictures(tmp_path):
+    pytest.importorskip("matplotlib")
+    from matplotlib.image import imread
+    from terracube.viz import plot_layer
+
+    elevation_map = tc.build_elevation_map(_ground_scene(), 0.2)
+    path = np.c_[np.linspace(-8, 8, 20), np.zeros(20)]
+    plain = imread(plot_layer(elevation_map, "max", tmp_path / "plain.png", title="t"))
+    drawn = imread(plot_layer(elevation_map, "max", tmp_path / "path.png", title="t", trajectory=path))
+    assert plain.shape == drawn.shape
+    changed = np.any(np.abs(plain - drawn) > 0.1, axis=-1)
+    rows = np.nonzero(changed.any(axis=1))[0]
+    # a horizontal line across the map: the change is a thin band of rows, not the whole picture
+    assert 0 < rows.size < 0.1 * plain.shape[0] and changed.sum() > 100
+
+
 def test_the_configs_stay_equal_after_a_dataclass_round_trip():
     frame = dataclasses.replace(default_config().frame, max_range=30.0)
     assert frame.max_range == 30.0 and frame.min_range == 0.1
