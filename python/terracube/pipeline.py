@@ -951,11 +951,13 @@ def build_global_map(
         if config.mapper.use_registration
         else "odometry only: no step was scan-matched (--odometry-only)",
     ]
+    left_out += mapper.points_out_of_range
     if left_out:
-        report.lines.append(
-            f"range filter: {left_out:,} points left out (nearer than {config.frame.min_range:g} m"
-            + (f" or beyond {config.frame.max_range:g} m)" if config.frame.max_range is not None else ")")
-        )
+        frame, params = config.frame, mapper.params
+        limits = [f"nearer than {max(frame.min_range, params.min_range):g} m"]
+        farthest = [r for r in (frame.max_range, params.max_range) if r is not None]
+        limits += [f"beyond {min(farthest):g} m"] if farthest else []
+        report.lines.append(f"range filter: {left_out:,} points left out ({' or '.join(limits)})")
     if ground_truth is not None:
         from .evaluation import absolute_trajectory_error
 

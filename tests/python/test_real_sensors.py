@@ -62,7 +62,21 @@ def test_the_mapper_leaves_out_the_frame_range_too(tmp_path, shared_data):
     points = np.vstack([_ground_scene(), np.zeros((50, 3)), [[90.0, 0.0, -1.5]]])
     config = default_config().replace("frame", max_range=60.0)
     report = build_global_map([("a", points, 0)], np.eye(4)[None], np.zeros(1), tmp_path, config, png=False)
-    assert "range filter: 51 points left out (nearer than 0.1 m or beyond 60 m)" in report.lines
+    assert "range filter: 51 points left out (nearer than 0.5 m or beyond 60 m)" in report.lines
+
+
+def test_the_mapper_api_takes_a_max_range_and_counts_what_it_left_out():
+    from terracube.mapping import Mapper, MapperParams
+
+    points = np.vstack([_ground_scene(), np.zeros((7, 3)), [[90.0, 0.0, -1.5], [0.0, 95.0, -1.5]]])
+    mapper = Mapper(MapperParams(max_range=60.0))
+    mapper.add_scan(points, np.eye(4))
+    assert mapper.points_out_of_range == 9
+    reference = Mapper(MapperParams())
+    reference.add_scan(_ground_scene(), np.eye(4))
+    np.testing.assert_array_equal(mapper.global_map()["count"], reference.global_map()["count"])
+    with pytest.raises(ValueError, match="max_range must be a distance"):
+        Mapper(MapperParams(min_range=1.0, max_range=0.5))
 
 
 # ------------------------------------------------------------------------------------------ window
