@@ -220,6 +220,7 @@ class Mapper:
             keep = squared >= float(self.params.min_range) ** 2
             if self.params.max_range is not None:
                 keep &= squared <= float(self.params.max_range) ** 2
+            keep |= ~np.isfinite(squared)  # NaN and infinite points: the C++ mapper names the problem
             if not keep.all():
                 self.points_out_of_range += int(len(keep) - np.count_nonzero(keep))
                 points = np.ascontiguousarray(xyz[keep])
