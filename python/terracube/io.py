@@ -998,7 +998,7 @@ def write_geotiff(elevation_map, layer: str, path: PathLike, *, crs: str | None 
     with atomic_path(path) as temporary, rasterio.open(temporary, "w", **profile) as dataset:
         dataset.write(raster, 1)
         dataset.set_band_description(1, layer)
-        if is_class:  # the category names as band metadata in the file (GDAL keeps its own in a .aux.xml)
+        if is_class:  # the category names as band metadata in the file, and GDAL's own in a .aux.xml
             names = [c.name.lower() for c in TerrainClass]
             dataset.update_tags(1, CATEGORY_NAMES=",".join(names))
             dataset.update_tags(1, **{f"CLASS_{int(c)}": c.name.lower() for c in TerrainClass})
@@ -1009,4 +1009,23 @@ def write_geotiff(elevation_map, layer: str, path: PathLike, *, crs: str | None 
                     for c in TerrainClass
                 },
             )
+    if is_class:
+        _write_category_names(path, [c.name.lower() for c in TerrainClass])
     return path
+
+
+def _write_category_names(path: Path, names: list[str]) -> Path:
+    """GDAL's category names of band 1 in its PAM sidecar ``PATH.aux.xml`` (QGIS and gdalinfo show
+    them as the raster's classes)."""
+    from xml.sax.saxutils import escape
+
+    categories = "".join(f"<Category>{escape(name)}</Category>" for name in names)
+    text = (
+        '<PAMDataset>\n  <PAMRasterBand band="1">\n'
+        f"    <CategoryNames>{categories}</CategoryNames>\n"
+        "  </PAMRasterBand>\n</PAMDataset>\n"
+    )
+    sidecar = path.with_name(path.name + ".aux.xml")
+    with atomic_path(sidecar) as temporary:
+        temporary.write_text(text, encoding="utf-8")
+    return sidecar

@@ -201,6 +201,10 @@ def test_geotiffs_carry_the_input_crs_are_deflated_and_the_classes_are_uint8_wit
         names = classes.tags(1)["CATEGORY_NAMES"].split(",")
         assert names == [c.name.lower() for c in tc.TerrainClass]
         values = classes.read(1)
+    import xml.etree.ElementTree as ElementTree
+
+    pam = ElementTree.parse(tmp_path / "utm_classes.tif.aux.xml").getroot()  # GDAL's category names
+    assert [c.text for c in pam.iter("Category")] == [c.name.lower() for c in tc.TerrainClass]
     saved = np.nan_to_num(tc.ElevationMap.load(tmp_path / "utm_classes.npz")["class"]).astype(np.uint8)
     np.testing.assert_array_equal(values, saved.T[::-1, :])
     with rasterio.open(tmp_path / "utm_dem_max.tif") as dem:
