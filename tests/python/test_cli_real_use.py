@@ -148,7 +148,7 @@ def test_map_writes_every_scan_pose_with_the_kitti_times_and_evo_reads_them(tmp_
     out = tmp_path / "map"
     done = _terracube(
         "map", str(kitti / "velodyne"), "-p", str(kitti / "poses.txt"), "--ground-truth",
-        str(kitti / "poses.txt"), "-o", str(out),
+        str(kitti / "poses.txt"), "-o", str(out), "--no-png",
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
     times = np.loadtxt(kitti / "times.txt")
@@ -163,7 +163,6 @@ def test_map_writes_every_scan_pose_with_the_kitti_times_and_evo_reads_them(tmp_
     estimate = np.loadtxt(out / "trajectory_kitti.txt").reshape(-1, 3, 4)
     errors = np.linalg.norm(estimate[:, :, 3] - truth[:6, :3, 3], axis=1)
     assert ate == pytest.approx(float(np.sqrt(np.mean(errors**2))), abs=2e-3)
-    assert (out / "global_max.png").stat().st_size > 10_000
     if importlib.util.find_spec("evo") is not None and shutil.which("evo_ape", path=_evo_path()):
         write_kitti_poses(tmp_path / "truth_kitti.txt", truth[:6])
         write_tum_poses(tmp_path / "truth_tum.txt", times[:6], truth[:6])
@@ -182,7 +181,7 @@ def test_map_writes_every_scan_pose_with_the_kitti_times_and_evo_reads_them(tmp_
     shutil.copy(kitti / "poses.txt", bare / "poses.txt")
     done = _terracube(
         "map", str(kitti / "velodyne"), "-p", str(bare / "poses.txt"), "--limit", "2", "--no-png",
-        "--registration", "-o", str(tmp_path / "bare_map"),
+        "--odometry-only", "-o", str(tmp_path / "bare_map"),
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
     assert "warning: no calib.txt beside" in done.stderr and "--calib" in done.stderr

@@ -96,10 +96,10 @@ def test_a_few_far_returns_no_longer_blow_up_the_automatic_map_window(tmp_path):
 
 
 def test_a_map_with_almost_no_filled_cell_gets_a_warning(tmp_path):
-    config = default_config().replace("elevation", origin=[-100.0, -100.0], size=[2000, 2000])
+    config = default_config().replace("elevation", origin=[-50.0, -50.0], size=[1000, 1000])
     report = run_stage("dem", _ground_scene(n=2000), "sparse", tmp_path, config, png=False)
     warning = [line for line in report.lines if "warning:" in line]
-    assert len(warning) == 1 and "of the 4,000,000 cells hold data" in warning[0]
+    assert len(warning) == 1 and "of the 1,000,000 cells hold data" in warning[0]
     report = run_stage("dem", _ground_scene(n=2000), "dense", tmp_path, png=False)
     assert not any("warning:" in line for line in report.lines)
 
