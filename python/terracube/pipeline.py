@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import glob
+import math
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -212,15 +213,34 @@ def range_note(points: np.ndarray, keep: np.ndarray, frame) -> str | None:
     return f"  range filter: {dropped:,} of {len(keep):,} points left out ({', '.join(parts)})"
 
 
+#: Below this many points per cell with data the cells are finer than the point spacing.
+SPARSE_POINTS_PER_CELL = 1.5
+
+
 def fill_note(elevation_map) -> str | None:
-    """A warning line when fewer than :data:`LOW_FILL_RATIO` of the map's cells hold data."""
+    """A warning line when fewer than :data:`LOW_FILL_RATIO` of the map's cells hold data, or a note
+    when the cells with data hold fewer than :data:`SPARSE_POINTS_PER_CELL` points on average (an
+    airborne tile at 0.1 m: a speckle of single points), with the cell size that holds about four."""
     count = np.asarray(elevation_map["count"])
     filled = int(np.count_nonzero(count > 0))
-    if count.size == 0 or filled >= LOW_FILL_RATIO * count.size:
+    if count.size == 0 or filled == 0:
+        return None
+    points = float(count.sum())
+    resolution = float(elevation_map.geometry.resolution)
+    density = points / (count.size * resolution**2)  # points per m2 over the map
+    suggested = max(resolution, math.ceil(10 * math.sqrt(4.0 / density)) / 10)
+    if filled < LOW_FILL_RATIO * count.size:
+        return (
+            f"  warning: only {filled / count.size:.1%} of the {count.size:,} cells hold data; a smaller "
+            "window (--max-range, --crop, or --origin with --size) or a coarser --resolution "
+            f"(--resolution {suggested:g}: about four points a cell) gives a readable map"
+        )
+    if points / filled >= SPARSE_POINTS_PER_CELL:
         return None
     return (
-        f"  warning: only {filled / count.size:.1%} of the {count.size:,} cells hold data; a smaller window "
-        "(--max-range, --crop, or --origin with --size) or a coarser --resolution gives a readable map"
+        f"  note: the cells with data hold {points / filled:.1f} points on average ({density:.1f} points "
+        f"per m2): --resolution {suggested:g} gives cells of about four points (an airborne tile: "
+        "--preset airborne_las)"
     )
 
 

@@ -182,6 +182,7 @@ def _style_axes(ax, geometry) -> None:
     left, right, bottom, top = _extent(geometry)
     ax.set_xlim(left, right)
     ax.set_ylim(bottom, top)
+    ax.ticklabel_format(useOffset=False, style="plain")  # projected coordinates read as written
 
 
 def _draw_layer(ax, values: np.ndarray, geometry, cmap_name: str, vmin: float, vmax: float):

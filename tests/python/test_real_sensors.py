@@ -104,6 +104,16 @@ def test_a_map_with_almost_no_filled_cell_gets_a_warning(tmp_path):
     assert not any("warning:" in line for line in report.lines)
 
 
+def test_cells_finer_than_the_point_spacing_get_a_note_with_a_cell_size_that_fits(tmp_path):
+    # an airborne-like tile: 10 points per m2 at 0.1 m cells holds about one point per cell with data
+    report = run_stage("dem", _ground_scene(n=4000), "tile", tmp_path, png=False)
+    note = [line for line in report.lines if "note:" in line]
+    assert len(note) == 1 and "--resolution 0.7 gives cells of about four points" in note[0], report.lines
+    config = default_config().replace("elevation", resolution=0.7)
+    report = run_stage("dem", _ground_scene(n=4000), "coarse", tmp_path, config, png=False)
+    assert not any("note:" in line or "warning:" in line for line in report.lines), report.lines
+
+
 # ------------------------------------------------------------------------------------------ ground
 
 
