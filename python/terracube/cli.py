@@ -699,6 +699,14 @@ def _print_register_record(record: dict[str, Any], elapsed_ms: float, source: Pa
     typer.echo(f"{source.stem} -> {target.stem} ({method}, {elapsed_ms:.1f} ms):")
     typer.echo(f"  converged: {'yes' if record['converged'] else 'no'} ({record['reason']})")
     typer.echo(f"  iterations: {record['iterations']}")
+    if "ground_reference" in record:
+        typer.echo(f"  ground reference: {record['ground_reference']}")
+    left_out = record.get("points_left_out", [0, 0])
+    if any(left_out):
+        typer.echo(
+            f"  range filter: {left_out[0]:,} points of {source.stem} and {left_out[1]:,} of {target.stem} "
+            "left out"
+        )
     if method == "pcl":
         typer.echo(f"  fitness: {record['fitness']:.6f} m^2 (mean squared pair distance)")
     else:

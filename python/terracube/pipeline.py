@@ -731,12 +731,6 @@ def run_stage(
     return report
 
 
-def _in_range(points: np.ndarray, config) -> np.ndarray:
-    points = np.asarray(points)
-    keep = config.frame.in_range(points)
-    return points if keep.all() else np.ascontiguousarray(points[keep])
-
-
 # ------------------------------------------------------------------------------------------ register
 
 #: Registration methods of :func:`register_scans`.
@@ -810,7 +804,9 @@ def register_scans(
     Returns
     -------
     (dict, float)
-        :func:`registration_record` of the result, and the registration's time [ms].
+        :func:`registration_record` of the result (plus ``ground_reference``, the classes'
+        reference, and ``points_left_out``, per scan the points outside the frame's range limits),
+        and the registration's time [ms].
     """
     from .config import default_config
     from .registration import pcl_icp, points_of_map, register_maps, register_maps_all_cells
@@ -819,9 +815,11 @@ def register_scans(
         raise ValueError(f"the method must be one of {', '.join(REGISTRATION_METHODS)}, got {method!r}")
     config = config or default_config()
     guess = np.eye(4) if initial is None else np.asarray(initial, dtype=np.float64)
+    scans = [np.asarray(points) for points in (source, target)]
+    kept = [config.frame.in_range(points) for points in scans]
     maps = [
-        classified_map(_in_range(points, config), name, config, remove_overhangs)[0]
-        for points, name in zip((source, target), names, strict=True)
+        classified_map(points[keep] if not keep.all() else points, name, config, remove_overhangs)[0]
+        for points, keep, name in zip(scans, kept, names, strict=True)
     ]
     start = time.perf_counter()
     if method == "classes":
@@ -830,10 +828,20 @@ def register_scans(
         result = register_maps_all_cells(maps[0], maps[1], guess, config.registration)
     else:
         result = pcl_icp(points_of_map(maps[0])[0], points_of_map(maps[1])[0], guess, config.pcl_icp)
-    return registration_record(method, names[0], names[1], result), _elapsed_ms(start)
+    record = registration_record(method, names[0], names[1], result)
+    record["ground_reference"] = terrain_params(config)[1]
+    record["points_left_out"] = [int(len(keep) - np.count_nonzero(keep)) for keep in kept]
+    return record, _elapsed_ms(start)
 
 
 # ------------------------------------------------------------------------------------------ map
+
+
+def _mapper_reference(terrain, config) -> str:
+    if terrain.reference == "sensor_height":
+        return f"sensor height {terrain.sensor_height:g} m"
+    given = "" if ground_reference_given(config.terrain) and terrain == config.terrain else " (the mapper's)"
+    return f"local ground, {terrain.local_ground_radius} cells{given}"
 
 
 def scan_trajectory(
@@ -966,6 +974,7 @@ def build_global_map(
         f"global map: {int(g.size[0])} x {int(g.size[1])} cells at {g.resolution} m, "
         f"{int(np.isfinite(dem['max']).sum())} with data, "
         f"{mapper.global_memory_bytes / 2**20:.1f} MiB of tiles",
+        f"ground reference: {_mapper_reference(mapper.params.terrain, config)}",
         f"odometry fallbacks: {odometry_steps} of {max(len(mapper) - 1, 0)} keyframe steps kept the "
         "odometry (registration failed or its correction was refused)"
         if config.mapper.use_registration

@@ -79,6 +79,16 @@ def test_the_mapper_api_takes_a_max_range_and_counts_what_it_left_out():
         Mapper(MapperParams(min_range=1.0, max_range=0.5))
 
 
+def test_register_leaves_out_each_scans_no_returns_and_names_the_ground_reference():
+    from terracube.pipeline import register_scans
+
+    source = np.vstack([_ground_scene(seed=1), np.zeros((11, 3))])
+    target = np.vstack([_ground_scene(seed=2), np.zeros((4, 3))])
+    record, _ = register_scans(source, target)
+    assert record["points_left_out"] == [11, 4]
+    assert record["ground_reference"].startswith("local ground, 5 cells (estimated")
+
+
 # ------------------------------------------------------------------------------------------ window
 
 
