@@ -186,7 +186,7 @@ OPTIONS: dict[str, Option] = {
         "--preset",
         help="Sensor preset under --config and the options: "
         + ", ".join(_preset_names())
-        + " (`terracube config --preset NAME` prints it).",
+        + " (also kitti, hdl64, tls, als; `terracube config --preset NAME` prints it).",
     ),
     # frame
     "min_range": _option(

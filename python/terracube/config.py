@@ -621,8 +621,14 @@ def preset_names() -> list[str]:
     return sorted(p.stem for p in _PRESET_DIR.glob("*.yaml"))
 
 
+#: Other names of the presets: the sensor or the kind of data alone.
+PRESET_ALIASES = {"kitti": "kitti_hdl64", "hdl64": "kitti_hdl64", "tls": "tls_plot", "als": "airborne_las"}
+
+
 def preset_path(name: str) -> Path:
-    """The YAML file of the bundled sensor preset ``name``; ConfigError naming the known ones."""
+    """The YAML file of the bundled sensor preset ``name`` (or one of :data:`PRESET_ALIASES`);
+    ConfigError naming the known ones."""
+    name = PRESET_ALIASES.get(name, name)
     path = _PRESET_DIR / f"{name}.yaml"
     if not (name and name.replace("_", "").isalnum() and path.is_file()):
         raise ConfigError(f"--preset: {_unknown('preset', name, preset_names())}")

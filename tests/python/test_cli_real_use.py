@@ -124,8 +124,8 @@ def test_version_and_a_preset_on_the_bundled_ouster_scan_with_the_origin_as_its_
     ) in done.stdout
     assert "400 x 400 cells at 0.1 m" in done.stdout
     assert "ground reference: local ground, 5 cells (estimated" in done.stdout
-    unknown = _terracube("dem", str(scan), "--preset", "ouster", "-o", str(tmp_path))
-    assert unknown.returncode == 2 and "unknown preset 'ouster'; did you mean 'ouster128'" in unknown.stderr
+    unknown = _terracube("dem", str(scan), "--preset", "oustr128", "-o", str(tmp_path))
+    assert unknown.returncode == 2 and "unknown preset 'oustr128'; did you mean 'ouster128'" in unknown.stderr
 
 
 def test_view_3d_save_without_the_viewer_extra_stops_before_writing_anything(tmp_path):

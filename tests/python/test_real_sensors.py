@@ -154,8 +154,9 @@ def test_every_preset_loads_and_sets_what_its_sensor_needs():
     assert ouster.frame.min_range > 0 and ouster.frame.max_range == 40.0
     for name in preset_names():
         assert load_config(None, preset=name) != default_config(), name
-    with pytest.raises(ConfigError, match="unknown preset 'ouster'; did you mean 'ouster128'"):
-        load_config(None, preset="ouster")
+    with pytest.raises(ConfigError, match="unknown preset 'oustr128'; did you mean 'ouster128'"):
+        load_config(None, preset="oustr128")
+    assert load_config(None, preset="kitti") == load_config(None, preset="hdl64") == kitti
 
 
 def test_a_config_file_wins_over_the_preset(tmp_path):
