@@ -735,7 +735,9 @@ def write_classified(
     A LAS/LAZ output with a LAS/LAZ ``source`` (the file ``points`` were read from, same points in
     the same order) is that file with the labels added (:func:`_write_las_from_source`): every
     dimension, the CRS and every VLR kept, the labels in an extra dimension ``overhang`` (mask) or
-    ``terracube_class``, and in ``classification`` only with ``as_classification``.
+    ``terracube_class``, and in ``classification`` only with ``as_classification`` (a point format
+    0-5 input, whose classification holds 0..31, is then written in the LAS 1.4 format 6-10 that
+    holds the same dimensions).
 
     The format follows the suffix; ``read_cloud`` gives the same labels back (``"label"``, uint8):
 
@@ -922,13 +924,14 @@ def _write_las_from_source(
             codes = _check_las(path, np.zeros((0, 3)), labels, False, las_classes)
             codes = labels if codes is None else codes
         if las.point_format.id < 6 and codes.size and codes.max() > 31:
-            raise ValueError(
-                f"{path}: {source} has LAS point format {las.point_format.id}, whose classification holds "
-                f"0..31, too small for the codes up to {int(codes.max())}; leave the labels in the "
-                f"'{name}' extra dimension (the default)"
-            )
+            # formats 0-5 hold classes 0..31: the LAS 1.4 format with the same dimensions holds 0..255
+            las = laspy.convert(las, point_format_id=_LAS14_FORMAT[las.point_format.id], file_version="1.4")
         las.classification = codes
     las.write(str(path))
+
+
+#: The LAS 1.4 point format holding every dimension of an older one (and classes up to 255).
+_LAS14_FORMAT = {0: 6, 1: 6, 2: 7, 3: 7, 4: 9, 5: 10}
 
 
 def read_crs(path: PathLike) -> str | None:

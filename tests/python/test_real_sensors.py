@@ -178,10 +178,12 @@ def test_the_presets_ship_inside_the_package():
 # ------------------------------------------------------------------------------------------ GIS
 
 
-def _georeferenced_las(path: Path, points: np.ndarray, wkt: str | None, epsg: int | None):
+def _georeferenced_las(
+    path: Path, points: np.ndarray, wkt: str | None, epsg: int | None, point_format: int = 6
+):
     import laspy
 
-    header = laspy.LasHeader(point_format=6, version="1.4")
+    header = laspy.LasHeader(point_format=point_format, version="1.4" if point_format >= 6 else "1.2")
     header.offsets = points.min(axis=0)
     header.scales = [0.001, 0.001, 0.001]
     if wkt is not None:
@@ -196,7 +198,8 @@ def _georeferenced_las(path: Path, points: np.ndarray, wkt: str | None, epsg: in
     las.x, las.y, las.z = points.T
     rng = np.random.default_rng(5)
     las.intensity = rng.integers(0, 65535, len(points), dtype=np.uint16)
-    las.gps_time = np.arange(len(points)) * 1e-5 + 3.0e5
+    if "gps_time" in las.point_format.dimension_names:
+        las.gps_time = np.arange(len(points)) * 1e-5 + 3.0e5
     las.return_number = rng.integers(1, 3, len(points))
     las.number_of_returns = np.full(len(points), 2)
     las.classification = rng.choice([2, 5, 6], len(points)).astype(np.uint8)
@@ -286,6 +289,27 @@ def test_a_classified_las_keeps_every_input_dimension_and_vlr_with_the_labels_ad
             np.testing.assert_array_equal(written.classification, codes)
         else:
             np.testing.assert_array_equal(written.classification, original.classification)
+
+
+def test_classes_in_the_classification_of_an_old_point_format_move_it_to_las_1_4(tmp_path):
+    laspy = pytest.importorskip("laspy")
+    from terracube.io import TERRAIN_LAS_CLASSES
+
+    rng = np.random.default_rng(4)
+    wall = np.c_[np.full(600, 5.0), rng.uniform(-5, 5, 600), rng.uniform(-1.5, 0.5, 600)]  # not ground
+    points = np.vstack([_ground_scene(n=3000), wall]) + [500_000.0, 5_400_000.0, 300.0]
+    source = tmp_path / "old.las"
+    original = _georeferenced_las(source, points, None, 32632, point_format=1)
+    run_stage("classify", read_points(source), "old", tmp_path, source=source, cloud_format="las",
+              png=False, las_classification=True)  # fmt: skip
+    written = laspy.read(str(tmp_path / "old_classes.las"))
+    assert written.classification.max() > 31  # e.g. 67, vertical object: format 1 cannot hold it
+    assert written.point_format.id == 6 and str(written.header.version) == "1.4"
+    for name in ("X", "Y", "Z", "intensity", "return_number", "gps_time"):
+        np.testing.assert_array_equal(written[name], original[name], err_msg=name)
+    assert read_crs(tmp_path / "old_classes.las") == "EPSG:32632"
+    codes = {TERRAIN_LAS_CLASSES[int(c)]: int(c) for c in tc.TerrainClass}
+    np.testing.assert_array_equal([codes[c] for c in written.classification], written.terracube_class)
 
 
 def test_a_collapse_las_keeps_the_asprs_classes_and_adds_the_overhang_dimension(tmp_path):
