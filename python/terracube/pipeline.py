@@ -3,6 +3,10 @@
 Each per-scan stage (collapse, dem, classify, fem) reads nothing and prints nothing:
 :func:`run_stage` takes the points, runs the stage with a :class:`terracube.config.Config`, writes
 the outputs as ``NAME_...`` files and returns a :class:`StageReport` (summary lines, written files).
+What a real sensor needs is decided here, once for every stage: the points outside the frame's
+range limits are left out (:func:`range_note`), a map without a fixed extent covers
+:func:`auto_extent`, the ground reference is estimated when none is given (:func:`terrain_params`)
+and a mostly empty map is flagged (:func:`fill_note`).
 The command line prints the report; batch workers collect it. :func:`register_scans` and
 :func:`build_global_map` do the same for ``terracube register`` and ``terracube map``. Scans are found
 with :func:`read_scan` and :func:`expand_inputs`, so a new input source (a ROS bag topic, say) is
@@ -33,18 +37,25 @@ __all__ = [
     "REGISTRATION_METHODS",
     "SCAN_SUFFIXES",
     "STAGES",
+    "ScanOutput",
     "StageReport",
+    "auto_extent",
     "build_global_map",
     "collapse_params",
     "elevation_params",
     "expand_inputs",
+    "fill_note",
+    "ground_reference_given",
     "leveled_points",
     "mapper_params",
     "point_classes",
+    "range_note",
     "read_scan",
     "register_scans",
     "registration_record",
     "run_stage",
+    "scan_trajectory",
+    "terrain_params",
 ]
 
 #: Formats of the classified clouds the stages write.
