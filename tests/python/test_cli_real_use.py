@@ -84,9 +84,12 @@ def test_the_rendered_help_of_every_command_keeps_units_defaults_and_extras():
             for bracketed in re.findall(r"\[[^\[\]]+\]", help_text):
                 assert _flat(bracketed) in text, f"terracube {name} --help lost {bracketed} of {opts}"
                 checked += 1
-            if shows_default:
-                line = text[text.find(opts[-1]) :] if opts else text
-                assert "[default:" in line, f"terracube {name} --help lost the default of {opts}"
+            if shows_default:  # "[default: ...]" ends the option's own help, before the next option
+                start = text.find(f"{max(opts, key=len)} ")
+                end = text.find("[default:", start)
+                assert start >= 0 and 0 <= end - start <= len(" ".join(opts)) + len(help_text) + 150, (
+                    f"terracube {name} --help lost the default of {opts}"
+                )
     assert checked > 100  # units, config keys and defaults of every shared option
     for units in ("[m]", "[deg]", "[cells]"):
         assert units in _flat(rendered["classify"])
