@@ -75,7 +75,9 @@ def process_file(
     try:
         points = read_scan(path)
         record.points = int(len(points))
-        report = run_stage(stage, points, name or path.stem, Path(output_dir), config, **(options or {}))
+        report = run_stage(
+            stage, points, name or path.stem, Path(output_dir), config, source=path, **(options or {})
+        )
         record.outputs = [str(p) for p in report.outputs]
         record.lines = list(report.lines)
         record.status = "ok"
@@ -426,6 +428,10 @@ def _cause(outcome: Any) -> str:
     return f"{type(outcome).__name__}: {outcome}"
 
 
+#: Report lines :func:`format_summary` repeats under the table, per file.
+_NOTE_PREFIXES = ("note:", "warning:", "range filter:", "ground reference:")
+
+
 def format_summary(records: Sequence[FileRecord], *, width: int = 70) -> str:
     """A plain-text table: file, points, status, seconds, outputs (or the error), and a total line."""
     header = ("file", "points", "status", "seconds", "outputs")
@@ -456,6 +462,11 @@ def format_summary(records: Sequence[FileRecord], *, width: int = 70) -> str:
     for r in records:
         if not r.ok:
             out.append(f"failed: {r.error}")
+    for r in records:  # what each file's report flags: points left out, the ground reference, warnings
+        for note in r.lines:
+            text = note.strip()
+            if text.startswith(_NOTE_PREFIXES):
+                out.append(f"{Path(r.path).name}: {text}")
     out.append(
         f"{ok} of {len(records)} files ok, {len(records) - ok} failed; {total_points:,} points; "
         f"{sum(r.seconds for r in records):.2f} s of work"

@@ -46,6 +46,27 @@ app = typer.Typer(
 TERRAIN_REFERENCES = ("sensor_height", "local_ground")
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        from . import __version__
+
+        typer.echo(f"terracube {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(
+    version: bool = typer.Option(
+        False,
+        "--version",
+        help="Print the terracube version and exit.",
+        callback=_print_version,
+        is_eager=True,
+    ),
+) -> None:
+    """Navigable 2.5D elevation maps from ground-robot 3D LiDAR scans."""
+
+
 # ------------------------------------------------------------------------------------------ errors
 
 
@@ -118,6 +139,12 @@ def _read_scan(path: Path) -> np.ndarray:
 # ------------------------------------------------------------------------------------------ options
 
 
+def _preset_names() -> list[str]:
+    from .config import preset_names
+
+    return preset_names()
+
+
 def _default(section: str, key: str) -> Any:
     from .config import default_config
 
@@ -154,7 +181,26 @@ OPTIONS: dict[str, Option] = {
         "-c",
         help="YAML parameters (`terracube config` prints them all); options win over it.",
     ),
+    "preset": _option(
+        str | None,
+        "--preset",
+        help="Sensor preset under --config and the options: "
+        + ", ".join(_preset_names())
+        + " (also kitti, hdl64, tls, als; `terracube config --preset NAME` prints it).",
+    ),
     # frame
+    "min_range": _option(
+        float | None,
+        "--min-range",
+        help=_help("Leave out points nearer the sensor [m] (no-returns at 0).", "frame", "min_range"),
+        sets=[("frame", "min_range")],
+    ),
+    "max_range": _option(
+        float | None,
+        "--max-range",
+        help=_help("Leave out points farther from the sensor [m].", "frame", "max_range"),
+        sets=[("frame", "max_range")],
+    ),
     "roll": _option(
         float | None,
         "--roll",
@@ -171,6 +217,7 @@ OPTIONS: dict[str, Option] = {
         _Crop | None,
         "--crop",
         help=_help("Crop box XMIN YMIN ZMIN XMAX YMAX ZMAX [m], leveled frame.", "frame", "crop"),
+        metavar="XMIN YMIN ZMIN XMAX YMAX ZMAX",
     ),
     # collapse
     "edge": _option(
@@ -204,13 +251,22 @@ OPTIONS: dict[str, Option] = {
         tuple[float, float] | None,
         "--origin",
         help=_help(
-            "Corner X Y [m] of the map with the smallest x and y; needs --size.", "elevation", "origin"
+            "Corner X Y [m] of the map with the smallest x and y, e.g. --origin -20 -20; needs --size.",
+            "elevation",
+            "origin",
         ),
+        metavar="X Y",
     ),
     "size": _option(
         tuple[int, int] | None,
         "--size",
-        help=_help("Cells NX NY of the map; needs --origin (else the points' extent).", "elevation", "size"),
+        help=_help(
+            "Cells NX NY of the map, e.g. --size 400 400; needs --origin (else the 1st-99th "
+            "percentile window of the points).",
+            "elevation",
+            "size",
+        ),
+        metavar="NX NY",
     ),
     "num_threads": _option(
         int | None,
@@ -245,6 +301,12 @@ OPTIONS: dict[str, Option] = {
         ),
         sets=[("terrain", "local_ground_radius")],
     ),
+    "high_height": _option(
+        float | None,
+        "--high-height",
+        help=_help("Cells higher than this above the ground [m] are high.", "terrain", "robot_height"),
+        sets=[("terrain", "robot_height")],
+    ),
     "ground_height": _option(
         float | None,
         "--ground-height",
@@ -262,6 +324,7 @@ OPTIONS: dict[str, Option] = {
         tuple[int, int] | None,
         "--rules",
         help="Membership functions NX NY along x and y [config fuzzy.rules_x, rules_y: 19 10].",
+        metavar="NX NY",
     ),
     "epochs": _option(
         int | None,
@@ -311,6 +374,13 @@ OPTIONS: dict[str, Option] = {
     "cloud": _option(
         bool, "--cloud/--no-cloud", default=True, help="Write the cloud with each point's cell class."
     ),
+    "las_classification": _option(
+        bool,
+        "--las-classification/--las-extra-dimension",
+        default=False,
+        help="LAS/LAZ cloud: terracube's labels in 'classification' too, or only in an extra dimension "
+        "(a LAS input's own classification kept).",
+    ),
     "png": _option(bool, "--png/--no-png", default=True, help="Also write pictures."),
     "geotiff": _option(
         bool,
@@ -320,31 +390,42 @@ OPTIONS: dict[str, Option] = {
     ),
 }
 
-_FRAME = ("roll", "pitch", "crop")
+_FRAME = ("min_range", "max_range", "roll", "pitch", "crop")
 _EXTENT = ("resolution", "origin", "size")
 _OVERHANGS = ("edge", "sigma", "robot_height")
-_TERRAIN = ("sensor_height", "reference", "ground_radius", "ground_height", "std_dev", "robot_height")
+_TERRAIN = ("sensor_height", "reference", "ground_radius", "ground_height", "high_height", "std_dev")
 
 #: The options of each command that takes shared ones, in --help order.
 STAGE_OPTIONS: dict[str, tuple[str, ...]] = {
-    "collapse": ("config", *_OVERHANGS, *_FRAME, "num_threads", "output_format", "png"),
-    "dem": ("config", *_EXTENT, *_OVERHANGS, *_FRAME, "num_threads", "png", "geotiff"),
+    "collapse": (
+        "config",
+        "preset",
+        *_OVERHANGS,
+        *_FRAME,
+        "num_threads",
+        "output_format",
+        "las_classification",
+        "png",
+    ),
+    "dem": ("config", "preset", *_EXTENT, *_OVERHANGS, *_FRAME, "num_threads", "png", "geotiff"),
     "classify": (
         "config",
+        "preset",
         *_EXTENT,
         *_TERRAIN,
-        "edge",
-        "sigma",
+        *_OVERHANGS,
         *_FRAME,
         "num_threads",
         "remove_overhangs",
         "output_format",
+        "las_classification",
         "cloud",
         "png",
         "geotiff",
     ),
     "fem": (
         "config",
+        "preset",
         *_EXTENT,
         "rules",
         "epochs",
@@ -358,6 +439,7 @@ STAGE_OPTIONS: dict[str, tuple[str, ...]] = {
     ),  # fmt: skip
     "register": (
         "config",
+        "preset",
         "resolution",
         "sensor_height",
         "reference",
@@ -366,18 +448,15 @@ STAGE_OPTIONS: dict[str, tuple[str, ...]] = {
         "remove_overhangs",
         *_FRAME,
     ),  # fmt: skip
-    "view": ("config", "resolution", "sensor_height", "png"),
+    "view": ("config", "preset", "min_range", "max_range", "resolution", "sensor_height", "png"),
 }
 STAGE_OPTIONS["batch"] = tuple(dict.fromkeys(name for stage in STAGES for name in STAGE_OPTIONS[stage]))
 
 #: Where a command's option differs from the shared one: (command, option) -> typer.Option fields.
 _OPTION_CHANGES: dict[tuple[str, str], dict[str, Any]] = {
-    ("classify", "robot_height"): {
-        "help": _help("Cells higher than this above the ground [m] are high.", "terrain", "robot_height")
-    },
-    ("batch", "robot_height"): {
-        "help": "Robot height [m]: classify: cells higher than this above the ground are high; the other "
-        "stages: σ = ceil(height / E) unless --sigma is given."
+    ("batch", "png"): {
+        "default": False,
+        "help": "Also write each scan's pictures (they take most of the time: seconds per scan).",
     },
     ("classify", "remove_overhangs"): {
         "help": "Classify the DEM without overhangs instead of the raw map (the paper classifies raw maps)."
@@ -453,16 +532,14 @@ def command_config(command: str, options: dict[str, Any]):
     reference = options.get("reference")
     if reference is not None and reference not in TERRAIN_REFERENCES:
         raise _fail(f"--reference must be one of {', '.join(TERRAIN_REFERENCES)}, got {reference!r}")
-    if command == "classify":
-        changes.setdefault("terrain", {})["robot_height"] = options.get("robot_height")
     try:
-        config = load_config(options.get("config"))
+        config = load_config(options.get("config"), preset=options.get("preset"))
     except ConfigError as error:
         raise _fail(str(error)) from error
     with _exit_on_bad_input("command line"):
         for section, values in changes.items():
             config = config.replace(section, **values)
-        if command != "classify" and options.get("robot_height") is not None and options.get("sigma") is None:
+        if options.get("robot_height") is not None and options.get("sigma") is None:
             from . import sigma_from_robot_height
 
             sigma = sigma_from_robot_height(options["robot_height"], config.collapse.edge)
@@ -481,6 +558,7 @@ def stage_output_options(stage: str, options: dict[str, Any]) -> dict[str, Any]:
         "png": options.get("png"),
         "geotiff": options.get("geotiff"),
         "remove_overhangs": options.get("remove_overhangs"),
+        "las_classification": options.get("las_classification"),
     }
     return {key: values[key] for key in STAGE_OUTPUT_OPTIONS[stage] if values[key] is not None}
 
@@ -533,7 +611,9 @@ def _add_stage_command(stage: str) -> None:
         _writable_folder(output_dir)
         points = _read_scan(input_path)
         with _exit_on_bad_input(input_path.stem):
-            _echo_report(run_stage(stage, points, input_path.stem, output_dir, config, **outputs))
+            _echo_report(
+                run_stage(stage, points, input_path.stem, output_dir, config, source=input_path, **outputs)
+            )
 
     command.__doc__ = _STAGE_HELP[stage]
     command.__name__ = stage
@@ -619,6 +699,14 @@ def _print_register_record(record: dict[str, Any], elapsed_ms: float, source: Pa
     typer.echo(f"{source.stem} -> {target.stem} ({method}, {elapsed_ms:.1f} ms):")
     typer.echo(f"  converged: {'yes' if record['converged'] else 'no'} ({record['reason']})")
     typer.echo(f"  iterations: {record['iterations']}")
+    if "ground_reference" in record:
+        typer.echo(f"  ground reference: {record['ground_reference']}")
+    left_out = record.get("points_left_out", [0, 0])
+    if any(left_out):
+        typer.echo(
+            f"  range filter: {left_out[0]:,} points of {source.stem} and {left_out[1]:,} of {target.stem} "
+            "left out"
+        )
     if method == "pcl":
         typer.echo(f"  fitness: {record['fitness']:.6f} m^2 (mean squared pair distance)")
     else:
@@ -763,10 +851,21 @@ def view(
     per layer. --3d --save FILE.rrd writes a rerun recording instead of opening the viewer.
     """
     from . import ElevationMap, TerrainClass, build_elevation_map, classify_terrain, collapse_overhangs
-    from .pipeline import collapse_params, elevation_params, leveled_points
+    from .pipeline import (
+        collapse_params,
+        elevation_params,
+        leveled_points,
+        range_note,
+        terrain_params,
+    )
 
     if save is not None and not three_d:
         raise _fail("--save writes a 3D recording: give --3d too")
+    if three_d:  # before any picture is drawn or file written
+        from .viewer import require_viewer
+
+        with _exit_on_bad_input("--3d"):
+            require_viewer()
     config = command_config("view", options)
     png = options["png"]
     name = input_path.stem
@@ -790,13 +889,17 @@ def view(
     else:
         if layers:
             raise _fail("--layer picks layers of a map .npz; a scan is drawn as overhangs, max and classes")
-        points = _read_scan(input_path)
+        every_point = _read_scan(input_path)
+        keep = config.frame.in_range(every_point)
+        points = np.ascontiguousarray(every_point[keep])
+        note = range_note(every_point, keep, config.frame)
         with _exit_on_bad_input(name):
             result = collapse_overhangs(points, params=collapse_params(config))
-            elevation_map = build_elevation_map(points, params=elevation_params(config))
+            elevation_map = build_elevation_map(points, params=elevation_params(config, points))
             if not np.any(elevation_map["count"] > 0):
                 raise ValueError("no point falls inside the map; check the crop box, origin and size")
-            classes = classify_terrain(elevation_map, config.terrain)
+            terrain, where = terrain_params(config)
+            classes = classify_terrain(elevation_map, terrain)
             if png:
                 from .viz import plot_layer, plot_overhangs, plot_terrain_classes
 
@@ -811,8 +914,10 @@ def view(
         g = elevation_map.geometry
         typer.echo(
             f"{name}: {len(points):,} points, {result.num_overhang:,} overhang; map "
-            f"{g.size[0]} x {g.size[1]} cells, {known:,} classified"
+            f"{g.size[0]} x {g.size[1]} cells, {known:,} classified; ground reference: {where}"
         )
+        if note is not None:
+            typer.echo(note)
     for path in written:
         typer.echo(f"  picture: {path}")
     if three_d:
@@ -851,8 +956,18 @@ def map_command(
         "for KITTI poses, if present).",
         show_default=False,
     ),
+    times: Path | None = typer.Option(
+        None,
+        "--times",
+        help="KITTI times.txt: the time [s] of each pose, for the TUM trajectories (default: times.txt "
+        "beside KITTI --poses, if present; else the pose index).",
+        show_default=False,
+    ),
     output_dir: Path = _OUTPUT_DIR,
     config: Path | None = OPTIONS["config"].info,
+    preset: str | None = OPTIONS["preset"].info,
+    min_range: float | None = OPTIONS["min_range"].info,
+    max_range: float | None = OPTIONS["max_range"].info,
     keyframe_distance: float | None = typer.Option(
         None,
         "--keyframe-distance",
@@ -888,15 +1003,19 @@ def map_command(
     Every ~3 m a local classified map is registered to the previous one (class-weighted ICP, odometry
     as the guess) and fused; revisits are registered and the pose graph optimised with Ceres. Writes
     global_map.npz (layers count, min, max, mean, std_dev, discontinuity, class), global_max.png,
-    global_classes.png, and the keyframe trajectory as trajectory_kitti.txt and trajectory_tum.txt
-    (Velodyne frame when a calibration was used).
+    global_classes.png (the trajectory drawn over them), the pose of every scan as
+    trajectory_kitti.txt and trajectory_tum.txt (times from times.txt; evo reads both) and the
+    keyframes' as keyframes_kitti.txt and keyframes_tum.txt (Velodyne frame when a calibration was
+    used; without one KITTI's camera poses are used as they are, with a warning).
     """
     from tqdm import tqdm
 
     from .mapping import detect_pose_format, match_scans_to_poses, read_kitti_calibration, read_pose_file
     from .pipeline import SCAN_SUFFIXES, build_global_map, expand_inputs
 
-    cfg = command_config("map", {"config": config}).replace(
+    cfg = command_config(
+        "map", {"config": config, "preset": preset, "min_range": min_range, "max_range": max_range}
+    ).replace(
         "mapper",
         keyframe_distance=keyframe_distance,
         resolution=resolution,
@@ -916,6 +1035,7 @@ def map_command(
     if not poses.is_file():
         raise _fail(f"{poses}: no such pose file")
     _existing_file(calib, "--calib")
+    _existing_file(times, "--times")
     _existing_file(ground_truth, "--ground-truth")
     _writable_folder(output_dir)
     with _exit_on_bad_input():
@@ -926,12 +1046,28 @@ def map_command(
         calibration = read_kitti_calibration(calib) if calib is not None else None
         stamps, odometry = read_pose_file(poses, pose_format, calibration)
         indices = match_scans_to_poses(files, len(odometry))
+        if times is None and pose_format == "kitti" and (poses.parent / "times.txt").is_file():
+            times = poses.parent / "times.txt"
+        if times is not None:
+            from .poses import read_times
+
+            stamps = read_times(times, len(odometry))
     truth = None
     if ground_truth is not None:
         with _exit_on_bad_input(str(ground_truth)):
             truth = read_pose_file(ground_truth, pose_format, calibration)[1]
     if calibration is not None:
         typer.echo(f"calibration: {calib} (camera poses -> Velodyne)")
+    elif pose_format == "kitti":
+        typer.secho(
+            f"warning: no calib.txt beside {poses} and no --calib: the KITTI poses are used as they are "
+            "(KITTI's are the left camera's, not the LiDAR's: the map is skewed and an ATE against "
+            "camera poses measures nothing); give --calib calib.txt",
+            fg=typer.colors.YELLOW,
+            err=True,
+        )
+    if pose_format == "kitti":
+        typer.echo(f"timestamps: {times}" if times is not None else "timestamps: none (the pose index)")
     sequence = tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="mapping")
     with _exit_on_bad_input("global map"):
         report = build_global_map(
@@ -961,6 +1097,7 @@ def config_command(
         help="Print this file merged over the defaults (checks it, too).",
         show_default=False,
     ),
+    preset: str | None = OPTIONS["preset"].info,
 ) -> None:
     """Print every stage's parameters as commented YAML (the defaults, or a file merged over them).
 
@@ -968,7 +1105,7 @@ def config_command(
     """
     from .config import dump_config
 
-    text = dump_config(command_config("config", {"config": config}))
+    text = dump_config(command_config("config", {"config": config, "preset": preset}))
     if output is None:
         typer.echo(text, nl=False)
     else:

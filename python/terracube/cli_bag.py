@@ -165,16 +165,22 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     from .mapping import Mapper
     from .poses import write_kitti_poses, write_tum_poses
 
-    for option, flag in (("poses", "--poses"), ("calib", "--calib"), ("ground_truth", "--ground-truth")):
+    for option, flag in (
+        ("poses", "--poses"),
+        ("calib", "--calib"),
+        ("ground_truth", "--ground-truth"),
+        ("times", "--times"),
+    ):
         if values.get(option) is not None:
             raise _fail(f"{flag} is for a folder of scans; a bag takes its poses from --odom or --tf")
     if (bag_options.odom is None) == (bag_options.tf is None):
         raise _fail("a bag needs one pose source: --odom TOPIC (Odometry or PoseStamped) or --tf BASE_FRAME")
     try:
-        cfg = load_config(values.get("config"))
+        cfg = load_config(values.get("config"), preset=values.get("preset"))
     except ConfigError as error:
         raise _fail(str(error)) from error
     with _exit_on_bad_input("command line"):
+        cfg = cfg.replace("frame", min_range=values.get("min_range"), max_range=values.get("max_range"))
         cfg = cfg.replace(
             "mapper",
             keyframe_distance=values.get("keyframe_distance"),
@@ -195,7 +201,8 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
         for stamp, points, pose in _progress(clouds, total, "mapping"):
             if len(stamps) >= total:
                 break
-            mapper.add_scan(points, pose)
+            keep = cfg.frame.in_range(points)  # the frame's range limits, as for a folder of scans
+            mapper.add_scan(points if keep.all() else np.ascontiguousarray(points[keep]), pose)
             stamps.append(stamp)
         if not stamps:
             raise ValueError(f"no cloud on {topic}")

@@ -51,6 +51,8 @@ __all__ = [
     "default_config",
     "dump_config",
     "load_config",
+    "preset_names",
+    "preset_path",
     "register_section",
 ]
 
@@ -61,9 +63,12 @@ class ConfigError(ValueError):
 
 @dataclass
 class FrameParams:
-    """The sensor frame every stage works in: leveling and an optional crop box.
+    """The sensor frame every stage works in: the sensor's range limits, leveling and a crop box.
 
-    The leveling transform R = Ry(pitch) Rx(roll) (``terracube.leveling_transform``) and the crop box
+    Points nearer than ``min_range`` or farther than ``max_range`` from the sensor (the origin of the
+    scan's frame, before leveling) take no part: a sensor stores its no-returns as (0, 0, 0), which
+    would otherwise become one "ground" cell at the sensor. The leveling transform
+    R = Ry(pitch) Rx(roll) (``terracube.leveling_transform``) and the crop box
     are handed to collapsible cubes and to the elevation map alike, so the overhang mask, the DEM and
     the classes of one scan share one frame.
 
@@ -75,13 +80,28 @@ class FrameParams:
         Sensor pitch [deg], for leveling (0).
     crop : ((xmin, ymin, zmin), (xmax, ymax, zmax)) or None
         Axis-aligned box [m] in the leveled frame; points outside take no part. None keeps every point.
+    min_range : float
+        Points nearer the sensor than this [m] take no part (0.1: drops the (0, 0, 0) no-returns).
+    max_range : float or None
+        Points farther from the sensor than this [m] take no part; None keeps them all.
     """
 
     roll_deg: float = 0.0
     pitch_deg: float = 0.0
     crop: Sequence[Sequence[float]] | None = None
+    min_range: float = 0.1
+    max_range: float | None = None
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(float(self.min_range)) and self.min_range >= 0):
+            raise ValueError(f"min_range must be a distance >= 0 [m], got {self.min_range!r}")
+        if self.max_range is not None and not (
+            math.isfinite(float(self.max_range)) and self.max_range > self.min_range
+        ):
+            raise ValueError(
+                f"max_range must be a distance [m] beyond min_range ({self.min_range:g} m) or null, "
+                f"got {self.max_range!r}"
+            )
         for name in ("roll_deg", "pitch_deg"):
             if not math.isfinite(float(getattr(self, name))):
                 raise ValueError(f"{name} must be a finite angle [deg], got {getattr(self, name)!r}")
@@ -107,6 +127,15 @@ class FrameParams:
         if self.crop is None:
             return None
         return tuple(float(v) for v in self.crop[0]), tuple(float(v) for v in self.crop[1])
+
+    def in_range(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool: the points whose distance from the sensor lies in [min_range, max_range]."""
+        xyz = np.asarray(points)[:, :3]
+        squared = np.einsum("ij,ij->i", xyz, xyz, dtype=np.float64)
+        keep = squared >= float(self.min_range) ** 2  # NaN compares False: dropped too
+        if self.max_range is not None:
+            keep &= squared <= float(self.max_range) ** 2
+        return keep
 
 
 # ------------------------------------------------------------------------------------------ sections
@@ -167,7 +196,9 @@ def _register_defaults() -> None:
 
     frame_reason = "set the leveling and crop box in the 'frame' section (roll_deg, pitch_deg, crop)"
     register_section(
-        "frame", FrameParams, "The sensor frame of every stage: leveling (roll, pitch) and a crop box."
+        "frame",
+        FrameParams,
+        "The sensor frame of every stage: range limits, leveling (roll, pitch) and a crop box.",
     )
     register_section(
         "collapse",
@@ -585,16 +616,45 @@ def config_from_dict(data: Any, source: str = "<dict>", base: Config | None = No
     return Config(sections)
 
 
-def load_config(path: str | Path | None) -> Config:
-    """The defaults with the YAML file ``path`` merged over them (just the defaults when None).
+def preset_names() -> list[str]:
+    """The names of the bundled sensor presets (``terracube/presets/NAME.yaml``), sorted."""
+    return sorted(p.stem for p in _PRESET_DIR.glob("*.yaml"))
+
+
+#: Other names of the presets: the sensor or the kind of data alone.
+PRESET_ALIASES = {"kitti": "kitti_hdl64", "hdl64": "kitti_hdl64", "tls": "tls_plot", "als": "airborne_las"}
+
+
+def preset_path(name: str) -> Path:
+    """The YAML file of the bundled sensor preset ``name`` (or one of :data:`PRESET_ALIASES`);
+    ConfigError naming the known ones."""
+    name = PRESET_ALIASES.get(name, name)
+    path = _PRESET_DIR / f"{name}.yaml"
+    if not (name and name.replace("_", "").isalnum() and path.is_file()):
+        raise ConfigError(f"--preset: {_unknown('preset', name, preset_names())}")
+    return path
+
+
+def load_config(path: str | Path | None, *, preset: str | None = None) -> Config:
+    """The defaults with the sensor preset ``preset`` (:func:`preset_names`) and then the YAML file
+    ``path`` merged over them (just the defaults when both are None).
 
     Raises :class:`ConfigError` (a ValueError) naming the file for a missing file, invalid YAML, an
-    unknown section or key, a value of the wrong type or one the parameters refuse.
+    unknown section or key, a value of the wrong type or one the parameters refuse, and naming the
+    known presets for an unknown one.
     """
+    config = default_config()
+    if preset is not None:
+        source = preset_path(preset)
+        config = config_from_dict(_read_yaml(source), f"preset {preset} ({source})", config)
     if path is None:
-        return default_config()
+        return config
     path = Path(path)
-    return config_from_dict(_read_yaml(path), str(path))
+    return config_from_dict(_read_yaml(path), str(path), config)
+
+
+#: Where the bundled sensor presets live (package data).
+_PRESET_DIR = Path(__file__).parent / "presets"
 
 
 _register_defaults()

@@ -185,7 +185,7 @@ def read_cloud(path: PathLike) -> dict[str, np.ndarray]:
     if xyz.dtype not in (np.float32, np.float64):
         fields["xyz"] = xyz.astype(np.float64)
     if "label" not in fields:
-        for name in ("overhang", "classification"):
+        for name in ("overhang", "terracube_class", "classification"):
             if name in fields:
                 fields["label"] = (
                     fields[name].astype(np.uint8) if fields[name].dtype == bool else fields[name]
@@ -727,8 +727,17 @@ def write_classified(
     labels: np.ndarray,
     *,
     las_classes: dict[int, int] | None = None,
+    source: PathLike | None = None,
+    as_classification: bool = False,
 ) -> Path:
     """Write points with one label each: a bool overhang mask or uint8 classes (0..255).
+
+    A LAS/LAZ output with a LAS/LAZ ``source`` (the file ``points`` were read from, same points in
+    the same order) is that file with the labels added (:func:`_write_las_from_source`): every
+    dimension, the CRS and every VLR kept, the labels in an extra dimension ``overhang`` (mask) or
+    ``terracube_class``, and in ``classification`` only with ``as_classification`` (a point format
+    0-5 input, whose classification holds 0..31, is then written in the LAS 1.4 format 6-10 that
+    holds the same dimensions).
 
     The format follows the suffix; ``read_cloud`` gives the same labels back (``"label"``, uint8):
 
@@ -778,6 +787,12 @@ def write_classified(
         return write_kitti_bin(path, xyz)
     if suffix in (".las", ".laz"):
         _check_las(path, xyz, label_u8, is_mask, las_classes)
+        if source is not None and Path(source).suffix.lower() in (".las", ".laz"):
+            with atomic_path(path) as temporary:
+                _write_las_from_source(
+                    temporary, Path(source), label_u8, is_mask, las_classes, as_classification
+                )
+            return path
     with atomic_path(path) as temporary:
         _write_classified(temporary, suffix, xyz, labels, label_u8, is_mask, las_classes)
     return path
@@ -873,3 +888,147 @@ def _write_las(
     else:
         las.classification = labels
     las.write(str(path))
+
+
+#: Description of the extra dimension holding terracube's terrain class (:class:`terracube.TerrainClass`).
+TERRAIN_CLASS_DIMENSION = "terracube_class"
+
+
+def _write_las_from_source(
+    path: Path,
+    source: Path,
+    labels: np.ndarray,
+    is_mask: bool,
+    las_classes: dict[int, int] | None,
+    as_classification: bool,
+) -> None:
+    """The LAS/LAZ ``source`` with the labels added as an extra dimension (``classification`` too
+    with ``as_classification``): header, VLRs (CRS), EVLRs and every point dimension kept."""
+    import laspy
+
+    las = laspy.read(str(source), laz_backend=laspy.LazBackend.Lazrs)
+    if len(las.points) != len(labels):
+        raise ValueError(
+            f"{path}: {len(labels)} labels for the {len(las.points)} points of {source}: "
+            "write the classified cloud from the points as read"
+        )
+    name = "overhang" if is_mask else TERRAIN_CLASS_DIMENSION
+    if name not in las.point_format.dimension_names:
+        description = "1 = overhang (terracube)" if is_mask else "terrain class (terracube)"
+        las.add_extra_dim(laspy.ExtraBytesParams(name=name, type=np.uint8, description=description))
+    las[name] = labels
+    if as_classification:
+        if is_mask:
+            codes = np.where(labels != 0, OVERHANG_LAS_CLASS, np.asarray(las.classification)).astype(np.uint8)
+        else:
+            codes = _check_las(path, np.zeros((0, 3)), labels, False, las_classes)
+            codes = labels if codes is None else codes
+        if las.point_format.id < 6 and codes.size and codes.max() > 31:
+            # formats 0-5 hold classes 0..31: the LAS 1.4 format with the same dimensions holds 0..255
+            las = laspy.convert(las, point_format_id=_LAS14_FORMAT[las.point_format.id], file_version="1.4")
+        las.classification = codes
+    las.write(str(path))
+
+
+#: The LAS 1.4 point format holding every dimension of an older one (and classes up to 255).
+_LAS14_FORMAT = {0: 6, 1: 6, 2: 7, 3: 7, 4: 9, 5: 10}
+
+
+def read_crs(path: PathLike) -> str | None:
+    """The coordinate reference system of a point-cloud file as WKT or ``EPSG:code``, or None.
+
+    LAS/LAZ: the OGC WKT VLR, else the projected (3072) or geographic (2048) EPSG code of the GeoTIFF
+    key directory. Other formats carry none.
+    """
+    path = Path(path)
+    if path.suffix.lower() not in (".las", ".laz"):
+        return None
+    try:
+        import laspy
+    except ImportError as error:
+        raise ImportError("LAS/LAZ reading needs the las extra: pip install 'terracube[las]'") from error
+    with laspy.open(str(path), laz_backend=laspy.LazBackend.Lazrs) as reader:
+        vlrs = list(reader.header.vlrs)
+    for vlr in vlrs:
+        if vlr.record_id == 2112 and getattr(vlr, "string", None):
+            return vlr.string.rstrip("\x00").strip()
+    for vlr in vlrs:
+        keys = {key.id: key.value_offset for key in getattr(vlr, "geo_keys", ())}
+        for key in (3072, 2048):  # ProjectedCSTypeGeoKey, GeographicTypeGeoKey
+            if 1024 <= keys.get(key, 0) < 32767:  # 32767: user-defined, no EPSG code
+                return f"EPSG:{keys[key]}"
+    return None
+
+
+def write_geotiff(elevation_map, layer: str, path: PathLike, *, crs: str | None = None) -> Path:
+    """Write one map layer as a deflate-compressed GeoTIFF (needs the ``geo`` extra: rasterio).
+
+    Float layers are float32 with nodata NaN; the ``class`` layer is uint8 with nodata 0 (unknown),
+    the class names as the band's category names and a colour table. ``crs`` (WKT or ``EPSG:code``,
+    e.g. :func:`read_crs` of the input) georeferences it; None leaves the sensor frame unnamed.
+    """
+    try:
+        import rasterio
+        from affine import Affine
+    except ImportError as error:
+        raise ImportError("GeoTIFF export needs rasterio: pip install 'terracube[geo]'") from error
+    from .classes import TERRAIN_COLORS, TerrainClass
+
+    path = Path(path)
+    g = elevation_map.geometry
+    data = np.asarray(elevation_map[layer])
+    # Rasters run north-down: row 0 is the largest y, so rows are j reversed and columns are i.
+    raster = np.ascontiguousarray(data.T[::-1, :])
+    is_class = layer == "class"
+    if is_class:
+        raster = np.nan_to_num(raster, nan=0.0).astype(np.uint8)
+    else:
+        raster = raster.astype(np.float32)
+    top = g.origin[1] + g.size[1] * g.resolution
+    profile = dict(
+        driver="GTiff",
+        height=raster.shape[0],
+        width=raster.shape[1],
+        count=1,
+        dtype="uint8" if is_class else "float32",
+        crs=crs,
+        transform=Affine(g.resolution, 0.0, g.origin[0], 0.0, -g.resolution, top),  # north up
+        nodata=0 if is_class else np.nan,
+        compress="deflate",
+        predictor=1 if is_class else 3,
+        tiled=raster.shape[0] >= 256 and raster.shape[1] >= 256,
+    )
+    with atomic_path(path) as temporary, rasterio.open(temporary, "w", **profile) as dataset:
+        dataset.write(raster, 1)
+        dataset.set_band_description(1, layer)
+        if is_class:  # the category names as band metadata in the file, and GDAL's own in a .aux.xml
+            names = [c.name.lower() for c in TerrainClass]
+            dataset.update_tags(1, CATEGORY_NAMES=",".join(names))
+            dataset.update_tags(1, **{f"CLASS_{int(c)}": c.name.lower() for c in TerrainClass})
+            dataset.write_colormap(
+                1,
+                {
+                    int(c): (*(round(255 * v) for v in TERRAIN_COLORS[c]), 0 if c == 0 else 255)
+                    for c in TerrainClass
+                },
+            )
+    if is_class:
+        _write_category_names(path, [c.name.lower() for c in TerrainClass])
+    return path
+
+
+def _write_category_names(path: Path, names: list[str]) -> Path:
+    """GDAL's category names of band 1 in its PAM sidecar ``PATH.aux.xml`` (QGIS and gdalinfo show
+    them as the raster's classes)."""
+    from xml.sax.saxutils import escape
+
+    categories = "".join(f"<Category>{escape(name)}</Category>" for name in names)
+    text = (
+        '<PAMDataset>\n  <PAMRasterBand band="1">\n'
+        f"    <CategoryNames>{categories}</CategoryNames>\n"
+        "  </PAMRasterBand>\n</PAMDataset>\n"
+    )
+    sidecar = path.with_name(path.name + ".aux.xml")
+    with atomic_path(sidecar) as temporary:
+        temporary.write_text(text, encoding="utf-8")
+    return sidecar

@@ -57,6 +57,9 @@ class MapperParams:
         (memory per keyframe: its cells and the cells its class weights can pair).
     min_range : float
         Points nearer the sensor take no part (the robot itself) [m].
+    max_range : float or None
+        Points farther from the sensor take no part [m] (None: no limit); :attr:`Mapper.points_out_of_range`
+        counts the points either limit left out.
     discontinuity : float
         Gap between sorted elevations that flags a cell discontinuous [m] (the paper: 1 m).
     terrain : TerrainParams
@@ -116,6 +119,7 @@ class MapperParams:
     num_threads: int = 1
     keep_local_maps: bool = False
     min_range: float = 0.5
+    max_range: float | None = None
     discontinuity: float = 1.0
     terrain: TerrainParams = field(
         default_factory=lambda: TerrainParams(reference="local_ground", local_ground_radius=5)
@@ -154,6 +158,13 @@ class MapperParams:
         params.num_threads = _num_threads(self.num_threads)
         params.keep_local_maps = bool(self.keep_local_maps)
         params.min_range_m = float(self.min_range)
+        if self.max_range is not None and not (
+            np.isfinite(float(self.max_range)) and float(self.max_range) > float(self.min_range)
+        ):
+            raise ValueError(
+                f"max_range must be a distance [m] beyond min_range ({self.min_range:g} m) or None, "
+                f"got {self.max_range!r}"
+            )
         params.discontinuity_m = float(self.discontinuity)
         params.terrain = self.terrain.to_core()
         params.use_registration = bool(self.use_registration)
@@ -194,10 +205,25 @@ class Mapper:
     def __init__(self, params: MapperParams | None = None, **kwargs):
         self.params = params or MapperParams(**kwargs)
         self._core = _core.Mapper(self.params.to_core())
+        #: Points of the scans so far left out by ``min_range`` and ``max_range``.
+        self.points_out_of_range = 0
 
     def add_scan(self, points, pose) -> ScanReport:
         """Feeds one scan: ``points`` (N, 3) float32/float64 in the sensor frame, ``pose`` its (4, 4)
-        odometry world <- sensor. Returns what happened (keyframe, registration, loops closed)."""
+        odometry world <- sensor. Returns what happened (keyframe, registration, loops closed).
+
+        Points outside ``min_range`` .. ``max_range`` are left out here (counted in
+        :attr:`points_out_of_range`) before the scan reaches the C++ mapper."""
+        xyz = np.asarray(points)
+        if xyz.ndim == 2 and xyz.shape[1] >= 3 and xyz.dtype in (np.float32, np.float64):
+            squared = np.einsum("ij,ij->i", xyz[:, :3], xyz[:, :3], dtype=np.float64)
+            keep = squared >= float(self.params.min_range) ** 2
+            if self.params.max_range is not None:
+                keep &= squared <= float(self.params.max_range) ** 2
+            keep |= ~np.isfinite(squared)  # NaN and infinite points: the C++ mapper names the problem
+            if not keep.all():
+                self.points_out_of_range += int(len(keep) - np.count_nonzero(keep))
+                points = np.ascontiguousarray(xyz[keep])
         return self._core.add_scan(points, np.asarray(pose, dtype=np.float64))
 
     def __len__(self) -> int:

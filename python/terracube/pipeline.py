@@ -3,6 +3,10 @@
 Each per-scan stage (collapse, dem, classify, fem) reads nothing and prints nothing:
 :func:`run_stage` takes the points, runs the stage with a :class:`terracube.config.Config`, writes
 the outputs as ``NAME_...`` files and returns a :class:`StageReport` (summary lines, written files).
+What a real sensor needs is decided here, once for every stage: the points outside the frame's
+range limits are left out (:func:`range_note`), a map without a fixed extent covers
+:func:`auto_extent`, the ground reference is estimated when none is given (:func:`terrain_params`)
+and a mostly empty map is flagged (:func:`fill_note`).
 The command line prints the report; batch workers collect it. :func:`register_scans` and
 :func:`build_global_map` do the same for ``terracube register`` and ``terracube map``. Scans are found
 with :func:`read_scan` and :func:`expand_inputs`, so a new input source (a ROS bag topic, say) is
@@ -19,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import glob
+import math
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -32,18 +37,25 @@ __all__ = [
     "REGISTRATION_METHODS",
     "SCAN_SUFFIXES",
     "STAGES",
+    "ScanOutput",
     "StageReport",
+    "auto_extent",
     "build_global_map",
     "collapse_params",
     "elevation_params",
     "expand_inputs",
+    "fill_note",
+    "ground_reference_given",
     "leveled_points",
     "mapper_params",
     "point_classes",
+    "range_note",
     "read_scan",
     "register_scans",
     "registration_record",
     "run_stage",
+    "scan_trajectory",
+    "terrain_params",
 ]
 
 #: Formats of the classified clouds the stages write.
@@ -107,27 +119,140 @@ def collapse_params(config):
     return dataclasses.replace(config.collapse, transform=frame.transform(), crop=frame.crop_box())
 
 
-def elevation_params(config, **changes):
-    """The config's elevation section in the config's frame, with ``changes`` applied."""
+#: The automatic map window spans the 1st..99th percentile of the points' x and y, widened by this
+#: share of its span on each side (and never beyond the points): a few far returns (an Ouster scan
+#: reaches 240 m) no longer blow the map up to millions of empty cells.
+AUTO_EXTENT_PERCENTILES = (1.0, 99.0)
+AUTO_EXTENT_MARGIN = 0.1
+#: Below this share of cells with data a stage notes that the map is mostly empty.
+LOW_FILL_RATIO = 0.02
+
+
+def auto_extent(points: np.ndarray, config) -> tuple[list[float], list[int]] | None:
+    """(origin [m], size [cells]) of the automatic map window of ``points`` in the config's frame, or
+    None when no point is inside the crop box. See :data:`AUTO_EXTENT_PERCENTILES`."""
+    leveled, inside = leveled_points(points, config)
+    xy = leveled[inside, :2]
+    if len(xy) == 0:
+        return None
+    resolution = float(config.elevation.resolution)
+    low, high = np.percentile(xy, AUTO_EXTENT_PERCENTILES, axis=0)
+    margin = np.maximum(AUTO_EXTENT_MARGIN * (high - low), 2.0 * resolution)
+    low = np.maximum(low - margin, xy.min(axis=0))
+    high = np.minimum(high + margin, xy.max(axis=0))
+    origin = np.floor(low / resolution) * resolution
+    size = np.maximum(np.floor((high - origin) / resolution).astype(np.int64) + 1, 1)
+    return [float(v) for v in origin], [int(v) for v in size]
+
+
+def elevation_params(config, points: np.ndarray | None = None, **changes):
+    """The config's elevation section in the config's frame, with ``changes`` applied.
+
+    With ``points`` and no fixed extent (origin and size) the map covers :func:`auto_extent`.
+    """
     frame = config.frame
+    if points is not None and config.elevation.origin is None and "origin" not in changes:
+        window = auto_extent(points, config)
+        if window is not None:
+            changes = {**changes, "origin": window[0], "size": window[1]}
     return dataclasses.replace(
         config.elevation, transform=frame.transform(), crop=frame.crop_box(), **changes
+    )
+
+
+#: Window half-size [m] of the estimated local-ground reference: 5 cells at 0.1 m (all ground on an
+#: 11 deg slope, where the 10-cell window finds 15 %), never under 3 cells.
+ESTIMATED_GROUND_WINDOW_M = 0.5
+
+
+def ground_reference_given(terrain) -> bool:
+    """Whether ``terrain`` names a ground reference: anything but the sensor-height reference at the
+    default height 0 (no real sensor sits on the ground), which means "estimate it"."""
+    return not (terrain.reference == "sensor_height" and float(terrain.sensor_height) == 0.0)
+
+
+def terrain_params(config):
+    """(TerrainParams, description) of the ground reference the classes are measured from.
+
+    The terrain section as given when it names a reference (:func:`ground_reference_given`);
+    otherwise the ground is estimated as the lowest point within :data:`ESTIMATED_GROUND_WINDOW_M`
+    of each cell (the local-ground reference), which holds on slopes and needs no sensor height.
+    """
+    terrain = config.terrain
+    if ground_reference_given(terrain):
+        if terrain.reference == "sensor_height":
+            return terrain, f"sensor height {terrain.sensor_height:g} m"
+        return terrain, f"local ground, {terrain.local_ground_radius} cells"
+    radius = max(3, round(ESTIMATED_GROUND_WINDOW_M / float(config.elevation.resolution)))
+    estimated = dataclasses.replace(terrain, reference="local_ground", local_ground_radius=radius)
+    return estimated, (
+        f"local ground, {radius} cells (estimated: no sensor height given; "
+        "--sensor-height H or --reference local_ground to choose)"
     )
 
 
 def mapper_params(config):
     """MapperParams of the config: the mapper section plus the terrain and registration sections.
 
-    An untouched terrain section (the paper's sensor-height reference) gives way to the mapper's
-    terrain defaults (local ground, 1 m window) for maps chained over slopes.
+    A terrain section that names no ground reference (:func:`ground_reference_given`) gives way to
+    the mapper's terrain defaults (local ground, 5-cell window) for maps chained over slopes.
     """
     from .config import default_config
     from .mapping import MapperParams
 
     terrain = config.terrain
-    if terrain == default_config().terrain:
+    if terrain == default_config().terrain or not ground_reference_given(terrain):
         terrain = MapperParams().terrain
     return dataclasses.replace(config.mapper, terrain=terrain, registration=config.registration)
+
+
+def range_note(points: np.ndarray, keep: np.ndarray, frame) -> str | None:
+    """A summary line of the points the frame's range limits left out, or None when none were."""
+    dropped = int(len(keep) - np.count_nonzero(keep))
+    if dropped == 0:
+        return None
+    xyz = np.asarray(points)[~keep, :3]
+    zeros = int(np.count_nonzero(np.all(xyz == 0, axis=1)))
+    squared = np.einsum("ij,ij->i", xyz, xyz, dtype=np.float64)
+    far = int(np.count_nonzero(squared > float(frame.max_range) ** 2)) if frame.max_range is not None else 0
+    parts = [f"{zeros:,} no-returns at (0, 0, 0)"] if zeros else []
+    near = dropped - zeros - far
+    if near:
+        parts.append(f"{near:,} nearer than {frame.min_range:g} m or not finite")
+    if far:
+        parts.append(f"{far:,} beyond {frame.max_range:g} m")
+    return f"  range filter: {dropped:,} of {len(keep):,} points left out ({', '.join(parts)})"
+
+
+#: Below this many points per cell with data the cells are finer than the point spacing.
+SPARSE_POINTS_PER_CELL = 1.5
+
+
+def fill_note(elevation_map) -> str | None:
+    """A warning line when fewer than :data:`LOW_FILL_RATIO` of the map's cells hold data, or a note
+    when the cells with data hold fewer than :data:`SPARSE_POINTS_PER_CELL` points on average (an
+    airborne tile at 0.1 m: a speckle of single points), with the cell size that holds about four."""
+    count = np.asarray(elevation_map["count"])
+    filled = int(np.count_nonzero(count > 0))
+    if count.size == 0 or filled == 0:
+        return None
+    points = float(count.sum())
+    resolution = float(elevation_map.geometry.resolution)
+    density = points / (count.size * resolution**2)  # points per m2 over the map
+    suggested = max(resolution, math.ceil(10 * math.sqrt(4.0 / density)) / 10)
+    if filled < LOW_FILL_RATIO * count.size:
+        return (
+            f"  warning: only {filled / count.size:.1%} of the {count.size:,} cells hold data; a smaller "
+            "window (--max-range, --crop, or --origin with --size) or a coarser --resolution "
+            f"(--resolution {suggested:g}: about four points a cell) gives a readable map"
+        )
+    if points / filled >= SPARSE_POINTS_PER_CELL:
+        return None
+    return (
+        f"  note: the cells with data hold {points / filled:.1f} points on average ({density:.1f} points "
+        f"per m2): --resolution {suggested:g} gives cells of about four points (an airborne tile: "
+        "--preset airborne_las)"
+    )
 
 
 def leveled_points(points: np.ndarray, config) -> tuple[np.ndarray, np.ndarray]:
@@ -177,6 +302,32 @@ class StageReport:
         self.lines.append(f"  {label}: {', '.join(map(str, paths))}")
 
 
+@dataclass
+class ScanOutput:
+    """Every point of one input scan, which of them the stage used (in range), and the file it came
+    from: the classified cloud a stage writes holds every input point (the unused ones labelled 0)
+    and, written as LAS/LAZ from a LAS/LAZ input, every dimension and VLR of the input."""
+
+    points: np.ndarray
+    keep: np.ndarray
+    source: Path | None = None
+
+    def labels(self, kept_labels: np.ndarray) -> np.ndarray:
+        """(N,) labels of every input point from those of the kept ones (0 / False elsewhere)."""
+        kept_labels = np.asarray(kept_labels)
+        if len(kept_labels) == len(self.points):
+            return kept_labels
+        labels = np.zeros(len(self.points), dtype=kept_labels.dtype)
+        labels[self.keep] = kept_labels
+        return labels
+
+    def write(self, path: Path, kept_labels: np.ndarray, **kwargs) -> Path:
+        from .io import write_classified
+
+        source = self.source if path.suffix.lower() in (".las", ".laz") else None
+        return write_classified(path, self.points, self.labels(kept_labels), source=source, **kwargs)
+
+
 def _elapsed_ms(start: float) -> float:
     return 1e3 * (time.perf_counter() - start)
 
@@ -196,9 +347,18 @@ def _pictures(*draw: Callable[[], Path]) -> list[Path]:
         return [picture() for picture in draw]
 
 
-def _run_collapse(points, name, output_dir: Path, config, *, output_format="ply", png=True) -> StageReport:
+def _run_collapse(
+    points,
+    name,
+    output_dir: Path,
+    config,
+    *,
+    scan: ScanOutput,
+    output_format="ply",
+    png=True,
+    las_classification=False,
+) -> StageReport:
     from . import collapse_overhangs
-    from .io import write_classified
 
     _check_cloud_format(output_format)
     params = collapse_params(config)
@@ -216,7 +376,7 @@ def _run_collapse(points, name, output_dir: Path, config, *, output_format="ply"
     if result.num_cropped:
         report.lines.append(f"  {result.num_cropped:,} points outside the crop box were left out")
     cloud = output_dir / f"{name}_classified.{output_format}"
-    report.add("classified cloud", write_classified(cloud, points, result.overhang))
+    report.add("classified cloud", scan.write(cloud, result.overhang, as_classification=las_classification))
     if png:
         from .viz import plot_overhangs
 
@@ -230,12 +390,14 @@ def _run_collapse(points, name, output_dir: Path, config, *, output_format="ply"
     return report
 
 
-def _run_dem(points, name, output_dir: Path, config, *, png=True, geotiff=False) -> StageReport:
+def _run_dem(
+    points, name, output_dir: Path, config, *, scan: ScanOutput, png=True, geotiff=False
+) -> StageReport:
     from . import build_elevation_map, dem_without_overhangs
 
     collapse = collapse_params(config)
     start = time.perf_counter()
-    raw = build_elevation_map(points, params=elevation_params(config))
+    raw = build_elevation_map(points, params=elevation_params(config, points))
     raw_ms = _elapsed_ms(start)
     _require_data(name, raw)
     g = raw.geometry
@@ -255,9 +417,10 @@ def _run_dem(points, name, output_dir: Path, config, *, png=True, geotiff=False)
         f"{lower:,} cells lower, {emptied:,} emptied; raw DEM {raw_ms:.1f} ms, DEM without overhangs "
         f"{clean_ms:.1f} ms"
     )
+    _add_notes(report, raw)
     report.add("map", clean.save(output_dir / f"{name}_dem.npz"))
     if geotiff:
-        report.add("GeoTIFF", clean.to_geotiff("max", output_dir / f"{name}_dem_max.tif"))
+        report.add("GeoTIFF", _geotiff(clean, "max", output_dir / f"{name}_dem_max.tif", scan))
     if png:
         from .viz import plot_dem_comparison, plot_layer
 
@@ -300,36 +463,47 @@ def map_of_scan(points, name, config, remove_overhangs: bool):
     if remove_overhangs:
         collapse = collapse_params(config)
         elevation_map, result = dem_without_overhangs(
-            points, collapse=collapse, elevation=elevation_params(config)
+            points, collapse=collapse, elevation=elevation_params(config, points)
         )
         source = (
             f"DEM without overhangs (edge {collapse.edge} m, sigma {collapse.sigma}; "
             f"{result.num_overhang:,} overhang points)"
         )
     else:
-        elevation_map, result = build_elevation_map(points, params=elevation_params(config)), None
+        elevation_map, result = build_elevation_map(points, params=elevation_params(config, points)), None
         source = "raw map"
     _require_data(name, elevation_map)
     return elevation_map, source, result
 
 
 def classified_map(points, name, config, remove_overhangs: bool):
-    """(elevation map, (nx, ny) uint8 classes, description, map ms, classification ms) of one scan."""
+    """(elevation map, (nx, ny) uint8 classes, description, map ms, classification ms) of one scan.
+
+    The classes are measured from :func:`terrain_params`' ground reference.
+    """
     from . import classify_terrain
 
-    config.terrain.to_core()  # checks the thresholds before the map is built
+    terrain, _ = terrain_params(config)
+    terrain.to_core()  # checks the thresholds before the map is built
     start = time.perf_counter()
     elevation_map, source, _ = map_of_scan(points, name, config, remove_overhangs)
     map_ms = _elapsed_ms(start)
     start = time.perf_counter()
-    classes = classify_terrain(elevation_map, config.terrain)
+    classes = classify_terrain(elevation_map, terrain)
     return elevation_map, classes, source, map_ms, _elapsed_ms(start)
 
 
-def _reference_text(terrain) -> str:
-    if terrain.reference == "sensor_height":
-        return f"sensor height {terrain.sensor_height:g} m"
-    return f"local ground, {terrain.local_ground_radius} cells"
+def _add_notes(report: StageReport, elevation_map) -> None:
+    note = fill_note(elevation_map)
+    if note is not None:
+        report.lines.append(note)
+
+
+def _geotiff(elevation_map, layer: str, path: Path, scan: ScanOutput) -> Path:
+    from .io import read_crs, write_geotiff
+
+    crs = read_crs(scan.source) if scan.source is not None else None
+    return write_geotiff(elevation_map, layer, path, crs=crs)
 
 
 #: How far [m] the cells' typical lowest point may lie from the sensor-height ground plane before
@@ -365,12 +539,14 @@ def _run_classify(
     config,
     *,
     remove_overhangs=False,
+    scan: ScanOutput,
+    las_classification=False,
     cloud_format="ply",
     png=True,
     geotiff=False,
 ) -> StageReport:
     from . import TerrainClass
-    from .io import TERRAIN_LAS_CLASSES, write_classified
+    from .io import TERRAIN_LAS_CLASSES
 
     _check_cloud_format(cloud_format)
     elevation_map, classes, source, map_ms, classify_ms = classified_map(
@@ -379,31 +555,35 @@ def _run_classify(
     g = elevation_map.geometry
     counts = np.bincount(classes.ravel(), minlength=len(TerrainClass))
     known = int(classes.size - counts[0])
-    where = _reference_text(config.terrain)
+    terrain, where = terrain_params(config)
     report = StageReport(name, len(points))
     report.lines.append(
         f"{name}: {g.size[0]} x {g.size[1]} cells at {g.resolution:g} m, {known:,} with data; {source}; "
-        f"reference {where}; map {map_ms:.1f} ms, classification {classify_ms:.1f} ms"
+        f"map {map_ms:.1f} ms, classification {classify_ms:.1f} ms"
     )
+    report.lines.append(f"  ground reference: {where}")
     for terrain_class in TerrainClass:
         count = int(counts[int(terrain_class)])
         share = f" ({count / known:.1%} of cells with data)" if terrain_class and known else ""
         report.lines.append(f"  {terrain_class.name.lower().replace('_', ' '):<20} {count:>10,}{share}")
-    hint = _ground_plane_hint(elevation_map, config.terrain)
+    hint = _ground_plane_hint(elevation_map, terrain)
     if hint is not None:
         report.lines.append(hint)
+    _add_notes(report, elevation_map)
     report.add("map", elevation_map.save(output_dir / f"{name}_classes.npz"))
     if cloud_format is not None:
         labels = point_classes(*leveled_points(points, config), elevation_map, classes)
         cloud = output_dir / f"{name}_classes.{cloud_format}"
-        cloud = write_classified(cloud, points, labels, las_classes=TERRAIN_LAS_CLASSES)
+        cloud = scan.write(
+            cloud, labels, las_classes=TERRAIN_LAS_CLASSES, as_classification=las_classification
+        )
         report.add("classified cloud (per-point terrain class)", cloud)
     if geotiff:
-        report.add("GeoTIFF", elevation_map.to_geotiff("class", output_dir / f"{name}_classes.tif"))
+        report.add("GeoTIFF", _geotiff(elevation_map, "class", output_dir / f"{name}_classes.tif", scan))
     if png:
         from .viz import plot_terrain_classes
 
-        title = f"{name}: terrain classes ({source.split(' (')[0]}, {where})"
+        title = f"{name}: terrain classes ({source.split(' (')[0]}, {where.split(' (')[0]})"
         path = output_dir / f"{name}_classes.png"
         report.add(
             "picture", *_pictures(lambda: plot_terrain_classes(elevation_map, classes, path, title=title))
@@ -412,7 +592,15 @@ def _run_classify(
 
 
 def _run_fem(
-    points, name, output_dir: Path, config, *, remove_overhangs=True, png=True, geotiff=False
+    points,
+    name,
+    output_dir: Path,
+    config,
+    *,
+    scan: ScanOutput,
+    remove_overhangs=True,
+    png=True,
+    geotiff=False,
 ) -> StageReport:
     from . import fit_fuzzy_elevation_map
 
@@ -437,11 +625,12 @@ def _run_fem(
         f"{g.size[0] * g.size[1]:,} cells ({g.resolution:g} m) filled, RMSE to the mean DEM {rmse:.3f} m; "
         f"{elapsed_ms:.1f} ms"
     )
+    _add_notes(report, elevation_map)
     report.add(
         "map (layers fem, fem_confidence and the DEM's)", elevation_map.save(output_dir / f"{name}_fem.npz")
     )
     if geotiff:
-        report.add("GeoTIFF", elevation_map.to_geotiff("fem", output_dir / f"{name}_fem.tif"))
+        report.add("GeoTIFF", _geotiff(elevation_map, "fem", output_dir / f"{name}_fem.tif", scan))
     if png:
         from .viz import plot_layer
 
@@ -474,15 +663,28 @@ _RUNNERS: dict[str, Callable[..., StageReport]] = {
 
 #: The output options each stage takes, with their defaults.
 STAGE_OUTPUT_OPTIONS: dict[str, dict[str, object]] = {
-    "collapse": {"output_format": "ply", "png": True},
+    "collapse": {"output_format": "ply", "png": True, "las_classification": False},
     "dem": {"png": True, "geotiff": False},
-    "classify": {"remove_overhangs": False, "cloud_format": "ply", "png": True, "geotiff": False},
+    "classify": {
+        "remove_overhangs": False,
+        "cloud_format": "ply",
+        "png": True,
+        "geotiff": False,
+        "las_classification": False,
+    },
     "fem": {"remove_overhangs": True, "png": True, "geotiff": False},
 }
 
 
 def run_stage(
-    stage: str, points: np.ndarray, name: str, output_dir: str | Path, config=None, **options
+    stage: str,
+    points: np.ndarray,
+    name: str,
+    output_dir: str | Path,
+    config=None,
+    *,
+    source: str | Path | None = None,
+    **options,
 ) -> StageReport:
     """Run one stage on one scan and write its outputs to ``output_dir`` as ``NAME_...`` files.
 
@@ -497,11 +699,18 @@ def run_stage(
     output_dir
         Folder for the outputs; created when missing.
     config
-        A :class:`terracube.config.Config` (the defaults when None).
+        A :class:`terracube.config.Config` (the defaults when None). Points outside its frame's
+        ``min_range`` .. ``max_range`` take no part (reported); a map without a fixed extent covers
+        :func:`auto_extent`; classes use :func:`terrain_params`' ground reference (reported).
+    source
+        The file the points were read from: its CRS goes into GeoTIFFs, and a LAS/LAZ source's
+        dimensions and VLRs into a LAS/LAZ classified cloud.
     **options
         The stage's output options, :data:`STAGE_OUTPUT_OPTIONS` (collapse: ``output_format``,
-        ``png``; dem: ``png``, ``geotiff``; classify: ``remove_overhangs``, ``cloud_format``,
-        ``png``, ``geotiff``; fem: ``remove_overhangs``, ``png``, ``geotiff``).
+        ``png``, ``las_classification``; dem: ``png``, ``geotiff``; classify: ``remove_overhangs``,
+        ``cloud_format``, ``png``, ``geotiff``, ``las_classification``; fem: ``remove_overhangs``,
+        ``png``, ``geotiff``). ``las_classification`` writes terracube's labels into a LAS/LAZ
+        cloud's ``classification`` too (by default they go in an extra dimension only).
 
     Returns
     -------
@@ -519,7 +728,18 @@ def run_stage(
         raise TypeError(f"stage {stage!r} takes no option {', '.join(sorted(unknown))}")
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
-    return _RUNNERS[stage](points, name, output_dir, config or default_config(), **options)
+    config = config or default_config()
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] < 3:
+        raise ValueError(f"{name}: need an (N, 3) or wider array of points, got shape {points.shape}")
+    keep = config.frame.in_range(points)
+    scan = ScanOutput(points, keep, None if source is None else Path(source))
+    kept = points if keep.all() else np.ascontiguousarray(points[keep])
+    report = _RUNNERS[stage](kept, name, output_dir, config, scan=scan, **options)
+    note = range_note(points, keep, config.frame)
+    if note is not None:
+        report.lines.insert(1, note)
+    return report
 
 
 # ------------------------------------------------------------------------------------------ register
@@ -595,7 +815,9 @@ def register_scans(
     Returns
     -------
     (dict, float)
-        :func:`registration_record` of the result, and the registration's time [ms].
+        :func:`registration_record` of the result (plus ``ground_reference``, the classes'
+        reference, and ``points_left_out``, per scan the points outside the frame's range limits),
+        and the registration's time [ms].
     """
     from .config import default_config
     from .registration import pcl_icp, points_of_map, register_maps, register_maps_all_cells
@@ -604,9 +826,11 @@ def register_scans(
         raise ValueError(f"the method must be one of {', '.join(REGISTRATION_METHODS)}, got {method!r}")
     config = config or default_config()
     guess = np.eye(4) if initial is None else np.asarray(initial, dtype=np.float64)
+    scans = [np.asarray(points) for points in (source, target)]
+    kept = [config.frame.in_range(points) for points in scans]
     maps = [
-        classified_map(points, name, config, remove_overhangs)[0]
-        for points, name in zip((source, target), names, strict=True)
+        classified_map(points[keep] if not keep.all() else points, name, config, remove_overhangs)[0]
+        for points, keep, name in zip(scans, kept, names, strict=True)
     ]
     start = time.perf_counter()
     if method == "classes":
@@ -615,10 +839,39 @@ def register_scans(
         result = register_maps_all_cells(maps[0], maps[1], guess, config.registration)
     else:
         result = pcl_icp(points_of_map(maps[0])[0], points_of_map(maps[1])[0], guess, config.pcl_icp)
-    return registration_record(method, names[0], names[1], result), _elapsed_ms(start)
+    record = registration_record(method, names[0], names[1], result)
+    record["ground_reference"] = terrain_params(config)[1]
+    record["points_left_out"] = [int(len(keep) - np.count_nonzero(keep)) for keep in kept]
+    return record, _elapsed_ms(start)
 
 
 # ------------------------------------------------------------------------------------------ map
+
+
+def _mapper_reference(terrain, config) -> str:
+    if terrain.reference == "sensor_height":
+        return f"sensor height {terrain.sensor_height:g} m"
+    given = "" if ground_reference_given(config.terrain) and terrain == config.terrain else " (the mapper's)"
+    return f"local ground, {terrain.local_ground_radius} cells{given}"
+
+
+def scan_trajectory(
+    keyframe_poses: np.ndarray,
+    keyframe_odometry: np.ndarray,
+    keyframe_scans: np.ndarray,
+    odometry: np.ndarray,
+) -> np.ndarray:
+    """(S, 4, 4) pose of every scan: scan i after keyframe k (the last one at or before it) is
+    ``K_k inv(O_k) O_i``, the keyframe's estimate moved by the odometry since that keyframe.
+
+    ``keyframe_scans`` are the keyframes' positions in ``odometry`` (the scans' odometry, in order).
+    """
+    odometry = np.asarray(odometry, dtype=np.float64)
+    keyframe_scans = np.asarray(keyframe_scans, dtype=np.int64)
+    owner = np.searchsorted(keyframe_scans, np.arange(len(odometry)), side="right") - 1
+    owner = np.maximum(owner, 0)  # scans before the first keyframe (none in practice) follow it
+    corrections = np.asarray(keyframe_poses) @ np.linalg.inv(np.asarray(keyframe_odometry))
+    return corrections[owner] @ odometry
 
 
 def build_global_map(
@@ -642,10 +895,11 @@ def build_global_map(
     odometry : (P, 4, 4) array
         Odometry poses world <- sensor [m].
     stamps : (P,) array
-        Their times [s], for the TUM trajectory.
+        Their times [s], for the TUM trajectories.
     output_dir
-        Writes ``global_map.npz``, ``trajectory_kitti.txt``, ``trajectory_tum.txt`` (keyframes) and,
-        with ``png``, ``global_max.png`` and ``global_classes.png``.
+        Writes ``global_map.npz``, ``trajectory_kitti.txt`` and ``trajectory_tum.txt`` (every scan's
+        pose, :func:`scan_trajectory`), ``keyframes_kitti.txt`` and ``keyframes_tum.txt`` and, with
+        ``png``, ``global_max.png`` and ``global_classes.png`` with the trajectory drawn on them.
     config
         A :class:`terracube.config.Config`: the mapper, terrain and registration sections.
     ground_truth : (P, 4, 4) array, optional
@@ -660,14 +914,24 @@ def build_global_map(
     from .mapping import Mapper
     from .poses import write_kitti_poses, write_tum_poses
 
-    mapper = Mapper(mapper_params(config or default_config()))
+    config = config or default_config()
+    mapper = Mapper(mapper_params(config))
     indices: list[int] = []
+    odometry_steps = 0  # keyframe steps that kept odometry because registration failed or was refused
+    left_out = 0
     start = time.perf_counter()
     for name, points, index in scans:
+        points = np.asarray(points)
+        keep = config.frame.in_range(points)
+        left_out += int(len(keep) - np.count_nonzero(keep))
         try:
-            mapper.add_scan(points, odometry[index])
+            step = mapper.add_scan(
+                points if keep.all() else np.ascontiguousarray(points[keep]), odometry[index]
+            )
         except (ValueError, TypeError) as error:
             raise ValueError(f"{name}: {error}") from error
+        if step.keyframe and step.index > 0 and config.mapper.use_registration and not step.registered:
+            odometry_steps += 1
         indices.append(index)
     if mapper.pending_loops:
         mapper.optimize()
@@ -681,17 +945,33 @@ def build_global_map(
     report.outputs.append(dem.save(output_dir / "global_map.npz"))
     keyframes = mapper.keyframe_poses()
     key_scans = [indices[k] for k in mapper.keyframe_scan_indices()]
-    write_kitti_poses(output_dir / "trajectory_kitti.txt", keyframes)
-    write_tum_poses(output_dir / "trajectory_tum.txt", stamps[key_scans], keyframes)
-    report.outputs += [output_dir / "trajectory_kitti.txt", output_dir / "trajectory_tum.txt"]
+    trajectory = scan_trajectory(
+        keyframes, mapper.keyframe_odometry(), np.asarray(mapper.keyframe_scan_indices()), odometry[indices]
+    )
+    stamps = np.asarray(stamps, dtype=np.float64)
+    written = {
+        "trajectory_kitti.txt": lambda p: write_kitti_poses(p, trajectory),
+        "trajectory_tum.txt": lambda p: write_tum_poses(p, stamps[indices], trajectory),
+        "keyframes_kitti.txt": lambda p: write_kitti_poses(p, keyframes),
+        "keyframes_tum.txt": lambda p: write_tum_poses(p, stamps[key_scans], keyframes),
+    }
+    from .io import atomic_path
+
+    for file_name, write in written.items():
+        with atomic_path(output_dir / file_name) as temporary:
+            write(temporary)
+        report.outputs.append(output_dir / file_name)
     if png and dem.geometry.num_cells > 0:
         from .viz import plot_layer, plot_terrain_classes
 
         classes = np.nan_to_num(dem["class"], nan=0).astype(np.uint8)
+        path_xy = trajectory[:, :2, 3]
         report.outputs += _pictures(
-            lambda: plot_layer(dem, "max", output_dir / "global_max.png", title="highest elevation [m]"),
+            lambda: plot_layer(
+                dem, "max", output_dir / "global_max.png", title="highest elevation [m]", trajectory=path_xy
+            ),
             lambda: plot_terrain_classes(
-                dem, classes, output_dir / "global_classes.png", title="terrain classes"
+                dem, classes, output_dir / "global_classes.png", title="terrain classes", trajectory=path_xy
             ),
         )
     t = mapper.timings
@@ -705,15 +985,28 @@ def build_global_map(
         f"global map: {int(g.size[0])} x {int(g.size[1])} cells at {g.resolution} m, "
         f"{int(np.isfinite(dem['max']).sum())} with data, "
         f"{mapper.global_memory_bytes / 2**20:.1f} MiB of tiles",
+        f"ground reference: {_mapper_reference(mapper.params.terrain, config)}",
+        f"odometry fallbacks: {odometry_steps} of {max(len(mapper) - 1, 0)} keyframe steps kept the "
+        "odometry (registration failed or its correction was refused)"
+        if config.mapper.use_registration
+        else "odometry only: no step was scan-matched (--odometry-only)",
     ]
+    left_out += mapper.points_out_of_range
+    if left_out:
+        frame, params = config.frame, mapper.params
+        limits = [f"nearer than {max(frame.min_range, params.min_range):g} m"]
+        farthest = [r for r in (frame.max_range, params.max_range) if r is not None]
+        limits += [f"beyond {min(farthest):g} m"] if farthest else []
+        report.lines.append(f"range filter: {left_out:,} points left out ({' or '.join(limits)})")
     if ground_truth is not None:
         from .evaluation import absolute_trajectory_error
 
-        truth = np.asarray(ground_truth)[key_scans]
-        estimate = absolute_trajectory_error(keyframes, truth, "first_pose").translation
-        odom = absolute_trajectory_error(mapper.keyframe_odometry(), truth, "first_pose").translation
+        truth = np.asarray(ground_truth)[indices]
+        estimate = absolute_trajectory_error(trajectory, truth, "first_pose").translation
+        odom = absolute_trajectory_error(odometry[indices], truth, "first_pose").translation
         report.lines.append(
-            f"ATE (first pose aligned): mapper RMSE {estimate.rmse:.3f} m, odometry RMSE {odom.rmse:.3f} m"
+            f"ATE over {len(indices)} scans (first pose aligned): mapper RMSE {estimate.rmse:.3f} m, "
+            f"odometry RMSE {odom.rmse:.3f} m"
         )
     report.lines += [f"written: {path}" for path in report.outputs]
     return report

@@ -18,6 +18,7 @@ __all__ = [
     "matrix_from_quaternion",
     "quaternion_from_matrix",
     "read_kitti_poses",
+    "read_times",
     "read_tum_poses",
     "write_kitti_poses",
     "write_tum_poses",
@@ -182,3 +183,22 @@ def write_tum_poses(path: str | PathLike, timestamps, poses) -> None:
         for stamp, pose in zip(stamps, array, strict=True):
             values = [stamp, *pose[:3, 3], *quaternion_from_matrix(pose[:3, :3])]
             file.write(" ".join(repr(float(v)) for v in values) + "\n")
+
+
+def read_times(path: str | PathLike, count: int) -> np.ndarray:
+    """(count,) float64 timestamps [s] of a KITTI ``times.txt`` (one number a line, line k the time of
+    pose k). ValueError naming the file and line for a malformed line, too few lines, or times that
+    go backwards."""
+    path = Path(path)
+    stamps = []
+    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        if line.strip() and not line.lstrip().startswith("#"):
+            stamps.append(_numbers(path, number, line, 1, "a time [s]")[0])
+    stamps = np.asarray(stamps, dtype=np.float64)
+    if len(stamps) < count:
+        raise ValueError(f"{path}: {len(stamps)} times for {count} poses")
+    stamps = stamps[:count]
+    if np.any(np.diff(stamps) < 0):
+        first = int(np.argmax(np.diff(stamps) < 0)) + 2
+        raise ValueError(f"{path}: the times go backwards at time {first}")
+    return stamps

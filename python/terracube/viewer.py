@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["show_cloud", "show_map", "VIEWER_INSTALL_HINT"]
+__all__ = ["require_viewer", "show_cloud", "show_map", "VIEWER_INSTALL_HINT"]
 
 VIEWER_INSTALL_HINT = 'the 3D view needs rerun: pip install "terracube[viewer]"'
 
@@ -26,6 +26,16 @@ def _rerun():
     except ImportError as error:
         raise ImportError(VIEWER_INSTALL_HINT) from error
     return rerun
+
+
+def require_viewer() -> None:
+    """ImportError naming the ``viewer`` extra when rerun or matplotlib (its colours) is missing; a
+    command calls it before it writes anything."""
+    _rerun()
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError as error:
+        raise ImportError(VIEWER_INSTALL_HINT) from error
 
 
 def _height_colours(z: np.ndarray) -> np.ndarray:

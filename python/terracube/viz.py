@@ -182,6 +182,7 @@ def _style_axes(ax, geometry) -> None:
     left, right, bottom, top = _extent(geometry)
     ax.set_xlim(left, right)
     ax.set_ylim(bottom, top)
+    ax.ticklabel_format(useOffset=False, style="plain")  # projected coordinates read as written
 
 
 def _draw_layer(ax, values: np.ndarray, geometry, cmap_name: str, vmin: float, vmax: float):
@@ -230,6 +231,21 @@ def _infinite_legend(ax, values: np.ndarray, name: str) -> None:
     ax.legend([patch], [f"{label} ({count:,} cells)"], loc="upper right", fontsize="small", framealpha=0.9)
 
 
+def _draw_trajectory(ax, trajectory: np.ndarray | None) -> None:
+    """The robot's path over a map: a black-edged white line and a dot at the start."""
+    if trajectory is None:
+        return
+    xy = np.asarray(trajectory, dtype=np.float64).reshape(-1, 2)
+    if len(xy) == 0:
+        return
+    limits = ax.get_xlim(), ax.get_ylim()
+    ax.plot(xy[:, 0], xy[:, 1], color="black", linewidth=3.0, zorder=5)
+    ax.plot(xy[:, 0], xy[:, 1], color="white", linewidth=1.5, zorder=6, label="trajectory")
+    ax.plot(xy[0, 0], xy[0, 1], "o", color="white", markeredgecolor="black", markersize=6, zorder=7)
+    ax.set_xlim(*limits[0])
+    ax.set_ylim(*limits[1])
+
+
 def plot_layer(
     elevation_map,
     name: str,
@@ -239,8 +255,12 @@ def plot_layer(
     cmap: str = "viridis",
     vmin: float | None = None,
     vmax: float | None = None,
+    trajectory: np.ndarray | None = None,
 ) -> Path:
     """Save a PNG of one layer of an :class:`terracube.ElevationMap`, x to the right and y up.
+
+    ``trajectory`` ((S, 2) x, y [m] in the map's frame, e.g. ``terracube map``'s scan poses) is drawn
+    over the map as a line from a start dot.
 
     Empty cells (NaN) stay white, infinite values (``clearance`` where no overhang lies above) are
     light grey; the colour scale runs between the 1st and 99th percentiles of the finite values
@@ -252,7 +272,7 @@ def plot_layer(
     _require_cells(geometry)
     if name == "class":
         classes = np.nan_to_num(values, nan=0.0).astype(np.uint8)
-        return plot_terrain_classes(elevation_map, classes, path, title=title)
+        return plot_terrain_classes(elevation_map, classes, path, title=title, trajectory=trajectory)
     if name == "count":  # empty cells hold 0, not NaN: show them as empty too
         values = np.where(values > 0, values, np.nan)
     plt = _pyplot()
@@ -266,6 +286,7 @@ def plot_layer(
     bar = fig.colorbar(image, ax=ax, extend=_extend(values, low, high), shrink=0.9, pad=0.02)
     bar.set_label(_LAYER_LABELS.get(name, f"{name} [m]"))
     _infinite_legend(ax, values, name)
+    _draw_trajectory(ax, trajectory)
     known = int(np.count_nonzero(~np.isnan(values)))
     g = geometry
     ax.set_title(
@@ -350,9 +371,11 @@ def plot_terrain_classes(
     path: str | Path,
     *,
     title: str | None = None,
+    trajectory: np.ndarray | None = None,
 ) -> Path:
     """Save a PNG of an (nx, ny) class map (:func:`terracube.classify_terrain`), x right and y up,
-    in :data:`terracube.TERRAIN_COLORS`, with a legend naming every class and its cell count."""
+    in :data:`terracube.TERRAIN_COLORS`, with a legend naming every class and its cell count, and
+    ``trajectory`` ((S, 2) x, y [m]) over it as :func:`plot_layer` draws it."""
     from .classes import TERRAIN_COLORS, TerrainClass
 
     plt = _pyplot()
@@ -383,6 +406,7 @@ def plot_terrain_classes(
         interpolation="nearest",
     )
     _style_axes(ax, geometry)
+    _draw_trajectory(ax, trajectory)
     counts = np.bincount(classes.ravel(), minlength=len(order))
     handles = [
         plt.Rectangle((0, 0), 1, 1, facecolor=TERRAIN_COLORS[c], edgecolor="0.3", linewidth=0.6)

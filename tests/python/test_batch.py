@@ -24,12 +24,12 @@ from typer.testing import CliRunner
 
 
 def _scene(seed: int) -> np.ndarray:
-    """Ground, a canopy 3 m up and a wall; a different sample per seed."""
+    """Ground, a canopy 3 m up, a wall and five no-returns at (0, 0, 0); a different sample per seed."""
     rng = np.random.default_rng(seed)
     ground = np.c_[rng.uniform(0, 8, (3000, 2)), rng.normal(0, 0.02, 3000)]
     canopy = np.c_[rng.uniform(2, 4, (400, 2)), rng.uniform(3.0, 3.3, 400)]
     wall = np.c_[np.full(300, 7.0), rng.uniform(0, 8, 300), rng.uniform(0, 2.0, 300)]
-    return np.vstack([ground, canopy, wall]).astype(np.float32)
+    return np.vstack([ground, canopy, wall, np.zeros((5, 3))]).astype(np.float32)
 
 
 @pytest.fixture
@@ -51,7 +51,9 @@ def scan_folder(tmp_path):
 def _check_dem_outputs(out: Path, scans: dict[str, np.ndarray]) -> None:
     for name, points in scans.items():
         saved = tc.ElevationMap.load(out / f"{name}_dem.npz")
-        expected, _ = tc.dem_without_overhangs(points, 0.5, 2, 0.25)
+        # the stages leave out points within frame.min_range (0.1 m) of the sensor: this scene's corner
+        in_range = default_config().frame.in_range(points)
+        expected, _ = tc.dem_without_overhangs(points[in_range], 0.5, 2, 0.25)
         for layer in ("count", "max", "clearance"):
             np.testing.assert_array_equal(saved[layer], expected[layer], err_msg=f"{name} {layer}")
 
@@ -141,8 +143,18 @@ def test_terracube_batch_collapse_as_a_user_runs_it(tmp_path, scan_folder):
     assert "3 of 4 files ok, 1 failed" in result.output
     for name, points in scans.items():
         saved = np.load(out / f"{name}_classified.npz")
-        np.testing.assert_array_equal(saved["overhang"], tc.collapse_overhangs(points, 0.5, 2).overhang)
-        assert (out / f"{name}_overhangs.png").stat().st_size > 10_000
+        in_range = default_config().frame.in_range(points)  # the rest is labelled "not overhang"
+        expected = np.zeros(len(points), bool)
+        expected[in_range] = tc.collapse_overhangs(points[in_range], 0.5, 2).overhang
+        np.testing.assert_array_equal(saved["overhang"], expected)
+        assert not (out / f"{name}_overhangs.png").exists()  # batch draws no pictures unless --png
+        # each file's report notes are under the summary: the points within 0.1 m of the sensor
+        dropped = len(points) - int(in_range.sum())
+        assert dropped > 0
+        assert any(
+            line.startswith(f"{name}.") and f"range filter: {dropped:,} of {len(points):,} points" in line
+            for line in result.output.splitlines()
+        ), result.output
 
 
 def test_terracube_batch_with_only_good_files_exits_0_and_bad_arguments_exit_2(tmp_path, scan_folder):
@@ -180,6 +192,13 @@ def test_the_console_script_runs_a_batch_on_local_worker_processes(tmp_path, sca
     assert "3 of 4 files ok, 1 failed" in completed.stdout
     assert "broken.pcd: truncated binary PCD" in completed.stdout
     assert "1 of 4 files failed" in completed.stderr
+    # a normal shutdown of the Dask cluster (or the pool) says nothing: no warnings, no tracebacks
+    noise = [
+        line
+        for line in completed.stderr.splitlines()
+        if "warning" in line.lower() or "distributed." in line or "Traceback" in line
+    ]
+    assert noise == [], completed.stderr
     _check_dem_outputs(out, scans)
 
 

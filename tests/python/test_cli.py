@@ -82,7 +82,7 @@ def test_classify_notes_a_sensor_height_that_misses_the_ground(runner, tmp_path)
     path = tmp_path / "lowered.npy"
     np.save(path, lowered)
     args = ["classify", str(path), "-o", str(tmp_path / "out"), "-r", "0.5", "--no-cloud", "--no-png"]
-    result = runner.invoke(app, args)
+    result = runner.invoke(app, args + ["--sensor-height", "0.3"])  # a wrong height: 1.4 m off
     assert result.exit_code == 0, result.output
     note = [line for line in result.output.splitlines() if "note:" in line]
     assert len(note) == 1, result.output
@@ -93,7 +93,7 @@ def test_classify_notes_a_sensor_height_that_misses_the_ground(runner, tmp_path)
         result = runner.invoke(app, args + fitting)
         assert result.exit_code == 0, result.output
         assert "note:" not in result.output, fitting
-    # The unlowered scan fits the default (ground at z = 0): no note either.
+    # Without a sensor height the ground is estimated (local ground) and said so: no note either.
     result = runner.invoke(
         app, ["classify", str(_scan(tmp_path)[0]), "-o", str(tmp_path / "o2"), "-r", "0.5"]
     )

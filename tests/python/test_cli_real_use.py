@@ -1,0 +1,195 @@
+"""Issue 37 through real ``python -m terracube`` subprocesses: the rendered help of every command,
+--version, presets on the bundled Ouster scan, --origin as its help writes it, the viewer check
+before any output, and ``terracube map``'s trajectories as evo reads them."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import terracube as tc
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    # The subprocess imports the same terracube as this test (installed, or a source tree with _core).
+    package_root = str(Path(tc.__file__).resolve().parents[1])
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [package_root, env.get("PYTHONPATH")]))
+    env.update(COLUMNS="100", TERM="xterm-256color")  # a terminal as a user's, where Rich would render
+    return env
+
+
+def _terracube(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "terracube", *args],
+        capture_output=True,
+        text=True,
+        env=_env(),
+        timeout=timeout,
+    )
+
+
+# Renders `terracube COMMAND --help` of every command in one process, as the console script does.
+_RENDER_HELP = r"""
+import contextlib, io, json, sys
+import typer
+from terracube.cli import app
+
+declared, rendered = {}, {}
+group = typer.main.get_command(app)
+for name in ["", *group.commands]:
+    command = group.commands[name] if name else group
+    declared[name] = [(p.opts, p.help or "", bool(p.show_default) and p.default not in (None, False, ()))
+                      for p in command.params if getattr(p, "help", None) is not None]
+    declared[name].append(((), command.help or "", False))
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        try:
+            app([name, "--help"] if name else ["--help"], prog_name="terracube")
+        except SystemExit:
+            pass
+    rendered[name] = out.getvalue()
+print(json.dumps({"declared": declared, "rendered": rendered}))
+"""
+
+
+def _flat(text: str) -> str:
+    return " ".join(re.sub(r"\x1b\[[0-9;]*m", "", text).split())
+
+
+def test_the_rendered_help_of_every_command_keeps_units_defaults_and_extras():
+    done = subprocess.run(
+        [sys.executable, "-c", _RENDER_HELP], capture_output=True, text=True, env=_env(), timeout=120
+    )
+    assert done.returncode == 0, done.stderr
+    help_texts = json.loads(done.stdout)
+    declared, rendered = help_texts["declared"], help_texts["rendered"]
+    assert {"collapse", "dem", "classify", "fem", "register", "view", "map", "batch", "config"} <= set(
+        rendered
+    )
+    checked = 0
+    for name, params in declared.items():
+        text = _flat(rendered[name])
+        assert text, f"terracube {name} --help printed nothing"
+        for opts, help_text, shows_default in params:
+            # every bracketed part of the declared help ([m], [deg], [cells], [config ...], [viewer])
+            for bracketed in re.findall(r"\[[^\[\]]+\]", help_text):
+                assert _flat(bracketed) in text, f"terracube {name} --help lost {bracketed} of {opts}"
+                checked += 1
+            if shows_default:  # "[default: ...]" ends the option's own help, before the next option
+                start = text.find(f"{max(opts, key=len)} ")
+                end = text.find("[default:", start)
+                assert start >= 0 and 0 <= end - start <= len(" ".join(opts)) + len(help_text) + 150, (
+                    f"terracube {name} --help lost the default of {opts}"
+                )
+    assert checked > 100  # units, config keys and defaults of every shared option
+    for units in ("[m]", "[deg]", "[cells]"):
+        assert units in _flat(rendered["classify"])
+    assert 'pip install "terracube[viewer]"' in _flat(rendered["view"])
+    # one meaning for --robot-height (sigma); classify's "high" threshold is --high-height
+    for name in ("collapse", "dem", "classify", "fem"):
+        assert "--robot-height <float> Robot height [m]: sets σ" in _flat(rendered[name]), name
+    assert "--high-height <float> Cells higher than this above the ground [m] are high" in _flat(
+        rendered["classify"]
+    )
+    assert "--origin X Y" in _flat(rendered["dem"]) and "--origin -20 -20" in _flat(rendered["dem"])
+
+
+def test_version_and_a_preset_on_the_bundled_ouster_scan_with_the_origin_as_its_help_writes_it(
+    tmp_path, shared_data
+):
+    version = _terracube("--version")
+    assert version.returncode == 0 and version.stdout.strip() == f"terracube {tc.__version__}"
+    scan = shared_data.path("ouster128/ouster128_000000.pcd")
+    done = _terracube(
+        "classify", str(scan), "--preset", "ouster128", "--origin", "-20", "-20", "--size", "400", "400",
+        "-o", str(tmp_path), "--no-png", "--no-cloud",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    from terracube.io import read_points
+
+    points = read_points(scan)
+    distance = np.linalg.norm(points, axis=1)
+    zeros = int(np.count_nonzero(np.all(points == 0, axis=1)))
+    far = int(np.count_nonzero(distance > 40.0))
+    assert zeros == 34_102
+    assert (
+        f"range filter: {zeros + far:,} of {len(points):,} points left out "
+        f"({zeros:,} no-returns at (0, 0, 0), {far:,} beyond 40 m)"
+    ) in done.stdout
+    assert "400 x 400 cells at 0.1 m" in done.stdout
+    assert "ground reference: local ground, 5 cells (estimated" in done.stdout
+    unknown = _terracube("dem", str(scan), "--preset", "oustr128", "-o", str(tmp_path))
+    assert unknown.returncode == 2 and "unknown preset 'oustr128'; did you mean 'ouster128'" in unknown.stderr
+
+
+def test_view_3d_save_without_the_viewer_extra_stops_before_writing_anything(tmp_path):
+    if importlib.util.find_spec("rerun") is not None:
+        pytest.skip("rerun-sdk is installed: the check has nothing to refuse")
+    scan = tmp_path / "scan.npy"
+    np.save(scan, np.random.default_rng(0).uniform(-5, 5, (2000, 3)))
+    out = tmp_path / "out"
+    done = _terracube("view", str(scan), "-o", str(out), "--3d", "--save", str(out / "x.rrd"))
+    assert done.returncode == 2
+    assert 'pip install "terracube[viewer]"' in done.stderr
+    assert not out.exists() or not any(out.iterdir())  # no picture, no recording
+
+
+def test_map_writes_every_scan_pose_with_the_kitti_times_and_evo_reads_them(tmp_path, shared_data):
+    from terracube.mapping import read_kitti_calibration, read_pose_file
+    from terracube.poses import write_kitti_poses, write_tum_poses
+
+    kitti = shared_data.path("kitti_seq00/poses.txt").parent
+    out = tmp_path / "map"
+    done = _terracube(
+        "map", str(kitti / "velodyne"), "-p", str(kitti / "poses.txt"), "--ground-truth",
+        str(kitti / "poses.txt"), "-o", str(out), "--no-png",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    times = np.loadtxt(kitti / "times.txt")
+    tum = np.loadtxt(out / "trajectory_tum.txt")
+    assert tum.shape == (6, 8)
+    np.testing.assert_array_equal(tum[:, 0], times[:6])
+    assert np.loadtxt(out / "trajectory_kitti.txt").shape == (6, 12)
+    assert re.search(r"odometry fallbacks: \d+ of \d+ keyframe steps", done.stdout), done.stdout
+    ate = float(re.search(r"mapper RMSE ([0-9.]+) m", done.stdout).group(1))
+    # the trajectory is the estimate of every scan: the odometry moved by the keyframes' corrections
+    truth = read_pose_file(kitti / "poses.txt", "kitti", read_kitti_calibration(kitti / "calib.txt"))[1]
+    estimate = np.loadtxt(out / "trajectory_kitti.txt").reshape(-1, 3, 4)
+    errors = np.linalg.norm(estimate[:, :, 3] - truth[:6, :3, 3], axis=1)
+    assert ate == pytest.approx(float(np.sqrt(np.mean(errors**2))), abs=2e-3)
+    if importlib.util.find_spec("evo") is not None and shutil.which("evo_ape", path=_evo_path()):
+        write_kitti_poses(tmp_path / "truth_kitti.txt", truth[:6])
+        write_tum_poses(tmp_path / "truth_tum.txt", times[:6], truth[:6])
+        for kind in ("kitti", "tum"):
+            evo = subprocess.run(
+                [shutil.which("evo_ape", path=_evo_path()), kind, str(tmp_path / f"truth_{kind}.txt"),
+                 str(out / f"trajectory_{kind}.txt")],
+                capture_output=True, text=True, timeout=120,
+            )  # fmt: skip
+            assert evo.returncode == 0, evo.stderr
+            rmse = float(re.search(r"rmse\s+([0-9.]+)", evo.stdout).group(1))
+            assert rmse == pytest.approx(ate, abs=2e-3), kind
+    # without calib.txt beside the poses: a warning, not silent camera-frame poses
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    shutil.copy(kitti / "poses.txt", bare / "poses.txt")
+    done = _terracube(
+        "map", str(kitti / "velodyne"), "-p", str(bare / "poses.txt"), "--limit", "2", "--no-png",
+        "--odometry-only", "-o", str(tmp_path / "bare_map"),
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "warning: no calib.txt beside" in done.stderr and "--calib" in done.stderr
+    assert "timestamps: none (the pose index)" in done.stdout
+
+
+def _evo_path() -> str:
+    return os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])
