@@ -128,39 +128,14 @@ class ElevationMap:
         return plot_layer(self, name, path, title=title, cmap=cmap)
 
     def to_geotiff(self, name: str, path: str | Path, *, crs: str | None = None) -> Path:
-        """Write one layer as a single-band float32 GeoTIFF (needs the ``geo`` extra: rasterio)."""
-        try:
-            import rasterio
-            from rasterio.transform import from_origin
-        except ImportError as error:
-            raise ImportError("GeoTIFF export needs rasterio: pip install 'terracube[geo]'") from error
-        g = self.geometry
-        data = self[name]
-        # Rasters run north-down: row 0 is the largest y, so rows are j reversed and columns are i.
-        raster = np.ascontiguousarray(data.T[::-1, :])
-        top = g.origin[1] + g.size[1] * g.resolution
-        transform = from_origin(g.origin[0], top, g.resolution, g.resolution)
-        from .io import atomic_path
+        """Write one layer as a deflate-compressed GeoTIFF (needs the ``geo`` extra: rasterio).
 
-        path = Path(path)
-        with (
-            atomic_path(path) as temporary,
-            rasterio.open(
-                temporary,
-                "w",
-                driver="GTiff",
-                height=raster.shape[0],
-                width=raster.shape[1],
-                count=1,
-                dtype="float32",
-                crs=crs,
-                transform=transform,
-                nodata=np.nan,
-            ) as dataset,
-        ):
-            dataset.write(raster, 1)
-            dataset.set_band_description(1, name)
-        return path
+        See :func:`terracube.io.write_geotiff`: float layers are float32 with nodata NaN, the
+        ``class`` layer uint8 with its category names; ``crs`` (WKT or ``EPSG:code``) georeferences it.
+        """
+        from .io import write_geotiff
+
+        return write_geotiff(self, name, path, crs=crs)
 
     def __repr__(self) -> str:
         g = self.geometry

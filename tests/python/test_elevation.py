@@ -516,11 +516,13 @@ def test_to_geotiff_round_trips_values_orientation_and_transform(tmp_path):
     values = np.arange(12, dtype=np.float32).reshape(3, 4)  # value = 4 i + j
     values[1, 2] = np.nan
     elevation_map["max"] = values
-    path = elevation_map.to_geotiff("max", tmp_path / "max.tif")
+    path = elevation_map.to_geotiff("max", tmp_path / "max.tif", crs="EPSG:32633")
     with rasterio.open(path) as dataset:
         raster = dataset.read(1)
         transform = dataset.transform
         assert dataset.count == 1 and dataset.dtypes[0] == "float32"
+        assert dataset.crs.to_epsg() == 32633 and np.isnan(dataset.nodata)
+        assert dataset.compression is not None and dataset.compression.value == "DEFLATE"
     assert raster.shape == (4, 3)  # rows along y, columns along x
     for i in range(3):
         for j in range(4):
