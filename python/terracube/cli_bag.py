@@ -163,6 +163,7 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     from .cli import _exit_on_bad_input, _fail
     from .config import ConfigError, load_config
     from .mapping import Mapper
+    from .pipeline import scan_trajectory
     from .poses import write_kitti_poses, write_tum_poses
 
     for option, flag in (
@@ -196,6 +197,7 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     limit = values.get("limit")
     total = len(clouds) if limit is None else min(len(clouds), max(limit, 0))
     stamps: list[float] = []
+    odometry: list[np.ndarray] = []  # the bag's pose of each cloud
     start = time.perf_counter()
     with _exit_on_bad_input():  # the bag's errors name it
         for stamp, points, pose in _progress(clouds, total, "mapping"):
@@ -204,6 +206,7 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
             keep = cfg.frame.in_range(points)  # the frame's range limits, as for a folder of scans
             mapper.add_scan(points if keep.all() else np.ascontiguousarray(points[keep]), pose)
             stamps.append(stamp)
+            odometry.append(np.asarray(pose, dtype=np.float64))
         if not stamps:
             raise ValueError(f"no cloud on {topic}")
         if mapper.pending_loops:
@@ -212,18 +215,33 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     seconds = time.perf_counter() - start
     output_dir.mkdir(parents=True, exist_ok=True)
     written = [dem.save(output_dir / "global_map.npz")]
+    # Every cloud's pose (the keyframes' estimates moved by the bag's odometry since), with the bag's
+    # stamps, and the keyframes alone, as `terracube map` writes them for a folder of scans.
     keyframes = mapper.keyframe_poses()
-    key_stamps = np.asarray(stamps)[mapper.keyframe_scan_indices()]
-    write_kitti_poses(output_dir / "trajectory_kitti.txt", keyframes)
-    write_tum_poses(output_dir / "trajectory_tum.txt", key_stamps, keyframes)
-    written += [output_dir / "trajectory_kitti.txt", output_dir / "trajectory_tum.txt"]
+    key_scans = np.asarray(mapper.keyframe_scan_indices())
+    trajectory = scan_trajectory(keyframes, mapper.keyframe_odometry(), key_scans, np.asarray(odometry))
+    stamp_array = np.asarray(stamps)
+    for name, poses, times in (
+        ("trajectory", trajectory, stamp_array),
+        ("keyframes", keyframes, stamp_array[key_scans]),
+    ):
+        write_kitti_poses(output_dir / f"{name}_kitti.txt", poses)
+        write_tum_poses(output_dir / f"{name}_tum.txt", times, poses)
+        written += [output_dir / f"{name}_kitti.txt", output_dir / f"{name}_tum.txt"]
     if values.get("png", True) and dem.geometry.num_cells > 0:
         from .viz import plot_layer, plot_terrain_classes
 
-        written.append(plot_layer(dem, "max", output_dir / "global_max.png", title="highest elevation [m]"))
+        path_xy = trajectory[:, :2, 3]
+        written.append(
+            plot_layer(
+                dem, "max", output_dir / "global_max.png", title="highest elevation [m]", trajectory=path_xy
+            )
+        )
         classes = np.nan_to_num(dem["class"], nan=0).astype(np.uint8)
         written.append(
-            plot_terrain_classes(dem, classes, output_dir / "global_classes.png", title="terrain classes")
+            plot_terrain_classes(
+                dem, classes, output_dir / "global_classes.png", title="terrain classes", trajectory=path_xy
+            )
         )
     if bag_options.out is not None:
         frame = clouds.pose_frame or "map"

@@ -805,11 +805,15 @@ def test_map_on_a_kitti_bag_gives_the_map_of_the_loose_files_and_pose_file(cli, 
         np.testing.assert_array_equal(got["count"], expected["count"], err_msg=name)
         for layer in expected.layers:
             np.testing.assert_allclose(got[layer], expected[layer], atol=1e-5, equal_nan=True, err_msg=layer)
-        np.testing.assert_allclose(
-            np.loadtxt(tmp_path / name / "trajectory_kitti.txt"),
-            np.loadtxt(tmp_path / "loose" / "trajectory_kitti.txt"),
-            atol=1e-6,
-        )
+        for trajectory in ("trajectory_kitti.txt", "keyframes_kitti.txt"):
+            np.testing.assert_allclose(
+                np.loadtxt(tmp_path / name / trajectory),
+                np.loadtxt(tmp_path / "loose" / trajectory),
+                atol=1e-6,
+            )
+        # Every cloud's pose, stamped with the bag's times.
+        tum = np.loadtxt(tmp_path / name / "trajectory_tum.txt")
+        np.testing.assert_allclose(tum[:, 0], [stamp_of(f) * 1e-9 for f in range(FRAMES)], atol=1e-6)
         # The bag beside the files holds the map as GridMap and its classes as OccupancyGrid.
         topics = {t.name: t.msgtype for t in bag_info(tmp_path / name / "global_map")}
         assert topics == {
