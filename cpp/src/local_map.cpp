@@ -1,0 +1,634 @@
+// The robot-centric local map: circular-buffer moves, per-cell Kalman fusion, see-through
+// clearing and the planner layers (local_map.hpp).
+#include "terracube/local_map.hpp"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "cloud_frame.hpp"
+#include "number_text.hpp"
+#include "parallel.hpp"
+
+namespace terracube {
+
+namespace {
+
+constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+constexpr double kInf = std::numeric_limits<double>::infinity();
+
+/// Every layer, in the order they are added; the empty value of each is NaN except "count" (0).
+constexpr std::array<const char*, 14> kLayerNames = {
+    "elevation",     "variance",     "count",     "time", "min",   "max",       "std_dev",
+    "discontinuity", "overhang_min", "clearance", "step", "slope", "roughness", "traversability"};
+enum LayerId {
+  kElevation,
+  kVariance,
+  kCount,
+  kTime,
+  kMin,
+  kMax,
+  kStdDev,
+  kDiscontinuity,
+  kOverhangMin,
+  kClearance,
+  kStep,
+  kSlope,
+  kRoughness,
+  kTraversability,
+};
+using LayerData = std::array<float*, kLayerNames.size()>;
+
+LayerData layer_data(ElevationMap& map) {
+  LayerData data{};
+  for (std::size_t k = 0; k < kLayerNames.size(); ++k) data[k] = map.get(kLayerNames[k]).data();
+  return data;
+}
+
+void check_non_negative(double value, const char* name) {
+  if (!(value >= 0.0) || !std::isfinite(value)) {
+    throw std::invalid_argument(std::string(name) + " must be a finite value >= 0, got " + detail::number_text(value));
+  }
+}
+void check_positive(double value, const char* name) {
+  if (!(value > 0.0) || !std::isfinite(value)) {
+    throw std::invalid_argument(std::string(name) + " must be a positive finite value, got " +
+                                detail::number_text(value));
+  }
+}
+
+void check_traversability_params(const TraversabilityParams& p) {
+  check_non_negative(p.footprint_radius_m, "TraversabilityParams.footprint_radius_m");
+  check_positive(p.max_slope_rad, "TraversabilityParams.max_slope_rad");
+  check_positive(p.max_step_m, "TraversabilityParams.max_step_m");
+  check_positive(p.max_roughness_m, "TraversabilityParams.max_roughness_m");
+  check_non_negative(p.min_clearance_m, "TraversabilityParams.min_clearance_m");
+  check_non_negative(p.slope_weight, "TraversabilityParams.slope_weight");
+  check_non_negative(p.step_weight, "TraversabilityParams.step_weight");
+  check_non_negative(p.roughness_weight, "TraversabilityParams.roughness_weight");
+  if (p.slope_weight + p.step_weight + p.roughness_weight <= 0.0) {
+    throw std::invalid_argument("TraversabilityParams: the slope, step and roughness weights must not all be 0");
+  }
+  if (p.min_window_cells < 3) throw std::invalid_argument("TraversabilityParams.min_window_cells must be >= 3");
+}
+
+int cells_per_side(const LocalMapParams& p) {
+  check_positive(p.length_m, "LocalMapParams.length_m");
+  check_positive(p.resolution_m, "LocalMapParams.resolution_m");
+  const double cells = std::round(p.length_m / p.resolution_m);
+  if (!(cells >= 1.0 && cells <= 16384.0)) {
+    throw std::invalid_argument("LocalMapParams: length / resolution must give 1 to 16384 cells per side, got " +
+                                detail::number_text(cells));
+  }
+  return static_cast<int>(cells);
+}
+
+void check_local_map_params(const LocalMapParams& p) {
+  cells_per_side(p);
+  detail::check_collapse_params(p.collapse);
+  check_non_negative(p.range_sigma_m, "LocalMapParams.range_sigma_m");
+  check_non_negative(p.angle_sigma_rad, "LocalMapParams.angle_sigma_rad");
+  check_positive(p.cell_sigma_m, "LocalMapParams.cell_sigma_m");
+  check_positive(p.gate_sigmas, "LocalMapParams.gate_sigmas");
+  check_non_negative(p.clearing_margin_m, "LocalMapParams.clearing_margin_m");
+  check_positive(p.visibility_bin_rad, "LocalMapParams.visibility_bin_rad");
+  if (p.visibility_bin_rad > 0.5) throw std::invalid_argument("LocalMapParams.visibility_bin_rad must be <= 0.5 rad");
+  check_positive(p.discontinuity_m, "LocalMapParams.discontinuity_m");
+  check_traversability_params(p.traversability);
+  detail::check_num_threads(p.num_threads, "LocalMapParams");
+}
+
+/// A monotone stand-in for the azimuth of (x, y), in [0, 4) ("diamond angle"): one division
+/// instead of atan2. Bins of it are at most twice as wide in angle as their mean.
+double diamond_azimuth(double x, double y) {
+  if (y >= 0.0) return x >= 0.0 ? y / (x + y) : 1.0 - x / (y - x);
+  return x < 0.0 ? 2.0 - y / (-x - y) : 3.0 + x / (x - y);
+}
+
+/// The nearest horizontal range of the returns in each (azimuth, elevation) bin of one scan,
+/// seen from the sensor; elevation binned on sin(phi) (bins of visibility_bin_rad near the horizon).
+class VisibilityImage {
+ public:
+  void reset(double bin_rad) {
+    // Azimuth bins twice as wide: a spinning sensor's columns are denser than its rows.
+    azimuth_bins_ = 4 * static_cast<int>(std::ceil(1.5707963267948966 / (2.0 * bin_rad)));
+    elevation_bins_ = static_cast<int>(std::ceil(2.0 / bin_rad));
+    bin_ = bin_rad;
+    nearest_squared_.assign(static_cast<std::size_t>(azimuth_bins_) * elevation_bins_, kInf);
+  }
+  /// The bin of direction v (v_xy != 0), elevation bin shifted by `elevation_shift`; -1 outside.
+  std::ptrdiff_t bin_of(const Eigen::Vector3d& v, double horizontal_squared, int elevation_shift) const {
+    const double r = std::sqrt(horizontal_squared + v.z() * v.z());
+    const int e = std::min(static_cast<int>((v.z() / r + 1.0) / bin_), elevation_bins_ - 1) + elevation_shift;
+    if (e < 0) return -1;
+    const int a = std::min(static_cast<int>(diamond_azimuth(v.x(), v.y()) * (azimuth_bins_ / 4)), azimuth_bins_ - 1);
+    return static_cast<std::ptrdiff_t>(a) * elevation_bins_ + e;
+  }
+  void add(const Eigen::Vector3d& v) {
+    const double horizontal_squared = v.x() * v.x() + v.y() * v.y();
+    if (horizontal_squared == 0.0) return;
+    double& nearest = nearest_squared_[static_cast<std::size_t>(bin_of(v, horizontal_squared, 0))];
+    nearest = std::min(nearest, horizontal_squared);
+  }
+  /// Turns each bin into the farthest of the nearest returns of the bins with returns at or below
+  /// it in its azimuth column (-1 when none): the query below then costs one look-up.
+  void finish() {
+    for (int a = 0; a < azimuth_bins_; ++a) {
+      double* column = nearest_squared_.data() + static_cast<std::ptrdiff_t>(a) * elevation_bins_;
+      double best = -1.0;
+      for (int e = 0; e < elevation_bins_; ++e) {
+        if (column[e] < kInf) best = std::max(best, column[e]);
+        column[e] = best;
+      }
+    }
+  }
+  /// After finish(): whether, in some bin below direction v's (beams leave gaps, and a ray far
+  /// below that still went beyond also passed under v's end point), every return lies
+  /// horizontally beyond `reach` (all of them, so that a ray beside v's that met something nearer
+  /// vetoes its bin).
+  bool seen_beyond(const Eigen::Vector3d& v, double reach) const {
+    const double horizontal_squared = v.x() * v.x() + v.y() * v.y();
+    if (horizontal_squared == 0.0) return false;
+    const std::ptrdiff_t bin = bin_of(v, horizontal_squared, -1);
+    return bin >= 0 && nearest_squared_[static_cast<std::size_t>(bin)] > reach * reach;
+  }
+
+ private:
+  int azimuth_bins_ = 0, elevation_bins_ = 0;
+  double bin_ = 1.0;
+  std::vector<double> nearest_squared_;
+};
+
+/// One scan's statistics of a cell (kept points; overhang points only in overhang_min).
+struct ScanCell {
+  std::uint32_t count = 0;
+  double first = 0.0, sum = 0.0, sum_squares = 0.0, sum_variance = 0.0;
+  double lowest = kInf, highest = -kInf, overhang_min = kInf;
+  bool touched = false, gap = false;
+
+  void add(double z, double variance) {
+    if (count == 0) first = z;
+    const double d = z - first;
+    ++count;
+    sum += d;
+    sum_squares += d * d;
+    sum_variance += variance;
+    lowest = std::min(lowest, z);
+    highest = std::max(highest, z);
+  }
+};
+
+/// A kept point of a cell whose heights may hold a discontinuity.
+struct GapPoint {
+  std::uint32_t cell;
+  double z, variance;
+  bool operator<(const GapPoint& o) const {
+    return cell != o.cell ? cell < o.cell : (z != o.z ? z < o.z : variance < o.variance);
+  }
+};
+
+/// Buffers of one update, kept by the calling thread for its next one (fresh pages cost more
+/// than the work, see elevation_map.cpp).
+struct Workspace {
+  std::vector<ScanCell> cells;
+  std::vector<std::uint32_t> touched;
+  VisibilityImage visibility;
+  std::vector<GapPoint> gap_points;
+};
+
+/// A cell whose sorted kept heights hold a gap over `threshold` is discontinuous: its measurement
+/// is the points below the first gap (the ground under whatever [CBC]'s cubes kept above it,
+/// e.g. where a cell straddles two cube columns) and the first point above the gap is an overhang.
+void split_at_gaps(Workspace& w, double threshold) {
+  std::sort(w.gap_points.begin(), w.gap_points.end());
+  for (std::size_t begin = 0, end = 0; begin < w.gap_points.size(); begin = end) {
+    const std::uint32_t cell = w.gap_points[begin].cell;
+    end = begin + 1;
+    while (end < w.gap_points.size() && w.gap_points[end].cell == cell) ++end;
+    std::size_t top = begin + 1;
+    while (top < end && w.gap_points[top].z - w.gap_points[top - 1].z <= threshold) ++top;
+    if (top == end) continue;
+    ScanCell& c = w.cells[cell];
+    const double overhang_min = std::min(c.overhang_min, w.gap_points[top].z);
+    c = ScanCell();
+    c.touched = true;
+    c.gap = true;
+    c.overhang_min = overhang_min;
+    for (std::size_t k = begin; k < top; ++k) c.add(w.gap_points[k].z, w.gap_points[k].variance);
+  }
+}
+Workspace& thread_workspace() {
+  thread_local Workspace workspace;
+  return workspace;
+}
+
+/// Per-row window sums of the planner pass along y.
+struct RowMoments {
+  double n, y, z, yy, yz, zz;
+  float lowest, highest;
+};
+
+}  // namespace
+
+LocalMap::LocalMap(const LocalMapParams& params) : params_(params) {
+  check_local_map_params(params);
+  const int n = cells_per_side(params);
+  geometry_.resolution_m = params.resolution_m;
+  geometry_.size = CellIndex(n, n);
+  origin_cell_ = Eigen::Matrix<std::int64_t, 2, 1>::Constant(-(n / 2));
+  geometry_.origin_m = origin_cell_.cast<double>() * params.resolution_m;
+  layers_ = ElevationMap(geometry_);
+  for (const char* name : kLayerNames) layers_.add(name, name == std::string("count") ? 0.0F : kNaN);
+  const std::size_t cells = geometry_.num_cells();
+  reference_.assign(cells, 0.0);
+  sum_.assign(cells, 0.0);
+  sum_squares_.assign(cells, 0.0);
+}
+
+std::int64_t LocalMap::storage_of(std::int64_t global, int axis) const {
+  const std::int64_t n = geometry_.size[axis];
+  return ((global % n) + n) % n;
+}
+
+CellIndex LocalMap::start_index() const {
+  return CellIndex(static_cast<int>(storage_of(origin_cell_.x(), 0)),
+                   static_cast<int>(storage_of(origin_cell_.y(), 1)));
+}
+
+std::optional<CellIndex> LocalMap::index_of(const Eigen::Vector2d& position) const {
+  const double gx = std::floor(position.x() / params_.resolution_m);
+  const double gy = std::floor(position.y() / params_.resolution_m);
+  const double ox = static_cast<double>(origin_cell_.x());
+  const double oy = static_cast<double>(origin_cell_.y());
+  if (!(gx >= ox && gx < ox + geometry_.size.x() && gy >= oy && gy < oy + geometry_.size.y())) return std::nullopt;
+  return CellIndex(static_cast<int>(storage_of(static_cast<std::int64_t>(gx), 0)),
+                   static_cast<int>(storage_of(static_cast<std::int64_t>(gy), 1)));
+}
+
+Eigen::Vector2d LocalMap::position_of(const CellIndex& index) const {
+  const CellIndex start = start_index();
+  const std::int64_t gi = (index.x() - start.x() + geometry_.size.x()) % geometry_.size.x();
+  const std::int64_t gj = (index.y() - start.y() + geometry_.size.y()) % geometry_.size.y();
+  return {(static_cast<double>(origin_cell_.x() + gi) + 0.5) * params_.resolution_m,
+          (static_cast<double>(origin_cell_.y() + gj) + 0.5) * params_.resolution_m};
+}
+
+const Layer& LocalMap::get(const std::string& name) const { return layers_.get(name); }
+std::vector<std::string> LocalMap::layers() const { return layers_.layers(); }
+
+void LocalMap::clear_cells(std::size_t first, std::size_t count, std::size_t stride) {
+  const LayerData data = layer_data(layers_);
+  for (std::size_t k = 0; k < data.size(); ++k) {
+    const float empty = k == kCount ? 0.0F : kNaN;
+    for (std::size_t c = 0; c < count; ++c) data[k][first + c * stride] = empty;
+  }
+  for (std::size_t c = 0; c < count; ++c) {
+    const std::size_t cell = first + c * stride;
+    reference_[cell] = sum_[cell] = sum_squares_[cell] = 0.0;
+  }
+}
+
+void LocalMap::clear() { clear_cells(0, geometry_.num_cells(), 1); }
+
+bool LocalMap::move_to(const Eigen::Vector2d& position) {
+  if (!position.allFinite() || (position.array().abs() > 1e12).any()) {
+    throw std::invalid_argument("LocalMap.move_to: the position must be finite (and within 1e12 m)");
+  }
+  const int n = geometry_.size.x();
+  const Eigen::Matrix<std::int64_t, 2, 1> target(
+      static_cast<std::int64_t>(std::floor(position.x() / params_.resolution_m)) - n / 2,
+      static_cast<std::int64_t>(std::floor(position.y() / params_.resolution_m)) - n / 2);
+  const Eigen::Matrix<std::int64_t, 2, 1> shift = target - origin_cell_;
+  const bool reset = std::abs(shift.x()) >= n || std::abs(shift.y()) >= n;
+  if (reset) {
+    clear();
+  } else if (shift.x() != 0 || shift.y() != 0) {
+    // The global rows (columns) that leave are those of [old, old + shift) for a positive shift
+    // and [old + n + shift, old + n) for a negative one; they are stored where the entering ones go.
+    for (int axis = 0; axis < 2; ++axis) {
+      const std::int64_t s = shift[axis];
+      const std::int64_t first = s > 0 ? origin_cell_[axis] : origin_cell_[axis] + n + s;
+      for (std::int64_t g = first; g < first + std::abs(s); ++g) {
+        const auto line = static_cast<std::size_t>(storage_of(g, axis));
+        // A stored row i is cells [i n, i n + n); a stored column j is j, j + n, ...
+        if (axis == 0) {
+          clear_cells(line * n, n, 1);
+        } else {
+          clear_cells(line, n, n);
+        }
+      }
+    }
+  }
+  origin_cell_ = target;
+  geometry_.origin_m = origin_cell_.cast<double>() * params_.resolution_m;
+  return reset;
+}
+
+LocalMapUpdate LocalMap::update(const PointsView<float>& points, const Eigen::Matrix4d& pose, double stamp_s) {
+  return update_impl(points, pose, stamp_s);
+}
+LocalMapUpdate LocalMap::update(const PointsView<double>& points, const Eigen::Matrix4d& pose, double stamp_s) {
+  return update_impl(points, pose, stamp_s);
+}
+
+template <typename Scalar>
+LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose, double stamp_s) {
+  detail::check_rigid_transform(pose, "pose");
+  if (std::isinf(stamp_s)) throw std::invalid_argument("LocalMap.update: stamp must be finite (or NaN)");
+  if ((pose.block<2, 1>(0, 3).array().abs() > 1e12).any()) {
+    throw std::invalid_argument("LocalMap.update: the pose's position must be within 1e12 m");
+  }
+  const double stamp = std::isnan(stamp_s) ? static_cast<double>(num_updates_) : stamp_s;
+  const int n = geometry_.size.x();
+  const double res = params_.resolution_m;
+  const Eigen::Vector3d sensor = pose.block<3, 1>(0, 3);
+  const Eigen::Matrix<std::int64_t, 2, 1> target(static_cast<std::int64_t>(std::floor(sensor.x() / res)) - n / 2,
+                                                 static_cast<std::int64_t>(std::floor(sensor.y() / res)) - n / 2);
+  LocalMapUpdate report;
+  report.num_points = points.size;
+
+  // Everything that can throw comes before the first change to the map.
+  CollapseParams collapse = params_.collapse;
+  collapse.transform = pose;
+  collapse.num_threads = params_.num_threads;
+  // The map's area with a cell to spare, so that every point binned into the map took part.
+  CropBox crop;
+  crop.min =
+      Eigen::Vector3d(static_cast<double>(target.x() - 1) * res, static_cast<double>(target.y() - 1) * res, -1e9);
+  crop.max = Eigen::Vector3d(static_cast<double>(target.x() + n + 1) * res,
+                             static_cast<double>(target.y() + n + 1) * res, 1e9);
+  collapse.crop = crop;
+  CollapseResult removed;
+  if (points.size > 0) removed = collapse_overhangs(points, collapse);
+  report.num_dropped_non_finite = removed.num_dropped_non_finite;
+  report.num_overhang = removed.num_overhang;
+
+  report.map_reset = move_to(sensor.head<2>());
+  Workspace& w = thread_workspace();
+  const std::size_t cells = geometry_.num_cells();
+  w.cells.resize(cells);
+  w.touched.clear();
+  w.gap_points.clear();
+  const bool clearing = params_.clear_seen_through && points.size > 0;
+  if (clearing) w.visibility.reset(params_.visibility_bin_rad);
+  const double range_variance = params_.range_sigma_m * params_.range_sigma_m;
+  const double angle_variance = params_.angle_sigma_rad * params_.angle_sigma_rad;
+  // var_z = range_sigma^2 sin^2(phi) + angle_sigma^2 r^2 cos^2(phi), with r cos(phi) = |v_xy|.
+  const auto height_variance = [&](const Eigen::Vector3d& v) {
+    const double horizontal_squared = v.x() * v.x() + v.y() * v.y();
+    const double range_squared = horizontal_squared + v.z() * v.z();
+    return (range_squared > 0.0 ? range_variance * v.z() * v.z() / range_squared : 0.0) +
+           angle_variance * horizontal_squared;
+  };
+
+  // One pass: the visibility image from every return, the scan's statistics per cell.
+  const auto cell_of = [&](const Eigen::Vector3d& p) -> std::ptrdiff_t {
+    if (!(p.z() >= -1e9 && p.z() <= 1e9)) return -1;
+    const double gx = std::floor(p.x() / res) - static_cast<double>(origin_cell_.x());
+    const double gy = std::floor(p.y() / res) - static_cast<double>(origin_cell_.y());
+    if (!(gx >= 0.0 && gy >= 0.0 && gx < n && gy < n)) return -1;
+    return storage_of(static_cast<std::int64_t>(gx) + origin_cell_.x(), 0) * n +
+           storage_of(static_cast<std::int64_t>(gy) + origin_cell_.y(), 1);
+  };
+  detail::visit_leveled(points, pose, std::nullopt, [&](const auto& cloud) {
+    Eigen::Vector3d p;
+    for (std::size_t row = 0; row < cloud.size(); ++row) {
+      if (cloud.map(row, p) != 0) continue;  // NaN/Inf: collapse threw unless they are dropped
+      const Eigen::Vector3d v = p - sensor;
+      if (clearing) w.visibility.add(v);
+      const std::ptrdiff_t cell = cell_of(p);
+      if (cell < 0) continue;
+      ++report.num_in_map;
+      ScanCell& c = w.cells[static_cast<std::size_t>(cell)];
+      if (!c.touched) {
+        c = ScanCell();
+        c.touched = true;
+        w.touched.push_back(static_cast<std::uint32_t>(cell));
+      }
+      if (removed.overhang[row] != 0) {
+        c.overhang_min = std::min(c.overhang_min, p.z());
+        continue;
+      }
+      // var_z = range_sigma^2 sin^2(phi) + angle_sigma^2 r^2 cos^2(phi), r cos(phi) = |v_xy|.
+      const double horizontal_squared = v.x() * v.x() + v.y() * v.y();
+      const double range_squared = horizontal_squared + v.z() * v.z();
+      const double variance = (range_squared > 0.0 ? range_variance * v.z() * v.z() / range_squared : 0.0) +
+                              angle_variance * horizontal_squared;
+      if (c.count == 0) c.first = p.z();
+      const double d = p.z() - c.first;
+      ++c.count;
+      c.sum += d;
+      c.sum_squares += d * d;
+      c.sum_variance += variance;
+      c.lowest = std::min(c.lowest, p.z());
+      c.highest = std::max(c.highest, p.z());
+    }
+  });
+
+  // The few cells whose kept heights span more than the discontinuity threshold.
+  bool any_wide = false;
+  for (const std::uint32_t cell : w.touched) {
+    const ScanCell& c = w.cells[cell];
+    any_wide |= c.count > 1 && c.highest - c.lowest > params_.discontinuity_m;
+  }
+  if (any_wide) {
+    detail::visit_leveled(points, pose, std::nullopt, [&](const auto& cloud) {
+      Eigen::Vector3d p;
+      for (std::size_t row = 0; row < cloud.size(); ++row) {
+        if (cloud.map(row, p) != 0 || removed.overhang[row] != 0) continue;
+        const std::ptrdiff_t cell = cell_of(p);
+        if (cell < 0) continue;
+        const ScanCell& c = w.cells[static_cast<std::size_t>(cell)];
+        if (c.highest - c.lowest > params_.discontinuity_m) {
+          w.gap_points.push_back({static_cast<std::uint32_t>(cell), p.z(), height_variance(p - sensor)});
+        }
+      }
+    });
+    split_at_gaps(w, params_.discontinuity_m);
+  }
+
+  const LayerData layer = layer_data(layers_);
+  // Clearing: a stored height that this scan's rays passed under by the margin is gone.
+  if (clearing) {
+    w.visibility.finish();
+    for (std::size_t cell = 0; cell < cells; ++cell) {
+      const float h = layer[kElevation][cell];
+      if (std::isnan(h)) continue;
+      const Eigen::Vector2d centre = position_of(CellIndex(static_cast<int>(cell / n), static_cast<int>(cell % n)));
+      const Eigen::Vector3d v(centre.x() - sensor.x(), centre.y() - sensor.y(),
+                              static_cast<double>(h) - params_.clearing_margin_m - sensor.z());
+      const double reach = std::sqrt(v.x() * v.x() + v.y() * v.y()) + res;
+      if (w.visibility.seen_beyond(v, reach)) {
+        clear_cells(cell, 1, 1);
+        ++report.num_cleared_cells;
+      }
+    }
+  }
+
+  // The 1-D Kalman update of each measured cell, or its replacement outside the gate.
+  const double gate_squared = params_.gate_sigmas * params_.gate_sigmas;
+  for (const std::uint32_t cell : w.touched) {
+    ScanCell& c = w.cells[cell];
+    c.touched = false;  // the workspace is clean for the next update
+    if (c.overhang_min < kInf) layer[kOverhangMin][cell] = static_cast<float>(c.overhang_min);
+    if (c.count == 0) continue;
+    ++report.num_fused_cells;
+    const double count = c.count;
+    const double mean_offset = c.sum / count;
+    const double spread = std::max(c.sum_squares / count - mean_offset * mean_offset, 0.0);
+    const double z = c.first + mean_offset;
+    const double r = (c.sum_variance / count + spread) / count + params_.cell_sigma_m * params_.cell_sigma_m;
+    const double h = layer[kElevation][cell];
+    const double p = layer[kVariance][cell];
+    bool fresh = std::isnan(h);
+    if (!fresh && (z - h) * (z - h) > gate_squared * (p + r)) {
+      fresh = true;
+      ++report.num_replaced_cells;
+    }
+    if (fresh) {
+      layer[kElevation][cell] = static_cast<float>(z);
+      layer[kVariance][cell] = static_cast<float>(r);
+      layer[kCount][cell] = static_cast<float>(count);
+      layer[kMin][cell] = static_cast<float>(c.lowest);
+      layer[kMax][cell] = static_cast<float>(c.highest);
+      reference_[cell] = c.first;
+      sum_[cell] = c.sum;
+      sum_squares_[cell] = c.sum_squares;
+    } else {
+      const double gain = p / (p + r);
+      layer[kElevation][cell] = static_cast<float>(h + gain * (z - h));
+      layer[kVariance][cell] = static_cast<float>(p * r / (p + r));
+      layer[kCount][cell] += static_cast<float>(count);
+      layer[kMin][cell] = std::min(layer[kMin][cell], static_cast<float>(c.lowest));
+      layer[kMax][cell] = std::max(layer[kMax][cell], static_cast<float>(c.highest));
+      // The scan's sums are relative to its first height; shift them to the cell's reference.
+      const double offset = c.first - reference_[cell];
+      sum_squares_[cell] += count * offset * offset + 2.0 * offset * c.sum + c.sum_squares;
+      sum_[cell] += count * offset + c.sum;
+    }
+    const double total = layer[kCount][cell];
+    const double mean = sum_[cell] / total;
+    layer[kStdDev][cell] = static_cast<float>(std::sqrt(std::max(sum_squares_[cell] / total - mean * mean, 0.0)));
+    layer[kDiscontinuity][cell] = c.gap ? 1.0F : 0.0F;
+    layer[kTime][cell] = static_cast<float>(stamp);
+  }
+  for (std::size_t cell = 0; cell < cells; ++cell) {
+    const float h = layer[kElevation][cell];
+    const float o = layer[kOverhangMin][cell];
+    layer[kClearance][cell] =
+        std::isnan(h) ? kNaN : (std::isnan(o) ? std::numeric_limits<float>::infinity() : std::max(o - h, 0.0F));
+  }
+  if (params_.compute_planner_layers) update_planner_layers();
+  ++num_updates_;
+  return report;
+}
+
+void LocalMap::update_planner_layers() {
+  const TraversabilityParams& tp = params_.traversability;
+  const int n = geometry_.size.x();
+  const int r = static_cast<int>(std::round(tp.footprint_radius_m / params_.resolution_m));
+  const CellIndex start = start_index();
+  const LayerData layer = layer_data(layers_);
+  const float* height = layer[kElevation];
+  const auto geometric = [&](int s, int axis) { return (s - start[axis] + n) % n; };
+  const auto stored = [&](int g, int axis) { return (g + start[axis]) % n; };
+  thread_local std::vector<RowMoments> workspace;
+  std::vector<RowMoments>& rows = workspace;  // the calling thread's, also inside the parts
+  rows.resize(geometry_.num_cells());
+  const int parts = detail::fixed_parts(geometry_.num_cells(), 16384);
+  // Pass 1: window sums along y (j), per stored row; y is the geometric column.
+  detail::for_each_part(params_.num_threads, parts, [&](int part) {
+    const auto [begin, end] = detail::part_range(static_cast<std::size_t>(n), part, parts);
+    for (std::size_t si = begin; si < end; ++si) {
+      for (int gj = 0; gj < n; ++gj) {
+        RowMoments m{0, 0, 0, 0, 0, 0, std::numeric_limits<float>::infinity(), -std::numeric_limits<float>::infinity()};
+        for (int b = std::max(gj - r, 0); b <= std::min(gj + r, n - 1); ++b) {
+          const float z = height[si * n + stored(b, 1)];
+          if (std::isnan(z)) continue;
+          m.n += 1.0;
+          m.y += b;
+          m.z += z;
+          m.yy += static_cast<double>(b) * b;
+          m.yz += b * static_cast<double>(z);
+          m.zz += static_cast<double>(z) * z;
+          m.lowest = std::min(m.lowest, z);
+          m.highest = std::max(m.highest, z);
+        }
+        rows[si * n + stored(gj, 1)] = m;
+      }
+    }
+  });
+  // Pass 2: along x (i), then the plane fit and the traversability of each cell.
+  const double weights = tp.slope_weight + tp.step_weight + tp.roughness_weight;
+  detail::for_each_part(params_.num_threads, parts, [&](int part) {
+    const auto [begin, end] = detail::part_range(static_cast<std::size_t>(n), part, parts);
+    for (std::size_t si = begin; si < end; ++si) {
+      const int gi = geometric(static_cast<int>(si), 0);
+      for (std::size_t sj = 0; sj < static_cast<std::size_t>(n); ++sj) {
+        const std::size_t cell = si * n + sj;
+        layer[kStep][cell] = layer[kSlope][cell] = layer[kRoughness][cell] = layer[kTraversability][cell] = kNaN;
+        if (std::isnan(height[cell])) continue;
+        double N = 0, x = 0, y = 0, z = 0, xx = 0, xy = 0, yy = 0, xz = 0, yz = 0, zz = 0;
+        float lowest = std::numeric_limits<float>::infinity(), highest = -lowest;
+        for (int a = std::max(gi - r, 0); a <= std::min(gi + r, n - 1); ++a) {
+          const RowMoments& m = rows[static_cast<std::size_t>(stored(a, 0)) * n + sj];
+          N += m.n;
+          x += a * m.n;
+          xx += static_cast<double>(a) * a * m.n;
+          y += m.y;
+          yy += m.yy;
+          z += m.z;
+          zz += m.zz;
+          xy += a * m.y;
+          xz += a * m.z;
+          yz += m.yz;
+          lowest = std::min(lowest, m.lowest);
+          highest = std::max(highest, m.highest);
+        }
+        layer[kStep][cell] = highest - lowest;
+        if (N < tp.min_window_cells) continue;
+        // Centred moments; the normal equations of z = a x + b y + c (x, y in cells).
+        const double mx = x / N, my = y / N, mz = z / N;
+        const double cxx = xx / N - mx * mx, cxy = xy / N - mx * my, cyy = yy / N - my * my;
+        const double cxz = xz / N - mx * mz, cyz = yz / N - my * mz, czz = zz / N - mz * mz;
+        const double det = cxx * cyy - cxy * cxy;
+        if (!(det > 1e-9)) continue;
+        const double ga = (cyy * cxz - cxy * cyz) / det, gb = (cxx * cyz - cxy * cxz) / det;
+        const double slope = std::atan(std::hypot(ga, gb) / params_.resolution_m);
+        const double roughness = std::sqrt(std::max(czz - ga * cxz - gb * cyz, 0.0));
+        const double step = layer[kStep][cell];
+        layer[kSlope][cell] = static_cast<float>(slope);
+        layer[kRoughness][cell] = static_cast<float>(roughness);
+        const bool blocked = slope > tp.max_slope_rad || step > tp.max_step_m || roughness > tp.max_roughness_m ||
+                             layer[kClearance][cell] < tp.min_clearance_m;
+        const double cost = (tp.slope_weight * slope / tp.max_slope_rad + tp.step_weight * step / tp.max_step_m +
+                             tp.roughness_weight * roughness / tp.max_roughness_m) /
+                            weights;
+        layer[kTraversability][cell] = blocked ? 0.0F : static_cast<float>(1.0 - cost);
+      }
+    }
+  });
+}
+
+ElevationMap LocalMap::to_elevation_map() const {
+  ElevationMap out(geometry_);
+  const int n = geometry_.size.x();
+  const CellIndex start = start_index();
+  for (const std::string& name : layers_.layers()) {
+    const Layer& in = layers_.get(name);
+    Layer ordered(n, n);
+    for (int gi = 0; gi < n; ++gi) {
+      const int si = (gi + start.x()) % n;
+      for (int gj = 0; gj < n; ++gj) ordered(gi, gj) = in(si, (gj + start.y()) % n);
+    }
+    out.add(name, std::move(ordered));
+  }
+  return out;
+}
+
+}  // namespace terracube
