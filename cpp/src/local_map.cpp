@@ -21,6 +21,7 @@ namespace {
 
 constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
 constexpr double kInf = std::numeric_limits<double>::infinity();
+constexpr float kInfF = std::numeric_limits<float>::infinity();
 
 /// Every layer, in the order they are added; the empty value of each is NaN except "count" (0).
 constexpr std::array<const char*, 14> kLayerNames = {
@@ -119,7 +120,7 @@ class VisibilityImage {
     azimuth_bins_ = 4 * static_cast<int>(std::ceil(1.5707963267948966 / (2.0 * bin_rad)));
     elevation_bins_ = static_cast<int>(std::ceil(2.0 / bin_rad));
     bin_ = bin_rad;
-    nearest_squared_.assign(static_cast<std::size_t>(azimuth_bins_) * elevation_bins_, kInf);
+    nearest_squared_.assign(static_cast<std::size_t>(azimuth_bins_) * elevation_bins_, kInfF);
   }
   /// The bin of direction v (v_xy != 0), elevation bin shifted by `elevation_shift`; -1 outside.
   std::ptrdiff_t bin_of(const Eigen::Vector3d& v, double horizontal_squared, int elevation_shift) const {
@@ -132,17 +133,17 @@ class VisibilityImage {
   void add(const Eigen::Vector3d& v) {
     const double horizontal_squared = v.x() * v.x() + v.y() * v.y();
     if (horizontal_squared == 0.0) return;
-    double& nearest = nearest_squared_[static_cast<std::size_t>(bin_of(v, horizontal_squared, 0))];
-    nearest = std::min(nearest, horizontal_squared);
+    float& nearest = nearest_squared_[static_cast<std::size_t>(bin_of(v, horizontal_squared, 0))];
+    nearest = std::min(nearest, static_cast<float>(horizontal_squared));
   }
   /// Turns each bin into the farthest of the nearest returns of the bins with returns at or below
   /// it in its azimuth column (-1 when none): the query below then costs one look-up.
   void finish() {
     for (int a = 0; a < azimuth_bins_; ++a) {
-      double* column = nearest_squared_.data() + static_cast<std::ptrdiff_t>(a) * elevation_bins_;
-      double best = -1.0;
+      float* column = nearest_squared_.data() + static_cast<std::ptrdiff_t>(a) * elevation_bins_;
+      float best = -1.0F;
       for (int e = 0; e < elevation_bins_; ++e) {
-        if (column[e] < kInf) best = std::max(best, column[e]);
+        if (column[e] < kInfF) best = std::max(best, column[e]);
         column[e] = best;
       }
     }
@@ -155,13 +156,13 @@ class VisibilityImage {
     const double horizontal_squared = v.x() * v.x() + v.y() * v.y();
     if (horizontal_squared == 0.0) return false;
     const std::ptrdiff_t bin = bin_of(v, horizontal_squared, -1);
-    return bin >= 0 && nearest_squared_[static_cast<std::size_t>(bin)] > reach * reach;
+    return bin >= 0 && static_cast<double>(nearest_squared_[static_cast<std::size_t>(bin)]) > reach * reach;
   }
 
  private:
   int azimuth_bins_ = 0, elevation_bins_ = 0;
   double bin_ = 1.0;
-  std::vector<double> nearest_squared_;
+  std::vector<float> nearest_squared_;  // [m^2]
 };
 
 /// One scan's statistics of a cell (kept points; overhang points only in overhang_min).
@@ -199,6 +200,7 @@ struct Workspace {
   std::vector<std::uint32_t> touched;
   VisibilityImage visibility;
   std::vector<GapPoint> gap_points;
+  std::vector<std::size_t> row_offset, column;
 };
 
 /// A cell whose sorted kept heights hold a gap over `threshold` is discontinuous: its measurement
@@ -232,6 +234,40 @@ struct RowMoments {
   double n, y, z, yy, yz, zz;
   float lowest, highest;
 };
+
+/// The least-squares plane z = a x + b y + c of a window from its sums (x, y in cells): the
+/// gradient |(a, b)| per cell and the RMS vertical residual; invalid for collinear cells.
+struct PlaneFit {
+  bool valid = false;
+  double gradient = 0.0, roughness = 0.0;
+};
+PlaneFit fit_plane(double n, double x, double y, double z, double xx, double xy, double yy, double xz, double yz,
+                   double zz) {
+  const double mx = x / n, my = y / n, mz = z / n;
+  const double cxx = xx / n - mx * mx, cxy = xy / n - mx * my, cyy = yy / n - my * my;
+  const double cxz = xz / n - mx * mz, cyz = yz / n - my * mz, czz = zz / n - mz * mz;
+  const double det = cxx * cyy - cxy * cxy;
+  PlaneFit fit;
+  if (!(det > 1e-9)) return fit;
+  const double a = (cyy * cxz - cxy * cyz) / det, b = (cxx * cyz - cxy * cxz) / det;
+  fit.valid = true;
+  fit.gradient = std::hypot(a, b);
+  fit.roughness = std::sqrt(std::max(czz - a * cxz - b * cyz, 0.0));
+  return fit;
+}
+
+/// TraversabilityParams' formula (local_map.hpp).
+float traversability(const TraversabilityParams& tp, double slope, double step, double roughness, float clearance) {
+  if (slope > tp.max_slope_rad || step > tp.max_step_m || roughness > tp.max_roughness_m ||
+      clearance < tp.min_clearance_m) {
+    return 0.0F;
+  }
+  const double weights = tp.slope_weight + tp.step_weight + tp.roughness_weight;
+  const double cost = (tp.slope_weight * slope / tp.max_slope_rad + tp.step_weight * step / tp.max_step_m +
+                       tp.roughness_weight * roughness / tp.max_roughness_m) /
+                      weights;
+  return static_cast<float>(1.0 - cost);
+}
 
 }  // namespace
 
@@ -387,13 +423,28 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
   };
 
   // One pass: the visibility image from every return, the scan's statistics per cell.
+  // The stored index of each geometric row (times n) and column, then the cell of a point:
+  // floor(x / res) - origin without a call to floor (the truncation of the difference, one lower
+  // when rounding carried it up to a whole number).
+  w.row_offset.resize(static_cast<std::size_t>(n));
+  w.column.resize(static_cast<std::size_t>(n));
+  for (int g = 0; g < n; ++g) {
+    w.row_offset[g] = static_cast<std::size_t>(storage_of(origin_cell_.x() + g, 0)) * static_cast<std::size_t>(n);
+    w.column[g] = static_cast<std::size_t>(storage_of(origin_cell_.y() + g, 1));
+  }
+  const double ox = static_cast<double>(origin_cell_.x()), oy = static_cast<double>(origin_cell_.y());
+  const auto geometric = [n](double q, double origin) -> std::ptrdiff_t {
+    if (!(q >= origin && q < origin + n)) return -1;
+    auto k = static_cast<std::ptrdiff_t>(q - origin);
+    if (origin + static_cast<double>(k) > q) --k;
+    return k;
+  };
   const auto cell_of = [&](const Eigen::Vector3d& p) -> std::ptrdiff_t {
     if (!(p.z() >= -1e9 && p.z() <= 1e9)) return -1;
-    const double gx = std::floor(p.x() / res) - static_cast<double>(origin_cell_.x());
-    const double gy = std::floor(p.y() / res) - static_cast<double>(origin_cell_.y());
-    if (!(gx >= 0.0 && gy >= 0.0 && gx < n && gy < n)) return -1;
-    return storage_of(static_cast<std::int64_t>(gx) + origin_cell_.x(), 0) * n +
-           storage_of(static_cast<std::int64_t>(gy) + origin_cell_.y(), 1);
+    const std::ptrdiff_t gi = geometric(p.x() / res, ox);
+    const std::ptrdiff_t gj = geometric(p.y() / res, oy);
+    if (gi < 0 || gj < 0) return -1;
+    return static_cast<std::ptrdiff_t>(w.row_offset[gi] + w.column[gj]);
   };
   detail::visit_leveled(points, pose, std::nullopt, [&](const auto& cloud) {
     Eigen::Vector3d p;
@@ -456,16 +507,18 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
   // Clearing: a stored height that this scan's rays passed under by the margin is gone.
   if (clearing) {
     w.visibility.finish();
-    for (std::size_t cell = 0; cell < cells; ++cell) {
-      const float h = layer[kElevation][cell];
-      if (std::isnan(h)) continue;
-      const Eigen::Vector2d centre = position_of(CellIndex(static_cast<int>(cell / n), static_cast<int>(cell % n)));
-      const Eigen::Vector3d v(centre.x() - sensor.x(), centre.y() - sensor.y(),
-                              static_cast<double>(h) - params_.clearing_margin_m - sensor.z());
-      const double reach = std::sqrt(v.x() * v.x() + v.y() * v.y()) + res;
-      if (w.visibility.seen_beyond(v, reach)) {
-        clear_cells(cell, 1, 1);
-        ++report.num_cleared_cells;
+    for (int gi = 0; gi < n; ++gi) {
+      for (int gj = 0; gj < n; ++gj) {
+        const std::size_t cell = w.row_offset[gi] + w.column[gj];
+        const float h = layer[kElevation][cell];
+        if (std::isnan(h)) continue;
+        const Eigen::Vector3d v((ox + gi + 0.5) * res - sensor.x(), (oy + gj + 0.5) * res - sensor.y(),
+                                static_cast<double>(h) - params_.clearing_margin_m - sensor.z());
+        const double reach = std::sqrt(v.x() * v.x() + v.y() * v.y()) + res;
+        if (w.visibility.seen_beyond(v, reach)) {
+          clear_cells(cell, 1, 1);
+          ++report.num_cleared_cells;
+        }
       }
     }
   }
@@ -535,81 +588,103 @@ void LocalMap::update_planner_layers() {
   const CellIndex start = start_index();
   const LayerData layer = layer_data(layers_);
   const float* height = layer[kElevation];
-  const auto geometric = [&](int s, int axis) { return (s - start[axis] + n) % n; };
-  const auto stored = [&](int g, int axis) { return (g + start[axis]) % n; };
+  // The stored row and column of each geometric one: no wrap-around arithmetic in the loops, and
+  // windows are clipped at the map's border (they never wrap).
+  std::vector<std::size_t> row_of(static_cast<std::size_t>(n)), column_of(static_cast<std::size_t>(n));
+  for (int g = 0; g < n; ++g) {
+    row_of[g] = static_cast<std::size_t>((g + start.x()) % n) * static_cast<std::size_t>(n);
+    column_of[g] = static_cast<std::size_t>((g + start.y()) % n);
+  }
+  // Heights relative to the first known one in storage order keep the sums of squares small.
+  double reference = 0.0;
+  for (std::size_t cell = 0; cell < geometry_.num_cells(); ++cell) {
+    if (!std::isnan(height[cell])) {
+      reference = height[cell];
+      break;
+    }
+  }
   thread_local std::vector<RowMoments> workspace;
   std::vector<RowMoments>& rows = workspace;  // the calling thread's, also inside the parts
-  rows.resize(geometry_.num_cells());
+  rows.resize(geometry_.num_cells());         // geometric order
   const int parts = detail::fixed_parts(geometry_.num_cells(), 16384);
-  // Pass 1: window sums along y (j), per stored row; y is the geometric column.
+  // Pass 1: window sums along y of each geometric row, by differences of prefix sums.
   detail::for_each_part(params_.num_threads, parts, [&](int part) {
     const auto [begin, end] = detail::part_range(static_cast<std::size_t>(n), part, parts);
-    for (std::size_t si = begin; si < end; ++si) {
+    std::vector<float> z(static_cast<std::size_t>(n));
+    std::vector<std::array<double, 6>> prefix(static_cast<std::size_t>(n) + 1);
+    for (std::size_t gi = begin; gi < end; ++gi) {
+      prefix[0] = {0, 0, 0, 0, 0, 0};
       for (int gj = 0; gj < n; ++gj) {
-        RowMoments m{0, 0, 0, 0, 0, 0, std::numeric_limits<float>::infinity(), -std::numeric_limits<float>::infinity()};
-        for (int b = std::max(gj - r, 0); b <= std::min(gj + r, n - 1); ++b) {
-          const float z = height[si * n + stored(b, 1)];
-          if (std::isnan(z)) continue;
-          m.n += 1.0;
-          m.y += b;
-          m.z += z;
-          m.yy += static_cast<double>(b) * b;
-          m.yz += b * static_cast<double>(z);
-          m.zz += static_cast<double>(z) * z;
-          m.lowest = std::min(m.lowest, z);
-          m.highest = std::max(m.highest, z);
+        z[gj] = height[row_of[gi] + column_of[gj]];
+        std::array<double, 6> next = prefix[gj];
+        if (!std::isnan(z[gj])) {
+          const double y = gj, h = z[gj] - reference;
+          next[0] += 1.0;
+          next[1] += y;
+          next[2] += h;
+          next[3] += y * y;
+          next[4] += y * h;
+          next[5] += h * h;
         }
-        rows[si * n + stored(gj, 1)] = m;
+        prefix[gj + 1] = next;
+      }
+      for (int gj = 0; gj < n; ++gj) {
+        const int lo = std::max(gj - r, 0), hi = std::min(gj + r, n - 1);
+        const std::array<double, 6>& a = prefix[hi + 1];
+        const std::array<double, 6>& b = prefix[lo];
+        RowMoments m{a[0] - b[0],
+                     a[1] - b[1],
+                     a[2] - b[2],
+                     a[3] - b[3],
+                     a[4] - b[4],
+                     a[5] - b[5],
+                     std::numeric_limits<float>::infinity(),
+                     -std::numeric_limits<float>::infinity()};
+        for (int k = lo; k <= hi; ++k) {  // std::min/max keep the first argument against NaN
+          m.lowest = std::min(m.lowest, z[k]);
+          m.highest = std::max(m.highest, z[k]);
+        }
+        rows[gi * n + gj] = m;
       }
     }
   });
-  // Pass 2: along x (i), then the plane fit and the traversability of each cell.
-  const double weights = tp.slope_weight + tp.step_weight + tp.roughness_weight;
+  // Pass 2: along x, then the plane fit and the traversability of each known cell.
   detail::for_each_part(params_.num_threads, parts, [&](int part) {
     const auto [begin, end] = detail::part_range(static_cast<std::size_t>(n), part, parts);
-    for (std::size_t si = begin; si < end; ++si) {
-      const int gi = geometric(static_cast<int>(si), 0);
-      for (std::size_t sj = 0; sj < static_cast<std::size_t>(n); ++sj) {
-        const std::size_t cell = si * n + sj;
-        layer[kStep][cell] = layer[kSlope][cell] = layer[kRoughness][cell] = layer[kTraversability][cell] = kNaN;
+    for (std::size_t gi = begin; gi < end; ++gi) {
+      const int lo = std::max(static_cast<int>(gi) - r, 0), hi = std::min(static_cast<int>(gi) + r, n - 1);
+      for (int gj = 0; gj < n; ++gj) {
+        const std::size_t cell = row_of[gi] + column_of[gj];
+        float* out[] = {layer[kStep] + cell, layer[kSlope] + cell, layer[kRoughness] + cell,
+                        layer[kTraversability] + cell};
+        for (float* value : out) *value = kNaN;
         if (std::isnan(height[cell])) continue;
         double N = 0, x = 0, y = 0, z = 0, xx = 0, xy = 0, yy = 0, xz = 0, yz = 0, zz = 0;
         float lowest = std::numeric_limits<float>::infinity(), highest = -lowest;
-        for (int a = std::max(gi - r, 0); a <= std::min(gi + r, n - 1); ++a) {
-          const RowMoments& m = rows[static_cast<std::size_t>(stored(a, 0)) * n + sj];
+        for (int a = lo; a <= hi; ++a) {
+          const RowMoments& m = rows[static_cast<std::size_t>(a) * n + gj];
+          const double ax = a - static_cast<double>(gi);  // x relative to the cell
           N += m.n;
-          x += a * m.n;
-          xx += static_cast<double>(a) * a * m.n;
+          x += ax * m.n;
+          xx += ax * ax * m.n;
           y += m.y;
           yy += m.yy;
           z += m.z;
           zz += m.zz;
-          xy += a * m.y;
-          xz += a * m.z;
+          xy += ax * m.y;
+          xz += ax * m.z;
           yz += m.yz;
           lowest = std::min(lowest, m.lowest);
           highest = std::max(highest, m.highest);
         }
-        layer[kStep][cell] = highest - lowest;
+        *out[0] = highest - lowest;
         if (N < tp.min_window_cells) continue;
-        // Centred moments; the normal equations of z = a x + b y + c (x, y in cells).
-        const double mx = x / N, my = y / N, mz = z / N;
-        const double cxx = xx / N - mx * mx, cxy = xy / N - mx * my, cyy = yy / N - my * my;
-        const double cxz = xz / N - mx * mz, cyz = yz / N - my * mz, czz = zz / N - mz * mz;
-        const double det = cxx * cyy - cxy * cxy;
-        if (!(det > 1e-9)) continue;
-        const double ga = (cyy * cxz - cxy * cyz) / det, gb = (cxx * cyz - cxy * cxz) / det;
-        const double slope = std::atan(std::hypot(ga, gb) / params_.resolution_m);
-        const double roughness = std::sqrt(std::max(czz - ga * cxz - gb * cyz, 0.0));
-        const double step = layer[kStep][cell];
-        layer[kSlope][cell] = static_cast<float>(slope);
-        layer[kRoughness][cell] = static_cast<float>(roughness);
-        const bool blocked = slope > tp.max_slope_rad || step > tp.max_step_m || roughness > tp.max_roughness_m ||
-                             layer[kClearance][cell] < tp.min_clearance_m;
-        const double cost = (tp.slope_weight * slope / tp.max_slope_rad + tp.step_weight * step / tp.max_step_m +
-                             tp.roughness_weight * roughness / tp.max_roughness_m) /
-                            weights;
-        layer[kTraversability][cell] = blocked ? 0.0F : static_cast<float>(1.0 - cost);
+        const PlaneFit fit = fit_plane(N, x, y, z, xx, xy, yy, xz, yz, zz);
+        if (!fit.valid) continue;
+        const double slope = std::atan(fit.gradient / params_.resolution_m);
+        *out[1] = static_cast<float>(slope);
+        *out[2] = static_cast<float>(fit.roughness);
+        *out[3] = traversability(tp, slope, *out[0], fit.roughness, layer[kClearance][cell]);
       }
     }
   });
