@@ -235,6 +235,178 @@ struct RowMoments {
   float lowest, highest;
 };
 
+/// Where one scan's points go: the cell of a point, floor(x / res) - origin on each axis through
+/// the map's tables (without a call to floor: the truncation of the difference, one lower when
+/// rounding carried it up to a whole number), and the height variance of a return.
+struct ScanBinning {
+  const std::size_t* row_offset;  ///< per geometric row: its stored row times n
+  const std::size_t* column;      ///< per geometric column: its stored column
+  double origin_x, origin_y, resolution;
+  int n;
+  Eigen::Vector3d sensor;
+  double range_variance, angle_variance;
+
+  std::ptrdiff_t geometric(double q, double origin) const {
+    if (!(q >= origin && q < origin + n)) return -1;
+    auto k = static_cast<std::ptrdiff_t>(q - origin);
+    if (origin + static_cast<double>(k) > q) --k;
+    return k;
+  }
+  /// The stored cell of p, or -1 outside the map.
+  std::ptrdiff_t cell_of(const Eigen::Vector3d& p) const {
+    if (!(p.z() >= -1e9 && p.z() <= 1e9)) return -1;
+    const std::ptrdiff_t gi = geometric(p.x() / resolution, origin_x);
+    const std::ptrdiff_t gj = geometric(p.y() / resolution, origin_y);
+    if (gi < 0 || gj < 0) return -1;
+    return static_cast<std::ptrdiff_t>(row_offset[gi] + column[gj]);
+  }
+  /// var_z = range_sigma^2 sin^2(phi) + angle_sigma^2 r^2 cos^2(phi) of a return at v from the
+  /// sensor (r cos(phi) = |v_xy|).
+  double height_variance(const Eigen::Vector3d& v) const {
+    const double horizontal_squared = v.x() * v.x() + v.y() * v.y();
+    const double range_squared = horizontal_squared + v.z() * v.z();
+    return (range_squared > 0.0 ? range_variance * v.z() * v.z() / range_squared : 0.0) +
+           angle_variance * horizontal_squared;
+  }
+};
+
+/// One pass over the scan: every return into the visibility image (when clearing), each point in
+/// the map into its cell's statistics (overhang points into overhang_min only). Returns the
+/// number of points in the map.
+template <typename Scalar>
+std::size_t bin_scan(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose,
+                     const std::vector<std::uint8_t>& overhang, const ScanBinning& binning, bool clearing,
+                     Workspace& w) {
+  std::size_t in_map = 0;
+  detail::visit_leveled(points, pose, std::nullopt, [&](const auto& cloud) {
+    Eigen::Vector3d p;
+    for (std::size_t row = 0; row < cloud.size(); ++row) {
+      if (cloud.map(row, p) != 0) continue;  // NaN/Inf: collapse threw unless they are dropped
+      const Eigen::Vector3d v = p - binning.sensor;
+      if (clearing) w.visibility.add(v);
+      const std::ptrdiff_t cell = binning.cell_of(p);
+      if (cell < 0) continue;
+      ++in_map;
+      ScanCell& c = w.cells[static_cast<std::size_t>(cell)];
+      if (!c.touched) {
+        c = ScanCell();
+        c.touched = true;
+        w.touched.push_back(static_cast<std::uint32_t>(cell));
+      }
+      if (overhang[row] != 0) {
+        c.overhang_min = std::min(c.overhang_min, p.z());
+      } else {
+        c.add(p.z(), binning.height_variance(v));
+      }
+    }
+  });
+  return in_map;
+}
+
+/// The few cells whose kept heights span more than `threshold`: a second pass gathers their
+/// points and split_at_gaps measures them below their first gap.
+template <typename Scalar>
+void split_discontinuous_cells(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose,
+                               const std::vector<std::uint8_t>& overhang, const ScanBinning& binning, double threshold,
+                               Workspace& w) {
+  const auto wide = [&](const ScanCell& c) { return c.count > 1 && c.highest - c.lowest > threshold; };
+  if (std::none_of(w.touched.begin(), w.touched.end(), [&](std::uint32_t cell) { return wide(w.cells[cell]); })) {
+    return;
+  }
+  detail::visit_leveled(points, pose, std::nullopt, [&](const auto& cloud) {
+    Eigen::Vector3d p;
+    for (std::size_t row = 0; row < cloud.size(); ++row) {
+      if (cloud.map(row, p) != 0 || overhang[row] != 0) continue;
+      const std::ptrdiff_t cell = binning.cell_of(p);
+      if (cell < 0 || !wide(w.cells[static_cast<std::size_t>(cell)])) continue;
+      w.gap_points.push_back({static_cast<std::uint32_t>(cell), p.z(), binning.height_variance(p - binning.sensor)});
+    }
+  });
+  split_at_gaps(w, threshold);
+}
+
+/// Calls clear(cell) for every cell with a height that the visibility image says this scan's rays
+/// passed under by more than `margin` (cells visited in map order through w's tables).
+template <typename Clear>
+void for_each_seen_through(const Workspace& w, const float* elevation, int n, double res, const Eigen::Vector2d& origin,
+                           const Eigen::Vector3d& sensor, double margin, const Clear& clear) {
+  for (int gi = 0; gi < n; ++gi) {
+    for (int gj = 0; gj < n; ++gj) {
+      const std::size_t cell = w.row_offset[gi] + w.column[gj];
+      const float h = elevation[cell];
+      if (std::isnan(h)) continue;
+      const Eigen::Vector3d v(origin.x() + (gi + 0.5) * res - sensor.x(), origin.y() + (gj + 0.5) * res - sensor.y(),
+                              static_cast<double>(h) - margin - sensor.z());
+      const double reach = std::sqrt(v.x() * v.x() + v.y() * v.y()) + res;
+      if (w.visibility.seen_beyond(v, reach)) clear(cell);
+    }
+  }
+}
+
+/// The cell state kept outside the layers: the reference height and the sums of (z - reference)
+/// and its square over the fused points.
+struct CellSums {
+  std::vector<double>& reference;
+  std::vector<double>& sum;
+  std::vector<double>& sum_squares;
+};
+
+/// The 1-D Kalman update of one cell by one scan's measurement c (its mean height, with the
+/// variance of LocalMapParams' noise model), or the cell's replacement when the innovation fails
+/// the gate. Returns whether it was replaced.
+bool fuse_cell(const ScanCell& c, std::size_t cell, const LayerData& layer, CellSums sums, double cell_variance,
+               double gate_squared, double stamp) {
+  const double count = c.count;
+  const double mean_offset = c.sum / count;
+  const double spread = std::max(c.sum_squares / count - mean_offset * mean_offset, 0.0);
+  const double z = c.first + mean_offset;
+  const double r = (c.sum_variance / count + spread) / count + cell_variance;
+  const double h = layer[kElevation][cell];
+  const double p = layer[kVariance][cell];
+  bool fresh = std::isnan(h), replaced = false;
+  if (!fresh && (z - h) * (z - h) > gate_squared * (p + r)) {
+    fresh = true;
+    replaced = true;
+  }
+  if (fresh) {
+    layer[kElevation][cell] = static_cast<float>(z);
+    layer[kVariance][cell] = static_cast<float>(r);
+    layer[kCount][cell] = static_cast<float>(count);
+    layer[kMin][cell] = static_cast<float>(c.lowest);
+    layer[kMax][cell] = static_cast<float>(c.highest);
+    sums.reference[cell] = c.first;
+    sums.sum[cell] = c.sum;
+    sums.sum_squares[cell] = c.sum_squares;
+  } else {
+    const double gain = p / (p + r);
+    layer[kElevation][cell] = static_cast<float>(h + gain * (z - h));
+    layer[kVariance][cell] = static_cast<float>(p * r / (p + r));
+    layer[kCount][cell] += static_cast<float>(count);
+    layer[kMin][cell] = std::min(layer[kMin][cell], static_cast<float>(c.lowest));
+    layer[kMax][cell] = std::max(layer[kMax][cell], static_cast<float>(c.highest));
+    // The scan's sums are relative to its first height; shift them to the cell's reference.
+    const double offset = c.first - sums.reference[cell];
+    sums.sum_squares[cell] += count * offset * offset + 2.0 * offset * c.sum + c.sum_squares;
+    sums.sum[cell] += count * offset + c.sum;
+  }
+  const double total = layer[kCount][cell];
+  const double mean = sums.sum[cell] / total;
+  layer[kStdDev][cell] = static_cast<float>(std::sqrt(std::max(sums.sum_squares[cell] / total - mean * mean, 0.0)));
+  layer[kDiscontinuity][cell] = c.gap ? 1.0F : 0.0F;
+  layer[kTime][cell] = static_cast<float>(stamp);
+  return replaced;
+}
+
+/// "clearance": the lowest overhang above minus the elevation, +inf without one, NaN without height.
+void refresh_clearance(const LayerData& layer, std::size_t cells) {
+  for (std::size_t cell = 0; cell < cells; ++cell) {
+    const float h = layer[kElevation][cell];
+    const float o = layer[kOverhangMin][cell];
+    layer[kClearance][cell] =
+        std::isnan(h) ? kNaN : (std::isnan(o) ? std::numeric_limits<float>::infinity() : std::max(o - h, 0.0F));
+  }
+}
+
 /// The least-squares plane z = a x + b y + c of a window from its sums (x, y in cells): the
 /// gradient |(a, b)| per cell and the RMS vertical residual; invalid for collinear cells.
 struct PlaneFit {
@@ -412,20 +584,7 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
   w.gap_points.clear();
   const bool clearing = params_.clear_seen_through && points.size > 0;
   if (clearing) w.visibility.reset(params_.visibility_bin_rad);
-  const double range_variance = params_.range_sigma_m * params_.range_sigma_m;
-  const double angle_variance = params_.angle_sigma_rad * params_.angle_sigma_rad;
-  // var_z = range_sigma^2 sin^2(phi) + angle_sigma^2 r^2 cos^2(phi), with r cos(phi) = |v_xy|.
-  const auto height_variance = [&](const Eigen::Vector3d& v) {
-    const double horizontal_squared = v.x() * v.x() + v.y() * v.y();
-    const double range_squared = horizontal_squared + v.z() * v.z();
-    return (range_squared > 0.0 ? range_variance * v.z() * v.z() / range_squared : 0.0) +
-           angle_variance * horizontal_squared;
-  };
-
-  // One pass: the visibility image from every return, the scan's statistics per cell.
-  // The stored index of each geometric row (times n) and column, then the cell of a point:
-  // floor(x / res) - origin without a call to floor (the truncation of the difference, one lower
-  // when rounding carried it up to a whole number).
+  // The stored index of each geometric row (times n) and column.
   w.row_offset.resize(static_cast<std::size_t>(n));
   w.column.resize(static_cast<std::size_t>(n));
   for (int g = 0; g < n; ++g) {
@@ -433,149 +592,43 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
     w.column[g] = static_cast<std::size_t>(storage_of(origin_cell_.y() + g, 1));
   }
   const double ox = static_cast<double>(origin_cell_.x()), oy = static_cast<double>(origin_cell_.y());
-  const auto geometric = [n](double q, double origin) -> std::ptrdiff_t {
-    if (!(q >= origin && q < origin + n)) return -1;
-    auto k = static_cast<std::ptrdiff_t>(q - origin);
-    if (origin + static_cast<double>(k) > q) --k;
-    return k;
-  };
-  const auto cell_of = [&](const Eigen::Vector3d& p) -> std::ptrdiff_t {
-    if (!(p.z() >= -1e9 && p.z() <= 1e9)) return -1;
-    const std::ptrdiff_t gi = geometric(p.x() / res, ox);
-    const std::ptrdiff_t gj = geometric(p.y() / res, oy);
-    if (gi < 0 || gj < 0) return -1;
-    return static_cast<std::ptrdiff_t>(w.row_offset[gi] + w.column[gj]);
-  };
-  detail::visit_leveled(points, pose, std::nullopt, [&](const auto& cloud) {
-    Eigen::Vector3d p;
-    for (std::size_t row = 0; row < cloud.size(); ++row) {
-      if (cloud.map(row, p) != 0) continue;  // NaN/Inf: collapse threw unless they are dropped
-      const Eigen::Vector3d v = p - sensor;
-      if (clearing) w.visibility.add(v);
-      const std::ptrdiff_t cell = cell_of(p);
-      if (cell < 0) continue;
-      ++report.num_in_map;
-      ScanCell& c = w.cells[static_cast<std::size_t>(cell)];
-      if (!c.touched) {
-        c = ScanCell();
-        c.touched = true;
-        w.touched.push_back(static_cast<std::uint32_t>(cell));
-      }
-      if (removed.overhang[row] != 0) {
-        c.overhang_min = std::min(c.overhang_min, p.z());
-        continue;
-      }
-      // var_z = range_sigma^2 sin^2(phi) + angle_sigma^2 r^2 cos^2(phi), r cos(phi) = |v_xy|.
-      const double horizontal_squared = v.x() * v.x() + v.y() * v.y();
-      const double range_squared = horizontal_squared + v.z() * v.z();
-      const double variance = (range_squared > 0.0 ? range_variance * v.z() * v.z() / range_squared : 0.0) +
-                              angle_variance * horizontal_squared;
-      if (c.count == 0) c.first = p.z();
-      const double d = p.z() - c.first;
-      ++c.count;
-      c.sum += d;
-      c.sum_squares += d * d;
-      c.sum_variance += variance;
-      c.lowest = std::min(c.lowest, p.z());
-      c.highest = std::max(c.highest, p.z());
-    }
-  });
-
-  // The few cells whose kept heights span more than the discontinuity threshold.
-  bool any_wide = false;
-  for (const std::uint32_t cell : w.touched) {
-    const ScanCell& c = w.cells[cell];
-    any_wide |= c.count > 1 && c.highest - c.lowest > params_.discontinuity_m;
-  }
-  if (any_wide) {
-    detail::visit_leveled(points, pose, std::nullopt, [&](const auto& cloud) {
-      Eigen::Vector3d p;
-      for (std::size_t row = 0; row < cloud.size(); ++row) {
-        if (cloud.map(row, p) != 0 || removed.overhang[row] != 0) continue;
-        const std::ptrdiff_t cell = cell_of(p);
-        if (cell < 0) continue;
-        const ScanCell& c = w.cells[static_cast<std::size_t>(cell)];
-        if (c.highest - c.lowest > params_.discontinuity_m) {
-          w.gap_points.push_back({static_cast<std::uint32_t>(cell), p.z(), height_variance(p - sensor)});
-        }
-      }
-    });
-    split_at_gaps(w, params_.discontinuity_m);
-  }
+  const ScanBinning binning{w.row_offset.data(),
+                            w.column.data(),
+                            ox,
+                            oy,
+                            res,
+                            n,
+                            sensor,
+                            params_.range_sigma_m * params_.range_sigma_m,
+                            params_.angle_sigma_rad * params_.angle_sigma_rad};
+  report.num_in_map = bin_scan(points, pose, removed.overhang, binning, clearing, w);
+  split_discontinuous_cells(points, pose, removed.overhang, binning, params_.discontinuity_m, w);
 
   const LayerData layer = layer_data(layers_);
   // Clearing: a stored height that this scan's rays passed under by the margin is gone.
   if (clearing) {
     w.visibility.finish();
-    for (int gi = 0; gi < n; ++gi) {
-      for (int gj = 0; gj < n; ++gj) {
-        const std::size_t cell = w.row_offset[gi] + w.column[gj];
-        const float h = layer[kElevation][cell];
-        if (std::isnan(h)) continue;
-        const Eigen::Vector3d v((ox + gi + 0.5) * res - sensor.x(), (oy + gj + 0.5) * res - sensor.y(),
-                                static_cast<double>(h) - params_.clearing_margin_m - sensor.z());
-        const double reach = std::sqrt(v.x() * v.x() + v.y() * v.y()) + res;
-        if (w.visibility.seen_beyond(v, reach)) {
-          clear_cells(cell, 1, 1);
-          ++report.num_cleared_cells;
-        }
-      }
-    }
+    const Eigen::Vector2d origin(ox * res, oy * res);
+    for_each_seen_through(w, layer[kElevation], n, res, origin, sensor, params_.clearing_margin_m,
+                          [&](std::size_t cell) {
+                            clear_cells(cell, 1, 1);
+                            ++report.num_cleared_cells;
+                          });
   }
 
   // The 1-D Kalman update of each measured cell, or its replacement outside the gate.
   const double gate_squared = params_.gate_sigmas * params_.gate_sigmas;
+  const double cell_variance = params_.cell_sigma_m * params_.cell_sigma_m;
   for (const std::uint32_t cell : w.touched) {
     ScanCell& c = w.cells[cell];
     c.touched = false;  // the workspace is clean for the next update
     if (c.overhang_min < kInf) layer[kOverhangMin][cell] = static_cast<float>(c.overhang_min);
     if (c.count == 0) continue;
     ++report.num_fused_cells;
-    const double count = c.count;
-    const double mean_offset = c.sum / count;
-    const double spread = std::max(c.sum_squares / count - mean_offset * mean_offset, 0.0);
-    const double z = c.first + mean_offset;
-    const double r = (c.sum_variance / count + spread) / count + params_.cell_sigma_m * params_.cell_sigma_m;
-    const double h = layer[kElevation][cell];
-    const double p = layer[kVariance][cell];
-    bool fresh = std::isnan(h);
-    if (!fresh && (z - h) * (z - h) > gate_squared * (p + r)) {
-      fresh = true;
-      ++report.num_replaced_cells;
-    }
-    if (fresh) {
-      layer[kElevation][cell] = static_cast<float>(z);
-      layer[kVariance][cell] = static_cast<float>(r);
-      layer[kCount][cell] = static_cast<float>(count);
-      layer[kMin][cell] = static_cast<float>(c.lowest);
-      layer[kMax][cell] = static_cast<float>(c.highest);
-      reference_[cell] = c.first;
-      sum_[cell] = c.sum;
-      sum_squares_[cell] = c.sum_squares;
-    } else {
-      const double gain = p / (p + r);
-      layer[kElevation][cell] = static_cast<float>(h + gain * (z - h));
-      layer[kVariance][cell] = static_cast<float>(p * r / (p + r));
-      layer[kCount][cell] += static_cast<float>(count);
-      layer[kMin][cell] = std::min(layer[kMin][cell], static_cast<float>(c.lowest));
-      layer[kMax][cell] = std::max(layer[kMax][cell], static_cast<float>(c.highest));
-      // The scan's sums are relative to its first height; shift them to the cell's reference.
-      const double offset = c.first - reference_[cell];
-      sum_squares_[cell] += count * offset * offset + 2.0 * offset * c.sum + c.sum_squares;
-      sum_[cell] += count * offset + c.sum;
-    }
-    const double total = layer[kCount][cell];
-    const double mean = sum_[cell] / total;
-    layer[kStdDev][cell] = static_cast<float>(std::sqrt(std::max(sum_squares_[cell] / total - mean * mean, 0.0)));
-    layer[kDiscontinuity][cell] = c.gap ? 1.0F : 0.0F;
-    layer[kTime][cell] = static_cast<float>(stamp);
+    report.num_replaced_cells +=
+        fuse_cell(c, cell, layer, {reference_, sum_, sum_squares_}, cell_variance, gate_squared, stamp);
   }
-  for (std::size_t cell = 0; cell < cells; ++cell) {
-    const float h = layer[kElevation][cell];
-    const float o = layer[kOverhangMin][cell];
-    layer[kClearance][cell] =
-        std::isnan(h) ? kNaN : (std::isnan(o) ? std::numeric_limits<float>::infinity() : std::max(o - h, 0.0F));
-  }
+  refresh_clearance(layer, cells);
   if (params_.compute_planner_layers) update_planner_layers();
   ++num_updates_;
   return report;
