@@ -146,3 +146,38 @@ def test_bad_input_is_refused_and_leaves_the_map_unchanged():
     report = m.update(np.empty((0, 3)), pose_at(0.2, 0.0, 1.0))
     assert report.num_fused_cells == 0 and not report.map_reset
     assert "LocalMap(length=4.0" in repr(m)
+
+
+def test_stream_command_on_kitti_frames_writes_the_map_pictures_and_an_animation(shared_data, tmp_path):
+    from terracube.cli import app
+    from typer.testing import CliRunner
+
+    kitti = shared_data.root / "kitti_seq00"
+    out = tmp_path / "stream"
+    args = ["stream", str(kitti / "velodyne"), "--poses", str(kitti / "poses.txt"), "-o", str(out)]
+    result = CliRunner().invoke(app, [*args, "--every", "2", "--length", "10"])
+    assert result.exit_code == 0, result.output
+    assert "6 scans into a 100 x 100 local map" in result.output
+    pictures = sorted(p.name for p in out.glob("local_elevation_*.png"))
+    assert pictures == [
+        "local_elevation_000002.png",
+        "local_elevation_000004.png",
+        "local_elevation_000006.png",
+    ]
+    for name in ("local_map.npz", "local_elevation.png", "local_traversability.png"):
+        assert (out / name).is_file(), name
+    saved = terracube.ElevationMap.load(out / "local_map.npz")
+    assert {"elevation", "variance", "clearance", "traversability"} <= set(saved.layers)
+    assert np.isfinite(saved["elevation"]).sum() > 3000
+    traversability = saved["traversability"][np.isfinite(saved["traversability"])]
+    assert traversability.size > 3000 and traversability.min() >= 0.0 and traversability.max() <= 1.0
+
+    movie = tmp_path / "drive.gif"
+    result = CliRunner().invoke(
+        app, [*args, "--length", "10", "--no-png", "--animation", str(movie), "--limit", "3"]
+    )
+    assert result.exit_code == 0, result.output
+    assert movie.stat().st_size > 1000
+    assert not (out / "local_elevation_000003.png").exists()
+    result = CliRunner().invoke(app, [*args, "--resolution", "-1"])
+    assert result.exit_code != 0 and "resolution" in result.output
