@@ -3,13 +3,13 @@
 What is measured
 ----------------
 KITTI seq 00 frames 0-5 (float32 strided views of x, y, z, intensity rows, about 124,000 points
-each), the sensor at the identity pose (level, at the origin of the odometry frame). A
+each) at their poses (``poses.txt`` turned into Velodyne poses with ``calib.txt``). A
 ``terracube.LocalMap`` of 20 x 20 m at 0.1 m (200 x 200 cells, the defaults) is first fed frames
 0-4, then every timed call fuses frame 5 again (the steady state of a robot's loop: the map full,
 the same amount of work every call). Timed side by side, in turn, on one thread:
 
-- ``build_elevation_map``: the six layers of frame 5 over the same 200 x 200 cells (the baseline
-  the issue names: one scan, no fusion, no overhang removal);
+- ``build_elevation_map``: the six layers of frame 5, moved by its pose, over the same 200 x 200
+  cells (the baseline the issue names: one scan, no fusion, no overhang removal);
 - ``LocalMap.update``: overhang removal ([CBC], edge 0.5 m, sigma 2), the see-through test, the
   Kalman fusion and the planner layers (step, slope, roughness, traversability over 7 x 7 windows);
 - the same update without the planner layers (``compute_planner_layers=False``), and without the
@@ -74,13 +74,16 @@ def main(argv: list[str] | None = None) -> int:
         args,
         f"every {QUICK_STRIDE}th point",
     )
-    pose = np.eye(4)
-    origin, size = (-10.0, -10.0), (200, 200)
+    from terracube.mapping import read_kitti_calibration, read_pose_file
+
+    kitti = args.data_dir / "kitti_seq00"
+    poses = read_pose_file(kitti / "poses.txt", "kitti", read_kitti_calibration(kitti / "calib.txt"))[1]
+    pose = poses[5]
 
     def local_map(**changes) -> tc.LocalMap:
         m = tc.LocalMap(length=20.0, resolution=0.1, **changes)
-        for scan in scans[:-1]:
-            m.update(scan, pose)
+        for scan, scan_pose in zip(scans[:-1], poses[:5], strict=True):
+            m.update(scan, scan_pose)
         return m
 
     full = local_map()
@@ -88,8 +91,12 @@ def main(argv: list[str] | None = None) -> int:
     fusion_only = local_map(compute_planner_layers=False, clear_seen_through=False)
     last = scans[-1]
     full.update(last, pose)
-    single = tc.build_elevation_map(last, 0.1, origin=origin, size=size)
-    require(full.geometry.origin[0] == origin[0] and full.geometry.origin[1] == origin[1], "map areas differ")
+    origin, size = tuple(full.geometry.origin), (200, 200)
+
+    def single_map():
+        return tc.build_elevation_map(last, 0.1, origin=origin, size=size, transform=pose)
+
+    single = single_map()
     fused = full.to_elevation_map()["elevation"]
     require(
         not np.any(
@@ -99,12 +106,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     times = interleaved_median_ms(
         {
-            "build_elevation_map": lambda: tc.build_elevation_map(last, 0.1, origin=origin, size=size),
+            "build_elevation_map": single_map,
             "LocalMap.update": lambda: full.update(last, pose),
             "update, no planner layers": lambda: no_planner.update(last, pose),
             "update, fusion only": lambda: fusion_only.update(last, pose),
             "dem_without_overhangs": lambda: tc.dem_without_overhangs(
-                last, elevation=tc.ElevationParams(0.1, origin=origin, size=size)
+                last,
+                collapse=tc.CollapseParams(transform=pose),
+                elevation=tc.ElevationParams(0.1, origin=origin, size=size),
             ),
         },
         args.repeat,

@@ -52,6 +52,7 @@ void bind_local_map(py::module_& m) {
       .def_readwrite("range_sigma_m", &LocalMapParams::range_sigma_m)
       .def_readwrite("angle_sigma_rad", &LocalMapParams::angle_sigma_rad)
       .def_readwrite("cell_sigma_m", &LocalMapParams::cell_sigma_m)
+      .def_readwrite("drift_m_per_sqrt_m", &LocalMapParams::drift_m_per_sqrt_m)
       .def_readwrite("gate_sigmas", &LocalMapParams::gate_sigmas)
       .def_readwrite("clear_seen_through", &LocalMapParams::clear_seen_through)
       .def_readwrite("clearing_margin_m", &LocalMapParams::clearing_margin_m)

@@ -96,6 +96,7 @@ void check_local_map_params(const LocalMapParams& p) {
   check_non_negative(p.angle_sigma_rad, "LocalMapParams.angle_sigma_rad");
   check_positive(p.cell_sigma_m, "LocalMapParams.cell_sigma_m");
   check_positive(p.gate_sigmas, "LocalMapParams.gate_sigmas");
+  check_non_negative(p.drift_m_per_sqrt_m, "LocalMapParams.drift_m_per_sqrt_m");
   check_non_negative(p.clearing_margin_m, "LocalMapParams.clearing_margin_m");
   check_positive(p.visibility_bin_rad, "LocalMapParams.visibility_bin_rad");
   if (p.visibility_bin_rad > 0.5) throw std::invalid_argument("LocalMapParams.visibility_bin_rad must be <= 0.5 rad");
@@ -397,6 +398,12 @@ bool fuse_cell(const ScanCell& c, std::size_t cell, const LayerData& layer, Cell
   return replaced;
 }
 
+/// Empties one cell: NaN in every layer but "count" (0), its sums reset.
+void clear_cell(const LayerData& layer, CellSums sums, std::size_t cell) {
+  for (std::size_t k = 0; k < layer.size(); ++k) layer[k][cell] = k == kCount ? 0.0F : kNaN;
+  sums.reference[cell] = sums.sum[cell] = sums.sum_squares[cell] = 0.0;
+}
+
 /// "clearance": the lowest overhang above minus the elevation, +inf without one, NaN without height.
 void refresh_clearance(const LayerData& layer, std::size_t cells) {
   for (std::size_t cell = 0; cell < cells; ++cell) {
@@ -423,7 +430,7 @@ PlaneFit fit_plane(double n, double x, double y, double z, double xx, double xy,
   if (!(det > 1e-9)) return fit;
   const double a = (cyy * cxz - cxy * cyz) / det, b = (cxx * cyz - cxy * cxz) / det;
   fit.valid = true;
-  fit.gradient = std::hypot(a, b);
+  fit.gradient = std::sqrt(a * a + b * b);
   fit.roughness = std::sqrt(std::max(czz - a * cxz - b * cyz, 0.0));
   return fit;
 }
@@ -490,15 +497,8 @@ const Layer& LocalMap::get(const std::string& name) const { return layers_.get(n
 std::vector<std::string> LocalMap::layers() const { return layers_.layers(); }
 
 void LocalMap::clear_cells(std::size_t first, std::size_t count, std::size_t stride) {
-  const LayerData data = layer_data(layers_);
-  for (std::size_t k = 0; k < data.size(); ++k) {
-    const float empty = k == kCount ? 0.0F : kNaN;
-    for (std::size_t c = 0; c < count; ++c) data[k][first + c * stride] = empty;
-  }
-  for (std::size_t c = 0; c < count; ++c) {
-    const std::size_t cell = first + c * stride;
-    reference_[cell] = sum_[cell] = sum_squares_[cell] = 0.0;
-  }
+  const LayerData layer = layer_data(layers_);
+  for (std::size_t c = 0; c < count; ++c) clear_cell(layer, {reference_, sum_, sum_squares_}, first + c * stride);
 }
 
 void LocalMap::clear() { clear_cells(0, geometry_.num_cells(), 1); }
@@ -577,6 +577,14 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
   report.num_overhang = removed.num_overhang;
 
   report.map_reset = move_to(sensor.head<2>());
+  const LayerData layer = layer_data(layers_);
+  if (last_sensor_ && params_.drift_m_per_sqrt_m > 0.0) {
+    // Odometry drift: every known height grows less certain with the distance travelled.
+    const auto growth =
+        static_cast<float>(params_.drift_m_per_sqrt_m * params_.drift_m_per_sqrt_m * (sensor - *last_sensor_).norm());
+    for (std::size_t cell = 0; cell < geometry_.num_cells(); ++cell) layer[kVariance][cell] += growth;  // NaN stays
+  }
+  last_sensor_ = sensor;
   Workspace& w = thread_workspace();
   const std::size_t cells = geometry_.num_cells();
   w.cells.resize(cells);
@@ -604,14 +612,13 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
   report.num_in_map = bin_scan(points, pose, removed.overhang, binning, clearing, w);
   split_discontinuous_cells(points, pose, removed.overhang, binning, params_.discontinuity_m, w);
 
-  const LayerData layer = layer_data(layers_);
   // Clearing: a stored height that this scan's rays passed under by the margin is gone.
   if (clearing) {
     w.visibility.finish();
     const Eigen::Vector2d origin(ox * res, oy * res);
     for_each_seen_through(w, layer[kElevation], n, res, origin, sensor, params_.clearing_margin_m,
                           [&](std::size_t cell) {
-                            clear_cells(cell, 1, 1);
+                            clear_cell(layer, {reference_, sum_, sum_squares_}, cell);
                             ++report.num_cleared_cells;
                           });
   }

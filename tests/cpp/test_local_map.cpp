@@ -58,6 +58,15 @@ LocalMapParams small_map_params() {
   return params;
 }
 
+/// The simulator's exact noise: range noise only, poses without drift.
+LocalMapParams with_simulator_noise(LocalMapParams params) {
+  params.range_sigma_m = 0.02;
+  params.angle_sigma_rad = 0.0;
+  params.cell_sigma_m = 0.004;
+  params.drift_m_per_sqrt_m = 0.0;
+  return params;
+}
+
 bool same_float(float a, float b) { return (std::isnan(a) && std::isnan(b)) || a == b; }
 
 TEST(LocalMap, CircularShiftMatchesANaiveRebinningOfTheGlobalCells) {
@@ -169,6 +178,13 @@ TEST(LocalMap, KalmanUpdateOfOneCellMatchesHandArithmetic) {
   }
   EXPECT_NEAR(at("std_dev"), std::sqrt(squares), 1e-6);
   EXPECT_EQ(at("clearance"), std::numeric_limits<float>::infinity());
+  // Odometry drift: moving 0.6 m without a scan adds drift^2 * 0.6 to every known variance.
+  map.update(PointsView<double>(nullptr, 0), pose_at(0.6, 0.0, 1.0), 11.5);
+  const auto moved_index = map.index_of({0.55, 0.25});
+  ASSERT_TRUE(moved_index.has_value());
+  EXPECT_NEAR(map.get("variance")((*moved_index).x(), (*moved_index).y()),
+              r1 * r2 / (r1 + r2) + params.drift_m_per_sqrt_m * params.drift_m_per_sqrt_m * 0.6, 1e-9);
+  map.update(PointsView<double>(nullptr, 0), pose, 11.7);
   // A measurement 0.5 m higher fails the 3-sigma gate: it replaces the cell.
   const std::vector<Eigen::Vector3d> moved = {{0.53, 0.23, -0.5}};
   const LocalMapUpdate replaced = map.update(PointsView<double>(moved.data()->data(), moved.size()), pose, 12.0);
@@ -320,7 +336,7 @@ GhostCount moving_box_ghosts(bool clear_seen_through) {
   sim::Terrain terrain;
   terrain.hills.push_back({{8.0, 6.0}, 0.8, 6.0});
   const sim::RotatingLidar lidar = test_lidar();
-  LocalMapParams params;
+  LocalMapParams params = with_simulator_noise({});
   params.clear_seen_through = clear_seen_through;
   LocalMap map(params);
   GhostCount out;
@@ -417,7 +433,7 @@ DriveErrors drive_errors(int num_threads, LocalMap* out = nullptr) {
   trajectory.yaw_bias_rad_per_m = trajectory.yaw_random_walk_rad_per_sqrt_m = 0.0;
   trajectory.translation_scale_error = trajectory.roll_pitch_noise_rad = 0.0;
   const sim::SyntheticSequence sequence = sim::generate_sequence(scene, trajectory, test_lidar(), 3);
-  LocalMapParams params;
+  LocalMapParams params = with_simulator_noise({});
   params.num_threads = num_threads;
   LocalMap map(params);
   const int scans = 14;

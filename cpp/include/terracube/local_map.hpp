@@ -58,11 +58,17 @@ struct LocalMapParams {
   /// noise along the beam, angular noise across it). A cell's measurement from one scan is the
   /// mean z of its n kept points with the variance  (mean var_z + spread^2) / n + cell_sigma^2,
   /// spread^2 the population variance of those heights, cell_sigma the height error that does
-  /// not average out over the points: on sloped ground their mean lies off the cell's centre
-  /// (0.004 m makes the normalised error about 1 on the simulator's roads at 0.1 m cells).
-  double range_sigma_m = 0.02;   ///< >= 0
-  double angle_sigma_rad = 0.0;  ///< >= 0 (0.0015 rad for a Velodyne HDL-64E's angular accuracy)
-  double cell_sigma_m = 0.004;   ///< > 0
+  /// not average out over the points: on sloped ground their mean lies off the cell's centre, and
+  /// a moving sensor's sweep is distorted.
+  /// Defaults for a Velodyne HDL-64E-class sensor on a vehicle; the simulator's exact noise is
+  /// range 0.02, angle 0, cell 0.004 (the normalised error is then about 1).
+  double range_sigma_m = 0.02;      ///< >= 0
+  double angle_sigma_rad = 0.0015;  ///< >= 0
+  double cell_sigma_m = 0.02;       ///< > 0
+  /// Height drift of the odometry: before each update every known cell's variance grows by
+  /// drift^2 times the distance the sensor moved since the last update [m] (a random walk per
+  /// metre travelled, as elevation_mapping's robot-motion variance). 0 for exact poses.
+  double drift_m_per_sqrt_m = 0.01;  ///< >= 0
   /// A measurement further than gate_sigmas standard deviations of the innovation from the cell's
   /// estimate replaces it (the cell changed, e.g. an object came or went) instead of being fused.
   double gate_sigmas = 3.0;  ///< > 0
@@ -171,6 +177,7 @@ class LocalMap {
   // square over the fused points (for "std_dev").
   std::vector<double> reference_, sum_, sum_squares_;
   std::size_t num_updates_ = 0;
+  std::optional<Eigen::Vector3d> last_sensor_;  // for the drift
 };
 
 }  // namespace terracube
