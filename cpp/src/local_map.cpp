@@ -98,6 +98,10 @@ void check_local_map_params(const LocalMapParams& p) {
   check_positive(p.gate_sigmas, "LocalMapParams.gate_sigmas");
   check_non_negative(p.drift_m_per_sqrt_m, "LocalMapParams.drift_m_per_sqrt_m");
   check_non_negative(p.clearing_margin_m, "LocalMapParams.clearing_margin_m");
+  check_positive(p.clearing_depth_m, "LocalMapParams.clearing_depth_m");
+  if (p.clearing_depth_m <= p.clearing_margin_m) {
+    throw std::invalid_argument("LocalMapParams.clearing_depth_m must exceed clearing_margin_m");
+  }
   check_positive(p.visibility_bin_rad, "LocalMapParams.visibility_bin_rad");
   if (p.visibility_bin_rad > 0.5) throw std::invalid_argument("LocalMapParams.visibility_bin_rad must be <= 0.5 rad");
   check_positive(p.discontinuity_m, "LocalMapParams.discontinuity_m");
@@ -137,27 +141,23 @@ class VisibilityImage {
     float& nearest = nearest_squared_[static_cast<std::size_t>(bin_of(v, horizontal_squared, 0))];
     nearest = std::min(nearest, static_cast<float>(horizontal_squared));
   }
-  /// Turns each bin into the farthest of the nearest returns of the bins with returns at or below
-  /// it in its azimuth column (-1 when none): the query below then costs one look-up.
-  void finish() {
-    for (int a = 0; a < azimuth_bins_; ++a) {
-      float* column = nearest_squared_.data() + static_cast<std::ptrdiff_t>(a) * elevation_bins_;
-      float best = -1.0F;
-      for (int e = 0; e < elevation_bins_; ++e) {
-        if (column[e] < kInfF) best = std::max(best, column[e]);
-        column[e] = best;
-      }
-    }
-  }
-  /// After finish(): whether, in some bin below direction v's (beams leave gaps, and a ray far
-  /// below that still went beyond also passed under v's end point), every return lies
-  /// horizontally beyond `reach` (all of them, so that a ray beside v's that met something nearer
-  /// vetoes its bin).
-  bool seen_beyond(const Eigen::Vector3d& v, double reach) const {
-    const double horizontal_squared = v.x() * v.x() + v.y() * v.y();
+  /// Whether, in some bin between the directions to `low` and (just below) `high` (points above
+  /// the same cell centre, low below high), every return lies horizontally beyond `reach`: rays
+  /// passed through that part of the cell's column on their way further (all returns of a bin, so
+  /// that a ray beside the direction that met something nearer vetoes its bin). Beams leave gaps
+  /// between rows: empty bins say nothing.
+  bool seen_beyond(const Eigen::Vector3d& low, const Eigen::Vector3d& high, double reach) const {
+    const double horizontal_squared = high.x() * high.x() + high.y() * high.y();
     if (horizontal_squared == 0.0) return false;
-    const std::ptrdiff_t bin = bin_of(v, horizontal_squared, -1);
-    return bin >= 0 && static_cast<double>(nearest_squared_[static_cast<std::size_t>(bin)]) > reach * reach;
+    const std::ptrdiff_t top = bin_of(high, horizontal_squared, -1);
+    if (top < 0) return false;
+    const std::ptrdiff_t bottom = std::max(bin_of(low, horizontal_squared, 0), top - top % elevation_bins_);
+    const auto beyond = static_cast<float>(reach * reach);
+    for (std::ptrdiff_t bin = bottom; bin <= top; ++bin) {
+      const float nearest = nearest_squared_[static_cast<std::size_t>(bin)];
+      if (nearest < kInfF && nearest > beyond) return true;
+    }
+    return false;
   }
 
  private:
@@ -326,20 +326,23 @@ void split_discontinuous_cells(const PointsView<Scalar>& points, const Eigen::Ma
   split_at_gaps(w, threshold);
 }
 
-/// Calls clear(cell) for every cell with a height that the visibility image says this scan's rays
-/// passed under by more than `margin` (cells visited in map order through w's tables).
+/// Calls clear(cell) for every cell whose column this scan's rays passed through, on their way to
+/// returns beyond it, between its lowest fused point (or `depth` below its height, if lower) and
+/// `margin` below its height: where the points it holds would have stopped them. (Rays under a
+/// car's body or a table, below everything the cell holds, say nothing about it.)
 template <typename Clear>
-void for_each_seen_through(const Workspace& w, const float* elevation, int n, double res, const Eigen::Vector2d& origin,
-                           const Eigen::Vector3d& sensor, double margin, const Clear& clear) {
+void for_each_seen_through(const Workspace& w, const float* elevation, const float* lowest, int n, double res,
+                           const Eigen::Vector2d& origin, const Eigen::Vector3d& sensor, double margin, double depth,
+                           const Clear& clear) {
   for (int gi = 0; gi < n; ++gi) {
     for (int gj = 0; gj < n; ++gj) {
       const std::size_t cell = w.row_offset[gi] + w.column[gj];
       const float h = elevation[cell];
       if (std::isnan(h)) continue;
-      const Eigen::Vector3d v(origin.x() + (gi + 0.5) * res - sensor.x(), origin.y() + (gj + 0.5) * res - sensor.y(),
-                              static_cast<double>(h) - margin - sensor.z());
-      const double reach = std::sqrt(v.x() * v.x() + v.y() * v.y()) + res;
-      if (w.visibility.seen_beyond(v, reach)) clear(cell);
+      const double x = origin.x() + (gi + 0.5) * res - sensor.x(), y = origin.y() + (gj + 0.5) * res - sensor.y();
+      const double bottom = std::min(static_cast<double>(lowest[cell]), h - depth);
+      const double reach = std::sqrt(x * x + y * y) + res;
+      if (w.visibility.seen_beyond({x, y, bottom - sensor.z()}, {x, y, h - margin - sensor.z()}, reach)) clear(cell);
     }
   }
 }
@@ -614,10 +617,9 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
 
   // Clearing: a stored height that this scan's rays passed under by the margin is gone.
   if (clearing) {
-    w.visibility.finish();
     const Eigen::Vector2d origin(ox * res, oy * res);
-    for_each_seen_through(w, layer[kElevation], n, res, origin, sensor, params_.clearing_margin_m,
-                          [&](std::size_t cell) {
+    for_each_seen_through(w, layer[kElevation], layer[kMin], n, res, origin, sensor, params_.clearing_margin_m,
+                          params_.clearing_depth_m, [&](std::size_t cell) {
                             clear_cell(layer, {reference_, sum_, sum_squares_}, cell);
                             ++report.num_cleared_cells;
                           });

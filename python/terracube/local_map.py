@@ -93,8 +93,11 @@ class LocalMapParams:
     gate_sigmas : float
         A measurement further than this many standard deviations of the innovation replaces the
         cell instead of being fused (something came or went).
-    clear_seen_through : bool
-        Clear a cell whose stored height this scan's rays passed under by ``clearing_margin`` [m].
+    clear_seen_through, clearing_margin, clearing_depth
+        Clear a cell whose column this scan's rays passed through, on their way further, between its
+        lowest fused point (or ``clearing_depth`` [m] below its height, if lower) and
+        ``clearing_margin`` [m] below its height (a person or car that left); rays below all its
+        points (under a car's body) say nothing.
     visibility_bin : float
         Angular bin of the see-through test [rad].
     discontinuity : float
@@ -117,6 +120,7 @@ class LocalMapParams:
     gate_sigmas: float = 3.0
     clear_seen_through: bool = True
     clearing_margin: float = 0.1
+    clearing_depth: float = 0.5
     visibility_bin: float = 0.0087
     discontinuity: float = 1.0
     compute_planner_layers: bool = True
@@ -135,6 +139,7 @@ class LocalMapParams:
         params.gate_sigmas = float(self.gate_sigmas)
         params.clear_seen_through = bool(self.clear_seen_through)
         params.clearing_margin_m = float(self.clearing_margin)
+        params.clearing_depth_m = float(self.clearing_depth)
         params.visibility_bin_rad = float(self.visibility_bin)
         params.discontinuity_m = float(self.discontinuity)
         params.compute_planner_layers = bool(self.compute_planner_layers)
