@@ -138,6 +138,8 @@ def test_bad_input_is_refused_and_leaves_the_map_unchanged():
         m.update(points, sensor, stamp=math.inf)
     with pytest.raises(ValueError, match="length_m"):
         terracube.LocalMap(length=-1.0)
+    with pytest.raises(ValueError, match="clearing_depth_m must exceed"):
+        terracube.LocalMap(clearing_depth=0.05)
     with pytest.raises(ValueError, match="max_slope"):
         terracube.LocalMap(traversability=terracube.TraversabilityParams(max_slope=0.0))
     for name, layer in before.items():
