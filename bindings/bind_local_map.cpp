@@ -57,6 +57,7 @@ void bind_local_map(py::module_& m) {
       .def_readwrite("clear_seen_through", &LocalMapParams::clear_seen_through)
       .def_readwrite("clearing_margin_m", &LocalMapParams::clearing_margin_m)
       .def_readwrite("clearing_depth_m", &LocalMapParams::clearing_depth_m)
+      .def_readwrite("clearing_beyond_m", &LocalMapParams::clearing_beyond_m)
       .def_readwrite("visibility_bin_rad", &LocalMapParams::visibility_bin_rad)
       .def_readwrite("discontinuity_m", &LocalMapParams::discontinuity_m)
       .def_readwrite("compute_planner_layers", &LocalMapParams::compute_planner_layers)

@@ -99,6 +99,7 @@ void check_local_map_params(const LocalMapParams& p) {
   check_non_negative(p.drift_m_per_sqrt_m, "LocalMapParams.drift_m_per_sqrt_m");
   check_non_negative(p.clearing_margin_m, "LocalMapParams.clearing_margin_m");
   check_positive(p.clearing_depth_m, "LocalMapParams.clearing_depth_m");
+  check_non_negative(p.clearing_beyond_m, "LocalMapParams.clearing_beyond_m");
   if (p.clearing_depth_m <= p.clearing_margin_m) {
     throw std::invalid_argument("LocalMapParams.clearing_depth_m must exceed clearing_margin_m");
   }
@@ -327,13 +328,13 @@ void split_discontinuous_cells(const PointsView<Scalar>& points, const Eigen::Ma
 }
 
 /// Calls clear(cell) for every cell whose column this scan's rays passed through, on their way to
-/// returns beyond it, between its lowest fused point (or `depth` below its height, if lower) and
-/// `margin` below its height: where the points it holds would have stopped them. (Rays under a
-/// car's body or a table, below everything the cell holds, say nothing about it.)
+/// returns at least `beyond` further away horizontally, between its lowest fused point (or `depth` below its height, if
+/// lower) and `margin` below its height: where the points it holds would have stopped them. (Rays under a car's body or
+/// a table, below everything the cell holds, say nothing about it.)
 template <typename Clear>
 void for_each_seen_through(const Workspace& w, const float* elevation, const float* lowest, int n, double res,
                            const Eigen::Vector2d& origin, const Eigen::Vector3d& sensor, double margin, double depth,
-                           const Clear& clear) {
+                           double beyond, const Clear& clear) {
   for (int gi = 0; gi < n; ++gi) {
     for (int gj = 0; gj < n; ++gj) {
       const std::size_t cell = w.row_offset[gi] + w.column[gj];
@@ -341,7 +342,7 @@ void for_each_seen_through(const Workspace& w, const float* elevation, const flo
       if (std::isnan(h)) continue;
       const double x = origin.x() + (gi + 0.5) * res - sensor.x(), y = origin.y() + (gj + 0.5) * res - sensor.y();
       const double bottom = std::min(static_cast<double>(lowest[cell]), h - depth);
-      const double reach = std::sqrt(x * x + y * y) + res;
+      const double reach = std::sqrt(x * x + y * y) + beyond;
       if (w.visibility.seen_beyond({x, y, bottom - sensor.z()}, {x, y, h - margin - sensor.z()}, reach)) clear(cell);
     }
   }
@@ -619,7 +620,7 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
   if (clearing) {
     const Eigen::Vector2d origin(ox * res, oy * res);
     for_each_seen_through(w, layer[kElevation], layer[kMin], n, res, origin, sensor, params_.clearing_margin_m,
-                          params_.clearing_depth_m, [&](std::size_t cell) {
+                          params_.clearing_depth_m, std::max(params_.clearing_beyond_m, res), [&](std::size_t cell) {
                             clear_cell(layer, {reference_, sum_, sum_squares_}, cell);
                             ++report.num_cleared_cells;
                           });

@@ -93,8 +93,9 @@ class LocalMapParams:
     gate_sigmas : float
         A measurement further than this many standard deviations of the innovation replaces the
         cell instead of being fused (something came or went).
-    clear_seen_through, clearing_margin, clearing_depth
-        Clear a cell whose column this scan's rays passed through, on their way further, between its
+    clear_seen_through, clearing_margin, clearing_depth, clearing_beyond
+        Clear a cell whose column this scan's rays passed through, on their way to returns at least
+        ``clearing_beyond`` [m] further (more than motion distortion moves a surface), between its
         lowest fused point (or ``clearing_depth`` [m] below its height, if lower) and
         ``clearing_margin`` [m] below its height (a person or car that left); rays below all its
         points (under a car's body) say nothing.
@@ -121,6 +122,7 @@ class LocalMapParams:
     clear_seen_through: bool = True
     clearing_margin: float = 0.1
     clearing_depth: float = 0.5
+    clearing_beyond: float = 0.5
     visibility_bin: float = 0.0087
     discontinuity: float = 1.0
     compute_planner_layers: bool = True
@@ -140,6 +142,7 @@ class LocalMapParams:
         params.clear_seen_through = bool(self.clear_seen_through)
         params.clearing_margin_m = float(self.clearing_margin)
         params.clearing_depth_m = float(self.clearing_depth)
+        params.clearing_beyond_m = float(self.clearing_beyond)
         params.visibility_bin_rad = float(self.visibility_bin)
         params.discontinuity_m = float(self.discontinuity)
         params.compute_planner_layers = bool(self.compute_planner_layers)

@@ -377,7 +377,7 @@ GhostCount moving_box_ghosts(bool clear_seen_through) {
       ++out.high;
       // The naive reference: march every ray of the last scan in 1 cm steps; was one in this
       // cell between its lowest point (or 0.5 m below its height) and 0.1 m below its height,
-      // on its way to a return beyond the cell?
+      // on its way to a return 0.5 m beyond the cell?
       const double bottom = std::min<double>(ordered.get("min")(i, j), elevation(i, j) - 0.5);
       const auto& [scan, pose] = last_scan;
       const Eigen::Vector3d origin = pose.topRightCorner<3, 1>();
@@ -385,7 +385,10 @@ GhostCount moving_box_ghosts(bool clear_seen_through) {
       for (const Eigen::Vector3f& q : scan.points) {
         const Eigen::Vector3d end = pose.topLeftCorner<3, 3>() * q.cast<double>() + origin;
         const int steps = static_cast<int>((end - origin).norm() / 0.01);
-        for (int t = 0; t < steps - 10 && !seen_through; ++t) {
+        // Only returns at least 0.5 m (horizontally) beyond the cell centre count.
+        const bool far = std::hypot(end.x() - origin.x(), end.y() - origin.y()) >=
+                         std::hypot(c.x() - origin.x(), c.y() - origin.y()) + 0.5;
+        for (int t = 0; t < steps && far && !seen_through; ++t) {
           const Eigen::Vector3d at = origin + (end - origin) * (static_cast<double>(t) / steps);
           seen_through = std::abs(at.x() - c.x()) < 0.05 && std::abs(at.y() - c.y()) < 0.05 &&
                          at.z() < elevation(i, j) - 0.1 && at.z() > bottom;

@@ -73,15 +73,17 @@ struct LocalMapParams {
   /// estimate replaces it (the cell changed, e.g. an object came or went) instead of being fused.
   double gate_sigmas = 3.0;  ///< > 0
   /// A cell's height is cleared when this scan's rays passed through its column, on their way to
-  /// returns beyond it, between its lowest fused point (or clearing_depth_m below its height, if
-  /// lower) and clearing_margin_m below its height: where its own points would have stopped them
-  /// (it was seen through: a person or car that left). Rays below everything the cell holds (under
+  /// returns at least clearing_beyond_m further away (more than a sweep's motion distortion or a
+  /// pose error moves a surface), between its lowest fused point (or clearing_depth_m below its
+  /// height, if lower) and clearing_margin_m below its height: where its own points would have
+  /// stopped them (it was seen through: a person or car that left). Rays below everything the cell holds (under
   /// a car's body or a table) say nothing about it. The test bins this scan's returns by direction
   /// from the sensor (bins of visibility_bin_rad in elevation, twice that in azimuth) and keeps
   /// each bin's nearest horizontal range; a bin counts when all its returns lie beyond the cell.
   bool clear_seen_through = true;
   double clearing_margin_m = 0.1;      ///< >= 0
   double clearing_depth_m = 0.5;       ///< > clearing_margin_m
+  double clearing_beyond_m = 0.5;      ///< >= 0 (at least one cell is used)
   double visibility_bin_rad = 0.0087;  ///< > 0, <= 0.5
   /// A cell is discontinuous when one scan's sorted kept heights in it have a gap over this [m].
   double discontinuity_m = 1.0;
