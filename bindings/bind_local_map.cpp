@@ -91,6 +91,7 @@ void bind_local_map(py::module_& m) {
           [](const LocalMap& map) { return std::make_pair(map.start_index().x(), map.start_index().y()); })
       .def_property_readonly("layers", &LocalMap::layers)
       .def_property_readonly("num_updates", &LocalMap::num_updates)
+      .def_property_readonly("time_origin", &LocalMap::time_origin_s, "the first update's stamp [s]")
       .def("get", &local_layer_view, py::arg("name"), "(n, n) read-only float32 view of a layer, storage order")
       .def(
           "index_of",

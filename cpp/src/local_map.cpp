@@ -555,7 +555,10 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
   if ((pose.block<2, 1>(0, 3).array().abs() > 1e12).any()) {
     throw std::invalid_argument("LocalMap.update: the pose's position must be within 1e12 m");
   }
-  const double stamp = std::isnan(stamp_s) ? static_cast<double>(num_updates_) : stamp_s;
+  const double absolute_stamp = std::isnan(stamp_s) ? static_cast<double>(num_updates_) : stamp_s;
+  // "time" is float: relative to the first update's stamp, ROS stamps (1.7e9 s) keep their ms.
+  if (!time_origin_s_) time_origin_s_ = absolute_stamp;
+  const double stamp = absolute_stamp - *time_origin_s_;
   const int n = geometry_.size.x();
   const double res = params_.resolution_m;
   const Eigen::Vector3d sensor = pose.block<3, 1>(0, 3);

@@ -215,6 +215,11 @@ class LocalMap:
     def num_updates(self) -> int:
         return self._core.num_updates
 
+    @property
+    def time_origin(self) -> float:
+        """The first update's stamp [s]: the ``time`` layer is relative to it (float32 keeps ms)."""
+        return self._core.time_origin
+
     def __contains__(self, name: str) -> bool:
         return name in self._core.layers
 
@@ -236,7 +241,8 @@ class LocalMap:
     def update(self, points, pose, stamp: float = math.nan) -> _core.LocalMapUpdate:
         """Fuse one scan ((N, 3) float32/float64, sensor frame) taken at ``pose`` (4x4).
 
-        ``stamp`` [s] goes into the ``time`` layer (NaN: the number of the update). An empty scan
+        ``stamp`` [s] goes into the ``time`` layer, relative to the first update's (NaN: the number of
+        the update). An empty scan
         only moves the map. ValueError for a non-finite or non-rigid pose, NaN/Inf rows (unless
         ``collapse.drop_non_finite``) or an infinite stamp, before anything changes. Releases the GIL.
         """

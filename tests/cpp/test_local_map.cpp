@@ -165,7 +165,8 @@ TEST(LocalMap, KalmanUpdateOfOneCellMatchesHandArithmetic) {
   EXPECT_NEAR(at("elevation"), z1 + r1 / (r1 + r2) * (z2 - z1), 1e-6);
   EXPECT_NEAR(at("variance"), r1 * r2 / (r1 + r2), 1e-9);
   EXPECT_EQ(at("count"), 5.0F);
-  EXPECT_EQ(at("time"), 11.0F);
+  EXPECT_EQ(at("time"), 1.0F);  // relative to the first update's stamp
+  EXPECT_EQ(map.time_origin_s(), 10.0);
   EXPECT_FLOAT_EQ(at("min"), -0.03F);
   EXPECT_FLOAT_EQ(at("max"), 0.03F);
   // Population std-dev of the five heights, computed plainly.

@@ -118,11 +118,11 @@ struct LocalMapUpdate {
 ///
 /// Layers (float, NaN = unknown, "count" 0): "elevation" (Kalman estimate of the overhang-free
 /// height [m]), "variance" [m^2], "count" (kept points fused since the cell was last reset),
-/// "time" (stamp of the last update that measured the cell), "min", "max", "std_dev" (of those
-/// points), "discontinuity" (of the last scan that measured the cell, 1 or 0), "overhang_min"
-/// (lowest overhang point of the last scan that saw one above the cell), "clearance"
-/// (overhang_min - elevation, +inf when no overhang was seen, NaN without elevation), and the
-/// planner layers "step", "slope", "roughness", "traversability" (TraversabilityParams).
+/// "time" (stamp of the last update that measured the cell minus time_origin_s() [s]), "min", "max", "std_dev" (of
+/// those points), "discontinuity" (of the last scan that measured the cell, 1 or 0), "overhang_min" (lowest overhang
+/// point of the last scan that saw one above the cell), "clearance" (overhang_min - elevation, +inf when no overhang
+/// was seen, NaN without elevation), and the planner layers "step", "slope", "roughness", "traversability"
+/// (TraversabilityParams).
 class LocalMap {
  public:
   /// Throws std::invalid_argument naming the first bad parameter.
@@ -166,6 +166,8 @@ class LocalMap {
   /// classify_terrain, the writers and the plots take.
   ElevationMap to_elevation_map() const;
   std::size_t num_updates() const { return num_updates_; }
+  /// The first update's stamp, which "time" is relative to (NaN before the first update).
+  double time_origin_s() const { return time_origin_s_.value_or(std::numeric_limits<double>::quiet_NaN()); }
 
  private:
   template <typename Scalar>
@@ -182,6 +184,7 @@ class LocalMap {
   std::vector<double> reference_, sum_, sum_squares_;
   std::size_t num_updates_ = 0;
   std::optional<Eigen::Vector3d> last_sensor_;  // for the drift
+  std::optional<double> time_origin_s_;
 };
 
 }  // namespace terracube
