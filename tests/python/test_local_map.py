@@ -36,6 +36,11 @@ def test_layers_are_read_only_views_that_follow_the_updates():
     report = m.update(points, sensor)
     assert report.num_fused_cells > 1000
     assert np.shares_memory(elevation, m["elevation"])  # the same buffer, no copy
+    stamped = terracube.LocalMap(length=4.0)
+    stamped.update(points, sensor, stamp=1.7e9 + 0.25)  # ROS stamps: "time" keeps their milliseconds
+    stamped.update(points[:5000], sensor, stamp=1.7e9 + 0.375)
+    assert stamped.time_origin == 1.7e9 + 0.25
+    assert set(np.unique(stamped["time"][np.isfinite(stamped["time"])])) == {0.0, 0.125}
     assert np.isfinite(elevation).sum() == report.num_fused_cells
     with pytest.raises(KeyError, match="no layer 'nope'"):
         m["nope"]

@@ -1819,6 +1819,11 @@ class LocalMap:
     @property
     def start_index(self) -> tuple[int, int]:
         ...
+    @property
+    def time_origin(self) -> float:
+        """
+        the first update's stamp [s]
+        """
 def absolute_trajectory_error(estimate: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], ground_truth: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], alignment: TrajectoryAlignment) -> AbsoluteTrajectoryError:
     ...
 def build_elevation_map(points: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], params: ElevationParams, use: typing.Annotated[numpy.typing.ArrayLike, numpy.bool] | None = None) -> ElevationMap:
