@@ -418,6 +418,39 @@ void refresh_clearance(const LayerData& layer, std::size_t cells) {
   }
 }
 
+/// The window sums of one geometric row (heights `z` in map order, NaN unknown) over [j - r, j + r]
+/// clipped to the row, from differences of prefix sums (heights relative to `reference`), and
+/// the window's lowest and highest height, into out[0, n).
+void row_moments(const std::vector<float>& z, double reference, int r, std::vector<std::array<double, 6>>& prefix,
+                 RowMoments* out) {
+  const int n = static_cast<int>(z.size());
+  prefix[0] = {0, 0, 0, 0, 0, 0};
+  for (int j = 0; j < n; ++j) {
+    std::array<double, 6> next = prefix[j];
+    if (!std::isnan(z[j])) {
+      const double y = j, h = z[j] - reference;
+      next[0] += 1.0;
+      next[1] += y;
+      next[2] += h;
+      next[3] += y * y;
+      next[4] += y * h;
+      next[5] += h * h;
+    }
+    prefix[j + 1] = next;
+  }
+  for (int j = 0; j < n; ++j) {
+    const int lo = std::max(j - r, 0), hi = std::min(j + r, n - 1);
+    const std::array<double, 6>& a = prefix[hi + 1];
+    const std::array<double, 6>& b = prefix[lo];
+    RowMoments m{a[0] - b[0], a[1] - b[1], a[2] - b[2], a[3] - b[3], a[4] - b[4], a[5] - b[5], kInfF, -kInfF};
+    for (int k = lo; k <= hi; ++k) {  // std::min/max keep the first argument against NaN
+      m.lowest = std::min(m.lowest, z[k]);
+      m.highest = std::max(m.highest, z[k]);
+    }
+    out[j] = m;
+  }
+}
+
 /// The least-squares plane z = a x + b y + c of a window from its sums (x, y in cells): the
 /// gradient |(a, b)| per cell and the RMS vertical residual; invalid for collinear cells.
 struct PlaneFit {
@@ -679,39 +712,8 @@ void LocalMap::update_planner_layers() {
     std::vector<float> z(static_cast<std::size_t>(n));
     std::vector<std::array<double, 6>> prefix(static_cast<std::size_t>(n) + 1);
     for (std::size_t gi = begin; gi < end; ++gi) {
-      prefix[0] = {0, 0, 0, 0, 0, 0};
-      for (int gj = 0; gj < n; ++gj) {
-        z[gj] = height[row_of[gi] + column_of[gj]];
-        std::array<double, 6> next = prefix[gj];
-        if (!std::isnan(z[gj])) {
-          const double y = gj, h = z[gj] - reference;
-          next[0] += 1.0;
-          next[1] += y;
-          next[2] += h;
-          next[3] += y * y;
-          next[4] += y * h;
-          next[5] += h * h;
-        }
-        prefix[gj + 1] = next;
-      }
-      for (int gj = 0; gj < n; ++gj) {
-        const int lo = std::max(gj - r, 0), hi = std::min(gj + r, n - 1);
-        const std::array<double, 6>& a = prefix[hi + 1];
-        const std::array<double, 6>& b = prefix[lo];
-        RowMoments m{a[0] - b[0],
-                     a[1] - b[1],
-                     a[2] - b[2],
-                     a[3] - b[3],
-                     a[4] - b[4],
-                     a[5] - b[5],
-                     std::numeric_limits<float>::infinity(),
-                     -std::numeric_limits<float>::infinity()};
-        for (int k = lo; k <= hi; ++k) {  // std::min/max keep the first argument against NaN
-          m.lowest = std::min(m.lowest, z[k]);
-          m.highest = std::max(m.highest, z[k]);
-        }
-        rows[gi * n + gj] = m;
-      }
+      for (int gj = 0; gj < n; ++gj) z[gj] = height[row_of[gi] + column_of[gj]];
+      row_moments(z, reference, r, prefix, rows.data() + gi * n);
     }
   });
   // Pass 2: along x, then the plane fit and the traversability of each known cell.
