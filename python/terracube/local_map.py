@@ -239,14 +239,18 @@ class LocalMap:
         return self._core.position_of(i, j)
 
     def update(self, points, pose, stamp: float = math.nan) -> _core.LocalMapUpdate:
-        """Fuse one scan ((N, 3) float32/float64, sensor frame) taken at ``pose`` (4x4).
+        """Fuse one scan ((N, 3) or wider float32/float64, x, y, z first, sensor frame) taken at
+        ``pose`` (4x4).
 
         ``stamp`` [s] goes into the ``time`` layer, relative to the first update's (NaN: the number of
         the update). An empty scan
         only moves the map. ValueError for a non-finite or non-rigid pose, NaN/Inf rows (unless
         ``collapse.drop_non_finite``) or an infinite stamp, before anything changes. Releases the GIL.
         """
-        return self._core.update(_as_points(points), _as_pose(pose), float(stamp))
+        points = _as_points(points)
+        if points.ndim == 2 and points.shape[1] > 3:
+            points = points[:, :3]  # a strided view: x, y, z of wider rows (intensity, ...)
+        return self._core.update(points, _as_pose(pose), float(stamp))
 
     def move_to(self, position: Sequence[float]) -> bool:
         """Centre the map on ``(x, y)``; True when the move dropped every cell."""

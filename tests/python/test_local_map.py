@@ -89,7 +89,8 @@ def test_float32_and_float64_scans_give_the_same_map_and_index_round_trips():
     maps = []
     for dtype in (np.float64, np.float32):
         m = terracube.LocalMap(length=4.0)
-        m.update(points.astype(dtype), sensor)
+        wide = np.column_stack([points, np.ones(len(points))]).astype(dtype)  # x, y, z, intensity
+        m.update(wide if dtype == np.float32 else points.astype(dtype), sensor)
         maps.append(m)
     assert np.isfinite(maps[0]["elevation"]).sum() > 1000
     np.testing.assert_allclose(maps[0]["elevation"], maps[1]["elevation"], atol=1e-5, equal_nan=True)
