@@ -76,10 +76,12 @@ struct LocalMapParams {
   /// returns at least clearing_beyond_m further away (more than a sweep's motion distortion or a
   /// pose error moves a surface), between its lowest fused point (or clearing_depth_m below its
   /// height, if lower) and clearing_margin_m below its height: where its own points would have
-  /// stopped them (it was seen through: a person or car that left). Rays below everything the cell holds (under
-  /// a car's body or a table) say nothing about it. The test bins this scan's returns by direction
-  /// from the sensor (bins of visibility_bin_rad in elevation, twice that in azimuth) and keeps
-  /// each bin's nearest horizontal range; a bin counts when all its returns lie beyond the cell.
+  /// stopped them (it was seen through: a person or car that left). Rays below everything the cell
+  /// holds (under a car's body or a table) say nothing about it. The test bins this scan's returns
+  /// by direction from the sensor (bins of visibility_bin_rad in elevation, twice that in azimuth)
+  /// and keeps each bin's nearest horizontal range; a bin counts when all its returns lie beyond.
+  /// Transparent and porous things (car windows, foliage) are cleared too, and measured again
+  /// when hit again.
   bool clear_seen_through = true;
   double clearing_margin_m = 0.1;      ///< >= 0
   double clearing_depth_m = 0.5;       ///< > clearing_margin_m
