@@ -13,6 +13,7 @@ void bind_simulation(py::module_& m);
 void bind_evaluation(py::module_& m);
 void bind_pose_graph(py::module_& m);
 void bind_mapper(py::module_& m);
+void bind_local_map(py::module_& m);
 }  // namespace terracube::python
 
 PYBIND11_MODULE(_core, m) {
@@ -26,4 +27,5 @@ PYBIND11_MODULE(_core, m) {
   terracube::python::bind_evaluation(m);
   terracube::python::bind_pose_graph(m);
   terracube::python::bind_mapper(m);
+  terracube::python::bind_local_map(m);
 }

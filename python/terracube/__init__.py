@@ -30,6 +30,7 @@ from .elevation import (
 )
 from .evaluation import absolute_trajectory_error, compare_region_layouts, relative_pose_error
 from .fuzzy import FuzzyElevationMap, FuzzyParams, fit_fuzzy_elevation_map
+from .local_map import LocalMap, LocalMapParams, TraversabilityParams
 from .mapping import LoopClosure, Mapper, MapperParams, ScanReport, run_mapper
 from .pose_graph import PoseGraphEdge, PoseGraphParams, optimize_pose_graph
 from .registration import (
@@ -62,6 +63,9 @@ __all__ = [
     "absolute_trajectory_error",
     "compare_region_layouts",
     "relative_pose_error",
+    "LocalMap",
+    "LocalMapParams",
+    "TraversabilityParams",
     "LoopClosure",
     "Mapper",
     "MapperParams",

@@ -1082,6 +1082,82 @@ def map_command(
     _echo_report(report)
 
 
+# ------------------------------------------------------------------------------------------ stream
+
+
+@app.command("stream")
+def stream_command(
+    scans: Path = typer.Argument(
+        ..., help="Directory of scans (sorted by name) or one glob pattern.", show_default=False
+    ),
+    poses: Path = typer.Option(
+        ..., "--poses", "-p", help="Odometry poses: KITTI (12 numbers a line) or TUM.", show_default=False
+    ),
+    pose_format: str = typer.Option(
+        "auto", "--pose-format", help="kitti, tum or auto (by the column count)."
+    ),
+    calib: Path | None = typer.Option(
+        None, "--calib", help="KITTI calib.txt (default: calib.txt beside KITTI --poses).", show_default=False
+    ),
+    output_dir: Path = _OUTPUT_DIR,
+    length: float = typer.Option(20.0, "--length", help="Side of the square local map [m]."),
+    resolution: float = typer.Option(0.1, "--resolution", help="Cell size [m]."),
+    every: int = typer.Option(0, "--every", help="A PNG (or animation frame) every N scans; 0: none."),
+    animation: Path | None = typer.Option(
+        None, "--animation", help="Write a .gif (or .mp4 with ffmpeg) of the elevation.", show_default=False
+    ),
+    limit: int | None = typer.Option(None, "--limit", help="Use the first N scans only.", show_default=False),
+    png: bool = OPTIONS["png"].info,
+) -> None:
+    """Fuse a scan sequence into a robot-centric local map (terracube.LocalMap) and write it.
+
+    Writes local_map.npz (elevation, variance, clearance, traversability, ... in map order),
+    local_elevation.png and local_traversability.png, plus a PNG every --every scans or --animation.
+    """
+    from tqdm import tqdm
+
+    from .local_map import LocalMapParams
+    from .mapping import detect_pose_format, match_scans_to_poses, read_kitti_calibration, read_pose_file
+    from .pipeline import SCAN_SUFFIXES, expand_inputs
+    from .stream import run_stream
+
+    if scans.is_dir():
+        files = sorted(p for p in scans.iterdir() if p.is_file() and not p.name.startswith("."))
+    else:
+        with _exit_on_bad_input():
+            files = expand_inputs([str(scans)])
+    files = [f for f in files if f.suffix.lower() in SCAN_SUFFIXES][
+        : None if limit is None else max(limit, 0)
+    ]
+    if not files:
+        raise _fail(f"{scans}: no scans found")
+    if not poses.is_file():
+        raise _fail(f"{poses}: no such pose file")
+    _existing_file(calib, "--calib")
+    _writable_folder(output_dir)
+    with _exit_on_bad_input():
+        if pose_format == "auto":
+            pose_format = detect_pose_format(poses)
+        if calib is None and pose_format == "kitti" and (poses.parent / "calib.txt").is_file():
+            calib = poses.parent / "calib.txt"
+        calibration = read_kitti_calibration(calib) if calib is not None else None
+        stamps, odometry = read_pose_file(poses, pose_format, calibration)
+        indices = match_scans_to_poses(files, len(odometry))
+        params = LocalMapParams(length=length, resolution=resolution)
+        params.to_core()  # refuses bad values before any scan is read
+    sequence = tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="streaming")
+    with _exit_on_bad_input("stream"):
+        report = run_stream(
+            ((str(path), _read_scan(path), odometry[k], float(stamps[k])) for path, k in sequence),
+            output_dir,
+            params,
+            every=every,
+            animation=animation,
+            png=png,
+        )
+    _echo_report(report)
+
+
 # ------------------------------------------------------------------------------------------ config, batch
 
 

@@ -1,0 +1,777 @@
+// The robot-centric local map: circular-buffer moves, per-cell Kalman fusion, see-through
+// clearing and the planner layers (local_map.hpp).
+#include "terracube/local_map.hpp"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "cloud_frame.hpp"
+#include "number_text.hpp"
+#include "parallel.hpp"
+
+namespace terracube {
+
+namespace {
+
+constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+constexpr double kInf = std::numeric_limits<double>::infinity();
+constexpr float kInfF = std::numeric_limits<float>::infinity();
+
+/// Every layer, in the order they are added; the empty value of each is NaN except "count" (0).
+constexpr std::array<const char*, 14> kLayerNames = {
+    "elevation",     "variance",     "count",     "time", "min",   "max",       "std_dev",
+    "discontinuity", "overhang_min", "clearance", "step", "slope", "roughness", "traversability"};
+enum LayerId {
+  kElevation,
+  kVariance,
+  kCount,
+  kTime,
+  kMin,
+  kMax,
+  kStdDev,
+  kDiscontinuity,
+  kOverhangMin,
+  kClearance,
+  kStep,
+  kSlope,
+  kRoughness,
+  kTraversability,
+};
+using LayerData = std::array<float*, kLayerNames.size()>;
+
+LayerData layer_data(ElevationMap& map) {
+  LayerData data{};
+  for (std::size_t k = 0; k < kLayerNames.size(); ++k) data[k] = map.get(kLayerNames[k]).data();
+  return data;
+}
+
+void check_non_negative(double value, const char* name) {
+  if (!(value >= 0.0) || !std::isfinite(value)) {
+    throw std::invalid_argument(std::string(name) + " must be a finite value >= 0, got " + detail::number_text(value));
+  }
+}
+void check_positive(double value, const char* name) {
+  if (!(value > 0.0) || !std::isfinite(value)) {
+    throw std::invalid_argument(std::string(name) + " must be a positive finite value, got " +
+                                detail::number_text(value));
+  }
+}
+
+void check_traversability_params(const TraversabilityParams& p) {
+  check_non_negative(p.footprint_radius_m, "TraversabilityParams.footprint_radius_m");
+  check_positive(p.max_slope_rad, "TraversabilityParams.max_slope_rad");
+  check_positive(p.max_step_m, "TraversabilityParams.max_step_m");
+  check_positive(p.max_roughness_m, "TraversabilityParams.max_roughness_m");
+  check_non_negative(p.min_clearance_m, "TraversabilityParams.min_clearance_m");
+  check_non_negative(p.slope_weight, "TraversabilityParams.slope_weight");
+  check_non_negative(p.step_weight, "TraversabilityParams.step_weight");
+  check_non_negative(p.roughness_weight, "TraversabilityParams.roughness_weight");
+  if (p.slope_weight + p.step_weight + p.roughness_weight <= 0.0) {
+    throw std::invalid_argument("TraversabilityParams: the slope, step and roughness weights must not all be 0");
+  }
+  if (p.min_window_cells < 3) throw std::invalid_argument("TraversabilityParams.min_window_cells must be >= 3");
+}
+
+int cells_per_side(const LocalMapParams& p) {
+  check_positive(p.length_m, "LocalMapParams.length_m");
+  check_positive(p.resolution_m, "LocalMapParams.resolution_m");
+  const double cells = std::round(p.length_m / p.resolution_m);
+  if (!(cells >= 1.0 && cells <= 16384.0)) {
+    throw std::invalid_argument("LocalMapParams: length / resolution must give 1 to 16384 cells per side, got " +
+                                detail::number_text(cells));
+  }
+  return static_cast<int>(cells);
+}
+
+void check_local_map_params(const LocalMapParams& p) {
+  cells_per_side(p);
+  detail::check_collapse_params(p.collapse);
+  check_non_negative(p.range_sigma_m, "LocalMapParams.range_sigma_m");
+  check_non_negative(p.angle_sigma_rad, "LocalMapParams.angle_sigma_rad");
+  check_positive(p.cell_sigma_m, "LocalMapParams.cell_sigma_m");
+  check_positive(p.gate_sigmas, "LocalMapParams.gate_sigmas");
+  check_non_negative(p.drift_m_per_sqrt_m, "LocalMapParams.drift_m_per_sqrt_m");
+  check_non_negative(p.clearing_margin_m, "LocalMapParams.clearing_margin_m");
+  check_positive(p.clearing_depth_m, "LocalMapParams.clearing_depth_m");
+  check_non_negative(p.clearing_beyond_m, "LocalMapParams.clearing_beyond_m");
+  if (p.clearing_depth_m <= p.clearing_margin_m) {
+    throw std::invalid_argument("LocalMapParams.clearing_depth_m must exceed clearing_margin_m");
+  }
+  check_positive(p.visibility_bin_rad, "LocalMapParams.visibility_bin_rad");
+  if (p.visibility_bin_rad > 0.5) throw std::invalid_argument("LocalMapParams.visibility_bin_rad must be <= 0.5 rad");
+  check_positive(p.discontinuity_m, "LocalMapParams.discontinuity_m");
+  check_traversability_params(p.traversability);
+  detail::check_num_threads(p.num_threads, "LocalMapParams");
+}
+
+/// A monotone stand-in for the azimuth of (x, y), in [0, 4) ("diamond angle"): one division
+/// instead of atan2. Bins of it are at most twice as wide in angle as their mean.
+double diamond_azimuth(double x, double y) {
+  if (y >= 0.0) return x >= 0.0 ? y / (x + y) : 1.0 - x / (y - x);
+  return x < 0.0 ? 2.0 - y / (-x - y) : 3.0 + x / (x - y);
+}
+
+/// The nearest horizontal range of the returns in each (azimuth, elevation) bin of one scan,
+/// seen from the sensor; elevation binned on sin(phi) (bins of visibility_bin_rad near the horizon).
+class VisibilityImage {
+ public:
+  void reset(double bin_rad) {
+    // Azimuth bins twice as wide: a spinning sensor's columns are denser than its rows.
+    azimuth_bins_ = 4 * static_cast<int>(std::ceil(1.5707963267948966 / (2.0 * bin_rad)));
+    elevation_bins_ = static_cast<int>(std::ceil(2.0 / bin_rad));
+    bin_ = bin_rad;
+    nearest_squared_.assign(static_cast<std::size_t>(azimuth_bins_) * elevation_bins_, kInfF);
+  }
+  /// The bin of direction v (v_xy != 0), elevation bin shifted by `elevation_shift`; -1 outside.
+  std::ptrdiff_t bin_of(const Eigen::Vector3d& v, double horizontal_squared, int elevation_shift) const {
+    const double r = std::sqrt(horizontal_squared + v.z() * v.z());
+    const int e = std::min(static_cast<int>((v.z() / r + 1.0) / bin_), elevation_bins_ - 1) + elevation_shift;
+    if (e < 0) return -1;
+    const int a = std::min(static_cast<int>(diamond_azimuth(v.x(), v.y()) * (azimuth_bins_ / 4)), azimuth_bins_ - 1);
+    return static_cast<std::ptrdiff_t>(a) * elevation_bins_ + e;
+  }
+  void add(const Eigen::Vector3d& v) {
+    const double horizontal_squared = v.x() * v.x() + v.y() * v.y();
+    if (horizontal_squared == 0.0) return;
+    float& nearest = nearest_squared_[static_cast<std::size_t>(bin_of(v, horizontal_squared, 0))];
+    nearest = std::min(nearest, static_cast<float>(horizontal_squared));
+  }
+  /// Whether, in some bin between the directions to `low` and (just below) `high` (points above
+  /// the same cell centre, low below high), every return lies horizontally beyond `reach`: rays
+  /// passed through that part of the cell's column on their way further (all returns of a bin, so
+  /// that a ray beside the direction that met something nearer vetoes its bin). Beams leave gaps
+  /// between rows: empty bins say nothing.
+  bool seen_beyond(const Eigen::Vector3d& low, const Eigen::Vector3d& high, double reach) const {
+    const double horizontal_squared = high.x() * high.x() + high.y() * high.y();
+    if (horizontal_squared == 0.0) return false;
+    const std::ptrdiff_t top = bin_of(high, horizontal_squared, -1);
+    if (top < 0) return false;
+    const std::ptrdiff_t bottom = std::max(bin_of(low, horizontal_squared, 0), top - top % elevation_bins_);
+    const auto beyond = static_cast<float>(reach * reach);
+    for (std::ptrdiff_t bin = bottom; bin <= top; ++bin) {
+      const float nearest = nearest_squared_[static_cast<std::size_t>(bin)];
+      if (nearest < kInfF && nearest > beyond) return true;
+    }
+    return false;
+  }
+
+ private:
+  int azimuth_bins_ = 0, elevation_bins_ = 0;
+  double bin_ = 1.0;
+  std::vector<float> nearest_squared_;  // [m^2]
+};
+
+/// One scan's statistics of a cell (kept points; overhang points only in overhang_min).
+struct ScanCell {
+  std::uint32_t count = 0;
+  double first = 0.0, sum = 0.0, sum_squares = 0.0, sum_variance = 0.0;
+  double lowest = kInf, highest = -kInf, overhang_min = kInf;
+  bool touched = false, gap = false;
+
+  void add(double z, double variance) {
+    if (count == 0) first = z;
+    const double d = z - first;
+    ++count;
+    sum += d;
+    sum_squares += d * d;
+    sum_variance += variance;
+    lowest = std::min(lowest, z);
+    highest = std::max(highest, z);
+  }
+};
+
+/// A kept point of a cell whose heights may hold a discontinuity.
+struct GapPoint {
+  std::uint32_t cell;
+  double z, variance;
+  bool operator<(const GapPoint& o) const {
+    return cell != o.cell ? cell < o.cell : (z != o.z ? z < o.z : variance < o.variance);
+  }
+};
+
+/// Buffers of one update, kept by the calling thread for its next one (fresh pages cost more
+/// than the work, see elevation_map.cpp).
+struct Workspace {
+  std::vector<ScanCell> cells;
+  std::vector<std::uint32_t> touched;
+  VisibilityImage visibility;
+  std::vector<GapPoint> gap_points;
+  std::vector<std::size_t> row_offset, column;
+};
+
+/// A cell whose sorted kept heights hold a gap over `threshold` is discontinuous: its measurement
+/// is the points below the first gap (the ground under whatever [CBC]'s cubes kept above it,
+/// e.g. where a cell straddles two cube columns) and the first point above the gap is an overhang.
+void split_at_gaps(Workspace& w, double threshold) {
+  std::sort(w.gap_points.begin(), w.gap_points.end());
+  for (std::size_t begin = 0, end = 0; begin < w.gap_points.size(); begin = end) {
+    const std::uint32_t cell = w.gap_points[begin].cell;
+    end = begin + 1;
+    while (end < w.gap_points.size() && w.gap_points[end].cell == cell) ++end;
+    std::size_t top = begin + 1;
+    while (top < end && w.gap_points[top].z - w.gap_points[top - 1].z <= threshold) ++top;
+    if (top == end) continue;
+    ScanCell& c = w.cells[cell];
+    const double overhang_min = std::min(c.overhang_min, w.gap_points[top].z);
+    c = ScanCell();
+    c.touched = true;
+    c.gap = true;
+    c.overhang_min = overhang_min;
+    for (std::size_t k = begin; k < top; ++k) c.add(w.gap_points[k].z, w.gap_points[k].variance);
+  }
+}
+Workspace& thread_workspace() {
+  thread_local Workspace workspace;
+  return workspace;
+}
+
+/// Per-row window sums of the planner pass along y.
+struct RowMoments {
+  double n, y, z, yy, yz, zz;
+  float lowest, highest;
+};
+
+/// Where one scan's points go: the cell of a point, floor(x / res) - origin on each axis through
+/// the map's tables (without a call to floor: the truncation of the difference, one lower when
+/// rounding carried it up to a whole number), and the height variance of a return.
+struct ScanBinning {
+  const std::size_t* row_offset;  ///< per geometric row: its stored row times n
+  const std::size_t* column;      ///< per geometric column: its stored column
+  double origin_x, origin_y, resolution;
+  int n;
+  Eigen::Vector3d sensor;
+  double range_variance, angle_variance;
+
+  std::ptrdiff_t geometric(double q, double origin) const {
+    if (!(q >= origin && q < origin + n)) return -1;
+    auto k = static_cast<std::ptrdiff_t>(q - origin);
+    if (origin + static_cast<double>(k) > q) --k;
+    return k;
+  }
+  /// The stored cell of p, or -1 outside the map.
+  std::ptrdiff_t cell_of(const Eigen::Vector3d& p) const {
+    if (!(p.z() >= -1e9 && p.z() <= 1e9)) return -1;
+    const std::ptrdiff_t gi = geometric(p.x() / resolution, origin_x);
+    const std::ptrdiff_t gj = geometric(p.y() / resolution, origin_y);
+    if (gi < 0 || gj < 0) return -1;
+    return static_cast<std::ptrdiff_t>(row_offset[gi] + column[gj]);
+  }
+  /// var_z = range_sigma^2 sin^2(phi) + angle_sigma^2 r^2 cos^2(phi) of a return at v from the
+  /// sensor (r cos(phi) = |v_xy|).
+  double height_variance(const Eigen::Vector3d& v) const {
+    const double horizontal_squared = v.x() * v.x() + v.y() * v.y();
+    const double range_squared = horizontal_squared + v.z() * v.z();
+    return (range_squared > 0.0 ? range_variance * v.z() * v.z() / range_squared : 0.0) +
+           angle_variance * horizontal_squared;
+  }
+};
+
+/// One pass over the scan: every return into the visibility image (when clearing), each point in
+/// the map into its cell's statistics (overhang points into overhang_min only). Returns the
+/// number of points in the map.
+template <typename Scalar>
+std::size_t bin_scan(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose,
+                     const std::vector<std::uint8_t>& overhang, const ScanBinning& binning, bool clearing,
+                     Workspace& w) {
+  std::size_t in_map = 0;
+  detail::visit_leveled(points, pose, std::nullopt, [&](const auto& cloud) {
+    Eigen::Vector3d p;
+    for (std::size_t row = 0; row < cloud.size(); ++row) {
+      if (cloud.map(row, p) != 0) continue;  // NaN/Inf: collapse threw unless they are dropped
+      const Eigen::Vector3d v = p - binning.sensor;
+      if (clearing) w.visibility.add(v);
+      const std::ptrdiff_t cell = binning.cell_of(p);
+      if (cell < 0) continue;
+      ++in_map;
+      ScanCell& c = w.cells[static_cast<std::size_t>(cell)];
+      if (!c.touched) {
+        c = ScanCell();
+        c.touched = true;
+        w.touched.push_back(static_cast<std::uint32_t>(cell));
+      }
+      if (overhang[row] != 0) {
+        c.overhang_min = std::min(c.overhang_min, p.z());
+      } else {
+        c.add(p.z(), binning.height_variance(v));
+      }
+    }
+  });
+  return in_map;
+}
+
+/// The few cells whose kept heights span more than `threshold`: a second pass gathers their
+/// points and split_at_gaps measures them below their first gap.
+template <typename Scalar>
+void split_discontinuous_cells(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose,
+                               const std::vector<std::uint8_t>& overhang, const ScanBinning& binning, double threshold,
+                               Workspace& w) {
+  const auto wide = [&](const ScanCell& c) { return c.count > 1 && c.highest - c.lowest > threshold; };
+  if (std::none_of(w.touched.begin(), w.touched.end(), [&](std::uint32_t cell) { return wide(w.cells[cell]); })) {
+    return;
+  }
+  detail::visit_leveled(points, pose, std::nullopt, [&](const auto& cloud) {
+    Eigen::Vector3d p;
+    for (std::size_t row = 0; row < cloud.size(); ++row) {
+      if (cloud.map(row, p) != 0 || overhang[row] != 0) continue;
+      const std::ptrdiff_t cell = binning.cell_of(p);
+      if (cell < 0 || !wide(w.cells[static_cast<std::size_t>(cell)])) continue;
+      w.gap_points.push_back({static_cast<std::uint32_t>(cell), p.z(), binning.height_variance(p - binning.sensor)});
+    }
+  });
+  split_at_gaps(w, threshold);
+}
+
+/// Calls clear(cell) for every cell whose column this scan's rays passed through, on their way to
+/// returns at least `beyond` further away horizontally, between its lowest fused point (or `depth` below its height, if
+/// lower) and `margin` below its height: where the points it holds would have stopped them. (Rays under a car's body or
+/// a table, below everything the cell holds, say nothing about it.)
+template <typename Clear>
+void for_each_seen_through(const Workspace& w, const float* elevation, const float* lowest, int n, double res,
+                           const Eigen::Vector2d& origin, const Eigen::Vector3d& sensor, double margin, double depth,
+                           double beyond, const Clear& clear) {
+  for (int gi = 0; gi < n; ++gi) {
+    for (int gj = 0; gj < n; ++gj) {
+      const std::size_t cell = w.row_offset[gi] + w.column[gj];
+      const float h = elevation[cell];
+      if (std::isnan(h)) continue;
+      const double x = origin.x() + (gi + 0.5) * res - sensor.x(), y = origin.y() + (gj + 0.5) * res - sensor.y();
+      const double bottom = std::min(static_cast<double>(lowest[cell]), h - depth);
+      const double reach = std::sqrt(x * x + y * y) + beyond;
+      if (w.visibility.seen_beyond({x, y, bottom - sensor.z()}, {x, y, h - margin - sensor.z()}, reach)) clear(cell);
+    }
+  }
+}
+
+/// The cell state kept outside the layers: the reference height and the sums of (z - reference)
+/// and its square over the fused points.
+struct CellSums {
+  std::vector<double>& reference;
+  std::vector<double>& sum;
+  std::vector<double>& sum_squares;
+};
+
+/// The 1-D Kalman update of one cell by one scan's measurement c (its mean height, with the
+/// variance of LocalMapParams' noise model), or the cell's replacement when the innovation fails
+/// the gate. Returns whether it was replaced.
+bool fuse_cell(const ScanCell& c, std::size_t cell, const LayerData& layer, CellSums sums, double cell_variance,
+               double gate_squared, double stamp) {
+  const double count = c.count;
+  const double mean_offset = c.sum / count;
+  const double spread = std::max(c.sum_squares / count - mean_offset * mean_offset, 0.0);
+  const double z = c.first + mean_offset;
+  const double r = (c.sum_variance / count + spread) / count + cell_variance;
+  const double h = layer[kElevation][cell];
+  const double p = layer[kVariance][cell];
+  bool fresh = std::isnan(h), replaced = false;
+  if (!fresh && (z - h) * (z - h) > gate_squared * (p + r)) {
+    fresh = true;
+    replaced = true;
+  }
+  if (fresh) {
+    layer[kElevation][cell] = static_cast<float>(z);
+    layer[kVariance][cell] = static_cast<float>(r);
+    layer[kCount][cell] = static_cast<float>(count);
+    layer[kMin][cell] = static_cast<float>(c.lowest);
+    layer[kMax][cell] = static_cast<float>(c.highest);
+    sums.reference[cell] = c.first;
+    sums.sum[cell] = c.sum;
+    sums.sum_squares[cell] = c.sum_squares;
+  } else {
+    const double gain = p / (p + r);
+    layer[kElevation][cell] = static_cast<float>(h + gain * (z - h));
+    layer[kVariance][cell] = static_cast<float>(p * r / (p + r));
+    layer[kCount][cell] += static_cast<float>(count);
+    layer[kMin][cell] = std::min(layer[kMin][cell], static_cast<float>(c.lowest));
+    layer[kMax][cell] = std::max(layer[kMax][cell], static_cast<float>(c.highest));
+    // The scan's sums are relative to its first height; shift them to the cell's reference.
+    const double offset = c.first - sums.reference[cell];
+    sums.sum_squares[cell] += count * offset * offset + 2.0 * offset * c.sum + c.sum_squares;
+    sums.sum[cell] += count * offset + c.sum;
+  }
+  const double total = layer[kCount][cell];
+  const double mean = sums.sum[cell] / total;
+  layer[kStdDev][cell] = static_cast<float>(std::sqrt(std::max(sums.sum_squares[cell] / total - mean * mean, 0.0)));
+  layer[kDiscontinuity][cell] = c.gap ? 1.0F : 0.0F;
+  layer[kTime][cell] = static_cast<float>(stamp);
+  return replaced;
+}
+
+/// Empties one cell: NaN in every layer but "count" (0), its sums reset.
+void clear_cell(const LayerData& layer, CellSums sums, std::size_t cell) {
+  for (std::size_t k = 0; k < layer.size(); ++k) layer[k][cell] = k == kCount ? 0.0F : kNaN;
+  sums.reference[cell] = sums.sum[cell] = sums.sum_squares[cell] = 0.0;
+}
+
+/// "clearance": the lowest overhang above minus the elevation, +inf without one, NaN without height.
+void refresh_clearance(const LayerData& layer, std::size_t cells) {
+  for (std::size_t cell = 0; cell < cells; ++cell) {
+    const float h = layer[kElevation][cell];
+    const float o = layer[kOverhangMin][cell];
+    layer[kClearance][cell] =
+        std::isnan(h) ? kNaN : (std::isnan(o) ? std::numeric_limits<float>::infinity() : std::max(o - h, 0.0F));
+  }
+}
+
+/// The window sums of one geometric row (heights `z` in map order, NaN unknown) over [j - r, j + r]
+/// clipped to the row, from differences of prefix sums (heights relative to `reference`), and
+/// the window's lowest and highest height, into out[0, n).
+void row_moments(const std::vector<float>& z, double reference, int r, std::vector<std::array<double, 6>>& prefix,
+                 RowMoments* out) {
+  const int n = static_cast<int>(z.size());
+  prefix[0] = {0, 0, 0, 0, 0, 0};
+  for (int j = 0; j < n; ++j) {
+    std::array<double, 6> next = prefix[j];
+    if (!std::isnan(z[j])) {
+      const double y = j, h = z[j] - reference;
+      next[0] += 1.0;
+      next[1] += y;
+      next[2] += h;
+      next[3] += y * y;
+      next[4] += y * h;
+      next[5] += h * h;
+    }
+    prefix[j + 1] = next;
+  }
+  for (int j = 0; j < n; ++j) {
+    const int lo = std::max(j - r, 0), hi = std::min(j + r, n - 1);
+    const std::array<double, 6>& a = prefix[hi + 1];
+    const std::array<double, 6>& b = prefix[lo];
+    RowMoments m{a[0] - b[0], a[1] - b[1], a[2] - b[2], a[3] - b[3], a[4] - b[4], a[5] - b[5], kInfF, -kInfF};
+    for (int k = lo; k <= hi; ++k) {  // std::min/max keep the first argument against NaN
+      m.lowest = std::min(m.lowest, z[k]);
+      m.highest = std::max(m.highest, z[k]);
+    }
+    out[j] = m;
+  }
+}
+
+/// The least-squares plane z = a x + b y + c of a window from its sums (x, y in cells): the
+/// gradient |(a, b)| per cell and the RMS vertical residual; invalid for collinear cells.
+struct PlaneFit {
+  bool valid = false;
+  double gradient = 0.0, roughness = 0.0;
+};
+PlaneFit fit_plane(double n, double x, double y, double z, double xx, double xy, double yy, double xz, double yz,
+                   double zz) {
+  const double mx = x / n, my = y / n, mz = z / n;
+  const double cxx = xx / n - mx * mx, cxy = xy / n - mx * my, cyy = yy / n - my * my;
+  const double cxz = xz / n - mx * mz, cyz = yz / n - my * mz, czz = zz / n - mz * mz;
+  const double det = cxx * cyy - cxy * cxy;
+  PlaneFit fit;
+  if (!(det > 1e-9)) return fit;
+  const double a = (cyy * cxz - cxy * cyz) / det, b = (cxx * cyz - cxy * cxz) / det;
+  fit.valid = true;
+  fit.gradient = std::sqrt(a * a + b * b);
+  fit.roughness = std::sqrt(std::max(czz - a * cxz - b * cyz, 0.0));
+  return fit;
+}
+
+/// TraversabilityParams' formula (local_map.hpp).
+float traversability(const TraversabilityParams& tp, double slope, double step, double roughness, float clearance) {
+  if (slope > tp.max_slope_rad || step > tp.max_step_m || roughness > tp.max_roughness_m ||
+      clearance < tp.min_clearance_m) {
+    return 0.0F;
+  }
+  const double weights = tp.slope_weight + tp.step_weight + tp.roughness_weight;
+  const double cost = (tp.slope_weight * slope / tp.max_slope_rad + tp.step_weight * step / tp.max_step_m +
+                       tp.roughness_weight * roughness / tp.max_roughness_m) /
+                      weights;
+  return static_cast<float>(1.0 - cost);
+}
+
+}  // namespace
+
+LocalMap::LocalMap(const LocalMapParams& params) : params_(params) {
+  check_local_map_params(params);
+  const int n = cells_per_side(params);
+  geometry_.resolution_m = params.resolution_m;
+  geometry_.size = CellIndex(n, n);
+  origin_cell_ = Eigen::Matrix<std::int64_t, 2, 1>::Constant(-(n / 2));
+  geometry_.origin_m = origin_cell_.cast<double>() * params.resolution_m;
+  layers_ = ElevationMap(geometry_);
+  for (const char* name : kLayerNames) layers_.add(name, name == std::string("count") ? 0.0F : kNaN);
+  const std::size_t cells = geometry_.num_cells();
+  reference_.assign(cells, 0.0);
+  sum_.assign(cells, 0.0);
+  sum_squares_.assign(cells, 0.0);
+}
+
+std::int64_t LocalMap::storage_of(std::int64_t global, int axis) const {
+  const std::int64_t n = geometry_.size[axis];
+  return ((global % n) + n) % n;
+}
+
+CellIndex LocalMap::start_index() const {
+  return CellIndex(static_cast<int>(storage_of(origin_cell_.x(), 0)),
+                   static_cast<int>(storage_of(origin_cell_.y(), 1)));
+}
+
+std::optional<CellIndex> LocalMap::index_of(const Eigen::Vector2d& position) const {
+  const double gx = std::floor(position.x() / params_.resolution_m);
+  const double gy = std::floor(position.y() / params_.resolution_m);
+  const double ox = static_cast<double>(origin_cell_.x());
+  const double oy = static_cast<double>(origin_cell_.y());
+  if (!(gx >= ox && gx < ox + geometry_.size.x() && gy >= oy && gy < oy + geometry_.size.y())) return std::nullopt;
+  return CellIndex(static_cast<int>(storage_of(static_cast<std::int64_t>(gx), 0)),
+                   static_cast<int>(storage_of(static_cast<std::int64_t>(gy), 1)));
+}
+
+Eigen::Vector2d LocalMap::position_of(const CellIndex& index) const {
+  const CellIndex start = start_index();
+  const std::int64_t gi = (index.x() - start.x() + geometry_.size.x()) % geometry_.size.x();
+  const std::int64_t gj = (index.y() - start.y() + geometry_.size.y()) % geometry_.size.y();
+  return {(static_cast<double>(origin_cell_.x() + gi) + 0.5) * params_.resolution_m,
+          (static_cast<double>(origin_cell_.y() + gj) + 0.5) * params_.resolution_m};
+}
+
+const Layer& LocalMap::get(const std::string& name) const { return layers_.get(name); }
+std::vector<std::string> LocalMap::layers() const { return layers_.layers(); }
+
+void LocalMap::clear_cells(std::size_t first, std::size_t count, std::size_t stride) {
+  const LayerData layer = layer_data(layers_);
+  for (std::size_t c = 0; c < count; ++c) clear_cell(layer, {reference_, sum_, sum_squares_}, first + c * stride);
+}
+
+void LocalMap::clear() { clear_cells(0, geometry_.num_cells(), 1); }
+
+bool LocalMap::move_to(const Eigen::Vector2d& position) {
+  if (!position.allFinite() || (position.array().abs() > 1e12).any()) {
+    throw std::invalid_argument("LocalMap.move_to: the position must be finite (and within 1e12 m)");
+  }
+  const int n = geometry_.size.x();
+  const Eigen::Matrix<std::int64_t, 2, 1> target(
+      static_cast<std::int64_t>(std::floor(position.x() / params_.resolution_m)) - n / 2,
+      static_cast<std::int64_t>(std::floor(position.y() / params_.resolution_m)) - n / 2);
+  const Eigen::Matrix<std::int64_t, 2, 1> shift = target - origin_cell_;
+  const bool reset = std::abs(shift.x()) >= n || std::abs(shift.y()) >= n;
+  if (reset) {
+    clear();
+  } else if (shift.x() != 0 || shift.y() != 0) {
+    // The global rows (columns) that leave are those of [old, old + shift) for a positive shift
+    // and [old + n + shift, old + n) for a negative one; they are stored where the entering ones go.
+    for (int axis = 0; axis < 2; ++axis) {
+      const std::int64_t s = shift[axis];
+      const std::int64_t first = s > 0 ? origin_cell_[axis] : origin_cell_[axis] + n + s;
+      for (std::int64_t g = first; g < first + std::abs(s); ++g) {
+        const auto line = static_cast<std::size_t>(storage_of(g, axis));
+        // A stored row i is cells [i n, i n + n); a stored column j is j, j + n, ...
+        if (axis == 0) {
+          clear_cells(line * n, n, 1);
+        } else {
+          clear_cells(line, n, n);
+        }
+      }
+    }
+  }
+  origin_cell_ = target;
+  geometry_.origin_m = origin_cell_.cast<double>() * params_.resolution_m;
+  return reset;
+}
+
+LocalMapUpdate LocalMap::update(const PointsView<float>& points, const Eigen::Matrix4d& pose, double stamp_s) {
+  return update_impl(points, pose, stamp_s);
+}
+LocalMapUpdate LocalMap::update(const PointsView<double>& points, const Eigen::Matrix4d& pose, double stamp_s) {
+  return update_impl(points, pose, stamp_s);
+}
+
+template <typename Scalar>
+LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose, double stamp_s) {
+  detail::check_rigid_transform(pose, "pose");
+  if (std::isinf(stamp_s)) throw std::invalid_argument("LocalMap.update: stamp must be finite (or NaN)");
+  if ((pose.block<2, 1>(0, 3).array().abs() > 1e12).any()) {
+    throw std::invalid_argument("LocalMap.update: the pose's position must be within 1e12 m");
+  }
+  const double absolute_stamp = std::isnan(stamp_s) ? static_cast<double>(num_updates_) : stamp_s;
+  // "time" is float: relative to the first update's stamp, ROS stamps (1.7e9 s) keep their ms.
+  if (!time_origin_s_) time_origin_s_ = absolute_stamp;
+  const double stamp = absolute_stamp - *time_origin_s_;
+  const int n = geometry_.size.x();
+  const double res = params_.resolution_m;
+  const Eigen::Vector3d sensor = pose.block<3, 1>(0, 3);
+  const Eigen::Matrix<std::int64_t, 2, 1> target(static_cast<std::int64_t>(std::floor(sensor.x() / res)) - n / 2,
+                                                 static_cast<std::int64_t>(std::floor(sensor.y() / res)) - n / 2);
+  LocalMapUpdate report;
+  report.num_points = points.size;
+
+  // Everything that can throw comes before the first change to the map.
+  CollapseParams collapse = params_.collapse;
+  collapse.transform = pose;
+  collapse.num_threads = params_.num_threads;
+  // The map's area with a cell to spare, so that every point binned into the map took part.
+  CropBox crop;
+  crop.min =
+      Eigen::Vector3d(static_cast<double>(target.x() - 1) * res, static_cast<double>(target.y() - 1) * res, -1e9);
+  crop.max = Eigen::Vector3d(static_cast<double>(target.x() + n + 1) * res,
+                             static_cast<double>(target.y() + n + 1) * res, 1e9);
+  collapse.crop = crop;
+  CollapseResult removed;
+  if (points.size > 0) removed = collapse_overhangs(points, collapse);
+  report.num_dropped_non_finite = removed.num_dropped_non_finite;
+  report.num_overhang = removed.num_overhang;
+
+  report.map_reset = move_to(sensor.head<2>());
+  const LayerData layer = layer_data(layers_);
+  if (last_sensor_ && params_.drift_m_per_sqrt_m > 0.0) {
+    // Odometry drift: every known height grows less certain with the distance travelled.
+    const auto growth =
+        static_cast<float>(params_.drift_m_per_sqrt_m * params_.drift_m_per_sqrt_m * (sensor - *last_sensor_).norm());
+    for (std::size_t cell = 0; cell < geometry_.num_cells(); ++cell) layer[kVariance][cell] += growth;  // NaN stays
+  }
+  last_sensor_ = sensor;
+  Workspace& w = thread_workspace();
+  const std::size_t cells = geometry_.num_cells();
+  w.cells.resize(cells);
+  w.touched.clear();
+  w.gap_points.clear();
+  const bool clearing = params_.clear_seen_through && points.size > 0;
+  if (clearing) w.visibility.reset(params_.visibility_bin_rad);
+  // The stored index of each geometric row (times n) and column.
+  w.row_offset.resize(static_cast<std::size_t>(n));
+  w.column.resize(static_cast<std::size_t>(n));
+  for (int g = 0; g < n; ++g) {
+    w.row_offset[g] = static_cast<std::size_t>(storage_of(origin_cell_.x() + g, 0)) * static_cast<std::size_t>(n);
+    w.column[g] = static_cast<std::size_t>(storage_of(origin_cell_.y() + g, 1));
+  }
+  const double ox = static_cast<double>(origin_cell_.x()), oy = static_cast<double>(origin_cell_.y());
+  const ScanBinning binning{w.row_offset.data(),
+                            w.column.data(),
+                            ox,
+                            oy,
+                            res,
+                            n,
+                            sensor,
+                            params_.range_sigma_m * params_.range_sigma_m,
+                            params_.angle_sigma_rad * params_.angle_sigma_rad};
+  report.num_in_map = bin_scan(points, pose, removed.overhang, binning, clearing, w);
+  split_discontinuous_cells(points, pose, removed.overhang, binning, params_.discontinuity_m, w);
+
+  // Clearing: a stored height that this scan's rays passed under by the margin is gone.
+  if (clearing) {
+    const Eigen::Vector2d origin(ox * res, oy * res);
+    for_each_seen_through(w, layer[kElevation], layer[kMin], n, res, origin, sensor, params_.clearing_margin_m,
+                          params_.clearing_depth_m, std::max(params_.clearing_beyond_m, res), [&](std::size_t cell) {
+                            clear_cell(layer, {reference_, sum_, sum_squares_}, cell);
+                            ++report.num_cleared_cells;
+                          });
+  }
+
+  // The 1-D Kalman update of each measured cell, or its replacement outside the gate.
+  const double gate_squared = params_.gate_sigmas * params_.gate_sigmas;
+  const double cell_variance = params_.cell_sigma_m * params_.cell_sigma_m;
+  for (const std::uint32_t cell : w.touched) {
+    ScanCell& c = w.cells[cell];
+    c.touched = false;  // the workspace is clean for the next update
+    if (c.overhang_min < kInf) layer[kOverhangMin][cell] = static_cast<float>(c.overhang_min);
+    if (c.count == 0) continue;
+    ++report.num_fused_cells;
+    report.num_replaced_cells +=
+        fuse_cell(c, cell, layer, {reference_, sum_, sum_squares_}, cell_variance, gate_squared, stamp);
+  }
+  refresh_clearance(layer, cells);
+  if (params_.compute_planner_layers) update_planner_layers();
+  ++num_updates_;
+  return report;
+}
+
+void LocalMap::update_planner_layers() {
+  const TraversabilityParams& tp = params_.traversability;
+  const int n = geometry_.size.x();
+  const int r = static_cast<int>(std::round(tp.footprint_radius_m / params_.resolution_m));
+  const CellIndex start = start_index();
+  const LayerData layer = layer_data(layers_);
+  const float* height = layer[kElevation];
+  // The stored row and column of each geometric one: no wrap-around arithmetic in the loops, and
+  // windows are clipped at the map's border (they never wrap).
+  std::vector<std::size_t> row_of(static_cast<std::size_t>(n)), column_of(static_cast<std::size_t>(n));
+  for (int g = 0; g < n; ++g) {
+    row_of[g] = static_cast<std::size_t>((g + start.x()) % n) * static_cast<std::size_t>(n);
+    column_of[g] = static_cast<std::size_t>((g + start.y()) % n);
+  }
+  // Heights relative to the first known one in storage order keep the sums of squares small.
+  double reference = 0.0;
+  for (std::size_t cell = 0; cell < geometry_.num_cells(); ++cell) {
+    if (!std::isnan(height[cell])) {
+      reference = height[cell];
+      break;
+    }
+  }
+  thread_local std::vector<RowMoments> workspace;
+  std::vector<RowMoments>& rows = workspace;  // the calling thread's, also inside the parts
+  rows.resize(geometry_.num_cells());         // geometric order
+  const int parts = detail::fixed_parts(geometry_.num_cells(), 16384);
+  // Pass 1: window sums along y of each geometric row, by differences of prefix sums.
+  detail::for_each_part(params_.num_threads, parts, [&](int part) {
+    const auto [begin, end] = detail::part_range(static_cast<std::size_t>(n), part, parts);
+    std::vector<float> z(static_cast<std::size_t>(n));
+    std::vector<std::array<double, 6>> prefix(static_cast<std::size_t>(n) + 1);
+    for (std::size_t gi = begin; gi < end; ++gi) {
+      for (int gj = 0; gj < n; ++gj) z[gj] = height[row_of[gi] + column_of[gj]];
+      row_moments(z, reference, r, prefix, rows.data() + gi * n);
+    }
+  });
+  // Pass 2: along x, then the plane fit and the traversability of each known cell.
+  detail::for_each_part(params_.num_threads, parts, [&](int part) {
+    const auto [begin, end] = detail::part_range(static_cast<std::size_t>(n), part, parts);
+    for (std::size_t gi = begin; gi < end; ++gi) {
+      const int lo = std::max(static_cast<int>(gi) - r, 0), hi = std::min(static_cast<int>(gi) + r, n - 1);
+      for (int gj = 0; gj < n; ++gj) {
+        const std::size_t cell = row_of[gi] + column_of[gj];
+        float* out[] = {layer[kStep] + cell, layer[kSlope] + cell, layer[kRoughness] + cell,
+                        layer[kTraversability] + cell};
+        for (float* value : out) *value = kNaN;
+        if (std::isnan(height[cell])) continue;
+        double N = 0, x = 0, y = 0, z = 0, xx = 0, xy = 0, yy = 0, xz = 0, yz = 0, zz = 0;
+        float lowest = std::numeric_limits<float>::infinity(), highest = -lowest;
+        for (int a = lo; a <= hi; ++a) {
+          const RowMoments& m = rows[static_cast<std::size_t>(a) * n + gj];
+          const double ax = a - static_cast<double>(gi);  // x relative to the cell
+          N += m.n;
+          x += ax * m.n;
+          xx += ax * ax * m.n;
+          y += m.y;
+          yy += m.yy;
+          z += m.z;
+          zz += m.zz;
+          xy += ax * m.y;
+          xz += ax * m.z;
+          yz += m.yz;
+          lowest = std::min(lowest, m.lowest);
+          highest = std::max(highest, m.highest);
+        }
+        *out[0] = highest - lowest;
+        if (N < tp.min_window_cells) continue;
+        const PlaneFit fit = fit_plane(N, x, y, z, xx, xy, yy, xz, yz, zz);
+        if (!fit.valid) continue;
+        const double slope = std::atan(fit.gradient / params_.resolution_m);
+        *out[1] = static_cast<float>(slope);
+        *out[2] = static_cast<float>(fit.roughness);
+        *out[3] = traversability(tp, slope, *out[0], fit.roughness, layer[kClearance][cell]);
+      }
+    }
+  });
+}
+
+ElevationMap LocalMap::to_elevation_map() const {
+  ElevationMap out(geometry_);
+  const int n = geometry_.size.x();
+  const CellIndex start = start_index();
+  for (const std::string& name : layers_.layers()) {
+    const Layer& in = layers_.get(name);
+    Layer ordered(n, n);
+    for (int gi = 0; gi < n; ++gi) {
+      const int si = (gi + start.x()) % n;
+      for (int gj = 0; gj < n; ++gj) ordered(gi, gj) = in(si, (gj + start.y()) % n);
+    }
+    out.add(name, std::move(ordered));
+  }
+  return out;
+}
+
+}  // namespace terracube

@@ -1,0 +1,274 @@
+"""A robot-centric local elevation map fused over time (``terracube::LocalMap``, issue 35)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import _core
+from .collapse import CollapseParams, _as_points, _checked, _num_threads
+from .elevation import ElevationMap, MapGeometry
+
+__all__ = ["LocalMap", "LocalMapParams", "TraversabilityParams"]
+
+
+@dataclass
+class TraversabilityParams:
+    """Thresholds of the ``traversability`` layer, mirroring ``terracube::TraversabilityParams``.
+
+    With, per cell, the plane ``z = a x + b y + c`` fitted by least squares to the known heights of
+    the square window of half-side ``footprint_radius`` around it: ``slope = atan(|(a, b)|)``,
+    ``roughness`` = RMS vertical distance to the plane and ``step`` = highest minus lowest height
+    in the window. The traversability is 0 when ``slope > max_slope``, ``step > max_step``,
+    ``roughness > max_roughness`` or ``clearance < min_clearance``, and otherwise
+    ``1 - (ws slope/max_slope + wt step/max_step + wr roughness/max_roughness) / (ws + wt + wr)``;
+    NaN where the cell has no height or its window fewer than ``min_window_cells`` known cells.
+
+    Attributes
+    ----------
+    footprint_radius : float
+        Half-side of the window [m] (the robot's footprint), >= 0.
+    max_slope : float
+        [rad], > 0 (0.35 rad, about 20 degrees).
+    max_step, max_roughness : float
+        [m], > 0.
+    min_clearance : float
+        The robot's height [m]: lower free space under an overhang blocks the cell.
+    slope_weight, step_weight, roughness_weight : float
+        >= 0, not all 0.
+    min_window_cells : int
+        >= 3.
+    """
+
+    footprint_radius: float = 0.3
+    max_slope: float = 0.35
+    max_step: float = 0.2
+    max_roughness: float = 0.05
+    min_clearance: float = 0.7
+    slope_weight: float = 1.0
+    step_weight: float = 1.0
+    roughness_weight: float = 1.0
+    min_window_cells: int = 4
+
+    def to_core(self) -> _core.TraversabilityParams:
+        params = _checked(_core.TraversabilityParams)()
+        params.footprint_radius_m = float(self.footprint_radius)
+        params.max_slope_rad = float(self.max_slope)
+        params.max_step_m = float(self.max_step)
+        params.max_roughness_m = float(self.max_roughness)
+        params.min_clearance_m = float(self.min_clearance)
+        params.slope_weight = float(self.slope_weight)
+        params.step_weight = float(self.step_weight)
+        params.roughness_weight = float(self.roughness_weight)
+        params.min_window_cells = int(self.min_window_cells)
+        return params
+
+
+@dataclass
+class LocalMapParams:
+    """Parameters of :class:`LocalMap`, mirroring ``terracube::LocalMapParams``.
+
+    Attributes
+    ----------
+    length, resolution : float
+        Side of the square map and cell edge [m]; ``round(length / resolution)`` cells a side.
+    collapse : CollapseParams
+        Overhang removal of each scan ([CBC]); its transform and crop are set per scan (the pose and
+        the map's area), its other fields are used as given.
+    range_sigma, angle_sigma : float
+        Measurement noise: a return at range r and elevation angle phi has the height variance
+        ``range_sigma**2 sin(phi)**2 + (r angle_sigma)**2 cos(phi)**2`` [m], [rad].
+    cell_sigma : float
+        Height error per cell and scan that does not average out over its points [m]; a scan's
+        measurement of a cell (mean of n heights) has the variance
+        ``(mean var_z + spread**2) / n + cell_sigma**2``. The defaults suit a Velodyne HDL-64E-class
+        sensor on a vehicle; the simulator's exact noise is ``range_sigma=0.02, angle_sigma=0,
+        cell_sigma=0.004, drift=0``.
+    drift : float
+        Odometry height drift [m / sqrt(m)]: before each update every known variance grows by
+        ``drift**2`` times the distance travelled since the last one.
+    gate_sigmas : float
+        A measurement further than this many standard deviations of the innovation replaces the
+        cell instead of being fused (something came or went).
+    clear_seen_through, clearing_margin, clearing_depth, clearing_beyond
+        Clear a cell whose column this scan's rays passed through, on their way to returns at least
+        ``clearing_beyond`` [m] further (more than motion distortion moves a surface), between its
+        lowest fused point (or ``clearing_depth`` [m] below its height, if lower) and
+        ``clearing_margin`` [m] below its height (a person or car that left); rays below all its
+        points (under a car's body) say nothing.
+    visibility_bin : float
+        Angular bin of the see-through test [rad].
+    discontinuity : float
+        Gap [m] between one scan's sorted heights in a cell that makes it discontinuous; the points
+        above the gap count as an overhang.
+    compute_planner_layers : bool
+        Refresh step, slope, roughness and traversability after every update.
+    traversability : TraversabilityParams
+    num_threads : int
+        1 (default) the calling thread, 0 one per processor; the map is the same bit for bit.
+    """
+
+    length: float = 20.0
+    resolution: float = 0.1
+    collapse: CollapseParams = field(default_factory=CollapseParams)
+    range_sigma: float = 0.02
+    angle_sigma: float = 0.0015
+    cell_sigma: float = 0.02
+    drift: float = 0.01
+    gate_sigmas: float = 3.0
+    clear_seen_through: bool = True
+    clearing_margin: float = 0.1
+    clearing_depth: float = 0.5
+    clearing_beyond: float = 0.5
+    visibility_bin: float = 0.0087
+    discontinuity: float = 1.0
+    compute_planner_layers: bool = True
+    traversability: TraversabilityParams = field(default_factory=TraversabilityParams)
+    num_threads: int = 1
+
+    def to_core(self) -> _core.LocalMapParams:
+        params = _checked(_core.LocalMapParams)()
+        params.length_m = float(self.length)
+        params.resolution_m = float(self.resolution)
+        params.collapse = self.collapse.to_core()
+        params.range_sigma_m = float(self.range_sigma)
+        params.angle_sigma_rad = float(self.angle_sigma)
+        params.cell_sigma_m = float(self.cell_sigma)
+        params.drift_m_per_sqrt_m = float(self.drift)
+        params.gate_sigmas = float(self.gate_sigmas)
+        params.clear_seen_through = bool(self.clear_seen_through)
+        params.clearing_margin_m = float(self.clearing_margin)
+        params.clearing_depth_m = float(self.clearing_depth)
+        params.clearing_beyond_m = float(self.clearing_beyond)
+        params.visibility_bin_rad = float(self.visibility_bin)
+        params.discontinuity_m = float(self.discontinuity)
+        params.compute_planner_layers = bool(self.compute_planner_layers)
+        params.traversability = self.traversability.to_core()
+        params.num_threads = _num_threads(self.num_threads)
+        return params
+
+
+def _as_pose(pose) -> np.ndarray:
+    matrix = np.asarray(pose, dtype=np.float64)
+    if matrix.shape != (4, 4):
+        raise ValueError(f"pose must be a 4x4 matrix (odometry <- sensor), got shape {matrix.shape}")
+    return matrix
+
+
+class LocalMap:
+    """A square robot-centric elevation map in the odometry frame, fused scan after scan.
+
+    ``update(points, pose)`` takes a scan in the sensor frame and its 4x4 pose (odometry <- sensor):
+    the map re-centres on the sensor (a circular-buffer shift: cells that leave are dropped, cells
+    that enter are empty, nothing else is copied; a jump by the map's length or more drops every
+    cell), removes overhangs ([CBC]), clears heights the scan saw through, fuses each cell's mean
+    height by a 1-D Kalman update and refreshes the planner layers.
+
+    Layers (``m["elevation"]``, read-only float32 views without a copy that follow the map's
+    updates) are in *storage order*: index them with :meth:`index_of`, as in grid_map. Layers:
+    ``elevation`` [m], ``variance`` [m^2], ``count``, ``time``, ``min``, ``max``, ``std_dev``,
+    ``discontinuity`` ([TC] Table 1 inputs), ``overhang_min``, ``clearance`` (free height under the
+    lowest overhang, +inf without one), ``step``, ``slope`` [rad], ``roughness``, ``traversability``
+    in [0, 1] (:class:`TraversabilityParams`); NaN where unknown. :meth:`to_elevation_map` gives a
+    copy in map order for ``classify_terrain``, the writers and plots.
+
+    Parameters
+    ----------
+    length, resolution : float
+        Map side and cell edge [m].
+    params : LocalMapParams, optional
+        All parameters (``length``, ``resolution`` and ``kwargs`` are ignored then).
+    **kwargs
+        Other :class:`LocalMapParams` fields.
+    """
+
+    def __init__(
+        self, length: float = 20.0, resolution: float = 0.1, *, params: LocalMapParams | None = None, **kwargs
+    ):
+        if params is None:
+            params = LocalMapParams(length=length, resolution=resolution, **kwargs)
+        self.params = params
+        self._core = _core.LocalMap(params.to_core())
+
+    @property
+    def geometry(self) -> MapGeometry:
+        """The map's area: ``origin`` its lower-left corner [m], ``size`` its cells (map order)."""
+        return self._core.geometry
+
+    @property
+    def resolution(self) -> float:
+        return self._core.geometry.resolution
+
+    @property
+    def start_index(self) -> tuple[int, int]:
+        """Storage index of the map's lower-left cell."""
+        return self._core.start_index
+
+    @property
+    def layers(self) -> list[str]:
+        return list(self._core.layers)
+
+    @property
+    def num_updates(self) -> int:
+        return self._core.num_updates
+
+    @property
+    def time_origin(self) -> float:
+        """The first update's stamp [s]: the ``time`` layer is relative to it (float32 keeps ms)."""
+        return self._core.time_origin
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._core.layers
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name not in self:
+            raise KeyError(f"no layer {name!r}; layers: {', '.join(self.layers)}")
+        return self._core.get(name)
+
+    def index_of(self, position: Sequence[float]) -> tuple[int, int] | None:
+        """Storage index (i, j) of the cell holding ``(x, y)`` [m], or None outside the map."""
+        x, y = (float(v) for v in position)
+        return self._core.index_of(x, y)
+
+    def position_of(self, index: Sequence[int]) -> np.ndarray:
+        """Centre (x, y) [m] of the cell at storage index ``(i, j)``."""
+        i, j = (int(v) for v in index)
+        return self._core.position_of(i, j)
+
+    def update(self, points, pose, stamp: float = math.nan) -> _core.LocalMapUpdate:
+        """Fuse one scan ((N, 3) or wider float32/float64, x, y, z first, sensor frame) taken at
+        ``pose`` (4x4).
+
+        ``stamp`` [s] goes into the ``time`` layer, relative to the first update's (NaN: the number of
+        the update). An empty scan
+        only moves the map. ValueError for a non-finite or non-rigid pose, NaN/Inf rows (unless
+        ``collapse.drop_non_finite``) or an infinite stamp, before anything changes. Releases the GIL.
+        """
+        points = _as_points(points)
+        if points.ndim == 2 and points.shape[1] > 3:
+            points = points[:, :3]  # a strided view: x, y, z of wider rows (intensity, ...)
+        return self._core.update(points, _as_pose(pose), float(stamp))
+
+    def move_to(self, position: Sequence[float]) -> bool:
+        """Centre the map on ``(x, y)``; True when the move dropped every cell."""
+        x, y = (float(v) for v in position)
+        return self._core.move_to(x, y)
+
+    def clear(self) -> None:
+        self._core.clear()
+
+    def to_elevation_map(self) -> ElevationMap:
+        """A copy of every layer in map order, with :attr:`geometry`: cell (i, j) is centred on
+        ``geometry.position_of(i, j)``."""
+        return ElevationMap(self._core.to_elevation_map())
+
+    def __repr__(self) -> str:
+        g = self.geometry
+        known = int(np.count_nonzero(~np.isnan(self["elevation"])))
+        return (
+            f"LocalMap(length={self.params.length}, resolution={g.resolution}, origin=({g.origin[0]:.2f}, "
+            f"{g.origin[1]:.2f}), known_cells={known}, num_updates={self.num_updates})"
+        )

@@ -1,0 +1,173 @@
+"""``terracube stream``: a scan sequence fused into a robot-centric :class:`terracube.LocalMap`."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+
+from .local_map import LocalMap, LocalMapParams
+from .pipeline import StageReport
+
+__all__ = ["run_stream"]
+
+ANIMATION_SUFFIXES = (".gif", ".mp4")
+
+
+def _frame_png(local_map: LocalMap, path: Path, title: str) -> Path:
+    from .viz import plot_layer
+
+    return plot_layer(local_map.to_elevation_map(), "elevation", path, title=title)
+
+
+def _write_animation(frames: list[tuple[str, np.ndarray, np.ndarray]], path: Path, resolution: float) -> Path:
+    """One frame per kept map: the elevation in map order, drawn in the odometry frame."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        from matplotlib import animation
+    except ImportError as error:  # pragma: no cover - matplotlib is a plotting extra
+        raise ImportError('an animation needs matplotlib: pip install "terracube[viz]"') from error
+    from .io import atomic_path
+
+    finite = np.concatenate([values[np.isfinite(values)] for _, values, _ in frames])
+    low, high = np.percentile(finite, [1, 99]) if finite.size > 0 else (0.0, 1.0)
+    fig, ax = plt.subplots(figsize=(6.4, 5.6))
+    first_title, first, first_origin = frames[0]  # the map's size never changes
+    n = first.shape[0]
+
+    def extent(origin):
+        return (origin[0], origin[0] + n * resolution, origin[1], origin[1] + n * resolution)
+
+    image = ax.imshow(
+        first.T, origin="lower", extent=extent(first_origin), vmin=low, vmax=high, cmap="viridis"
+    )
+    fig.colorbar(image, ax=ax, label="elevation [m]")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    title = ax.set_title(first_title)
+
+    def draw(k):
+        text, values, origin = frames[k]
+        image.set_data(values.T)
+        image.set_extent(extent(origin))
+        title.set_text(text)
+        return image, title
+
+    movie = animation.FuncAnimation(fig, draw, frames=len(frames), blit=False)
+    if path.suffix.lower() == ".gif":
+        writer = animation.PillowWriter(fps=5)
+    else:
+        if not animation.FFMpegWriter.isAvailable():
+            plt.close(fig)
+            raise ValueError(f"{path.name}: an .mp4 needs ffmpeg on the PATH; write a .gif instead")
+        writer = animation.FFMpegWriter(fps=5)
+    try:
+        with atomic_path(path) as temporary:  # the temporary name keeps the suffix
+            movie.save(str(temporary), writer=writer)
+    finally:
+        plt.close(fig)
+    return path
+
+
+def run_stream(
+    scans: Iterable[tuple[str, np.ndarray, np.ndarray, float]],
+    output_dir: str | Path,
+    params: LocalMapParams | None = None,
+    *,
+    every: int = 0,
+    animation: str | Path | None = None,
+    png: bool = True,
+) -> StageReport:
+    """Fuse a sequence of scans into a :class:`LocalMap` and write it.
+
+    Parameters
+    ----------
+    scans
+        ``(name, points, pose, stamp)`` per scan, in order: (N, 3) or wider points [m] in the sensor
+        frame, the 4x4 odometry pose (odometry <- sensor) and its time [s]. Read lazily.
+    output_dir
+        Writes ``local_map.npz`` (every layer in map order, read with ``ElevationMap.load``) and,
+        with ``png``, ``local_elevation.png`` and ``local_traversability.png``.
+    every : int
+        With ``every > 0``: ``local_elevation_NNNNNN.png`` after every ``every``-th scan, or with
+        ``animation`` one frame of the animation.
+    animation : path, optional
+        A ``.gif`` (Pillow) or ``.mp4`` (ffmpeg) of the elevation, one frame per ``every`` scans
+        (every scan when ``every`` is 0).
+
+    Returns
+    -------
+    StageReport
+        Summary lines (scans, time per update, cells known, cleared) and the written files.
+    """
+    if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 0:
+        raise ValueError(f"every must be a whole number of scans >= 0, got {every!r}")
+    if animation is not None and Path(animation).suffix.lower() not in ANIMATION_SUFFIXES:
+        raise ValueError(f"the animation must be a .gif or .mp4 file, got {Path(animation).name!r}")
+    output_dir = Path(output_dir)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    local_map = LocalMap(params=params or LocalMapParams())
+    report = StageReport("stream", 0)
+    frames: list[tuple[str, np.ndarray, np.ndarray]] = []
+    seconds, count, cleared, replaced = 0.0, 0, 0, 0
+    for name, points, pose, stamp in scans:
+        start = time.perf_counter()
+        try:
+            update = local_map.update(points, pose, stamp)
+        except (ValueError, TypeError) as error:
+            raise ValueError(f"{name}: {error}") from error
+        seconds += time.perf_counter() - start
+        count += 1
+        report.points += int(update.num_points)
+        cleared += int(update.num_cleared_cells)
+        replaced += int(update.num_replaced_cells)
+        frame_due = count % (every or 1) == 0
+        if animation is not None and frame_due:
+            ordered = local_map.to_elevation_map()
+            frames.append(
+                (f"{Path(name).stem} ({count})", ordered["elevation"].copy(), ordered.geometry.origin)
+            )
+        elif every > 0 and frame_due and png:
+            report.outputs.append(
+                _frame_png(
+                    local_map,
+                    output_dir / f"local_elevation_{count:06d}.png",
+                    f"{Path(name).stem}: elevation",
+                )
+            )
+    if count == 0:
+        raise ValueError("no scan to fuse")
+    final = local_map.to_elevation_map()
+    report.add("map", final.save(output_dir / "local_map.npz"))
+    if png:
+        from .viz import plot_layer
+
+        report.add(
+            "pictures",
+            plot_layer(final, "elevation", output_dir / "local_elevation.png", title="fused elevation [m]"),
+            plot_layer(
+                final,
+                "traversability",
+                output_dir / "local_traversability.png",
+                title="traversability (1 = open ground, 0 = blocked)",
+                cmap="RdYlGn",
+                vmin=0.0,
+                vmax=1.0,
+            ),
+        )
+    if animation is not None and frames:
+        report.add("animation", _write_animation(frames, Path(animation), local_map.resolution))
+    known = int(np.count_nonzero(np.isfinite(final["elevation"])))
+    g = final.geometry
+    report.lines.insert(
+        0,
+        f"{count} scans into a {g.size[0]} x {g.size[1]} local map at {g.resolution:g} m: "
+        f"{1e3 * seconds / count:.1f} ms per update, {known:,} cells known at the end, "
+        f"{cleared:,} cells cleared as seen through, {replaced:,} replaced by the gate",
+    )
+    return report

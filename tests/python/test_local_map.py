@@ -1,0 +1,191 @@
+"""terracube.LocalMap: numpy views, a numpy reference of one scan's fusion, moves, bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import terracube
+
+
+def pose_at(x: float, y: float, z: float, yaw: float = 0.0) -> np.ndarray:
+    pose = np.eye(4)
+    c, s = math.cos(yaw), math.sin(yaw)
+    pose[:2, :2] = [[c, -s], [s, c]]
+    pose[:3, 3] = (x, y, z)
+    return pose
+
+
+def gentle_ground(seed: int = 3, n: int = 20000, half: float = 4.0) -> np.ndarray:
+    """Points of a smooth surface in the odometry frame (no overhangs, nothing seen through)."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-half, half, size=(n, 2))
+    z = 0.05 * np.sin(xy[:, 0]) + 0.03 * xy[:, 1] + rng.normal(0.0, 0.01, n)
+    return np.column_stack([xy, z])
+
+
+def test_layers_are_read_only_views_that_follow_the_updates():
+    m = terracube.LocalMap(length=4.0, resolution=0.1)
+    elevation = m["elevation"]
+    assert elevation.shape == (40, 40) and elevation.dtype == np.float32
+    assert np.isnan(elevation).all()
+    assert not elevation.flags.writeable
+    sensor = pose_at(0.3, -0.2, 1.0)
+    points = gentle_ground() - sensor[:3, 3]
+    report = m.update(points, sensor)
+    assert report.num_fused_cells > 1000
+    assert np.shares_memory(elevation, m["elevation"])  # the same buffer, no copy
+    stamped = terracube.LocalMap(length=4.0)
+    stamped.update(points, sensor, stamp=1.7e9 + 0.25)  # ROS stamps: "time" keeps their milliseconds
+    stamped.update(points[:5000], sensor, stamp=1.7e9 + 0.375)
+    assert stamped.time_origin == 1.7e9 + 0.25
+    assert set(np.unique(stamped["time"][np.isfinite(stamped["time"])])) == {0.0, 0.125}
+    assert np.isfinite(elevation).sum() == report.num_fused_cells
+    with pytest.raises(KeyError, match="no layer 'nope'"):
+        m["nope"]
+    for name in ("variance", "clearance", "traversability", "max", "std_dev", "discontinuity"):
+        assert name in m.layers
+
+
+def test_one_scan_matches_a_numpy_binning_of_its_points():
+    m = terracube.LocalMap(length=6.0, resolution=0.1, range_sigma=0.02, angle_sigma=0.001, cell_sigma=0.004)
+    sensor = pose_at(0.25, 0.05, 1.0, yaw=0.4)
+    world = gentle_ground()
+    # Into the sensor frame: p_sensor = R^T (p - t).
+    points = (world - sensor[:3, 3]) @ sensor[:3, :3]
+    m.update(points.astype(np.float64), sensor)
+    res = 0.1
+    cells = np.floor(world[:, :2] / res).astype(np.int64)
+    origin = np.floor(sensor[:2, 3] / res).astype(np.int64) - 30
+    inside = np.all((cells >= origin) & (cells < origin + 60), axis=1)
+    v = world - sensor[:3, 3]
+    horizontal = (v[:, :2] ** 2).sum(axis=1)
+    var_z = 0.02**2 * v[:, 2] ** 2 / (horizontal + v[:, 2] ** 2) + 0.001**2 * horizontal
+    checked = 0
+    keys = cells[inside]
+    order = np.lexsort((keys[:, 1], keys[:, 0]))
+    keys, z, var = keys[order], world[inside][order, 2], var_z[inside][order]
+    starts = np.flatnonzero(np.r_[True, np.any(np.diff(keys, axis=0) != 0, axis=1)])
+    for begin, end in zip(starts, np.r_[starts[1:], len(keys)], strict=True):
+        gx, gy = keys[begin]
+        index = m.index_of(((gx + 0.5) * res, (gy + 0.5) * res))
+        heights = z[begin:end]
+        n = len(heights)
+        expected_variance = (var[begin:end].mean() + heights.var()) / n + 0.004**2
+        assert m["elevation"][index] == pytest.approx(heights.mean(), abs=1e-5)
+        assert m["variance"][index] == pytest.approx(expected_variance, rel=1e-4)
+        assert m["count"][index] == n
+        assert m["max"][index] == pytest.approx(heights.max(), abs=1e-6)
+        assert m["std_dev"][index] == pytest.approx(heights.std(), abs=1e-5)
+        checked += 1
+    assert checked > 3000
+    assert np.isfinite(m["elevation"]).sum() == checked
+
+
+def test_float32_and_float64_scans_give_the_same_map_and_index_round_trips():
+    sensor = pose_at(1.0, 2.0, 1.0)
+    points = gentle_ground() - sensor[:3, 3]
+    maps = []
+    for dtype in (np.float64, np.float32):
+        m = terracube.LocalMap(length=4.0)
+        wide = np.column_stack([points, np.ones(len(points))]).astype(dtype)  # x, y, z, intensity
+        m.update(wide if dtype == np.float32 else points.astype(dtype), sensor)
+        maps.append(m)
+    assert np.isfinite(maps[0]["elevation"]).sum() > 1000
+    np.testing.assert_allclose(maps[0]["elevation"], maps[1]["elevation"], atol=1e-5, equal_nan=True)
+    m = maps[0]
+    index = m.index_of((1.23, 2.46))
+    assert m.position_of(index) == pytest.approx((1.25, 2.45))
+    assert m.index_of((100.0, 0.0)) is None
+    ordered = m.to_elevation_map()
+    assert ordered.geometry.origin == pytest.approx((-1.0, 0.0))
+    i, j = ordered.geometry.index_of(1.25, 2.45)
+    assert ordered["elevation"][i, j] == m["elevation"][index]
+    classes = terracube.classify_terrain(ordered, reference="local_ground")
+    assert (classes == terracube.TerrainClass.GROUND).sum() > 1000
+
+
+def test_moving_drops_what_leaves_and_keeps_the_rest_in_place():
+    m = terracube.LocalMap(length=4.0, compute_planner_layers=False)
+    sensor = pose_at(0.0, 0.0, 1.0)
+    m.update(gentle_ground() - sensor[:3, 3], sensor)
+    before = m.to_elevation_map()["elevation"].copy()
+    assert m.move_to((0.5, -0.3)) is False
+    after = m.to_elevation_map()["elevation"]
+    # The map moved 5 cells along +x and 3 along -y: kept cells shift by those amounts.
+    np.testing.assert_array_equal(after[:35, 3:], before[5:, :37])
+    assert np.isnan(after[35:, :]).all() and np.isnan(after[:, :3]).all()
+    assert m.move_to((50.0, 0.0)) is True
+    assert np.isnan(m["elevation"]).all()
+
+
+def test_bad_input_is_refused_and_leaves_the_map_unchanged():
+    m = terracube.LocalMap(length=4.0)
+    sensor = pose_at(0.0, 0.0, 1.0)
+    points = gentle_ground() - sensor[:3, 3]
+    m.update(points, sensor)
+    before = {name: m[name].copy() for name in m.layers}
+    bad_poses = {
+        "4x4": np.eye(3),
+        "NaN or Inf": pose_at(math.nan, 0.0, 1.0),
+        "rigid": np.diag([2.0, 1.0, 1.0, 1.0]),
+    }
+    for message, pose in bad_poses.items():
+        with pytest.raises(ValueError, match=message):
+            m.update(points, pose)
+    nan_rows = points.copy()
+    nan_rows[5, 2] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        m.update(nan_rows, sensor)
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        m.update(points[:, :2], sensor)
+    with pytest.raises(ValueError, match="stamp"):
+        m.update(points, sensor, stamp=math.inf)
+    with pytest.raises(ValueError, match="length_m"):
+        terracube.LocalMap(length=-1.0)
+    with pytest.raises(ValueError, match="clearing_depth_m must exceed"):
+        terracube.LocalMap(clearing_depth=0.05)
+    with pytest.raises(ValueError, match="max_slope"):
+        terracube.LocalMap(traversability=terracube.TraversabilityParams(max_slope=0.0))
+    for name, layer in before.items():
+        np.testing.assert_array_equal(layer, m[name], err_msg=name)
+    # An empty scan only moves the map.
+    report = m.update(np.empty((0, 3)), pose_at(0.2, 0.0, 1.0))
+    assert report.num_fused_cells == 0 and not report.map_reset
+    assert "LocalMap(length=4.0" in repr(m)
+
+
+def test_stream_command_on_kitti_frames_writes_the_map_pictures_and_an_animation(shared_data, tmp_path):
+    from terracube.cli import app
+    from typer.testing import CliRunner
+
+    kitti = shared_data.root / "kitti_seq00"
+    out = tmp_path / "stream"
+    args = ["stream", str(kitti / "velodyne"), "--poses", str(kitti / "poses.txt"), "-o", str(out)]
+    result = CliRunner().invoke(app, [*args, "--every", "2", "--length", "10"])
+    assert result.exit_code == 0, result.output
+    assert "6 scans into a 100 x 100 local map" in result.output
+    pictures = sorted(p.name for p in out.glob("local_elevation_*.png"))
+    assert pictures == [
+        "local_elevation_000002.png",
+        "local_elevation_000004.png",
+        "local_elevation_000006.png",
+    ]
+    for name in ("local_map.npz", "local_elevation.png", "local_traversability.png"):
+        assert (out / name).is_file(), name
+    saved = terracube.ElevationMap.load(out / "local_map.npz")
+    assert {"elevation", "variance", "clearance", "traversability"} <= set(saved.layers)
+    assert np.isfinite(saved["elevation"]).sum() > 3000
+    traversability = saved["traversability"][np.isfinite(saved["traversability"])]
+    assert traversability.size > 3000 and traversability.min() >= 0.0 and traversability.max() <= 1.0
+
+    movie = tmp_path / "drive.gif"
+    result = CliRunner().invoke(
+        app, [*args, "--length", "10", "--no-png", "--animation", str(movie), "--limit", "3"]
+    )
+    assert result.exit_code == 0, result.output
+    assert movie.stat().st_size > 1000
+    assert not (out / "local_elevation_000003.png").exists()
+    result = CliRunner().invoke(app, [*args, "--resolution", "-1"])
+    assert result.exit_code != 0 and "resolution" in result.output
