@@ -89,13 +89,13 @@ std::uint8_t table_1_class(float height, float std_dev, bool discontinuity, cons
 }
 
 /// [TC] section 3.2, class 5: a ground cell with an obstacle, overhanging or vertical cell among
-/// its 8 neighbours (inside the map) is a horizontal edge.
-bool beside_an_object(const TerrainClasses& table, Eigen::Index i, Eigen::Index j) {
-  const Eigen::Index i0 = std::max<Eigen::Index>(i - 1, 0), i1 = std::min(i + 1, table.rows() - 1);
-  const Eigen::Index j0 = std::max<Eigen::Index>(j - 1, 0), j1 = std::min(j + 1, table.cols() - 1);
+/// its 8 neighbours (inside the map) is a horizontal edge. `table` is nx x ny, row-major.
+bool beside_an_object(const std::uint8_t* table, Eigen::Index nx, Eigen::Index ny, Eigen::Index i, Eigen::Index j) {
+  const Eigen::Index i0 = std::max<Eigen::Index>(i - 1, 0), i1 = std::min(i + 1, nx - 1);
+  const Eigen::Index j0 = std::max<Eigen::Index>(j - 1, 0), j1 = std::min(j + 1, ny - 1);
   for (Eigen::Index a = i0; a <= i1; ++a) {
     for (Eigen::Index b = j0; b <= j1; ++b) {
-      const std::uint8_t c = table(a, b);
+      const std::uint8_t c = table[a * ny + b];
       if (c == kObstacle || c == kOverhanging || c == kVertical) return true;
     }
   }
@@ -139,22 +139,29 @@ TerrainClasses classify_terrain_layers(ElevationMap& map, const TerrainParams& p
   }
   relative_height = highest - ground;  // NaN (no data) stays NaN
 
+  // The loops read and write through plain local pointers: a byte store may alias anything, so
+  // through the layers (and params) the compiler would reload their addresses on every cell.
   TerrainClasses table(nx, ny);  // [TC] Table 1, before the edge test
   for_row_blocks(nx, ny, params.num_threads, [&](Eigen::Index begin, Eigen::Index end) {
-    for (Eigen::Index i = begin; i < end; ++i) {
-      for (Eigen::Index j = 0; j < ny; ++j) {
-        const float h = relative_height(i, j);
-        table(i, j) = std::isnan(h) ? kUnknown : table_1_class(h, spread(i, j), gap(i, j) == 1.0F, params);
-      }
+    const float* const h = relative_height.data();
+    const float* const s = spread.data();
+    const float* const d = gap.data();
+    std::uint8_t* const t = table.data();
+    const TerrainParams thresholds = params;
+    for (Eigen::Index k = begin * ny; k < end * ny; ++k) {
+      t[k] = std::isnan(h[k]) ? kUnknown : table_1_class(h[k], s[k], d[k] == 1.0F, thresholds);
     }
   });
   TerrainClasses out(nx, ny);
   for_row_blocks(nx, ny, params.num_threads, [&](Eigen::Index begin, Eigen::Index end) {
+    const std::uint8_t* const t = table.data();
+    std::uint8_t* const o = out.data();
+    float* const c = class_layer.data();
     for (Eigen::Index i = begin; i < end; ++i) {
       for (Eigen::Index j = 0; j < ny; ++j) {
-        const std::uint8_t c = table(i, j) == kGround && beside_an_object(table, i, j) ? kEdge : table(i, j);
-        out(i, j) = c;
-        class_layer(i, j) = c == kUnknown ? kNaN : static_cast<float>(c);
+        const Eigen::Index k = i * ny + j;
+        o[k] = t[k] == kGround && beside_an_object(t, nx, ny, i, j) ? kEdge : t[k];
+        c[k] = o[k] == kUnknown ? kNaN : static_cast<float>(o[k]);
       }
     }
   });
