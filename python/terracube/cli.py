@@ -192,6 +192,16 @@ OPTIONS: dict[str, Option] = {
         "--robot-height",
         help="Robot height [m]: sets σ = ceil(height / E) unless --sigma is given.",
     ),
+    "collapse_method": _option(
+        str | None,
+        "--method",
+        help=_help(
+            "Overhang rule: paper ([CBC] Algorithm 1) or shadow_aware (also over unseen ground).",
+            "collapse",
+            "method",
+        ),
+        sets=[("collapse", "method")],
+    ),
     # elevation map
     "resolution": _option(
         float | None,
@@ -327,7 +337,7 @@ _TERRAIN = ("sensor_height", "reference", "ground_radius", "ground_height", "std
 
 #: The options of each command that takes shared ones, in --help order.
 STAGE_OPTIONS: dict[str, tuple[str, ...]] = {
-    "collapse": ("config", *_OVERHANGS, *_FRAME, "num_threads", "output_format", "png"),
+    "collapse": ("config", *_OVERHANGS, "collapse_method", *_FRAME, "num_threads", "output_format", "png"),
     "dem": ("config", *_EXTENT, *_OVERHANGS, *_FRAME, "num_threads", "png", "geotiff"),
     "classify": (
         "config",
