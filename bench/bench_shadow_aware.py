@@ -227,12 +227,8 @@ def simulated_metrics(world, world_T_sensor, sensor, sigma, method) -> dict:
 def simulated_rows(quick: bool, sigmas) -> list[dict]:
     world = bench_scene()
     sensors = {
-        "HDL-64-like": sim.RotatingLidar(
-            channels=64,
-            vertical_fov_min=-24.9,
-            vertical_fov_max=2.0,
-            steps_per_revolution=2048,
-            max_range=80.0,
+        "VLP-32C-like": sim.RotatingLidar(
+            channels=32, vertical_fov_min=-25.0, vertical_fov_max=15.0, steps_per_revolution=1800, max_range=80.0
         ),
         "OS1-64-like": sim.RotatingLidar(),
     }
@@ -308,7 +304,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  target >= 10x faster than Patchwork++: {status(speedup >= 10)} ({speedup:.1f}x)")
     else:
         print(f"KITTI labels not found under {args.data_dir}: KITTI part skipped")
-    print("\nSimulated scans (HDL-64-like and OS1-64-like, level and tilted poses; per-point truth)")
+    print("\nSimulated scans (VLP-32C-like and OS1-64-like, level and tilted poses; per-point truth)")
     print(
         f"  {'σ':>2} {'method':<13} {'precision':>9} {'recall':>7} {'walls/trunks/pillars':>21} "
         f"{'free shown blocked':>19} {'(raw, perfect)':>15}"

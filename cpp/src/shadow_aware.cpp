@@ -219,10 +219,10 @@ class ColumnJudge {
         reason = CubeReason::kBelowGround;
       } else if (bottom - ground - 1 < sigma_) {
         reason = CubeReason::kSupported;
+      } else if (kept_below) {
+        reason = CubeReason::kRemovedAboveKept;  // [CBC] Algorithm 1's case: observed support below
       } else if (!bottom_is_wide(column, bottom)) {
         reason = CubeReason::kThin;
-      } else if (kept_below) {
-        reason = CubeReason::kRemovedAboveKept;
       } else {
         if (std::isnan(free_floor)) free_floor = floor_.floor_of(column);
         const bool free_below = free_floor < bottom_face(grid_, bottom) - params_.free_margin_m;

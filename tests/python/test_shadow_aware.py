@@ -123,10 +123,10 @@ def naive_shadow_aware(
                 reason = BELOW_GROUND
             elif bottom - g - 1 < sigma:
                 reason = SUPPORTED
-            elif wide_below(ix, iy, bottom) < neighbours:
-                reason = THIN
             elif kept_below:
                 reason = ABOVE_KEPT
+            elif wide_below(ix, iy, bottom) < neighbours:
+                reason = THIN
             elif free_floor(ix, iy) < bottom_face(bottom) - margin:
                 reason = FREE_BELOW
             else:

@@ -27,7 +27,7 @@ enum class CubeReason : std::uint8_t {
   kShadowed = 3,          ///< kept: its chain floats σ or more above G but no ray shows the space under it empty
   kRemovedAboveKept = 4,  ///< removed: a kept chain (not below G) lies under it, σ or more empty cubes down
   kRemovedFreeBelow = 5,  ///< removed: its chain floats σ or more above G and a ray crossed the column below it
-  kThin = 6,  ///< kept: its chain floats but its bottom is thin (a trunk, pole or wall edge over an occluder)
+  kThin = 6,              ///< kept: it floats, no kept chain below, its bottom is thin (a trunk or pole)
 };
 
 /// The short name of a reason ("supported", "below_ground", ...), as Python shows it.
@@ -78,8 +78,9 @@ using ForEachPoint = std::function<void(const PointVisitor& visit)>;
 ///     a reliable lowest cube with F below its bottom face is no ground (the underside of a crown
 ///     seen over a curb), and G(column) is step 2 again without those;
 ///  4. each column's chains are judged bottom-up as CubeReason says: a floating chain (bottom σ or
-///     more empty cubes above G) is removed over a kept chain or when F is below its bottom face,
-///     (by free_margin_m) and kept otherwise (a wall or trunk whose foot is hidden).
+///     more empty cubes above G) is removed over a kept chain (as in [CBC] Algorithm 1), or, when
+///     its bottom is wide (min_bottom_neighbours), when F is below its bottom face by
+///     free_margin_m; it is kept otherwise (a wall or trunk whose foot is hidden).
 /// O(N + |L| + columns + azimuth_bins * range steps); single-threaded, deterministic.
 /// Throws std::invalid_argument on invalid parameters or a grid of more than 2^27 columns.
 ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vector<std::int64_t>& sorted_occupied,
