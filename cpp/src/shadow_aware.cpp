@@ -30,6 +30,7 @@ struct Workspace {
   std::vector<std::int32_t> start;      ///< first position of each column in `by_column`
   std::vector<std::int32_t> by_column;  ///< positions in L, column by column, layers ascending
   std::vector<double> slope;            ///< per (sector, range step): lowest slope of rays ending beyond it
+  std::vector<std::int32_t> line;       ///< the window minimum's line buffers
 };
 
 Workspace& thread_workspace() {
@@ -70,30 +71,41 @@ void reliable_ground(const CubeGrid& grid, const std::vector<std::int32_t>& lowe
   }
 }
 
-/// Step 2: out = the minimum of `in` over the square of half-width `radius` columns around each
-/// column (clipped to the grid), as two separable passes of shifted minima.
-void window_minimum(const CubeGrid& grid, std::int64_t radius, const std::vector<std::int32_t>& in,
-                    std::vector<std::int32_t>& along_x, std::vector<std::int32_t>& out) {
-  const std::int64_t nx = grid.ixmax, ny = grid.iymax;
-  along_x = in;
-  for (std::int64_t iy = 0; iy < ny; ++iy) {
-    const std::int32_t* row = in.data() + iy * nx;
-    std::int32_t* row_out = along_x.data() + iy * nx;
-    for (std::int64_t d = 1; d <= std::min(radius, nx - 1); ++d) {
-      for (std::int64_t x = d; x < nx; ++x) row_out[x] = std::min(row_out[x], row[x - d]);
-      for (std::int64_t x = 0; x + d < nx; ++x) row_out[x] = std::min(row_out[x], row[x + d]);
-    }
+/// out[i] = the minimum of in[i - radius .. i + radius] (clipped to [0, n)): van Herk / Gil-Werman
+/// over the line padded with kNone, three minima per element whatever the radius.
+void line_minimum(const std::int32_t* in, std::ptrdiff_t stride, std::int64_t n, std::int64_t radius, std::int32_t* out,
+                  std::ptrdiff_t out_stride, std::vector<std::int32_t>& buffer) {
+  const std::int64_t width = 2 * radius + 1, padded = n + 2 * radius;
+  buffer.resize(static_cast<std::size_t>(3 * padded));
+  std::int32_t* const line = buffer.data();      // the line with radius kNone on each side
+  std::int32_t* const prefix = line + padded;    // minimum from its block's start
+  std::int32_t* const suffix = prefix + padded;  // minimum to its block's end
+  std::fill(line, line + radius, kNone);
+  for (std::int64_t i = 0; i < n; ++i) line[radius + i] = in[i * stride];
+  std::fill(line + radius + n, line + padded, kNone);
+  for (std::int64_t block = 0; block < padded; block += width) {
+    const std::int64_t last = std::min(padded, block + width) - 1;
+    prefix[block] = line[block];
+    for (std::int64_t j = block + 1; j <= last; ++j) prefix[j] = std::min(prefix[j - 1], line[j]);
+    suffix[last] = line[last];
+    for (std::int64_t j = last - 1; j >= block; --j) suffix[j] = std::min(suffix[j + 1], line[j]);
   }
-  out = along_x;
+  for (std::int64_t i = 0; i < n; ++i) out[i * out_stride] = std::min(suffix[i], prefix[i + width - 1]);
+}
+
+/// Step 2: out = the minimum of `in` over the square of half-width `radius` columns around each
+/// column (clipped to the grid): rows, then columns.
+void window_minimum(const CubeGrid& grid, std::int64_t radius, const std::vector<std::int32_t>& in,
+                    std::vector<std::int32_t>& along_x, std::vector<std::int32_t>& out,
+                    std::vector<std::int32_t>& buffer) {
+  const std::int64_t nx = grid.ixmax, ny = grid.iymax;
+  along_x.resize(in.size());
+  out.resize(in.size());
   for (std::int64_t iy = 0; iy < ny; ++iy) {
-    std::int32_t* row_out = out.data() + iy * nx;
-    for (std::int64_t d = 1; d <= radius; ++d) {
-      for (const std::int64_t y : {iy - d, iy + d}) {
-        if (y < 0 || y >= ny) continue;
-        const std::int32_t* row = along_x.data() + y * nx;
-        for (std::int64_t x = 0; x < nx; ++x) row_out[x] = std::min(row_out[x], row[x]);
-      }
-    }
+    line_minimum(in.data() + iy * nx, 1, nx, radius, along_x.data() + iy * nx, 1, buffer);
+  }
+  for (std::int64_t ix = 0; ix < nx; ++ix) {
+    line_minimum(along_x.data() + ix, nx, ny, radius, out.data() + ix, nx, buffer);
   }
 }
 
@@ -163,7 +175,7 @@ class FreeSpaceFloor {
     if (!(distance > 0.0)) return -1;
     const auto sector =
         std::min<std::int64_t>(sectors_ - 1, static_cast<std::int64_t>(pseudo_angle(dx, dy) / 4.0 * sectors_));
-    const auto step = std::min<std::int64_t>(steps_ - 1, static_cast<std::int64_t>(distance / grid_.edge_m));
+    const auto step = std::min<std::int64_t>(steps_ - 1, static_cast<std::int64_t>(distance * inverse_edge_));
     return sector * steps_ + step;
   }
 
@@ -171,6 +183,7 @@ class FreeSpaceFloor {
   Eigen::Vector3d origin_;
   std::int64_t sectors_;
   std::int64_t steps_ = 0;
+  double inverse_edge_ = 1.0 / grid_.edge_m;
   std::vector<double>& slope_;
 };
 
@@ -345,12 +358,22 @@ ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vecto
   const auto radius =
       std::min<std::int64_t>(static_cast<std::int64_t>(std::ceil(params.ground_radius_m / grid.edge_m - 1e-9)),
                              std::max(grid.ixmax, grid.iymax));
-  window_minimum(grid, radius, w.reliable, w.scratch, w.ground);  // G0
+  window_minimum(grid, radius, w.reliable, w.scratch, w.ground, w.line);  // G0
   FreeSpaceFloor floor(grid, sensor_origin, params.azimuth_bins, w.slope);
   const std::int32_t* const first_ground = w.ground.data();
+  const double inverse_edge = 1.0 / grid.edge_m;
   for_each_point([&](const Eigen::Vector3d& point, std::int64_t cube) {
-    const std::int64_t layer = cube / num_columns;
-    const std::int32_t below = first_ground[cube - layer * num_columns];
+    // The cube's column and layer from [CBC] eqs. (4)-(6), checked against I by eq. (1): no 64-bit
+    // division per point unless the caller quantised differently.
+    const auto at = [&](int axis) {
+      return static_cast<std::int64_t>((point[axis] - grid.min_corner[axis]) * inverse_edge + 0.5);
+    };
+    std::int64_t column = at(0) + at(1) * grid.ixmax, layer = at(2);
+    if (column + layer * num_columns != cube) {
+      layer = cube / num_columns;
+      column = cube - layer * num_columns;
+    }
+    const std::int32_t below = first_ground[column];
     if (below == kNone || layer >= std::int64_t{below} - 1) floor.add_ray(point);  // not below G0
   });
   floor.finish();
@@ -359,7 +382,7 @@ ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vecto
     std::int32_t& layer = w.reliable[static_cast<std::size_t>(column)];
     if (layer != kNone && floor.floor_of(column) < bottom_face(grid, layer)) layer = kNone;
   }
-  window_minimum(grid, radius, w.reliable, w.scratch, w.ground);
+  window_minimum(grid, radius, w.reliable, w.scratch, w.ground, w.line);
   order_by_column(sorted_occupied, num_columns, w);
   decision.reasons.assign(sorted_occupied.size(), CubeReason::kSupported);
   const ColumnJudge judge(grid, sorted_occupied, w, sigma, params, floor);

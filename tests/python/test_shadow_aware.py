@@ -65,7 +65,7 @@ def naive_shadow_aware(
         dx, dy = x - origin[0], y - origin[1]
         distance = math.sqrt(dx * dx + dy * dy)
         sector = min(sectors - 1, int(pseudo_angle(dx, dy) / 4.0 * sectors)) if distance > 0 else None
-        return sector, int(distance / edge) if distance > 0 else None, distance
+        return sector, int(distance * (1.0 / edge)) if distance > 0 else None, distance
 
     # 3. rays to the points whose cube is not below its column's G0 - 1
     rays = []
