@@ -436,9 +436,8 @@ def test_simulated_trees_behind_curbs_and_a_tunnel_precision_recall_and_structur
     removed = result.overhang
     precision = (removed & truth).sum() / removed.sum()
     recall = (removed & truth).sum() / truth.sum()
-    print(
-        f"precision {precision:.3f} recall {recall:.3f} paper recall {(paper & truth).sum() / truth.sum():.3f}"
-    )
+    paper_recall = (paper & truth).sum() / truth.sum()
+    print(f"precision {precision:.3f} recall {recall:.3f} paper recall {paper_recall:.3f}")
     assert truth.sum() > 2000 and structures.sum() > 2000
     assert precision >= 0.98
     assert recall >= 0.85
