@@ -127,6 +127,10 @@ class FreeSpaceFloor {
         farthest = std::max(farthest, std::hypot(x - origin.x(), y - origin.y()));
       }
     }
+    if (!(farthest / grid.edge_m < static_cast<double>(kMaxSectorSteps))) {
+      throw std::invalid_argument("shadow_aware: the sensor origin lies too far from the cloud (" +
+                                  detail::number_text(farthest) + " m); set sensor_origin in the leveled frame");
+    }
     steps_ = static_cast<std::int64_t>(farthest / grid.edge_m) + 2;
     if (steps_ > kMaxSectorSteps / sectors_) {
       throw std::invalid_argument("shadow_aware: " + std::to_string(sectors_) + " azimuth bins x " +

@@ -80,7 +80,7 @@ TEST(ShadowAware, ACrownOverACurbGoesWhileTheTrunkAndCurbStay) {
   const CollapseResult result = collapse_overhangs(points, shadow_aware_params());
   EXPECT_EQ(reason_at(result, {8.5, 0.5, 1.6}), CubeReason::kRemovedFreeBelow);
   EXPECT_EQ(reason_at(result, {9.5, -0.5, 3.8}), CubeReason::kRemovedFreeBelow);
-  EXPECT_EQ(reason_at(result, {7.75, -1.25, 1.6}), CubeReason::kThin);  // a corner of the crown
+  EXPECT_EQ(reason_at(result, {7.75, -1.25, 1.6}), CubeReason::kThin);    // a corner of the crown
   EXPECT_EQ(reason_at(result, {9.0, 0.0, 3.2}), CubeReason::kSupported);  // the trunk's column
   EXPECT_EQ(reason_at(result, {5.0, 0.0, -1.4}), CubeReason::kSupported);
   CollapseParams paper = shadow_aware_params();
@@ -98,8 +98,8 @@ TEST(ShadowAware, TheResultIsTheSameForAnyThreadCountAndStorage) {
   CollapseParams params = shadow_aware_params(3);
   const CollapseResult one = collapse_overhangs(points, params);
   ASSERT_GT(one.num_overhang, 0U);
-  for (const auto& [storage, threads] : {std::pair{CubeStorage::kSparse, 1}, std::pair{CubeStorage::kDense, 0},
-                                         std::pair{CubeStorage::kAuto, 3}}) {
+  for (const auto& [storage, threads] :
+       {std::pair{CubeStorage::kSparse, 1}, std::pair{CubeStorage::kDense, 0}, std::pair{CubeStorage::kAuto, 3}}) {
     params.storage = storage;
     params.num_threads = threads;
     const CollapseResult other = collapse_overhangs(points, params);
@@ -122,6 +122,37 @@ TEST(ShadowAware, BadParametersThrowInvalidArgumentNamingThem) {
   params = shadow_aware_params();
   params.shadow_aware.sensor_origin = Eigen::Vector3d(0.0, std::nan(""), 0.0);
   EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument);
+}
+
+TEST(ShadowAware, HostileCloudsAndParametersGiveAResultOrAStandardException) {
+  std::mt19937_64 rng(5);
+  std::uniform_real_distribution<double> unit(-1.0, 1.0);
+  const double lengths[] = {0.0, 1e-300, 1e-6, 0.5, 40.0, 1e12, 1e300};
+  int returned = 0;
+  for (int trial = 0; trial < 200; ++trial) {
+    Points points(static_cast<std::size_t>(rng() % 300));
+    const double spread = lengths[rng() % 7];
+    for (auto& p : points) p = {unit(rng) * spread, unit(rng) * spread, unit(rng) * spread * 0.1};
+    CollapseParams params = shadow_aware_params(1 + static_cast<int>(rng() % 6));
+    params.edge_m = rng() % 4 == 0 ? lengths[rng() % 7] : 0.5;
+    params.storage = static_cast<CubeStorage>(rng() % 3);
+    params.dense_budget_bytes = std::size_t{16} << 20;
+    params.shadow_aware.ground_radius_m = rng() % 4 == 0 ? lengths[rng() % 7] : 5.0;
+    params.shadow_aware.ground_support = static_cast<int>(rng() % 11);
+    params.shadow_aware.min_bottom_neighbours = static_cast<int>(rng() % 10) - 1;
+    params.shadow_aware.free_margin_m = rng() % 4 == 0 ? -1.0 : 0.25;
+    params.shadow_aware.azimuth_bins = rng() % 4 == 0 ? static_cast<int>(rng()) : 512;
+    if (rng() % 3 == 0) params.shadow_aware.sensor_origin = Eigen::Vector3d(lengths[rng() % 7], 0.0, 1.0);
+    try {
+      const CollapseResult result = collapse_overhangs(points, params);
+      EXPECT_EQ(result.cube_reasons.size(), result.occupied_cubes.size());
+      ++returned;
+    } catch (const std::invalid_argument&) {
+    } catch (const std::length_error&) {
+    } catch (const std::bad_alloc&) {
+    }
+  }
+  EXPECT_GT(returned, 20);
 }
 
 TEST(ShadowAware, ThePaperMethodLeavesNoReasons) {
