@@ -103,6 +103,52 @@ def kitti_rows(data_dir, frames, sigmas) -> list[dict]:
     return rows
 
 
+def chain_rule_ceiling(data_dir, frames, sigma) -> float:
+    """The canopy recall of the chain rule itself given the TRUE ground: the share of canopy points
+    whose chain (gaps < σ) starts σ or more empty cubes above the labelled ground's layer (the
+    median z of the 8 nearest ground-labelled points at the column's centre). No rule that keeps
+    chained cubes can remove more."""
+    from scipy.spatial import cKDTree
+
+    total = removable = 0
+    for frame in frames:
+        xyz = np.fromfile(data_dir / f"kitti_seq00/velodyne/{frame:06d}.bin", np.float32).reshape(-1, 4)[
+            :, :3
+        ]
+        xyz = xyz.astype(np.float64)
+        labels = np.fromfile(data_dir / f"kitti_seq00/labels/{frame:06d}.label", np.uint32) & 0xFFFF
+        canopy = np.flatnonzero(kitti_canopy(xyz, labels))
+        result = tc.collapse_overhangs(xyz, EDGE, sigma)
+        grid = result.grid
+        columns = grid.ixmax * grid.iymax
+        column, layer = result.occupied_cubes % columns, result.occupied_cubes // columns
+        order = np.lexsort((layer, column))
+        column, layer = column[order], layer[order]
+        starts = np.ones(len(layer), bool)
+        starts[1:] = (column[1:] != column[:-1]) | (layer[1:] - layer[:-1] - 1 >= sigma)
+        bottom_of = dict(
+            zip(
+                zip(column.tolist(), layer.tolist(), strict=True),
+                layer[np.maximum.accumulate(np.where(starts, np.arange(len(layer)), 0))].tolist(),
+                strict=True,
+            )
+        )
+        cube = np.floor((xyz[canopy] - grid.min_corner) * (1 / EDGE) + 0.5).astype(np.int64)
+        point_column = cube[:, 0] + cube[:, 1] * grid.ixmax
+        ground = np.isin(labels, GROUND_LABELS)
+        centres = grid.min_corner[:2] + EDGE * np.c_[cube[:, 0], cube[:, 1]]
+        _, nearest = cKDTree(xyz[ground, :2]).query(centres, k=8)
+        ground_layer = np.floor(
+            (np.median(xyz[ground, 2][nearest], axis=1) - grid.min_corner[2]) / EDGE + 0.5
+        )
+        bottoms = np.array(
+            [bottom_of[(c, z)] for c, z in zip(point_column.tolist(), cube[:, 2].tolist(), strict=True)]
+        )
+        total += len(canopy)
+        removable += int((bottoms - ground_layer - 1 >= sigma).sum())
+    return removable / max(1, total)
+
+
 def kitti_timing(data_dir, repeat) -> dict[str, float]:
     xyzi = np.fromfile(data_dir / "kitti_seq00/velodyne/000000.bin", np.float32).reshape(-1, 4)
     xyz = xyzi[:, :3]
@@ -228,7 +274,11 @@ def simulated_rows(quick: bool, sigmas) -> list[dict]:
     world = bench_scene()
     sensors = {
         "VLP-32C-like": sim.RotatingLidar(
-            channels=32, vertical_fov_min=-25.0, vertical_fov_max=15.0, steps_per_revolution=1800, max_range=80.0
+            channels=32,
+            vertical_fov_min=-25.0,
+            vertical_fov_max=15.0,
+            steps_per_revolution=1800,
+            max_range=80.0,
         ),
         "OS1-64-like": sim.RotatingLidar(),
     }
@@ -291,6 +341,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"{100 * row['structure']:>20.3f}%"
             )
             if row["method"].startswith("shadow_aware"):
+                ceiling = chain_rule_ceiling(args.data_dir, frames, row["sigma"])
+                print(f"     the chain rule with the labelled ground removes {ceiling:.3f} of the canopy")
                 ok = row["recall"] >= 0.5 and row["never"] == 0 and row["structure"] <= 0.005
                 print(f"     target recall >= 0.5, 0 never-removed, <= 0.5 % structure: {status(ok)}")
         times = kitti_timing(args.data_dir, args.repeat)
