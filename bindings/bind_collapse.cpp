@@ -107,6 +107,7 @@ void bind_collapse(py::module_& m) {
       .def_readwrite("ground_support", &ShadowAwareParams::ground_support)
       .def_readwrite("free_margin_m", &ShadowAwareParams::free_margin_m)
       .def_readwrite("min_bottom_neighbours", &ShadowAwareParams::min_bottom_neighbours)
+      .def_readwrite("bottom_window", &ShadowAwareParams::bottom_window)
       .def_readwrite("azimuth_bins", &ShadowAwareParams::azimuth_bins);
 
   py::class_<CollapseParams>(m, "CollapseParams")

@@ -265,10 +265,10 @@ class ColumnJudge {
   /// Whether `min_bottom_neighbours` of the 8 columns around `column` hold a cube within one layer
   /// of `bottom`: a crown's or a ceiling's underside is wide, a trunk's or a pole's is not.
   bool bottom_is_wide(std::int64_t column, std::int64_t bottom) const {
-    const std::int64_t ix = column % grid_.ixmax, iy = column / grid_.ixmax;
+    const std::int64_t ix = column % grid_.ixmax, iy = column / grid_.ixmax, reach = params_.bottom_window;
     int found = 0;
-    for (std::int64_t y = std::max<std::int64_t>(0, iy - 1); y <= std::min(grid_.iymax - 1, iy + 1); ++y) {
-      for (std::int64_t x = std::max<std::int64_t>(0, ix - 1); x <= std::min(grid_.ixmax - 1, ix + 1); ++x) {
+    for (std::int64_t y = std::max<std::int64_t>(0, iy - reach); y <= std::min(grid_.iymax - 1, iy + reach); ++y) {
+      for (std::int64_t x = std::max<std::int64_t>(0, ix - reach); x <= std::min(grid_.ixmax - 1, ix + reach); ++x) {
         if (x == ix && y == iy) continue;
         const auto [begin, end] = range(x + y * grid_.ixmax);
         for (std::size_t i = begin; i < end && layer_at(i) <= bottom + 1; ++i) {
@@ -332,9 +332,14 @@ void check_shadow_aware_params(const ShadowAwareParams& params) {
     throw std::invalid_argument("shadow_aware free_margin_m must be a finite length >= 0 m, got " +
                                 detail::number_text(params.free_margin_m));
   }
-  if (params.min_bottom_neighbours < 0 || params.min_bottom_neighbours > 8) {
-    throw std::invalid_argument("shadow_aware min_bottom_neighbours must be 0..8 columns, got " +
-                                std::to_string(params.min_bottom_neighbours));
+  if (params.bottom_window < 1 || params.bottom_window > 8) {
+    throw std::invalid_argument("shadow_aware bottom_window must be 1..8 columns, got " +
+                                std::to_string(params.bottom_window));
+  }
+  const int around = (2 * params.bottom_window + 1) * (2 * params.bottom_window + 1) - 1;
+  if (params.min_bottom_neighbours < 0 || params.min_bottom_neighbours > around) {
+    throw std::invalid_argument("shadow_aware min_bottom_neighbours must be 0.." + std::to_string(around) +
+                                " columns, got " + std::to_string(params.min_bottom_neighbours));
   }
   if (params.azimuth_bins < 1 || params.azimuth_bins > (1 << 20)) {
     throw std::invalid_argument("shadow_aware azimuth_bins must be 1..2^20, got " +

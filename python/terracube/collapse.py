@@ -190,8 +190,12 @@ class CollapseParams:
         shadow_aware: a ray proves the space under a chain empty only when it passes at least this
         far [m] below the chain's bottom face (not through a car's windows), >= 0.
     min_bottom_neighbours : int
-        shadow_aware: a floating chain goes only when this many of the 8 columns around it hold a
-        cube within one layer of its bottom (a crown is wide, a trunk over a car is not), 0..8.
+        shadow_aware: a floating chain goes only when this many columns around it (see
+        ``bottom_window``) hold a cube within one layer of its bottom (a crown is wide, a trunk
+        over a car is not).
+    bottom_window : int
+        shadow_aware: the square around a chain's bottom that ``min_bottom_neighbours`` counts in,
+        half-width in columns (1: the 8 neighbours, 2: 24), 1..8.
     azimuth_bins : int
         shadow_aware: azimuth sectors of the free-space floor around the sensor, >= 1.
     """
@@ -210,6 +214,7 @@ class CollapseParams:
     ground_support: int = 3
     free_margin: float = 0.25
     min_bottom_neighbours: int = 4
+    bottom_window: int = 1
     azimuth_bins: int = 512
 
     def to_core(self) -> _core.CollapseParams:
@@ -242,7 +247,7 @@ class CollapseParams:
             core.sensor_origin = origin
         core.ground_radius_m = float(self.ground_radius)
         core.free_margin_m = float(self.free_margin)
-        for name in ("ground_support", "min_bottom_neighbours", "azimuth_bins"):
+        for name in ("ground_support", "min_bottom_neighbours", "bottom_window", "azimuth_bins"):
             value = getattr(self, name)
             if isinstance(value, bool) or int(value) != value:
                 raise ValueError(f"{name} must be a whole number, got {value!r}")

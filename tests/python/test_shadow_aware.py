@@ -26,7 +26,17 @@ def pseudo_angle(dx: float, dy: float) -> float:
 
 
 def naive_shadow_aware(
-    grid, occupied, points, sigma, origin, radius=5.0, support=3, sectors=512, margin=0.25, neighbours=4
+    grid,
+    occupied,
+    points,
+    sigma,
+    origin,
+    radius=5.0,
+    support=3,
+    sectors=512,
+    margin=0.25,
+    neighbours=4,
+    window=1,
 ) -> list[int]:
     """The reason of every cube of `occupied` (sorted cube indices I of `grid`), computed plainly
     from the leveled `points` that took part."""
@@ -100,8 +110,8 @@ def naive_shadow_aware(
         """How many of the 8 columns around hold a cube within one layer of `bottom`."""
         return sum(
             1
-            for dx in (-1, 0, 1)
-            for dy in (-1, 0, 1)
+            for dx in range(-window, window + 1)
+            for dy in range(-window, window + 1)
             if (dx or dy) and any(abs(layer - bottom) <= 1 for layer in layers.get((ix + dx, iy + dy), []))
         )
 
@@ -325,11 +335,12 @@ def test_parameters_reach_the_core_and_match_the_naive_reference():
         ground_support=2,
         azimuth_bins=64,
         free_margin=0.0,
-        min_bottom_neighbours=2,
+        min_bottom_neighbours=5,
+        bottom_window=2,
     )
     result = tc.collapse_overhangs(points, params=params)
     reasons = check_against_naive(
-        result, points, 3, radius=1.2, support=2, sectors=64, margin=0.0, neighbours=2
+        result, points, 3, radius=1.2, support=2, sectors=64, margin=0.0, neighbours=5, window=2
     )
     assert np.isin(reasons, REMOVED).any()
 

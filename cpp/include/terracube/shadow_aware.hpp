@@ -51,6 +51,9 @@ struct ShadowAwareParams {
   /// A floating chain is removed only when at least this many of the 8 columns around it hold a cube
   /// within one layer of its bottom (a crown's underside is wide; a trunk seen over a car is not), 0..8.
   int min_bottom_neighbours = 4;
+  /// The columns around a chain's bottom that min_bottom_neighbours counts: a square of half-width
+  /// bottom_window (1: the 8 neighbours; 2: 24), 1..8.
+  int bottom_window = 1;
   /// Azimuth sectors of the free-space floor around the sensor (pseudo-angle bins), >= 1. Each
   /// should hold a few azimuth steps of the sensor (KITTI's HDL-64: about 2000 per turn).
   int azimuth_bins = 512;
