@@ -176,11 +176,12 @@ class FreeSpaceFloor {
   std::int64_t bin_of(const Eigen::Vector3d& point, double& distance) const {
     const double dx = point.x() - origin_.x(), dy = point.y() - origin_.y();
     distance = std::sqrt(dx * dx + dy * dy);
-    if (!(distance > 0.0)) return -1;
+    const double step = distance * inverse_edge_;
+    // Outside the bins only if the caller's array changed during the call: no ray then.
+    if (!(distance > 0.0) || !(step < static_cast<double>(steps_))) return -1;
     const auto sector =
         std::min<std::int64_t>(sectors_ - 1, static_cast<std::int64_t>(pseudo_angle(dx, dy) / 4.0 * sectors_));
-    const auto step = std::min<std::int64_t>(steps_ - 1, static_cast<std::int64_t>(distance * inverse_edge_));
-    return sector * steps_ + step;
+    return sector * steps_ + static_cast<std::int64_t>(step);
   }
 
   const CubeGrid& grid_;
@@ -374,11 +375,16 @@ ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vecto
   for_each_point([&](const Eigen::Vector3d& point, std::int64_t cube) {
     // The cube's column and layer from [CBC] eqs. (4)-(6), checked against I by eq. (1): no 64-bit
     // division per point unless the caller quantised differently.
-    const auto at = [&](int axis) {
-      return static_cast<std::int64_t>((point[axis] - grid.min_corner[axis]) * inverse_edge + 0.5);
-    };
-    std::int64_t column = at(0) + at(1) * grid.ixmax, layer = at(2);
-    if (column + layer * num_columns != cube) {
+    const Eigen::Vector3d position = (point - grid.min_corner) * inverse_edge + Eigen::Vector3d::Constant(0.5);
+    const bool inside = position.x() >= 0.0 && position.x() < static_cast<double>(grid.ixmax) && position.y() >= 0.0 &&
+                        position.y() < static_cast<double>(grid.iymax) && position.z() >= 0.0 &&
+                        position.z() < static_cast<double>(grid.izmax);
+    std::int64_t column = -1, layer = -1;
+    if (inside) {
+      column = static_cast<std::int64_t>(position.x()) + static_cast<std::int64_t>(position.y()) * grid.ixmax;
+      layer = static_cast<std::int64_t>(position.z());
+    }
+    if (!inside || column + layer * num_columns != cube) {
       layer = cube / num_columns;
       column = cube - layer * num_columns;
     }
