@@ -86,6 +86,30 @@ void bind_collapse(py::module_& m) {
       .def_readwrite("min", &CropBox::min)
       .def_readwrite("max", &CropBox::max);
 
+  py::enum_<CollapseMethod>(m, "CollapseMethod")
+      .value("paper", CollapseMethod::kPaper)
+      .value("shadow_aware", CollapseMethod::kShadowAware);
+
+  py::enum_<CubeReason>(m, "CubeReason",
+                        "Why the shadow-aware rule kept or removed a cube (terracube::CubeReason, uint8)")
+      .value("supported", CubeReason::kSupported)
+      .value("below_ground", CubeReason::kBelowGround)
+      .value("no_ground_estimate", CubeReason::kNoGroundEstimate)
+      .value("shadowed", CubeReason::kShadowed)
+      .value("removed_above_kept", CubeReason::kRemovedAboveKept)
+      .value("removed_free_below", CubeReason::kRemovedFreeBelow)
+      .value("thin", CubeReason::kThin);
+
+  py::class_<ShadowAwareParams>(m, "ShadowAwareParams")
+      .def(py::init<>())
+      .def_readwrite("sensor_origin", &ShadowAwareParams::sensor_origin)
+      .def_readwrite("ground_radius_m", &ShadowAwareParams::ground_radius_m)
+      .def_readwrite("ground_support", &ShadowAwareParams::ground_support)
+      .def_readwrite("free_margin_m", &ShadowAwareParams::free_margin_m)
+      .def_readwrite("min_bottom_neighbours", &ShadowAwareParams::min_bottom_neighbours)
+      .def_readwrite("bottom_window", &ShadowAwareParams::bottom_window)
+      .def_readwrite("azimuth_bins", &ShadowAwareParams::azimuth_bins);
+
   py::class_<CollapseParams>(m, "CollapseParams")
       .def(py::init<>())
       .def_readwrite("edge_m", &CollapseParams::edge_m)
@@ -95,7 +119,9 @@ void bind_collapse(py::module_& m) {
       .def_readwrite("drop_non_finite", &CollapseParams::drop_non_finite)
       .def_readwrite("storage", &CollapseParams::storage)
       .def_readwrite("dense_budget_bytes", &CollapseParams::dense_budget_bytes)
-      .def_readwrite("num_threads", &CollapseParams::num_threads);
+      .def_readwrite("num_threads", &CollapseParams::num_threads)
+      .def_readwrite("method", &CollapseParams::method)
+      .def_readwrite("shadow_aware", &CollapseParams::shadow_aware);
 
   py::class_<CollapseResult>(m, "CollapseResult", "Result of collapse_overhangs; arrays are views into it.")
       .def_readonly("grid", &CollapseResult::grid)
@@ -111,6 +137,15 @@ void bind_collapse(py::module_& m) {
           "removed_cubes",
           [](const py::object& self) { return view_of(self.cast<const CollapseResult&>().removed_cubes, self); },
           "(R,) int64: R, indices I of collapsed cubes, sorted")
+      .def_property_readonly(
+          "cube_reasons",
+          [](const py::object& self) {
+            const auto& reasons = self.cast<const CollapseResult&>().cube_reasons;
+            static_assert(sizeof(CubeReason) == 1);
+            return read_only(py::array_t<std::uint8_t>({static_cast<py::ssize_t>(reasons.size())}, {py::ssize_t{1}},
+                                                       reinterpret_cast<const std::uint8_t*>(reasons.data()), self));
+          },
+          "(K,) uint8: CubeReason per cube of occupied_cubes (method shadow_aware; empty for paper)")
       .def_readonly("num_points", &CollapseResult::num_points)
       .def_readonly("num_used", &CollapseResult::num_used)
       .def_readonly("num_cropped", &CollapseResult::num_cropped)
@@ -137,6 +172,9 @@ void bind_collapse(py::module_& m) {
         });
       },
       py::arg("points"), py::arg("params"));
+  m.def(
+      "cube_reason_name", [](int reason) { return cube_reason_name(static_cast<CubeReason>(reason)); },
+      py::arg("reason"));
   m.def("sigma_from_robot_height", &sigma_from_robot_height, py::arg("robot_height"), py::arg("edge"));
   m.def("leveling_transform", &leveling_transform, py::arg("roll"), py::arg("pitch"));
 }

@@ -52,6 +52,22 @@ std::vector<std::int64_t> collapse_columns(const std::vector<std::int64_t>& sort
   return removed;
 }
 
+/// R from L: [CBC] Algorithm 1 (collapse_columns), or the shadow-aware rule (shadow_aware.hpp),
+/// which also fills the result's cube reasons.
+template <typename GroundOf>
+std::vector<std::int64_t> removed_cubes_of(const std::vector<std::int64_t>& sorted_occupied,
+                                           const CollapseParams& params, const ForEachPoint& for_each_point,
+                                           CollapseResult& result, GroundOf&& ground_of) {
+  if (params.method != CollapseMethod::kShadowAware) {
+    return collapse_columns(sorted_occupied, result.grid.num_columns(), params.sigma, ground_of);
+  }
+  const Eigen::Vector3d origin = params.shadow_aware.sensor_origin.value_or(params.transform.block<3, 1>(0, 3));
+  ShadowAwareDecision decision =
+      shadow_aware_collapse(result.grid, sorted_occupied, for_each_point, params.sigma, origin, params.shadow_aware);
+  result.cube_reasons = std::move(decision.reasons);
+  return std::move(decision.removed_cubes);
+}
+
 /// [CBC] eqs. (4)-(6) and (1): the index I of the cube holding a leveled point, or kNoCube when
 /// the point takes no part or lies outside the grid (NaN compares false: NaN/Inf rows fall out
 /// here too). A measured point lies inside, but the caller's array may change during a call
@@ -198,7 +214,9 @@ std::size_t write_mask(const std::vector<Index>& cube_of_row, int num_threads, c
 /// Dense storage: V is a bit per cube of the grid, M a layer per column. Reading V in index order
 /// lists L already sorted (a bucket sort, O(cubes / 64 + |L|)). The workspace keeps V all 0 and M
 /// all -1 between calls: a call clears only what it set, O(|L|), not the whole grid.
-void collapse_dense(Workspace& workspace, int sigma, int num_threads, CollapseResult& result) {
+void collapse_dense(Workspace& workspace, const CollapseParams& params, const ForEachPoint& for_each_point,
+                    CollapseResult& result) {
+  const int num_threads = params.num_threads;
   const CubeGrid& grid = result.grid;
   const std::vector<DenseIndex>& cubes = workspace.dense_cubes;
   const auto words = static_cast<std::size_t>((grid.num_cubes() + 63) / 64);
@@ -224,9 +242,9 @@ void collapse_dense(Workspace& workspace, int sigma, int num_threads, CollapseRe
     }
   }
   std::vector<std::int32_t>& ground = workspace.ground;  // M
-  result.removed_cubes = collapse_columns(
-      occupied, grid.num_columns(),
-      sigma, [&](std::int64_t column) -> auto& { return ground[static_cast<std::size_t>(column)]; });
+  result.removed_cubes = removed_cubes_of(
+      occupied, params, for_each_point,
+      result, [&](std::int64_t column) -> auto& { return ground[static_cast<std::size_t>(column)]; });
   // R's bits cleared in V: a row is overhang when its cube's bit is gone.
   for (const std::int64_t cube : result.removed_cubes) {
     occupancy[static_cast<std::size_t>(cube >> 6)] &= ~(std::uint64_t{1} << (cube & 63));
@@ -242,7 +260,9 @@ void collapse_dense(Workspace& workspace, int sigma, int num_threads, CollapseRe
 
 /// Sparse storage: L is the sorted distinct cubes of the rows and M a hash map over the columns
 /// that hold points, so memory is O(N) whatever the extent.
-void collapse_sparse(const std::vector<SparseIndex>& cubes, int sigma, int num_threads, CollapseResult& result) {
+void collapse_sparse(const std::vector<SparseIndex>& cubes, const CollapseParams& params,
+                     const ForEachPoint& for_each_point, CollapseResult& result) {
+  const int num_threads = params.num_threads;
   std::vector<std::int64_t>& occupied = result.occupied_cubes;  // L
   occupied.reserve(cubes.size());
   for (const SparseIndex cube : cubes) {
@@ -252,8 +272,8 @@ void collapse_sparse(const std::vector<SparseIndex>& cubes, int sigma, int num_t
   occupied.erase(std::unique(occupied.begin(), occupied.end()), occupied.end());
   std::unordered_map<std::int64_t, std::int64_t> ground;  // M, only for columns that hold points
   ground.reserve(occupied.size());
-  result.removed_cubes = collapse_columns(
-      occupied, result.grid.num_columns(), sigma,
+  result.removed_cubes = removed_cubes_of(
+      occupied, params, for_each_point, result,
       [&](std::int64_t column) -> std::int64_t& { return ground.try_emplace(column, -1).first->second; });
   const std::vector<std::int64_t>& removed = result.removed_cubes;  // sorted, as L is
   result.num_overhang = write_mask(
@@ -264,6 +284,7 @@ void collapse_sparse(const std::vector<SparseIndex>& cubes, int sigma, int num_t
 template <typename Scalar>
 CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapseParams& params) {
   detail::check_collapse_params(params);
+  check_shadow_aware_params(params.shadow_aware);
   if (points.size > 0 && points.data == nullptr) {
     throw std::invalid_argument("points view has no data but claims " + std::to_string(points.size) + " rows");
   }
@@ -294,12 +315,22 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
         }
       }
     } release_on_exit{workspace};
+    // The shadow-aware rule's rays: every row that takes part, with its cube.
+    const auto rows_of = [&](const auto& cubes) -> ForEachPoint {
+      return [&cloud, &cubes](const PointVisitor& visit) {
+        Eigen::Vector3d p;
+        for (std::size_t row = 0; row < cubes.size(); ++row) {
+          using Index = typename std::decay_t<decltype(cubes)>::value_type;
+          if (cubes[row] != kNoCube<Index> && cloud.map(row, p) == 0) visit(p, static_cast<std::int64_t>(cubes[row]));
+        }
+      };
+    };
     if (result.storage_used == CubeStorage::kDense) {
       cube_of_rows(cloud, result.grid, params.num_threads, workspace.dense_cubes);
-      collapse_dense(workspace, params.sigma, params.num_threads, result);
+      collapse_dense(workspace, params, rows_of(workspace.dense_cubes), result);
     } else {
       cube_of_rows(cloud, result.grid, params.num_threads, workspace.sparse_cubes);
-      collapse_sparse(workspace.sparse_cubes, params.sigma, params.num_threads, result);
+      collapse_sparse(workspace.sparse_cubes, params, rows_of(workspace.sparse_cubes), result);
     }
   });
   return result;

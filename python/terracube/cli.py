@@ -239,6 +239,16 @@ OPTIONS: dict[str, Option] = {
         "--robot-height",
         help="Robot height [m]: sets σ = ceil(height / E) unless --sigma is given.",
     ),
+    "collapse_method": _option(
+        str | None,
+        "--method",
+        help=_help(
+            "Overhang rule: paper ([CBC] Algorithm 1) or shadow_aware (also over unseen ground).",
+            "collapse",
+            "method",
+        ),
+        sets=[("collapse", "method")],
+    ),
     # elevation map
     "resolution": _option(
         float | None,
@@ -401,6 +411,7 @@ STAGE_OPTIONS: dict[str, tuple[str, ...]] = {
         "config",
         "preset",
         *_OVERHANGS,
+        "collapse_method",
         *_FRAME,
         "num_threads",
         "output_format",

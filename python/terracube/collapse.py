@@ -12,6 +12,8 @@ from . import _core
 
 __all__ = [
     "CollapseParams",
+    "CubeReason",
+    "COLLAPSE_METHODS",
     "PointBasedParams",
     "collapse_overhangs",
     "point_based_overhangs",
@@ -22,6 +24,15 @@ __all__ = [
 
 CubeGrid = _core.CubeGrid
 CollapseResult = _core.CollapseResult
+#: Why the shadow-aware rule kept or removed a cube: ``CollapseResult.cube_reasons`` holds these
+#: values (uint8), one per cube of ``occupied_cubes``. supported (0), below_ground (1),
+#: no_ground_estimate (2), shadowed (3) and thin (6) are kept; removed_above_kept (4) and
+#: removed_free_below (5) are removed. See ``terracube/shadow_aware.hpp``.
+CubeReason = _core.CubeReason
+
+#: ``method`` of :func:`collapse_overhangs`: "paper" is [CBC] Algorithm 1 bit for bit (the default);
+#: "shadow_aware" also removes overhangs over ground the sensor cannot see (recommended for mapping).
+COLLAPSE_METHODS = {"paper": _core.CollapseMethod.paper, "shadow_aware": _core.CollapseMethod.shadow_aware}
 
 _STORAGE = {
     "auto": _core.CubeStorage.auto,
@@ -161,6 +172,32 @@ class CollapseParams:
         thread alone, 0 uses one per processor; the result is the same whatever the number. As with
         :class:`terracube.ElevationParams`, a forked child of a process that used several runs on
         one.
+    method : {"paper", "shadow_aware"}
+        "paper" ([CBC] Algorithm 1, exactly) or "shadow_aware": the ground under columns without
+        one is estimated from the neighbourhood, and a chain of cubes (gaps < σ) floating σ or more
+        above it is removed when a ray from the sensor crossed the column under it or a kept chain
+        lies below it; isolated returns below the ground never become ground. Fills
+        ``CollapseResult.cube_reasons`` (:data:`CubeReason`).
+    sensor_origin : (3,) floats or None
+        shadow_aware: the sensor position [m] in the leveled frame; None: the transform's
+        translation (the origin of a single scan's own frame).
+    ground_radius : float
+        shadow_aware: ground is looked for within this distance [m] (a square window), >= 0.
+    ground_support : int
+        shadow_aware: a column's lowest cube is reliable ground when this many columns of its 3x3
+        neighbourhood (itself included) have their lowest cube within one layer of it, 1..9.
+    free_margin : float
+        shadow_aware: a ray proves the space under a chain empty only when it passes at least this
+        far [m] below the chain's bottom face (not through a car's windows), >= 0.
+    min_bottom_neighbours : int
+        shadow_aware: a floating chain goes only when this many columns around it (see
+        ``bottom_window``) hold a cube within one layer of its bottom (a crown is wide, a trunk
+        over a car is not).
+    bottom_window : int
+        shadow_aware: the square around a chain's bottom that ``min_bottom_neighbours`` counts in,
+        half-width in columns (1: the 8 neighbours, 2: 24), 1..8.
+    azimuth_bins : int
+        shadow_aware: azimuth sectors of the free-space floor around the sensor, >= 1.
     """
 
     edge: float = 0.5
@@ -171,6 +208,14 @@ class CollapseParams:
     storage: str = "auto"
     dense_budget_bytes: int = field(default=256 << 20)
     num_threads: int = 1
+    method: str = "paper"
+    sensor_origin: tuple[float, float, float] | None = None
+    ground_radius: float = 5.0
+    ground_support: int = 3
+    free_margin: float = 0.25
+    min_bottom_neighbours: int = 4
+    bottom_window: int = 1
+    azimuth_bins: int = 512
 
     def to_core(self) -> _core.CollapseParams:
         if self.storage not in _STORAGE:
@@ -187,7 +232,27 @@ class CollapseParams:
         params.storage = _STORAGE[self.storage]
         params.dense_budget_bytes = int(self.dense_budget_bytes)
         params.num_threads = _num_threads(self.num_threads)
+        if self.method not in COLLAPSE_METHODS:
+            raise ValueError(f"method must be one of {sorted(COLLAPSE_METHODS)}, got {self.method!r}")
+        params.method = COLLAPSE_METHODS[self.method]
+        params.shadow_aware = self._shadow_aware_core()
         return params
+
+    def _shadow_aware_core(self) -> _core.ShadowAwareParams:
+        core = _checked(_core.ShadowAwareParams)()
+        if self.sensor_origin is not None:
+            origin = np.asarray(self.sensor_origin, dtype=np.float64)
+            if origin.shape != (3,) or not np.isfinite(origin).all():
+                raise ValueError(f"sensor_origin must be 3 finite numbers [m], got {self.sensor_origin!r}")
+            core.sensor_origin = origin
+        core.ground_radius_m = float(self.ground_radius)
+        core.free_margin_m = float(self.free_margin)
+        for name in ("ground_support", "min_bottom_neighbours", "bottom_window", "azimuth_bins"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or int(value) != value:
+                raise ValueError(f"{name} must be a whole number, got {value!r}")
+            setattr(core, name, int(value))
+        return core
 
 
 @dataclass
@@ -234,22 +299,26 @@ def collapse_overhangs(
     drop_non_finite: bool = False,
     storage: str = "auto",
     num_threads: int = 1,
+    method: str = "paper",
+    sensor_origin=None,
     params: CollapseParams | None = None,
 ) -> CollapseResult:
-    """Remove overhangs with collapsible cubes ([CBC] Algorithm 1).
+    """Remove overhangs with collapsible cubes ([CBC] Algorithm 1, or its shadow-aware extension).
 
     Parameters
     ----------
     points : (N, 3) float32 or float64 array
         x, y, z [m]; any strides, not copied. Other sequences are converted to float64.
-    edge, sigma, transform, crop, drop_non_finite, storage, num_threads
-        See :class:`CollapseParams`; ``params`` overrides them all when given.
+    edge, sigma, transform, crop, drop_non_finite, storage, num_threads, method, sensor_origin
+        See :class:`CollapseParams`; ``params`` overrides them all when given. ``method="paper"``
+        (the default) reproduces the paper; ``method="shadow_aware"`` is recommended for mapping.
 
     Returns
     -------
     CollapseResult
         ``.overhang`` (N,) bool in input order, ``.removed_cubes`` (R,) int64 (sorted R),
-        ``.occupied_cubes`` (K,) int64 (sorted L) and ``.grid`` (min corner, ixmax, iymax, izmax).
+        ``.occupied_cubes`` (K,) int64 (sorted L), ``.grid`` (min corner, ixmax, iymax, izmax) and,
+        for shadow_aware, ``.cube_reasons`` (K,) uint8 (:data:`CubeReason`).
 
     Raises
     ------
@@ -261,7 +330,15 @@ def collapse_overhangs(
     """
     if params is None:
         params = CollapseParams(
-            edge, sigma, transform, crop, drop_non_finite, storage, num_threads=num_threads
+            edge,
+            sigma,
+            transform,
+            crop,
+            drop_non_finite,
+            storage,
+            num_threads=num_threads,
+            method=method,
+            sensor_origin=sensor_origin,
         )
     return _core.collapse_overhangs(_as_points(points), params.to_core())
 

@@ -8,6 +8,7 @@ down to z = -11 m, which the crop z >= -3 m drops.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import terracube as tc
 
 EDGE = 0.5
@@ -76,3 +77,60 @@ def test_without_the_crop_reflections_below_the_road_become_ground_and_road_poin
     counts = removed_per_class(shared_data, None)
     assert counts.get(ROAD, 0) > 0
     assert removed_ground == counts.get(ROAD, 0) + counts.get(SIDEWALK, 0)
+
+
+# ------------------------------------------------------------------ method="shadow_aware" (issue 34)
+
+GROUND_LABELS = (40, 44, 48, 49, 72)  # road, parking, sidewalk, other-ground, terrain
+FENCE, POLE = 51, 80
+SHADOW_AWARE_NEVER = {"road": ROAD, "sidewalk": SIDEWALK, "parking": PARKING, "car": CAR, "pole": POLE}
+STRUCTURE = (BUILDING, FENCE, TRUNK)
+
+
+def canopy_of(xyz: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Vegetation more than 2.5 m above the local ground: the median z of the 8 nearest
+    ground-labelled points in x, y, when the nearest lies within 3 m (bench/bench_shadow_aware.py)."""
+    spatial = pytest.importorskip("scipy.spatial")
+    ground = np.isin(labels, GROUND_LABELS)
+    vegetation = np.flatnonzero(labels == VEGETATION)
+    distance, index = spatial.cKDTree(xyz[ground, :2]).query(xyz[vegetation, :2], k=8)
+    height = np.median(xyz[ground, 2][index], axis=1)
+    canopy = np.zeros(len(xyz), bool)
+    canopy[vegetation] = (distance[:, 0] <= 3.0) & (xyz[vegetation, 2] - height > 2.5)
+    return canopy
+
+
+@pytest.mark.parametrize(("sigma", "recall_floor"), [(4, 0.38), (5, 0.23)])
+def test_shadow_aware_removes_canopy_without_crop_and_no_road_sidewalk_parking_car_or_pole(
+    shared_data, sigma, recall_floor
+):
+    """Frames 0-2, E = 0.5 m, no crop (multipath below the road decides nothing). Measured with the
+    defaults: canopy recall 0.396 at σ 4 and 0.245 at σ 5 (the paper's rule with the crop: 0.12
+    and 0.06); road, sidewalk, parking, car and pole: 0; building + fence + trunk removed 0.44 % and
+    0.18 %. The issue's 0.5 recall is not reached (docs/performance.md says why)."""
+    canopy_total = canopy_removed = paper_removed = structure_total = structure_removed = 0
+    never = dict.fromkeys(SHADOW_AWARE_NEVER, 0)
+    for frame in FRAMES:
+        xyz = shared_data.kitti_xyzi(frame)[:, :3]
+        labels = shared_data.kitti_labels(frame)
+        canopy = canopy_of(xyz.astype(np.float64), labels)
+        removed = tc.collapse_overhangs(xyz, EDGE, sigma, method="shadow_aware").overhang
+        paper = tc.collapse_overhangs(xyz, EDGE, sigma, crop=CROP).overhang
+        canopy_total += int(canopy.sum())
+        canopy_removed += int((canopy & removed).sum())
+        paper_removed += int((canopy & paper).sum())
+        for name, label in SHADOW_AWARE_NEVER.items():
+            never[name] += int((removed & (labels == label)).sum())
+        structure = np.isin(labels, STRUCTURE)
+        structure_total += int(structure.sum())
+        structure_removed += int((removed & structure).sum())
+    recall = canopy_removed / canopy_total
+    print(
+        f"σ {sigma}: canopy recall {recall:.3f} (paper + crop {paper_removed / canopy_total:.3f}), "
+        f"structure removed {100 * structure_removed / structure_total:.3f} %, never-removed {never}"
+    )
+    assert canopy_total > 5000
+    assert recall >= recall_floor
+    assert canopy_removed >= 3 * paper_removed
+    assert never == dict.fromkeys(SHADOW_AWARE_NEVER, 0)
+    assert structure_removed <= 0.005 * structure_total

@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "terracube/cube_grid.hpp"
+#include "terracube/shadow_aware.hpp"
 
 namespace terracube {
 
@@ -43,6 +44,11 @@ struct CollapseParams {
   /// calling thread alone (the default), 0 one per processor. V, L, Algorithm 1 and the sparse
   /// storage stay on the calling thread. The result is the same whatever the number.
   int num_threads = 1;
+  /// The rule applied to L: kPaper is [CBC] Algorithm 1 bit for bit; kShadowAware also removes
+  /// overhangs over ground the sensor cannot see (shadow_aware.hpp), recommended for mapping.
+  CollapseMethod method = CollapseMethod::kPaper;
+  /// Parameters of kShadowAware (ignored by kPaper, but validated).
+  ShadowAwareParams shadow_aware;
 };
 
 /// σ = ceil(robot_height_m / edge_m), at least 1 (section III).
@@ -67,6 +73,8 @@ struct CollapseResult {
   std::size_t num_dropped_non_finite = 0;  ///< NaN/Inf rows dropped (drop_non_finite)
   std::size_t num_overhang = 0;            ///< rows flagged overhang
   CubeStorage storage_used = CubeStorage::kDense;
+  /// kShadowAware only (empty for kPaper): why each cube of occupied_cubes was kept or removed.
+  std::vector<CubeReason> cube_reasons;
 };
 
 /// [CBC] Algorithm 1: builds the CBC (V and L in one O(N) pass), sorts L, sweeps every column

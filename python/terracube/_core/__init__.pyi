@@ -7,7 +7,7 @@ import numpy
 import numpy.typing
 import typing
 from . import simulation
-__all__: list[str] = ['AbsoluteTrajectoryError', 'CollapseParams', 'CollapseResult', 'CropBox', 'CubeGrid', 'CubeStorage', 'ElevationMap', 'ElevationParams', 'ErrorStatistics', 'FuzzyElevationMap', 'FuzzyParams', 'GroundReference', 'LocalMap', 'LocalMapParams', 'LocalMapUpdate', 'LoopClosure', 'MapGeometry', 'Mapper', 'MapperParams', 'MapperTimings', 'MembershipFamily', 'OverhangFreeMap', 'Pairing', 'PclIcpParams', 'PclIcpResult', 'PointBasedParams', 'PoseGraphEdge', 'PoseGraphParams', 'PoseGraphResult', 'PoseSegmentError', 'RegionLayoutComparison', 'RegionPairError', 'RegionRelations', 'RegionTripleError', 'RegistrationParams', 'RegistrationResult', 'RelativePoseError', 'RelativePoseErrorParams', 'RobustLoss', 'ScanReport', 'SegmentLengthError', 'StepRule', 'StopReason', 'TerrainParams', 'TrajectoryAlignment', 'TraversabilityParams', 'absolute_trajectory_error', 'build_elevation_map', 'build_elevation_map_into', 'build_overhang_free_map', 'classify_terrain', 'collapse_overhangs', 'compare_region_layouts', 'error_statistics', 'fit_fuzzy_elevation_map', 'has_pcl', 'leveling_transform', 'octomap_column_overhangs', 'optimize_pose_graph', 'pcl_gicp', 'pcl_icp', 'point_based_overhangs', 'points_of_map', 'register_maps', 'register_points', 'relative_pose_error', 'rigid_alignment', 'sigma_from_robot_height', 'simulation', 'step_layer']
+__all__: list[str] = ['AbsoluteTrajectoryError', 'CollapseMethod', 'CollapseParams', 'CollapseResult', 'CropBox', 'CubeGrid', 'CubeReason', 'CubeStorage', 'ElevationMap', 'ElevationParams', 'ErrorStatistics', 'FuzzyElevationMap', 'FuzzyParams', 'GroundReference', 'LocalMap', 'LocalMapParams', 'LocalMapUpdate', 'LoopClosure', 'MapGeometry', 'Mapper', 'MapperParams', 'MapperTimings', 'MembershipFamily', 'OverhangFreeMap', 'Pairing', 'PclIcpParams', 'PclIcpResult', 'PointBasedParams', 'PoseGraphEdge', 'PoseGraphParams', 'PoseGraphResult', 'PoseSegmentError', 'RegionLayoutComparison', 'RegionPairError', 'RegionRelations', 'RegionTripleError', 'RegistrationParams', 'RegistrationResult', 'RelativePoseError', 'RelativePoseErrorParams', 'RobustLoss', 'ScanReport', 'SegmentLengthError', 'ShadowAwareParams', 'StepRule', 'StopReason', 'TerrainParams', 'TrajectoryAlignment', 'TraversabilityParams', 'absolute_trajectory_error', 'build_elevation_map', 'build_elevation_map_into', 'build_overhang_free_map', 'classify_terrain', 'collapse_overhangs', 'compare_region_layouts', 'cube_reason_name', 'error_statistics', 'fit_fuzzy_elevation_map', 'has_pcl', 'leveling_transform', 'octomap_column_overhangs', 'optimize_pose_graph', 'pcl_gicp', 'pcl_icp', 'point_based_overhangs', 'points_of_map', 'register_maps', 'register_points', 'relative_pose_error', 'rigid_alignment', 'sigma_from_robot_height', 'simulation', 'step_layer']
 class CubeGrid:
     """
     CBC grid geometry ([CBC] eqs. (1)-(9)); cube (0,0,0) is centred on min_corner.
@@ -118,9 +118,163 @@ class CropBox:
     @min.setter
     def min(self, arg0: typing.Annotated[numpy.typing.ArrayLike, numpy.float64, "[3, 1]"]) -> None:
         ...
+class CollapseMethod:
+    """
+    Members:
+    
+      paper
+    
+      shadow_aware
+    """
+    __members__: typing.ClassVar[dict[str, CollapseMethod]]
+    paper: typing.ClassVar[CollapseMethod]
+    shadow_aware: typing.ClassVar[CollapseMethod]
+    @typing.overload
+    def __eq__(self, other: CollapseMethod) -> bool:
+        ...
+    @typing.overload
+    def __eq__(self, other: typing.Any) -> bool:
+        ...
+    def __getstate__(self) -> int:
+        ...
+    def __hash__(self) -> int:
+        ...
+    def __index__(self) -> int:
+        ...
+    def __init__(self, value: typing.SupportsInt | typing.SupportsIndex) -> None:
+        ...
+    def __int__(self) -> int:
+        ...
+    @typing.overload
+    def __ne__(self, other: CollapseMethod) -> bool:
+        ...
+    @typing.overload
+    def __ne__(self, other: typing.Any) -> bool:
+        ...
+    def __repr__(self) -> str:
+        ...
+    def __setstate__(self, state: typing.SupportsInt | typing.SupportsIndex) -> None:
+        ...
+    def __str__(self) -> str:
+        ...
+    @property
+    def name(self) -> str:
+        ...
+    @property
+    def value(self) -> int:
+        ...
+class CubeReason:
+    """
+    Why the shadow-aware rule kept or removed a cube (terracube::CubeReason, uint8)
+    
+    Members:
+    
+      supported
+    
+      below_ground
+    
+      no_ground_estimate
+    
+      shadowed
+    
+      removed_above_kept
+    
+      removed_free_below
+    
+      thin
+    """
+    __members__: typing.ClassVar[dict[str, CubeReason]]
+    below_ground: typing.ClassVar[CubeReason]
+    no_ground_estimate: typing.ClassVar[CubeReason]
+    removed_above_kept: typing.ClassVar[CubeReason]
+    removed_free_below: typing.ClassVar[CubeReason]
+    shadowed: typing.ClassVar[CubeReason]
+    supported: typing.ClassVar[CubeReason]
+    thin: typing.ClassVar[CubeReason]
+    @typing.overload
+    def __eq__(self, other: CubeReason) -> bool:
+        ...
+    @typing.overload
+    def __eq__(self, other: typing.Any) -> bool:
+        ...
+    def __getstate__(self) -> int:
+        ...
+    def __hash__(self) -> int:
+        ...
+    def __index__(self) -> int:
+        ...
+    def __init__(self, value: typing.SupportsInt | typing.SupportsIndex) -> None:
+        ...
+    def __int__(self) -> int:
+        ...
+    @typing.overload
+    def __ne__(self, other: CubeReason) -> bool:
+        ...
+    @typing.overload
+    def __ne__(self, other: typing.Any) -> bool:
+        ...
+    def __repr__(self) -> str:
+        ...
+    def __setstate__(self, state: typing.SupportsInt | typing.SupportsIndex) -> None:
+        ...
+    def __str__(self) -> str:
+        ...
+    @property
+    def name(self) -> str:
+        ...
+    @property
+    def value(self) -> int:
+        ...
+class ShadowAwareParams:
+    def __init__(self) -> None:
+        ...
+    @property
+    def azimuth_bins(self) -> int:
+        ...
+    @azimuth_bins.setter
+    def azimuth_bins(self, arg0: typing.SupportsInt | typing.SupportsIndex) -> None:
+        ...
+    @property
+    def bottom_window(self) -> int:
+        ...
+    @bottom_window.setter
+    def bottom_window(self, arg0: typing.SupportsInt | typing.SupportsIndex) -> None:
+        ...
+    @property
+    def free_margin_m(self) -> float:
+        ...
+    @free_margin_m.setter
+    def free_margin_m(self, arg0: typing.SupportsFloat | typing.SupportsIndex) -> None:
+        ...
+    @property
+    def ground_radius_m(self) -> float:
+        ...
+    @ground_radius_m.setter
+    def ground_radius_m(self, arg0: typing.SupportsFloat | typing.SupportsIndex) -> None:
+        ...
+    @property
+    def ground_support(self) -> int:
+        ...
+    @ground_support.setter
+    def ground_support(self, arg0: typing.SupportsInt | typing.SupportsIndex) -> None:
+        ...
+    @property
+    def min_bottom_neighbours(self) -> int:
+        ...
+    @min_bottom_neighbours.setter
+    def min_bottom_neighbours(self, arg0: typing.SupportsInt | typing.SupportsIndex) -> None:
+        ...
+    @property
+    def sensor_origin(self) -> typing.Annotated[numpy.typing.NDArray[numpy.float64], "[3, 1]"] | None:
+        ...
+    @sensor_origin.setter
+    def sensor_origin(self, arg0: typing.Annotated[numpy.typing.ArrayLike, numpy.float64, "[3, 1]"] | None) -> None:
+        ...
 class CollapseParams:
     crop: CropBox | None
     drop_non_finite: bool
+    method: CollapseMethod
+    shadow_aware: ShadowAwareParams
     storage: CubeStorage
     def __init__(self) -> None:
         ...
@@ -160,6 +314,11 @@ class CollapseResult:
     """
     def __repr__(self) -> str:
         ...
+    @property
+    def cube_reasons(self) -> numpy.ndarray[typing.Any, numpy.dtype[typing.Any]]:
+        """
+        (K,) uint8: CubeReason per cube of occupied_cubes (method shadow_aware; empty for paper)
+        """
     @property
     def grid(self) -> CubeGrid:
         ...
@@ -1839,6 +1998,8 @@ def classify_terrain(map: ElevationMap, params: TerrainParams) -> numpy.typing.N
 def collapse_overhangs(points: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], params: CollapseParams) -> CollapseResult:
     ...
 def compare_region_layouts(map_centres: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], dsm_centres: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], relations: RegionRelations = ...) -> RegionLayoutComparison:
+    ...
+def cube_reason_name(reason: typing.SupportsInt | typing.SupportsIndex) -> str:
     ...
 def error_statistics(errors: collections.abc.Sequence[typing.SupportsFloat | typing.SupportsIndex]) -> ErrorStatistics:
     ...

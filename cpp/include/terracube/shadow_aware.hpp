@@ -1,0 +1,96 @@
+// Shadow-aware overhang removal: an extension of [CBC] Algorithm 1 for columns whose ground the
+// sensor cannot see (sensor shadows, occlusions, ground between rays at range). Not in the paper.
+#pragma once
+
+#include <Eigen/Core>
+#include <cstdint>
+#include <functional>
+#include <optional>
+#include <vector>
+
+#include "terracube/cube_grid.hpp"
+
+namespace terracube {
+
+/// Which rule collapse_overhangs applies to the occupied cubes L.
+enum class CollapseMethod : std::uint8_t {
+  kPaper = 0,        ///< [CBC] Algorithm 1, bit for bit (the default)
+  kShadowAware = 1,  ///< shadow_aware_collapse() below
+};
+
+/// Why shadow_aware_collapse() kept or removed a cube (one per occupied cube, aligned with L).
+/// A "chain" is a maximal run of occupied cubes of one column whose gaps are < σ empty cubes.
+enum class CubeReason : std::uint8_t {
+  kSupported = 0,         ///< kept: its chain starts less than σ empty cubes above the ground estimate G
+  kBelowGround = 1,       ///< kept: its whole chain lies below G (multipath, reflections); never ground
+  kNoGroundEstimate = 2,  ///< kept: no reliable ground within ground_radius_m of the column
+  kShadowed = 3,          ///< kept: its chain floats σ or more above G but no ray shows the space under it empty
+  kRemovedAboveKept = 4,  ///< removed: a kept chain (not below G) lies under it, σ or more empty cubes down
+  kRemovedFreeBelow = 5,  ///< removed: its chain floats σ or more above G and a ray crossed the column below it
+  kThin = 6,              ///< kept: it floats, no kept chain below, its bottom is thin (a trunk or pole)
+};
+
+/// The short name of a reason ("supported", "below_ground", ...), as Python shows it.
+const char* cube_reason_name(CubeReason reason);
+
+/// Parameters of the shadow-aware rule (CollapseParams::shadow_aware).
+struct ShadowAwareParams {
+  /// The sensor's position [m] in the leveled frame; unset: the transform's translation (the
+  /// sensor at the origin of the cloud's own frame, as for a single scan).
+  std::optional<Eigen::Vector3d> sensor_origin;
+  /// Ground is looked for within this horizontal distance [m] (a square of ceil(r / E) columns
+  /// each side), >= 0.
+  double ground_radius_m = 5.0;
+  /// A column's lowest cube is reliable ground when at least this many columns of its 3x3
+  /// neighbourhood (itself included) have their lowest cube within one layer of it: isolated
+  /// returns below the ground never qualify. In 1..9.
+  int ground_support = 3;
+  /// A ray proves the space under a chain empty only when it passes at least this far [m] below the
+  /// chain's bottom face (rays through a car's windows or beside a wall's edge pass just under it), >= 0.
+  double free_margin_m = 0.25;
+  /// A floating chain is removed only when at least this many of the 8 columns around it hold a cube
+  /// within one layer of its bottom (a crown's underside is wide; a trunk seen over a car is not), 0..8.
+  int min_bottom_neighbours = 4;
+  /// The columns around a chain's bottom that min_bottom_neighbours counts: a square of half-width
+  /// bottom_window (1: the 8 neighbours; 2: 24), 1..8.
+  int bottom_window = 1;
+  /// Azimuth sectors of the free-space floor around the sensor (pseudo-angle bins), >= 1. Each
+  /// should hold a few azimuth steps of the sensor (KITTI's HDL-64: about 2000 per turn).
+  int azimuth_bins = 512;
+};
+
+/// The decision of shadow_aware_collapse().
+struct ShadowAwareDecision {
+  std::vector<std::int64_t> removed_cubes;  ///< R, ascending
+  std::vector<CubeReason> reasons;          ///< one per cube of L, aligned with it
+};
+
+/// Calls its argument once per point that takes part: the point [m] in the leveled frame and the
+/// index I of its cube (collapse_overhangs passes its rows).
+using PointVisitor = std::function<void(const Eigen::Vector3d& point, std::int64_t cube)>;
+using ForEachPoint = std::function<void(const PointVisitor& visit)>;
+
+/// The shadow-aware rule over the occupied cubes L (sorted ascending, indices I of `grid`):
+///  1. the lowest cube of each column is reliable ground when `ground_support` columns of its 3x3
+///     neighbourhood have their lowest cube within one layer of it;
+///  2. G0(column) is the lowest reliable ground within the ground radius (a square window);
+///  3. the rays from the sensor to the points whose cube is not below G0 - 1 give, per
+///     (pseudo-azimuth sector, range step E), the lowest slope of the rays that end beyond the step:
+///     F(column) = sensor z + that slope * the horizontal distance of the column's centre (from
+///     the bin of that centre) is the lowest height at which a ray crosses the column;
+///     a reliable lowest cube with F below its bottom face is no ground (the underside of a crown
+///     seen over a curb), and G(column) is step 2 again without those;
+///  4. each column's chains are judged bottom-up as CubeReason says: a floating chain (bottom σ or
+///     more empty cubes above G) is removed over a kept chain (as in [CBC] Algorithm 1), or, when
+///     its bottom is wide (min_bottom_neighbours), when F is below its bottom face by
+///     free_margin_m; it is kept otherwise (a wall or trunk whose foot is hidden).
+/// O(N + |L| + columns + azimuth_bins * range steps); single-threaded, deterministic.
+/// Throws std::invalid_argument on invalid parameters or a grid of more than 2^27 columns.
+ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vector<std::int64_t>& sorted_occupied,
+                                          const ForEachPoint& for_each_point, int sigma,
+                                          const Eigen::Vector3d& sensor_origin, const ShadowAwareParams& params = {});
+
+/// Throws std::invalid_argument naming the first invalid field of `params`.
+void check_shadow_aware_params(const ShadowAwareParams& params);
+
+}  // namespace terracube

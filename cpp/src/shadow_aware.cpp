@@ -1,0 +1,412 @@
+// Shadow-aware overhang removal (not in [CBC]): the ground under a column is estimated from its
+// neighbourhood, and a chain of cubes floating above it goes only when a ray shows the space under
+// it empty or a kept chain lies below it. See shadow_aware.hpp for the rule, step by step.
+#include "terracube/shadow_aware.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <stdexcept>
+#include <string>
+#include <utility>
+
+#include "number_text.hpp"
+
+namespace terracube {
+
+namespace {
+
+constexpr std::int32_t kNone = std::numeric_limits<std::int32_t>::max();
+constexpr std::int64_t kMaxColumns = std::int64_t{1} << 27;
+constexpr std::int64_t kMaxSectorSteps = std::int64_t{1} << 27;
+constexpr double kInf = std::numeric_limits<double>::infinity();
+
+/// Per-call arrays kept by the calling thread (first touching fresh pages costs more than the rule).
+struct Workspace {
+  std::vector<std::int32_t> lowest;     ///< lowest occupied layer per column, kNone if empty
+  std::vector<std::int32_t> reliable;   ///< the lowest layer where it is reliable ground, else kNone
+  std::vector<std::int32_t> scratch;    ///< the window minimum along x
+  std::vector<std::int32_t> ground;     ///< G per column, kNone if no reliable ground in the window
+  std::vector<std::int32_t> start;      ///< first position of each column in `by_column`
+  std::vector<std::int32_t> by_column;  ///< positions in L, column by column, layers ascending
+  std::vector<double> slope;            ///< per (sector, range step): lowest slope of rays ending beyond it
+  std::vector<std::int32_t> line;       ///< the window minimum's line buffers
+};
+
+Workspace& thread_workspace() {
+  thread_local Workspace workspace;
+  return workspace;
+}
+
+/// The lowest occupied layer of every column: L is sorted by I, so a column's first cube is its lowest.
+void lowest_layers(const std::vector<std::int64_t>& occupied, std::int64_t num_columns,
+                   std::vector<std::int32_t>& lowest) {
+  lowest.assign(static_cast<std::size_t>(num_columns), kNone);
+  for (const std::int64_t cube : occupied) {
+    const std::int64_t layer = cube / num_columns;
+    std::int32_t& slot = lowest[static_cast<std::size_t>(cube - layer * num_columns)];
+    if (slot == kNone) slot = static_cast<std::int32_t>(layer);
+  }
+}
+
+/// Step 1: a column's lowest layer where `support` columns of its 3x3 neighbourhood (itself
+/// included) have their lowest cube within one layer of it; kNone elsewhere.
+void reliable_ground(const CubeGrid& grid, const std::vector<std::int32_t>& lowest, int support,
+                     std::vector<std::int32_t>& reliable) {
+  const std::int64_t nx = grid.ixmax, ny = grid.iymax;
+  reliable.assign(lowest.size(), kNone);
+  for (std::int64_t iy = 0; iy < ny; ++iy) {
+    for (std::int64_t ix = 0; ix < nx; ++ix) {
+      const std::int32_t layer = lowest[static_cast<std::size_t>(ix + iy * nx)];
+      if (layer == kNone) continue;
+      int count = 0;
+      for (std::int64_t y = std::max<std::int64_t>(0, iy - 1); y <= std::min(ny - 1, iy + 1); ++y) {
+        for (std::int64_t x = std::max<std::int64_t>(0, ix - 1); x <= std::min(nx - 1, ix + 1); ++x) {
+          const std::int32_t other = lowest[static_cast<std::size_t>(x + y * nx)];
+          count += other != kNone && other >= layer - 1 && other <= layer + 1 ? 1 : 0;
+        }
+      }
+      if (count >= support) reliable[static_cast<std::size_t>(ix + iy * nx)] = layer;
+    }
+  }
+}
+
+/// out[i] = the minimum of in[i - radius .. i + radius] (clipped to [0, n)): van Herk / Gil-Werman
+/// over the line padded with kNone, three minima per element whatever the radius.
+void line_minimum(const std::int32_t* in, std::ptrdiff_t stride, std::int64_t n, std::int64_t radius, std::int32_t* out,
+                  std::ptrdiff_t out_stride, std::vector<std::int32_t>& buffer) {
+  const std::int64_t width = 2 * radius + 1, padded = n + 2 * radius;
+  buffer.resize(static_cast<std::size_t>(3 * padded));
+  std::int32_t* const line = buffer.data();      // the line with radius kNone on each side
+  std::int32_t* const prefix = line + padded;    // minimum from its block's start
+  std::int32_t* const suffix = prefix + padded;  // minimum to its block's end
+  std::fill(line, line + radius, kNone);
+  for (std::int64_t i = 0; i < n; ++i) line[radius + i] = in[i * stride];
+  std::fill(line + radius + n, line + padded, kNone);
+  for (std::int64_t block = 0; block < padded; block += width) {
+    const std::int64_t last = std::min(padded, block + width) - 1;
+    prefix[block] = line[block];
+    for (std::int64_t j = block + 1; j <= last; ++j) prefix[j] = std::min(prefix[j - 1], line[j]);
+    suffix[last] = line[last];
+    for (std::int64_t j = last - 1; j >= block; --j) suffix[j] = std::min(suffix[j + 1], line[j]);
+  }
+  for (std::int64_t i = 0; i < n; ++i) out[i * out_stride] = std::min(suffix[i], prefix[i + width - 1]);
+}
+
+/// Step 2: out = the minimum of `in` over the square of half-width `radius` columns around each
+/// column (clipped to the grid): rows, then columns.
+void window_minimum(const CubeGrid& grid, std::int64_t radius, const std::vector<std::int32_t>& in,
+                    std::vector<std::int32_t>& along_x, std::vector<std::int32_t>& out,
+                    std::vector<std::int32_t>& buffer) {
+  const std::int64_t nx = grid.ixmax, ny = grid.iymax;
+  along_x.resize(in.size());
+  out.resize(in.size());
+  for (std::int64_t iy = 0; iy < ny; ++iy) {
+    line_minimum(in.data() + iy * nx, 1, nx, radius, along_x.data() + iy * nx, 1, buffer);
+  }
+  for (std::int64_t ix = 0; ix < nx; ++ix) {
+    line_minimum(along_x.data() + ix, nx, ny, radius, out.data() + ix, nx, buffer);
+  }
+}
+
+/// The pseudo-angle of (dx, dy) != 0 in [0, 4): monotone in the azimuth, without atan2.
+double pseudo_angle(double dx, double dy) {
+  if (dy >= 0.0) return dx >= 0.0 ? dy / (dx + dy) : 1.0 - dx / (-dx + dy);
+  return dx < 0.0 ? 2.0 - dy / (-dx - dy) : 3.0 + dx / (dx - dy);
+}
+
+/// Step 3: horizontal geometry of the rays from the sensor, per (sector, range step E).
+class FreeSpaceFloor {
+ public:
+  FreeSpaceFloor(const CubeGrid& grid, const Eigen::Vector3d& origin, int sectors, std::vector<double>& slope)
+      : grid_(grid), origin_(origin), sectors_(sectors), slope_(slope) {
+    double farthest = 0.0;
+    for (const double x : {grid.min_corner.x(), grid.min_corner.x() + grid.edge_m * static_cast<double>(grid.ixmax)}) {
+      for (const double y :
+           {grid.min_corner.y(), grid.min_corner.y() + grid.edge_m * static_cast<double>(grid.iymax)}) {
+        farthest = std::max(farthest, std::hypot(x - origin.x(), y - origin.y()));
+      }
+    }
+    if (!(farthest / grid.edge_m < static_cast<double>(kMaxSectorSteps))) {
+      throw std::invalid_argument("shadow_aware: the sensor origin lies too far from the cloud (" +
+                                  detail::number_text(farthest) + " m); set sensor_origin in the leveled frame");
+    }
+    steps_ = static_cast<std::int64_t>(farthest / grid.edge_m) + 2;
+    if (steps_ > kMaxSectorSteps / sectors_) {
+      throw std::invalid_argument("shadow_aware: " + std::to_string(sectors_) + " azimuth bins x " +
+                                  std::to_string(steps_) + " range steps is too many; crop the cloud");
+    }
+    slope_.assign(static_cast<std::size_t>(steps_ * sectors_), kInf);
+  }
+
+  /// Adds the ray from the sensor to `point`.
+  void add_ray(const Eigen::Vector3d& point) {
+    double distance = 0.0;
+    const std::int64_t bin = bin_of(point, distance);
+    if (bin < 0) return;
+    double& slot = slope_[static_cast<std::size_t>(bin)];
+    slot = std::min(slot, (point.z() - origin_.z()) / distance);
+  }
+
+  /// After the last ray: each bin holds the lowest slope of the rays that END beyond its step.
+  void finish() {
+    for (std::int64_t sector = 0; sector < sectors_; ++sector) {
+      double beyond = kInf;
+      for (std::int64_t step = steps_ - 1; step >= 0; --step) {
+        double& slot = slope_[static_cast<std::size_t>(sector * steps_ + step)];
+        const double ending_here = slot;
+        slot = beyond;
+        beyond = std::min(beyond, ending_here);
+      }
+    }
+  }
+
+  /// F: the lowest height [m] at which a ray crosses the centre of `column`, +inf if none does.
+  double floor_of(std::int64_t column) const {
+    const Eigen::Vector3d centre = grid_.center(column);  // layer 0: only x, y are used
+    double distance = 0.0;
+    const std::int64_t bin = bin_of(centre, distance);
+    if (bin < 0) return kInf;
+    const double slope = slope_[static_cast<std::size_t>(bin)];
+    return slope == kInf ? kInf : origin_.z() + slope * distance;
+  }
+
+ private:
+  /// The bin of a point's horizontal position and its horizontal distance; -1 at the sensor.
+  std::int64_t bin_of(const Eigen::Vector3d& point, double& distance) const {
+    const double dx = point.x() - origin_.x(), dy = point.y() - origin_.y();
+    distance = std::sqrt(dx * dx + dy * dy);
+    const double step = distance * inverse_edge_;
+    // Outside the bins only if the caller's array changed during the call: no ray then.
+    if (!(distance > 0.0) || !(step < static_cast<double>(steps_))) return -1;
+    const auto sector =
+        std::min<std::int64_t>(sectors_ - 1, static_cast<std::int64_t>(pseudo_angle(dx, dy) / 4.0 * sectors_));
+    return sector * steps_ + static_cast<std::int64_t>(step);
+  }
+
+  const CubeGrid& grid_;
+  Eigen::Vector3d origin_;
+  std::int64_t sectors_;
+  std::int64_t steps_ = 0;
+  double inverse_edge_ = 1.0 / grid_.edge_m;
+  std::vector<double>& slope_;
+};
+
+/// The height [m] of the bottom face of the cubes of `layer`.
+double bottom_face(const CubeGrid& grid, std::int64_t layer) {
+  return grid.min_corner.z() + (static_cast<double>(layer) - 0.5) * grid.edge_m;
+}
+
+/// L's positions column by column (a counting sort by column; layers stay ascending).
+void order_by_column(const std::vector<std::int64_t>& occupied, std::int64_t num_columns, Workspace& w) {
+  w.start.assign(static_cast<std::size_t>(num_columns) + 1, 0);
+  for (const std::int64_t cube : occupied) ++w.start[static_cast<std::size_t>(cube % num_columns) + 1];
+  for (std::size_t column = 0; column < static_cast<std::size_t>(num_columns); ++column) {
+    w.start[column + 1] += w.start[column];
+  }
+  w.by_column.resize(occupied.size());
+  std::vector<std::int32_t>& next = w.scratch;  // reused: the window pass is over
+  next.assign(w.start.begin(), w.start.end() - 1);
+  for (std::size_t position = 0; position < occupied.size(); ++position) {
+    w.by_column[static_cast<std::size_t>(next[static_cast<std::size_t>(occupied[position] % num_columns)]++)] =
+        static_cast<std::int32_t>(position);
+  }
+}
+
+/// Step 4: judges the chains of every column bottom-up.
+class ColumnJudge {
+ public:
+  ColumnJudge(const CubeGrid& grid, const std::vector<std::int64_t>& occupied, const Workspace& w, int sigma,
+              const ShadowAwareParams& params, const FreeSpaceFloor& floor)
+      : grid_(grid), occupied_(occupied), w_(w), sigma_(sigma), params_(params), floor_(floor) {}
+
+  /// The reasons of `column`'s cubes (at their positions in L).
+  void judge(std::int64_t column, std::vector<CubeReason>& reasons) const {
+    const std::int32_t ground = w_.ground[static_cast<std::size_t>(column)];
+    const auto [begin, end] = range(column);
+    bool kept_below = false;
+    double free_floor = std::numeric_limits<double>::quiet_NaN();  // F, computed when first needed
+    for (std::size_t first = begin; first < end;) {
+      std::size_t last = first;
+      while (last + 1 < end && layer_at(last + 1) - layer_at(last) - 1 < sigma_) ++last;
+      const std::int64_t bottom = layer_at(first), top = layer_at(last);
+      CubeReason reason;
+      if (ground == kNone) {
+        reason = CubeReason::kNoGroundEstimate;
+      } else if (top < ground) {
+        reason = CubeReason::kBelowGround;
+      } else if (bottom - ground - 1 < sigma_) {
+        reason = CubeReason::kSupported;
+      } else if (kept_below) {
+        reason = CubeReason::kRemovedAboveKept;  // [CBC] Algorithm 1's case: observed support below
+      } else if (!bottom_is_wide(column, bottom)) {
+        reason = CubeReason::kThin;
+      } else {
+        if (std::isnan(free_floor)) free_floor = floor_.floor_of(column);
+        const bool free_below = free_floor < bottom_face(grid_, bottom) - params_.free_margin_m;
+        reason = free_below ? CubeReason::kRemovedFreeBelow : CubeReason::kShadowed;
+      }
+      kept_below = kept_below || !(reason == CubeReason::kBelowGround || reason == CubeReason::kRemovedAboveKept ||
+                                   reason == CubeReason::kRemovedFreeBelow);
+      for (std::size_t i = first; i <= last; ++i) reasons[static_cast<std::size_t>(w_.by_column[i])] = reason;
+      first = last + 1;
+    }
+  }
+
+ private:
+  std::pair<std::size_t, std::size_t> range(std::int64_t column) const {
+    return {static_cast<std::size_t>(w_.start[static_cast<std::size_t>(column)]),
+            static_cast<std::size_t>(w_.start[static_cast<std::size_t>(column) + 1])};
+  }
+
+  std::int64_t layer_at(std::size_t i) const {
+    return occupied_[static_cast<std::size_t>(w_.by_column[i])] / grid_.num_columns();
+  }
+
+  /// Whether `min_bottom_neighbours` of the 8 columns around `column` hold a cube within one layer
+  /// of `bottom`: a crown's or a ceiling's underside is wide, a trunk's or a pole's is not.
+  bool bottom_is_wide(std::int64_t column, std::int64_t bottom) const {
+    const std::int64_t ix = column % grid_.ixmax, iy = column / grid_.ixmax, reach = params_.bottom_window;
+    int found = 0;
+    for (std::int64_t y = std::max<std::int64_t>(0, iy - reach); y <= std::min(grid_.iymax - 1, iy + reach); ++y) {
+      for (std::int64_t x = std::max<std::int64_t>(0, ix - reach); x <= std::min(grid_.ixmax - 1, ix + reach); ++x) {
+        if (x == ix && y == iy) continue;
+        const auto [begin, end] = range(x + y * grid_.ixmax);
+        for (std::size_t i = begin; i < end && layer_at(i) <= bottom + 1; ++i) {
+          if (layer_at(i) >= bottom - 1) {
+            ++found;
+            break;
+          }
+        }
+      }
+    }
+    return found >= params_.min_bottom_neighbours;
+  }
+
+  const CubeGrid& grid_;
+  const std::vector<std::int64_t>& occupied_;
+  const Workspace& w_;
+  int sigma_;
+  const ShadowAwareParams& params_;
+  const FreeSpaceFloor& floor_;
+};
+
+bool is_removal(CubeReason reason) {
+  return reason == CubeReason::kRemovedAboveKept || reason == CubeReason::kRemovedFreeBelow;
+}
+
+}  // namespace
+
+const char* cube_reason_name(CubeReason reason) {
+  switch (reason) {
+    case CubeReason::kSupported:
+      return "supported";
+    case CubeReason::kBelowGround:
+      return "below_ground";
+    case CubeReason::kNoGroundEstimate:
+      return "no_ground_estimate";
+    case CubeReason::kShadowed:
+      return "shadowed";
+    case CubeReason::kRemovedAboveKept:
+      return "removed_above_kept";
+    case CubeReason::kRemovedFreeBelow:
+      return "removed_free_below";
+    case CubeReason::kThin:
+      return "thin";
+  }
+  return "unknown";
+}
+
+void check_shadow_aware_params(const ShadowAwareParams& params) {
+  if (params.sensor_origin && !params.sensor_origin->allFinite()) {
+    throw std::invalid_argument("shadow_aware sensor_origin must be finite");
+  }
+  if (!(params.ground_radius_m >= 0.0) || !std::isfinite(params.ground_radius_m)) {
+    throw std::invalid_argument("shadow_aware ground_radius_m must be a finite length >= 0 m, got " +
+                                detail::number_text(params.ground_radius_m));
+  }
+  if (params.ground_support < 1 || params.ground_support > 9) {
+    throw std::invalid_argument("shadow_aware ground_support must be 1..9 columns of a 3x3 neighbourhood, got " +
+                                std::to_string(params.ground_support));
+  }
+  if (!(params.free_margin_m >= 0.0) || !std::isfinite(params.free_margin_m)) {
+    throw std::invalid_argument("shadow_aware free_margin_m must be a finite length >= 0 m, got " +
+                                detail::number_text(params.free_margin_m));
+  }
+  if (params.bottom_window < 1 || params.bottom_window > 8) {
+    throw std::invalid_argument("shadow_aware bottom_window must be 1..8 columns, got " +
+                                std::to_string(params.bottom_window));
+  }
+  const int around = (2 * params.bottom_window + 1) * (2 * params.bottom_window + 1) - 1;
+  if (params.min_bottom_neighbours < 0 || params.min_bottom_neighbours > around) {
+    throw std::invalid_argument("shadow_aware min_bottom_neighbours must be 0.." + std::to_string(around) +
+                                " columns, got " + std::to_string(params.min_bottom_neighbours));
+  }
+  if (params.azimuth_bins < 1 || params.azimuth_bins > (1 << 20)) {
+    throw std::invalid_argument("shadow_aware azimuth_bins must be 1..2^20, got " +
+                                std::to_string(params.azimuth_bins));
+  }
+}
+
+ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vector<std::int64_t>& sorted_occupied,
+                                          const ForEachPoint& for_each_point, int sigma,
+                                          const Eigen::Vector3d& sensor_origin, const ShadowAwareParams& params) {
+  check_shadow_aware_params(params);
+  if (sigma < 1) throw std::invalid_argument("sigma must be at least 1 cube, got " + std::to_string(sigma));
+  if (!sensor_origin.allFinite()) throw std::invalid_argument("shadow_aware sensor origin must be finite");
+  ShadowAwareDecision decision;
+  if (sorted_occupied.empty()) return decision;
+  const std::int64_t num_columns = grid.num_columns();
+  if (num_columns > kMaxColumns || grid.izmax >= kNone - 1 ||
+      sorted_occupied.size() > static_cast<std::size_t>(kNone)) {
+    throw std::invalid_argument("shadow_aware needs per-column arrays; " + std::to_string(num_columns) +
+                                " columns (or its layers) is over 2^27: crop the cloud or use a larger edge");
+  }
+  Workspace& w = thread_workspace();
+  lowest_layers(sorted_occupied, num_columns, w.lowest);
+  reliable_ground(grid, w.lowest, params.ground_support, w.reliable);
+  const auto radius =
+      std::min<std::int64_t>(static_cast<std::int64_t>(std::ceil(params.ground_radius_m / grid.edge_m - 1e-9)),
+                             std::max(grid.ixmax, grid.iymax));
+  window_minimum(grid, radius, w.reliable, w.scratch, w.ground, w.line);  // G0
+  FreeSpaceFloor floor(grid, sensor_origin, params.azimuth_bins, w.slope);
+  const std::int32_t* const first_ground = w.ground.data();
+  const double inverse_edge = 1.0 / grid.edge_m;
+  for_each_point([&](const Eigen::Vector3d& point, std::int64_t cube) {
+    // The cube's column and layer from [CBC] eqs. (4)-(6), checked against I by eq. (1): no 64-bit
+    // division per point unless the caller quantised differently.
+    const Eigen::Vector3d position = (point - grid.min_corner) * inverse_edge + Eigen::Vector3d::Constant(0.5);
+    const bool inside = position.x() >= 0.0 && position.x() < static_cast<double>(grid.ixmax) && position.y() >= 0.0 &&
+                        position.y() < static_cast<double>(grid.iymax) && position.z() >= 0.0 &&
+                        position.z() < static_cast<double>(grid.izmax);
+    std::int64_t column = -1, layer = -1;
+    if (inside) {
+      column = static_cast<std::int64_t>(position.x()) + static_cast<std::int64_t>(position.y()) * grid.ixmax;
+      layer = static_cast<std::int64_t>(position.z());
+    }
+    if (!inside || column + layer * num_columns != cube) {
+      layer = cube / num_columns;
+      column = cube - layer * num_columns;
+    }
+    const std::int32_t below = first_ground[column];
+    if (below == kNone || layer >= std::int64_t{below} - 1) floor.add_ray(point);  // not below G0
+  });
+  floor.finish();
+  // Step 2 again: a lowest cube with a ray under it is no ground (a crown's underside), then G.
+  for (std::int64_t column = 0; column < num_columns; ++column) {
+    std::int32_t& layer = w.reliable[static_cast<std::size_t>(column)];
+    if (layer != kNone && floor.floor_of(column) < bottom_face(grid, layer)) layer = kNone;
+  }
+  window_minimum(grid, radius, w.reliable, w.scratch, w.ground, w.line);
+  order_by_column(sorted_occupied, num_columns, w);
+  decision.reasons.assign(sorted_occupied.size(), CubeReason::kSupported);
+  const ColumnJudge judge(grid, sorted_occupied, w, sigma, params, floor);
+  for (std::int64_t column = 0; column < num_columns; ++column) judge.judge(column, decision.reasons);
+  for (std::size_t position = 0; position < sorted_occupied.size(); ++position) {
+    if (is_removal(decision.reasons[position])) decision.removed_cubes.push_back(sorted_occupied[position]);
+  }
+  if (num_columns * 12 > (std::int64_t{64} << 20)) w = Workspace();  // release after a large call
+  return decision;
+}
+
+}  // namespace terracube

@@ -1,0 +1,171 @@
+// collapse_overhangs with CollapseMethod::kShadowAware on hand-made columns. The naive reference of
+// the whole rule is tests/python/test_shadow_aware.py; these cases keep the C++ core covered alone.
+#include <gtest/gtest.h>
+#include <terracube/collapse.hpp>
+
+#include <algorithm>
+#include <random>
+#include <stdexcept>
+
+namespace terracube {
+namespace {
+
+using Points = std::vector<Eigen::Vector3d>;
+
+void add_grid(Points& points, double x0, double x1, double y0, double y1, double z, double step = 0.25) {
+  for (double x = x0; x < x1 - 1e-9; x += step) {
+    for (double y = y0; y < y1 - 1e-9; y += step) points.emplace_back(x, y, z);
+  }
+}
+
+void add_face_x(Points& points, double x, double y0, double y1, double z0, double z1, double step = 0.2) {
+  for (double y = y0; y < y1 - 1e-9; y += step) {
+    for (double z = z0; z < z1 - 1e-9; z += step) points.emplace_back(x, y, z);
+  }
+}
+
+CollapseParams shadow_aware_params(int sigma = 4) {
+  CollapseParams params;
+  params.edge_m = 0.5;
+  params.sigma = sigma;
+  params.method = CollapseMethod::kShadowAware;
+  return params;
+}
+
+/// The reason of the cube holding `point`.
+CubeReason reason_at(const CollapseResult& result, const Eigen::Vector3d& point) {
+  const CubeGrid& grid = result.grid;
+  std::int64_t i[3];
+  for (int a = 0; a < 3; ++a) i[a] = quantize(point[a], grid.min_corner[a], 1.0 / grid.edge_m);
+  const std::int64_t cube = grid.index(i[0], i[1], i[2]);
+  const auto at = std::lower_bound(result.occupied_cubes.begin(), result.occupied_cubes.end(), cube);
+  EXPECT_TRUE(at != result.occupied_cubes.end() && *at == cube);
+  return result.cube_reasons[static_cast<std::size_t>(at - result.occupied_cubes.begin())];
+}
+
+TEST(ShadowAware, AMultipathPointBelowTheRoadIsKeptAndDecidesNothing) {
+  Points points;
+  add_grid(points, 1, 12, -3, 3, -1.7);
+  const Eigen::Vector3d ghost(6.1, 0.1, -7.7);
+  points.push_back(ghost);
+  CollapseParams paper = shadow_aware_params();
+  paper.method = CollapseMethod::kPaper;
+  EXPECT_GT(collapse_overhangs(points, paper).num_overhang, 0U);  // the road above the ghost
+  const CollapseResult result = collapse_overhangs(points, shadow_aware_params());
+  EXPECT_EQ(result.num_overhang, 0U);
+  EXPECT_EQ(reason_at(result, ghost), CubeReason::kBelowGround);
+  EXPECT_EQ(reason_at(result, {6.0, 0.0, -1.7}), CubeReason::kSupported);
+}
+
+TEST(ShadowAware, AWallWhoseFootIsHiddenBehindACarStays) {
+  Points points;
+  add_grid(points, 1, 6, -4, 4, -1.7);
+  add_face_x(points, 6.0, -2, 2, -1.7, -0.2);  // car front and roof
+  add_grid(points, 6, 8, -2, 2, -0.2);
+  add_face_x(points, 8.5, -2, 2, -0.2, 3.0);  // wall seen from 1.5 m above the road (σ = 2: floating)
+  const CollapseResult result = collapse_overhangs(points, shadow_aware_params(2));
+  EXPECT_EQ(result.num_overhang, 0U);
+  EXPECT_EQ(reason_at(result, {8.5, 0.0, -0.2}), CubeReason::kShadowed);
+  EXPECT_EQ(reason_at(result, {8.5, 0.0, 2.8}), CubeReason::kShadowed);
+}
+
+TEST(ShadowAware, ACrownOverACurbGoesWhileTheTrunkAndCurbStay) {
+  Points points;
+  add_grid(points, 1, 5, -5, 5, -1.7);
+  add_grid(points, 14, 20, -5, 5, -1.7, 0.1);  // ground beyond, lit under the crown
+  add_face_x(points, 5.0, -5, 5, -1.7, -1.4);  // 0.3 m curb
+  add_grid(points, 5, 5.5, -5, 5, -1.4);
+  add_face_x(points, 9.0, -0.2, 0.2, -1.4, 1.5, 0.1);  // trunk
+  for (const double z : {1.6, 2.4, 3.2, 3.8}) add_grid(points, 7.75, 10.25, -1.25, 1.25, z);
+  const CollapseResult result = collapse_overhangs(points, shadow_aware_params());
+  EXPECT_EQ(reason_at(result, {8.5, 0.5, 1.6}), CubeReason::kRemovedFreeBelow);
+  EXPECT_EQ(reason_at(result, {9.5, -0.5, 3.8}), CubeReason::kRemovedFreeBelow);
+  EXPECT_EQ(reason_at(result, {7.75, -1.25, 1.6}), CubeReason::kThin);    // a corner of the crown
+  EXPECT_EQ(reason_at(result, {9.0, 0.0, 3.2}), CubeReason::kSupported);  // the trunk's column
+  EXPECT_EQ(reason_at(result, {5.0, 0.0, -1.4}), CubeReason::kSupported);
+  CollapseParams paper = shadow_aware_params();
+  paper.method = CollapseMethod::kPaper;
+  EXPECT_EQ(collapse_overhangs(points, paper).num_overhang, 0U);
+}
+
+TEST(ShadowAware, TheResultIsTheSameForAnyThreadCountAndStorage) {
+  std::mt19937_64 rng(11);
+  std::uniform_real_distribution<double> across(-20.0, 20.0), up(1.0, 4.0);
+  std::normal_distribution<double> noise(0.0, 0.05);
+  Points points;
+  for (int i = 0; i < 20000; ++i) points.emplace_back(across(rng), across(rng), -1.7 + noise(rng));
+  for (int i = 0; i < 3000; ++i) points.emplace_back(across(rng) * 0.3 + 5.0, across(rng) * 0.3, up(rng));
+  CollapseParams params = shadow_aware_params(3);
+  const CollapseResult one = collapse_overhangs(points, params);
+  ASSERT_GT(one.num_overhang, 0U);
+  for (const auto& [storage, threads] :
+       {std::pair{CubeStorage::kSparse, 1}, std::pair{CubeStorage::kDense, 0}, std::pair{CubeStorage::kAuto, 3}}) {
+    params.storage = storage;
+    params.num_threads = threads;
+    const CollapseResult other = collapse_overhangs(points, params);
+    EXPECT_EQ(other.overhang, one.overhang);
+    EXPECT_EQ(other.cube_reasons, one.cube_reasons);
+  }
+}
+
+TEST(ShadowAware, BadParametersThrowInvalidArgumentNamingThem) {
+  const Points points = {{0, 0, 0}, {1, 1, 1}};
+  CollapseParams params = shadow_aware_params();
+  params.shadow_aware.ground_radius_m = -1.0;
+  EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument);
+  params = shadow_aware_params();
+  params.shadow_aware.ground_support = 10;
+  EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument);
+  params = shadow_aware_params();
+  params.shadow_aware.azimuth_bins = 0;
+  EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument);
+  params = shadow_aware_params();
+  params.shadow_aware.sensor_origin = Eigen::Vector3d(0.0, std::nan(""), 0.0);
+  EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument);
+}
+
+TEST(ShadowAware, HostileCloudsAndParametersGiveAResultOrAStandardException) {
+  std::mt19937_64 rng(5);
+  std::uniform_real_distribution<double> unit(-1.0, 1.0);
+  const double lengths[] = {0.0, 1e-300, 1e-6, 0.5, 40.0, 1e12, 1e300};
+  int returned = 0;
+  for (int trial = 0; trial < 200; ++trial) {
+    Points points(static_cast<std::size_t>(rng() % 300));
+    const double spread = lengths[rng() % 7];
+    for (auto& p : points) p = {unit(rng) * spread, unit(rng) * spread, unit(rng) * spread * 0.1};
+    CollapseParams params = shadow_aware_params(1 + static_cast<int>(rng() % 6));
+    params.edge_m = rng() % 4 == 0 ? lengths[rng() % 7] : 0.5;
+    params.storage = static_cast<CubeStorage>(rng() % 3);
+    params.dense_budget_bytes = std::size_t{16} << 20;
+    params.shadow_aware.ground_radius_m = rng() % 4 == 0 ? lengths[rng() % 7] : 5.0;
+    params.shadow_aware.ground_support = static_cast<int>(rng() % 11);
+    params.shadow_aware.min_bottom_neighbours = static_cast<int>(rng() % 10) - 1;
+    params.shadow_aware.free_margin_m = rng() % 4 == 0 ? -1.0 : 0.25;
+    params.shadow_aware.azimuth_bins = rng() % 4 == 0 ? static_cast<int>(rng()) : 512;
+    if (rng() % 3 == 0) params.shadow_aware.sensor_origin = Eigen::Vector3d(lengths[rng() % 7], 0.0, 1.0);
+    try {
+      const CollapseResult result = collapse_overhangs(points, params);
+      EXPECT_EQ(result.cube_reasons.size(), result.occupied_cubes.size());
+      ++returned;
+    } catch (const std::invalid_argument&) {
+    } catch (const std::length_error&) {
+    } catch (const std::bad_alloc&) {
+    }
+  }
+  EXPECT_GT(returned, 20);
+}
+
+TEST(ShadowAware, ThePaperMethodLeavesNoReasons) {
+  Points points;
+  add_grid(points, 0, 4, 0, 4, 0.0);
+  add_grid(points, 0, 2, 0, 2, 3.0);
+  CollapseParams params = shadow_aware_params(2);
+  params.method = CollapseMethod::kPaper;
+  const CollapseResult result = collapse_overhangs(points, params);
+  EXPECT_GT(result.num_overhang, 0U);
+  EXPECT_TRUE(result.cube_reasons.empty());
+  EXPECT_STREQ(cube_reason_name(CubeReason::kRemovedFreeBelow), "removed_free_below");
+}
+
+}  // namespace
+}  // namespace terracube
