@@ -189,3 +189,31 @@ def test_stream_command_on_kitti_frames_writes_the_map_pictures_and_an_animation
     assert not (out / "local_elevation_000003.png").exists()
     result = CliRunner().invoke(app, [*args, "--resolution", "-1"])
     assert result.exit_code != 0 and "resolution" in result.output
+
+
+def test_shadow_aware_removal_keeps_a_crown_over_hidden_ground_out_of_the_map():
+    """The crown-over-a-curb scene of test_shadow_aware.py (sensor at the origin, a 0.3 m curb at
+    x = 5 hiding the ground behind it, a tree at x = 9, lit ground at x 14-20): with the paper's
+    rule the crown's columns hold its height (an obstacle the robot could drive under), with
+    ``method="shadow_aware"`` they hold no height, only the overhang above."""
+    from test_shadow_aware import ground_patch, slab, vertical_face
+
+    ground = np.vstack([ground_patch(1, 5, -5, 5), ground_patch(14, 20, -5, 5)])
+    curb = np.vstack([vertical_face(5.0, -5, 5, -1.7, -1.4), slab(5, 5.5, -5, 5, -1.4)])
+    trunk = vertical_face(9.0, -0.2, 0.2, -1.4, 1.5, step=0.1)
+    crown = np.vstack([slab(7.75, 10.25, -1.25, 1.25, z) for z in (1.6, 2.4, 3.2, 3.8)])
+    points = np.vstack([ground, curb, trunk, crown])
+    # the crown's inner columns beside the trunk (its corner columns are thin: kept, see there)
+    under_crown = [(x, y) for x in (8.4, 8.6, 9.4, 9.6) for y in (-0.6, 0.0, 0.6)]
+    heights = {}
+    for method in ("paper", "shadow_aware"):
+        m = terracube.LocalMap(
+            length=44.0, resolution=0.25, collapse=terracube.CollapseParams(edge=0.5, sigma=4, method=method)
+        )
+        m.update(points, np.eye(4))
+        cells = [m.index_of(xy) for xy in under_crown]
+        heights[method] = np.array([m["elevation"][i, j] for i, j in cells])
+        overhang = np.array([m["overhang_min"][i, j] for i, j in cells])
+    assert (heights["paper"] > 1.0).all()  # the crown as the cells' height
+    assert np.isnan(heights["shadow_aware"]).all()  # no height: the ground there was never seen
+    assert (overhang > 1.0).all()  # the crown is kept as the overhang above
