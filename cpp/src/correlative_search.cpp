@@ -1,0 +1,170 @@
+// Correlative yaw x translation search on classified points (not in [TC]): the start of the
+// registration (RegistrationParams::correlative_search) and of the Mapper's loop closing.
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <stdexcept>
+#include <utility>
+#include <vector>
+
+#include "cloud_frame.hpp"
+#include "terracube/icp.hpp"
+
+namespace terracube {
+
+namespace {
+
+void check_search_params(const CorrelativeSearchParams& p) {
+  const auto positive = [](double v) { return v > 0.0 && std::isfinite(v); };
+  if (!positive(p.window_m)) throw std::invalid_argument("correlative search window_m must be positive and finite [m]");
+  if (!positive(p.cell_m)) throw std::invalid_argument("correlative search cell_m must be positive and finite [m]");
+  if (p.window_m / p.cell_m > 4096.0) {
+    throw std::invalid_argument("correlative search window_m / cell_m must be at most 4096 cells");
+  }
+  if (p.step_cells < 1) throw std::invalid_argument("correlative search step_cells must be at least 1");
+  if (!(p.yaw_window_rad >= 0.0 && p.yaw_window_rad <= 3.2)) {
+    throw std::invalid_argument("correlative search yaw_window_rad must lie in [0, 3.2] [rad]");
+  }
+  if (p.yaw_hypotheses < 1) throw std::invalid_argument("correlative search yaw_hypotheses must be at least 1");
+}
+
+bool takes_part(std::uint8_t terrain_class) {
+  return terrain_class >= static_cast<std::uint8_t>(TerrainClass::kObstacle);
+}
+
+}  // namespace
+
+namespace {
+
+/// One level of the search: `hypotheses` yaws over +-yaw_window_rad about the source origin, then
+/// translations of step_cells cells within +-window_m, scored on an occupancy grid of cell_m.
+CorrelativeSearchResult search_level(const std::vector<Eigen::Vector2d>& moving,
+                                     const std::vector<Eigen::Vector2d>& fixed, const Eigen::Vector2d& low,
+                                     const Eigen::Vector2d& high, const Eigen::Matrix4d& guess,
+                                     const CorrelativeSearchParams& params) {
+  CorrelativeSearchResult result;
+  result.transform = guess;
+  result.points = moving.size();
+  // The occupancy grid: the target's non-ground cells, each with its eight neighbours, inside a
+  // margin of 2 * window + 2 cells. A source point whose cell lies within `window` of the grid's
+  // edge can then never reach an occupied cell, and the others never leave the grid: the inner
+  // loop needs no bounds checks.
+  const double cell = params.cell_m;
+  const int window = static_cast<int>(std::ceil(params.window_m / cell - 1e-9));
+  const int margin = 2 * window + 2;
+  const Eigen::Vector2d origin = ((low / cell).array().floor() - margin).matrix() * cell;
+  const auto extent = [&](double lo, double hi) {
+    return static_cast<std::int64_t>(std::floor(hi / cell) - std::floor(lo / cell)) + 1 + 2 * margin;
+  };
+  const std::int64_t nx = extent(low.x(), high.x()), ny = extent(low.y(), high.y());
+  if (static_cast<double>(nx) * static_cast<double>(ny) > 1e9) {
+    throw std::invalid_argument("correlative search: the target spans more than 1e9 cells of cell_m");
+  }
+  std::vector<std::uint8_t> occupied(static_cast<std::size_t>(nx * ny), 0);
+  const auto cell_of = [&](const Eigen::Vector2d& p) {
+    return std::array<std::int64_t, 2>{static_cast<std::int64_t>(std::floor((p.x() - origin.x()) / cell)),
+                                       static_cast<std::int64_t>(std::floor((p.y() - origin.y()) / cell))};
+  };
+  for (const Eigen::Vector2d& q : fixed) {
+    const auto [a, b] = cell_of(q);
+    for (std::int64_t da = -1; da <= 1; ++da) {
+      for (std::int64_t db = -1; db <= 1; ++db) occupied[static_cast<std::size_t>((a + da) * ny + b + db)] = 1;
+    }
+  }
+
+  const int hypotheses = params.yaw_hypotheses;
+  const int step = params.step_cells;
+  std::size_t best_score = 0;
+  double best_distance = std::numeric_limits<double>::infinity();  // of the best, from the guess
+  std::vector<std::int64_t> base;                                  // per source point that can score: its cell's index
+  base.reserve(moving.size());
+  std::vector<std::pair<std::int64_t, std::uint32_t>> cells;  // (cell index, points in it)
+  cells.reserve(moving.size());
+  for (int h = 0; h < hypotheses; ++h) {
+    const double fraction = hypotheses == 1 ? 0.0 : 2.0 * h / (hypotheses - 1) - 1.0;
+    const double yaw = params.yaw_window_rad * fraction;
+    Eigen::Matrix4d turned = guess;
+    turned.topLeftCorner<3, 3>() =
+        guess.topLeftCorner<3, 3>() * Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+    const Eigen::Matrix2d r = turned.topLeftCorner<2, 2>();
+    const Eigen::Vector2d t = turned.topRightCorner<2, 1>();
+    base.clear();
+    for (const Eigen::Vector2d& p : moving) {
+      const auto [a, b] = cell_of(r * p + t);
+      if (a >= window && a < nx - window && b >= window && b < ny - window) base.push_back(a * ny + b);
+    }
+    // Points in one cell score alike at every translation: count each cell once, with its points.
+    std::sort(base.begin(), base.end());
+    cells.clear();
+    for (std::size_t k = 0; k < base.size();) {
+      std::size_t end = k + 1;
+      while (end < base.size() && base[end] == base[k]) ++end;
+      cells.push_back({base[k], static_cast<std::uint32_t>(end - k)});
+      k = end;
+    }
+    for (int dx = -window; dx <= window; dx += step) {
+      for (int dy = -window; dy <= window; dy += step) {
+        const std::int64_t shift = static_cast<std::int64_t>(dx) * ny + dy;
+        std::size_t score = 0;
+        for (const auto& [k, count] : cells) score += occupied[static_cast<std::size_t>(k + shift)] * count;
+        // Ties keep the hypothesis nearest the guess (in cells, a yaw step counting as one).
+        const double steps = hypotheses == 1 ? 0.0 : fraction * (hypotheses - 1) / 2.0;
+        const double distance = static_cast<double>(dx) * dx + static_cast<double>(dy) * dy + steps * steps;
+        if (score > best_score || (score == best_score && score > 0 && distance < best_distance)) {
+          best_score = score;
+          best_distance = distance;
+          result.transform = turned;
+          result.transform(0, 3) += dx * cell;
+          result.transform(1, 3) += dy * cell;
+        }
+      }
+    }
+  }
+  result.score = best_score;
+  return result;
+}
+
+}  // namespace
+
+CorrelativeSearchResult correlative_search(const ClassifiedPoints& source, const ClassifiedPoints& target,
+                                           const Eigen::Matrix4d& guess, const CorrelativeSearchParams& params) {
+  check_search_params(params);
+  detail::check_rigid_transform(guess, "correlative search guess");
+  if (source.classes.size() != source.points.size() || target.classes.size() != target.points.size()) {
+    throw std::invalid_argument("correlative search: points and classes differ in number");
+  }
+  std::vector<Eigen::Vector2d> moving, fixed;
+  for (std::size_t k = 0; k < source.size(); ++k) {
+    if (takes_part(source.classes[k])) moving.push_back(source.points[k].head<2>());
+  }
+  Eigen::Vector2d low = Eigen::Vector2d::Constant(std::numeric_limits<double>::infinity());
+  Eigen::Vector2d high = -low;
+  for (std::size_t k = 0; k < target.size(); ++k) {
+    if (!takes_part(target.classes[k])) continue;
+    fixed.push_back(target.points[k].head<2>());
+    low = low.cwiseMin(fixed.back());
+    high = high.cwiseMax(fixed.back());
+  }
+  CorrelativeSearchResult result;
+  result.transform = guess;
+  result.points = moving.size();
+  if (moving.empty() || fixed.empty()) return result;
+  if (!low.allFinite() || !high.allFinite()) throw std::invalid_argument("correlative search: non-finite points");
+  result = search_level(moving, fixed, low, high, guess, params);
+  if (params.refine && result.score > 0) {
+    // Coarse to fine: around the best hypothesis, cells a third as large within one coarse cell,
+    // and five yaws within one coarse yaw step (the coarse score is flat within a cell).
+    CorrelativeSearchParams fine;
+    fine.cell_m = params.cell_m / 3.0;
+    fine.window_m = params.cell_m * params.step_cells;
+    fine.step_cells = 1;
+    fine.yaw_hypotheses = params.yaw_hypotheses > 1 ? 5 : 1;
+    fine.yaw_window_rad = params.yaw_hypotheses > 1 ? 2.0 * params.yaw_window_rad / (params.yaw_hypotheses - 1) : 0.0;
+    result = search_level(moving, fixed, low, high, result.transform, fine);
+  }
+  return result;
+}
+
+}  // namespace terracube
