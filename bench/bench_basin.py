@@ -11,6 +11,8 @@ Methods:
 
 - ``terracube``: ``terracube.register_maps`` with its defaults (correlative yaw x translation
   search on the classified maps, then the class-weighted ICP);
+- ``terracube ICP alone``: the defaults with ``correlative_search=False`` (the defaults before
+  issue 38: extrapolation and coarse-to-fine, no search);
 - ``terracube paper ICP``: ``RegistrationParams.paper_icp()``: the paper's plain weighted ICP from
   the start alone (no search, no extrapolation, no coarse-to-fine);
 - ``small_gicp GICP``: ``small_gicp.align(..., registration_type="GICP")`` on the raw scans,
@@ -180,6 +182,7 @@ def small_gicp_align(pair: Pair, guess: np.ndarray):
 def methods() -> dict[str, Callable[[Pair, np.ndarray], np.ndarray]]:
     out = {
         "terracube": terracube_method(None),
+        "terracube ICP alone": terracube_method(tc.RegistrationParams(correlative_search=False)),
         "terracube paper ICP": terracube_method(tc.RegistrationParams.paper_icp()),
     }
     try:

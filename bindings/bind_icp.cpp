@@ -67,7 +67,8 @@ void bind_icp(py::module_& m) {
       .def_readwrite("step_cells", &CorrelativeSearchParams::step_cells)
       .def_readwrite("yaw_window_rad", &CorrelativeSearchParams::yaw_window_rad)
       .def_readwrite("yaw_hypotheses", &CorrelativeSearchParams::yaw_hypotheses)
-      .def_readwrite("refine", &CorrelativeSearchParams::refine);
+      .def_readwrite("refine", &CorrelativeSearchParams::refine)
+      .def_readwrite("tie_tolerance", &CorrelativeSearchParams::tie_tolerance);
 
   py::class_<RegistrationParams>(m, "RegistrationParams")
       .def(py::init<>())
@@ -123,7 +124,7 @@ void bind_icp(py::module_& m) {
       .def_readonly("overlap", &RegistrationResult::overlap,
                     "share of the source's object cells with a partner within the last distance limit")
       .def_readonly("chance_overlap", &RegistrationResult::chance_overlap,
-                    "the overlap at the result moved by 1 m along +-x and +-y (mean): coincidence alone")
+                    "the overlap at the result moved by 1 m along +-x or +-y, the least: coincidence alone")
       .def_readonly("inlier_share_per_class", &RegistrationResult::inlier_share_per_class,
                     "(6,) per source class: share of its points with a partner")
       .def_readonly("held", &RegistrationResult::held,

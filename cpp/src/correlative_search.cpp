@@ -28,6 +28,9 @@ void check_search_params(const CorrelativeSearchParams& p) {
     throw std::invalid_argument("correlative search yaw_window_rad must lie in [0, 3.2] [rad]");
   }
   if (p.yaw_hypotheses < 1) throw std::invalid_argument("correlative search yaw_hypotheses must be at least 1");
+  if (!(p.tie_tolerance >= 0.0 && p.tie_tolerance < 1.0)) {
+    throw std::invalid_argument("correlative search tie_tolerance must lie in [0, 1)");
+  }
 }
 
 bool takes_part(std::uint8_t terrain_class) {
@@ -76,9 +79,14 @@ CorrelativeSearchResult search_level(const std::vector<Eigen::Vector2d>& moving,
 
   const int hypotheses = params.yaw_hypotheses;
   const int step = params.step_cells;
-  std::size_t best_score = 0;
-  double best_distance = std::numeric_limits<double>::infinity();  // of the best, from the guess
-  std::vector<std::int64_t> base;                                  // per source point that can score: its cell's index
+  struct Hypothesis {
+    std::size_t score;
+    double distance;  // from the guess, in cells (a yaw step counting as one)
+    double yaw;
+    int dx, dy;
+  };
+  std::vector<Hypothesis> scored;
+  std::vector<std::int64_t> base;  // per source point that can score: its cell's index
   base.reserve(moving.size());
   std::vector<std::pair<std::int64_t, std::uint32_t>> cells;  // (cell index, points in it)
   cells.reserve(moving.size());
@@ -109,20 +117,28 @@ CorrelativeSearchResult search_level(const std::vector<Eigen::Vector2d>& moving,
         const std::int64_t shift = static_cast<std::int64_t>(dx) * ny + dy;
         std::size_t score = 0;
         for (const auto& [k, count] : cells) score += occupied[static_cast<std::size_t>(k + shift)] * count;
-        // Ties keep the hypothesis nearest the guess (in cells, a yaw step counting as one).
         const double steps = hypotheses == 1 ? 0.0 : fraction * (hypotheses - 1) / 2.0;
-        const double distance = static_cast<double>(dx) * dx + static_cast<double>(dy) * dy + steps * steps;
-        if (score > best_score || (score == best_score && score > 0 && distance < best_distance)) {
-          best_score = score;
-          best_distance = distance;
-          result.transform = turned;
-          result.transform(0, 3) += dx * cell;
-          result.transform(1, 3) += dy * cell;
-        }
+        scored.push_back(
+            {score, static_cast<double>(dx) * dx + static_cast<double>(dy) * dy + steps * steps, yaw, dx, dy});
       }
     }
   }
-  result.score = best_score;
+  // Near-ties (within tie_tolerance of the best score) keep the hypothesis nearest the guess: the
+  // search moves a good guess only for a clearly better match.
+  std::size_t best_score = 0;
+  for (const Hypothesis& h : scored) best_score = std::max(best_score, h.score);
+  if (best_score == 0) return result;
+  const double floor = (1.0 - params.tie_tolerance) * static_cast<double>(best_score);
+  const Hypothesis* chosen = nullptr;
+  for (const Hypothesis& h : scored) {
+    if (static_cast<double>(h.score) >= floor && (chosen == nullptr || h.distance < chosen->distance)) chosen = &h;
+  }
+  result.transform = guess;
+  result.transform.topLeftCorner<3, 3>() =
+      guess.topLeftCorner<3, 3>() * Eigen::AngleAxisd(chosen->yaw, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  result.transform(0, 3) += chosen->dx * cell;
+  result.transform(1, 3) += chosen->dy * cell;
+  result.score = chosen->score;
   return result;
 }
 
@@ -162,6 +178,7 @@ CorrelativeSearchResult correlative_search(const ClassifiedPoints& source, const
     fine.step_cells = 1;
     fine.yaw_hypotheses = params.yaw_hypotheses > 1 ? 5 : 1;
     fine.yaw_window_rad = params.yaw_hypotheses > 1 ? 2.0 * params.yaw_window_rad / (params.yaw_hypotheses - 1) : 0.0;
+    fine.tie_tolerance = params.tie_tolerance;
     result = search_level(moving, fixed, low, high, result.transform, fine);
   }
   return result;

@@ -873,14 +873,16 @@ RegistrationResult register_checked(const ClassifiedPoints& source, const Classi
     inliers = result.correspondence_distance_m == inlier_distance
                   ? result.correspondences_per_class
                   : registration.pass(result.transform, inlier_distance).per_class;
-    // What coincidence alone gives: the overlap at the result moved by 1 m along +-x and +-y.
-    double chance = 0.0;
-    for (const auto& [dx, dy] : {std::pair{1.0, 0.0}, std::pair{-1.0, 0.0}, std::pair{0.0, 1.0}, std::pair{0.0, -1.0}}) {
+    // What coincidence alone gives: the overlap at the result moved by 1 m along +-x and +-y, the
+    // least of the four (a corridor keeps its overlap along itself, not across).
+    double chance = 1.0;
+    for (const auto& [dx, dy] :
+         {std::pair{1.0, 0.0}, std::pair{-1.0, 0.0}, std::pair{0.0, 1.0}, std::pair{0.0, -1.0}}) {
       Eigen::Matrix4d moved = result.transform;
       moved(0, 3) += dx;
       moved(1, 3) += dy;
-      chance += 0.25 * detail::object_overlap(registration.pass(moved, inlier_distance).per_class, source_per_class,
-                                              params.use_classes);
+      chance = std::min(chance, detail::object_overlap(registration.pass(moved, inlier_distance).per_class,
+                                                       source_per_class, params.use_classes));
     }
     result.chance_overlap = chance;
   } else {

@@ -133,7 +133,7 @@ def test_params_mirror_the_cpp_defaults():
     ):
         assert getattr(core, name) == getattr(default, name), name
     assert list(core.class_weights) == list(default.class_weights) == [0.0, 0.0, 0.8, 0.5, 0.5, 0.8]
-    for name in ("window_m", "cell_m", "step_cells", "yaw_window_rad", "yaw_hypotheses", "refine"):
+    for name in ("window_m", "cell_m", "step_cells", "yaw_window_rad", "yaw_hypotheses", "refine", "tie_tolerance"):
         assert getattr(core.search, name) == getattr(default.search, name), name
     paper, paper_core = tc.RegistrationParams.paper_icp(), tc._core.RegistrationParams.paper_icp()
     assert not paper.correlative_search and not paper.extrapolate and paper.coarse_subsample == 1

@@ -66,6 +66,10 @@ struct CorrelativeSearchParams {
   /// within +-cell_m * step_cells and 5 yaws within +-one yaw step (the coarse score is flat within
   /// a cell). The result's score is the fine level's.
   bool refine = true;
+  /// Hypotheses scoring at least (1 - tie_tolerance) times the best count as ties, and ties keep
+  /// the hypothesis nearest the guess (cells, a yaw step counting as one): a good guess moves only
+  /// for a clearly better match. In [0, 1); 0: exact ties only.
+  double tie_tolerance = 0.03;
 };
 
 /// Outcome of correlative_search.
@@ -78,10 +82,10 @@ struct CorrelativeSearchResult {
 /// Correlative search (in the manner of Olson's real-time correlative scan matching; not in
 /// [TC]) over yaw offsets about the source origin and a translation window in x and y: the score
 /// of a hypothesis guess * (translation) * Rz(yaw) is the number of the source's non-ground points
-/// (class >= kObstacle) that land on a non-ground target cell (dilated by one cell). Ties keep the
-/// hypothesis nearest the guess. Used before the ICP (RegistrationParams::correlative_search) and
-/// by the Mapper's loop closing. Returns the guess with score 0 when either set has no non-ground
-/// point. Throws std::invalid_argument for invalid parameters or a non-rigid guess.
+/// (class >= kObstacle) that land on a non-ground target cell (dilated by one cell). Near-ties
+/// (CorrelativeSearchParams::tie_tolerance) keep the hypothesis nearest the guess. Used before the ICP
+/// (RegistrationParams::correlative_search) and by the Mapper's loop closing. Returns the guess with score 0 when
+/// either set has no non-ground point. Throws std::invalid_argument for invalid parameters or a non-rigid guess.
 CorrelativeSearchResult correlative_search(const ClassifiedPoints& source, const ClassifiedPoints& target,
                                            const Eigen::Matrix4d& guess, const CorrelativeSearchParams& params = {});
 
@@ -170,10 +174,11 @@ struct RegistrationParams {
   /// trust_max_rmse_m; and, when the constraint analysis ran (structure_radius_m > 0), every
   /// direction held by at least trust_min_held of the pairs' weight (RegistrationResult::held).
   /// Measured (bench/bench_basin.py, 60 x 40 m maps at 0.1 m): related KITTI and simulated pairs
-  /// reach overlap 0.57-0.89 at 2.3-2.9 times the chance overlap, held >= 0.06; the two Ouster scans
-  /// of different places 0.33-0.39 at 1.04-1.08 times.
+  /// reach overlap 0.57-0.89 at 2.5-3.3 times the chance overlap, held >= 0.06; the two Ouster
+  /// scans of different places 0.35-0.39 at 1.1 times; a simulated loop frame against one of the
+  /// straight road (another world) fails both.
   double trust_min_overlap = 0.25;  ///< in [0, 1]
-  double trust_min_contrast = 1.5;  ///< >= 0
+  double trust_min_contrast = 2.0;  ///< >= 0
   double trust_max_rmse_m = 0.2;    ///< > 0 [m]
   double trust_min_held = 0.05;     ///< in [0, 1]
 };
@@ -235,8 +240,9 @@ struct RegistrationResult {
   /// point without classes) with a partner within min_correspondence_distance_m (0.3 m) at
   /// `transform`, whatever distance limit the ICP stopped at.
   double overlap = 0.0;
-  /// The overlap at `transform` moved by 1 m along +x, -x, +y and -y (the mean): what coincidence
-  /// alone gives in these maps. A real match stands well above it.
+  /// The overlap at `transform` moved by 1 m along +x, -x, +y or -y, the least of the four: what
+  /// coincidence alone gives in these maps (a corridor keeps its overlap along itself, not
+  /// across). A real match stands well above it.
   double chance_overlap = 0.0;
   /// Per source class: the share of its points that take part with a partner within
   /// min_correspondence_distance_m (0 without points).
