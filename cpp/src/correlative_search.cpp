@@ -33,6 +33,9 @@ void check_search_params(const CorrelativeSearchParams& p) {
   }
 }
 
+// The occupancy grid's size limit (bytes): beyond it the search returns the guess.
+constexpr double kMaxGridCells = 2.5e8;
+
 bool takes_part(std::uint8_t terrain_class) {
   return terrain_class >= static_cast<std::uint8_t>(TerrainClass::kObstacle);
 }
@@ -58,13 +61,12 @@ CorrelativeSearchResult search_level(const std::vector<Eigen::Vector2d>& moving,
   const int window = static_cast<int>(std::ceil(params.window_m / cell - 1e-9));
   const int margin = 2 * window + 2;
   const Eigen::Vector2d origin = ((low / cell).array().floor() - margin).matrix() * cell;
-  const auto extent = [&](double lo, double hi) {
-    return static_cast<std::int64_t>(std::floor(hi / cell) - std::floor(lo / cell)) + 1 + 2 * margin;
+  const auto extent = [&](double lo, double hi) {  // in cells, as a double (checked before any cast)
+    return std::floor(hi / cell) - std::floor(lo / cell) + 1.0 + 2.0 * margin;
   };
-  const std::int64_t nx = extent(low.x(), high.x()), ny = extent(low.y(), high.y());
-  if (static_cast<double>(nx) * static_cast<double>(ny) > 1e9) {
-    throw std::invalid_argument("correlative search: the target spans more than 1e9 cells of cell_m");
-  }
+  const double cells_x = extent(low.x(), high.x()), cells_y = extent(low.y(), high.y());
+  if (!(cells_x * cells_y <= kMaxGridCells)) return result;  // too large to search: the guess, score 0
+  const auto nx = static_cast<std::int64_t>(cells_x), ny = static_cast<std::int64_t>(cells_y);
   std::vector<std::uint8_t> occupied(static_cast<std::size_t>(nx * ny), 0);
   const auto cell_of = [&](const Eigen::Vector2d& p) {
     return std::array<std::int64_t, 2>{static_cast<std::int64_t>(std::floor((p.x() - origin.x()) / cell)),
@@ -100,8 +102,14 @@ CorrelativeSearchResult search_level(const std::vector<Eigen::Vector2d>& moving,
     const Eigen::Vector2d t = turned.topRightCorner<2, 1>();
     base.clear();
     for (const Eigen::Vector2d& p : moving) {
-      const auto [a, b] = cell_of(r * p + t);
-      if (a >= window && a < nx - window && b >= window && b < ny - window) base.push_back(a * ny + b);
+      // In cells as doubles first: a point far outside the grid (a wild guess) must not overflow.
+      const Eigen::Vector2d q = r * p + t;
+      const double fa = std::floor((q.x() - origin.x()) / cell), fb = std::floor((q.y() - origin.y()) / cell);
+      if (!(fa >= window && fa < static_cast<double>(nx - window) && fb >= window &&
+            fb < static_cast<double>(ny - window))) {
+        continue;
+      }
+      base.push_back(static_cast<std::int64_t>(fa) * ny + static_cast<std::int64_t>(fb));
     }
     // Points in one cell score alike at every translation: count each cell once, with its points.
     std::sort(base.begin(), base.end());

@@ -1422,6 +1422,13 @@ TEST(CorrelativeSearch, RejectsBadParametersAndGuesses) {
   Eigen::Matrix4d sheared = identity;
   sheared(0, 1) = 0.5;
   EXPECT_THROW(correlative_search(empty, empty, sheared), std::invalid_argument);
+  // A wild guess (the source 1e15 m away) finds nothing and returns the guess (no overflow).
+  const ClassifiedPoints some{{Eigen::Vector3d(0, 0, 1), Eigen::Vector3d(1, 0, 1)}, {2, 2}};
+  Eigen::Matrix4d far = identity;
+  far(0, 3) = 1e15;
+  const CorrelativeSearchResult wild = correlative_search(some, some, far);
+  EXPECT_EQ(wild.transform, far);
+  EXPECT_EQ(wild.score, 0U);
 }
 
 TEST(RegisterPoints, PaperIcpIsTheDefaultsWithoutSearchExtrapolationOrCoarseToFine) {

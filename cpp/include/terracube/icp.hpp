@@ -85,7 +85,10 @@ struct CorrelativeSearchResult {
 /// (class >= kObstacle) that land on a non-ground target cell (dilated by one cell). Near-ties
 /// (CorrelativeSearchParams::tie_tolerance) keep the hypothesis nearest the guess. Used before the ICP
 /// (RegistrationParams::correlative_search) and by the Mapper's loop closing. Returns the guess with score 0 when
-/// either set has no non-ground point. Throws std::invalid_argument for invalid parameters or a non-rigid guess.
+/// either set has no non-ground point, or when the target's non-ground points span more than 2.5e8
+/// cells of a level with its margins (about 4.7 km square at the default 0.3 m; 1.5 km for the
+/// 0.1 m refinement, which then keeps the coarse answer). Throws std::invalid_argument for invalid parameters or a
+/// non-rigid guess.
 CorrelativeSearchResult correlative_search(const ClassifiedPoints& source, const ClassifiedPoints& target,
                                            const Eigen::Matrix4d& guess, const CorrelativeSearchParams& params = {});
 
