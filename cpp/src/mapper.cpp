@@ -511,7 +511,18 @@ ScanReport Mapper::Impl::add_checked(const PointsView<Scalar>& points, const Eig
       // LiDAR-only, first step: no velocity yet, so the search covers a keyframe's travel.
       const bool first_blind_step = params.lidar_only && keyframes.size() == 1;
       if (first_blind_step) registration.search.window_m += params.keyframe_distance_m;
-      report.registration = register_points(keyframe.points, previous.points, guess, registration);
+      if (!params.lidar_only && registration.correlative_search) {
+        // Odometry is usually close: the ICP from it alone first (the search can only blur a good
+        // guess); the search only when that answer is not trusted (a slip, a bad guess).
+        RegistrationParams from_guess = registration;
+        from_guess.correlative_search = false;
+        report.registration = register_points(keyframe.points, previous.points, guess, from_guess);
+        if (!report.registration.trusted) {
+          report.registration = register_points(keyframe.points, previous.points, guess, registration);
+        }
+      } else {
+        report.registration = register_points(keyframe.points, previous.points, guess, registration);
+      }
       timings.registration_ms += ms_since(start);
       const RegistrationResult& r = report.registration;
       // The correction the step would apply (its yaw and translation with yaw_only_registration).

@@ -75,7 +75,9 @@ class MapperParams:
         whatever its correction of the prediction (``max_correction`` bounds odometry's only);
         untrusted steps keep the prediction. Needs ``use_registration``.
     registration : RegistrationParams
-        The class-weighted ICP ([TC] Table 2 weights by default).
+        The class-weighted ICP ([TC] Table 2 weights by default). With odometry a step is first
+        registered from odometry's guess without the correlative search, and again with it only
+        when that answer is not trusted.
     yaw_only_registration : bool
         Keep only the translation and yaw of each registration: local maps are leveled by odometry's
         roll and pitch, so their relative rotation is a yaw (the ground-free ICP leaves roll and pitch

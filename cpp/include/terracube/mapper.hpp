@@ -82,6 +82,9 @@ struct MapperParams {
   /// (the ground takes no part in it, which leaves roll and pitch weakly constrained; their noise
   /// would tilt the fused global map). false: the full 6-DOF result, as the paper.
   bool yaw_only_registration = true;
+  /// With odometry, a step is first registered from odometry's guess without the correlative
+  /// search (it can only blur a good guess), and again with it (registration.correlative_search)
+  /// only when that answer is not trusted.
   /// A registration is rejected (odometry is used for that step, counted in
   /// MapperTimings::untrusted_steps) when it is not trusted (RegistrationResult::trusted), or when
   /// it moves the odometry guess by more than these [m], [rad].
