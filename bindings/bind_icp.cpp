@@ -4,6 +4,7 @@
 #include <terracube/icp.hpp>
 
 #include <sstream>
+#include <string>
 #include <utility>
 #include <vector>
 
@@ -59,8 +60,22 @@ void bind_icp(py::module_& m) {
       .value("no_common_class", StopReason::kNoCommonClass)
       .value("degenerate", StopReason::kDegenerate);
 
+  py::class_<CorrelativeSearchParams>(m, "CorrelativeSearchParams")
+      .def(py::init<>())
+      .def_readwrite("window_m", &CorrelativeSearchParams::window_m)
+      .def_readwrite("cell_m", &CorrelativeSearchParams::cell_m)
+      .def_readwrite("step_cells", &CorrelativeSearchParams::step_cells)
+      .def_readwrite("yaw_window_rad", &CorrelativeSearchParams::yaw_window_rad)
+      .def_readwrite("yaw_hypotheses", &CorrelativeSearchParams::yaw_hypotheses)
+      .def_readwrite("refine", &CorrelativeSearchParams::refine)
+      .def_readwrite("tie_tolerance", &CorrelativeSearchParams::tie_tolerance);
+
   py::class_<RegistrationParams>(m, "RegistrationParams")
       .def(py::init<>())
+      .def_static("paper_icp", &RegistrationParams::paper_icp,
+                  "the paper's plain weighted ICP: no correlative search, extrapolation or coarse-to-fine")
+      .def_readwrite("correlative_search", &RegistrationParams::correlative_search)
+      .def_readwrite("search", &RegistrationParams::search)
       .def_readwrite("use_classes", &RegistrationParams::use_classes)
       .def_readwrite("class_weights", &RegistrationParams::class_weights)
       .def_readwrite("max_correspondence_distance_m", &RegistrationParams::max_correspondence_distance_m)
@@ -78,10 +93,16 @@ void bind_icp(py::module_& m) {
       .def_readwrite("coarse_until_motion_m", &RegistrationParams::coarse_until_motion_m)
       .def_readwrite("ground_weight", &RegistrationParams::ground_weight)
       .def_readwrite("ground_cell_m", &RegistrationParams::ground_cell_m)
-      .def_readwrite("structure_radius_m", &RegistrationParams::structure_radius_m);
+      .def_readwrite("structure_radius_m", &RegistrationParams::structure_radius_m)
+      .def_readwrite("trust_min_overlap", &RegistrationParams::trust_min_overlap)
+      .def_readwrite("trust_min_contrast", &RegistrationParams::trust_min_contrast)
+      .def_readwrite("trust_max_rmse_m", &RegistrationParams::trust_max_rmse_m)
+      .def_readwrite("trust_min_held", &RegistrationParams::trust_min_held);
 
   py::class_<RegistrationResult>(m, "RegistrationResult")
       .def_readonly("transform", &RegistrationResult::transform, "(4, 4) source -> target")
+      .def_readonly("icp_start", &RegistrationResult::icp_start,
+                    "(4, 4) where the ICP started: initial, or the correlative search's best hypothesis")
       .def_readonly("converged", &RegistrationResult::converged)
       .def_readonly("reason", &RegistrationResult::reason)
       .def_readonly("iterations", &RegistrationResult::iterations)
@@ -100,11 +121,23 @@ void bind_icp(py::module_& m) {
                     "(6,) eigenvalues of constraint_matrix, ascending")
       .def_readonly("constraint_eigenvectors", &RegistrationResult::constraint_eigenvectors,
                     "(6, 6) unit eigenvectors of constraint_matrix, as columns")
+      .def_readonly("overlap", &RegistrationResult::overlap,
+                    "share of the source's object cells with a partner within the last distance limit")
+      .def_readonly("chance_overlap", &RegistrationResult::chance_overlap,
+                    "the overlap at the result moved by 1 m along +-x or +-y, the least: coincidence alone")
+      .def_readonly("inlier_share_per_class", &RegistrationResult::inlier_share_per_class,
+                    "(6,) per source class: share of its points with a partner")
+      .def_readonly("held", &RegistrationResult::held,
+                    "(6,) how firmly each motion is held, per unit of pair weight, ascending (0 none, 1 every pair)")
+      .def_readonly("held_directions", &RegistrationResult::held_directions,
+                    "(6, 6) unit eigenvectors of held as columns (rotation x rms radius, translation)")
+      .def_readonly("trusted", &RegistrationResult::trusted, "every trust threshold of RegistrationParams met")
+      .def_readonly("verdict", &RegistrationResult::verdict, "why the result is (not) trusted, in plain words")
       .def("__repr__", [](const RegistrationResult& r) {
         std::ostringstream text;
         text << "RegistrationResult(reason=" << to_string(r.reason) << ", iterations=" << r.iterations
              << ", passes=" << r.passes << ", rmse=" << r.rmse_m << " m, correspondences=" << r.num_correspondences
-             << ")";
+             << ", overlap=" << r.overlap << ", trusted=" << (r.trusted ? "True" : "False") << ")";
         return text.str();
       });
 
@@ -128,6 +161,25 @@ void bind_icp(py::module_& m) {
         return register_maps(source, target, initial, params);
       },
       py::arg("source"), py::arg("target"), py::arg("initial"), py::arg("params"));
+  py::class_<CorrelativeSearchResult>(m, "CorrelativeSearchResult")
+      .def_readonly("transform", &CorrelativeSearchResult::transform, "(4, 4) the best hypothesis, source -> target")
+      .def_readonly("score", &CorrelativeSearchResult::score, "source points on occupied target cells")
+      .def_readonly("points", &CorrelativeSearchResult::points, "source points that took part (non-ground)")
+      .def("__repr__", [](const CorrelativeSearchResult& r) {
+        return "CorrelativeSearchResult(score=" + std::to_string(r.score) + ", points=" + std::to_string(r.points) +
+               ")";
+      });
+  m.def(
+      "correlative_search",
+      [](const py::array& source, const py::array& source_classes, const py::array& target,
+         const py::array& target_classes, const Eigen::Matrix4d& guess, const CorrelativeSearchParams& params) {
+        const ClassifiedPoints s = classified(source, source_classes, "source");
+        const ClassifiedPoints t = classified(target, target_classes, "target");
+        py::gil_scoped_release release;
+        return correlative_search(s, t, guess, params);
+      },
+      py::arg("source"), py::arg("source_classes"), py::arg("target"), py::arg("target_classes"), py::arg("guess"),
+      py::arg("params"));
   m.def(
       "points_of_map",
       [](const ElevationMap& map) {

@@ -49,6 +49,7 @@ void bind_mapper(py::module_& m) {
       .def_readwrite("discontinuity_m", &MapperParams::discontinuity_m)
       .def_readwrite("terrain", &MapperParams::terrain)
       .def_readwrite("use_registration", &MapperParams::use_registration)
+      .def_readwrite("lidar_only", &MapperParams::lidar_only)
       .def_readwrite("registration", &MapperParams::registration)
       .def_readwrite("yaw_only_registration", &MapperParams::yaw_only_registration)
       .def_readwrite("max_correction_m", &MapperParams::max_correction_m)
@@ -102,7 +103,10 @@ void bind_mapper(py::module_& m) {
       .def_readonly("fusion_ms", &MapperTimings::fusion_ms)
       .def_readonly("loop_closing_ms", &MapperTimings::loop_closing_ms)
       .def_readonly("scans", &MapperTimings::scans)
-      .def_readonly("keyframes", &MapperTimings::keyframes);
+      .def_readonly("keyframes", &MapperTimings::keyframes)
+      .def_readonly("registered_steps", &MapperTimings::registered_steps, "steps whose registration was accepted")
+      .def_readonly("untrusted_steps", &MapperTimings::untrusted_steps,
+                    "steps whose registration was not trusted (odometry or the prediction was used)");
 
   py::class_<Mapper>(m, "Mapper")
       .def(py::init<const MapperParams&>(), py::arg("params"))

@@ -10,8 +10,13 @@
 #include <numeric>
 #include <stdexcept>
 #include <string>
+#include <utility>
 
 #include "cloud_frame.hpp"
+#include "ground_planes.hpp"
+#include "map_points.hpp"
+#include "registration_checks.hpp"
+#include "registration_verdict.hpp"
 
 namespace terracube {
 
@@ -26,67 +31,12 @@ constexpr double kEmptyReach = 1.5;
 
 using Matrix6d = Eigen::Matrix<double, 6, 6>;
 using Vector6d = Eigen::Matrix<double, 6, 1>;
-
-void check_registration_params(const RegistrationParams& p) {
-  const auto positive = [](double v) { return v > 0.0 && std::isfinite(v); };
-  const auto non_negative = [](double v) { return v >= 0.0 && std::isfinite(v); };
-  if (!positive(p.max_correspondence_distance_m) || !positive(p.min_correspondence_distance_m)) {
-    throw std::invalid_argument("correspondence distances must be positive and finite [m]");
-  }
-  if (p.min_correspondence_distance_m > p.max_correspondence_distance_m) {
-    throw std::invalid_argument("min correspondence distance must not exceed the max correspondence distance");
-  }
-  if (!(p.correspondence_distance_decay > 0.0 && p.correspondence_distance_decay <= 1.0)) {
-    throw std::invalid_argument("correspondence distance decay must lie in (0, 1]");
-  }
-  if (p.max_iterations < 1) throw std::invalid_argument("max iterations must be at least 1");
-  if (!non_negative(p.rotation_tolerance_rad) || !non_negative(p.translation_tolerance_m) ||
-      !non_negative(p.error_threshold_m)) {
-    throw std::invalid_argument("tolerances and the error threshold must be finite and >= 0");
-  }
-  if (p.coarse_subsample < 1) throw std::invalid_argument("coarse subsample must be at least 1");
-  if (!non_negative(p.coarse_until_motion_m)) {
-    throw std::invalid_argument("coarse-until motion must be finite and >= 0 [m]");
-  }
-  if (p.min_correspondences < 3) throw std::invalid_argument("min correspondences must be at least 3");
-  if (!non_negative(p.structure_radius_m)) {
-    throw std::invalid_argument("structure_radius_m must be finite and >= 0 [m]");
-  }
-  if (!(p.degeneracy_threshold >= 0.0 && p.degeneracy_threshold < 1.0)) {
-    throw std::invalid_argument("degeneracy threshold must lie in [0, 1)");
-  }
-  for (const double w : p.class_weights) {
-    if (!non_negative(w)) throw std::invalid_argument("class weights must be finite and >= 0");
-  }
-  if (!non_negative(p.ground_weight)) throw std::invalid_argument("ground weight must be finite and >= 0");
-  if (!positive(p.ground_cell_m)) throw std::invalid_argument("ground cell must be positive and finite [m]");
-}
-
-void check_points(const ClassifiedPoints& set, const char* what) {
-  if (set.classes.size() != set.points.size()) {
-    throw std::invalid_argument(std::string(what) + " has " + std::to_string(set.points.size()) + " points but " +
-                                std::to_string(set.classes.size()) + " classes");
-  }
-  // One sweep without branches (x - x is 0 for a finite x and NaN for NaN and Inf, and NaN
-  // propagates); the offending point is looked up only when there is one.
-  double poison = 0.0;
-  std::uint8_t largest = 0;
-  for (std::size_t k = 0; k < set.size(); ++k) {
-    const Eigen::Vector3d& p = set.points[k];
-    poison += (p.x() - p.x()) + (p.y() - p.y()) + (p.z() - p.z());
-    largest = std::max(largest, set.classes[k]);
-  }
-  if (poison == 0.0 && largest < kNumTerrainClasses) return;
-  for (std::size_t k = 0; k < set.size(); ++k) {
-    if (!set.points[k].allFinite()) {
-      throw std::invalid_argument(std::string(what) + " point " + std::to_string(k) + " is NaN or Inf");
-    }
-    if (set.classes[k] >= kNumTerrainClasses) {
-      throw std::invalid_argument(std::string(what) + " class " + std::to_string(set.classes[k]) + " at point " +
-                                  std::to_string(k) + " is not a TerrainClass");
-    }
-  }
-}
+using detail::cells_of_map;
+using detail::check_points;
+using detail::check_registration_params;
+using detail::fit_ground_planes;
+using detail::GroundCells;
+using detail::GroundPlane;
 
 Eigen::Matrix3d skew(const Eigen::Vector3d& v) {
   Eigen::Matrix3d m;
@@ -133,128 +83,6 @@ struct ClassMoments {
 struct Motion {
   double r[9], t[3], o[3];
 };
-
-/// Square cells of side `cell` over (x, y), cell (kx, ky) = (floor(x / cell), floor(y / cell)),
-/// numbered in the order their first point comes. Dense (an entry per cell of the points'
-/// bounding box) when the box has at most 8 n + 65536 cells, else sorted keys and a binary search,
-/// so that memory stays O(n) for any extent.
-class GroundCells {
- public:
-  GroundCells() = default;
-
-  /// `id_of_point` receives each point's cell number. Throws std::invalid_argument when a point
-  /// lies 2^31 or more cells from the origin.
-  GroundCells(const std::vector<Eigen::Vector3d>& points, double cell, std::vector<std::uint32_t>& id_of_point)
-      : cell_(cell) {
-    const std::size_t n = points.size();
-    std::vector<std::int64_t> kx(n), ky(n);
-    for (std::size_t k = 0; k < n; ++k) {
-      const double fx = std::floor(points[k].x() / cell), fy = std::floor(points[k].y() / cell);
-      if (!(std::abs(fx) < kLimit && std::abs(fy) < kLimit)) {
-        throw std::invalid_argument(
-            "ground cell is too small for the extent of the ground points (2^31 cells or "
-            "more from the origin)");
-      }
-      kx[k] = static_cast<std::int64_t>(fx), ky[k] = static_cast<std::int64_t>(fy);
-      kx0_ = std::min(kx0_, kx[k]), kx1_ = std::max(kx1_, kx[k]);
-      ky0_ = std::min(ky0_, ky[k]), ky1_ = std::max(ky1_, ky[k]);
-    }
-    id_of_point.resize(n);
-    if (n == 0) return;
-    columns_ = kx1_ - kx0_ + 1;
-    const double cells = static_cast<double>(columns_) * static_cast<double>(ky1_ - ky0_ + 1);
-    if (cells <= 8.0 * static_cast<double>(n) + 65536.0) {
-      dense_.assign(static_cast<std::size_t>(cells), -1);
-      for (std::size_t k = 0; k < n; ++k) {
-        std::int32_t& id = dense_[static_cast<std::size_t>((kx[k] - kx0_) + (ky[k] - ky0_) * columns_)];
-        if (id < 0) id = static_cast<std::int32_t>(size_++);
-        id_of_point[k] = static_cast<std::uint32_t>(id);
-      }
-      return;
-    }
-    keys_.resize(n);
-    for (std::size_t k = 0; k < n; ++k) keys_[k] = key(kx[k], ky[k]);
-    std::sort(keys_.begin(), keys_.end());
-    keys_.erase(std::unique(keys_.begin(), keys_.end()), keys_.end());
-    size_ = keys_.size();
-    for (std::size_t k = 0; k < n; ++k) {
-      id_of_point[k] =
-          static_cast<std::uint32_t>(std::lower_bound(keys_.begin(), keys_.end(), key(kx[k], ky[k])) - keys_.begin());
-    }
-  }
-
-  std::size_t size() const { return size_; }
-
-  /// The number of the cell holding (x, y), or -1 where no point fell (NaN included).
-  std::int64_t find(double x, double y) const {
-    const double fx = std::floor(x / cell_), fy = std::floor(y / cell_);
-    if (!(fx >= static_cast<double>(kx0_) && fx <= static_cast<double>(kx1_) && fy >= static_cast<double>(ky0_) &&
-          fy <= static_cast<double>(ky1_))) {
-      return -1;
-    }
-    const auto ix = static_cast<std::int64_t>(fx), iy = static_cast<std::int64_t>(fy);
-    if (!dense_.empty()) return dense_[static_cast<std::size_t>((ix - kx0_) + (iy - ky0_) * columns_)];
-    const std::uint64_t wanted = key(ix, iy);
-    const auto it = std::lower_bound(keys_.begin(), keys_.end(), wanted);
-    return it != keys_.end() && *it == wanted ? it - keys_.begin() : -1;
-  }
-
- private:
-  static constexpr double kLimit = 2147483648.0;  // 2^31
-  static std::uint64_t key(std::int64_t kx, std::int64_t ky) {
-    return (static_cast<std::uint64_t>(kx + (std::int64_t{1} << 31)) << 32) |
-           static_cast<std::uint64_t>(ky + (std::int64_t{1} << 31));
-  }
-
-  double cell_ = 1.0;
-  std::int64_t kx0_ = std::numeric_limits<std::int64_t>::max(), ky0_ = std::numeric_limits<std::int64_t>::max();
-  std::int64_t kx1_ = std::numeric_limits<std::int64_t>::min(), ky1_ = std::numeric_limits<std::int64_t>::min();
-  std::int64_t columns_ = 0;
-  std::vector<std::int32_t> dense_;
-  std::vector<std::uint64_t> keys_;
-  std::size_t size_ = 0;
-};
-
-/// A target ground cell's plane (RegistrationParams::ground_weight): a point on it (the mean of
-/// the cell's points) and its unit normal.
-struct GroundPlane {
-  Eigen::Vector3d point, normal;
-};
-
-/// Per cell of `index`, the least-squares plane z = a + b x + c y of its points (`id_of_point`);
-/// horizontal through the mean below three points or when the points nearly lie on a line.
-std::vector<GroundPlane> fit_ground_planes(const std::vector<Eigen::Vector3d>& points,
-                                           const std::vector<std::uint32_t>& id_of_point, std::size_t cells) {
-  // Sums relative to each cell's first point, so that they stay well conditioned far from zero:
-  // n, x, y, z, xx, xy, yy, xz, yz.
-  std::vector<std::array<double, 9>> sums(cells, std::array<double, 9>{});
-  std::vector<Eigen::Vector3d> first(cells);
-  for (std::size_t k = 0; k < points.size(); ++k) {
-    auto& m = sums[id_of_point[k]];
-    if (m[0] == 0.0) first[id_of_point[k]] = points[k];
-    const Eigen::Vector3d d = points[k] - first[id_of_point[k]];
-    m[0] += 1.0, m[1] += d.x(), m[2] += d.y(), m[3] += d.z();
-    m[4] += d.x() * d.x(), m[5] += d.x() * d.y(), m[6] += d.y() * d.y(), m[7] += d.x() * d.z(), m[8] += d.y() * d.z();
-  }
-  std::vector<GroundPlane> planes(cells);
-  for (std::size_t c = 0; c < cells; ++c) {
-    const auto& m = sums[c];
-    const double n = m[0];
-    const Eigen::Vector3d mean(m[1] / n, m[2] / n, m[3] / n);
-    // Centred moments.
-    const double xx = m[4] - m[1] * mean.x(), xy = m[5] - m[1] * mean.y(), yy = m[6] - m[2] * mean.y();
-    const double xz = m[7] - m[1] * mean.z(), yz = m[8] - m[2] * mean.z();
-    const double det = xx * yy - xy * xy;
-    double b = 0.0, slope_y = 0.0;
-    if (n >= 3.0 && det > 1e-6 * (xx + yy) * (xx + yy)) {
-      b = (yy * xz - xy * yz) / det;
-      slope_y = (xx * yz - xy * xz) / det;
-    }
-    planes[c].point = first[c] + mean;
-    planes[c].normal = Eigen::Vector3d(-b, -slope_y, 1.0).normalized();
-  }
-  return planes;
-}
 
 class Registration {
  public:
@@ -385,29 +213,8 @@ class Registration {
         from_target_ ? moments_from_target(motion, o, max_squared, stride)
                      : std::array<ClassMoments, kNumTerrainClasses>{};
     for (std::size_t c = 0; c < kNumTerrainClasses; ++c) {
-      const std::size_t begin = class_begin_[c], end = class_begin_[c + 1];
-      if (begin == end) continue;
-      ClassMoments m = from_target[c];
-      std::size_t num_deferred = 0;
-      if (from_target_) {
-        // paired from the target's side above
-      } else if (stride == 1) {
-        for (std::size_t slot = begin; slot < end; ++slot) check_one(slot, motion, max_distance, m, num_deferred);
-      } else {
-        for (std::size_t k = coarse_begin_[c]; k < coarse_begin_[c + 1]; ++k) {
-          check_one(coarse_[k], motion, max_distance, m, num_deferred);
-        }
-      }
-      // The points whose certificate did not hold: searched again.
-      for (std::size_t k = 0; k < num_deferred; ++k) {
-        const std::uint32_t s = deferred_[k];
-        const Eigen::Vector3d moved = move(motion, s);
-        double squared = 0.0;
-        search(class_grid_[c], moved, max_squared, s, squared);
-        if (first_[s] >= 0 && squared <= max_squared) {
-          m.add(moved - o, Eigen::Vector3d(first_x_[s], first_y_[s], first_z_[s]) - o, squared);
-        }
-      }
+      if (class_begin_[c] == class_begin_[c + 1]) continue;
+      const ClassMoments m = from_target_ ? from_target[c] : moments_from_source(c, motion, max_distance, stride);
       // [TC] eq. (4): the class's weight on each of its correspondences.
       const double w = class_weight_[c];
       result.count += m.count;
@@ -461,6 +268,36 @@ class Registration {
     }
     result.centroid = c + o;
     return result;
+  }
+
+  /// The moments of class c's correspondences when each moved source point looks for its partner
+  /// (every stride-th point of the class when stride > 1): from its certificate where that still
+  /// holds, else searched again. Relative to motion.o.
+  ClassMoments moments_from_source(std::size_t c, const Motion& motion, double max_distance, std::size_t stride) {
+    ClassMoments m;
+    std::size_t num_deferred = 0;
+    if (stride == 1) {
+      for (std::size_t slot = class_begin_[c]; slot < class_begin_[c + 1]; ++slot) {
+        check_one(slot, motion, max_distance, m, num_deferred);
+      }
+    } else {
+      for (std::size_t k = coarse_begin_[c]; k < coarse_begin_[c + 1]; ++k) {
+        check_one(coarse_[k], motion, max_distance, m, num_deferred);
+      }
+    }
+    // The points whose certificate did not hold: searched again.
+    const Eigen::Vector3d o(motion.o[0], motion.o[1], motion.o[2]);
+    const double max_squared = max_distance * max_distance;
+    for (std::size_t k = 0; k < num_deferred; ++k) {
+      const std::uint32_t s = deferred_[k];
+      const Eigen::Vector3d moved = move(motion, s);
+      double squared = 0.0;
+      search(class_grid_[c], moved, max_squared, s, squared);
+      if (first_[s] >= 0 && squared <= max_squared) {
+        m.add(moved - o, Eigen::Vector3d(first_x_[s], first_y_[s], first_z_[s]) - o, squared);
+      }
+    }
+    return m;
   }
 
   /// RegistrationResult::constraint_matrix at `transform`: each active source point paired with
@@ -785,57 +622,12 @@ const char* to_string(StopReason reason) {
 
 namespace {
 
-/// The class of a "class" value: NaN or out of range is unknown (0).
-std::uint8_t class_of(float value) {
-  return value >= 0.0F && value < static_cast<float>(kNumTerrainClasses) ? static_cast<std::uint8_t>(value) : 0;
-}
-
-/// The cells of points_of_map, only those of classes with a positive weight when `weights` is
-/// given; `cells_with_data` receives the number of all cells with data.
-ClassifiedPoints cells_of_map(const ElevationMap& map, const ClassWeights* weights, std::size_t& cells_with_data) {
-  const Layer& highest = map.get("max");
-  const Layer* classes = map.exists("class") ? &map.get("class") : nullptr;
-  const MapGeometry& geometry = map.geometry();
-  // Row-major: cell (i, j) at i * cols + j.
-  const float* z = highest.data();
-  const float* class_values = classes != nullptr ? classes->data() : nullptr;
-  const auto cells = static_cast<std::size_t>(highest.size());
-  const auto cols = static_cast<std::size_t>(highest.cols());
-  std::vector<std::uint8_t> class_of_cell(cells, 0);  // kNumTerrainClasses: takes no part
-  std::size_t count = 0;
-  cells_with_data = 0;
-  for (std::size_t k = 0; k < cells; ++k) {
-    const std::uint8_t c = class_values != nullptr ? class_of(class_values[k]) : 0;
-    const bool has_data = std::isfinite(z[k]);
-    const bool takes_part = has_data && (weights == nullptr || (*weights)[c] > 0.0);
-    class_of_cell[k] = takes_part ? c : static_cast<std::uint8_t>(kNumTerrainClasses);
-    cells_with_data += has_data ? 1 : 0;
-    count += takes_part ? 1 : 0;
-  }
-  ClassifiedPoints set;
-  set.points.reserve(count);
-  set.classes.reserve(count);
-  for (std::size_t k = 0; k < cells; ++k) {
-    if (class_of_cell[k] == kNumTerrainClasses) continue;
-    const Eigen::Vector2d centre =
-        geometry.position_of(CellIndex(static_cast<int>(k / cols), static_cast<int>(k % cols)));
-    set.points.emplace_back(centre.x(), centre.y(), static_cast<double>(z[k]));
-    set.classes.push_back(class_of_cell[k]);
-  }
-  return set;
-}
-
 /// register_points after the checks; `*_empty`: whether the source (target) has no point at all.
 RegistrationResult register_checked(const ClassifiedPoints& source, const ClassifiedPoints& target,
                                     const Eigen::Matrix4d& initial, const RegistrationParams& params, bool source_empty,
                                     bool target_empty);
 
 }  // namespace
-
-ClassifiedPoints points_of_map(const ElevationMap& map) {
-  std::size_t cells_with_data = 0;
-  return cells_of_map(map, nullptr, cells_with_data);
-}
 
 RegistrationResult register_points(const ClassifiedPoints& source, const ClassifiedPoints& target,
                                    const Eigen::Matrix4d& initial, const RegistrationParams& params) {
@@ -903,24 +695,27 @@ struct Extrapolation {
   }
 };
 
-RegistrationResult register_checked(const ClassifiedPoints& source, const ClassifiedPoints& target,
-                                    const Eigen::Matrix4d& initial, const RegistrationParams& params, bool source_empty,
-                                    bool target_empty) {
-  RegistrationResult result;
-  result.transform = initial;
-  Registration registration(source, target, params);
-  if (!registration.has_common_class()) {
-    result.reason = source_empty || target_empty ? StopReason::kTooFewCorrespondences : StopReason::kNoCommonClass;
-    result.rmse_m = std::numeric_limits<double>::quiet_NaN();
-    return result;
-  }
+/// Why the ICP stops at iteration `iteration` with the correspondences `pass` (already in
+/// `result`), or kConverged to go on.
+StopReason stop_reason(const RegistrationResult& result, const Pass& pass, const RegistrationParams& params,
+                       int iteration) {
+  if (pass.count < params.min_correspondences) return StopReason::kTooFewCorrespondences;
+  if (result.rmse_m < params.error_threshold_m) return StopReason::kErrorBelowThreshold;
+  if (result.eigenvalues(0) <= params.degeneracy_threshold * result.eigenvalues(5)) return StopReason::kDegenerate;
+  if (iteration == params.max_iterations) return StopReason::kMaxIterations;
+  return StopReason::kConverged;
+}
 
+/// The ICP iterations of [TC] section 2.2 from `start`: fills `result` (all but the verdict),
+/// with the constraint analysis at the final estimate.
+void iterate(Registration& registration, const Eigen::Matrix4d& start, const RegistrationParams& params,
+             RegistrationResult& result) {
   // The distance limit of iteration k (from 0).
   const auto limit_of = [&](int iteration) {
     return std::max(params.min_correspondence_distance_m,
                     params.max_correspondence_distance_m * std::pow(params.correspondence_distance_decay, iteration));
   };
-  Eigen::Matrix4d transform = initial;
+  Eigen::Matrix4d transform = start;
   double distance = limit_of(0);
   // Coarse to fine: the first iterations use every coarse_subsample-th source point, until an
   // update moves the points less than coarse_until_motion_m (or registration would stop).
@@ -941,23 +736,13 @@ RegistrationResult register_checked(const ClassifiedPoints& source, const Classi
     result.converged = reason == StopReason::kConverged || reason == StopReason::kErrorBelowThreshold;
     result.passes = passes + extrapolation.passes;
     result.extrapolations = extrapolation.jumps;
-    return result;
   };
   for (int iteration = 0;; ++iteration) {
     // `pass` holds the correspondences at `transform` within `distance`.
     result.transform = transform;
     result.iterations = iteration;
     fill(result, pass, distance);
-    StopReason stop = StopReason::kConverged;  // kConverged: go on
-    if (pass.count < params.min_correspondences) {
-      stop = StopReason::kTooFewCorrespondences;
-    } else if (result.rmse_m < params.error_threshold_m) {
-      stop = StopReason::kErrorBelowThreshold;
-    } else if (result.eigenvalues(0) <= params.degeneracy_threshold * result.eigenvalues(5)) {
-      stop = StopReason::kDegenerate;
-    } else if (iteration == params.max_iterations) {
-      stop = StopReason::kMaxIterations;
-    }
+    const StopReason stop = stop_reason(result, pass, params, iteration);  // kConverged: go on
     if (stop != StopReason::kConverged) {
       if (stride == 1) return finish(stop);
       // Decide on all the points: redo this pass in full.
@@ -1004,6 +789,49 @@ RegistrationResult register_checked(const ClassifiedPoints& source, const Classi
       return finish(StopReason::kConverged);
     }
   }
+}
+
+RegistrationResult register_checked(const ClassifiedPoints& source, const ClassifiedPoints& target,
+                                    const Eigen::Matrix4d& initial, const RegistrationParams& params, bool source_empty,
+                                    bool target_empty) {
+  RegistrationResult result;
+  // Issue 38: the ICP starts from the correlative search's best hypothesis near `initial`.
+  const Eigen::Matrix4d start =
+      params.correlative_search ? correlative_search(source, target, initial, params.search).transform : initial;
+  result.transform = start;
+  result.icp_start = start;
+  // The source points that take part, per class (the verdict's denominators).
+  std::array<std::size_t, kNumTerrainClasses> source_per_class{};
+  for (const std::uint8_t c : source.classes)
+    source_per_class[c] += !params.use_classes || params.class_weights[c] > 0.0;
+  Registration registration(source, target, params);
+  // The verdict's inliers: partners within min_correspondence_distance_m at the final estimate,
+  // whatever distance limit the ICP stopped at.
+  std::array<std::size_t, kNumTerrainClasses> inliers{};
+  if (registration.has_common_class()) {
+    iterate(registration, start, params, result);
+    const double inlier_distance = params.min_correspondence_distance_m;
+    inliers = result.correspondence_distance_m == inlier_distance
+                  ? result.correspondences_per_class
+                  : registration.pass(result.transform, inlier_distance).per_class;
+    // What coincidence alone gives: the overlap at the result moved by 1 m along +-x and +-y, the
+    // least of the four (a corridor keeps its overlap along itself, not across).
+    double chance = 1.0;
+    for (const auto& [dx, dy] :
+         {std::pair{1.0, 0.0}, std::pair{-1.0, 0.0}, std::pair{0.0, 1.0}, std::pair{0.0, -1.0}}) {
+      Eigen::Matrix4d moved = result.transform;
+      moved(0, 3) += dx;
+      moved(1, 3) += dy;
+      chance = std::min(chance, detail::object_overlap(registration.pass(moved, inlier_distance).per_class,
+                                                       source_per_class, params.use_classes));
+    }
+    result.chance_overlap = chance;
+  } else {
+    result.reason = source_empty || target_empty ? StopReason::kTooFewCorrespondences : StopReason::kNoCommonClass;
+    result.rmse_m = std::numeric_limits<double>::quiet_NaN();
+  }
+  detail::judge_registration(result, source_per_class, inliers, params);
+  return result;
 }
 
 }  // namespace

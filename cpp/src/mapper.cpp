@@ -28,6 +28,7 @@ double ms_since(Clock::time_point start) {
 }
 
 constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+constexpr double kInfinity = std::numeric_limits<double>::infinity();
 
 void check_positive(double value, const char* name) {
   if (!(value > 0.0) || !std::isfinite(value)) {
@@ -76,6 +77,9 @@ void check_params(const MapperParams& p) {
     throw std::invalid_argument("MapperParams.optimize_interval_keyframes must be >= 1");
   }
   if (p.pose_graph_iterations < 1) throw std::invalid_argument("MapperParams.pose_graph_iterations must be >= 1");
+  if (p.lidar_only && !p.use_registration) {
+    throw std::invalid_argument("MapperParams.lidar_only needs use_registration (nothing else moves the robot)");
+  }
   const double cells = std::ceil(p.local_map_size_m / p.resolution_m);
   if (cells > 8192.0) {
     throw std::invalid_argument("MapperParams: local_map_size_m / resolution_m = " + std::to_string(cells) +
@@ -293,6 +297,8 @@ struct Mapper::Impl {
   double path_m = 0.0;
   Eigen::Matrix4d last_odometry = Eigen::Matrix4d::Identity();
   bool have_last = false;
+  /// LiDAR-only mode: the last step (L_{k-1} <- L_k) of the estimates, the next step's prediction.
+  Eigen::Matrix4d velocity = Eigen::Matrix4d::Identity();
   /// Scans since the previous keyframe (the newest last), points beyond min_range in the sensor frame.
   std::deque<BufferedScan> pending;
   std::size_t pending_loops = 0;  // loop edges added since the last optimisation
@@ -310,7 +316,6 @@ struct Mapper::Impl {
   void fuse(const Keyframe& keyframe);
   void rebuild();
   std::size_t close_loops(std::size_t k);
-  Eigen::Matrix4d coarse_alignment(const Keyframe& current, const Keyframe& other, const Eigen::Matrix4d& guess) const;
   void optimize();
 };
 
@@ -463,7 +468,7 @@ ScanReport Mapper::Impl::add_checked(const PointsView<Scalar>& points, const Eig
   last_odometry = odometry;
   have_last = true;
 
-  if (!keyframes.empty()) {
+  if (!keyframes.empty() && !params.lidar_only) {
     const Keyframe& last = keyframes.back();
     const Eigen::Matrix4d motion = inverse_rigid(last.odometry) * odometry;
     const bool moved = path_m - last.path_m >= params.keyframe_distance_m;
@@ -476,6 +481,12 @@ ScanReport Mapper::Impl::add_checked(const PointsView<Scalar>& points, const Eig
   keyframe.odometry = odometry;
   keyframe.path_m = path_m;
   split_leveling(odometry, keyframe.odometry_level, keyframe.level_sensor);
+  if (params.lidar_only && !keyframes.empty()) {
+    // Constant velocity: the previous step repeated from the previous estimate (leveled frames).
+    keyframe.odometry_level = keyframes.back().estimate * velocity;
+    keyframe.odometry = keyframe.odometry_level * keyframe.level_sensor;
+    pending.back().odometry = keyframe.odometry;  // the scan (the only one pending) in its own frame
+  }
   build_local_map(keyframe);
   pending.clear();
 
@@ -486,7 +497,9 @@ ScanReport Mapper::Impl::add_checked(const PointsView<Scalar>& points, const Eig
   } else {
     const Keyframe& previous = keyframes.back();
     // Odometry's motion between the leveled frames: the initial guess of the registration.
-    const Eigen::Matrix4d guess = inverse_rigid(previous.odometry_level) * keyframe.odometry_level;
+    const Eigen::Matrix4d guess =
+        params.lidar_only ? velocity
+                          : Eigen::Matrix4d(inverse_rigid(previous.odometry_level) * keyframe.odometry_level);
     Eigen::Matrix4d step = guess;
     const double travelled = std::max(keyframe.path_m - previous.path_m, 0.1);
     Eigen::Matrix<double, 6, 1> sigma;
@@ -494,18 +507,45 @@ ScanReport Mapper::Impl::add_checked(const PointsView<Scalar>& points, const Eig
         Eigen::Vector3d::Constant(params.odometry_sigma_rad_per_m * travelled);
     if (params.use_registration) {
       const auto start = Clock::now();
-      report.registration = register_points(keyframe.points, previous.points, guess, params.registration);
+      RegistrationParams registration = params.registration;
+      // LiDAR-only, first step: no velocity yet, so the search covers a keyframe's travel.
+      const bool first_blind_step = params.lidar_only && keyframes.size() == 1;
+      if (first_blind_step) registration.search.window_m += params.keyframe_distance_m;
+      if (!params.lidar_only && registration.correlative_search) {
+        // Odometry is usually close: the ICP from it alone first (the search can only blur a good
+        // guess); the search only when that answer is not trusted (a slip, a bad guess).
+        RegistrationParams from_guess = registration;
+        from_guess.correlative_search = false;
+        report.registration = register_points(keyframe.points, previous.points, guess, from_guess);
+        if (!report.registration.trusted) {
+          report.registration = register_points(keyframe.points, previous.points, guess, registration);
+        }
+      } else {
+        report.registration = register_points(keyframe.points, previous.points, guess, registration);
+      }
       timings.registration_ms += ms_since(start);
       const RegistrationResult& r = report.registration;
-      const bool usable = r.converged || r.reason == StopReason::kMaxIterations;
-      const Eigen::Matrix4d correction = inverse_rigid(guess) * r.transform;
-      if (usable && correction.topRightCorner<3, 1>().norm() <= params.max_correction_m &&
-          rotation_angle(correction) <= params.max_correction_rad) {
-        step = params.yaw_only_registration ? yaw_only(r.transform) : r.transform;
+      // The correction the step would apply (its yaw and translation with yaw_only_registration).
+      const Eigen::Matrix4d candidate = params.yaw_only_registration ? yaw_only(r.transform) : r.transform;
+      const Eigen::Matrix4d correction = inverse_rigid(guess) * candidate;
+      // LiDAR-only, there is no independent guess to bound the correction by: the verdict decides.
+      const double max_correction_m = params.lidar_only ? kInfinity : params.max_correction_m;
+      const double max_correction_rad = params.lidar_only ? kInfinity : params.max_correction_rad;
+      if (!r.trusted) {
+        ++timings.untrusted_steps;
+      } else if (correction.topRightCorner<3, 1>().norm() <= max_correction_m &&
+                 rotation_angle(correction) <= max_correction_rad) {
+        step = candidate;
         report.registered = true;
+        ++timings.registered_steps;
         sigma << Eigen::Vector3d::Constant(params.registration_sigma_m),
             Eigen::Vector3d::Constant(params.registration_sigma_rad);
       }
+    }
+    if (params.lidar_only) {
+      velocity = step;
+      keyframe.path_m = previous.path_m + step.topRightCorner<3, 1>().norm();
+      path_m = keyframe.path_m;
     }
     keyframe.estimate = previous.estimate * step;
     edges.push_back({keyframes.size() - 1, keyframes.size(), step, sigma, false});
@@ -570,8 +610,17 @@ std::size_t Mapper::Impl::close_loops(std::size_t k) {
     const double overlap = current.cells.empty() ? 0.0 : static_cast<double>(hits) / current.cells.size();
     if (overlap < params.loop_min_overlap) continue;
     ++tried;
-    const Eigen::Matrix4d start = coarse_alignment(current, other, guess);
+    // The correlative search shared with register_points, over the loop's wider window (two-cell
+    // steps); the ICP then starts from its best hypothesis.
+    CorrelativeSearchParams search;
+    search.window_m = params.loop_search_window_m;
+    search.cell_m = other.geometry.resolution_m;
+    search.step_cells = 2;
+    search.yaw_window_rad = params.loop_yaw_search_rad;
+    search.yaw_hypotheses = params.loop_yaw_hypotheses;
+    const Eigen::Matrix4d start = correlative_search(current.points, other.points, guess, search).transform;
     RegistrationParams registration = params.registration;
+    registration.correlative_search = false;
     std::size_t weighted = 0;  // source cells that can take part
     for (const std::uint8_t c : current.points.classes) {
       weighted += !registration.use_classes || registration.class_weights[c] > 0.0;
@@ -595,70 +644,6 @@ std::size_t Mapper::Impl::close_loops(std::size_t k) {
     ++closed;
   }
   return closed;
-}
-
-Eigen::Matrix4d Mapper::Impl::coarse_alignment(const Keyframe& current, const Keyframe& other,
-                                               const Eigen::Matrix4d& guess) const {
-  // Correlative search (in the manner of Olson's real-time correlative scan matching) over yaw
-  // offsets and a translation window: the score of a hypothesis is the number of the current map's
-  // non-ground cells that land on a non-ground cell (dilated by one) of the other map. The best one
-  // seeds the ICP, so drifted estimates several metres off still converge.
-  const MapGeometry& g = other.geometry;
-  const int nx = g.size.x(), ny = g.size.y();
-  std::vector<std::uint8_t> occupied(static_cast<std::size_t>(nx) * ny, 0);
-  for (std::size_t k = 0; k < other.points.size(); ++k) {
-    if (other.points.classes[k] <= 1) continue;  // unknown and ground take no part
-    const auto index = g.index_of(other.points.points[k].head<2>());
-    if (!index) continue;
-    for (int di = -1; di <= 1; ++di) {
-      for (int dj = -1; dj <= 1; ++dj) {
-        const int a = index->x() + di, b = index->y() + dj;
-        if (a >= 0 && a < nx && b >= 0 && b < ny) occupied[static_cast<std::size_t>(a) * ny + b] = 1;
-      }
-    }
-  }
-  std::vector<Eigen::Vector2d> source;
-  for (std::size_t k = 0; k < current.points.size(); ++k) {
-    if (current.points.classes[k] > 1) source.push_back(current.points.points[k].head<2>());
-  }
-  if (source.empty()) return guess;
-  const double res = g.resolution_m;
-  const int window = static_cast<int>(std::ceil(params.loop_search_window_m / res));
-  const int stride = 2;  // translation step: two cells
-  const int hypotheses = params.loop_yaw_hypotheses;
-  long best_score = -1;
-  Eigen::Matrix4d best = guess;
-  std::vector<std::pair<int, int>> cells(source.size());
-  for (int h = 0; h < hypotheses; ++h) {
-    const double yaw = hypotheses == 1 ? 0.0 : params.loop_yaw_search_rad * (2.0 * h / (hypotheses - 1) - 1.0);
-    Eigen::Matrix4d turned = guess;
-    turned.topLeftCorner<3, 3>() =
-        guess.topLeftCorner<3, 3>() * Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ()).toRotationMatrix();
-    const Eigen::Matrix2d r = turned.topLeftCorner<2, 2>();
-    const Eigen::Vector2d t = turned.topRightCorner<2, 1>();
-    for (std::size_t k = 0; k < source.size(); ++k) {
-      const Eigen::Vector2d p = (r * source[k] + t - g.origin_m) / res;
-      cells[k] = {static_cast<int>(std::floor(p.x())), static_cast<int>(std::floor(p.y()))};
-    }
-    for (int dx = -window; dx <= window; dx += stride) {
-      for (int dy = -window; dy <= window; dy += stride) {
-        long score = 0;
-        for (const auto& [ci, cj] : cells) {
-          const int a = ci + dx, b = cj + dy;
-          score += a >= 0 && a < nx && b >= 0 && b < ny && occupied[static_cast<std::size_t>(a) * ny + b];
-        }
-        // Ties keep the hypothesis nearest the estimate (visited first only by chance): prefer it explicitly.
-        const bool nearer = score == best_score && (dx == 0 && dy == 0 && yaw == 0.0);
-        if (score > best_score || nearer) {
-          best_score = score;
-          best = turned;
-          best(0, 3) += dx * res;
-          best(1, 3) += dy * res;
-        }
-      }
-    }
-  }
-  return best;
 }
 
 void Mapper::Impl::optimize() {

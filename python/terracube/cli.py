@@ -729,6 +729,7 @@ def _print_register_record(record: dict[str, Any], elapsed_ms: float, source: Pa
         if "constraints" in record:
             weakest = ", ".join(f"{c['along']} {c['held']:.3f}" for c in record["constraints"][:2])
             typer.echo(f"  least held (share of the pairs' weight holding it, 1 = all): {weakest}")
+    typer.echo(f"  verdict: {record['verdict']}")
     t = np.asarray(record["transform"])
     typer.echo(
         f"  translation: x {t[0, 3]:+.4f} m, y {t[1, 3]:+.4f} m, z {t[2, 3]:+.4f} m; "
@@ -772,7 +773,8 @@ def register(
     """Register two scans: each becomes a classified elevation map, then ICP moves source onto target.
 
     Prints the transform, whether it converged and why, iterations, RMSE and the correspondences per
-    terrain class; with --structure-radius also the two motions the scene holds least firmly.
+    terrain class, the two motions the scene holds least firmly (--structure-radius > 0) and the
+    verdict; exits with code 1 when the result is not trusted (the reason on stderr).
     """
     from .pipeline import register_scans
 
@@ -803,6 +805,10 @@ def register(
         with _exit_on_bad_input("--output"), atomic_path(output) as temporary:
             _write_register_record(temporary, output.suffix.lower(), record, source, target, method)
         typer.echo(f"  written: {output}")
+    if not record["trusted"]:
+        # Issue 38: an answer the verdict does not trust is a failure for scripts (exit code 1).
+        typer.secho(f"registration not trusted: {record['verdict']}", fg=typer.colors.RED, err=True)
+        raise typer.Exit(1)
 
 
 def _write_register_record(output: Path, suffix: str, record: dict, source, target, method) -> None:

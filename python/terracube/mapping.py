@@ -68,15 +68,27 @@ class MapperParams:
         slope x radius below the cell, so a wider window calls ramps obstacles).
     use_registration : bool
         False chains local maps by odometry alone (a baseline).
+    lidar_only : bool
+        LiDAR-only mode (no odometry): the translation and yaw of the poses given to ``add_scan``
+        are ignored (their roll and pitch still level the local maps: pass identity for a level
+        sensor, or an IMU's attitude); every scan is a keyframe (feed scans about
+        ``keyframe_distance`` apart); each step's initial guess repeats the previous accepted step
+        (constant velocity from the Mapper's own estimates; the first step is searched within
+        ``keyframe_distance`` + the registration's search window). A trusted step is accepted
+        whatever its correction of the prediction (``max_correction`` bounds odometry's only);
+        untrusted steps keep the prediction. Needs ``use_registration``.
     registration : RegistrationParams
-        The class-weighted ICP ([TC] Table 2 weights by default).
+        The class-weighted ICP ([TC] Table 2 weights by default). With odometry a step is first
+        registered from odometry's guess without the correlative search, and again with it only
+        when that answer is not trusted.
     yaw_only_registration : bool
         Keep only the translation and yaw of each registration: local maps are leveled by odometry's
         roll and pitch, so their relative rotation is a yaw (the ground-free ICP leaves roll and pitch
         weakly constrained). False: the full 6-DOF result, as the paper.
     max_correction, max_correction_rot : float
-        A step registration that moves odometry's guess further [m], [rad] is rejected (odometry
-        is used for that step).
+        A step registration that moves odometry's guess further [m], [rad], or whose result is not
+        ``trusted`` (counted in ``timings.untrusted_steps``), is rejected (odometry is used for
+        that step).
     registration_sigma, registration_sigma_rot : float
         Standard deviations of registered steps and loop edges in the pose graph [m], [rad].
     odometry_sigma_per_m, odometry_sigma_rot_per_m : float
@@ -125,6 +137,7 @@ class MapperParams:
         default_factory=lambda: TerrainParams(reference="local_ground", local_ground_radius=5)
     )
     use_registration: bool = True
+    lidar_only: bool = False
     registration: RegistrationParams = field(default_factory=RegistrationParams)
     yaw_only_registration: bool = True
     max_correction: float = 1.5
@@ -168,6 +181,7 @@ class MapperParams:
         params.discontinuity_m = float(self.discontinuity)
         params.terrain = self.terrain.to_core()
         params.use_registration = bool(self.use_registration)
+        params.lidar_only = bool(self.lidar_only)
         params.registration = self.registration.to_core()
         params.yaw_only_registration = bool(self.yaw_only_registration)
         params.max_correction_m = float(self.max_correction)

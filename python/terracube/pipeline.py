@@ -766,6 +766,11 @@ def registration_record(method: str, source: str, target: str, result) -> dict:
     if method == "pcl":
         record["reason"] = "converged" if result.converged else "not converged"
         record["fitness"] = float(result.fitness)
+        # PCL gives no verdict of its own: its convergence stands in for it.
+        record["trusted"] = bool(result.converged)
+        record["verdict"] = "PCL's ICP " + (
+            "converged (no overlap or constraint test)" if result.converged else "did not converge"
+        )
         return record
     counts = list(result.correspondences_per_class)
     record.update(
@@ -773,6 +778,12 @@ def registration_record(method: str, source: str, target: str, result) -> dict:
         rmse=float(result.rmse),
         num_correspondences=int(result.num_correspondences),
         correspondences_per_class={c.name.lower(): int(counts[int(c)]) for c in TerrainClass},
+        overlap=float(result.overlap),
+        inlier_share_per_class={
+            c.name.lower(): float(result.inlier_share_per_class[int(c)]) for c in TerrainClass
+        },
+        trusted=bool(result.trusted),
+        verdict=str(result.verdict),
     )
     if np.any(np.asarray(result.constraint_matrix)):
         from .registration import constrained_directions

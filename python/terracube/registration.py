@@ -61,6 +61,26 @@ class RegistrationParams:
 
     Attributes
     ----------
+    correlative_search : bool
+        Before the ICP (not in the paper, issue 38), a correlative yaw x translation search on the
+        classified points (:func:`correlative_search`) moves the start to the hypothesis whose
+        non-ground source cells land on the most non-ground target cells; False: the ICP starts
+        from ``initial``, as in the paper.
+    search_window : float
+        Translations within +- this of the start along x and y [m] (> 0).
+    search_cell : float
+        Occupancy cell of the search [m]; target cells count with their eight neighbours (> 0).
+    search_step_cells : int
+        Translation step of the search in cells (>= 1).
+    search_yaw_window, search_yaw_hypotheses : float, int
+        ``search_yaw_hypotheses`` yaw offsets spread evenly over +- ``search_yaw_window`` [rad]
+        about the source origin (1: the start's yaw only).
+    search_refine : bool
+        Coarse to fine: search again around the best hypothesis with cells a third as large
+        (within one coarse cell) and 5 yaws within one yaw step.
+    search_tie_tolerance : float
+        Hypotheses within this share of the best score count as ties; ties keep the one nearest
+        the start, so a good start moves only for a clearly better match (in [0, 1)).
     use_classes : bool
         True: pair only within a class, weighted by ``class_weights``; False: the conventional
         ICP (nearest cell of any class, unit weight).
@@ -110,12 +130,31 @@ class RegistrationParams:
     ground_cell : float
         Side of the ground cells [m] (> 0).
     structure_radius : float
-        Radius [m] of the target neighbourhoods behind the result's ``constraint_matrix``; 0, the
-        default, skips that analysis (it adds 1-2 ms to a KITTI registration on 0.1 m maps, for
-        which 0.3 suits). A direction counts as one along which a neighbourhood extends when its
-        points' standard deviation along it exceeds a quarter of the radius (>= 0).
+        Radius [m] of the target neighbourhoods behind the result's ``constraint_matrix`` and
+        ``held`` (0.3, the default, suits 0.1 m maps; it adds 1-2 ms to a KITTI registration); 0
+        skips that analysis (and the verdict's constraint test). A direction counts as one along
+        which a neighbourhood extends when its points' standard deviation along it exceeds a
+        quarter of the radius (>= 0).
+    trust_min_overlap, trust_min_contrast, trust_max_rmse, trust_min_held : float
+        The result's ``trusted`` (issue 38; not in the paper) needs the ICP to stop converged (or
+        at ``max_iterations``), ``overlap >= trust_min_overlap`` (share of the source's object
+        cells with a partner within ``min_correspondence_distance``), ``overlap >=
+        trust_min_contrast * chance_overlap`` (the least overlap 1 m away along +-x, +-y: the
+        match beats coincidence), ``rmse <= trust_max_rmse`` [m] and, with ``structure_radius > 0``, every
+        direction of ``held`` at least ``trust_min_held`` (share of the pairs' weight that holds
+        it). ``verdict`` says which failed, in plain words. Measured on 60 x 40 m maps at 0.1 m:
+        related KITTI and simulated pairs 0.57-0.89 overlap at 2.5-3.3 times chance; two Ouster
+        scans of different places 0.35-0.39 at 1.1 times.
     """
 
+    correlative_search: bool = True
+    search_window: float = 1.5
+    search_cell: float = 0.3
+    search_step_cells: int = 1
+    search_yaw_window: float = 0.25
+    search_yaw_hypotheses: int = 15
+    search_refine: bool = True
+    search_tie_tolerance: float = 0.03
     use_classes: bool = True
     class_weights: Mapping[TerrainClass, float] = field(default_factory=lambda: dict(DEFAULT_CLASS_WEIGHTS))
     max_correspondence_distance: float = 1.5
@@ -132,11 +171,39 @@ class RegistrationParams:
     coarse_until_motion: float = 0.05
     ground_weight: float = 0.0
     ground_cell: float = 0.5
-    structure_radius: float = 0.0
+    structure_radius: float = 0.3
+    trust_min_overlap: float = 0.25
+    trust_min_contrast: float = 2.0
+    trust_max_rmse: float = 0.2
+    trust_min_held: float = 0.05
     pairing: str = "source_to_target"
+
+    @classmethod
+    def paper_icp(cls, **kwargs) -> RegistrationParams:
+        """The paper's plain weighted ICP ([TC] sec. 2.2, eq. (4), Table 2): no correlative search,
+        no extrapolation, no coarse-to-fine; ``kwargs`` override further fields."""
+        return cls(**{"correlative_search": False, "extrapolate": False, "coarse_subsample": 1, **kwargs})
+
+    def search_params(self) -> _core.CorrelativeSearchParams:
+        """The search fields as ``terracube._core.CorrelativeSearchParams``."""
+        search = _core.CorrelativeSearchParams()
+        search.window_m = float(self.search_window)
+        search.cell_m = float(self.search_cell)
+        if int(self.search_step_cells) < 1:
+            raise ValueError(f"search_step_cells must be at least 1, got {self.search_step_cells}")
+        search.step_cells = int(self.search_step_cells)
+        search.yaw_window_rad = float(self.search_yaw_window)
+        if int(self.search_yaw_hypotheses) < 1:
+            raise ValueError(f"search_yaw_hypotheses must be at least 1, got {self.search_yaw_hypotheses}")
+        search.yaw_hypotheses = int(self.search_yaw_hypotheses)
+        search.refine = bool(self.search_refine)
+        search.tie_tolerance = float(self.search_tie_tolerance)
+        return search
 
     def to_core(self) -> _core.RegistrationParams:
         params = _checked(_core.RegistrationParams)()
+        params.correlative_search = bool(self.correlative_search)
+        params.search = self.search_params()
         params.use_classes = bool(self.use_classes)
         weights = [0.0] * len(TerrainClass)
         for name, weight in self.class_weights.items():
@@ -161,6 +228,10 @@ class RegistrationParams:
         params.ground_weight = float(self.ground_weight)
         params.ground_cell_m = float(self.ground_cell)
         params.structure_radius_m = float(self.structure_radius)
+        params.trust_min_overlap = float(self.trust_min_overlap)
+        params.trust_min_contrast = float(self.trust_min_contrast)
+        params.trust_max_rmse_m = float(self.trust_max_rmse)
+        params.trust_min_held = float(self.trust_min_held)
         if self.pairing not in ("source_to_target", "target_to_source"):
             raise ValueError(
                 f"pairing must be 'source_to_target' or 'target_to_source', got {self.pairing!r}"

@@ -1,6 +1,7 @@
 #include <gtest/gtest.h>
 #include <terracube/elevation_map.hpp>
 #include <terracube/icp.hpp>
+#include <terracube/simulation.hpp>
 #include <terracube/terrain.hpp>
 
 #include <Eigen/Cholesky>
@@ -946,6 +947,7 @@ TEST(RegisterPoints, ExtrapolationReachesTheSameAnswerInFewerIterations) {
   const std::vector<Eigen::Vector3d> scene = test::random_scene(9, 3000, 20.0);
   const Eigen::Matrix4d truth = pose(0.4, -0.3, 0.05, 5.0, 1.0, -0.5);
   RegistrationParams params;
+  params.correlative_search = false;  // the ICP's own iterations from the same start
   params.use_classes = false;
   params.max_iterations = 200;
   params.rotation_tolerance_rad = 1e-9;
@@ -1047,7 +1049,8 @@ TEST(RegisterMaps, GuardedExtrapolationNeverEndsAStepAboveThePlainStepsError) {
   const ClassifiedPoints& target = pair.target;
   const Eigen::Matrix4d& guess = pair.guess;
   RegistrationParams params;
-  params.coarse_subsample = 1;  // the guard compares errors over all the points
+  params.correlative_search = false;  // the steps start at the guess, as the naive ones
+  params.coarse_subsample = 1;        // the guard compares errors over all the points
   params.extrapolate = true;
   const NaiveIcp naive{source, target, params};
   Eigen::Matrix4d previous = guess;  // the estimate after n - 1 updates and its pass's limit
@@ -1119,6 +1122,7 @@ TEST(RegisterPoints, AgreesWithPclIcpWithClassesOffAndUnitWeights) {
   const Eigen::Matrix4d motion = pose(0.15, -0.1, 0.02, 2.0, 0.3, -0.2);
   const std::vector<Eigen::Vector3d> target = transformed(test::random_scene(22, 3000, 20.0), motion);
   RegistrationParams params;
+  params.correlative_search = false;  // PCL starts at the guess too
   params.use_classes = false;
   params.max_correspondence_distance_m = 0.6;
   params.min_correspondence_distance_m = 0.6;
@@ -1252,14 +1256,14 @@ TEST(RegisterPoints, ConstraintMatrixEqualsItsDefinitionSummedByBruteForce) {
                   .cwiseAbs()
                   .maxCoeff(),
               1e-9 * naive.cwiseAbs().maxCoeff());
-    // The same answer as without the analysis, which is off by default.
+    // The same answer as without the analysis (structure_radius_m = 0 turns it off).
     params.structure_radius_m = 0.0;
     const RegistrationResult plain = register_points(pair.source, pair.target, pair.guess, params);
     EXPECT_EQ(plain.transform, result.transform);
     EXPECT_EQ(plain.normal_matrix, result.normal_matrix);
     EXPECT_EQ(plain.constraint_matrix, (Eigen::Matrix<double, 6, 6>::Zero()));
   }
-  EXPECT_EQ(RegistrationParams{}.structure_radius_m, 0.0);
+  EXPECT_EQ(RegistrationParams{}.structure_radius_m, 0.3);
   RegistrationParams bad;
   for (const double radius :
        {-0.1, std::numeric_limits<double>::quiet_NaN(), std::numeric_limits<double>::infinity()}) {
@@ -1309,6 +1313,318 @@ TEST(RegisterPoints, ConstraintEigenvaluesShowTheMotionsTheSceneLeavesFree) {
   with_pole.classes.push_back(static_cast<std::uint8_t>(TerrainClass::kObstacle));
   const RegistrationResult pole = register_points(with_pole, with_pole, shift, params);
   EXPECT_GT(pole.constraint_eigenvalues(0), 1e-6 * pole.constraint_eigenvalues(5));
+}
+
+// --- Correlative search and the verdict (issue 38) ------------------------------------------
+
+/// The score of a hypothesis by its definition: the source's non-ground points whose cell
+/// (floor(x / cell), floor(y / cell)) lies within one cell of a non-ground target point's cell.
+std::size_t naive_score(const ClassifiedPoints& source, const ClassifiedPoints& target, const Eigen::Matrix4d& t,
+                        double cell) {
+  const auto cell_of = [cell](const Eigen::Vector3d& p) {
+    return Eigen::Vector2d(std::floor(p.x() / cell), std::floor(p.y() / cell));
+  };
+  std::size_t score = 0;
+  for (std::size_t i = 0; i < source.size(); ++i) {
+    if (source.classes[i] < 2) continue;
+    const Eigen::Vector2d a = cell_of(t.topLeftCorner<3, 3>() * source.points[i] + t.topRightCorner<3, 1>());
+    for (std::size_t j = 0; j < target.size(); ++j) {
+      if (target.classes[j] >= 2 && (a - cell_of(target.points[j])).cwiseAbs().maxCoeff() <= 1.0) {
+        ++score;
+        break;
+      }
+    }
+  }
+  return score;
+}
+
+TEST(CorrelativeSearch, BestHypothesisHasTheHighestBruteForceScoreOfAllHypotheses) {
+  std::mt19937 rng(38);
+  std::uniform_real_distribution<double> along(-6.0, 6.0), height(0.0, 3.0);
+  std::uniform_int_distribution<int> terrain_class(1, 5);  // ground (1) takes no part
+  ClassifiedPoints target;
+  for (int k = 0; k < 160; ++k) {
+    target.points.emplace_back(along(rng), along(rng), height(rng));
+    target.classes.push_back(static_cast<std::uint8_t>(terrain_class(rng)));
+  }
+  const Eigen::Matrix4d truth = pose(0.8, -0.4, 0.0, 9.0);  // source -> target
+  ClassifiedPoints source{transformed(target.points, truth.inverse()), target.classes};
+  const Eigen::Matrix4d guess = pose(0.5, 0.3, 0.0, -4.0) * truth;
+  CorrelativeSearchParams params;
+  params.cell_m = 0.25;
+  params.window_m = 0.75;
+  params.yaw_window_rad = 0.12;
+  params.yaw_hypotheses = 7;
+  params.refine = false;       // the coarse level alone, checked hypothesis by hypothesis
+  params.tie_tolerance = 0.0;  // exact ties only: the best score itself
+  const CorrelativeSearchResult result = correlative_search(source, target, guess, params);
+
+  std::size_t best = 0, non_ground = 0;
+  for (const std::uint8_t c : source.classes) non_ground += c >= 2;
+  for (int h = 0; h < params.yaw_hypotheses; ++h) {
+    const double yaw = params.yaw_window_rad * (2.0 * h / (params.yaw_hypotheses - 1) - 1.0);
+    for (int dx = -3; dx <= 3; ++dx) {
+      for (int dy = -3; dy <= 3; ++dy) {
+        Eigen::Matrix4d t = guess;
+        t.topLeftCorner<3, 3>() = guess.topLeftCorner<3, 3>() * Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ());
+        t(0, 3) += dx * params.cell_m;
+        t(1, 3) += dy * params.cell_m;
+        best = std::max(best, naive_score(source, target, t, params.cell_m));
+      }
+    }
+  }
+  EXPECT_EQ(result.points, non_ground);
+  EXPECT_EQ(result.score, best);
+  EXPECT_EQ(naive_score(source, target, result.transform, params.cell_m), best);
+  // The best hypothesis lies within a cell and a yaw step of the truth.
+  EXPECT_LT(translation_error(result.transform, truth), 0.3);
+  EXPECT_LT(rotation_error_deg(result.transform, truth), 2.5);
+  // With a tolerance, a hypothesis within it of the best.
+  params.tie_tolerance = 0.2;
+  const CorrelativeSearchResult tolerant = correlative_search(source, target, guess, params);
+  EXPECT_GE(static_cast<double>(tolerant.score), 0.8 * static_cast<double>(best));
+  EXPECT_EQ(naive_score(source, target, tolerant.transform, params.cell_m), tolerant.score);
+  params.tie_tolerance = 0.0;
+  // The refinement moves it by at most a coarse cell and a yaw step, its score counted on cells a
+  // third as large, and lands nearer the truth.
+  params.refine = true;
+  const CorrelativeSearchResult refined = correlative_search(source, target, guess, params);
+  EXPECT_EQ(refined.score, naive_score(source, target, refined.transform, params.cell_m / 3.0));
+  EXPECT_LE(translation_error(refined.transform, result.transform), std::sqrt(2.0) * params.cell_m + 1e-9);
+  EXPECT_LE(rotation_error_deg(refined.transform, result.transform), 2.0 * 180.0 / kPi * 0.12 / 6 + 1e-9);
+  EXPECT_LT(translation_error(refined.transform, truth), 0.12);
+
+  // Without non-ground points on either side it returns the guess with score 0.
+  ClassifiedPoints ground = target;
+  ground.classes.assign(ground.size(), static_cast<std::uint8_t>(TerrainClass::kGround));
+  const CorrelativeSearchResult none = correlative_search(ground, target, guess, params);
+  EXPECT_EQ(none.transform, guess);
+  EXPECT_EQ(none.score, 0U);
+  EXPECT_EQ(correlative_search(source, ground, guess, params).transform, guess);
+}
+
+TEST(CorrelativeSearch, RejectsBadParametersAndGuesses) {
+  const ClassifiedPoints empty;
+  const Eigen::Matrix4d identity = Eigen::Matrix4d::Identity();
+  const auto bad = [&](auto&& change) {
+    CorrelativeSearchParams params;
+    change(params);
+    return params;
+  };
+  for (const CorrelativeSearchParams& params :
+       {bad([](auto& p) { p.window_m = 0.0; }), bad([](auto& p) { p.cell_m = -0.1; }),
+        bad([](auto& p) { p.cell_m = std::numeric_limits<double>::quiet_NaN(); }),
+        bad([](auto& p) { p.step_cells = 0; }), bad([](auto& p) { p.yaw_window_rad = -0.1; }),
+        bad([](auto& p) { p.yaw_hypotheses = 0; }), bad([](auto& p) { p.window_m = 1e6; }),
+        bad([](auto& p) { p.tie_tolerance = 1.0; }), bad([](auto& p) { p.tie_tolerance = -0.1; })}) {
+    EXPECT_THROW(correlative_search(empty, empty, identity, params), std::invalid_argument);
+  }
+  Eigen::Matrix4d sheared = identity;
+  sheared(0, 1) = 0.5;
+  EXPECT_THROW(correlative_search(empty, empty, sheared), std::invalid_argument);
+  // A wild guess (the source 1e15 m away) finds nothing and returns the guess (no overflow).
+  const ClassifiedPoints some{{Eigen::Vector3d(0, 0, 1), Eigen::Vector3d(1, 0, 1)}, {2, 2}};
+  Eigen::Matrix4d far = identity;
+  far(0, 3) = 1e15;
+  const CorrelativeSearchResult wild = correlative_search(some, some, far);
+  EXPECT_EQ(wild.transform, far);
+  EXPECT_EQ(wild.score, 0U);
+}
+
+TEST(RegisterPoints, PaperIcpIsTheDefaultsWithoutSearchExtrapolationOrCoarseToFine) {
+  const RegistrationParams paper = RegistrationParams::paper_icp();
+  const RegistrationParams defaults;
+  EXPECT_FALSE(paper.correlative_search);
+  EXPECT_FALSE(paper.extrapolate);
+  EXPECT_EQ(paper.coarse_subsample, 1);
+  EXPECT_TRUE(defaults.correlative_search);
+  EXPECT_EQ(paper.class_weights, defaults.class_weights);
+  EXPECT_EQ(paper.max_correspondence_distance_m, defaults.max_correspondence_distance_m);
+  EXPECT_EQ(paper.max_iterations, defaults.max_iterations);
+  // From the street pair's guess the paper's ICP starts at the guess; the default at the search's best.
+  const StreetPair pair = street_pair();
+  EXPECT_EQ(register_points(pair.source, pair.target, pair.guess, paper).icp_start, pair.guess);
+  CorrelativeSearchParams search;
+  EXPECT_EQ(register_points(pair.source, pair.target, pair.guess).icp_start,
+            correlative_search(pair.source, pair.target, pair.guess, search).transform);
+}
+
+TEST(RegisterPoints, SearchThenIcpRecoversTheStreetFromAMetreAndTenDegreesWhereThePaperIcpDoesNot) {
+  const StreetPair pair = street_pair();
+  const Eigen::Matrix4d truth = street_truth();
+  const RegistrationResult reference = register_points(pair.source, pair.target, truth);
+  int reached = 0, reached_paper = 0, starts = 0;
+  for (const double yaw : {10.0, -10.0}) {
+    for (const Eigen::Vector2d& d : {Eigen::Vector2d(1, 0), Eigen::Vector2d(-1, 0), Eigen::Vector2d(0, 1)}) {
+      const Eigen::Matrix4d guess = pose(d.x(), d.y(), 0.0, 0.0) * truth * pose(0, 0, 0, yaw);
+      const RegistrationResult result = register_points(pair.source, pair.target, guess);
+      const RegistrationResult paper =
+          register_points(pair.source, pair.target, guess, RegistrationParams::paper_icp());
+      ++starts;
+      reached += translation_error(result.transform, reference.transform) < 0.1 &&
+                 rotation_error_deg(result.transform, reference.transform) < 0.5;
+      reached_paper +=
+          translation_error(paper.transform, truth) < 0.1 && rotation_error_deg(paper.transform, truth) < 0.5;
+    }
+  }
+  EXPECT_EQ(reached, starts);
+  EXPECT_LT(reached_paper, starts);  // the search is what widens the basin
+  EXPECT_LT(translation_error(reference.transform, truth), 0.1);
+}
+
+TEST(RegistrationVerdict, OverlapAndInlierSharesCountTheSourcePointsWithAPartner) {
+  // Cluster A (40 obstacle + 20 vertical-object points) is in both sets; cluster B (25 + 15),
+  // 30 m away, only in the source: it never finds a partner.
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  ClassifiedPoints source, target;
+  const auto add = [&](ClassifiedPoints& set, double x0, int count, TerrainClass c) {
+    for (int k = 0; k < count; ++k) {
+      set.points.emplace_back(x0 + 5.0 * unit(rng), 5.0 * unit(rng), 2.0 * unit(rng));
+      set.classes.push_back(static_cast<std::uint8_t>(c));
+    }
+  };
+  add(source, 0.0, 40, TerrainClass::kObstacle);
+  add(source, 0.0, 20, TerrainClass::kVerticalObject);
+  target = source;
+  add(source, 30.0, 25, TerrainClass::kObstacle);
+  add(source, 30.0, 15, TerrainClass::kVerticalObject);
+  RegistrationParams params = RegistrationParams::paper_icp();
+  params.structure_radius_m = 0.0;
+  const RegistrationResult result = register_points(source, target, Eigen::Matrix4d::Identity(), params);
+  ASSERT_TRUE(result.converged) << to_string(result.reason);
+  EXPECT_DOUBLE_EQ(result.overlap, 60.0 / 100.0);
+  EXPECT_DOUBLE_EQ(result.inlier_share_per_class[static_cast<int>(TerrainClass::kObstacle)], 40.0 / 65.0);
+  EXPECT_DOUBLE_EQ(result.inlier_share_per_class[static_cast<int>(TerrainClass::kVerticalObject)], 20.0 / 35.0);
+  EXPECT_EQ(result.inlier_share_per_class[static_cast<int>(TerrainClass::kGround)], 0.0);
+  EXPECT_TRUE(result.trusted) << result.verdict;  // 60 % >= 25 %, RMSE 0, no constraint analysis
+  params.trust_min_overlap = 0.61;
+  const RegistrationResult strict = register_points(source, target, Eigen::Matrix4d::Identity(), params);
+  EXPECT_FALSE(strict.trusted);
+  EXPECT_NE(strict.verdict.find("only 60 % of the source's object cells found a partner"), std::string::npos)
+      << strict.verdict;
+  // Cluster A's random points have almost no partner 1 m away: the match beats chance by far.
+  EXPECT_LT(result.chance_overlap, 0.3 * result.overlap);
+  ASSERT_GT(result.chance_overlap, 0.0);  // some random pairs within 0.3 m all the same
+  params.trust_min_overlap = 0.5;
+  params.trust_min_contrast = 1.01 * result.overlap / result.chance_overlap;
+  const RegistrationResult picky = register_points(source, target, Eigen::Matrix4d::Identity(), params);
+  EXPECT_FALSE(picky.trusted);
+  EXPECT_NE(picky.verdict.find("the match is no better than chance"), std::string::npos) << picky.verdict;
+  for (const double bad : {-0.1, 1.1, std::numeric_limits<double>::quiet_NaN()}) {
+    RegistrationParams wrong;
+    wrong.trust_min_overlap = bad;
+    EXPECT_THROW(register_points(source, target, Eigen::Matrix4d::Identity(), wrong), std::invalid_argument);
+    wrong = RegistrationParams{};
+    wrong.trust_min_held = bad;
+    EXPECT_THROW(register_points(source, target, Eigen::Matrix4d::Identity(), wrong), std::invalid_argument);
+  }
+  RegistrationParams wrong;
+  wrong.trust_max_rmse_m = 0.0;
+  EXPECT_THROW(register_points(source, target, Eigen::Matrix4d::Identity(), wrong), std::invalid_argument);
+}
+
+TEST(RegistrationVerdict, StraightWallsLeaveSlidingAlongThemUntrusted) {
+  // The tops of two straight walls along x hold everything but sliding along x.
+  ClassifiedPoints walls;
+  for (double x = -10.0; x < 10.0; x += 0.1) {
+    for (const double y : {-4.0, 4.0}) walls.points.emplace_back(x, y, 3.0);
+  }
+  walls.classes.assign(walls.size(), static_cast<std::uint8_t>(TerrainClass::kVerticalObject));
+  const RegistrationResult result = register_points(walls, walls, pose(0.03, -0.02, 0.01, 0.3));
+  EXPECT_FALSE(result.trusted);
+  EXPECT_LT(result.held(0), 1e-6);
+  EXPECT_GT(result.held(1), 0.05);
+  EXPECT_NE(result.verdict.find("sliding along x is held by 0 % of the pairs' weight: the result along x is not "
+                                "trustworthy"),
+            std::string::npos)
+      << result.verdict;
+}
+
+TEST(RegistrationVerdict, TheStreetPairIsTrustedAndTwoDifferentPlacesAreNot) {
+  const StreetPair pair = street_pair();
+  const RegistrationResult same = register_points(pair.source, pair.target, pair.guess);
+  EXPECT_TRUE(same.trusted) << same.verdict;
+  EXPECT_GT(same.overlap, 0.6);
+  EXPECT_EQ(same.verdict.rfind("trusted: overlap", 0), 0U) << same.verdict;
+  // A different place: random boxes and poles, seen from the same pose.
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<double> place(-25.0, 25.0), size(0.5, 4.0);
+  std::vector<Eigen::Vector3d> elsewhere;
+  for (double x = -30.0; x < 30.0; x += 0.1) {
+    for (double y = -20.0; y < 20.0; y += 0.1) elsewhere.emplace_back(x, y, 0.0);
+  }
+  for (int b = 0; b < 30; ++b) {
+    const double cx = place(rng), cy = 0.8 * place(rng), sx = size(rng), sy = size(rng), h = size(rng);
+    for (double z = 0.0; z < h; z += 0.1) {
+      for (double s = 0.0; s <= 1.0; s += 0.02) {
+        elsewhere.emplace_back(cx + sx * s, cy, z);
+        elsewhere.emplace_back(cx + sx * s, cy + sy, z);
+        elsewhere.emplace_back(cx, cy + sy * s, z);
+        elsewhere.emplace_back(cx + sx, cy + sy * s, z);
+      }
+    }
+  }
+  const ClassifiedPoints other = points_of_map(street_map(elsewhere, pose(0, 0, kSensorHeight, 0), 0.2));
+  const RegistrationResult different = register_points(pair.source, other, pair.guess);
+  EXPECT_FALSE(different.trusted) << different.verdict;
+  EXPECT_EQ(different.verdict.rfind("not trusted: ", 0), 0U) << different.verdict;
+}
+
+/// A simulated scan as a classified 60 x 40 m map at 0.1 m centred on the sensor (as
+/// bench/bench_basin.py builds them), its points turned by `turn` first (source p -> turn^-1 p).
+ClassifiedPoints simulated_map_points(const simulation::Scan& scan, const Eigen::Matrix4d& turn) {
+  std::vector<double> flat;
+  flat.reserve(3 * scan.size());
+  const Eigen::Matrix3d back = turn.topLeftCorner<3, 3>().transpose();
+  for (const Eigen::Vector3f& p : scan.points) {
+    const Eigen::Vector3d q = back * p.cast<double>();
+    flat.insert(flat.end(), {q.x(), q.y(), q.z()});
+  }
+  ElevationParams params;
+  params.resolution_m = 0.1;
+  params.origin_m = Eigen::Vector2d(-30.0, -20.0);
+  params.size = CellIndex(600, 400);
+  ElevationMap map = build_elevation_map(PointsView<double>(flat.data(), scan.size()), params);
+  TerrainParams terrain;
+  terrain.sensor_height_m = kSensorHeight;
+  classify_terrain(map, terrain);
+  return points_of_map(map);
+}
+
+TEST(RegisterPoints, SimulatedThreeMetreTwentyDegreePairsConvergeFromAMetreAndTenDegrees) {
+  // Issue 38's starts on two of bench_basin.py's simulated pairs ([TC] Fig. 10: keyframes 3 m
+  // apart, the source's heading turned by 20 degrees): the truth moved by 1 m along +-x, +-y and
+  // turned by +-10 degrees; each must reach the answer from the truth (0.1 m, 0.5 degrees).
+  simulation::TrajectoryParams trajectory;
+  trajectory.scan_spacing_m = 3.0;
+  trajectory.mount_height_m = kSensorHeight;
+  trajectory.yaw_bias_rad_per_m = trajectory.yaw_random_walk_rad_per_sqrt_m = 0.0;
+  trajectory.translation_scale_error = trajectory.roll_pitch_noise_rad = 0.0;
+  const simulation::SyntheticSequence sequence =
+      simulation::generate_sequence(simulation::LoopSceneParams{}, trajectory, simulation::RotatingLidar{});
+  const Eigen::Matrix4d turn = pose(0, 0, 0, 20.0);
+  int reached = 0, starts = 0;
+  for (const std::size_t k : {std::size_t{10}, std::size_t{40}}) {
+    const ClassifiedPoints source = simulated_map_points(sequence.scan(k), turn);
+    const ClassifiedPoints target = simulated_map_points(sequence.scan(k + 1), Eigen::Matrix4d::Identity());
+    const auto& poses = sequence.trajectory().poses;
+    const Eigen::Matrix4d truth = poses[k + 1].inverse() * poses[k] * turn;
+    const RegistrationResult reference = register_points(source, target, truth);
+    EXPECT_TRUE(reference.trusted) << reference.verdict;
+    EXPECT_LT(translation_error(reference.transform, truth), 0.1) << k;
+    for (const Eigen::Vector2d& d :
+         {Eigen::Vector2d(1, 0), Eigen::Vector2d(-1, 0), Eigen::Vector2d(0, 1), Eigen::Vector2d(0, -1)}) {
+      for (const double yaw : {10.0, -10.0}) {
+        const Eigen::Matrix4d guess = pose(d.x(), d.y(), 0.0, 0.0) * truth * pose(0, 0, 0, yaw);
+        const RegistrationResult result = register_points(source, target, guess);
+        ++starts;
+        reached += translation_error(result.transform, reference.transform) <= 0.1 &&
+                   rotation_error_deg(result.transform, reference.transform) <= 0.5;
+      }
+    }
+  }
+  EXPECT_EQ(reached, starts);  // measured: 16 of 16
 }
 
 }  // namespace

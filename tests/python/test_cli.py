@@ -181,7 +181,10 @@ def test_register_recovers_a_known_motion_and_writes_json_and_txt(runner, tmp_pa
     for text in ("converged: yes (converged)", "RMSE:", "correspondences per class:", "transform:"):
         assert text in result.output
     result = runner.invoke(app, [*args, "--method", "all-cells", "--output", str(tmp_path / "r.txt")])
-    assert result.exit_code == 0, result.output
+    # The all-cells ICP slides on the road: the verdict says so and the exit code is 1 (issue 38),
+    # the result still written.
+    assert result.exit_code == 1, result.output
+    assert "registration not trusted: " in result.output and "sliding along" in result.output
     all_cells = tc.register_maps_all_cells(maps[0], maps[1], parse_initial(guess))
     np.testing.assert_allclose(np.loadtxt(tmp_path / "r.txt"), all_cells.transform, rtol=0, atol=1e-11)
 
@@ -193,12 +196,14 @@ def test_register_reports_what_the_scene_constrains(runner, tmp_path, street_sca
     args = ["register", str(folder / "source.npy"), str(folder / "target.npy"), "-r", "0.2"]
     args += ["--sensor-height", str(sensor_height), "--structure-radius", "0.6"]
     result = runner.invoke(app, [*args, "--output", str(tmp_path / "r.json")])
-    assert result.exit_code == 0, result.output
-    assert "least held" in result.output
+    # Neighbourhoods of 0.6 m (three 0.2 m cells) see the house fronts as planes: sliding along the
+    # street is held by a few % of the pairs' weight, below trust_min_held (exit code 1, issue 38).
+    assert result.exit_code == 1, result.output
+    assert "least held" in result.output and "sliding along x is held by" in result.output
     constraints = json.loads((tmp_path / "r.json").read_text())["constraints"]
     held = [c["held"] for c in constraints]
     assert len(held) == 6 and held == sorted(held) and held[0] >= -1e-9
-    plain = runner.invoke(app, args[:-2])
+    plain = runner.invoke(app, [*args[:-2], "--structure-radius", "0"])  # the analysis off (0.3 by default)
     assert plain.exit_code == 0 and "least held" not in plain.output
 
 

@@ -49,8 +49,66 @@ enum class Pairing : std::uint8_t {
   kTargetToSource = 1,
 };
 
+/// Parameters of correlative_search. The defaults cover starts up to about 1.5 m and 14 degrees
+/// of yaw from the answer (issue 38's basin: 1 m + 10 degrees) in 0.3 m and 2 degree steps.
+struct CorrelativeSearchParams {
+  /// Translations within +-window_m of the guess along x and along y [m]. > 0.
+  double window_m = 1.5;
+  /// Occupancy cell [m]: target cells are marked with their eight neighbours, so a source point
+  /// scores within about one cell of a target point. > 0.
+  double cell_m = 0.3;
+  int step_cells = 1;  ///< translation step in cells, >= 1
+  /// Yaw offsets: yaw_hypotheses values spread evenly over +-yaw_window_rad (1: the guess's yaw
+  /// only) [rad]. >= 0 and >= 1.
+  double yaw_window_rad = 0.25;
+  int yaw_hypotheses = 15;
+  /// Coarse to fine: then search again around the best hypothesis with cells a third as large
+  /// within +-cell_m * step_cells and 5 yaws within +-one yaw step (the coarse score is flat within
+  /// a cell). The result's score is the fine level's.
+  bool refine = true;
+  /// Hypotheses scoring at least (1 - tie_tolerance) times the best count as ties, and ties keep
+  /// the hypothesis nearest the guess (cells, a yaw step counting as one): a good guess moves only
+  /// for a clearly better match. In [0, 1); 0: exact ties only.
+  double tie_tolerance = 0.03;
+};
+
+/// Outcome of correlative_search.
+struct CorrelativeSearchResult {
+  Eigen::Matrix4d transform = Eigen::Matrix4d::Identity();  ///< the best hypothesis (target <- source)
+  std::size_t score = 0;   ///< source points on occupied target cells at `transform` (the last level's)
+  std::size_t points = 0;  ///< source points that took part (non-ground classes)
+};
+
+/// Correlative search (in the manner of Olson's real-time correlative scan matching; not in
+/// [TC]) over yaw offsets about the source origin and a translation window in x and y: the score
+/// of a hypothesis guess * (translation) * Rz(yaw) is the number of the source's non-ground points
+/// (class >= kObstacle) that land on a non-ground target cell (dilated by one cell). Near-ties
+/// (CorrelativeSearchParams::tie_tolerance) keep the hypothesis nearest the guess. Used before the ICP
+/// (RegistrationParams::correlative_search) and by the Mapper's loop closing. Returns the guess with score 0 when
+/// either set has no non-ground point, or when the target's non-ground points span more than 2.5e8
+/// cells of a level with its margins (about 4.7 km square at the default 0.3 m; 1.5 km for the
+/// 0.1 m refinement, which then keeps the coarse answer). Throws std::invalid_argument for invalid parameters or a
+/// non-rigid guess.
+CorrelativeSearchResult correlative_search(const ClassifiedPoints& source, const ClassifiedPoints& target,
+                                           const Eigen::Matrix4d& guess, const CorrelativeSearchParams& params = {});
+
 /// Parameters of register_maps / register_points; defaults follow the paper where it gives them.
 struct RegistrationParams {
+  /// Before the ICP (a departure, issue 38: the ICP's basin alone is a few degrees of yaw), a
+  /// correlative yaw x translation search on the classified points (correlative_search with
+  /// `search`) moves the start to the best hypothesis near `initial`. false: the ICP starts from
+  /// `initial`, as in the paper.
+  bool correlative_search = true;
+  CorrelativeSearchParams search;
+  /// The paper's plain weighted ICP ([TC] sec. 2.2, eq. (4), Table 2 weights): no correlative
+  /// search, no extrapolation, no coarse-to-fine; everything else at the defaults.
+  static RegistrationParams paper_icp() {
+    RegistrationParams p;
+    p.correlative_search = false;
+    p.extrapolate = false;
+    p.coarse_subsample = 1;
+    return p;
+  }
   /// true: a source point pairs only with target points of its class and carries its class's
   /// weight (classes of weight 0 take no part). false: the conventional ICP, every point pairs
   /// with the nearest target point of any class at unit weight.
@@ -112,7 +170,20 @@ struct RegistrationParams {
   /// runs once, at the final estimate, in O(correspondences x neighbours): on KITTI 0.1 m maps it
   /// adds 1-2 ms to a registration (a neighbourhood query and a 3 x 3 eigen-decomposition per
   /// correspondence), and a radius spanning the whole map makes it quadratic. >= 0.
-  double structure_radius_m = 0.0;
+  double structure_radius_m = 0.3;
+  /// Thresholds of RegistrationResult::trusted (issue 38; not in the paper). Trusted needs all of:
+  /// the ICP stopped converged (or at max_iterations); overlap >= trust_min_overlap; overlap >=
+  /// trust_min_contrast * chance_overlap (the match beats coincidence); rmse_m <=
+  /// trust_max_rmse_m; and, when the constraint analysis ran (structure_radius_m > 0), every
+  /// direction held by at least trust_min_held of the pairs' weight (RegistrationResult::held).
+  /// Measured (bench/bench_basin.py, 60 x 40 m maps at 0.1 m): related KITTI and simulated pairs
+  /// reach overlap 0.57-0.89 at 2.5-3.3 times the chance overlap, held >= 0.06; the two Ouster
+  /// scans of different places 0.35-0.39 at 1.1 times; a simulated loop frame against one of the
+  /// straight road (another world) fails both.
+  double trust_min_overlap = 0.25;  ///< in [0, 1]
+  double trust_min_contrast = 2.0;  ///< >= 0
+  double trust_max_rmse_m = 0.2;    ///< > 0 [m]
+  double trust_min_held = 0.05;     ///< in [0, 1]
 };
 
 /// Why registration stopped.
@@ -133,6 +204,8 @@ struct RegistrationResult {
   /// Maps source coordinates into the target frame: q ~ transform * p. On kDegenerate,
   /// kTooFewCorrespondences and kNoCommonClass it is the last estimate before the failure.
   Eigen::Matrix4d transform = Eigen::Matrix4d::Identity();
+  /// Where the ICP started: `initial`, or the correlative search's best hypothesis near it.
+  Eigen::Matrix4d icp_start = Eigen::Matrix4d::Identity();
   bool converged = false;  ///< reason is kConverged or kErrorBelowThreshold
   StopReason reason = StopReason::kMaxIterations;
   int iterations = 0;  ///< updates applied
@@ -164,6 +237,32 @@ struct RegistrationResult {
   Eigen::Matrix<double, 6, 1> constraint_eigenvalues = Eigen::Matrix<double, 6, 1>::Zero();  ///< ascending
   /// Unit eigenvectors of constraint_matrix, as columns in the order of constraint_eigenvalues.
   Eigen::Matrix<double, 6, 6> constraint_eigenvectors = Eigen::Matrix<double, 6, 6>::Zero();
+
+  // The verdict (issue 38; not in the paper): whether the answer can be trusted, and why.
+  /// Share of the source's object cells (the classes from kObstacle up that take part; every
+  /// point without classes) with a partner within min_correspondence_distance_m (0.3 m) at
+  /// `transform`, whatever distance limit the ICP stopped at.
+  double overlap = 0.0;
+  /// The overlap at `transform` moved by 1 m along +x, -x, +y or -y, the least of the four: what
+  /// coincidence alone gives in these maps (a corridor keeps its overlap along itself, not
+  /// across). A real match stands well above it.
+  double chance_overlap = 0.0;
+  /// Per source class: the share of its points that take part with a partner within
+  /// min_correspondence_distance_m (0 without points).
+  std::array<double, kNumTerrainClasses> inlier_share_per_class{};
+  /// How firmly the scene holds each motion: the eigenvalues (ascending) of constraint_matrix per
+  /// unit of pair weight W (a third of the trace of normal_matrix's translation block), rotations
+  /// scaled by the pairs' rms radius r (trace of its rotation block = 2 W r^2): 1 along a
+  /// translation means every pair holds it fully, 0 that none does. Zero without the analysis.
+  Eigen::Matrix<double, 6, 1> held = Eigen::Matrix<double, 6, 1>::Zero();
+  /// Unit eigenvectors of `held` as columns, in the scaled unknowns (rotation x r, translation).
+  Eigen::Matrix<double, 6, 6> held_directions = Eigen::Matrix<double, 6, 6>::Zero();
+  /// All of RegistrationParams' trust thresholds are met.
+  bool trusted = false;
+  /// The verdict in plain words, e.g. "trusted: overlap 81 %, RMSE 0.06 m, every direction held by
+  /// at least 22 % of the pairs' weight" or "not trusted: sliding along x is held by 6 % of the
+  /// pairs' weight: the result along x is not trustworthy".
+  std::string verdict;
 };
 
 /// Registers `source` onto `target` starting from `initial` (a rigid 4x4, e.g. odometry).

@@ -65,15 +65,29 @@ struct MapperParams {
 
   /// false: chain local maps by odometry alone (no scan matching): a baseline.
   bool use_registration = true;
+  /// LiDAR-only mode (no odometry; issue 38): the translation and yaw of the poses given to
+  /// add_scan are ignored (their roll and pitch still level the local maps: pass identity for a
+  /// level sensor, or an IMU's attitude), every scan is a keyframe (feed scans about
+  /// keyframe_distance_m apart), and each step's initial guess is the previous accepted step
+  /// repeated (constant velocity, from the Mapper's own estimates; none before the first step,
+  /// which is searched within keyframe_distance_m + the registration's search window). A trusted
+  /// step is accepted whatever its correction of the prediction (max_correction_m and
+  /// max_correction_rad bound odometry's corrections only); an untrusted step keeps the
+  /// prediction. Needs use_registration. keyframe_odometry() then returns
+  /// the predictions.
+  bool lidar_only = false;
   RegistrationParams registration;
   /// Local maps live in leveled frames (odometry's roll and pitch, as from an IMU), so the motion
   /// between two of them is a translation and a yaw: true keeps only those of the 6-DOF ICP result
   /// (the ground takes no part in it, which leaves roll and pitch weakly constrained; their noise
   /// would tilt the fused global map). false: the full 6-DOF result, as the paper.
   bool yaw_only_registration = true;
-  /// A registration is rejected (odometry is used for that step) when it did not converge within the
-  /// iteration limit for a reason other than kMaxIterations, or when it moves the odometry guess by more
-  /// than these [m], [rad].
+  /// With odometry, a step is first registered from odometry's guess without the correlative
+  /// search (it can only blur a good guess), and again with it (registration.correlative_search)
+  /// only when that answer is not trusted.
+  /// A registration is rejected (odometry is used for that step, counted in
+  /// MapperTimings::untrusted_steps) when it is not trusted (RegistrationResult::trusted), or when
+  /// it moves the odometry guess by more than these [m], [rad].
   double max_correction_m = 1.5;
   double max_correction_rad = 0.15;
   /// Standard deviations that weight the pose-graph edges (information = 1 / sigma^2):
@@ -141,6 +155,10 @@ struct MapperTimings {
   double loop_closing_ms = 0.0;  ///< candidate search, loop registrations, pose graph
   std::size_t scans = 0;
   std::size_t keyframes = 0;
+  std::size_t registered_steps = 0;  ///< steps whose registration was accepted
+  /// Steps whose registration was not trusted (RegistrationResult::trusted false): odometry (in
+  /// LiDAR-only mode the constant-velocity prediction) was used instead.
+  std::size_t untrusted_steps = 0;
 };
 
 /// The global elevation map: square tiles allocated as cells are first touched, so its memory grows

@@ -7,7 +7,7 @@ import numpy
 import numpy.typing
 import typing
 from . import simulation
-__all__: list[str] = ['AbsoluteTrajectoryError', 'CollapseMethod', 'CollapseParams', 'CollapseResult', 'CropBox', 'CubeGrid', 'CubeReason', 'CubeStorage', 'ElevationMap', 'ElevationParams', 'ErrorStatistics', 'FuzzyElevationMap', 'FuzzyParams', 'GroundReference', 'LocalMap', 'LocalMapParams', 'LocalMapUpdate', 'LoopClosure', 'MapGeometry', 'Mapper', 'MapperParams', 'MapperTimings', 'MembershipFamily', 'OverhangFreeMap', 'Pairing', 'PclIcpParams', 'PclIcpResult', 'PointBasedParams', 'PoseGraphEdge', 'PoseGraphParams', 'PoseGraphResult', 'PoseSegmentError', 'RegionLayoutComparison', 'RegionPairError', 'RegionRelations', 'RegionTripleError', 'RegistrationParams', 'RegistrationResult', 'RelativePoseError', 'RelativePoseErrorParams', 'RobustLoss', 'ScanReport', 'SegmentLengthError', 'ShadowAwareParams', 'StepRule', 'StopReason', 'TerrainParams', 'TrajectoryAlignment', 'TraversabilityParams', 'absolute_trajectory_error', 'build_elevation_map', 'build_elevation_map_into', 'build_overhang_free_map', 'classify_terrain', 'collapse_overhangs', 'compare_region_layouts', 'cube_reason_name', 'error_statistics', 'fit_fuzzy_elevation_map', 'has_pcl', 'leveling_transform', 'octomap_column_overhangs', 'optimize_pose_graph', 'pcl_gicp', 'pcl_icp', 'point_based_overhangs', 'points_of_map', 'register_maps', 'register_points', 'relative_pose_error', 'rigid_alignment', 'sigma_from_robot_height', 'simulation', 'step_layer']
+__all__: list[str] = ['AbsoluteTrajectoryError', 'CollapseMethod', 'CollapseParams', 'CollapseResult', 'CorrelativeSearchParams', 'CorrelativeSearchResult', 'CropBox', 'CubeGrid', 'CubeReason', 'CubeStorage', 'ElevationMap', 'ElevationParams', 'ErrorStatistics', 'FuzzyElevationMap', 'FuzzyParams', 'GroundReference', 'LocalMap', 'LocalMapParams', 'LocalMapUpdate', 'LoopClosure', 'MapGeometry', 'Mapper', 'MapperParams', 'MapperTimings', 'MembershipFamily', 'OverhangFreeMap', 'Pairing', 'PclIcpParams', 'PclIcpResult', 'PointBasedParams', 'PoseGraphEdge', 'PoseGraphParams', 'PoseGraphResult', 'PoseSegmentError', 'RegionLayoutComparison', 'RegionPairError', 'RegionRelations', 'RegionTripleError', 'RegistrationParams', 'RegistrationResult', 'RelativePoseError', 'RelativePoseErrorParams', 'RobustLoss', 'ScanReport', 'SegmentLengthError', 'ShadowAwareParams', 'StepRule', 'StopReason', 'TerrainParams', 'TrajectoryAlignment', 'TraversabilityParams', 'absolute_trajectory_error', 'build_elevation_map', 'build_elevation_map_into', 'build_overhang_free_map', 'classify_terrain', 'collapse_overhangs', 'compare_region_layouts', 'correlative_search', 'cube_reason_name', 'error_statistics', 'fit_fuzzy_elevation_map', 'has_pcl', 'leveling_transform', 'octomap_column_overhangs', 'optimize_pose_graph', 'pcl_gicp', 'pcl_icp', 'point_based_overhangs', 'points_of_map', 'register_maps', 'register_points', 'relative_pose_error', 'rigid_alignment', 'sigma_from_robot_height', 'simulation', 'step_layer']
 class CubeGrid:
     """
     CBC grid geometry ([CBC] eqs. (1)-(9)); cube (0,0,0) is centred on min_corner.
@@ -878,10 +878,57 @@ class StopReason:
     @property
     def value(self) -> int:
         ...
+class CorrelativeSearchParams:
+    refine: bool
+    def __init__(self) -> None:
+        ...
+    @property
+    def cell_m(self) -> float:
+        ...
+    @cell_m.setter
+    def cell_m(self, arg0: typing.SupportsFloat | typing.SupportsIndex) -> None:
+        ...
+    @property
+    def step_cells(self) -> int:
+        ...
+    @step_cells.setter
+    def step_cells(self, arg0: typing.SupportsInt | typing.SupportsIndex) -> None:
+        ...
+    @property
+    def tie_tolerance(self) -> float:
+        ...
+    @tie_tolerance.setter
+    def tie_tolerance(self, arg0: typing.SupportsFloat | typing.SupportsIndex) -> None:
+        ...
+    @property
+    def window_m(self) -> float:
+        ...
+    @window_m.setter
+    def window_m(self, arg0: typing.SupportsFloat | typing.SupportsIndex) -> None:
+        ...
+    @property
+    def yaw_hypotheses(self) -> int:
+        ...
+    @yaw_hypotheses.setter
+    def yaw_hypotheses(self, arg0: typing.SupportsInt | typing.SupportsIndex) -> None:
+        ...
+    @property
+    def yaw_window_rad(self) -> float:
+        ...
+    @yaw_window_rad.setter
+    def yaw_window_rad(self, arg0: typing.SupportsFloat | typing.SupportsIndex) -> None:
+        ...
 class RegistrationParams:
+    correlative_search: bool
     extrapolate: bool
     pairing: Pairing
+    search: CorrelativeSearchParams
     use_classes: bool
+    @staticmethod
+    def paper_icp() -> RegistrationParams:
+        """
+        the paper's plain weighted ICP: no correlative search, extrapolation or coarse-to-fine
+        """
     def __init__(self) -> None:
         ...
     @property
@@ -974,9 +1021,38 @@ class RegistrationParams:
     @translation_tolerance_m.setter
     def translation_tolerance_m(self, arg0: typing.SupportsFloat | typing.SupportsIndex) -> None:
         ...
+    @property
+    def trust_max_rmse_m(self) -> float:
+        ...
+    @trust_max_rmse_m.setter
+    def trust_max_rmse_m(self, arg0: typing.SupportsFloat | typing.SupportsIndex) -> None:
+        ...
+    @property
+    def trust_min_contrast(self) -> float:
+        ...
+    @trust_min_contrast.setter
+    def trust_min_contrast(self, arg0: typing.SupportsFloat | typing.SupportsIndex) -> None:
+        ...
+    @property
+    def trust_min_held(self) -> float:
+        ...
+    @trust_min_held.setter
+    def trust_min_held(self, arg0: typing.SupportsFloat | typing.SupportsIndex) -> None:
+        ...
+    @property
+    def trust_min_overlap(self) -> float:
+        ...
+    @trust_min_overlap.setter
+    def trust_min_overlap(self, arg0: typing.SupportsFloat | typing.SupportsIndex) -> None:
+        ...
 class RegistrationResult:
     def __repr__(self) -> str:
         ...
+    @property
+    def chance_overlap(self) -> float:
+        """
+        the overlap at the result moved by 1 m along +-x or +-y, the least: coincidence alone
+        """
     @property
     def constraint_eigenvalues(self) -> typing.Annotated[numpy.typing.NDArray[numpy.float64], "[6, 1]"]:
         """
@@ -1012,6 +1088,26 @@ class RegistrationResult:
         extrapolated jumps kept by the guard
         """
     @property
+    def held(self) -> typing.Annotated[numpy.typing.NDArray[numpy.float64], "[6, 1]"]:
+        """
+        (6,) how firmly each motion is held, per unit of pair weight, ascending (0 none, 1 every pair)
+        """
+    @property
+    def held_directions(self) -> typing.Annotated[numpy.typing.NDArray[numpy.float64], "[6, 6]"]:
+        """
+        (6, 6) unit eigenvectors of held as columns (rotation x rms radius, translation)
+        """
+    @property
+    def icp_start(self) -> typing.Annotated[numpy.typing.NDArray[numpy.float64], "[4, 4]"]:
+        """
+        (4, 4) where the ICP started: initial, or the correlative search's best hypothesis
+        """
+    @property
+    def inlier_share_per_class(self) -> typing.Annotated[list[float], "FixedSize(6)"]:
+        """
+        (6,) per source class: share of its points with a partner
+        """
+    @property
     def iterations(self) -> int:
         ...
     @property
@@ -1022,6 +1118,11 @@ class RegistrationResult:
     @property
     def num_correspondences(self) -> int:
         ...
+    @property
+    def overlap(self) -> float:
+        """
+        share of the source's object cells with a partner within the last distance limit
+        """
     @property
     def passes(self) -> int:
         """
@@ -1039,6 +1140,34 @@ class RegistrationResult:
     def transform(self) -> typing.Annotated[numpy.typing.NDArray[numpy.float64], "[4, 4]"]:
         """
         (4, 4) source -> target
+        """
+    @property
+    def trusted(self) -> bool:
+        """
+        every trust threshold of RegistrationParams met
+        """
+    @property
+    def verdict(self) -> str:
+        """
+        why the result is (not) trusted, in plain words
+        """
+class CorrelativeSearchResult:
+    def __repr__(self) -> str:
+        ...
+    @property
+    def points(self) -> int:
+        """
+        source points that took part (non-ground)
+        """
+    @property
+    def score(self) -> int:
+        """
+        source points on occupied target cells
+        """
+    @property
+    def transform(self) -> typing.Annotated[numpy.typing.NDArray[numpy.float64], "[4, 4]"]:
+        """
+        (4, 4) the best hypothesis, source -> target
         """
 class PclIcpParams:
     def __init__(self) -> None:
@@ -1505,6 +1634,7 @@ class PoseGraphResult:
         """
 class MapperParams:
     keep_local_maps: bool
+    lidar_only: bool
     loop_closing: bool
     registration: RegistrationParams
     terrain: TerrainParams
@@ -1733,11 +1863,21 @@ class MapperTimings:
     def map_building_ms(self) -> float:
         ...
     @property
+    def registered_steps(self) -> int:
+        """
+        steps whose registration was accepted
+        """
+    @property
     def registration_ms(self) -> float:
         ...
     @property
     def scans(self) -> int:
         ...
+    @property
+    def untrusted_steps(self) -> int:
+        """
+        steps whose registration was not trusted (odometry or the prediction was used)
+        """
 class Mapper:
     def __init__(self, params: MapperParams) -> None:
         ...
@@ -1998,6 +2138,8 @@ def classify_terrain(map: ElevationMap, params: TerrainParams) -> numpy.typing.N
 def collapse_overhangs(points: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], params: CollapseParams) -> CollapseResult:
     ...
 def compare_region_layouts(map_centres: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], dsm_centres: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], relations: RegionRelations = ...) -> RegionLayoutComparison:
+    ...
+def correlative_search(source: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], source_classes: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], target: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], target_classes: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], guess: typing.Annotated[numpy.typing.ArrayLike, numpy.float64, "[4, 4]"], params: CorrelativeSearchParams) -> CorrelativeSearchResult:
     ...
 def cube_reason_name(reason: typing.SupportsInt | typing.SupportsIndex) -> str:
     ...
