@@ -23,7 +23,7 @@ kitti=$data/kitti_seq00/velodyne/000000.bin
 [ -f "$kitti" ] || { echo "ab_builds.sh: $kitti not found (set TERRACUBE_DATA_DIR)" >&2; exit 2; }
 # The map path's sources; a revision compiles those it has (cpu_features, threads and
 # quantize_kernels exist only before the simplification of issue 33).
-sources="elevation_map cloud_frame cpu_features threads quantize_kernels collapse terrain"
+sources="elevation_map cloud_frame cpu_features threads quantize_kernels collapse shadow_aware terrain"
 
 work=$(mktemp -d)
 cleanup() {

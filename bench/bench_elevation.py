@@ -237,21 +237,21 @@ def numpy_classify(
     std_dev: float = 0.1,
     robot_height: float = 0.7,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Table 1 with the sensor-height reference: (classes, relative height).
+    """[TC] Table 1 as printed, with the sensor-height reference: (classes, relative height).
 
     As in the C++ code the relative height is float32 (``max - float32(-sensor_height)``) and the
-    thresholds compare in float64. discontinuity -> overhanging; low and small spread -> ground;
-    high and large spread -> vertical; everything else with data -> obstacle; then ground next to
-    an obstacle, overhanging or vertical cell (8-neighbourhood) -> horizontal edge. Empty cells
-    are unknown (0).
+    thresholds compare in float64. A discontinuity -> overhanging; a large spread -> vertical; a
+    small spread: low (< ground_height) -> ground, high (> robot_height) -> overhanging, in between
+    -> obstacle; then ground next to an obstacle, overhanging or vertical cell (8-neighbourhood) ->
+    horizontal edge. Empty cells are unknown (0).
     """
     relative = layers["max"] - np.float32(-sensor_height)  # NaN where empty
     height = relative.astype(np.float64)
     small = layers["std_dev"].astype(np.float64) < std_dev
-    low = height < ground_height
-    high = height >= robot_height
-    classes = np.where(low & small, np.uint8(GROUND), np.uint8(OBSTACLE))
-    classes[high & ~small] = VERTICAL
+    classes = np.full(height.shape, np.uint8(OBSTACLE))
+    classes[small & (height < ground_height)] = GROUND
+    classes[small & (height > robot_height)] = OVERHANGING
+    classes[~small] = VERTICAL
     classes[layers["discontinuity"] == 1.0] = OVERHANGING
     classes[np.isnan(relative)] = 0
 
