@@ -31,7 +31,7 @@ def _write_animation(frames: list[tuple[str, np.ndarray, np.ndarray]], path: Pat
         import matplotlib.pyplot as plt
         from matplotlib import animation
     except ImportError as error:  # pragma: no cover - matplotlib is a plotting extra
-        raise ImportError('an animation needs matplotlib: pip install "terracube[viz]"') from error
+        raise ImportError('an animation needs matplotlib: pip install "terracube[plot]"') from error
     from .io import atomic_path
 
     finite = np.concatenate([values[np.isfinite(values)] for _, values, _ in frames])
