@@ -365,9 +365,10 @@ ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vecto
   Workspace& w = thread_workspace();
   lowest_layers(sorted_occupied, num_columns, w.lowest);
   reliable_ground(grid, w.lowest, params.ground_support, w.reliable);
-  const auto radius =
-      std::min<std::int64_t>(static_cast<std::int64_t>(std::ceil(params.ground_radius_m / grid.edge_m - 1e-9)),
-                             std::max(grid.ixmax, grid.iymax));
+  // The window in columns, clipped to the grid in doubles: a radius of 1e300 m is finite, and its
+  // column count would overflow a 64-bit integer.
+  const auto radius = static_cast<std::int64_t>(std::min(std::ceil(params.ground_radius_m / grid.edge_m - 1e-9),
+                                                         static_cast<double>(std::max(grid.ixmax, grid.iymax))));
   window_minimum(grid, radius, w.reliable, w.scratch, w.ground, w.line);  // G0
   FreeSpaceFloor floor(grid, sensor_origin, params.azimuth_bins, w.slope);
   const std::int32_t* const first_ground = w.ground.data();
