@@ -124,6 +124,23 @@ def _writable_folder(folder: Path, option: str = "--output-dir") -> Path:
     return folder
 
 
+def _scan_files(scans: Path, limit: int | None) -> list[Path]:
+    """The scan files of a folder (sorted) or a glob, at most ``limit``; exits when there are none."""
+    from .pipeline import SCAN_SUFFIXES, expand_inputs
+
+    if scans.is_dir():
+        files = sorted(p for p in scans.iterdir() if p.is_file() and not p.name.startswith("."))
+    else:
+        with _exit_on_bad_input():
+            files = expand_inputs([str(scans)])
+    files = [f for f in files if f.suffix.lower() in SCAN_SUFFIXES][
+        : None if limit is None else max(limit, 0)
+    ]
+    if not files:
+        raise _fail(f"{scans}: no scans found")
+    return files
+
+
 def _existing_file(path: Path | None, option: str) -> None:
     """Exit 2 before any work when an input file given by ``option`` is missing."""
     if path is not None and not path.is_file():
@@ -1028,7 +1045,7 @@ def map_command(
     from tqdm import tqdm
 
     from .mapping import detect_pose_format, match_scans_to_poses, read_kitti_calibration, read_pose_file
-    from .pipeline import SCAN_SUFFIXES, build_global_map, expand_inputs
+    from .pipeline import build_global_map
 
     cfg = command_config(
         "map", {"config": config, "preset": preset, "min_range": min_range, "max_range": max_range}
@@ -1039,16 +1056,7 @@ def map_command(
         loop_closing=loop_closing,
         use_registration=registration,
     )
-    if scans.is_dir():
-        files = sorted(p for p in scans.iterdir() if p.is_file() and not p.name.startswith("."))
-    else:
-        with _exit_on_bad_input():
-            files = expand_inputs([str(scans)])
-    files = [f for f in files if f.suffix.lower() in SCAN_SUFFIXES][
-        : None if limit is None else max(limit, 0)
-    ]
-    if not files:
-        raise _fail(f"{scans}: no scans found")
+    files = _scan_files(scans, limit)
     if not poses.is_file():
         raise _fail(f"{poses}: no such pose file")
     _existing_file(calib, "--calib")
@@ -1135,19 +1143,9 @@ def stream_command(
 
     from .local_map import LocalMapParams
     from .mapping import detect_pose_format, match_scans_to_poses, read_kitti_calibration, read_pose_file
-    from .pipeline import SCAN_SUFFIXES, expand_inputs
     from .stream import run_stream
 
-    if scans.is_dir():
-        files = sorted(p for p in scans.iterdir() if p.is_file() and not p.name.startswith("."))
-    else:
-        with _exit_on_bad_input():
-            files = expand_inputs([str(scans)])
-    files = [f for f in files if f.suffix.lower() in SCAN_SUFFIXES][
-        : None if limit is None else max(limit, 0)
-    ]
-    if not files:
-        raise _fail(f"{scans}: no scans found")
+    files = _scan_files(scans, limit)
     if not poses.is_file():
         raise _fail(f"{poses}: no such pose file")
     _existing_file(calib, "--calib")
