@@ -112,35 +112,42 @@ void check_local_map_params(const LocalMapParams& p) {
 
 /// A monotone stand-in for the azimuth of (x, y), in [0, 4) ("diamond angle"): one division
 /// instead of atan2. Bins of it are at most twice as wide in angle as their mean.
-double diamond_azimuth(double x, double y) {
-  if (y >= 0.0) return x >= 0.0 ? y / (x + y) : 1.0 - x / (y - x);
-  return x < 0.0 ? 2.0 - y / (-x - y) : 3.0 + x / (x - y);
+float diamond_azimuth(float x, float y) {
+  if (y >= 0.0F) return x >= 0.0F ? y / (x + y) : 1.0F - x / (y - x);
+  return x < 0.0F ? 2.0F - y / (-x - y) : 3.0F + x / (x - y);
 }
 
 /// The nearest horizontal range of the returns in each (azimuth, elevation) bin of one scan,
 /// seen from the sensor; elevation binned on sin(phi) (bins of visibility_bin_rad near the horizon).
+/// Directions are binned in float (its 1e-7 relative error is far below a bin), which bounds the
+/// returns it takes to 1000 km from the sensor.
 class VisibilityImage {
  public:
   void reset(double bin_rad) {
     // Azimuth bins twice as wide: a spinning sensor's columns are denser than its rows.
-    azimuth_bins_ = 4 * static_cast<int>(std::ceil(1.5707963267948966 / (2.0 * bin_rad)));
+    quarter_azimuth_bins_ = static_cast<int>(std::ceil(1.5707963267948966 / (2.0 * bin_rad)));
     elevation_bins_ = static_cast<int>(std::ceil(2.0 / bin_rad));
-    bin_ = bin_rad;
-    nearest_squared_.assign(static_cast<std::size_t>(azimuth_bins_) * elevation_bins_, kInfF);
+    inverse_bin_ = static_cast<float>(1.0 / bin_rad);
+    nearest_squared_.assign(static_cast<std::size_t>(4 * quarter_azimuth_bins_) * elevation_bins_, kInfF);
   }
-  /// The bin of direction v (v_xy != 0), elevation bin shifted by `elevation_shift`; -1 outside.
-  std::ptrdiff_t bin_of(const Eigen::Vector3d& v, double horizontal_squared, int elevation_shift) const {
-    const double r = std::sqrt(horizontal_squared + v.z() * v.z());
-    const int e = std::min(static_cast<int>((v.z() / r + 1.0) / bin_), elevation_bins_ - 1) + elevation_shift;
+  /// The bin of direction v, elevation bin shifted by `elevation_shift`; -1 outside, or when v
+  /// is vertical, or 1000 km or more away.
+  std::ptrdiff_t bin_of(const Eigen::Vector3d& v, int elevation_shift) const {
+    const double horizontal_squared = v.x() * v.x() + v.y() * v.y();
+    if (!(horizontal_squared > 0.0 && horizontal_squared + v.z() * v.z() < 1e12)) return -1;
+    const auto x = static_cast<float>(v.x()), y = static_cast<float>(v.y()), z = static_cast<float>(v.z());
+    const float sine = z / std::sqrt(x * x + y * y + z * z);
+    const int e = std::min(static_cast<int>((sine + 1.0F) * inverse_bin_), elevation_bins_ - 1) + elevation_shift;
     if (e < 0) return -1;
-    const int a = std::min(static_cast<int>(diamond_azimuth(v.x(), v.y()) * (azimuth_bins_ / 4)), azimuth_bins_ - 1);
+    const int a = std::min(static_cast<int>(diamond_azimuth(x, y) * static_cast<float>(quarter_azimuth_bins_)),
+                           4 * quarter_azimuth_bins_ - 1);
     return static_cast<std::ptrdiff_t>(a) * elevation_bins_ + e;
   }
   void add(const Eigen::Vector3d& v) {
-    const double horizontal_squared = v.x() * v.x() + v.y() * v.y();
-    if (horizontal_squared == 0.0) return;
-    float& nearest = nearest_squared_[static_cast<std::size_t>(bin_of(v, horizontal_squared, 0))];
-    nearest = std::min(nearest, static_cast<float>(horizontal_squared));
+    const std::ptrdiff_t bin = bin_of(v, 0);
+    if (bin < 0) return;
+    float& nearest = nearest_squared_[static_cast<std::size_t>(bin)];
+    nearest = std::min(nearest, static_cast<float>(v.x() * v.x() + v.y() * v.y()));
   }
   /// Whether, in some bin between the directions to `low` and (just below) `high` (points above
   /// the same cell centre, low below high), every return lies horizontally beyond `reach`: rays
@@ -148,11 +155,10 @@ class VisibilityImage {
   /// that a ray beside the direction that met something nearer vetoes its bin). Beams leave gaps
   /// between rows: empty bins say nothing.
   bool seen_beyond(const Eigen::Vector3d& low, const Eigen::Vector3d& high, double reach) const {
-    const double horizontal_squared = high.x() * high.x() + high.y() * high.y();
-    if (horizontal_squared == 0.0) return false;
-    const std::ptrdiff_t top = bin_of(high, horizontal_squared, -1);
+    const std::ptrdiff_t top = bin_of(high, -1);
     if (top < 0) return false;
-    const std::ptrdiff_t bottom = std::max(bin_of(low, horizontal_squared, 0), top - top % elevation_bins_);
+    const std::ptrdiff_t low_bin = bin_of(low, 0);
+    const std::ptrdiff_t bottom = std::max(low_bin < 0 ? top : low_bin, top - top % elevation_bins_);
     const auto beyond = static_cast<float>(reach * reach);
     for (std::ptrdiff_t bin = bottom; bin <= top; ++bin) {
       const float nearest = nearest_squared_[static_cast<std::size_t>(bin)];
@@ -162,17 +168,17 @@ class VisibilityImage {
   }
 
  private:
-  int azimuth_bins_ = 0, elevation_bins_ = 0;
-  double bin_ = 1.0;
+  int quarter_azimuth_bins_ = 0, elevation_bins_ = 0;
+  float inverse_bin_ = 1.0F;
   std::vector<float> nearest_squared_;  // [m^2]
 };
 
-/// One scan's statistics of a cell (kept points; overhang points only in overhang_min).
+/// One scan's statistics of a cell's kept points.
 struct ScanCell {
   std::uint32_t count = 0;
   double first = 0.0, sum = 0.0, sum_squares = 0.0, sum_variance = 0.0;
-  double lowest = kInf, highest = -kInf, overhang_min = kInf;
-  bool touched = false, gap = false;
+  double lowest = kInf, highest = -kInf;
+  bool gap = false;
 
   void add(double z, double variance) {
     if (count == 0) first = z;
@@ -186,54 +192,82 @@ struct ScanCell {
   }
 };
 
-/// A kept point of a cell whose heights may hold a discontinuity.
-struct GapPoint {
-  std::uint32_t cell;
+/// A kept point's height and height variance (LocalMapParams' noise model).
+struct KeptPoint {
   double z, variance;
-  bool operator<(const GapPoint& o) const {
-    return cell != o.cell ? cell < o.cell : (z != o.z ? z < o.z : variance < o.variance);
-  }
+  bool operator<(const KeptPoint& o) const { return z != o.z ? z < o.z : variance < o.variance; }
 };
+
+/// The cell of a point that is not binned: outside the map, or an overhang.
+constexpr std::uint32_t kNotKept = std::numeric_limits<std::uint32_t>::max();
 
 /// Buffers of one update, kept by the calling thread for its next one (fresh pages cost more
 /// than the work, see elevation_map.cpp).
 struct Workspace {
-  std::vector<ScanCell> cells;
-  std::vector<std::uint32_t> touched;
   VisibilityImage visibility;
-  std::vector<GapPoint> gap_points;
+  std::vector<Eigen::Vector3d> points;    // the leveled scan inside the map's area
+  std::vector<std::uint32_t> point_cell;  // per point: its stored cell when kept in the map, else kNotKept
+  // Counting sort of the kept points by cell: cell c holds kept[start[c], start[c + 1]), in point order.
+  std::vector<std::uint32_t> start, fill;
+  std::vector<KeptPoint> kept, sorted;
+  std::vector<double> overhang_min;  // per cell: this scan's lowest overhang point above it, or +inf
   std::vector<std::size_t> row_offset, column;
 };
 
-/// A cell whose sorted kept heights hold a gap over `threshold` is discontinuous: its measurement
-/// is the points below the first gap (the ground under whatever [CBC]'s cubes kept above it,
-/// e.g. where a cell straddles two cube columns) and the first point above the gap is an overhang.
-void split_at_gaps(Workspace& w, double threshold) {
-  std::sort(w.gap_points.begin(), w.gap_points.end());
-  for (std::size_t begin = 0, end = 0; begin < w.gap_points.size(); begin = end) {
-    const std::uint32_t cell = w.gap_points[begin].cell;
-    end = begin + 1;
-    while (end < w.gap_points.size() && w.gap_points[end].cell == cell) ++end;
-    std::size_t top = begin + 1;
-    while (top < end && w.gap_points[top].z - w.gap_points[top - 1].z <= threshold) ++top;
-    if (top == end) continue;
-    ScanCell& c = w.cells[cell];
-    const double overhang_min = std::min(c.overhang_min, w.gap_points[top].z);
-    c = ScanCell();
-    c.touched = true;
-    c.gap = true;
-    c.overhang_min = overhang_min;
-    for (std::size_t k = begin; k < top; ++k) c.add(w.gap_points[k].z, w.gap_points[k].variance);
-  }
+/// One scan's measurement of a cell from its kept points (in point order). A cell whose sorted
+/// heights hold a gap over `threshold` is discontinuous: its measurement is the points below the
+/// first gap (the ground under whatever [CBC]'s cubes kept above it, e.g. where a cell straddles
+/// two cube columns) and the first point above the gap is an overhang (into `overhang_min`).
+ScanCell measure_cell(const KeptPoint* begin, const KeptPoint* end, double threshold, std::vector<KeptPoint>& sorted,
+                      double& overhang_min) {
+  ScanCell c;
+  for (const KeptPoint* p = begin; p != end; ++p) c.add(p->z, p->variance);
+  if (c.count < 2 || c.highest - c.lowest <= threshold) return c;  // no gap can be wider than the span
+  sorted.assign(begin, end);
+  std::sort(sorted.begin(), sorted.end());
+  std::size_t top = 1;
+  while (top < sorted.size() && sorted[top].z - sorted[top - 1].z <= threshold) ++top;
+  if (top == sorted.size()) return c;
+  overhang_min = std::min(overhang_min, sorted[top].z);
+  c = ScanCell();
+  c.gap = true;
+  for (std::size_t k = 0; k < top; ++k) c.add(sorted[k].z, sorted[k].variance);
+  return c;
 }
+
 Workspace& thread_workspace() {
   thread_local Workspace workspace;
   return workspace;
 }
 
-/// Per-row window sums of the planner pass along y.
-struct RowMoments {
-  double n, y, z, yy, yz, zz;
+/// The sums over a set of known cells that a least-squares plane needs: x, y the geometric cell
+/// indices, z the height relative to a reference. x and y sums are whole numbers, exact in double.
+struct Moments {
+  double n = 0, x = 0, y = 0, z = 0, xx = 0, xy = 0, yy = 0, xz = 0, yz = 0, zz = 0;
+
+  void add(double cx, double cy, double cz) {
+    n += 1.0;
+    x += cx;
+    y += cy;
+    z += cz;
+    xx += cx * cx;
+    xy += cx * cy;
+    yy += cy * cy;
+    xz += cx * cz;
+    yz += cy * cz;
+    zz += cz * cz;
+  }
+  Moments& operator+=(const Moments& o) {
+    n += o.n, x += o.x, y += o.y, z += o.z, xx += o.xx, xy += o.xy, yy += o.yy, xz += o.xz, yz += o.yz, zz += o.zz;
+    return *this;
+  }
+  Moments operator-(const Moments& o) const {
+    return {n - o.n, x - o.x, y - o.y, z - o.z, xx - o.xx, xy - o.xy, yy - o.yy, xz - o.xz, yz - o.yz, zz - o.zz};
+  }
+};
+
+/// The lowest and highest height of a window along y (NaN-free: +inf and -inf when all unknown).
+struct Extremes {
   float lowest, highest;
 };
 
@@ -272,59 +306,59 @@ struct ScanBinning {
   }
 };
 
-/// One pass over the scan: every return into the visibility image (when clearing), each point in
-/// the map into its cell's statistics (overhang points into overhang_min only). Returns the
-/// number of points in the map.
+/// The one pass that levels the scan (by the pose): every finite return goes into the visibility
+/// image (when clearing), those inside `area` (the map's area with a cell to spare) into w.points,
+/// the cloud that collapse_overhangs and the binning read. Returns the NaN/Inf rows.
 template <typename Scalar>
-std::size_t bin_scan(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose,
-                     const std::vector<std::uint8_t>& overhang, const ScanBinning& binning, bool clearing,
-                     Workspace& w) {
-  std::size_t in_map = 0;
-  detail::visit_leveled(points, pose, std::nullopt, [&](const auto& cloud) {
+detail::NonFiniteRows level_scan(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose, const CropBox& area,
+                                 const Eigen::Vector3d& sensor, bool clearing, Workspace& w) {
+  detail::NonFiniteRows non_finite;
+  w.points.clear();
+  detail::visit_leveled(points, pose, area, [&](const auto& cloud) {
     Eigen::Vector3d p;
     for (std::size_t row = 0; row < cloud.size(); ++row) {
-      if (cloud.map(row, p) != 0) continue;  // NaN/Inf: collapse threw unless they are dropped
-      const Eigen::Vector3d v = p - binning.sensor;
-      if (clearing) w.visibility.add(v);
-      const std::ptrdiff_t cell = binning.cell_of(p);
-      if (cell < 0) continue;
-      ++in_map;
-      ScanCell& c = w.cells[static_cast<std::size_t>(cell)];
-      if (!c.touched) {
-        c = ScanCell();
-        c.touched = true;
-        w.touched.push_back(static_cast<std::uint32_t>(cell));
+      const int status = cloud.map(row, p);
+      if (status == 1) {
+        non_finite.add(row);
+        continue;
       }
-      if (overhang[row] != 0) {
-        c.overhang_min = std::min(c.overhang_min, p.z());
-      } else {
-        c.add(p.z(), binning.height_variance(v));
-      }
+      if (clearing) w.visibility.add(p - sensor);
+      if (status == 0) w.points.push_back(p);
     }
   });
-  return in_map;
+  return non_finite;
 }
 
-/// The few cells whose kept heights span more than `threshold`: a second pass gathers their
-/// points and split_at_gaps measures them below their first gap.
-template <typename Scalar>
-void split_discontinuous_cells(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose,
-                               const std::vector<std::uint8_t>& overhang, const ScanBinning& binning, double threshold,
-                               Workspace& w) {
-  const auto wide = [&](const ScanCell& c) { return c.count > 1 && c.highest - c.lowest > threshold; };
-  if (std::none_of(w.touched.begin(), w.touched.end(), [&](std::uint32_t cell) { return wide(w.cells[cell]); })) {
-    return;
-  }
-  detail::visit_leveled(points, pose, std::nullopt, [&](const auto& cloud) {
-    Eigen::Vector3d p;
-    for (std::size_t row = 0; row < cloud.size(); ++row) {
-      if (cloud.map(row, p) != 0 || overhang[row] != 0) continue;
-      const std::ptrdiff_t cell = binning.cell_of(p);
-      if (cell < 0 || !wide(w.cells[static_cast<std::size_t>(cell)])) continue;
-      w.gap_points.push_back({static_cast<std::uint32_t>(cell), p.z(), binning.height_variance(p - binning.sensor)});
+/// Bins the leveled points: overhang points into w.overhang_min, kept points grouped by cell
+/// (a counting sort, point order within a cell) into w.start and w.kept. Returns the points in
+/// the map.
+std::size_t bin_points(const std::vector<std::uint8_t>& overhang, const ScanBinning& binning, std::size_t cells,
+                       Workspace& w) {
+  std::size_t in_map = 0;
+  w.point_cell.assign(w.points.size(), kNotKept);
+  w.start.assign(cells + 1, 0);
+  w.overhang_min.assign(cells, kInf);
+  for (std::size_t k = 0; k < w.points.size(); ++k) {
+    const std::ptrdiff_t cell = binning.cell_of(w.points[k]);
+    if (cell < 0) continue;
+    ++in_map;
+    if (overhang[k] != 0) {
+      w.overhang_min[cell] = std::min(w.overhang_min[cell], w.points[k].z());
+    } else {
+      w.point_cell[k] = static_cast<std::uint32_t>(cell);
+      ++w.start[cell + 1];
     }
-  });
-  split_at_gaps(w, threshold);
+  }
+  for (std::size_t cell = 0; cell < cells; ++cell) w.start[cell + 1] += w.start[cell];
+  w.kept.resize(w.start[cells]);
+  w.fill.assign(w.start.begin(), w.start.end() - 1);  // the next free slot of each cell
+  for (std::size_t k = 0; k < w.points.size(); ++k) {
+    const std::uint32_t cell = w.point_cell[k];
+    if (cell == kNotKept) continue;
+    const Eigen::Vector3d& p = w.points[k];
+    w.kept[w.fill[cell]++] = {p.z(), binning.height_variance(p - binning.sensor)};
+  }
+  return in_map;
 }
 
 /// Calls clear(cell) for every cell whose column this scan's rays passed through, on their way to
@@ -418,50 +452,40 @@ void refresh_clearance(const LayerData& layer, std::size_t cells) {
   }
 }
 
-/// The window sums of one geometric row (heights `z` in map order, NaN unknown) over [j - r, j + r]
-/// clipped to the row, from differences of prefix sums (heights relative to `reference`), and
-/// the window's lowest and highest height, into out[0, n).
-void row_moments(const std::vector<float>& z, double reference, int r, std::vector<std::array<double, 6>>& prefix,
-                 RowMoments* out) {
+/// The moments of geometric row `x` (heights `z` in map order, NaN unknown, relative to
+/// `reference`) summed over the windows [j - r, j + r] clipped to the row, from differences of
+/// prefix sums, into sums[0, n), and each window's lowest and highest height into extremes[0, n).
+void row_windows(const std::vector<float>& z, double x, double reference, int r, std::vector<Moments>& prefix,
+                 Moments* sums, Extremes* extremes) {
   const int n = static_cast<int>(z.size());
-  prefix[0] = {0, 0, 0, 0, 0, 0};
+  prefix[0] = Moments();
   for (int j = 0; j < n; ++j) {
-    std::array<double, 6> next = prefix[j];
-    if (!std::isnan(z[j])) {
-      const double y = j, h = z[j] - reference;
-      next[0] += 1.0;
-      next[1] += y;
-      next[2] += h;
-      next[3] += y * y;
-      next[4] += y * h;
-      next[5] += h * h;
-    }
-    prefix[j + 1] = next;
+    prefix[j + 1] = prefix[j];
+    if (!std::isnan(z[j])) prefix[j + 1].add(x, j, z[j] - reference);
   }
   for (int j = 0; j < n; ++j) {
     const int lo = std::max(j - r, 0), hi = std::min(j + r, n - 1);
-    const std::array<double, 6>& a = prefix[hi + 1];
-    const std::array<double, 6>& b = prefix[lo];
-    RowMoments m{a[0] - b[0], a[1] - b[1], a[2] - b[2], a[3] - b[3], a[4] - b[4], a[5] - b[5], kInfF, -kInfF};
+    sums[j] = prefix[hi + 1] - prefix[lo];
+    Extremes e{kInfF, -kInfF};
     for (int k = lo; k <= hi; ++k) {  // std::min/max keep the first argument against NaN
-      m.lowest = std::min(m.lowest, z[k]);
-      m.highest = std::max(m.highest, z[k]);
+      e.lowest = std::min(e.lowest, z[k]);
+      e.highest = std::max(e.highest, z[k]);
     }
-    out[j] = m;
+    extremes[j] = e;
   }
 }
 
-/// The least-squares plane z = a x + b y + c of a window from its sums (x, y in cells): the
+/// The least-squares plane z = a x + b y + c of a window from its moments (x, y in cells): the
 /// gradient |(a, b)| per cell and the RMS vertical residual; invalid for collinear cells.
 struct PlaneFit {
   bool valid = false;
   double gradient = 0.0, roughness = 0.0;
 };
-PlaneFit fit_plane(double n, double x, double y, double z, double xx, double xy, double yy, double xz, double yz,
-                   double zz) {
-  const double mx = x / n, my = y / n, mz = z / n;
-  const double cxx = xx / n - mx * mx, cxy = xy / n - mx * my, cyy = yy / n - my * my;
-  const double cxz = xz / n - mx * mz, cyz = yz / n - my * mz, czz = zz / n - mz * mz;
+PlaneFit fit_plane(const Moments& m) {
+  const double w = 1.0 / m.n;  // the means and covariances of the window's cells
+  const double mx = m.x * w, my = m.y * w, mz = m.z * w;
+  const double cxx = m.xx * w - mx * mx, cxy = m.xy * w - mx * my, cyy = m.yy * w - my * my;
+  const double cxz = m.xz * w - mx * mz, cyz = m.yz * w - my * mz, czz = m.zz * w - mz * mz;
   const double det = cxx * cyy - cxy * cxy;
   PlaneFit fit;
   if (!(det > 1e-9)) return fit;
@@ -600,20 +624,29 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
   LocalMapUpdate report;
   report.num_points = points.size;
 
-  // Everything that can throw comes before the first change to the map.
-  CollapseParams collapse = params_.collapse;
-  collapse.transform = pose;
-  collapse.num_threads = params_.num_threads;
-  // The map's area with a cell to spare, so that every point binned into the map took part.
-  CropBox crop;
-  crop.min =
+  // Everything that can throw comes before the first change to the map. The scan is leveled
+  // once; the map's area with a cell to spare bounds the cloud, so that every point binned into
+  // the map took part in the overhang removal.
+  Workspace& w = thread_workspace();
+  const bool clearing = params_.clear_seen_through && points.size > 0;
+  if (clearing) w.visibility.reset(params_.visibility_bin_rad);
+  CropBox area;
+  area.min =
       Eigen::Vector3d(static_cast<double>(target.x() - 1) * res, static_cast<double>(target.y() - 1) * res, -1e9);
-  crop.max = Eigen::Vector3d(static_cast<double>(target.x() + n + 1) * res,
+  area.max = Eigen::Vector3d(static_cast<double>(target.x() + n + 1) * res,
                              static_cast<double>(target.y() + n + 1) * res, 1e9);
-  collapse.crop = crop;
+  const detail::NonFiniteRows non_finite = level_scan(points, pose, area, sensor, clearing, w);
+  if (non_finite.count > 0 && !params_.collapse.drop_non_finite) {
+    detail::throw_non_finite_rows(non_finite, points.size);
+  }
+  report.num_dropped_non_finite = non_finite.count;
+  CollapseParams collapse = params_.collapse;  // on the leveled, bounded cloud
+  collapse.transform = Eigen::Matrix4d::Identity();
+  collapse.crop.reset();
+  collapse.num_threads = params_.num_threads;
+  if (!collapse.shadow_aware.sensor_origin) collapse.shadow_aware.sensor_origin = sensor;
   CollapseResult removed;
-  if (points.size > 0) removed = collapse_overhangs(points, collapse);
-  report.num_dropped_non_finite = removed.num_dropped_non_finite;
+  if (!w.points.empty()) removed = collapse_overhangs(w.points, collapse);
   report.num_overhang = removed.num_overhang;
 
   report.map_reset = move_to(sensor.head<2>());
@@ -625,13 +658,7 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
     for (std::size_t cell = 0; cell < geometry_.num_cells(); ++cell) layer[kVariance][cell] += growth;  // NaN stays
   }
   last_sensor_ = sensor;
-  Workspace& w = thread_workspace();
   const std::size_t cells = geometry_.num_cells();
-  w.cells.resize(cells);
-  w.touched.clear();
-  w.gap_points.clear();
-  const bool clearing = params_.clear_seen_through && points.size > 0;
-  if (clearing) w.visibility.reset(params_.visibility_bin_rad);
   // The stored index of each geometric row (times n) and column.
   w.row_offset.resize(static_cast<std::size_t>(n));
   w.column.resize(static_cast<std::size_t>(n));
@@ -649,8 +676,7 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
                             sensor,
                             params_.range_sigma_m * params_.range_sigma_m,
                             params_.angle_sigma_rad * params_.angle_sigma_rad};
-  report.num_in_map = bin_scan(points, pose, removed.overhang, binning, clearing, w);
-  split_discontinuous_cells(points, pose, removed.overhang, binning, params_.discontinuity_m, w);
+  report.num_in_map = bin_points(removed.overhang, binning, cells, w);
 
   // Clearing: a stored height that this scan's rays passed under by the margin is gone.
   if (clearing) {
@@ -665,10 +691,11 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
   // The 1-D Kalman update of each measured cell, or its replacement outside the gate.
   const double gate_squared = params_.gate_sigmas * params_.gate_sigmas;
   const double cell_variance = params_.cell_sigma_m * params_.cell_sigma_m;
-  for (const std::uint32_t cell : w.touched) {
-    ScanCell& c = w.cells[cell];
-    c.touched = false;  // the workspace is clean for the next update
-    if (c.overhang_min < kInf) layer[kOverhangMin][cell] = static_cast<float>(c.overhang_min);
+  for (std::size_t cell = 0; cell < cells; ++cell) {
+    const KeptPoint* begin = w.kept.data() + w.start[cell];
+    const KeptPoint* end = w.kept.data() + w.start[cell + 1];
+    const ScanCell c = measure_cell(begin, end, params_.discontinuity_m, w.sorted, w.overhang_min[cell]);
+    if (w.overhang_min[cell] < kInf) layer[kOverhangMin][cell] = static_cast<float>(w.overhang_min[cell]);
     if (c.count == 0) continue;
     ++report.num_fused_cells;
     report.num_replaced_cells +=
@@ -702,21 +729,33 @@ void LocalMap::update_planner_layers() {
       break;
     }
   }
-  thread_local std::vector<RowMoments> workspace;
-  std::vector<RowMoments>& rows = workspace;  // the calling thread's, also inside the parts
-  rows.resize(geometry_.num_cells());         // geometric order
-  const int parts = detail::fixed_parts(geometry_.num_cells(), 16384);
-  // Pass 1: window sums along y of each geometric row, by differences of prefix sums.
+  // The window sums are box sums: along y by prefix sums within each row (pass 1), along x by
+  // prefix sums down each column (pass 2), so a window costs the same whatever its size.
+  // prefix[(i + 1) n + j] ends as the sum of the row windows of column j over rows 0..i.
+  thread_local std::vector<Moments> prefix_workspace;
+  thread_local std::vector<Extremes> extremes_workspace;
+  std::vector<Moments>& prefix = prefix_workspace;  // the calling thread's, also inside the parts
+  std::vector<Extremes>& extremes = extremes_workspace;
+  const auto cells = static_cast<std::size_t>(n) * static_cast<std::size_t>(n);
+  prefix.resize(cells + static_cast<std::size_t>(n));
+  std::fill(prefix.begin(), prefix.begin() + n, Moments());
+  extremes.resize(cells);  // geometric order
+  const int parts = detail::fixed_parts(cells, 16384);
+  // Pass 1: the window sums of each geometric row.
   detail::for_each_part(params_.num_threads, parts, [&](int part) {
     const auto [begin, end] = detail::part_range(static_cast<std::size_t>(n), part, parts);
     std::vector<float> z(static_cast<std::size_t>(n));
-    std::vector<std::array<double, 6>> prefix(static_cast<std::size_t>(n) + 1);
+    std::vector<Moments> row_prefix(static_cast<std::size_t>(n) + 1);
     for (std::size_t gi = begin; gi < end; ++gi) {
       for (int gj = 0; gj < n; ++gj) z[gj] = height[row_of[gi] + column_of[gj]];
-      row_moments(z, reference, r, prefix, rows.data() + gi * n);
+      row_windows(z, static_cast<double>(gi), reference, r, row_prefix, prefix.data() + (gi + 1) * n,
+                  extremes.data() + gi * n);
     }
   });
-  // Pass 2: along x, then the plane fit and the traversability of each known cell.
+  // Pass 2: the prefix sums down the columns.
+  for (std::size_t k = static_cast<std::size_t>(n); k < prefix.size(); ++k) prefix[k] += prefix[k - n];
+  // Pass 3: each known cell's window (a difference of two prefix sums, and the extremes of its
+  // rows' windows), its plane fit and traversability.
   detail::for_each_part(params_.num_threads, parts, [&](int part) {
     const auto [begin, end] = detail::part_range(static_cast<std::size_t>(n), part, parts);
     for (std::size_t gi = begin; gi < end; ++gi) {
@@ -727,27 +766,17 @@ void LocalMap::update_planner_layers() {
                         layer[kTraversability] + cell};
         for (float* value : out) *value = kNaN;
         if (std::isnan(height[cell])) continue;
-        double N = 0, x = 0, y = 0, z = 0, xx = 0, xy = 0, yy = 0, xz = 0, yz = 0, zz = 0;
-        float lowest = std::numeric_limits<float>::infinity(), highest = -lowest;
+        float lowest = kInfF, highest = -kInfF;
         for (int a = lo; a <= hi; ++a) {
-          const RowMoments& m = rows[static_cast<std::size_t>(a) * n + gj];
-          const double ax = a - static_cast<double>(gi);  // x relative to the cell
-          N += m.n;
-          x += ax * m.n;
-          xx += ax * ax * m.n;
-          y += m.y;
-          yy += m.yy;
-          z += m.z;
-          zz += m.zz;
-          xy += ax * m.y;
-          xz += ax * m.z;
-          yz += m.yz;
-          lowest = std::min(lowest, m.lowest);
-          highest = std::max(highest, m.highest);
+          const Extremes& e = extremes[static_cast<std::size_t>(a) * n + gj];
+          lowest = std::min(lowest, e.lowest);
+          highest = std::max(highest, e.highest);
         }
         *out[0] = highest - lowest;
-        if (N < tp.min_window_cells) continue;
-        const PlaneFit fit = fit_plane(N, x, y, z, xx, xy, yy, xz, yz, zz);
+        const Moments window =
+            prefix[static_cast<std::size_t>(hi + 1) * n + gj] - prefix[static_cast<std::size_t>(lo) * n + gj];
+        if (window.n < tp.min_window_cells) continue;
+        const PlaneFit fit = fit_plane(window);
         if (!fit.valid) continue;
         const double slope = std::atan(fit.gradient / params_.resolution_m);
         *out[1] = static_cast<float>(slope);

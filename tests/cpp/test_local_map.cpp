@@ -213,6 +213,36 @@ TEST(LocalMap, OverhangAboveACellGivesItsClearanceAndIsNotFused) {
   EXPECT_NEAR(map.get("overhang_min")((*index).x(), (*index).y()), 3.0, 1e-6);
 }
 
+TEST(LocalMap, ACellWithAGapInItsHeightsIsMeasuredBelowTheGap) {
+  LocalMapParams params = small_map_params();
+  params.collapse.sigma = 20;  // nothing collapses: the gap inside the cell alone decides
+  params.discontinuity_m = 1.0;
+  params.range_sigma_m = 0.0;
+  params.angle_sigma_rad = 0.0;
+  LocalMap map(params);
+  // Cell (0.3, 0.3): heights -1.00, -0.96 and, 1.46 m above, 0.50 and 0.60. Cell (0.5, 0.3): the
+  // same heights without the upper two, and 0.0 (gaps under 1 m: one measurement of all three).
+  const std::vector<Eigen::Vector3d> points = {{0.31, 0.31, -2.0}, {0.32, 0.32, -1.96}, {0.33, 0.33, -0.5},
+                                               {0.34, 0.34, -0.4}, {0.51, 0.31, -2.0},  {0.52, 0.32, -1.96},
+                                               {0.53, 0.33, -1.0}};
+  map.update(PointsView<double>(points.data()->data(), points.size()), pose_at(0, 0, 1));
+  const auto at = [&](const char* layer, double x) {
+    const auto index = map.index_of({x, 0.35});
+    return static_cast<double>(map.get(layer)((*index).x(), (*index).y()));
+  };
+  EXPECT_NEAR(at("elevation", 0.35), -0.98, 1e-6);
+  EXPECT_EQ(at("count", 0.35), 2.0);
+  EXPECT_EQ(at("discontinuity", 0.35), 1.0);
+  EXPECT_NEAR(at("max", 0.35), -0.96, 1e-6);
+  EXPECT_NEAR(at("std_dev", 0.35), 0.02, 1e-6);
+  EXPECT_NEAR(at("overhang_min", 0.35), 0.5, 1e-6);
+  EXPECT_NEAR(at("clearance", 0.35), 1.48, 1e-6);
+  EXPECT_NEAR(at("elevation", 0.55), (-1.0 - 0.96 + 0.0) / 3.0, 1e-6);
+  EXPECT_EQ(at("count", 0.55), 3.0);
+  EXPECT_EQ(at("discontinuity", 0.55), 0.0);
+  EXPECT_TRUE(std::isnan(at("overhang_min", 0.55)));
+}
+
 TEST(LocalMap, BadPosesAndRowsAreRefusedAndLeaveTheMapUnchanged) {
   LocalMap map(small_map_params());
   const std::vector<Eigen::Vector3d> points = grid_scan(0.0, 0.0, 20, 0.1);
