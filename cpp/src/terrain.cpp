@@ -69,37 +69,72 @@ void window_min(const Layer& layer, int radius, Layer& out) {
   out = (out.array() == kInf).select(std::numeric_limits<float>::quiet_NaN(), out.array());
 }
 
-/// [TC] Table 1 for one cell with data. `height` is the highest elevation above the ground
-/// reference, compared in double with the thresholds as the paper states them.
-///   - A discontinuity makes an overhanging object whatever else holds ([TC] section 3.2, class 3:
-///     "a grid that has a discontinuity").
-///   - A large spread is the table's "Large" row, whose two entries span all three height columns:
-///     a vertical object without a discontinuity (the one with one was handled above).
-///   - A small spread reads the height columns: low (< ground_height_m) is ground, high (strictly
-///     higher than robot_height_m, class 3 "higher than the height of the robot") an overhanging
-///     object, and middle (in between, both ends included) an obstacle.
-std::uint8_t table_1_class(float height, float std_dev, bool discontinuity, const TerrainParams& params) {
-  if (discontinuity) return kOverhanging;
-  const bool small_spread = static_cast<double>(std_dev) < params.std_dev_m;
-  if (!small_spread) return kVertical;
-  const double h = height;
-  if (h < params.ground_height_m) return kGround;
-  if (h > params.robot_height_m) return kOverhanging;
-  return kObstacle;
+/// Thresholds of [TC] Table 1 in float: for a float x and a double t, x < t exactly when x <
+/// above(t), the least float >= t, and x > t exactly when x > below(t), the greatest float <= t.
+/// So the float comparisons of the cells give what comparing them in double with the thresholds as
+/// the paper states them gives, and a cell's class is a few selects (no branches to mispredict).
+/// (The thresholds are positive and finite: check_terrain_params.)
+float above(double t) {
+  constexpr float kMax = std::numeric_limits<float>::max();
+  if (t > kMax) return std::numeric_limits<float>::infinity();
+  const auto f = static_cast<float>(t);
+  return static_cast<double>(f) < t ? std::nextafter(f, std::numeric_limits<float>::infinity()) : f;
 }
+float below(double t) {
+  constexpr float kMax = std::numeric_limits<float>::max();
+  if (t > kMax) return kMax;
+  const auto f = static_cast<float>(t);
+  return static_cast<double>(f) > t ? std::nextafter(f, -std::numeric_limits<float>::infinity()) : f;
+}
+struct Table1 {
+  float ground_height, robot_height, std_dev;  // above(ground), below(robot), above(std-dev)
+
+  explicit Table1(const TerrainParams& p)
+      : ground_height(above(p.ground_height_m)), robot_height(below(p.robot_height_m)), std_dev(above(p.std_dev_m)) {}
+
+  /// [TC] Table 1 for one cell; `height` is the highest elevation above the ground reference, NaN
+  /// without data (unknown).
+  ///   - A discontinuity makes an overhanging object whatever else holds ([TC] section 3.2, class
+  ///     3: "a grid that has a discontinuity").
+  ///   - A large spread is the table's "Large" row, whose two entries span all three height
+  ///     columns: a vertical object without a discontinuity (the one with one was handled above).
+  ///   - A small spread reads the height columns: low (< ground_height_m) is ground, high
+  ///     (strictly higher than robot_height_m, class 3 "higher than the height of the robot") an
+  ///     overhanging object, and middle (in between, both ends included) an obstacle.
+  std::uint8_t operator()(float height, float std_dev_m, bool discontinuity) const {
+    const std::uint8_t by_height =
+        height < ground_height ? kGround : (height > robot_height ? kOverhanging : kObstacle);
+    const std::uint8_t by_spread = std_dev_m < std_dev ? by_height : kVertical;
+    const std::uint8_t known = discontinuity ? kOverhanging : by_spread;
+    return std::isnan(height) ? kUnknown : known;
+  }
+};
 
 /// [TC] section 3.2, class 5: a ground cell with an obstacle, overhanging or vertical cell among
-/// its 8 neighbours (inside the map) is a horizontal edge. `table` is nx x ny, row-major.
-bool beside_an_object(const std::uint8_t* table, Eigen::Index nx, Eigen::Index ny, Eigen::Index i, Eigen::Index j) {
-  const Eigen::Index i0 = std::max<Eigen::Index>(i - 1, 0), i1 = std::min(i + 1, nx - 1);
-  const Eigen::Index j0 = std::max<Eigen::Index>(j - 1, 0), j1 = std::min(j + 1, ny - 1);
-  for (Eigen::Index a = i0; a <= i1; ++a) {
-    for (Eigen::Index b = j0; b <= j1; ++b) {
-      const std::uint8_t c = table[a * ny + b];
-      if (c == kObstacle || c == kOverhanging || c == kVertical) return true;
+/// its 8 neighbours (inside the map) is a horizontal edge. `table` is nx x ny, row-major; rows
+/// [begin, end) of `out` get the classes, of `class_layer` the same as floats (NaN for unknown).
+/// An object's 3 x 3 neighbourhood is found separably: per row, whether the row or the rows above
+/// and below hold an object in the column (`near`), then whether that holds in the column or the
+/// columns beside it.
+void mark_edges(const std::uint8_t* table, Eigen::Index nx, Eigen::Index ny, Eigen::Index begin, Eigen::Index end,
+                std::uint8_t* out, float* class_layer) {
+  const auto object = [](std::uint8_t c) -> std::uint8_t {
+    return static_cast<std::uint8_t>((c == kObstacle) | (c == kOverhanging) | (c == kVertical));
+  };
+  // The "class" layer's value of each class: NaN for unknown.
+  constexpr float kValue[] = {std::numeric_limits<float>::quiet_NaN(), 1.0F, 2.0F, 3.0F, 4.0F, 5.0F};
+  std::vector<std::uint8_t> near(static_cast<std::size_t>(ny) + 2, 0);  // padded by a column each side
+  for (Eigen::Index i = begin; i < end; ++i) {
+    const std::uint8_t* row = table + i * ny;
+    const std::uint8_t* up = i > 0 ? row - ny : row;
+    const std::uint8_t* down = i + 1 < nx ? row + ny : row;
+    for (Eigen::Index j = 0; j < ny; ++j) near[j + 1] = object(up[j]) | object(row[j]) | object(down[j]);
+    for (Eigen::Index j = 0; j < ny; ++j) {
+      const bool edge = (row[j] == kGround) & ((near[j] | near[j + 1] | near[j + 2]) != 0);
+      out[i * ny + j] = edge ? kEdge : row[j];
     }
+    for (Eigen::Index j = 0; j < ny; ++j) class_layer[i * ny + j] = kValue[out[i * ny + j]];
   }
-  return false;
 }
 
 /// Runs rows(begin, end) over [0, nx) in parts of about 32k cells (fixed by the map, not by the
@@ -142,28 +177,19 @@ TerrainClasses classify_terrain_layers(ElevationMap& map, const TerrainParams& p
   // The loops read and write through plain local pointers: a byte store may alias anything, so
   // through the layers (and params) the compiler would reload their addresses on every cell.
   TerrainClasses table(nx, ny);  // [TC] Table 1, before the edge test
+  const Table1 table_1(params);
   for_row_blocks(nx, ny, params.num_threads, [&](Eigen::Index begin, Eigen::Index end) {
     const float* const h = relative_height.data();
     const float* const s = spread.data();
     const float* const d = gap.data();
     std::uint8_t* const t = table.data();
-    const TerrainParams thresholds = params;
-    for (Eigen::Index k = begin * ny; k < end * ny; ++k) {
-      t[k] = std::isnan(h[k]) ? kUnknown : table_1_class(h[k], s[k], d[k] == 1.0F, thresholds);
-    }
+    const Table1 rule = table_1;
+    const Eigen::Index first = begin * ny, count = (end - begin) * ny;  // a trip count the vectorizer sees
+    for (Eigen::Index k = 0; k < count; ++k) t[first + k] = rule(h[first + k], s[first + k], d[first + k] == 1.0F);
   });
   TerrainClasses out(nx, ny);
   for_row_blocks(nx, ny, params.num_threads, [&](Eigen::Index begin, Eigen::Index end) {
-    const std::uint8_t* const t = table.data();
-    std::uint8_t* const o = out.data();
-    float* const c = class_layer.data();
-    for (Eigen::Index i = begin; i < end; ++i) {
-      for (Eigen::Index j = 0; j < ny; ++j) {
-        const Eigen::Index k = i * ny + j;
-        o[k] = t[k] == kGround && beside_an_object(t, nx, ny, i, j) ? kEdge : t[k];
-        c[k] = o[k] == kUnknown ? kNaN : static_cast<float>(o[k]);
-      }
-    }
+    mark_edges(table.data(), nx, ny, begin, end, out.data(), class_layer.data());
   });
   return out;
 }
