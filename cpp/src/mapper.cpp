@@ -311,6 +311,8 @@ struct Mapper::Impl {
   template <typename Scalar>
   ScanReport add_checked(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry);
   void build_local_map(Keyframe& keyframe);
+  Eigen::Matrix4d registered_step(const Keyframe& keyframe, const Keyframe& previous, const Eigen::Matrix4d& guess,
+                                  ScanReport& report, Eigen::Matrix<double, 6, 1>& sigma);
   template <typename Scalar>
   void buffer_scan(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry);
   void fuse(const Keyframe& keyframe);
@@ -505,43 +507,7 @@ ScanReport Mapper::Impl::add_checked(const PointsView<Scalar>& points, const Eig
     Eigen::Matrix<double, 6, 1> sigma;
     sigma << Eigen::Vector3d::Constant(params.odometry_sigma_m_per_m * travelled),
         Eigen::Vector3d::Constant(params.odometry_sigma_rad_per_m * travelled);
-    if (params.use_registration) {
-      const auto start = Clock::now();
-      RegistrationParams registration = params.registration;
-      // LiDAR-only, first step: no velocity yet, so the search covers a keyframe's travel.
-      const bool first_blind_step = params.lidar_only && keyframes.size() == 1;
-      if (first_blind_step) registration.search.window_m += params.keyframe_distance_m;
-      if (!params.lidar_only && registration.correlative_search) {
-        // Odometry is usually close: the ICP from it alone first (the search can only blur a good
-        // guess); the search only when that answer is not trusted (a slip, a bad guess).
-        RegistrationParams from_guess = registration;
-        from_guess.correlative_search = false;
-        report.registration = register_points(keyframe.points, previous.points, guess, from_guess);
-        if (!report.registration.trusted) {
-          report.registration = register_points(keyframe.points, previous.points, guess, registration);
-        }
-      } else {
-        report.registration = register_points(keyframe.points, previous.points, guess, registration);
-      }
-      timings.registration_ms += ms_since(start);
-      const RegistrationResult& r = report.registration;
-      // The correction the step would apply (its yaw and translation with yaw_only_registration).
-      const Eigen::Matrix4d candidate = params.yaw_only_registration ? yaw_only(r.transform) : r.transform;
-      const Eigen::Matrix4d correction = inverse_rigid(guess) * candidate;
-      // LiDAR-only, there is no independent guess to bound the correction by: the verdict decides.
-      const double max_correction_m = params.lidar_only ? kInfinity : params.max_correction_m;
-      const double max_correction_rad = params.lidar_only ? kInfinity : params.max_correction_rad;
-      if (!r.trusted) {
-        ++timings.untrusted_steps;
-      } else if (correction.topRightCorner<3, 1>().norm() <= max_correction_m &&
-                 rotation_angle(correction) <= max_correction_rad) {
-        step = candidate;
-        report.registered = true;
-        ++timings.registered_steps;
-        sigma << Eigen::Vector3d::Constant(params.registration_sigma_m),
-            Eigen::Vector3d::Constant(params.registration_sigma_rad);
-      }
-    }
+    if (params.use_registration) step = registered_step(keyframe, previous, guess, report, sigma);
     if (params.lidar_only) {
       velocity = step;
       keyframe.path_m = previous.path_m + step.topRightCorner<3, 1>().norm();
@@ -571,6 +537,51 @@ ScanReport Mapper::Impl::add_checked(const PointsView<Scalar>& points, const Eig
     timings.loop_closing_ms += ms_since(start);
   }
   return report;
+}
+
+/// The step L_{k-1} <- L_k from the previous keyframe: registered from `guess` when the result
+/// is trusted and its correction of the guess within bounds (then `sigma` becomes the
+/// registration's), else the guess.
+Eigen::Matrix4d Mapper::Impl::registered_step(const Keyframe& keyframe, const Keyframe& previous,
+                                              const Eigen::Matrix4d& guess, ScanReport& report,
+                                              Eigen::Matrix<double, 6, 1>& sigma) {
+  Eigen::Matrix4d step = guess;
+  const auto start = Clock::now();
+  RegistrationParams registration = params.registration;
+  // LiDAR-only, first step: no velocity yet, so the search covers a keyframe's travel.
+  const bool first_blind_step = params.lidar_only && keyframes.size() == 1;
+  if (first_blind_step) registration.search.window_m += params.keyframe_distance_m;
+  if (!params.lidar_only && registration.correlative_search) {
+    // Odometry is usually close: the ICP from it alone first (the search can only blur a good
+    // guess); the search only when that answer is not trusted (a slip, a bad guess).
+    RegistrationParams from_guess = registration;
+    from_guess.correlative_search = false;
+    report.registration = register_points(keyframe.points, previous.points, guess, from_guess);
+    if (!report.registration.trusted) {
+      report.registration = register_points(keyframe.points, previous.points, guess, registration);
+    }
+  } else {
+    report.registration = register_points(keyframe.points, previous.points, guess, registration);
+  }
+  timings.registration_ms += ms_since(start);
+  const RegistrationResult& r = report.registration;
+  // The correction the step would apply (its yaw and translation with yaw_only_registration).
+  const Eigen::Matrix4d candidate = params.yaw_only_registration ? yaw_only(r.transform) : r.transform;
+  const Eigen::Matrix4d correction = inverse_rigid(guess) * candidate;
+  // LiDAR-only, there is no independent guess to bound the correction by: the verdict decides.
+  const double max_correction_m = params.lidar_only ? kInfinity : params.max_correction_m;
+  const double max_correction_rad = params.lidar_only ? kInfinity : params.max_correction_rad;
+  if (!r.trusted) {
+    ++timings.untrusted_steps;
+  } else if (correction.topRightCorner<3, 1>().norm() <= max_correction_m &&
+             rotation_angle(correction) <= max_correction_rad) {
+    step = candidate;
+    report.registered = true;
+    ++timings.registered_steps;
+    sigma << Eigen::Vector3d::Constant(params.registration_sigma_m),
+        Eigen::Vector3d::Constant(params.registration_sigma_rad);
+  }
+  return step;
 }
 
 std::size_t Mapper::Impl::close_loops(std::size_t k) {
