@@ -405,8 +405,8 @@ TEST(CollapsePreprocessing, LeveledCroppedCloudsWithDroppedRowsMatchTheNaiveAlgo
 }
 
 TEST(CollapsePreprocessing, LeveledCloudsThroughEveryViewLayoutAndLengthMatchTheNaiveAlgorithm) {
-  // The leveling kernel reads four rows at a time through any strides (packed, x y z i,
-  // column-major, reversed rows) and leaves a tail of up to three rows to the row-by-row path.
+  // Leveled rows read through any strides (packed, x y z i, column-major, reversed rows) and
+  // clouds of every small length.
   Eigen::Matrix4d transform = leveling_transform(0.04, -0.03);
   transform.topRightCorner<3, 1>() = Eigen::Vector3d(0.5, -0.25, 1.0);
   const CropBox crop{{-3.0, -3.0, -1.0}, {3.0, 2.5, 6.0}};
@@ -468,11 +468,10 @@ std::vector<Scalar> rows_with_extra_columns(const std::vector<Eigen::Vector3d>& 
 
 template <typename Scalar>
 void check_leveled_non_finite_rows() {
-  // The leveling kernels take four rows at a time (row loads for adjacent coordinates, the last
-  // row of three-scalar rows left to the row-by-row path): NaN/Inf rows in every lane position,
-  // several in one block, extra columns of NaN that are no coordinates, rows of 3, 4 and 6
-  // scalars. Dropped, the rest must match the naive Algorithm 1 on the rows leveled by hand;
-  // kept, the error must count them and name the first.
+  // NaN/Inf rows at every position of small clouds, several next to each other, extra columns of
+  // NaN that are no coordinates, rows of 3, 4 and 6 scalars. Dropped, the rest must match the
+  // naive Algorithm 1 on the rows leveled by hand; kept, the error must count them and name the
+  // first.
   Eigen::Matrix4d transform = leveling_transform(0.05, 0.02);
   transform.topRightCorner<3, 1>() = Eigen::Vector3d(-0.5, 0.75, 1.5);
   const CropBox crop{{-3.5, -3.0, -1.0}, {3.0, 3.5, 6.5}};
@@ -483,7 +482,7 @@ void check_leveled_non_finite_rows() {
       auto points = test::random_scene(700 + static_cast<std::uint32_t>(n), n, 4.0);
       points.resize(n);
       for (auto& p : points) p = test::rounded_to<Scalar>(p);  // exact in the rows
-      // Bad rows: one in each lane position across the cloud, two in one block when it has room.
+      // Bad rows: spread over the cloud, two close together when it has room.
       std::vector<std::size_t> bad_rows;
       for (std::size_t row = n / 3; row < n; row += 5) bad_rows.push_back(row);
       if (n >= 8) bad_rows.push_back(4 + (n % 4 == 0 ? 3 : 2));
@@ -532,7 +531,7 @@ void check_leveled_non_finite_rows() {
   }
 }
 
-TEST(CollapsePreprocessing, LeveledNonFiniteRowsInEveryLaneAndExtraColumnsAreHandledAsTheNaiveAlgorithm) {
+TEST(CollapsePreprocessing, LeveledNonFiniteRowsAnywhereAndExtraColumnsAreHandledAsTheNaiveAlgorithm) {
   check_leveled_non_finite_rows<float>();
   check_leveled_non_finite_rows<double>();
 }
@@ -614,11 +613,10 @@ TEST(CollapseVsNaive, FloatRowsAreQuantisedByTheDoubleFormulaForEdgesCornersAndE
   EXPECT_GT(float_differs, 0) << "the border rows must include some that only the double formula quantises right";
 }
 
-TEST(CollapseVsNaive, LatticeFloatRowsStayExactWhenTheFloatKernelHandsOverToTheDoubleOne) {
+TEST(CollapseVsNaive, LatticeFloatRowsOnCubeBordersStayExact) {
   // Coordinates on a 1 cm lattice (as laser-scanner exports often are) put 2 % of the rows of each
-  // axis exactly on a border of 0.5 m cubes; after a block with more than 1 % such rows the call
-  // quantises in doubles. Lattice blocks first, then random rows (the double kernel takes them),
-  // and the other way round (the float kernel takes the random blocks, then hands over).
+  // axis exactly on a border of 0.5 m cubes, where a float quantisation would round them into the
+  // wrong cube. Lattice rows first, then random rows, and the other way round.
   std::mt19937 random(7);
   std::uniform_int_distribution<int> step(0, 1500);
   std::uniform_real_distribution<double> coordinate(0.0, 15.0);
@@ -734,11 +732,11 @@ TEST(CollapseThreads, RealScansLatticeRowsTransformsCropsAndNaNRowsGiveTheOneThr
   CollapseParams params;
   const auto kitti = [&](const CollapseParams& p) { return collapse_overhangs(scan.xyz(), p); };
   expect_same_result(collapse_on_threads(kitti, params, 2), kitti(params));
-  // Leveled and cropped (the rows' extent and indices through the leveling kernels).
+  // Leveled and cropped.
   params.transform = leveling_transform(0.03, -0.02);
   params.crop = CropBox{{-40.0, -40.0, -3.0}, {40.0, 40.0, 20.0}};
   expect_same_result(collapse_on_threads(kitti, params, 3), kitti(params));
-  // A 1 cm lattice: many rows on cube borders hand blocks to the double kernel.
+  // A 1 cm lattice: many rows on cube borders.
   std::vector<Eigen::Vector3d> lattice;
   for (const Eigen::Vector3d& p : scan.as_vectors()) lattice.push_back((p * 100.0).array().round() / 100.0);
   params = CollapseParams{};
@@ -804,10 +802,9 @@ TEST(CollapseBadInput, NanAndInfRowsAreCountedInTheError) {
   }
 }
 
-// The bounding box and the non-finite check run in packed kernels (AVX2 or SSE2) over rows of 3
-// or 4 float/double scalars, with a scalar tail: every layout, sizes around the vector periods, and
-// a NaN/Inf in every row and axis position of small clouds. Compared with the naive box (the grid's
-// min corner and counts) and the row count of the error.
+// The bounding box and the non-finite check over rows of 3 or 4 float/double scalars: every
+// layout, small sizes, and a NaN/Inf in every row and axis position of small clouds. Compared with
+// the naive box (the grid's min corner and counts) and the row count of the error.
 template <typename Scalar>
 void check_packed_extent_layouts() {
   std::mt19937 rng(7);
@@ -862,7 +859,7 @@ void check_packed_extent_layouts() {
   }
 }
 
-TEST(CollapseBadInput, PackedExtentKernelsFindEveryNonFiniteCoordinateAndTheNaiveBox) {
+TEST(CollapseBadInput, TheExtentFindsEveryNonFiniteCoordinateAndTheNaiveBox) {
   check_packed_extent_layouts<float>();
   check_packed_extent_layouts<double>();
 }

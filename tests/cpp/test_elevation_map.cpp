@@ -465,7 +465,7 @@ TEST(BuildElevationMap, PointsAreBinnedIntoTheCellThatIndexOfNames) {
 
 // --- fast paths: binning by multiplication, the wide-cell filter of the gap test, scratch reuse ----
 
-TEST(BuildElevationMapFastPaths, PointsOnAndWithinRoundingOfCellBordersAreBinnedByTheDivisionFormula) {
+TEST(BuildElevationMapEdgeCases, PointsOnAndWithinRoundingOfCellBordersAreBinnedByTheDivisionFormula) {
   // The binning estimates (p - origin) / res by a multiplication and divides only near whole
   // numbers; points on borders and a few ulps either side must land where the division puts them.
   for (const double resolution : {0.1, 0.05, 0.3, 1.0 / 3.0, 0.7, 0.25}) {
@@ -496,7 +496,7 @@ TEST(BuildElevationMapFastPaths, PointsOnAndWithinRoundingOfCellBordersAreBinned
   }
 }
 
-TEST(BuildElevationMapFastPaths, DiscontinuityOfManyElevationsWithGapsAtTheThresholdMatchesTheSortedScan) {
+TEST(BuildElevationMapEdgeCases, DiscontinuityOfManyElevationsWithGapsAtTheThresholdMatchesTheSortedScan) {
   // The gap test of wide cells buckets the elevations (width threshold / 2) instead of sorting
   // them. Cells of 2 to 60 elevations built from runs of close values separated by gaps of exactly
   // the threshold, one ulp less or more, or random, at random offsets (so gaps straddle bucket
@@ -537,7 +537,7 @@ TEST(BuildElevationMapFastPaths, DiscontinuityOfManyElevationsWithGapsAtTheThres
   }
 }
 
-TEST(BuildElevationMapFastPaths, WideCellFilterAtTheThresholdAgreesWithHandComputedFlags) {
+TEST(BuildElevationMapEdgeCases, WideCellFilterAtTheThresholdAgreesWithHandComputedFlags) {
   // One cell per case (threshold 1 m, all values exact in binary). Only cells whose range exceeds
   // the threshold are sorted; the rest are 0 without looking for gaps.
   struct Case {
@@ -576,7 +576,7 @@ TEST(BuildElevationMapFastPaths, WideCellFilterAtTheThresholdAgreesWithHandCompu
   }
 }
 
-TEST(BuildElevationMapFastPaths, TransformedCloudsKeepDoubleHeightsForTheWideCellFilter) {
+TEST(BuildElevationMapEdgeCases, TransformedCloudsKeepDoubleHeightsForTheWideCellFilter) {
   // With a transform the heights are doubles: a range of 1 + 1e-12 m is wide and holds a gap just
   // over 1 m that float heights would round away.
   const std::vector<Eigen::Vector3d> points = {
@@ -591,7 +591,7 @@ TEST(BuildElevationMapFastPaths, TransformedCloudsKeepDoubleHeightsForTheWideCel
   expect_matches_naive(map, moved, params.discontinuity_m);
 }
 
-TEST(BuildElevationMapFastPaths, ScratchBuffersReusedAcrossCallsOfDifferentSizesLeaveNoTrace) {
+TEST(BuildElevationMapEdgeCases, ScratchBuffersReusedAcrossCallsOfDifferentSizesLeaveNoTrace) {
   // build_elevation_map keeps per-thread scratch buffers: a large map, a small one and the large
   // one again must each equal a build on a fresh thread.
   const auto large = test::random_scene(41, 8000, 9.0);
@@ -621,7 +621,7 @@ std::vector<const float*> drop_poisoned_map(const MapGeometry& geometry, int lay
   return buffers;
 }
 
-TEST(BuildElevationMapFastPaths, MapsBuiltAfterDroppedMapsShowNoTraceOfThem) {
+TEST(BuildElevationMapEdgeCases, MapsBuiltAfterDroppedMapsShowNoTraceOfThem) {
   // The memory of a dropped map may well be the next map's: the next map must still equal the
   // naive layers, its own and the overhang pipeline's derived ones alike (a build on another
   // thread is the reference there).
@@ -643,16 +643,16 @@ TEST(BuildElevationMapFastPaths, MapsBuiltAfterDroppedMapsShowNoTraceOfThem) {
   collapse.edge_m = 0.5;
   collapse.sigma = 2;
   drop_poisoned_map(geometry, 20, kPoison);
-  const OverhangFreeMap pooled = build_overhang_free_map(PointsView<double>(points), collapse, params);
+  const OverhangFreeMap again = build_overhang_free_map(PointsView<double>(points), collapse, params);
   std::optional<OverhangFreeMap> fresh;
   std::thread([&] { fresh = build_overhang_free_map(PointsView<double>(points), collapse, params); }).join();
-  ASSERT_EQ(pooled.map.layers(), fresh->map.layers());
-  for (const std::string& name : pooled.map.layers()) {
-    expect_same_layer(pooled.map.get(name), fresh->map.get(name), name);
+  ASSERT_EQ(again.map.layers(), fresh->map.layers());
+  for (const std::string& name : again.map.layers()) {
+    expect_same_layer(again.map.get(name), fresh->map.get(name), name);
   }
 }
 
-TEST(BuildElevationMapFastPaths, ConcurrentCallsOnTwoThreadsGiveTheSerialResults) {
+TEST(BuildElevationMapEdgeCases, ConcurrentCallsOnTwoThreadsGiveTheSerialResults) {
   const auto a = test::random_scene(51, 6000, 8.0);
   const auto b = test::random_scene(52, 5000, 6.0);
   ElevationParams params;
@@ -672,12 +672,11 @@ TEST(BuildElevationMapFastPaths, ConcurrentCallsOnTwoThreadsGiveTheSerialResults
   for (const auto& map : from_b) expect_same_statistics(map, serial_b);
 }
 
-TEST(BuildElevationMapFastPaths, FloatRowsOnAndNearCellBordersOfEveryTailLengthAreBinnedByTheDivisionFormula) {
-  // Float rows of 3 and 4 scalars take the branch-free (AVX2 where available) binning, four rows
-  // at a time plus a scalar tail. Rows on every cell border along x or y and a float ulp either
-  // side (among them rows where multiplying by 1 / resolution floors differently from dividing,
-  // which the kernel must hand to the division), rows outside by less than a cell, NaN/Inf rows
-  // (dropped on request), and every cloud length from 1 to 13 rows, against the naive reference.
+TEST(BuildElevationMapEdgeCases, FloatRowsOnAndNearCellBordersOfEveryTailLengthAreBinnedByTheDivisionFormula) {
+  // Float rows of 3 and 4 scalars on every cell border along x or y and a float ulp either side
+  // (among them rows where multiplying by 1 / resolution floors differently from dividing), rows
+  // outside by less than a cell, NaN/Inf rows (dropped on request), and every cloud length from 1
+  // to 13 rows, against the naive reference.
   const double resolution = 0.1;
   const CellIndex size(40, 20);
   int multiplication_differs = 0;  // rows the estimate alone would bin wrongly (origin 3.7 has some)
@@ -726,17 +725,14 @@ TEST(BuildElevationMapFastPaths, FloatRowsOnAndNearCellBordersOfEveryTailLengthA
       }
     }
   }
-  EXPECT_GT(multiplication_differs, 0) << "the pools must hold rows that only the division bins right";
+  EXPECT_GT(multiplication_differs, 0) << "the rows must include some that only the division bins right";
 }
 
-TEST(BuildElevationMapFastPaths, FloatRowsAreBinnedByTheDivisionFormulaForOriginsResolutionsAndWidthsOfEveryScale) {
-  // Float rows are binned eight at a time in float arithmetic where the float estimate's error
-  // bound allows (a margin of 2^-12 to 2^-7 cells, wider for larger origins and wider maps), else
-  // in doubles. Either way every row must land in the cell of the division formula: random rows
-  // and rows on, and a float ulp either side of, cell borders, for geometries whose margin ranges
-  // over the whole span and past it (an origin 3e5 m away that a float does not hold, and the
-  // 20,000-cell map, take the double kernel), on rows of 3 and 4 scalars and lengths that end
-  // inside and after an 8-row block.
+TEST(BuildElevationMapEdgeCases, FloatRowsAreBinnedByTheDivisionFormulaForOriginsResolutionsAndWidthsOfEveryScale) {
+  // Every float row must land in the cell of the division formula (in doubles): random rows and
+  // rows on, and a float ulp either side of, cell borders, for origins, resolutions and widths of
+  // every scale (an origin 3e5 m away that a float does not hold, a 20,000-cell map), on rows of 3
+  // and 4 scalars and lengths around multiples of 8.
   struct Case {
     double resolution;
     Eigen::Vector2d origin;
@@ -785,12 +781,11 @@ TEST(BuildElevationMapFastPaths, FloatRowsAreBinnedByTheDivisionFormulaForOrigin
   }
 }
 
-TEST(BuildElevationMapFastPaths, LatticeRowsOnCellBordersAreBinnedByTheDivisionFormula) {
+TEST(BuildElevationMapEdgeCases, LatticeRowsOnCellBordersAreBinnedByTheDivisionFormula) {
   // Coordinates on a 1 cm lattice (as laser-scanner exports often are) put a tenth of the rows of
-  // each axis on 0.1 m cell borders, where the binning kernels leave them to the exact formula:
-  // four at a time with AVX2, NaN/Inf rows (in every lane position) and the list's tail by the
-  // checking path. Every row must land where the division puts it, on float and double views,
-  // rows of 3 and 4 scalars, with and without a selection, fixed and automatic extents.
+  // each axis on 0.1 m cell borders, with NaN/Inf rows among them. Every row must land where the
+  // division puts it, on float and double views, rows of 3 and 4 scalars, with and without a
+  // selection, fixed and automatic extents.
   std::mt19937 random(11);
   std::uniform_int_distribution<int> step_x(-150, 250), step_y(-80, 300), step_z(-50, 400);
   std::vector<Eigen::Vector3d> lattice;
@@ -800,7 +795,7 @@ TEST(BuildElevationMapFastPaths, LatticeRowsOnCellBordersAreBinnedByTheDivisionF
   const double nan = std::numeric_limits<double>::quiet_NaN();
   const double inf = std::numeric_limits<double>::infinity();
   std::vector<Eigen::Vector3d> points = lattice;
-  for (std::size_t row : {0, 5, 10, 15, 17, 18, 19, 300, 301, 2000}) {  // several lanes and groups
+  for (std::size_t row : {0, 5, 10, 15, 17, 18, 19, 300, 301, 2000}) {  // alone and in runs
     points[row][static_cast<int>(row % 3)] = row % 2 == 0 ? nan : inf;
   }
   std::vector<std::uint8_t> use(points.size());
@@ -833,7 +828,7 @@ TEST(BuildElevationMapFastPaths, LatticeRowsOnCellBordersAreBinnedByTheDivisionF
   }
 }
 
-TEST(BuildElevationMapFastPaths, RunsOfACellBrokenByOutsideRowsAndOtherCellsKeepEveryElevation) {
+TEST(BuildElevationMapEdgeCases, RunsOfACellBrokenByOutsideRowsAndOtherCellsKeepEveryElevation) {
   // Consecutive rows of one cell are summed as a run, and the gap test gathers elevations run by
   // run: rows outside the map inside a run, a cell that comes back after another, and a gap that
   // only appears with the rows of a later run.
@@ -856,7 +851,7 @@ TEST(BuildElevationMapFastPaths, RunsOfACellBrokenByOutsideRowsAndOtherCellsKeep
   }
 }
 
-TEST(BuildElevationMapFastPaths, ACallThatThrowsOnNaNRowsLeavesNoTraceForTheNextCall) {
+TEST(BuildElevationMapEdgeCases, ACallThatThrowsOnNaNRowsLeavesNoTraceForTheNextCall) {
   // With a fixed extent the NaN check ends the pass that has already summed the finite rows: the
   // per-thread statistics must be cleaned all the same.
   const auto points = test::random_scene(61, 3000, 4.0);
@@ -875,7 +870,7 @@ TEST(BuildElevationMapFastPaths, ACallThatThrowsOnNaNRowsLeavesNoTraceForTheNext
   }
 }
 
-TEST(BuildElevationMapFastPaths, ShiftedOnePassVarianceIsAccurateFarFromZeroAndAfterAnOutlyingFirstPoint) {
+TEST(BuildElevationMapEdgeCases, ShiftedOnePassVarianceIsAccurateFarFromZeroAndAfterAnOutlyingFirstPoint) {
   // The std-dev is accumulated relative to each cell's first elevation. Large absolute heights
   // (1e7 m, spread 1 mm) and a first elevation 100 m from the other 2000 (spread 1 mm) must still
   // give the two-pass value of the naive reference to 1e-5 relative.
@@ -943,9 +938,9 @@ void expect_documented_order(double magnitude) {
   }
 }
 
-TEST(BuildElevationMapFastPaths, CellSumsAddTheElevationsInRowOrderBitForBit) { expect_documented_order<double>(1e10); }
+TEST(BuildElevationMapEdgeCases, CellSumsAddTheElevationsInRowOrderBitForBit) { expect_documented_order<double>(1e10); }
 
-TEST(BuildElevationMapFastPaths, FloatCellSumsAddTheElevationsInRowOrderBitForBit) {
+TEST(BuildElevationMapEdgeCases, FloatCellSumsAddTheElevationsInRowOrderBitForBit) {
   expect_documented_order<float>(1e30);
 }
 
@@ -1178,12 +1173,12 @@ TEST(BuildElevationMapThreads, RefillingOnThreadsGivesTheFreshMapAndResetsOtherL
 }
 
 TEST(BuildElevationMapThreads, AForkedChildOfAProcessThatUsedThreadsBuildsOnOneInsteadOfHanging) {
-  // The pool's threads do not exist in a forked child of a process that started them (with GCC's
-  // libgomp, which the library used before, the child hung): the child's calls run on one thread.
+  // The threads of a process that used them do not exist in its forked child (with GCC's libgomp,
+  // which the library once used, the child hung): the child's calls must still finish.
   const auto points = test::random_scene(77, 100000, 10.0);
   ElevationParams params;
   params.num_threads = 2;
-  const ElevationMap parent = build_elevation_map(PointsView<double>(points), params);  // starts the pool
+  const ElevationMap parent = build_elevation_map(PointsView<double>(points), params);  // starts TBB's workers
   const float expected = parent.get("count").sum();
   const pid_t child = fork();
   ASSERT_GE(child, 0) << "fork failed";
@@ -1238,9 +1233,9 @@ TEST(BuildElevationMapSelection, UseSelectsThePointsThatTakePart) {
   }
 }
 
-TEST(BuildElevationMapSelection, FloatRowsWithASelectionTakeTheKernelAndSkipUnselectedNaNRows) {
-  // Float rows of 3 and 4 scalars are binned by the branch-free kernel even with a selection;
-  // unselected rows, NaN ones among them, take no part; a selected NaN row is still an error.
+TEST(BuildElevationMapSelection, FloatRowsWithASelectionSkipUnselectedNaNRows) {
+  // Float rows of 3 and 4 scalars with a selection: unselected rows, NaN ones among them, take no
+  // part; a selected NaN row is still an error.
   auto points = rounded_to_float(test::random_scene(33, 6000, 8.0));
   for (std::size_t row = 0; row < 40; ++row) {  // rows on cell borders (x = 0.25 k) and just beside
     points[row].x() = 0.25 * static_cast<double>(row % 20) + (row < 20 ? 0.0 : 1e-7);
@@ -1273,9 +1268,8 @@ TEST(BuildElevationMapSelection, FloatRowsWithASelectionTakeTheKernelAndSkipUnse
   }
 }
 
-TEST(BuildElevationMapSelection, DoubleRowsWithASelectionTakeTheKernelAndSkipUnselectedNaNRows) {
-  // The same for double rows of 3 and 4 scalars (the AVX2 double kernel, or row by row without
-  // AVX2): unselected rows, NaN ones among them, take no part; a selected NaN row is an error.
+TEST(BuildElevationMapSelection, DoubleRowsWithASelectionSkipUnselectedNaNRows) {
+  // The same for double rows of 3 and 4 scalars.
   auto points = test::random_scene(34, 6001, 8.0);
   for (std::size_t row = 0; row < 40; ++row) {  // rows on cell borders (x = 0.25 k) and just beside
     points[row].x() = 0.25 * static_cast<double>(row % 20) + (row < 20 ? 0.0 : 1e-12);
@@ -1572,11 +1566,10 @@ TEST(BuildElevationMapTransform, LeveledCroppedSelectedCloudsMatchTheNaiveLayers
   }
 }
 
-TEST(BuildElevationMapTransform, CroppedFloatCloudsArePackedAsFloatsWithTheDoubleViewsLayers) {
-  // A float cloud that is cropped but not transformed is packed in floats (its values unchanged):
-  // the layers must equal the naive ones of the points that take part, and those of a double
-  // view of the same values (packed in doubles) bit for bit. Row counts that are not a multiple of
-  // four leave rows to the scalar tail; a view with column stride 2 takes the gathering kernel.
+TEST(BuildElevationMapTransform, CroppedFloatCloudsGiveTheDoubleViewsLayers) {
+  // A float cloud that is cropped but not transformed: the layers must equal the naive ones of the
+  // points that take part, and those of a double view of the same values bit for bit, for row
+  // counts of every remainder and a view with column stride 2.
   for (std::uint32_t seed = 96; seed <= 98; ++seed) {
     SCOPED_TRACE("seed " + std::to_string(seed));
     auto points = rounded_to_float(test::random_scene(seed, 4997 + seed % 3, 7.0));
