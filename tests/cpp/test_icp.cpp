@@ -664,28 +664,38 @@ TEST(RegisterMaps, MapsWithoutAWeightedClassOrWithoutDataSaySo) {
 }
 
 /// [TC] eq. (A6) summed pair by pair: the weighted normal matrix of the moved source points `p`
-/// paired with `q` (weights `w`), about their weighted centroid, and the weighted RMSE, against
-/// the result's.
-void expect_normal_equations_of_pairs(const RegistrationResult& result, const std::vector<Eigen::Vector3d>& p,
-                                      const std::vector<Eigen::Vector3d>& q, const std::vector<double>& w) {
+/// paired with `q` (weights `w`) about their weighted centroid, with the sums of the weights and
+/// of the weighted squared errors.
+struct PairSums {
   double w_sum = 0.0, error = 0.0;
   Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
+  Eigen::Matrix<double, 6, 6> normal = Eigen::Matrix<double, 6, 6>::Zero();
+};
+PairSums naive_pair_sums(const std::vector<Eigen::Vector3d>& p, const std::vector<Eigen::Vector3d>& q,
+                         const std::vector<double>& w) {
+  PairSums sums;
   for (std::size_t k = 0; k < p.size(); ++k) {
-    w_sum += w[k];
-    centroid += w[k] * p[k];
-    error += w[k] * (p[k] - q[k]).squaredNorm();
+    sums.w_sum += w[k];
+    sums.centroid += w[k] * p[k];
+    sums.error += w[k] * (p[k] - q[k]).squaredNorm();
   }
-  centroid /= w_sum;
-  Eigen::Matrix<double, 6, 6> naive = Eigen::Matrix<double, 6, 6>::Zero();
+  sums.centroid /= sums.w_sum;
   for (std::size_t k = 0; k < p.size(); ++k) {
     Eigen::Matrix<double, 3, 6> jacobian;  // d(residual)/d(omega, t) about the centroid
-    const Eigen::Vector3d r = p[k] - centroid;
+    const Eigen::Vector3d r = p[k] - sums.centroid;
     jacobian.leftCols<3>() << 0.0, r.z(), -r.y(), -r.z(), 0.0, r.x(), r.y(), -r.x(), 0.0;  // -[r]x
     jacobian.rightCols<3>().setIdentity();
-    naive += w[k] * jacobian.transpose() * jacobian;
+    sums.normal += w[k] * jacobian.transpose() * jacobian;
   }
-  EXPECT_LT((result.normal_matrix - naive).cwiseAbs().maxCoeff(), 1e-9 * naive.cwiseAbs().maxCoeff());
-  EXPECT_NEAR(result.rmse_m, std::sqrt(error / w_sum), 1e-12);
+  return sums;
+}
+
+/// The result's normal matrix and RMSE against naive_pair_sums of its pairs.
+void expect_normal_equations_of_pairs(const RegistrationResult& result, const std::vector<Eigen::Vector3d>& p,
+                                      const std::vector<Eigen::Vector3d>& q, const std::vector<double>& w) {
+  const PairSums sums = naive_pair_sums(p, q, w);
+  EXPECT_LT((result.normal_matrix - sums.normal).cwiseAbs().maxCoeff(), 1e-9 * sums.normal.cwiseAbs().maxCoeff());
+  EXPECT_NEAR(result.rmse_m, std::sqrt(sums.error / sums.w_sum), 1e-12);
 }
 
 TEST(RegisterMaps, NormalEquationsEqualANaiveSumOverBruteForcePairs) {
@@ -873,22 +883,10 @@ TEST(RegisterPoints, GroundPlanesNormalEquationsEqualANaiveSumOverTheirDefinitio
       q.push_back(same_class[static_cast<std::size_t>(index)]);
       w.push_back(weight);
     }
-    double w_sum = 0.0, error = 0.0;
-    Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
-    for (std::size_t k = 0; k < p.size(); ++k) {
-      w_sum += w[k];
-      centroid += w[k] * p[k];
-      error += w[k] * (p[k] - q[k]).squaredNorm();
-    }
-    centroid /= w_sum;
-    Eigen::Matrix<double, 6, 6> naive = Eigen::Matrix<double, 6, 6>::Zero();
-    for (std::size_t k = 0; k < p.size(); ++k) {
-      Eigen::Matrix<double, 3, 6> jacobian;
-      const Eigen::Vector3d r = p[k] - centroid;
-      jacobian.leftCols<3>() << 0.0, r.z(), -r.y(), -r.z(), 0.0, r.x(), r.y(), -r.x(), 0.0;  // -[r]x
-      jacobian.rightCols<3>().setIdentity();
-      naive += w[k] * jacobian.transpose() * jacobian;
-    }
+    const PairSums sums = naive_pair_sums(p, q, w);
+    double w_sum = sums.w_sum, error = sums.error;
+    const Eigen::Vector3d centroid = sums.centroid;
+    Eigen::Matrix<double, 6, 6> naive = sums.normal;
     std::size_t ground_pairs = 0;
     Eigen::Matrix<double, 6, 6> ground_information = Eigen::Matrix<double, 6, 6>::Zero();
     for (const auto& [key, points] : source_cells) {
