@@ -32,19 +32,7 @@ const std::vector<std::string> kStatisticLayers = {"count", "min", "max", "mean"
 
 // --- helpers ----------------------------------------------------------------------------------
 
-/// Runs `call`, expects it to throw `Error` whose message contains every one of `parts`.
-template <typename Error>
-void expect_throw_with(const std::function<void()>& call, const std::vector<std::string>& parts) {
-  try {
-    call();
-    ADD_FAILURE() << "expected an exception";
-  } catch (const Error& error) {
-    const std::string message = error.what();
-    for (const std::string& part : parts) {
-      EXPECT_NE(message.find(part), std::string::npos) << "'" << part << "' not in: " << message;
-    }
-  }
-}
+using test::expect_throw_with;
 
 /// NaN-aware exact equality of two layers (NaN == NaN, +inf == +inf).
 void expect_same_layer(const Layer& actual, const Layer& expected, const std::string& what) {

@@ -17,18 +17,7 @@
 namespace terracube {
 namespace {
 
-template <typename Error>
-void expect_throw_with(const std::function<void()>& call, const std::vector<std::string>& parts) {
-  try {
-    call();
-    ADD_FAILURE() << "expected an exception";
-  } catch (const Error& error) {
-    const std::string message = error.what();
-    for (const std::string& part : parts) {
-      EXPECT_NE(message.find(part), std::string::npos) << "'" << part << "' not in: " << message;
-    }
-  }
-}
+using test::expect_throw_with;
 
 FuzzyParams params_over(double x0, double y0, double x1, double y1, int rules_x, int rules_y) {
   FuzzyParams params;

@@ -30,15 +30,7 @@ namespace {
 constexpr double kPi = 3.14159265358979323846;
 constexpr double kSensorHeight = 1.73;
 
-Eigen::Matrix4d pose(double x, double y, double z, double yaw_deg, double pitch_deg = 0.0, double roll_deg = 0.0) {
-  Eigen::Matrix4d t = Eigen::Matrix4d::Identity();
-  t.topLeftCorner<3, 3>() = (Eigen::AngleAxisd(yaw_deg * kPi / 180.0, Eigen::Vector3d::UnitZ()) *
-                             Eigen::AngleAxisd(pitch_deg * kPi / 180.0, Eigen::Vector3d::UnitY()) *
-                             Eigen::AngleAxisd(roll_deg * kPi / 180.0, Eigen::Vector3d::UnitX()))
-                                .toRotationMatrix();
-  t.topRightCorner<3, 1>() = Eigen::Vector3d(x, y, z);
-  return t;
-}
+using test::pose;
 
 double translation_error(const Eigen::Matrix4d& estimate, const Eigen::Matrix4d& truth) {
   return (estimate.topRightCorner<3, 1>() - truth.topRightCorner<3, 1>()).norm();

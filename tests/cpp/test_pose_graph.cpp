@@ -11,21 +11,15 @@
 #include <stdexcept>
 #include <vector>
 
+#include "test_support.hpp"
+
 namespace terracube {
 namespace {
 
 using Matrix6d = Eigen::Matrix<double, 6, 6>;
 constexpr double kPi = 3.14159265358979323846;
 
-Eigen::Matrix4d pose(double x, double y, double z, double yaw_deg, double pitch_deg = 0.0, double roll_deg = 0.0) {
-  Eigen::Matrix4d t = Eigen::Matrix4d::Identity();
-  t.topLeftCorner<3, 3>() = (Eigen::AngleAxisd(yaw_deg * kPi / 180.0, Eigen::Vector3d::UnitZ()) *
-                             Eigen::AngleAxisd(pitch_deg * kPi / 180.0, Eigen::Vector3d::UnitY()) *
-                             Eigen::AngleAxisd(roll_deg * kPi / 180.0, Eigen::Vector3d::UnitX()))
-                                .toRotationMatrix();
-  t.topRightCorner<3, 1>() = Eigen::Vector3d(x, y, z);
-  return t;
-}
+using test::pose;
 
 Eigen::Matrix4d inverse(const Eigen::Matrix4d& t) {
   Eigen::Matrix4d out = Eigen::Matrix4d::Identity();

@@ -1,10 +1,14 @@
-// Shared helpers for the C++ tests: locating ../shared/data and reading its scans.
+// Shared helpers for the C++ tests: locating ../shared/data and reading its scans, poses, and
+// checking exception messages.
 #pragma once
 
+#include <gtest/gtest.h>
 #include <terracube/cube_grid.hpp>
 
 #include <Eigen/Core>
+#include <Eigen/Geometry>
 #include <cstdint>
+#include <functional>
 #include <optional>
 #include <random>
 #include <string>
@@ -42,6 +46,33 @@ __attribute__((noinline)) double rounded_to(double v) {
 template <typename Scalar>
 Eigen::Vector3d rounded_to(const Eigen::Vector3d& p) {
   return {rounded_to<Scalar>(p.x()), rounded_to<Scalar>(p.y()), rounded_to<Scalar>(p.z())};
+}
+
+/// Runs `call`, expects it to throw `Error` whose message contains every one of `parts`.
+template <typename Error>
+void expect_throw_with(const std::function<void()>& call, const std::vector<std::string>& parts) {
+  try {
+    call();
+    ADD_FAILURE() << "expected an exception";
+  } catch (const Error& error) {
+    const std::string message = error.what();
+    for (const std::string& part : parts) {
+      EXPECT_NE(message.find(part), std::string::npos) << "'" << part << "' not in: " << message;
+    }
+  }
+}
+
+/// The rigid transform at (x, y, z) [m] turned by yaw, then pitch, then roll [degrees].
+inline Eigen::Matrix4d pose(double x, double y, double z, double yaw_deg, double pitch_deg = 0.0,
+                            double roll_deg = 0.0) {
+  constexpr double kRadPerDeg = 3.14159265358979323846 / 180.0;
+  Eigen::Matrix4d t = Eigen::Matrix4d::Identity();
+  t.topLeftCorner<3, 3>() = (Eigen::AngleAxisd(yaw_deg * kRadPerDeg, Eigen::Vector3d::UnitZ()) *
+                             Eigen::AngleAxisd(pitch_deg * kRadPerDeg, Eigen::Vector3d::UnitY()) *
+                             Eigen::AngleAxisd(roll_deg * kRadPerDeg, Eigen::Vector3d::UnitX()))
+                                .toRotationMatrix();
+  t.topRightCorner<3, 1>() = Eigen::Vector3d(x, y, z);
+  return t;
 }
 
 }  // namespace terracube::test
