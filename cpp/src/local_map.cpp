@@ -212,6 +212,13 @@ struct Workspace {
   std::vector<KeptPoint> kept, sorted;
   std::vector<double> overhang_min;  // per cell: this scan's lowest overhang point above it, or +inf
   std::vector<std::size_t> row_offset, column;
+
+  /// After a scan that needed over 64 MB of points (a whole survey, not a robot's scan).
+  void release_if_large() {
+    const std::size_t bytes = points.capacity() * sizeof(Eigen::Vector3d) +
+                              point_cell.capacity() * sizeof(std::uint32_t) + kept.capacity() * sizeof(KeptPoint);
+    if (bytes > (std::size_t{64} << 20)) *this = Workspace();
+  }
 };
 
 /// One scan's measurement of a cell from its kept points (in point order). A cell whose sorted
@@ -327,6 +334,32 @@ detail::NonFiniteRows level_scan(const PointsView<Scalar>& points, const Eigen::
     }
   });
   return non_finite;
+}
+
+/// The part of an update before any change to the map (all that can throw): levels the scan into
+/// w (level_scan), refuses NaN/Inf rows unless they are dropped, and removes the overhangs of the
+/// leveled, bounded cloud ([CBC], or the shadow-aware rule, seen from the pose's position).
+template <typename Scalar>
+CollapseResult level_and_collapse(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose, const CropBox& area,
+                                  const LocalMapParams& params, bool clearing, Workspace& w, LocalMapUpdate& report) {
+  const Eigen::Vector3d sensor = pose.block<3, 1>(0, 3);
+  const detail::NonFiniteRows non_finite = level_scan(points, pose, area, sensor, clearing, w);
+  if (w.points.size() >= kNotKept) {
+    throw std::invalid_argument("LocalMap.update: over 2^32 - 1 points inside the map; split the scan");
+  }
+  if (non_finite.count > 0 && !params.collapse.drop_non_finite) {
+    detail::throw_non_finite_rows(non_finite, points.size);
+  }
+  report.num_dropped_non_finite = non_finite.count;
+  CollapseParams collapse = params.collapse;
+  collapse.transform = Eigen::Matrix4d::Identity();
+  collapse.crop.reset();
+  collapse.num_threads = params.num_threads;
+  if (!collapse.shadow_aware.sensor_origin) collapse.shadow_aware.sensor_origin = sensor;
+  CollapseResult removed;
+  if (!w.points.empty()) removed = collapse_overhangs(w.points, collapse);
+  report.num_overhang = removed.num_overhang;
+  return removed;
 }
 
 /// Bins the leveled points: overhang points into w.overhang_min, kept points grouped by cell
@@ -635,19 +668,11 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
       Eigen::Vector3d(static_cast<double>(target.x() - 1) * res, static_cast<double>(target.y() - 1) * res, -1e9);
   area.max = Eigen::Vector3d(static_cast<double>(target.x() + n + 1) * res,
                              static_cast<double>(target.y() + n + 1) * res, 1e9);
-  const detail::NonFiniteRows non_finite = level_scan(points, pose, area, sensor, clearing, w);
-  if (non_finite.count > 0 && !params_.collapse.drop_non_finite) {
-    detail::throw_non_finite_rows(non_finite, points.size);
-  }
-  report.num_dropped_non_finite = non_finite.count;
-  CollapseParams collapse = params_.collapse;  // on the leveled, bounded cloud
-  collapse.transform = Eigen::Matrix4d::Identity();
-  collapse.crop.reset();
-  collapse.num_threads = params_.num_threads;
-  if (!collapse.shadow_aware.sensor_origin) collapse.shadow_aware.sensor_origin = sensor;
-  CollapseResult removed;
-  if (!w.points.empty()) removed = collapse_overhangs(w.points, collapse);
-  report.num_overhang = removed.num_overhang;
+  struct ReleaseOnExit {
+    Workspace& workspace;
+    ~ReleaseOnExit() { workspace.release_if_large(); }
+  } release_on_exit{w};
+  const CollapseResult removed = level_and_collapse(points, pose, area, params_, clearing, w, report);
 
   report.map_reset = move_to(sensor.head<2>());
   const LayerData layer = layer_data(layers_);
