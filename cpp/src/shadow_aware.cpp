@@ -192,6 +192,33 @@ class FreeSpaceFloor {
   std::vector<double>& slope_;
 };
 
+/// Step 3's rays: those to the points whose cube is not below G0 - 1 (`ground`, per column).
+void add_rays(const CubeGrid& grid, const std::vector<CubePoint>& points, const std::vector<std::int32_t>& ground,
+              FreeSpaceFloor& floor) {
+  const std::int64_t num_columns = grid.num_columns();
+  const double inverse_edge = 1.0 / grid.edge_m;
+  for (const CubePoint& taking_part : points) {
+    const Eigen::Vector3d& point = taking_part.point;
+    // The cube's column and layer from [CBC] eqs. (4)-(6), checked against I by eq. (1): no 64-bit
+    // division per point unless the caller quantised differently.
+    const Eigen::Vector3d position = (point - grid.min_corner) * inverse_edge + Eigen::Vector3d::Constant(0.5);
+    const bool inside = position.x() >= 0.0 && position.x() < static_cast<double>(grid.ixmax) && position.y() >= 0.0 &&
+                        position.y() < static_cast<double>(grid.iymax) && position.z() >= 0.0 &&
+                        position.z() < static_cast<double>(grid.izmax);
+    std::int64_t column = -1, layer = -1;
+    if (inside) {
+      column = static_cast<std::int64_t>(position.x()) + static_cast<std::int64_t>(position.y()) * grid.ixmax;
+      layer = static_cast<std::int64_t>(position.z());
+    }
+    if (!inside || column + layer * num_columns != taking_part.cube) {
+      layer = taking_part.cube / num_columns;
+      column = taking_part.cube - layer * num_columns;
+    }
+    const std::int32_t below = ground[static_cast<std::size_t>(column)];
+    if (below == kNone || layer >= std::int64_t{below} - 1) floor.add_ray(point);  // not below G0
+  }
+}
+
 /// The height [m] of the bottom face of the cubes of `layer`.
 double bottom_face(const CubeGrid& grid, std::int64_t layer) {
   return grid.min_corner.z() + (static_cast<double>(layer) - 0.5) * grid.edge_m;
@@ -349,7 +376,7 @@ void check_shadow_aware_params(const ShadowAwareParams& params) {
 }
 
 ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vector<std::int64_t>& sorted_occupied,
-                                          const ForEachPoint& for_each_point, int sigma,
+                                          const std::vector<CubePoint>& points, int sigma,
                                           const Eigen::Vector3d& sensor_origin, const ShadowAwareParams& params) {
   check_shadow_aware_params(params);
   if (sigma < 1) throw std::invalid_argument("sigma must be at least 1 cube, got " + std::to_string(sigma));
@@ -371,27 +398,7 @@ ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vecto
                                                          static_cast<double>(std::max(grid.ixmax, grid.iymax))));
   window_minimum(grid, radius, w.reliable, w.scratch, w.ground, w.line);  // G0
   FreeSpaceFloor floor(grid, sensor_origin, params.azimuth_bins, w.slope);
-  const std::int32_t* const first_ground = w.ground.data();
-  const double inverse_edge = 1.0 / grid.edge_m;
-  for_each_point([&](const Eigen::Vector3d& point, std::int64_t cube) {
-    // The cube's column and layer from [CBC] eqs. (4)-(6), checked against I by eq. (1): no 64-bit
-    // division per point unless the caller quantised differently.
-    const Eigen::Vector3d position = (point - grid.min_corner) * inverse_edge + Eigen::Vector3d::Constant(0.5);
-    const bool inside = position.x() >= 0.0 && position.x() < static_cast<double>(grid.ixmax) && position.y() >= 0.0 &&
-                        position.y() < static_cast<double>(grid.iymax) && position.z() >= 0.0 &&
-                        position.z() < static_cast<double>(grid.izmax);
-    std::int64_t column = -1, layer = -1;
-    if (inside) {
-      column = static_cast<std::int64_t>(position.x()) + static_cast<std::int64_t>(position.y()) * grid.ixmax;
-      layer = static_cast<std::int64_t>(position.z());
-    }
-    if (!inside || column + layer * num_columns != cube) {
-      layer = cube / num_columns;
-      column = cube - layer * num_columns;
-    }
-    const std::int32_t below = first_ground[column];
-    if (below == kNone || layer >= std::int64_t{below} - 1) floor.add_ray(point);  // not below G0
-  });
+  add_rays(grid, points, w.ground, floor);
   floor.finish();
   // Step 2 again: a lowest cube with a ray under it is no ground (a crown's underside), then G.
   for (std::int64_t column = 0; column < num_columns; ++column) {

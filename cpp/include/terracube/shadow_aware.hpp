@@ -4,7 +4,6 @@
 
 #include <Eigen/Core>
 #include <cstdint>
-#include <functional>
 #include <optional>
 #include <vector>
 
@@ -65,10 +64,12 @@ struct ShadowAwareDecision {
   std::vector<CubeReason> reasons;          ///< one per cube of L, aligned with it
 };
 
-/// Calls its argument once per point that takes part: the point [m] in the leveled frame and the
-/// index I of its cube (collapse_overhangs passes its rows).
-using PointVisitor = std::function<void(const Eigen::Vector3d& point, std::int64_t cube)>;
-using ForEachPoint = std::function<void(const PointVisitor& visit)>;
+/// A point that takes part (collapse_overhangs passes its rows): the point [m] in the leveled frame
+/// and the index I of its cube.
+struct CubePoint {
+  Eigen::Vector3d point;
+  std::int64_t cube = 0;
+};
 
 /// The shadow-aware rule over the occupied cubes L (sorted ascending, indices I of `grid`):
 ///  1. the lowest cube of each column is reliable ground when `ground_support` columns of its 3x3
@@ -87,7 +88,7 @@ using ForEachPoint = std::function<void(const PointVisitor& visit)>;
 /// O(N + |L| + columns + azimuth_bins * range steps); single-threaded, deterministic.
 /// Throws std::invalid_argument on invalid parameters or a grid of more than 2^27 columns.
 ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vector<std::int64_t>& sorted_occupied,
-                                          const ForEachPoint& for_each_point, int sigma,
+                                          const std::vector<CubePoint>& points, int sigma,
                                           const Eigen::Vector3d& sensor_origin, const ShadowAwareParams& params = {});
 
 /// Throws std::invalid_argument naming the first invalid field of `params`.
