@@ -71,41 +71,50 @@ void reliable_ground(const CubeGrid& grid, const std::vector<std::int32_t>& lowe
   }
 }
 
-/// out[i] = the minimum of in[i - radius .. i + radius] (clipped to [0, n)): van Herk / Gil-Werman
-/// over the line padded with kNone, three minima per element whatever the radius.
-void line_minimum(const std::int32_t* in, std::ptrdiff_t stride, std::int64_t n, std::int64_t radius, std::int32_t* out,
-                  std::ptrdiff_t out_stride, std::vector<std::int32_t>& buffer) {
+/// out[k] = min(a[k], b[k]) for k < lanes.
+void lane_minimum(const std::int32_t* a, const std::int32_t* b, std::int64_t lanes, std::int32_t* out) {
+  for (std::int64_t k = 0; k < lanes; ++k) out[k] = std::min(a[k], b[k]);
+}
+
+/// out[i] = the minimum of in[i - radius .. i + radius] (clipped to [0, n)) for `lanes` lines side
+/// by side (element i of lane k at in[i * stride + k], likewise in out): van Herk / Gil-Werman over
+/// the lines padded with kNone, three minima per element whatever the radius. Side by side, the
+/// lines' minima are contiguous loops, also when the lines are the grid's columns.
+void line_minimum(const std::int32_t* in, std::ptrdiff_t stride, std::int64_t n, std::int64_t lanes,
+                  std::int64_t radius, std::int32_t* out, std::vector<std::int32_t>& buffer) {
   const std::int64_t width = 2 * radius + 1, padded = n + 2 * radius;
-  buffer.resize(static_cast<std::size_t>(3 * padded));
-  std::int32_t* const line = buffer.data();      // the line with radius kNone on each side
-  std::int32_t* const prefix = line + padded;    // minimum from its block's start
-  std::int32_t* const suffix = prefix + padded;  // minimum to its block's end
-  std::fill(line, line + radius, kNone);
-  for (std::int64_t i = 0; i < n; ++i) line[radius + i] = in[i * stride];
-  std::fill(line + radius + n, line + padded, kNone);
+  buffer.resize(static_cast<std::size_t>(3 * padded * lanes));
+  std::int32_t* const line = buffer.data();              // the lines with radius kNone on each side
+  std::int32_t* const prefix = line + padded * lanes;    // minimum from its block's start
+  std::int32_t* const suffix = prefix + padded * lanes;  // minimum to its block's end
+  const auto at = [lanes](std::int32_t* lines, std::int64_t i) { return lines + i * lanes; };
+  std::fill(line, at(line, radius), kNone);
+  for (std::int64_t i = 0; i < n; ++i) std::copy_n(in + i * stride, lanes, at(line, radius + i));
+  std::fill(at(line, radius + n), at(line, padded), kNone);
   for (std::int64_t block = 0; block < padded; block += width) {
     const std::int64_t last = std::min(padded, block + width) - 1;
-    prefix[block] = line[block];
-    for (std::int64_t j = block + 1; j <= last; ++j) prefix[j] = std::min(prefix[j - 1], line[j]);
-    suffix[last] = line[last];
-    for (std::int64_t j = last - 1; j >= block; --j) suffix[j] = std::min(suffix[j + 1], line[j]);
+    std::copy_n(at(line, block), lanes, at(prefix, block));
+    for (std::int64_t j = block + 1; j <= last; ++j) lane_minimum(at(prefix, j - 1), at(line, j), lanes, at(prefix, j));
+    std::copy_n(at(line, last), lanes, at(suffix, last));
+    for (std::int64_t j = last - 1; j >= block; --j) lane_minimum(at(suffix, j + 1), at(line, j), lanes, at(suffix, j));
   }
-  for (std::int64_t i = 0; i < n; ++i) out[i * out_stride] = std::min(suffix[i], prefix[i + width - 1]);
+  for (std::int64_t i = 0; i < n; ++i) lane_minimum(at(suffix, i), at(prefix, i + width - 1), lanes, out + i * stride);
 }
 
 /// Step 2: out = the minimum of `in` over the square of half-width `radius` columns around each
-/// column (clipped to the grid): rows, then columns.
+/// column (clipped to the grid): rows, then columns in bands of kBand side by side.
 void window_minimum(const CubeGrid& grid, std::int64_t radius, const std::vector<std::int32_t>& in,
                     std::vector<std::int32_t>& along_x, std::vector<std::int32_t>& out,
                     std::vector<std::int32_t>& buffer) {
+  constexpr std::int64_t kBand = 64;
   const std::int64_t nx = grid.ixmax, ny = grid.iymax;
   along_x.resize(in.size());
   out.resize(in.size());
   for (std::int64_t iy = 0; iy < ny; ++iy) {
-    line_minimum(in.data() + iy * nx, 1, nx, radius, along_x.data() + iy * nx, 1, buffer);
+    line_minimum(in.data() + iy * nx, 1, nx, 1, radius, along_x.data() + iy * nx, buffer);
   }
-  for (std::int64_t ix = 0; ix < nx; ++ix) {
-    line_minimum(along_x.data() + ix, nx, ny, radius, out.data() + ix, nx, buffer);
+  for (std::int64_t ix = 0; ix < nx; ix += kBand) {
+    line_minimum(along_x.data() + ix, nx, ny, std::min(kBand, nx - ix), radius, out.data() + ix, buffer);
   }
 }
 
@@ -115,7 +124,7 @@ double pseudo_angle(double dx, double dy) {
   return dx < 0.0 ? 2.0 - dy / (-dx - dy) : 3.0 + dx / (dx - dy);
 }
 
-/// Step 3: horizontal geometry of the rays from the sensor, per (sector, range step E).
+/// Step 3: horizontal geometry of the rays from the sensor, per (range step E, sector).
 class FreeSpaceFloor {
  public:
   FreeSpaceFloor(const CubeGrid& grid, const Eigen::Vector3d& origin, int sectors, std::vector<double>& slope)
@@ -150,13 +159,13 @@ class FreeSpaceFloor {
 
   /// After the last ray: each bin holds the lowest slope of the rays that END beyond its step.
   void finish() {
-    for (std::int64_t sector = 0; sector < sectors_; ++sector) {
-      double beyond = kInf;
-      for (std::int64_t step = steps_ - 1; step >= 0; --step) {
-        double& slot = slope_[static_cast<std::size_t>(sector * steps_ + step)];
-        const double ending_here = slot;
-        slot = beyond;
-        beyond = std::min(beyond, ending_here);
+    std::vector<double> beyond(static_cast<std::size_t>(sectors_), kInf);  // per sector, from the far end in
+    for (std::int64_t step = steps_ - 1; step >= 0; --step) {
+      double* const slots = slope_.data() + step * sectors_;
+      for (std::size_t sector = 0; sector < beyond.size(); ++sector) {
+        const double ending_here = slots[sector];
+        slots[sector] = beyond[sector];
+        beyond[sector] = std::min(beyond[sector], ending_here);
       }
     }
   }
@@ -181,7 +190,8 @@ class FreeSpaceFloor {
     if (!(distance > 0.0) || !(step < static_cast<double>(steps_))) return -1;
     const auto sector =
         std::min<std::int64_t>(sectors_ - 1, static_cast<std::int64_t>(pseudo_angle(dx, dy) / 4.0 * sectors_));
-    return sector * steps_ + static_cast<std::int64_t>(step);
+    // Step-major: the points of a scan ring at one range fall in one row of sectors, side by side.
+    return static_cast<std::int64_t>(step) * sectors_ + sector;
   }
 
   const CubeGrid& grid_;
