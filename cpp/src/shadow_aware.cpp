@@ -23,13 +23,15 @@ constexpr double kInf = std::numeric_limits<double>::infinity();
 
 /// Per-call arrays kept by the calling thread (first touching fresh pages costs more than the rule).
 struct Workspace {
+  std::vector<std::int32_t> column_of;  ///< the column of each cube of L
+  std::vector<std::int32_t> layer_of;   ///< the layer of each cube of L
   std::vector<std::int32_t> lowest;     ///< lowest occupied layer per column, kNone if empty
   std::vector<std::int32_t> reliable;   ///< the lowest layer where it is reliable ground, else kNone
   std::vector<std::int32_t> scratch;    ///< the window minimum along x
   std::vector<std::int32_t> ground;     ///< G per column, kNone if no reliable ground in the window
   std::vector<std::int32_t> start;      ///< first position of each column in `by_column`
   std::vector<std::int32_t> by_column;  ///< positions in L, column by column, layers ascending
-  std::vector<double> slope;            ///< per (sector, range step): lowest slope of rays ending beyond it
+  std::vector<double> slope;            ///< per (range step, sector): lowest slope of rays ending beyond it
   std::vector<std::int32_t> line;       ///< the window minimum's line buffers
 };
 
@@ -38,14 +40,29 @@ Workspace& thread_workspace() {
   return workspace;
 }
 
+/// The column and layer of every cube of L ([CBC] eq. (1): I = column + layer * columns) with a
+/// division per layer, not per cube: L is sorted by I, so its layers ascend.
+void split_cubes(const std::vector<std::int64_t>& occupied, std::int64_t num_columns, Workspace& w) {
+  w.column_of.resize(occupied.size());
+  w.layer_of.resize(occupied.size());
+  std::int64_t layer = -1, layer_start = 0;
+  for (std::size_t position = 0; position < occupied.size(); ++position) {
+    const std::int64_t cube = occupied[position];
+    if (layer < 0 || cube - layer_start >= num_columns) {
+      layer = cube / num_columns;
+      layer_start = layer * num_columns;
+    }
+    w.column_of[position] = static_cast<std::int32_t>(cube - layer_start);
+    w.layer_of[position] = static_cast<std::int32_t>(layer);
+  }
+}
+
 /// The lowest occupied layer of every column: L is sorted by I, so a column's first cube is its lowest.
-void lowest_layers(const std::vector<std::int64_t>& occupied, std::int64_t num_columns,
-                   std::vector<std::int32_t>& lowest) {
-  lowest.assign(static_cast<std::size_t>(num_columns), kNone);
-  for (const std::int64_t cube : occupied) {
-    const std::int64_t layer = cube / num_columns;
-    std::int32_t& slot = lowest[static_cast<std::size_t>(cube - layer * num_columns)];
-    if (slot == kNone) slot = static_cast<std::int32_t>(layer);
+void lowest_layers(std::int64_t num_columns, Workspace& w) {
+  w.lowest.assign(static_cast<std::size_t>(num_columns), kNone);
+  for (std::size_t position = 0; position < w.column_of.size(); ++position) {
+    std::int32_t& slot = w.lowest[static_cast<std::size_t>(w.column_of[position])];
+    if (slot == kNone) slot = w.layer_of[position];
   }
 }
 
@@ -62,8 +79,9 @@ void reliable_ground(const CubeGrid& grid, const std::vector<std::int32_t>& lowe
       int count = 0;
       for (std::int64_t y = std::max<std::int64_t>(0, iy - 1); y <= std::min(ny - 1, iy + 1); ++y) {
         for (std::int64_t x = std::max<std::int64_t>(0, ix - 1); x <= std::min(nx - 1, ix + 1); ++x) {
-          const std::int32_t other = lowest[static_cast<std::size_t>(x + y * nx)];
-          count += other != kNone && other >= layer - 1 && other <= layer + 1 ? 1 : 0;
+          // Within one layer: other - layer + 1 in [0, 2], without a branch (kNone is far above).
+          const std::int64_t other = lowest[static_cast<std::size_t>(x + y * nx)];
+          count += static_cast<std::uint64_t>(other - layer + 1) <= 2 ? 1 : 0;
         }
       }
       if (count >= support) reliable[static_cast<std::size_t>(ix + iy * nx)] = layer;
@@ -170,9 +188,11 @@ class FreeSpaceFloor {
     }
   }
 
-  /// F: the lowest height [m] at which a ray crosses the centre of `column`, +inf if none does.
-  double floor_of(std::int64_t column) const {
-    const Eigen::Vector3d centre = grid_.center(column);  // layer 0: only x, y are used
+  /// F: the lowest height [m] at which a ray crosses the centre of column (ix, iy), +inf if none does.
+  double floor_of(std::int64_t ix, std::int64_t iy) const {
+    // The column's centre as CubeGrid::center() gives it (z unused), without its divisions.
+    const Eigen::Vector3d centre(grid_.min_corner.x() + grid_.edge_m * static_cast<double>(ix),
+                                 grid_.min_corner.y() + grid_.edge_m * static_cast<double>(iy), 0.0);
     double distance = 0.0;
     const std::int64_t bin = bin_of(centre, distance);
     if (bin < 0) return kInf;
@@ -235,17 +255,17 @@ double bottom_face(const CubeGrid& grid, std::int64_t layer) {
 }
 
 /// L's positions column by column (a counting sort by column; layers stay ascending).
-void order_by_column(const std::vector<std::int64_t>& occupied, std::int64_t num_columns, Workspace& w) {
+void order_by_column(std::int64_t num_columns, Workspace& w) {
   w.start.assign(static_cast<std::size_t>(num_columns) + 1, 0);
-  for (const std::int64_t cube : occupied) ++w.start[static_cast<std::size_t>(cube % num_columns) + 1];
+  for (const std::int32_t column : w.column_of) ++w.start[static_cast<std::size_t>(column) + 1];
   for (std::size_t column = 0; column < static_cast<std::size_t>(num_columns); ++column) {
     w.start[column + 1] += w.start[column];
   }
-  w.by_column.resize(occupied.size());
+  w.by_column.resize(w.column_of.size());
   std::vector<std::int32_t>& next = w.scratch;  // reused: the window pass is over
   next.assign(w.start.begin(), w.start.end() - 1);
-  for (std::size_t position = 0; position < occupied.size(); ++position) {
-    w.by_column[static_cast<std::size_t>(next[static_cast<std::size_t>(occupied[position] % num_columns)]++)] =
+  for (std::size_t position = 0; position < w.column_of.size(); ++position) {
+    w.by_column[static_cast<std::size_t>(next[static_cast<std::size_t>(w.column_of[position])]++)] =
         static_cast<std::int32_t>(position);
   }
 }
@@ -253,12 +273,13 @@ void order_by_column(const std::vector<std::int64_t>& occupied, std::int64_t num
 /// Step 4: judges the chains of every column bottom-up.
 class ColumnJudge {
  public:
-  ColumnJudge(const CubeGrid& grid, const std::vector<std::int64_t>& occupied, const Workspace& w, int sigma,
-              const ShadowAwareParams& params, const FreeSpaceFloor& floor)
-      : grid_(grid), occupied_(occupied), w_(w), sigma_(sigma), params_(params), floor_(floor) {}
+  ColumnJudge(const CubeGrid& grid, const Workspace& w, int sigma, const ShadowAwareParams& params,
+              const FreeSpaceFloor& floor)
+      : grid_(grid), w_(w), sigma_(sigma), params_(params), floor_(floor) {}
 
-  /// The reasons of `column`'s cubes (at their positions in L).
-  void judge(std::int64_t column, std::vector<CubeReason>& reasons) const {
+  /// The reasons of the cubes of column (ix, iy) (at their positions in L).
+  void judge(std::int64_t ix, std::int64_t iy, std::vector<CubeReason>& reasons) const {
+    const std::int64_t column = ix + iy * grid_.ixmax;
     const std::int32_t ground = w_.ground[static_cast<std::size_t>(column)];
     const auto [begin, end] = range(column);
     bool kept_below = false;
@@ -276,10 +297,10 @@ class ColumnJudge {
         reason = CubeReason::kSupported;
       } else if (kept_below) {
         reason = CubeReason::kRemovedAboveKept;  // [CBC] Algorithm 1's case: observed support below
-      } else if (!bottom_is_wide(column, bottom)) {
+      } else if (!bottom_is_wide(ix, iy, bottom)) {
         reason = CubeReason::kThin;
       } else {
-        if (std::isnan(free_floor)) free_floor = floor_.floor_of(column);
+        if (std::isnan(free_floor)) free_floor = floor_.floor_of(ix, iy);
         const bool free_below = free_floor < bottom_face(grid_, bottom) - params_.free_margin_m;
         reason = free_below ? CubeReason::kRemovedFreeBelow : CubeReason::kShadowed;
       }
@@ -296,14 +317,12 @@ class ColumnJudge {
             static_cast<std::size_t>(w_.start[static_cast<std::size_t>(column) + 1])};
   }
 
-  std::int64_t layer_at(std::size_t i) const {
-    return occupied_[static_cast<std::size_t>(w_.by_column[i])] / grid_.num_columns();
-  }
+  std::int64_t layer_at(std::size_t i) const { return w_.layer_of[static_cast<std::size_t>(w_.by_column[i])]; }
 
-  /// Whether `min_bottom_neighbours` of the 8 columns around `column` hold a cube within one layer
-  /// of `bottom`: a crown's or a ceiling's underside is wide, a trunk's or a pole's is not.
-  bool bottom_is_wide(std::int64_t column, std::int64_t bottom) const {
-    const std::int64_t ix = column % grid_.ixmax, iy = column / grid_.ixmax, reach = params_.bottom_window;
+  /// Whether `min_bottom_neighbours` of the 8 columns around column (ix, iy) hold a cube within one
+  /// layer of `bottom`: a crown's or a ceiling's underside is wide, a trunk's or a pole's is not.
+  bool bottom_is_wide(std::int64_t ix, std::int64_t iy, std::int64_t bottom) const {
+    const std::int64_t reach = params_.bottom_window;
     int found = 0;
     for (std::int64_t y = std::max<std::int64_t>(0, iy - reach); y <= std::min(grid_.iymax - 1, iy + reach); ++y) {
       for (std::int64_t x = std::max<std::int64_t>(0, ix - reach); x <= std::min(grid_.ixmax - 1, ix + reach); ++x) {
@@ -321,7 +340,6 @@ class ColumnJudge {
   }
 
   const CubeGrid& grid_;
-  const std::vector<std::int64_t>& occupied_;
   const Workspace& w_;
   int sigma_;
   const ShadowAwareParams& params_;
@@ -400,7 +418,8 @@ ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vecto
                                 " columns (or its layers) is over 2^27: crop the cloud or use a larger edge");
   }
   Workspace& w = thread_workspace();
-  lowest_layers(sorted_occupied, num_columns, w.lowest);
+  split_cubes(sorted_occupied, num_columns, w);
+  lowest_layers(num_columns, w);
   reliable_ground(grid, w.lowest, params.ground_support, w.reliable);
   // The window in columns, clipped to the grid in doubles: a radius of 1e300 m is finite, and its
   // column count would overflow a 64-bit integer.
@@ -411,15 +430,19 @@ ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vecto
   add_rays(grid, points, w.ground, floor);
   floor.finish();
   // Step 2 again: a lowest cube with a ray under it is no ground (a crown's underside), then G.
-  for (std::int64_t column = 0; column < num_columns; ++column) {
-    std::int32_t& layer = w.reliable[static_cast<std::size_t>(column)];
-    if (layer != kNone && floor.floor_of(column) < bottom_face(grid, layer)) layer = kNone;
+  for (std::int64_t iy = 0; iy < grid.iymax; ++iy) {
+    for (std::int64_t ix = 0; ix < grid.ixmax; ++ix) {
+      std::int32_t& layer = w.reliable[static_cast<std::size_t>(ix + iy * grid.ixmax)];
+      if (layer != kNone && floor.floor_of(ix, iy) < bottom_face(grid, layer)) layer = kNone;
+    }
   }
   window_minimum(grid, radius, w.reliable, w.scratch, w.ground, w.line);
-  order_by_column(sorted_occupied, num_columns, w);
+  order_by_column(num_columns, w);
   decision.reasons.assign(sorted_occupied.size(), CubeReason::kSupported);
-  const ColumnJudge judge(grid, sorted_occupied, w, sigma, params, floor);
-  for (std::int64_t column = 0; column < num_columns; ++column) judge.judge(column, decision.reasons);
+  const ColumnJudge judge(grid, w, sigma, params, floor);
+  for (std::int64_t iy = 0; iy < grid.iymax; ++iy) {
+    for (std::int64_t ix = 0; ix < grid.ixmax; ++ix) judge.judge(ix, iy, decision.reasons);
+  }
   for (std::size_t position = 0; position < sorted_occupied.size(); ++position) {
     if (is_removal(decision.reasons[position])) decision.removed_cubes.push_back(sorted_occupied[position]);
   }
