@@ -190,13 +190,16 @@ void cube_of_rows(const Cloud& cloud, const CubeGrid& grid, int num_threads, std
 /// again, with its cube, in row order.
 template <typename Index, typename Cloud>
 void points_of_rows(const Cloud& cloud, const std::vector<Index>& cubes, std::vector<CubePoint>& points) {
-  points.clear();
+  points.resize(cubes.size());  // at most one per row; stores through a plain pointer, no push_back
+  CubePoint* const out = points.data();
+  std::size_t count = 0;
   Eigen::Vector3d p;
   for (std::size_t row = 0; row < cubes.size(); ++row) {
     if (cubes[row] != kNoCube<Index> && cloud.map(row, p) == 0) {
-      points.push_back({p, static_cast<std::int64_t>(cubes[row])});
+      out[count++] = {p, static_cast<std::int64_t>(cubes[row])};
     }
   }
+  points.resize(count);
 }
 
 /// The overhang mask: rows whose cube `is_removed`, computed in parts; returns how many.
