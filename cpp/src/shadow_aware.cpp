@@ -226,26 +226,11 @@ class FreeSpaceFloor {
 void add_rays(const CubeGrid& grid, const std::vector<CubePoint>& points, const std::vector<std::int32_t>& ground,
               FreeSpaceFloor& floor) {
   const std::int64_t num_columns = grid.num_columns();
-  const double inverse_edge = 1.0 / grid.edge_m;
   for (const CubePoint& taking_part : points) {
-    const Eigen::Vector3d& point = taking_part.point;
-    // The cube's column and layer from [CBC] eqs. (4)-(6), checked against I by eq. (1): no 64-bit
-    // division per point unless the caller quantised differently.
-    const Eigen::Vector3d position = (point - grid.min_corner) * inverse_edge + Eigen::Vector3d::Constant(0.5);
-    const bool inside = position.x() >= 0.0 && position.x() < static_cast<double>(grid.ixmax) && position.y() >= 0.0 &&
-                        position.y() < static_cast<double>(grid.iymax) && position.z() >= 0.0 &&
-                        position.z() < static_cast<double>(grid.izmax);
-    std::int64_t column = -1, layer = -1;
-    if (inside) {
-      column = static_cast<std::int64_t>(position.x()) + static_cast<std::int64_t>(position.y()) * grid.ixmax;
-      layer = static_cast<std::int64_t>(position.z());
-    }
-    if (!inside || column + layer * num_columns != taking_part.cube) {
-      layer = taking_part.cube / num_columns;
-      column = taking_part.cube - layer * num_columns;
-    }
-    const std::int32_t below = ground[static_cast<std::size_t>(column)];
-    if (below == kNone || layer >= std::int64_t{below} - 1) floor.add_ray(point);  // not below G0
+    // The column and layer of I by [CBC] eq. (1) (one division is cheaper than quantising the point again).
+    const std::int64_t layer = taking_part.cube / num_columns;
+    const std::int32_t below = ground[static_cast<std::size_t>(taking_part.cube - layer * num_columns)];
+    if (below == kNone || layer >= std::int64_t{below} - 1) floor.add_ray(taking_part.point);  // not below G0
   }
 }
 
