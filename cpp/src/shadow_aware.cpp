@@ -66,26 +66,54 @@ void lowest_layers(std::int64_t num_columns, Workspace& w) {
   }
 }
 
+/// 1 when `other` lies within one layer of `layer` (other - layer + 1 in [0, 2]), 0 otherwise and
+/// for kNone (far above any layer); unsigned, without a branch.
+int within_one_layer(std::int32_t other, std::int32_t layer) {
+  return static_cast<std::uint32_t>(other) - static_cast<std::uint32_t>(layer) + 1U <= 2U ? 1 : 0;
+}
+
+/// Step 1 at one column, its neighbourhood clipped to the grid: its lowest layer if reliable, else kNone.
+std::int32_t reliable_at(const CubeGrid& grid, const std::vector<std::int32_t>& lowest, int support, std::int64_t ix,
+                         std::int64_t iy) {
+  const std::int64_t nx = grid.ixmax, ny = grid.iymax;
+  const std::int32_t layer = lowest[static_cast<std::size_t>(ix + iy * nx)];
+  if (layer == kNone) return kNone;
+  int count = 0;
+  for (std::int64_t y = std::max<std::int64_t>(0, iy - 1); y <= std::min(ny - 1, iy + 1); ++y) {
+    for (std::int64_t x = std::max<std::int64_t>(0, ix - 1); x <= std::min(nx - 1, ix + 1); ++x) {
+      count += within_one_layer(lowest[static_cast<std::size_t>(x + y * nx)], layer);
+    }
+  }
+  return count >= support ? layer : kNone;
+}
+
 /// Step 1: a column's lowest layer where `support` columns of its 3x3 neighbourhood (itself
-/// included) have their lowest cube within one layer of it; kNone elsewhere.
+/// included) have their lowest cube within one layer of it; kNone elsewhere. The grid's border
+/// clipped (reliable_at), the inner columns of a row in one branch-free run the compiler vectorises.
 void reliable_ground(const CubeGrid& grid, const std::vector<std::int32_t>& lowest, int support,
                      std::vector<std::int32_t>& reliable) {
   const std::int64_t nx = grid.ixmax, ny = grid.iymax;
-  reliable.assign(lowest.size(), kNone);
+  reliable.resize(lowest.size());
   for (std::int64_t iy = 0; iy < ny; ++iy) {
-    for (std::int64_t ix = 0; ix < nx; ++ix) {
-      const std::int32_t layer = lowest[static_cast<std::size_t>(ix + iy * nx)];
-      if (layer == kNone) continue;
-      int count = 0;
-      for (std::int64_t y = std::max<std::int64_t>(0, iy - 1); y <= std::min(ny - 1, iy + 1); ++y) {
-        for (std::int64_t x = std::max<std::int64_t>(0, ix - 1); x <= std::min(nx - 1, ix + 1); ++x) {
-          // Within one layer: other - layer + 1 in [0, 2], without a branch (kNone is far above).
-          const std::int64_t other = lowest[static_cast<std::size_t>(x + y * nx)];
-          count += static_cast<std::uint64_t>(other - layer + 1) <= 2 ? 1 : 0;
-        }
-      }
-      if (count >= support) reliable[static_cast<std::size_t>(ix + iy * nx)] = layer;
+    std::int32_t* const out = reliable.data() + iy * nx;
+    if (iy == 0 || iy == ny - 1 || nx < 3) {
+      for (std::int64_t ix = 0; ix < nx; ++ix) out[ix] = reliable_at(grid, lowest, support, ix, iy);
+      continue;
     }
+    const std::int32_t* const row = lowest.data() + iy * nx;
+    const std::int32_t* const below = row - nx;
+    const std::int32_t* const above = row + nx;
+    out[0] = reliable_at(grid, lowest, support, 0, iy);
+    for (std::int64_t ix = 1; ix < nx - 1; ++ix) {
+      const std::int32_t layer = row[ix];
+      int count = 0;
+      for (std::int64_t x = ix - 1; x <= ix + 1; ++x) {
+        count +=
+            within_one_layer(below[x], layer) + within_one_layer(row[x], layer) + within_one_layer(above[x], layer);
+      }
+      out[ix] = layer != kNone && count >= support ? layer : kNone;
+    }
+    out[nx - 1] = reliable_at(grid, lowest, support, nx - 1, iy);
   }
 }
 
@@ -265,8 +293,9 @@ class ColumnJudge {
   /// The reasons of the cubes of column (ix, iy) (at their positions in L).
   void judge(std::int64_t ix, std::int64_t iy, std::vector<CubeReason>& reasons) const {
     const std::int64_t column = ix + iy * grid_.ixmax;
-    const std::int32_t ground = w_.ground[static_cast<std::size_t>(column)];
     const auto [begin, end] = range(column);
+    if (begin == end) return;  // most columns are empty
+    const std::int32_t ground = w_.ground[static_cast<std::size_t>(column)];
     bool kept_below = false;
     double free_floor = std::numeric_limits<double>::quiet_NaN();  // F, computed when first needed
     for (std::size_t first = begin; first < end;) {
