@@ -56,14 +56,14 @@ std::vector<std::int64_t> collapse_columns(const std::vector<std::int64_t>& sort
 /// which also fills the result's cube reasons.
 template <typename GroundOf>
 std::vector<std::int64_t> removed_cubes_of(const std::vector<std::int64_t>& sorted_occupied,
-                                           const CollapseParams& params, const std::vector<CubePoint>& points,
+                                           const CollapseParams& params, const NextPoints& next_points,
                                            CollapseResult& result, GroundOf&& ground_of) {
   if (params.method != CollapseMethod::kShadowAware) {
     return collapse_columns(sorted_occupied, result.grid.num_columns(), params.sigma, ground_of);
   }
   const Eigen::Vector3d origin = params.shadow_aware.sensor_origin.value_or(params.transform.block<3, 1>(0, 3));
   ShadowAwareDecision decision =
-      shadow_aware_collapse(result.grid, sorted_occupied, points, params.sigma, origin, params.shadow_aware);
+      shadow_aware_collapse(result.grid, sorted_occupied, next_points, params.sigma, origin, params.shadow_aware);
   result.cube_reasons = std::move(decision.reasons);
   return std::move(decision.removed_cubes);
 }
@@ -156,11 +156,10 @@ struct Workspace {
   std::vector<SparseIndex> sparse_cubes;  ///< I per row, sparse storage
   std::vector<std::uint64_t> occupancy;   ///< V, dense storage
   std::vector<std::int32_t> ground;       ///< M, dense storage
-  std::vector<CubePoint> points;          ///< the rows that take part, shadow-aware rule only
 
   void release_if_large() {
-    const std::size_t bytes = 4 * dense_cubes.capacity() + 8 * (sparse_cubes.capacity() + occupancy.capacity()) +
-                              4 * ground.capacity() + sizeof(CubePoint) * points.capacity();
+    const std::size_t bytes =
+        4 * dense_cubes.capacity() + 8 * (sparse_cubes.capacity() + occupancy.capacity()) + 4 * ground.capacity();
     if (bytes > (std::size_t{64} << 20)) *this = Workspace();
   }
 };
@@ -186,20 +185,20 @@ void cube_of_rows(const Cloud& cloud, const CubeGrid& grid, int num_threads, std
   });
 }
 
-/// The shadow-aware rule's rays: every row that takes part (its cube is not kNoCube), leveled
-/// again, with its cube, in row order.
+/// The shadow-aware rule's rays: the rows that take part (their cube is not kNoCube), leveled
+/// again, with their cube, in row order, a chunk at a time (the paper's rule never asks).
 template <typename Index, typename Cloud>
-void points_of_rows(const Cloud& cloud, const std::vector<Index>& cubes, std::vector<CubePoint>& points) {
-  points.resize(cubes.size());  // at most one per row; stores through a plain pointer, no push_back
-  CubePoint* const out = points.data();
-  std::size_t count = 0;
-  Eigen::Vector3d p;
-  for (std::size_t row = 0; row < cubes.size(); ++row) {
-    if (cubes[row] != kNoCube<Index> && cloud.map(row, p) == 0) {
-      out[count++] = {p, static_cast<std::int64_t>(cubes[row])};
+NextPoints points_of_rows(const Cloud& cloud, const std::vector<Index>& cubes) {
+  return [&cloud, &cubes, row = std::size_t{0}](CubePoint* out, std::size_t capacity) mutable {
+    std::size_t count = 0;
+    Eigen::Vector3d p;
+    for (; row < cubes.size() && count < capacity; ++row) {
+      if (cubes[row] != kNoCube<Index> && cloud.map(row, p) == 0) {
+        out[count++] = {p, static_cast<std::int64_t>(cubes[row])};
+      }
     }
-  }
-  points.resize(count);
+    return count;
+  };
 }
 
 /// The overhang mask: rows whose cube `is_removed`, computed in parts; returns how many.
@@ -231,7 +230,8 @@ std::size_t write_mask(const std::vector<Index>& cube_of_row, int num_threads, c
 /// Dense storage: V is a bit per cube of the grid, M a layer per column. Reading V in index order
 /// lists L already sorted (a bucket sort, O(cubes / 64 + |L|)). The workspace keeps V all 0 and M
 /// all -1 between calls: a call clears only what it set, O(|L|), not the whole grid.
-void collapse_dense(Workspace& workspace, const CollapseParams& params, CollapseResult& result) {
+void collapse_dense(Workspace& workspace, const CollapseParams& params, const NextPoints& next_points,
+                    CollapseResult& result) {
   const int num_threads = params.num_threads;
   const CubeGrid& grid = result.grid;
   const std::vector<DenseIndex>& cubes = workspace.dense_cubes;
@@ -259,7 +259,7 @@ void collapse_dense(Workspace& workspace, const CollapseParams& params, Collapse
   }
   std::vector<std::int32_t>& ground = workspace.ground;  // M
   result.removed_cubes = removed_cubes_of(
-      occupied, params, workspace.points,
+      occupied, params, next_points,
       result, [&](std::int64_t column) -> auto& { return ground[static_cast<std::size_t>(column)]; });
   // R's bits cleared in V: a row is overhang when its cube's bit is gone.
   for (const std::int64_t cube : result.removed_cubes) {
@@ -276,8 +276,8 @@ void collapse_dense(Workspace& workspace, const CollapseParams& params, Collapse
 
 /// Sparse storage: L is the sorted distinct cubes of the rows and M a hash map over the columns
 /// that hold points, so memory is O(N) whatever the extent.
-void collapse_sparse(const std::vector<SparseIndex>& cubes, const std::vector<CubePoint>& points,
-                     const CollapseParams& params, CollapseResult& result) {
+void collapse_sparse(const std::vector<SparseIndex>& cubes, const NextPoints& next_points, const CollapseParams& params,
+                     CollapseResult& result) {
   const int num_threads = params.num_threads;
   std::vector<std::int64_t>& occupied = result.occupied_cubes;  // L
   occupied.reserve(cubes.size());
@@ -288,9 +288,9 @@ void collapse_sparse(const std::vector<SparseIndex>& cubes, const std::vector<Cu
   occupied.erase(std::unique(occupied.begin(), occupied.end()), occupied.end());
   std::unordered_map<std::int64_t, std::int64_t> ground;  // M, only for columns that hold points
   ground.reserve(occupied.size());
-  result.removed_cubes = removed_cubes_of(occupied, params, points, result, [&](std::int64_t column) -> std::int64_t& {
-    return ground.try_emplace(column, -1).first->second;
-  });
+  result.removed_cubes = removed_cubes_of(
+      occupied, params, next_points, result,
+      [&](std::int64_t column) -> std::int64_t& { return ground.try_emplace(column, -1).first->second; });
   const std::vector<std::int64_t>& removed = result.removed_cubes;  // sorted, as L is
   result.num_overhang = write_mask(
       cubes, num_threads, [&](SparseIndex cube) { return std::binary_search(removed.begin(), removed.end(), cube); },
@@ -331,15 +331,12 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
         }
       }
     } release_on_exit{workspace};
-    const bool shadow_aware = params.method == CollapseMethod::kShadowAware;
     if (result.storage_used == CubeStorage::kDense) {
       cube_of_rows(cloud, result.grid, params.num_threads, workspace.dense_cubes);
-      if (shadow_aware) points_of_rows(cloud, workspace.dense_cubes, workspace.points);
-      collapse_dense(workspace, params, result);
+      collapse_dense(workspace, params, points_of_rows(cloud, workspace.dense_cubes), result);
     } else {
       cube_of_rows(cloud, result.grid, params.num_threads, workspace.sparse_cubes);
-      if (shadow_aware) points_of_rows(cloud, workspace.sparse_cubes, workspace.points);
-      collapse_sparse(workspace.sparse_cubes, workspace.points, params, result);
+      collapse_sparse(workspace.sparse_cubes, points_of_rows(cloud, workspace.sparse_cubes), params, result);
     }
   });
   return result;

@@ -33,6 +33,7 @@ struct Workspace {
   std::vector<std::int32_t> by_column;  ///< positions in L, column by column, layers ascending
   std::vector<double> slope;            ///< per (range step, sector): lowest slope of rays ending beyond it
   std::vector<std::int32_t> line;       ///< the window minimum's line buffers
+  std::vector<CubePoint> chunk;         ///< the points of the rays, a chunk at a time
 };
 
 Workspace& thread_workspace() {
@@ -251,14 +252,19 @@ class FreeSpaceFloor {
 };
 
 /// Step 3's rays: those to the points whose cube is not below G0 - 1 (`ground`, per column).
-void add_rays(const CubeGrid& grid, const std::vector<CubePoint>& points, const std::vector<std::int32_t>& ground,
-              FreeSpaceFloor& floor) {
+void add_rays(const CubeGrid& grid, const NextPoints& next_points, const std::vector<std::int32_t>& ground,
+              FreeSpaceFloor& floor, std::vector<CubePoint>& chunk) {
+  constexpr std::size_t kChunk = 2048;  // 64 kB: stays in the cache between the caller and here
+  chunk.resize(kChunk);
   const std::int64_t num_columns = grid.num_columns();
-  for (const CubePoint& taking_part : points) {
-    // The column and layer of I by [CBC] eq. (1) (one division is cheaper than quantising the point again).
-    const std::int64_t layer = taking_part.cube / num_columns;
-    const std::int32_t below = ground[static_cast<std::size_t>(taking_part.cube - layer * num_columns)];
-    if (below == kNone || layer >= std::int64_t{below} - 1) floor.add_ray(taking_part.point);  // not below G0
+  for (std::size_t count = 0; (count = next_points(chunk.data(), chunk.size())) > 0;) {
+    for (std::size_t i = 0; i < std::min(count, chunk.size()); ++i) {
+      const CubePoint& taking_part = chunk[i];
+      // The column and layer of I by [CBC] eq. (1) (one division is cheaper than quantising the point again).
+      const std::int64_t layer = taking_part.cube / num_columns;
+      const std::int32_t below = ground[static_cast<std::size_t>(taking_part.cube - layer * num_columns)];
+      if (below == kNone || layer >= std::int64_t{below} - 1) floor.add_ray(taking_part.point);  // not below G0
+    }
   }
 }
 
@@ -418,7 +424,7 @@ void check_shadow_aware_params(const ShadowAwareParams& params) {
 }
 
 ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vector<std::int64_t>& sorted_occupied,
-                                          const std::vector<CubePoint>& points, int sigma,
+                                          const NextPoints& next_points, int sigma,
                                           const Eigen::Vector3d& sensor_origin, const ShadowAwareParams& params) {
   check_shadow_aware_params(params);
   if (sigma < 1) throw std::invalid_argument("sigma must be at least 1 cube, got " + std::to_string(sigma));
@@ -441,7 +447,7 @@ ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vecto
                                                          static_cast<double>(std::max(grid.ixmax, grid.iymax))));
   window_minimum(grid, radius, w.reliable, w.scratch, w.ground, w.line);  // G0
   FreeSpaceFloor floor(grid, sensor_origin, params.azimuth_bins, w.slope);
-  add_rays(grid, points, w.ground, floor);
+  add_rays(grid, next_points, w.ground, floor, w.chunk);
   floor.finish();
   // Step 2 again: a lowest cube with a ray under it is no ground (a crown's underside), then G.
   for (std::int64_t iy = 0; iy < grid.iymax; ++iy) {
