@@ -36,7 +36,10 @@ struct Workspace {
   std::vector<CubePoint> chunk;         ///< the points of the rays, a chunk at a time
 };
 
-Workspace& thread_workspace() {
+/// Not inlined: in a shared library (the Python module) the compiler may compute the address of a
+/// thread_local object it can see again (a __tls_get_addr call) wherever it needs it, also inside
+/// the loops; the opaque reference is computed once (measured: 0.15 ms of 2.8 ms per KITTI scan).
+[[gnu::noinline]] Workspace& thread_workspace() {
   thread_local Workspace workspace;
   return workspace;
 }
