@@ -45,14 +45,15 @@ struct Workspace {
 }
 
 /// The column and layer of every cube of L ([CBC] eq. (1): I = column + layer * columns) with a
-/// division per layer, not per cube: L is sorted by I, so its layers ascend.
+/// division per layer, not per cube: L is sorted by I, so its layers ascend (and a cube out of
+/// order is divided too).
 void split_cubes(const std::vector<std::int64_t>& occupied, std::int64_t num_columns, Workspace& w) {
   w.column_of.resize(occupied.size());
   w.layer_of.resize(occupied.size());
   std::int64_t layer = -1, layer_start = 0;
   for (std::size_t position = 0; position < occupied.size(); ++position) {
     const std::int64_t cube = occupied[position];
-    if (layer < 0 || cube - layer_start >= num_columns) {
+    if (layer < 0 || cube < layer_start || cube - layer_start >= num_columns) {
       layer = cube / num_columns;
       layer_start = layer * num_columns;
     }
