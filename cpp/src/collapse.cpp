@@ -56,14 +56,14 @@ std::vector<std::int64_t> collapse_columns(const std::vector<std::int64_t>& sort
 /// which also fills the result's cube reasons.
 template <typename GroundOf>
 std::vector<std::int64_t> removed_cubes_of(const std::vector<std::int64_t>& sorted_occupied,
-                                           const CollapseParams& params, const ForEachPoint& for_each_point,
+                                           const CollapseParams& params, const NextPoints& next_points,
                                            CollapseResult& result, GroundOf&& ground_of) {
   if (params.method != CollapseMethod::kShadowAware) {
     return collapse_columns(sorted_occupied, result.grid.num_columns(), params.sigma, ground_of);
   }
   const Eigen::Vector3d origin = params.shadow_aware.sensor_origin.value_or(params.transform.block<3, 1>(0, 3));
   ShadowAwareDecision decision =
-      shadow_aware_collapse(result.grid, sorted_occupied, for_each_point, params.sigma, origin, params.shadow_aware);
+      shadow_aware_collapse(result.grid, sorted_occupied, next_points, params.sigma, origin, params.shadow_aware);
   result.cube_reasons = std::move(decision.reasons);
   return std::move(decision.removed_cubes);
 }
@@ -185,6 +185,22 @@ void cube_of_rows(const Cloud& cloud, const CubeGrid& grid, int num_threads, std
   });
 }
 
+/// The shadow-aware rule's rays: the rows that take part (their cube is not kNoCube), leveled
+/// again, with their cube, in row order, a chunk at a time (the paper's rule never asks).
+template <typename Index, typename Cloud>
+NextPoints points_of_rows(const Cloud& cloud, const std::vector<Index>& cubes) {
+  return [&cloud, &cubes, row = std::size_t{0}](CubePoint* out, std::size_t capacity) mutable {
+    std::size_t count = 0;
+    Eigen::Vector3d p;
+    for (; row < cubes.size() && count < capacity; ++row) {
+      if (cubes[row] != kNoCube<Index> && cloud.map(row, p) == 0) {
+        out[count++] = {p, static_cast<std::int64_t>(cubes[row])};
+      }
+    }
+    return count;
+  };
+}
+
 /// The overhang mask: rows whose cube `is_removed`, computed in parts; returns how many.
 template <typename Index, typename IsRemoved>
 std::size_t write_mask(const std::vector<Index>& cube_of_row, int num_threads, const IsRemoved& is_removed,
@@ -214,7 +230,7 @@ std::size_t write_mask(const std::vector<Index>& cube_of_row, int num_threads, c
 /// Dense storage: V is a bit per cube of the grid, M a layer per column. Reading V in index order
 /// lists L already sorted (a bucket sort, O(cubes / 64 + |L|)). The workspace keeps V all 0 and M
 /// all -1 between calls: a call clears only what it set, O(|L|), not the whole grid.
-void collapse_dense(Workspace& workspace, const CollapseParams& params, const ForEachPoint& for_each_point,
+void collapse_dense(Workspace& workspace, const CollapseParams& params, const NextPoints& next_points,
                     CollapseResult& result) {
   const int num_threads = params.num_threads;
   const CubeGrid& grid = result.grid;
@@ -243,7 +259,7 @@ void collapse_dense(Workspace& workspace, const CollapseParams& params, const Fo
   }
   std::vector<std::int32_t>& ground = workspace.ground;  // M
   result.removed_cubes = removed_cubes_of(
-      occupied, params, for_each_point,
+      occupied, params, next_points,
       result, [&](std::int64_t column) -> auto& { return ground[static_cast<std::size_t>(column)]; });
   // R's bits cleared in V: a row is overhang when its cube's bit is gone.
   for (const std::int64_t cube : result.removed_cubes) {
@@ -260,8 +276,8 @@ void collapse_dense(Workspace& workspace, const CollapseParams& params, const Fo
 
 /// Sparse storage: L is the sorted distinct cubes of the rows and M a hash map over the columns
 /// that hold points, so memory is O(N) whatever the extent.
-void collapse_sparse(const std::vector<SparseIndex>& cubes, const CollapseParams& params,
-                     const ForEachPoint& for_each_point, CollapseResult& result) {
+void collapse_sparse(const std::vector<SparseIndex>& cubes, const NextPoints& next_points, const CollapseParams& params,
+                     CollapseResult& result) {
   const int num_threads = params.num_threads;
   std::vector<std::int64_t>& occupied = result.occupied_cubes;  // L
   occupied.reserve(cubes.size());
@@ -273,7 +289,7 @@ void collapse_sparse(const std::vector<SparseIndex>& cubes, const CollapseParams
   std::unordered_map<std::int64_t, std::int64_t> ground;  // M, only for columns that hold points
   ground.reserve(occupied.size());
   result.removed_cubes = removed_cubes_of(
-      occupied, params, for_each_point, result,
+      occupied, params, next_points, result,
       [&](std::int64_t column) -> std::int64_t& { return ground.try_emplace(column, -1).first->second; });
   const std::vector<std::int64_t>& removed = result.removed_cubes;  // sorted, as L is
   result.num_overhang = write_mask(
@@ -315,22 +331,12 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
         }
       }
     } release_on_exit{workspace};
-    // The shadow-aware rule's rays: every row that takes part, with its cube.
-    const auto rows_of = [&](const auto& cubes) -> ForEachPoint {
-      return [&cloud, &cubes](const PointVisitor& visit) {
-        Eigen::Vector3d p;
-        for (std::size_t row = 0; row < cubes.size(); ++row) {
-          using Index = typename std::decay_t<decltype(cubes)>::value_type;
-          if (cubes[row] != kNoCube<Index> && cloud.map(row, p) == 0) visit(p, static_cast<std::int64_t>(cubes[row]));
-        }
-      };
-    };
     if (result.storage_used == CubeStorage::kDense) {
       cube_of_rows(cloud, result.grid, params.num_threads, workspace.dense_cubes);
-      collapse_dense(workspace, params, rows_of(workspace.dense_cubes), result);
+      collapse_dense(workspace, params, points_of_rows(cloud, workspace.dense_cubes), result);
     } else {
       cube_of_rows(cloud, result.grid, params.num_threads, workspace.sparse_cubes);
-      collapse_sparse(workspace.sparse_cubes, params, rows_of(workspace.sparse_cubes), result);
+      collapse_sparse(workspace.sparse_cubes, points_of_rows(cloud, workspace.sparse_cubes), params, result);
     }
   });
   return result;

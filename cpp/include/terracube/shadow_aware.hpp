@@ -3,6 +3,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <cstddef>
 #include <cstdint>
 #include <functional>
 #include <optional>
@@ -65,10 +66,16 @@ struct ShadowAwareDecision {
   std::vector<CubeReason> reasons;          ///< one per cube of L, aligned with it
 };
 
-/// Calls its argument once per point that takes part: the point [m] in the leveled frame and the
-/// index I of its cube (collapse_overhangs passes its rows).
-using PointVisitor = std::function<void(const Eigen::Vector3d& point, std::int64_t cube)>;
-using ForEachPoint = std::function<void(const PointVisitor& visit)>;
+/// A point that takes part (collapse_overhangs passes its rows): the point [m] in the leveled frame
+/// and the index I of its cube.
+struct CubePoint {
+  Eigen::Vector3d point;
+  std::int64_t cube = 0;
+};
+
+/// Fills `out` (room for `capacity` points) with the next points that take part and returns how
+/// many, 0 after the last: the points come a chunk at a time, without a copy of them all.
+using NextPoints = std::function<std::size_t(CubePoint* out, std::size_t capacity)>;
 
 /// The shadow-aware rule over the occupied cubes L (sorted ascending, indices I of `grid`):
 ///  1. the lowest cube of each column is reliable ground when `ground_support` columns of its 3x3
@@ -87,7 +94,7 @@ using ForEachPoint = std::function<void(const PointVisitor& visit)>;
 /// O(N + |L| + columns + azimuth_bins * range steps); single-threaded, deterministic.
 /// Throws std::invalid_argument on invalid parameters or a grid of more than 2^27 columns.
 ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vector<std::int64_t>& sorted_occupied,
-                                          const ForEachPoint& for_each_point, int sigma,
+                                          const NextPoints& next_points, int sigma,
                                           const Eigen::Vector3d& sensor_origin, const ShadowAwareParams& params = {});
 
 /// Throws std::invalid_argument naming the first invalid field of `params`.
