@@ -343,24 +343,41 @@ class ColumnJudge {
 
   std::int64_t layer_at(std::size_t i) const { return w_.layer_of[static_cast<std::size_t>(w_.by_column[i])]; }
 
-  /// Whether `min_bottom_neighbours` of the 8 columns around column (ix, iy) hold a cube within one
-  /// layer of `bottom`: a crown's or a ceiling's underside is wide, a trunk's or a pole's is not.
+  /// Whether the bottom of a floating chain of column (ix, iy) is wide, as a crown's or a ceiling's
+  /// underside is and a trunk's or a pole's is not: `min_bottom_neighbours` of the 8 columns around
+  /// hold a cube within one layer of `bottom`; or, when none of those 8 holds a grounded chain at
+  /// that height (so the chain is no part of a pole, car or wall beside it), as many columns of the
+  /// wider square (bottom_window) hold a floating chain there (sparse scan rings under a ceiling).
   bool bottom_is_wide(std::int64_t ix, std::int64_t iy, std::int64_t bottom) const {
+    int beside = 0, floating = 0;
+    bool grounded_beside = false;
     const std::int64_t reach = params_.bottom_window;
-    int found = 0;
     for (std::int64_t y = std::max<std::int64_t>(0, iy - reach); y <= std::min(grid_.iymax - 1, iy + reach); ++y) {
       for (std::int64_t x = std::max<std::int64_t>(0, ix - reach); x <= std::min(grid_.ixmax - 1, ix + reach); ++x) {
         if (x == ix && y == iy) continue;
-        const auto [begin, end] = range(x + y * grid_.ixmax);
-        for (std::size_t i = begin; i < end && layer_at(i) <= bottom + 1; ++i) {
-          if (layer_at(i) >= bottom - 1) {
-            ++found;
-            break;
-          }
-        }
+        const std::int64_t column = x + y * grid_.ixmax;
+        const auto [begin, end] = range(column);
+        std::size_t i = begin;
+        while (i < end && layer_at(i) < bottom - 1) ++i;
+        if (i == end || layer_at(i) > bottom + 1) continue;  // no cube within one layer of the bottom
+        const bool adjacent = std::abs(x - ix) <= 1 && std::abs(y - iy) <= 1;
+        const bool floats = chain_floats(column, begin, i);
+        beside += adjacent ? 1 : 0;
+        floating += floats ? 1 : 0;
+        grounded_beside = grounded_beside || (adjacent && !floats);
       }
     }
-    return found >= params_.min_bottom_neighbours;
+    const int needed = params_.min_bottom_neighbours;
+    return beside >= needed || (!grounded_beside && floating >= needed);
+  }
+
+  /// Whether the chain holding position i of `column` (whose cubes start at `begin`) floats: its
+  /// bottom lies σ or more empty cubes above the column's ground G (false without a G).
+  bool chain_floats(std::int64_t column, std::size_t begin, std::size_t i) const {
+    const std::int32_t ground = w_.ground[static_cast<std::size_t>(column)];
+    if (ground == kNone) return false;
+    while (i > begin && layer_at(i) - layer_at(i - 1) - 1 < sigma_) --i;
+    return layer_at(i) - ground - 1 >= sigma_;
   }
 
   const CubeGrid& grid_;

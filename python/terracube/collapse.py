@@ -190,12 +190,14 @@ class CollapseParams:
         shadow_aware: a ray proves the space under a chain empty only when it passes at least this
         far [m] below the chain's bottom face (not through a car's windows), >= 0.
     min_bottom_neighbours : int
-        shadow_aware: a floating chain goes only when this many columns around it (see
-        ``bottom_window``) hold a cube within one layer of its bottom (a crown is wide, a trunk
-        over a car is not).
+        shadow_aware: a floating chain goes only when its bottom is wide (a crown's or a ceiling's
+        is, a trunk's over a car is not): this many of the 8 columns around it hold a cube within
+        one layer of its bottom, or, when none of those 8 holds a grounded chain there, this many
+        columns of the ``bottom_window`` square hold a floating chain there.
     bottom_window : int
-        shadow_aware: the square around a chain's bottom that ``min_bottom_neighbours`` counts in,
-        half-width in columns (1: the 8 neighbours, 2: 24), 1..8.
+        shadow_aware: half-width in columns of the square whose floating chains can make a bottom
+        wide (1: the 8 neighbours only, 2: 24 columns, which finds the sparse scan rings under a
+        ceiling), 1..8.
     azimuth_bins : int
         shadow_aware: azimuth sectors of the free-space floor around the sensor, >= 1.
     """
@@ -214,7 +216,7 @@ class CollapseParams:
     ground_support: int = 3
     free_margin: float = 0.25
     min_bottom_neighbours: int = 4
-    bottom_window: int = 1
+    bottom_window: int = 2
     azimuth_bins: int = 512
 
     def to_core(self) -> _core.CollapseParams:

@@ -80,12 +80,50 @@ TEST(ShadowAware, ACrownOverACurbGoesWhileTheTrunkAndCurbStay) {
   const CollapseResult result = collapse_overhangs(points, shadow_aware_params());
   EXPECT_EQ(reason_at(result, {8.5, 0.5, 1.6}), CubeReason::kRemovedFreeBelow);
   EXPECT_EQ(reason_at(result, {9.5, -0.5, 3.8}), CubeReason::kRemovedFreeBelow);
-  EXPECT_EQ(reason_at(result, {7.75, -1.25, 1.6}), CubeReason::kThin);    // a corner of the crown
+  // A corner of the crown: 3 of its 8 neighbours hold its bottom, 4 floating ones of the 5 x 5 do.
+  EXPECT_EQ(reason_at(result, {7.75, -1.25, 1.6}), CubeReason::kRemovedFreeBelow);
   EXPECT_EQ(reason_at(result, {9.0, 0.0, 3.2}), CubeReason::kSupported);  // the trunk's column
   EXPECT_EQ(reason_at(result, {5.0, 0.0, -1.4}), CubeReason::kSupported);
+  CollapseParams narrow = shadow_aware_params();
+  narrow.shadow_aware.bottom_window = 1;
+  EXPECT_EQ(reason_at(collapse_overhangs(points, narrow), {7.75, -1.25, 1.6}), CubeReason::kThin);
   CollapseParams paper = shadow_aware_params();
   paper.method = CollapseMethod::kPaper;
   EXPECT_EQ(collapse_overhangs(points, paper).num_overhang, 0U);
+}
+
+TEST(ShadowAware, SparseScanRingsUnderACeilingGo) {
+  Points points;
+  add_grid(points, 1, 6, -4, 4, -1.7);  // the floor, seen before the rings and beyond them, not under them
+  add_grid(points, 16, 20, -4, 4, -1.7);
+  for (const double x : {8.0, 11.0, 14.0}) {
+    for (double y = -3.0; y < 3.0; y += 0.1) points.emplace_back(x, y, 2.3);  // one ring each, a column wide
+  }
+  const CollapseResult result = collapse_overhangs(points, shadow_aware_params());
+  // Only 2 of a ring cube's 8 neighbours hold a cube; 4 floating ones of its 5 x 5 square do.
+  for (const double x : {8.0, 11.0, 14.0}) {
+    EXPECT_EQ(reason_at(result, {x, 0.0, 2.3}), CubeReason::kRemovedFreeBelow) << x;
+  }
+  CollapseParams narrow = shadow_aware_params();
+  narrow.shadow_aware.bottom_window = 1;
+  EXPECT_EQ(reason_at(collapse_overhangs(points, narrow), {11.0, 0.0, 2.3}), CubeReason::kThin);
+}
+
+TEST(ShadowAware, APoleBesideAFloatingSignStaysWhileTheSignGoes) {
+  Points points;
+  add_grid(points, 1, 7.5, -4, 4, -1.7);  // no ground seen next to the pole (a car hides it)
+  add_grid(points, 10, 14, -4, 4, -1.7);
+  for (double z = -1.7; z < 1.05; z += 0.1) points.emplace_back(8.0, 0.0, z);  // the pole's column
+  points.emplace_back(8.3, 0.0, 1.0);                                          // its top in the next column
+  for (const double x : {8.5, 9.0}) {
+    for (const double y : {0.5, 1.0, 1.5}) points.emplace_back(x, y, 1.0);  // the sign, floating
+  }
+  const CollapseResult result = collapse_overhangs(points, shadow_aware_params());
+  EXPECT_EQ(reason_at(result, {8.0, 0.0, 1.0}), CubeReason::kSupported);
+  // Its 8 neighbours: the pole (grounded) and two sign cubes; the 4 floating sign cubes of its
+  // 5 x 5 square do not count beside a grounded chain.
+  EXPECT_EQ(reason_at(result, {8.3, 0.0, 1.0}), CubeReason::kThin);
+  EXPECT_EQ(reason_at(result, {9.0, 1.0, 1.0}), CubeReason::kRemovedFreeBelow);  // 5 of 8 beside it
 }
 
 TEST(ShadowAware, TheResultIsTheSameForAnyThreadCountAndStorage) {

@@ -49,12 +49,14 @@ struct ShadowAwareParams {
   /// A ray proves the space under a chain empty only when it passes at least this far [m] below the
   /// chain's bottom face (rays through a car's windows or beside a wall's edge pass just under it), >= 0.
   double free_margin_m = 0.25;
-  /// A floating chain is removed only when at least this many of the 8 columns around it hold a cube
-  /// within one layer of its bottom (a crown's underside is wide; a trunk seen over a car is not), 0..8.
+  /// A floating chain is removed only when its bottom is wide (a crown's or a ceiling's underside
+  /// is; a trunk seen over a car is not): at least this many of the 8 columns around it hold a cube
+  /// within one layer of its bottom, or, when none of those 8 holds a grounded chain there, this many
+  /// columns of the bottom_window square hold a floating chain there; 0..(2 bottom_window + 1)^2 - 1.
   int min_bottom_neighbours = 4;
-  /// The columns around a chain's bottom that min_bottom_neighbours counts: a square of half-width
-  /// bottom_window (1: the 8 neighbours; 2: 24), 1..8.
-  int bottom_window = 1;
+  /// Half-width [columns] of the square whose floating chains can make a bottom wide (1: the 8
+  /// neighbours only; 2: 24 columns, which finds the sparse scan rings under a ceiling), 1..8.
+  int bottom_window = 2;
   /// Azimuth sectors of the free-space floor around the sensor (pseudo-angle bins), >= 1. Each
   /// should hold a few azimuth steps of the sensor (KITTI's HDL-64: about 2000 per turn).
   int azimuth_bins = 512;
