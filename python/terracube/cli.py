@@ -419,7 +419,7 @@ OPTIONS: dict[str, Option] = {
 
 _FRAME = ("min_range", "max_range", "roll", "pitch", "crop")
 _EXTENT = ("resolution", "origin", "size")
-_OVERHANGS = ("edge", "sigma", "robot_height")
+_OVERHANGS = ("edge", "sigma", "robot_height", "collapse_method")
 _TERRAIN = ("sensor_height", "reference", "ground_radius", "ground_height", "high_height", "std_dev")
 
 #: The options of each command that takes shared ones, in --help order.
@@ -428,7 +428,6 @@ STAGE_OPTIONS: dict[str, tuple[str, ...]] = {
         "config",
         "preset",
         *_OVERHANGS,
-        "collapse_method",
         *_FRAME,
         "num_threads",
         "output_format",
@@ -1132,6 +1131,18 @@ def stream_command(
         None, "--animation", help="Write a .gif (or .mp4 with ffmpeg) of the elevation.", show_default=False
     ),
     limit: int | None = typer.Option(None, "--limit", help="Use the first N scans only.", show_default=False),
+    edge: float = typer.Option(0.5, "--edge", "-e", help="Cube edge E [m] of the overhang removal."),
+    sigma: int | None = typer.Option(
+        None, "--sigma", "-s", help="σ [cubes]: gap that makes an overhang. [default 2]", show_default=False
+    ),
+    robot_height: float | None = typer.Option(
+        None, "--robot-height", help="Robot height [m]: sets σ = ceil(height / E) unless --sigma is given."
+    ),
+    method: str = typer.Option(
+        "paper",
+        "--method",
+        help="Overhang rule: paper ([CBC] Algorithm 1) or shadow_aware (also over unseen ground).",
+    ),
     png: bool = OPTIONS["png"].info,
 ) -> None:
     """Fuse a scan sequence into a robot-centric local map (terracube.LocalMap) and write it.
@@ -1141,6 +1152,8 @@ def stream_command(
     """
     from tqdm import tqdm
 
+    from . import sigma_from_robot_height
+    from .collapse import CollapseParams
     from .local_map import LocalMapParams
     from .mapping import detect_pose_format, match_scans_to_poses, read_kitti_calibration, read_pose_file
     from .stream import run_stream
@@ -1158,7 +1171,10 @@ def stream_command(
         calibration = read_kitti_calibration(calib) if calib is not None else None
         stamps, odometry = read_pose_file(poses, pose_format, calibration)
         indices = match_scans_to_poses(files, len(odometry))
-        params = LocalMapParams(length=length, resolution=resolution)
+        if sigma is None:
+            sigma = sigma_from_robot_height(robot_height, edge) if robot_height is not None else 2
+        collapse = CollapseParams(edge=edge, sigma=sigma, method=method)
+        params = LocalMapParams(length=length, resolution=resolution, collapse=collapse)
         params.to_core()  # refuses bad values before any scan is read
     sequence = tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="streaming")
     with _exit_on_bad_input("stream"):

@@ -235,9 +235,7 @@ def test_ouster_scan_matches_naive_algorithm1_for_every_storage(shared_data):
 
 
 @pytest.mark.parametrize("num_threads", [2, 0])
-def test_kitti_and_ouster_scans_on_several_threads_match_naive_algorithm1(
-    shared_data, num_threads
-):
+def test_kitti_and_ouster_scans_on_several_threads_match_naive_algorithm1(shared_data, num_threads):
     for xyz in (shared_data.kitti_xyzi(0)[:, :3], shared_data.ouster_xyzi()[:, :3].astype(np.float64)):
         reference = naive_algorithm1(xyz, 0.5, 2)
         result = tc.collapse_overhangs(xyz, 0.5, 2, num_threads=num_threads)

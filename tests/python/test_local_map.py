@@ -191,6 +191,33 @@ def test_stream_command_on_kitti_frames_writes_the_map_pictures_and_an_animation
     assert result.exit_code != 0 and "resolution" in result.output
 
 
+def test_stream_command_takes_the_overhang_rule(shared_data, tmp_path):
+    from terracube.cli import app
+    from typer.testing import CliRunner
+
+    kitti = shared_data.root / "kitti_seq00"
+    args = [
+        "stream",
+        str(kitti / "velodyne"),
+        "--poses",
+        str(kitti / "poses.txt"),
+        "--limit",
+        "2",
+        "--no-png",
+    ]
+    maps = {}
+    for method in ("paper", "shadow_aware"):
+        out = tmp_path / method
+        result = CliRunner().invoke(app, [*args, "-o", str(out), "--method", method, "--robot-height", "2.0"])
+        assert result.exit_code == 0, result.output
+        maps[method] = terracube.ElevationMap.load(out / "local_map.npz")
+    # σ = ceil(2.0 / 0.5) = 4 either way; shadow_aware also removes canopy over unseen ground.
+    paper, shadow_aware = (np.isfinite(maps[m]["elevation"]) for m in ("paper", "shadow_aware"))
+    assert paper.sum() > 3000 and (paper != shadow_aware).any()
+    result = CliRunner().invoke(app, [*args, "-o", str(tmp_path / "bad"), "--method", "junk"])
+    assert result.exit_code != 0 and "method" in result.output
+
+
 def test_shadow_aware_removal_keeps_a_crown_over_hidden_ground_out_of_the_map():
     """The crown-over-a-curb scene of test_shadow_aware.py (sensor at the origin, a 0.3 m curb at
     x = 5 hiding the ground behind it, a tree at x = 9, lit ground at x 14-20): with the paper's

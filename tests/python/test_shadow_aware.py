@@ -430,6 +430,25 @@ def test_cli_collapse_method_shadow_aware_writes_the_same_mask(tmp_path):
     assert expected.sum() > 100 and not tc.collapse_overhangs(points, 0.5, 4).overhang.any()
 
 
+def test_cli_dem_method_shadow_aware_leaves_the_crown_out_of_the_map(tmp_path):
+    from terracube.cli import app
+    from typer.testing import CliRunner
+
+    ground = ground_patch(1, 5, -5, 5)
+    far = ground_patch(14, 20, -5, 5, step=0.1)
+    crown = np.vstack([slab(7.75, 10.25, -1.25, 1.25, z) for z in (1.6, 2.4)])
+    np.save(tmp_path / "scan.npy", np.vstack([ground, far, crown]).astype(np.float32))
+    maps = {}
+    for method in ("paper", "shadow_aware"):
+        args = ["dem", str(tmp_path / "scan.npy"), "-o", str(tmp_path / method), "-e", "0.5", "-s", "4"]
+        result = CliRunner().invoke(app, [*args, "-r", "0.5", "--method", method, "--no-png"])
+        assert result.exit_code == 0, result.output
+        maps[method] = tc.ElevationMap.load(tmp_path / method / "scan_dem.npz")
+    crown_cells = {method: m.geometry.index_of(9.0, 0.0) for method, m in maps.items()}
+    assert maps["paper"]["max"][crown_cells["paper"]] > 2.0  # the paper's rule keeps the crown
+    assert np.isnan(maps["shadow_aware"]["max"][crown_cells["shadow_aware"]])  # no ground seen there
+
+
 def test_simulated_trees_behind_curbs_and_a_tunnel_precision_recall_and_structures_kept():
     """A ray-cast scan (OS1-64-like, sensor 1.73 m up, tilted 3°/-4° and leveled first): trees at
     8-26 m behind 0.3 m curbs, a tunnel with a lit floor, a wall behind a parked van. Measured:
