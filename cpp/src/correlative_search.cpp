@@ -44,6 +44,92 @@ bool takes_part(std::uint8_t terrain_class) {
 
 namespace {
 
+/// The target's non-ground cells, each with its eight neighbours, on a grid of `cell` with a margin
+/// of 2 * window + 2 cells: a source point whose cell lies within `window` of the grid's edge can
+/// never reach an occupied cell, and the others never leave the grid, so scoring needs no bounds
+/// checks.
+struct OccupancyGrid {
+  double cell = 0.0;
+  int window = 0;
+  Eigen::Vector2d origin;
+  std::int64_t nx = 0, ny = 0;
+  std::vector<std::uint8_t> occupied;  ///< cell (a, b) at a * ny + b
+
+  /// Empty (nx = 0) when the grid would exceed kMaxGridCells.
+  OccupancyGrid(const std::vector<Eigen::Vector2d>& fixed, const Eigen::Vector2d& low, const Eigen::Vector2d& high,
+                const CorrelativeSearchParams& params)
+      : cell(params.cell_m), window(static_cast<int>(std::ceil(params.window_m / params.cell_m - 1e-9))) {
+    const int margin = 2 * window + 2;
+    origin = ((low / cell).array().floor() - margin).matrix() * cell;
+    const auto extent = [&](double lo, double hi) {  // in cells, as a double (checked before any cast)
+      return std::floor(hi / cell) - std::floor(lo / cell) + 1.0 + 2.0 * margin;
+    };
+    const double cells_x = extent(low.x(), high.x()), cells_y = extent(low.y(), high.y());
+    if (!(cells_x * cells_y <= kMaxGridCells)) return;  // too large to search
+    nx = static_cast<std::int64_t>(cells_x);
+    ny = static_cast<std::int64_t>(cells_y);
+    occupied.assign(static_cast<std::size_t>(nx * ny), 0);
+    for (const Eigen::Vector2d& q : fixed) {
+      const auto a = static_cast<std::int64_t>(std::floor((q.x() - origin.x()) / cell));
+      const auto b = static_cast<std::int64_t>(std::floor((q.y() - origin.y()) / cell));
+      for (std::int64_t da = -1; da <= 1; ++da) {
+        for (std::int64_t db = -1; db <= 1; ++db) occupied[static_cast<std::size_t>((a + da) * ny + b + db)] = 1;
+      }
+    }
+  }
+};
+
+/// One hypothesis of the search and its score.
+struct Hypothesis {
+  std::size_t score;
+  double distance;  // from the guess, in cells (a yaw step counting as one)
+  double yaw;
+  int dx, dy;
+};
+
+/// The cells of the source points (moved by r, t) that can score, each once with its points: points
+/// in one cell score alike at every translation.
+std::vector<std::pair<std::int64_t, std::uint32_t>> source_cells(const std::vector<Eigen::Vector2d>& moving,
+                                                                 const Eigen::Matrix2d& r, const Eigen::Vector2d& t,
+                                                                 const OccupancyGrid& grid) {
+  std::vector<std::int64_t> base;  // per source point that can score: its cell's index
+  base.reserve(moving.size());
+  for (const Eigen::Vector2d& p : moving) {
+    // In cells as doubles first: a point far outside the grid (a wild guess) must not overflow.
+    const Eigen::Vector2d q = r * p + t;
+    const double fa = std::floor((q.x() - grid.origin.x()) / grid.cell);
+    const double fb = std::floor((q.y() - grid.origin.y()) / grid.cell);
+    if (!(fa >= grid.window && fa < static_cast<double>(grid.nx - grid.window) && fb >= grid.window &&
+          fb < static_cast<double>(grid.ny - grid.window))) {
+      continue;
+    }
+    base.push_back(static_cast<std::int64_t>(fa) * grid.ny + static_cast<std::int64_t>(fb));
+  }
+  std::sort(base.begin(), base.end());
+  std::vector<std::pair<std::int64_t, std::uint32_t>> cells;  // (cell index, points in it)
+  for (std::size_t k = 0; k < base.size();) {
+    std::size_t end = k + 1;
+    while (end < base.size() && base[end] == base[k]) ++end;
+    cells.push_back({base[k], static_cast<std::uint32_t>(end - k)});
+    k = end;
+  }
+  return cells;
+}
+
+/// The hypothesis whose score lies within tie_tolerance of the best and nearest the guess (the
+/// search moves a good guess only for a clearly better match); null when nothing scores.
+const Hypothesis* choose(const std::vector<Hypothesis>& scored, double tie_tolerance) {
+  std::size_t best_score = 0;
+  for (const Hypothesis& h : scored) best_score = std::max(best_score, h.score);
+  if (best_score == 0) return nullptr;
+  const double floor = (1.0 - tie_tolerance) * static_cast<double>(best_score);
+  const Hypothesis* chosen = nullptr;
+  for (const Hypothesis& h : scored) {
+    if (static_cast<double>(h.score) >= floor && (chosen == nullptr || h.distance < chosen->distance)) chosen = &h;
+  }
+  return chosen;
+}
+
 /// One level of the search: `hypotheses` yaws over +-yaw_window_rad about the source origin, then
 /// translations of step_cells cells within +-window_m, scored on an occupancy grid of cell_m.
 CorrelativeSearchResult search_level(const std::vector<Eigen::Vector2d>& moving,
@@ -53,99 +139,35 @@ CorrelativeSearchResult search_level(const std::vector<Eigen::Vector2d>& moving,
   CorrelativeSearchResult result;
   result.transform = guess;
   result.points = moving.size();
-  // The occupancy grid: the target's non-ground cells, each with its eight neighbours, inside a
-  // margin of 2 * window + 2 cells. A source point whose cell lies within `window` of the grid's
-  // edge can then never reach an occupied cell, and the others never leave the grid: the inner
-  // loop needs no bounds checks.
-  const double cell = params.cell_m;
-  const int window = static_cast<int>(std::ceil(params.window_m / cell - 1e-9));
-  const int margin = 2 * window + 2;
-  const Eigen::Vector2d origin = ((low / cell).array().floor() - margin).matrix() * cell;
-  const auto extent = [&](double lo, double hi) {  // in cells, as a double (checked before any cast)
-    return std::floor(hi / cell) - std::floor(lo / cell) + 1.0 + 2.0 * margin;
-  };
-  const double cells_x = extent(low.x(), high.x()), cells_y = extent(low.y(), high.y());
-  if (!(cells_x * cells_y <= kMaxGridCells)) return result;  // too large to search: the guess, score 0
-  const auto nx = static_cast<std::int64_t>(cells_x), ny = static_cast<std::int64_t>(cells_y);
-  std::vector<std::uint8_t> occupied(static_cast<std::size_t>(nx * ny), 0);
-  const auto cell_of = [&](const Eigen::Vector2d& p) {
-    return std::array<std::int64_t, 2>{static_cast<std::int64_t>(std::floor((p.x() - origin.x()) / cell)),
-                                       static_cast<std::int64_t>(std::floor((p.y() - origin.y()) / cell))};
-  };
-  for (const Eigen::Vector2d& q : fixed) {
-    const auto [a, b] = cell_of(q);
-    for (std::int64_t da = -1; da <= 1; ++da) {
-      for (std::int64_t db = -1; db <= 1; ++db) occupied[static_cast<std::size_t>((a + da) * ny + b + db)] = 1;
-    }
-  }
-
+  const OccupancyGrid grid(fixed, low, high, params);
+  if (grid.nx == 0) return result;  // too large to search: the guess, score 0
   const int hypotheses = params.yaw_hypotheses;
-  const int step = params.step_cells;
-  struct Hypothesis {
-    std::size_t score;
-    double distance;  // from the guess, in cells (a yaw step counting as one)
-    double yaw;
-    int dx, dy;
-  };
+  const int window = grid.window;
   std::vector<Hypothesis> scored;
-  std::vector<std::int64_t> base;  // per source point that can score: its cell's index
-  base.reserve(moving.size());
-  std::vector<std::pair<std::int64_t, std::uint32_t>> cells;  // (cell index, points in it)
-  cells.reserve(moving.size());
   for (int h = 0; h < hypotheses; ++h) {
     const double fraction = hypotheses == 1 ? 0.0 : 2.0 * h / (hypotheses - 1) - 1.0;
     const double yaw = params.yaw_window_rad * fraction;
     Eigen::Matrix4d turned = guess;
     turned.topLeftCorner<3, 3>() =
         guess.topLeftCorner<3, 3>() * Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ()).toRotationMatrix();
-    const Eigen::Matrix2d r = turned.topLeftCorner<2, 2>();
-    const Eigen::Vector2d t = turned.topRightCorner<2, 1>();
-    base.clear();
-    for (const Eigen::Vector2d& p : moving) {
-      // In cells as doubles first: a point far outside the grid (a wild guess) must not overflow.
-      const Eigen::Vector2d q = r * p + t;
-      const double fa = std::floor((q.x() - origin.x()) / cell), fb = std::floor((q.y() - origin.y()) / cell);
-      if (!(fa >= window && fa < static_cast<double>(nx - window) && fb >= window &&
-            fb < static_cast<double>(ny - window))) {
-        continue;
-      }
-      base.push_back(static_cast<std::int64_t>(fa) * ny + static_cast<std::int64_t>(fb));
-    }
-    // Points in one cell score alike at every translation: count each cell once, with its points.
-    std::sort(base.begin(), base.end());
-    cells.clear();
-    for (std::size_t k = 0; k < base.size();) {
-      std::size_t end = k + 1;
-      while (end < base.size() && base[end] == base[k]) ++end;
-      cells.push_back({base[k], static_cast<std::uint32_t>(end - k)});
-      k = end;
-    }
-    for (int dx = -window; dx <= window; dx += step) {
-      for (int dy = -window; dy <= window; dy += step) {
-        const std::int64_t shift = static_cast<std::int64_t>(dx) * ny + dy;
+    const auto cells = source_cells(moving, turned.topLeftCorner<2, 2>(), turned.topRightCorner<2, 1>(), grid);
+    const double steps = hypotheses == 1 ? 0.0 : fraction * (hypotheses - 1) / 2.0;
+    for (int dx = -window; dx <= window; dx += params.step_cells) {
+      for (int dy = -window; dy <= window; dy += params.step_cells) {
+        const std::int64_t shift = static_cast<std::int64_t>(dx) * grid.ny + dy;
         std::size_t score = 0;
-        for (const auto& [k, count] : cells) score += occupied[static_cast<std::size_t>(k + shift)] * count;
-        const double steps = hypotheses == 1 ? 0.0 : fraction * (hypotheses - 1) / 2.0;
+        for (const auto& [k, count] : cells) score += grid.occupied[static_cast<std::size_t>(k + shift)] * count;
         scored.push_back(
             {score, static_cast<double>(dx) * dx + static_cast<double>(dy) * dy + steps * steps, yaw, dx, dy});
       }
     }
   }
-  // Near-ties (within tie_tolerance of the best score) keep the hypothesis nearest the guess: the
-  // search moves a good guess only for a clearly better match.
-  std::size_t best_score = 0;
-  for (const Hypothesis& h : scored) best_score = std::max(best_score, h.score);
-  if (best_score == 0) return result;
-  const double floor = (1.0 - params.tie_tolerance) * static_cast<double>(best_score);
-  const Hypothesis* chosen = nullptr;
-  for (const Hypothesis& h : scored) {
-    if (static_cast<double>(h.score) >= floor && (chosen == nullptr || h.distance < chosen->distance)) chosen = &h;
-  }
-  result.transform = guess;
+  const Hypothesis* chosen = choose(scored, params.tie_tolerance);
+  if (chosen == nullptr) return result;
   result.transform.topLeftCorner<3, 3>() =
       guess.topLeftCorner<3, 3>() * Eigen::AngleAxisd(chosen->yaw, Eigen::Vector3d::UnitZ()).toRotationMatrix();
-  result.transform(0, 3) += chosen->dx * cell;
-  result.transform(1, 3) += chosen->dy * cell;
+  result.transform(0, 3) += chosen->dx * grid.cell;
+  result.transform(1, 3) += chosen->dy * grid.cell;
   result.score = chosen->score;
   return result;
 }

@@ -123,6 +123,41 @@ void choose_linear_solver(ceres::Solver::Options& options) {
   options.linear_solver_type = ceres::DENSE_QR;
 }
 
+/// Throws std::invalid_argument naming the first edge that refers to a missing pose, joins a pose
+/// to itself or has a bad measurement or information; returns each edge's information root.
+std::vector<Matrix6d> checked_information_roots(const std::vector<PoseGraphEdge>& edges, std::size_t num_poses) {
+  std::vector<Matrix6d> roots;
+  roots.reserve(edges.size());
+  for (std::size_t e = 0; e < edges.size(); ++e) {
+    const PoseGraphEdge& edge = edges[e];
+    if (edge.from >= num_poses || edge.to >= num_poses) {
+      throw std::invalid_argument("edge " + std::to_string(e) + " (" + std::to_string(edge.from) + " -> " +
+                                  std::to_string(edge.to) + ") refers to a pose out of range for " +
+                                  std::to_string(num_poses) + " poses");
+    }
+    if (edge.from == edge.to) throw std::invalid_argument("edge " + std::to_string(e) + " joins a pose to itself");
+    check_rigid(edge.measurement, "edge " + std::to_string(e) + " measurement");
+    roots.push_back(information_root(edge.information, e));
+  }
+  return roots;
+}
+
+/// Levenberg-Marquardt with the params' tolerances, silent.
+ceres::Solver::Options solver_options(const PoseGraphParams& params) {
+  ceres::Solver::Options options;
+  choose_linear_solver(options);
+  options.minimizer_type = ceres::TRUST_REGION;
+  options.trust_region_strategy_type = ceres::LEVENBERG_MARQUARDT;
+  options.max_num_iterations = params.max_iterations;
+  options.function_tolerance = params.function_tolerance;
+  options.gradient_tolerance = params.gradient_tolerance;
+  options.parameter_tolerance = params.parameter_tolerance;
+  options.num_threads = params.num_threads;
+  options.logging_type = ceres::SILENT;
+  options.minimizer_progress_to_stdout = false;
+  return options;
+}
+
 }  // namespace
 
 PoseGraphResult optimize_pose_graph(const std::vector<Eigen::Matrix4d>& initial_poses,
@@ -130,19 +165,7 @@ PoseGraphResult optimize_pose_graph(const std::vector<Eigen::Matrix4d>& initial_
   if (initial_poses.empty()) throw std::invalid_argument("the pose graph has no poses");
   check_params(params, initial_poses.size());
   for (std::size_t k = 0; k < initial_poses.size(); ++k) check_rigid(initial_poses[k], "pose " + std::to_string(k));
-  std::vector<Matrix6d> roots;
-  roots.reserve(edges.size());
-  for (std::size_t e = 0; e < edges.size(); ++e) {
-    const PoseGraphEdge& edge = edges[e];
-    if (edge.from >= initial_poses.size() || edge.to >= initial_poses.size()) {
-      throw std::invalid_argument("edge " + std::to_string(e) + " (" + std::to_string(edge.from) + " -> " +
-                                  std::to_string(edge.to) + ") refers to a pose out of range for " +
-                                  std::to_string(initial_poses.size()) + " poses");
-    }
-    if (edge.from == edge.to) throw std::invalid_argument("edge " + std::to_string(e) + " joins a pose to itself");
-    check_rigid(edge.measurement, "edge " + std::to_string(e) + " measurement");
-    roots.push_back(information_root(edge.information, e));
-  }
+  const std::vector<Matrix6d> roots = checked_information_roots(edges, initial_poses.size());
 
   PoseGraphResult result;
   result.poses = initial_poses;
@@ -193,19 +216,8 @@ PoseGraphResult optimize_pose_graph(const std::vector<Eigen::Matrix4d>& initial_
     if (in_problem[node]) problem.SetParameterBlockConstant(rotations[node].coeffs().data());
   }
 
-  ceres::Solver::Options options;
-  choose_linear_solver(options);
-  options.minimizer_type = ceres::TRUST_REGION;
-  options.trust_region_strategy_type = ceres::LEVENBERG_MARQUARDT;
-  options.max_num_iterations = params.max_iterations;
-  options.function_tolerance = params.function_tolerance;
-  options.gradient_tolerance = params.gradient_tolerance;
-  options.parameter_tolerance = params.parameter_tolerance;
-  options.num_threads = params.num_threads;
-  options.logging_type = ceres::SILENT;
-  options.minimizer_progress_to_stdout = false;
   ceres::Solver::Summary summary;
-  ceres::Solve(options, &problem, &summary);
+  ceres::Solve(solver_options(params), &problem, &summary);
 
   result.initial_cost = summary.initial_cost;
   result.final_cost = summary.final_cost;
