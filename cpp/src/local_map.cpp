@@ -111,66 +111,117 @@ void check_local_map_params(const LocalMapParams& p) {
 }
 
 /// A monotone stand-in for the azimuth of (x, y), in [0, 4) ("diamond angle"): one division
-/// instead of atan2. Bins of it are at most twice as wide in angle as their mean.
+/// instead of atan2. Bins of it are at most twice as wide in angle as their mean. Quadrant q
+/// (counter-clockwise from +x) plus the share |x| / (|x| + |y|) or |y| / (|x| + |y|) of the
+/// coordinate that grows through it: selects instead of branches, so that loops over it vectorise.
 float diamond_azimuth(float x, float y) {
-  if (y >= 0.0F) return x >= 0.0F ? y / (x + y) : 1.0F - x / (y - x);
-  return x < 0.0F ? 2.0F - y / (-x - y) : 3.0F + x / (x - y);
+  const float ax = std::abs(x), ay = std::abs(y);
+  const bool south = y < 0.0F, west = x < 0.0F;
+  const float quadrant = south ? (west ? 2.0F : 3.0F) : (west ? 1.0F : 0.0F);
+  return quadrant + (south != west ? ax : ay) / (ax + ay);
+}
+
+/// Whether VisibilityImage bins a direction with this horizontal range squared and height: more
+/// than a micrometre off the vertical through the sensor (closer, its float azimuth could be 0 / 0)
+/// and less than 1000 km away (float's 1e-7 relative error stays far below a bin).
+bool binnable(double horizontal_squared, double z) {
+  return horizontal_squared > 1e-12 && horizontal_squared + z * z < 1e12;
 }
 
 /// The nearest horizontal range of the returns in each (azimuth, elevation) bin of one scan,
 /// seen from the sensor; elevation binned on sin(phi) (bins of visibility_bin_rad near the horizon).
 /// Directions are binned in float (its 1e-7 relative error is far below a bin), which bounds the
-/// returns it takes to 1000 km from the sensor.
+/// returns it takes to 1000 km from the sensor. Bins are azimuth-major: an azimuth's elevation bins
+/// are adjacent.
 class VisibilityImage {
  public:
+  static constexpr int kBatch = 256;  ///< returns binned together (their arrays stay in L1)
+
   void reset(double bin_rad) {
     // Azimuth bins twice as wide: a spinning sensor's columns are denser than its rows.
     quarter_azimuth_bins_ = static_cast<int>(std::ceil(1.5707963267948966 / (2.0 * bin_rad)));
     elevation_bins_ = static_cast<int>(std::ceil(2.0 / bin_rad));
     inverse_bin_ = static_cast<float>(1.0 / bin_rad);
     nearest_squared_.assign(static_cast<std::size_t>(4 * quarter_azimuth_bins_) * elevation_bins_, kInfF);
+    pending_ = 0;
   }
-  /// The bin of direction v, elevation bin shifted by `elevation_shift`; -1 outside, or when v
-  /// is vertical, or 1000 km or more away.
-  std::ptrdiff_t bin_of(const Eigen::Vector3d& v, int elevation_shift) const {
-    const double horizontal_squared = v.x() * v.x() + v.y() * v.y();
-    if (!(horizontal_squared > 0.0 && horizontal_squared + v.z() * v.z() < 1e12)) return -1;
-    const auto x = static_cast<float>(v.x()), y = static_cast<float>(v.y()), z = static_cast<float>(v.z());
+  /// The elevation bin of the binnable direction (x, y, z), in [0, elevation bins).
+  int elevation_bin(float x, float y, float z) const {
     const float sine = z / std::sqrt(x * x + y * y + z * z);
-    const int e = std::min(static_cast<int>((sine + 1.0F) * inverse_bin_), elevation_bins_ - 1) + elevation_shift;
-    if (e < 0) return -1;
-    const int a = std::min(static_cast<int>(diamond_azimuth(x, y) * static_cast<float>(quarter_azimuth_bins_)),
-                           4 * quarter_azimuth_bins_ - 1);
-    return static_cast<std::ptrdiff_t>(a) * elevation_bins_ + e;
+    return std::min(static_cast<int>((sine + 1.0F) * inverse_bin_), elevation_bins_ - 1);
   }
+  /// The azimuth bin of the binnable direction (x, y, .), in [0, azimuth bins).
+  int azimuth_bin(float x, float y) const {
+    return std::min(static_cast<int>(diamond_azimuth(x, y) * static_cast<float>(quarter_azimuth_bins_)),
+                    4 * quarter_azimuth_bins_ - 1);
+  }
+  /// Takes the return at v from the sensor. Returns are binned kBatch at a time (bin_pending), in
+  /// branch-free loops over arrays that the compiler vectorises: the square root and the two
+  /// divisions of each return cost most of the see-through test.
   void add(const Eigen::Vector3d& v) {
-    const std::ptrdiff_t bin = bin_of(v, 0);
-    if (bin < 0) return;
-    float& nearest = nearest_squared_[static_cast<std::size_t>(bin)];
-    nearest = std::min(nearest, static_cast<float>(v.x() * v.x() + v.y() * v.y()));
+    const double horizontal_squared = v.x() * v.x() + v.y() * v.y();
+    if (!binnable(horizontal_squared, v.z())) return;
+    x_[pending_] = static_cast<float>(v.x());
+    y_[pending_] = static_cast<float>(v.y());
+    z_[pending_] = static_cast<float>(v.z());
+    horizontal_squared_[pending_] = static_cast<float>(horizontal_squared);
+    if (++pending_ == kBatch) bin_pending();
   }
-  /// Whether, in some bin between the directions to `low` and (just below) `high` (points above
-  /// the same cell centre, low below high), every return lies horizontally beyond `reach`: rays
-  /// passed through that part of the cell's column on their way further (all returns of a bin, so
-  /// that a ray beside the direction that met something nearer vetoes its bin). Beams leave gaps
-  /// between rows: empty bins say nothing.
-  bool seen_beyond(const Eigen::Vector3d& low, const Eigen::Vector3d& high, double reach) const {
-    const std::ptrdiff_t top = bin_of(high, -1);
-    if (top < 0) return false;
-    const std::ptrdiff_t low_bin = bin_of(low, 0);
-    const std::ptrdiff_t bottom = std::max(low_bin < 0 ? top : low_bin, top - top % elevation_bins_);
-    const auto beyond = static_cast<float>(reach * reach);
-    for (std::ptrdiff_t bin = bottom; bin <= top; ++bin) {
-      const float nearest = nearest_squared_[static_cast<std::size_t>(bin)];
-      if (nearest < kInfF && nearest > beyond) return true;
+  /// Bins the returns add() holds: call it after the last add() of a scan.
+  void bin_pending() {
+    if (pending_ == 0) return;
+    for (int k = 0; k < pending_; ++k) {
+      azimuth_[k] = azimuth_bin(x_[k], y_[k]);
+      elevation_[k] = elevation_bin(x_[k], y_[k], z_[k]);
     }
-    return false;
+    // Neighbours along a ring mostly share a bin: a run's minimum is kept in a register and
+    // stored once, not loaded, lowered and stored again through memory for every return.
+    std::size_t run = bin(azimuth_[0], elevation_[0]);
+    float run_nearest = horizontal_squared_[0];
+    for (int k = 1; k < pending_; ++k) {
+      const std::size_t next = bin(azimuth_[k], elevation_[k]);
+      if (next == run) {
+        run_nearest = std::min(run_nearest, horizontal_squared_[k]);
+        continue;
+      }
+      nearest_squared_[run] = std::min(nearest_squared_[run], run_nearest);
+      run = next;
+      run_nearest = horizontal_squared_[k];
+    }
+    nearest_squared_[run] = std::min(nearest_squared_[run], run_nearest);
+    pending_ = 0;
+  }
+  /// Marks the empty bins -1 (below any range squared) once the scan is binned: then a bin sees
+  /// beyond a reach exactly when its value exceeds the reach squared.
+  void finish() {
+    for (float& nearest : nearest_squared_) nearest = nearest < kInfF ? nearest : -1.0F;
+  }
+  /// Whether, in some bin of elevation [bottom, top] of `azimuth`,
+  /// every return lies horizontally beyond sqrt(`beyond_squared`): rays passed through that part of
+  /// a cell's column on their way further (all returns of a bin, so that a ray beside the direction
+  /// that met something nearer vetoes its bin). Beams leave gaps between rows: empty bins say
+  /// nothing. After finish(); the loop has no exit (a maximum, which the compiler vectorises):
+  /// most cells are not seen through and read every bin anyway.
+  bool seen_beyond(int azimuth, int bottom, int top, float beyond_squared) const {
+    const float* bins = nearest_squared_.data() + bin(azimuth, 0);
+    float farthest = -1.0F;
+    for (int e = bottom; e <= top; ++e) farthest = std::max(farthest, bins[e]);
+    return farthest > beyond_squared;
   }
 
  private:
+  std::size_t bin(int azimuth, int elevation) const {
+    return static_cast<std::size_t>(azimuth) * static_cast<std::size_t>(elevation_bins_) +
+           static_cast<std::size_t>(elevation);
+  }
+
   int quarter_azimuth_bins_ = 0, elevation_bins_ = 0;
   float inverse_bin_ = 1.0F;
-  std::vector<float> nearest_squared_;  // [m^2]
+  std::vector<float> nearest_squared_;  // [m^2]; -1 after finish() where the bin is empty
+  // The returns add() took since the last bin_pending(): direction from the sensor, horizontal range squared.
+  int pending_ = 0;
+  std::array<float, kBatch> x_{}, y_{}, z_{}, horizontal_squared_{};
+  std::array<int, kBatch> azimuth_{}, elevation_{};  // their bins
 };
 
 /// One scan's statistics of a cell's kept points.
@@ -212,6 +263,10 @@ struct Workspace {
   std::vector<KeptPoint> kept, sorted;
   std::vector<double> overhang_min;  // per cell: this scan's lowest overhang point above it, or +inf
   std::vector<std::size_t> row_offset, column;
+  // for_each_seen_through's row: per stored column, the cells' y and their azimuth and elevation bins.
+  std::vector<double> cell_y;
+  std::vector<int> azimuth, bottom, top;
+  std::vector<float> beyond_squared;
 
   /// After a scan that needed over 64 MB of points (a whole survey, not a robot's scan).
   void release_if_large() {
@@ -333,6 +388,10 @@ detail::NonFiniteRows level_scan(const PointsView<Scalar>& points, const Eigen::
       if (status == 0) w.points.push_back(p);
     }
   });
+  if (clearing) {
+    w.visibility.bin_pending();
+    w.visibility.finish();
+  }
   return non_finite;
 }
 
@@ -395,22 +454,48 @@ std::size_t bin_points(const std::vector<std::uint8_t>& overhang, const ScanBinn
 }
 
 /// Calls clear(cell) for every cell whose column this scan's rays passed through, on their way to
-/// returns at least `beyond` further away horizontally, between its lowest fused point (or `depth` below its height, if
-/// lower) and `margin` below its height: where the points it holds would have stopped them. (Rays under a car's body or
-/// a table, below everything the cell holds, say nothing about it.)
+/// returns at least `beyond` further away horizontally, between its lowest fused point (or `depth`
+/// below its height, if lower) and `margin` below its height: where the points it holds would
+/// have stopped them. (Rays under a car's body or a table, below everything the cell holds, say
+/// nothing about it.) Row by row: one pass over the stored row (contiguous) finds each cell's
+/// azimuth and its span of elevation bins, a second reads the bins of the cells that have a span.
 template <typename Clear>
-void for_each_seen_through(const Workspace& w, const float* elevation, const float* lowest, int n, double res,
+void for_each_seen_through(Workspace& w, const float* elevation, const float* lowest, int n, double res,
                            const Eigen::Vector2d& origin, const Eigen::Vector3d& sensor, double margin, double depth,
                            double beyond, const Clear& clear) {
+  const VisibilityImage& image = w.visibility;
+  const auto size = static_cast<std::size_t>(n);
+  w.cell_y.resize(size);  // per stored column: its cells' centre y relative to the sensor
+  for (int gj = 0; gj < n; ++gj) w.cell_y[w.column[gj]] = origin.y() + (gj + 0.5) * res - sensor.y();
+  w.azimuth.resize(size);
+  w.bottom.resize(size);
+  w.top.resize(size);
+  w.beyond_squared.resize(size);
   for (int gi = 0; gi < n; ++gi) {
-    for (int gj = 0; gj < n; ++gj) {
-      const std::size_t cell = w.row_offset[gi] + w.column[gj];
-      const float h = elevation[cell];
-      if (std::isnan(h)) continue;
-      const double x = origin.x() + (gi + 0.5) * res - sensor.x(), y = origin.y() + (gj + 0.5) * res - sensor.y();
-      const double bottom = std::min(static_cast<double>(lowest[cell]), h - depth);
-      const double reach = std::sqrt(x * x + y * y) + beyond;
-      if (w.visibility.seen_beyond({x, y, bottom - sensor.z()}, {x, y, h - margin - sensor.z()}, reach)) clear(cell);
+    const double x = origin.x() + (gi + 0.5) * res - sensor.x();
+    const float* h = elevation + w.row_offset[gi];
+    const float* low = lowest + w.row_offset[gi];
+    for (std::size_t s = 0; s < size; ++s) {
+      const double y = w.cell_y[s];
+      const double horizontal_squared = x * x + y * y;
+      const double z_top = h[s] - margin - sensor.z();  // NaN for an unknown cell: not binnable
+      const double z_bottom = std::min(static_cast<double>(low[s]), h[s] - depth) - sensor.z();
+      const bool top_ok = binnable(horizontal_squared, z_top);
+      const bool bottom_ok = top_ok && binnable(horizontal_squared, z_bottom);
+      // Stand-ins where a direction is not binnable keep the float arithmetic finite.
+      const auto fx = static_cast<float>(x), fy = top_ok ? static_cast<float>(y) : 1.0F;
+      const int top = image.elevation_bin(fx, fy, top_ok ? static_cast<float>(z_top) : 0.0F) - 1;  // just below
+      const int bottom = image.elevation_bin(fx, fy, bottom_ok ? static_cast<float>(z_bottom) : 0.0F);
+      w.azimuth[s] = image.azimuth_bin(fx, fy);
+      w.top[s] = top_ok ? top : -1;
+      w.bottom[s] = bottom_ok ? bottom : top;
+      const double reach = std::sqrt(horizontal_squared) + beyond;
+      w.beyond_squared[s] = static_cast<float>(reach * reach);
+    }
+    for (std::size_t s = 0; s < size; ++s) {
+      if (w.top[s] >= 0 && image.seen_beyond(w.azimuth[s], w.bottom[s], w.top[s], w.beyond_squared[s])) {
+        clear(w.row_offset[gi] + s);
+      }
     }
   }
 }

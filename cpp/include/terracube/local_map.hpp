@@ -79,8 +79,9 @@ struct LocalMapParams {
   /// stopped them (it was seen through: a person or car that left). Rays below everything the cell
   /// holds (under a car's body or a table) say nothing about it. The test bins this scan's returns
   /// by direction from the sensor (bins of visibility_bin_rad in elevation, twice that in azimuth)
-  /// and keeps each bin's nearest horizontal range (returns 1000 km or more away are left out); a bin
-  /// counts when all its returns lie beyond.
+  /// and keeps each bin's nearest horizontal range (returns 1000 km or more away, or within a
+  /// micrometre of the vertical through the sensor, are left out); a bin counts when all its returns
+  /// lie beyond.
   /// Transparent and porous things (car windows, foliage) are cleared too, and measured again
   /// when hit again.
   bool clear_seen_through = true;
