@@ -121,11 +121,18 @@ float diamond_azimuth(float x, float y) {
   return quadrant + (south != west ? ax : ay) / (ax + ay);
 }
 
+/// The bin [0, bins) of `value` >= 0 on a scale of bin widths: its whole part, the last bin at and
+/// beyond it. Clamped before the conversion, which then has a result for any input (NaN gives 0):
+/// loops compute bins for every cell and select the binnable ones afterwards.
+int bin_index(float value, int bins) {
+  return static_cast<int>(std::min(std::max(0.0F, value), static_cast<float>(bins - 1)));  // max(0, NaN) is 0
+}
+
 /// Whether VisibilityImage bins a direction with this horizontal range squared and height: more
 /// than a micrometre off the vertical through the sensor (closer, its float azimuth could be 0 / 0)
 /// and less than 1000 km away (float's 1e-7 relative error stays far below a bin).
 bool binnable(double horizontal_squared, double z) {
-  return horizontal_squared > 1e-12 && horizontal_squared + z * z < 1e12;
+  return (horizontal_squared > 1e-12) & (horizontal_squared + z * z < 1e12);  // & : no branch in the loops
 }
 
 /// The nearest horizontal range of the returns in each (azimuth, elevation) bin of one scan,
@@ -145,15 +152,14 @@ class VisibilityImage {
     nearest_squared_.assign(static_cast<std::size_t>(4 * quarter_azimuth_bins_) * elevation_bins_, kInfF);
     pending_ = 0;
   }
-  /// The elevation bin of the binnable direction (x, y, z), in [0, elevation bins).
+  /// The elevation bin of the binnable direction (x, y, z); a bin for any input (see bin_index).
   int elevation_bin(float x, float y, float z) const {
     const float sine = z / std::sqrt(x * x + y * y + z * z);
-    return std::min(static_cast<int>((sine + 1.0F) * inverse_bin_), elevation_bins_ - 1);
+    return bin_index((sine + 1.0F) * inverse_bin_, elevation_bins_);
   }
-  /// The azimuth bin of the binnable direction (x, y, .), in [0, azimuth bins).
+  /// The azimuth bin of the binnable direction (x, y, .); a bin for any input (see bin_index).
   int azimuth_bin(float x, float y) const {
-    return std::min(static_cast<int>(diamond_azimuth(x, y) * static_cast<float>(quarter_azimuth_bins_)),
-                    4 * quarter_azimuth_bins_ - 1);
+    return bin_index(diamond_azimuth(x, y) * static_cast<float>(quarter_azimuth_bins_), 4 * quarter_azimuth_bins_);
   }
   /// Takes the return at v from the sensor. Returns are binned kBatch at a time (bin_pending), in
   /// branch-free loops over arrays that the compiler vectorises: the square root and the two
@@ -453,17 +459,48 @@ std::size_t bin_points(const std::vector<std::uint8_t>& overhang, const ScanBinn
   return in_map;
 }
 
+/// The see-through test's distances: LocalMapParams' clearing_margin_m, clearing_depth_m and
+/// clearing_beyond_m (at least a cell), and the sensor's height.
+struct Clearing {
+  double margin, depth, beyond, sensor_z;
+};
+
+/// The part of the visibility image that n cells' columns span: cell s at (x, y[s]) from the
+/// sensor, with height h[s] and lowest point low[s] (NaN unknown). Out: its azimuth bin, its
+/// elevation bins [bottom, top] (top -1: nothing to test, as for an unknown cell) and the squared
+/// horizontal reach its bins' returns must lie beyond. Branch-free over arrays (the compiler
+/// vectorises it): every bin is computed, from 0 where a direction is not binnable, and selected.
+void column_spans(const VisibilityImage& image, int n, double x, const double* y, const float* h, const float* low,
+                  const Clearing& c, int* __restrict azimuth, int* __restrict bottom, int* __restrict top,
+                  float* __restrict beyond_squared) {
+  for (int s = 0; s < n; ++s) {
+    const double horizontal_squared = x * x + y[s] * y[s];
+    const double z_top = h[s] - c.margin - c.sensor_z;  // NaN for an unknown cell: not binnable
+    const double lowest = low[s], deep = h[s] - c.depth;
+    const double z_bottom = (deep < lowest ? deep : lowest) - c.sensor_z;  // std::min(lowest, deep)
+    const bool top_ok = binnable(horizontal_squared, z_top);
+    const bool bottom_ok = top_ok & binnable(horizontal_squared, z_bottom);
+    const auto fx = static_cast<float>(x), fy = static_cast<float>(y[s]);
+    const int just_below_top = image.elevation_bin(fx, fy, static_cast<float>(top_ok ? z_top : 0.0)) - 1;
+    const int lowest_bin = image.elevation_bin(fx, fy, static_cast<float>(bottom_ok ? z_bottom : 0.0));
+    azimuth[s] = image.azimuth_bin(fx, fy);
+    top[s] = top_ok ? just_below_top : -1;
+    bottom[s] = bottom_ok ? lowest_bin : just_below_top;
+    const double reach = std::sqrt(horizontal_squared) + c.beyond;
+    beyond_squared[s] = static_cast<float>(reach * reach);
+  }
+}
+
 /// Calls clear(cell) for every cell whose column this scan's rays passed through, on their way to
 /// returns at least `beyond` further away horizontally, between its lowest fused point (or `depth`
 /// below its height, if lower) and `margin` below its height: where the points it holds would
 /// have stopped them. (Rays under a car's body or a table, below everything the cell holds, say
-/// nothing about it.) Row by row: one pass over the stored row (contiguous) finds each cell's
-/// azimuth and its span of elevation bins, a second reads the bins of the cells that have a span.
+/// nothing about it.) Row by row, in storage order: column_spans, then the bins of the cells that
+/// span some.
 template <typename Clear>
 void for_each_seen_through(Workspace& w, const float* elevation, const float* lowest, int n, double res,
-                           const Eigen::Vector2d& origin, const Eigen::Vector3d& sensor, double margin, double depth,
-                           double beyond, const Clear& clear) {
-  const VisibilityImage& image = w.visibility;
+                           const Eigen::Vector2d& origin, const Eigen::Vector3d& sensor, const Clearing& c,
+                           const Clear& clear) {
   const auto size = static_cast<std::size_t>(n);
   w.cell_y.resize(size);  // per stored column: its cells' centre y relative to the sensor
   for (int gj = 0; gj < n; ++gj) w.cell_y[w.column[gj]] = origin.y() + (gj + 0.5) * res - sensor.y();
@@ -473,28 +510,12 @@ void for_each_seen_through(Workspace& w, const float* elevation, const float* lo
   w.beyond_squared.resize(size);
   for (int gi = 0; gi < n; ++gi) {
     const double x = origin.x() + (gi + 0.5) * res - sensor.x();
-    const float* h = elevation + w.row_offset[gi];
-    const float* low = lowest + w.row_offset[gi];
+    const std::size_t row = w.row_offset[gi];
+    column_spans(w.visibility, n, x, w.cell_y.data(), elevation + row, lowest + row, c, w.azimuth.data(),
+                 w.bottom.data(), w.top.data(), w.beyond_squared.data());
     for (std::size_t s = 0; s < size; ++s) {
-      const double y = w.cell_y[s];
-      const double horizontal_squared = x * x + y * y;
-      const double z_top = h[s] - margin - sensor.z();  // NaN for an unknown cell: not binnable
-      const double z_bottom = std::min(static_cast<double>(low[s]), h[s] - depth) - sensor.z();
-      const bool top_ok = binnable(horizontal_squared, z_top);
-      const bool bottom_ok = top_ok && binnable(horizontal_squared, z_bottom);
-      // Stand-ins where a direction is not binnable keep the float arithmetic finite.
-      const auto fx = static_cast<float>(x), fy = top_ok ? static_cast<float>(y) : 1.0F;
-      const int top = image.elevation_bin(fx, fy, top_ok ? static_cast<float>(z_top) : 0.0F) - 1;  // just below
-      const int bottom = image.elevation_bin(fx, fy, bottom_ok ? static_cast<float>(z_bottom) : 0.0F);
-      w.azimuth[s] = image.azimuth_bin(fx, fy);
-      w.top[s] = top_ok ? top : -1;
-      w.bottom[s] = bottom_ok ? bottom : top;
-      const double reach = std::sqrt(horizontal_squared) + beyond;
-      w.beyond_squared[s] = static_cast<float>(reach * reach);
-    }
-    for (std::size_t s = 0; s < size; ++s) {
-      if (w.top[s] >= 0 && image.seen_beyond(w.azimuth[s], w.bottom[s], w.top[s], w.beyond_squared[s])) {
-        clear(w.row_offset[gi] + s);
+      if (w.top[s] >= 0 && w.visibility.seen_beyond(w.azimuth[s], w.bottom[s], w.top[s], w.beyond_squared[s])) {
+        clear(row + s);
       }
     }
   }
@@ -791,11 +812,12 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
   // Clearing: a stored height that this scan's rays passed under by the margin is gone.
   if (clearing) {
     const Eigen::Vector2d origin(ox * res, oy * res);
-    for_each_seen_through(w, layer[kElevation], layer[kMin], n, res, origin, sensor, params_.clearing_margin_m,
-                          params_.clearing_depth_m, std::max(params_.clearing_beyond_m, res), [&](std::size_t cell) {
-                            clear_cell(layer, {reference_, sum_, sum_squares_}, cell);
-                            ++report.num_cleared_cells;
-                          });
+    const Clearing distances{params_.clearing_margin_m, params_.clearing_depth_m,
+                             std::max(params_.clearing_beyond_m, res), sensor.z()};
+    for_each_seen_through(w, layer[kElevation], layer[kMin], n, res, origin, sensor, distances, [&](std::size_t cell) {
+      clear_cell(layer, {reference_, sum_, sum_squares_}, cell);
+      ++report.num_cleared_cells;
+    });
   }
 
   // The 1-D Kalman update of each measured cell, or its replacement outside the gate.
