@@ -6,6 +6,7 @@
 #include <terracube/terrain.hpp>
 
 #include <Eigen/Geometry>
+#include <Eigen/QR>
 #include <cmath>
 #include <cstdint>
 #include <limits>
@@ -341,6 +342,80 @@ TEST(LocalMap, PlannerLayersOfAPlaneAndAStepMatchTheirClosedForms) {
   EXPECT_EQ(at("traversability", 0.95, 0.05), 0.0F);
   // At the map's border the window is clipped (never wraps): the same plane.
   EXPECT_NEAR(at("slope", -1.95, -1.95), std::atan(0.1), 1e-5);
+}
+
+TEST(LocalMap, PlannerLayersMatchANaiveFitOfEveryWindow) {
+  // Rough ground with holes, seen from two positions (so the circular buffer is shifted): every
+  // cell's planner layers against a plain loop over its window and a least-squares solve.
+  LocalMapParams params = small_map_params();
+  params.length_m = 3.0;
+  params.compute_planner_layers = true;
+  params.traversability.footprint_radius_m = 0.2;  // 5 x 5 windows
+  LocalMap map(params);
+  const auto ground = [](std::int64_t gx, std::int64_t gy) {
+    return 0.05 * std::sin(0.13 * gx) + 0.03 * std::cos(0.21 * gy) +
+           0.002 * static_cast<double>((gx * 31 + gy * 17) % 11);
+  };
+  for (const Eigen::Vector2d& at : {Eigen::Vector2d(0.0, 0.0), Eigen::Vector2d(0.73, -0.41)}) {
+    std::vector<Eigen::Vector3d> points;
+    const auto gx0 = static_cast<std::int64_t>(std::floor(at.x() / 0.1)) - 15;
+    const auto gy0 = static_cast<std::int64_t>(std::floor(at.y() / 0.1)) - 15;
+    for (std::int64_t gx = gx0; gx < gx0 + 30; ++gx) {
+      for (std::int64_t gy = gy0; gy < gy0 + 30; ++gy) {
+        if (((gx * 7 + gy * 3) % 9 + 9) % 9 == 0) continue;  // a hole
+        points.emplace_back((gx + 0.5) * 0.1 - at.x(), (gy + 0.5) * 0.1 - at.y(), ground(gx, gy) - 1.0);
+      }
+    }
+    map.update(PointsView<double>(points.data()->data(), points.size()), pose_at(at.x(), at.y(), 1.0));
+  }
+  const ElevationMap ordered = map.to_elevation_map();
+  const Layer& height = ordered.get("elevation");
+  const int n = height.rows(), r = 2;
+  const TraversabilityParams& t = params.traversability;
+  int fitted = 0;
+  for (int i = 0; i < n; ++i) {
+    for (int j = 0; j < n; ++j) {
+      if (std::isnan(height(i, j))) {
+        EXPECT_TRUE(std::isnan(ordered.get("step")(i, j)));
+        continue;
+      }
+      std::vector<Eigen::Vector3d> cells;  // (row, column, height) of the window's known cells
+      float lowest = height(i, j), highest = height(i, j);
+      for (int a = std::max(i - r, 0); a <= std::min(i + r, n - 1); ++a) {
+        for (int b = std::max(j - r, 0); b <= std::min(j + r, n - 1); ++b) {
+          if (std::isnan(height(a, b))) continue;
+          cells.emplace_back(a, b, height(a, b));
+          lowest = std::min(lowest, height(a, b));
+          highest = std::max(highest, height(a, b));
+        }
+      }
+      EXPECT_EQ(ordered.get("step")(i, j), highest - lowest);
+      Eigen::MatrixXd design(cells.size(), 3);
+      Eigen::VectorXd z(cells.size());
+      for (std::size_t k = 0; k < cells.size(); ++k) {
+        design.row(static_cast<Eigen::Index>(k)) << cells[k].x(), cells[k].y(), 1.0;
+        z(static_cast<Eigen::Index>(k)) = cells[k].z();
+      }
+      const Eigen::ColPivHouseholderQR<Eigen::MatrixXd> qr(design);
+      if (static_cast<int>(cells.size()) < t.min_window_cells || qr.rank() < 3) {
+        EXPECT_TRUE(std::isnan(ordered.get("slope")(i, j)));
+        continue;
+      }
+      const Eigen::Vector3d plane = qr.solve(z);
+      const double slope = std::atan(plane.head<2>().norm() / 0.1);
+      const double roughness = std::sqrt((design * plane - z).squaredNorm() / static_cast<double>(cells.size()));
+      EXPECT_NEAR(ordered.get("slope")(i, j), slope, 1e-5) << i << " " << j;
+      EXPECT_NEAR(ordered.get("roughness")(i, j), roughness, 1e-5) << i << " " << j;
+      const double expected =
+          slope > t.max_slope_rad || highest - lowest > t.max_step_m || roughness > t.max_roughness_m
+              ? 0.0
+              : 1.0 -
+                    (slope / t.max_slope_rad + (highest - lowest) / t.max_step_m + roughness / t.max_roughness_m) / 3.0;
+      EXPECT_NEAR(ordered.get("traversability")(i, j), expected, 1e-4) << i << " " << j;
+      ++fitted;
+    }
+  }
+  EXPECT_GT(fitted, n * n / 2);
 }
 
 // --- simulator ---------------------------------------------------------------------------------
