@@ -1171,9 +1171,11 @@ def stream_command(
         calibration = read_kitti_calibration(calib) if calib is not None else None
         stamps, odometry = read_pose_file(poses, pose_format, calibration)
         indices = match_scans_to_poses(files, len(odometry))
-        if sigma is None:
-            sigma = sigma_from_robot_height(robot_height, edge) if robot_height is not None else 2
-        collapse = CollapseParams(edge=edge, sigma=sigma, method=method)
+        if sigma is None and robot_height is not None:
+            sigma = sigma_from_robot_height(robot_height, edge)
+        collapse = CollapseParams(edge=edge, method=method)
+        if sigma is not None:
+            collapse.sigma = sigma
         params = LocalMapParams(length=length, resolution=resolution, collapse=collapse)
         params.to_core()  # refuses bad values before any scan is read
     sequence = tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="streaming")
