@@ -32,18 +32,6 @@ Eigen::Matrix4d pose_matrix(const py::array& pose) {
 }  // namespace
 
 void bind_local_map(py::module_& m) {
-  py::class_<TraversabilityParams>(m, "TraversabilityParams")
-      .def(py::init<>())
-      .def_readwrite("footprint_radius_m", &TraversabilityParams::footprint_radius_m)
-      .def_readwrite("max_slope_rad", &TraversabilityParams::max_slope_rad)
-      .def_readwrite("max_step_m", &TraversabilityParams::max_step_m)
-      .def_readwrite("max_roughness_m", &TraversabilityParams::max_roughness_m)
-      .def_readwrite("min_clearance_m", &TraversabilityParams::min_clearance_m)
-      .def_readwrite("slope_weight", &TraversabilityParams::slope_weight)
-      .def_readwrite("step_weight", &TraversabilityParams::step_weight)
-      .def_readwrite("roughness_weight", &TraversabilityParams::roughness_weight)
-      .def_readwrite("min_window_cells", &TraversabilityParams::min_window_cells);
-
   py::class_<LocalMapParams>(m, "LocalMapParams")
       .def(py::init<>())
       .def_readwrite("length_m", &LocalMapParams::length_m)
@@ -102,10 +90,7 @@ void bind_local_map(py::module_& m) {
           },
           py::arg("x"), py::arg("y"))
       .def(
-          "position_of",
-          [](const LocalMap& map, int i, int j) {
-            return Eigen::Vector2d(map.position_of({i, j}));
-          },
+          "position_of", [](const LocalMap& map, int i, int j) { return Eigen::Vector2d(map.position_of({i, j})); },
           py::arg("i"), py::arg("j"))
       .def(
           "update",
@@ -118,11 +103,7 @@ void bind_local_map(py::module_& m) {
           },
           py::arg("points"), py::arg("pose"), py::arg("stamp") = std::numeric_limits<double>::quiet_NaN())
       .def(
-          "move_to",
-          [](LocalMap& map, double x, double y) {
-            return map.move_to({x, y});
-          },
-          py::arg("x"), py::arg("y"))
+          "move_to", [](LocalMap& map, double x, double y) { return map.move_to({x, y}); }, py::arg("x"), py::arg("y"))
       .def("clear", &LocalMap::clear)
       .def("update_planner_layers", &LocalMap::update_planner_layers, py::call_guard<py::gil_scoped_release>())
       .def("to_elevation_map", &LocalMap::to_elevation_map);

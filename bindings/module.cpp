@@ -14,6 +14,7 @@ void bind_evaluation(py::module_& m);
 void bind_pose_graph(py::module_& m);
 void bind_mapper(py::module_& m);
 void bind_local_map(py::module_& m);
+void bind_traversability(py::module_& m);
 }  // namespace terracube::python
 
 PYBIND11_MODULE(_core, m) {
@@ -27,5 +28,6 @@ PYBIND11_MODULE(_core, m) {
   terracube::python::bind_evaluation(m);
   terracube::python::bind_pose_graph(m);
   terracube::python::bind_mapper(m);
+  terracube::python::bind_traversability(m);
   terracube::python::bind_local_map(m);
 }

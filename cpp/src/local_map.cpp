@@ -1,5 +1,5 @@
 // The robot-centric local map: circular-buffer moves, per-cell Kalman fusion, see-through
-// clearing and the planner layers (local_map.hpp).
+// clearing, and the planner layers of traversability.hpp (local_map.hpp).
 #include "terracube/local_map.hpp"
 
 #include <algorithm>
@@ -51,36 +51,9 @@ LayerData layer_data(ElevationMap& map) {
   return data;
 }
 
-void check_non_negative(double value, const char* name) {
-  if (!(value >= 0.0) || !std::isfinite(value)) {
-    throw std::invalid_argument(std::string(name) + " must be a finite value >= 0, got " + detail::number_text(value));
-  }
-}
-void check_positive(double value, const char* name) {
-  if (!(value > 0.0) || !std::isfinite(value)) {
-    throw std::invalid_argument(std::string(name) + " must be a positive finite value, got " +
-                                detail::number_text(value));
-  }
-}
-
-void check_traversability_params(const TraversabilityParams& p) {
-  check_non_negative(p.footprint_radius_m, "TraversabilityParams.footprint_radius_m");
-  check_positive(p.max_slope_rad, "TraversabilityParams.max_slope_rad");
-  check_positive(p.max_step_m, "TraversabilityParams.max_step_m");
-  check_positive(p.max_roughness_m, "TraversabilityParams.max_roughness_m");
-  check_non_negative(p.min_clearance_m, "TraversabilityParams.min_clearance_m");
-  check_non_negative(p.slope_weight, "TraversabilityParams.slope_weight");
-  check_non_negative(p.step_weight, "TraversabilityParams.step_weight");
-  check_non_negative(p.roughness_weight, "TraversabilityParams.roughness_weight");
-  if (p.slope_weight + p.step_weight + p.roughness_weight <= 0.0) {
-    throw std::invalid_argument("TraversabilityParams: the slope, step and roughness weights must not all be 0");
-  }
-  if (p.min_window_cells < 3) throw std::invalid_argument("TraversabilityParams.min_window_cells must be >= 3");
-}
-
 int cells_per_side(const LocalMapParams& p) {
-  check_positive(p.length_m, "LocalMapParams.length_m");
-  check_positive(p.resolution_m, "LocalMapParams.resolution_m");
+  detail::check_positive(p.length_m, "LocalMapParams.length_m");
+  detail::check_positive(p.resolution_m, "LocalMapParams.resolution_m");
   const double cells = std::round(p.length_m / p.resolution_m);
   if (!(cells >= 1.0 && cells <= 16384.0)) {
     throw std::invalid_argument("LocalMapParams: length / resolution must give 1 to 16384 cells per side, got " +
@@ -92,20 +65,20 @@ int cells_per_side(const LocalMapParams& p) {
 void check_local_map_params(const LocalMapParams& p) {
   cells_per_side(p);
   detail::check_collapse_params(p.collapse);
-  check_non_negative(p.range_sigma_m, "LocalMapParams.range_sigma_m");
-  check_non_negative(p.angle_sigma_rad, "LocalMapParams.angle_sigma_rad");
-  check_positive(p.cell_sigma_m, "LocalMapParams.cell_sigma_m");
-  check_positive(p.gate_sigmas, "LocalMapParams.gate_sigmas");
-  check_non_negative(p.drift_m_per_sqrt_m, "LocalMapParams.drift_m_per_sqrt_m");
-  check_non_negative(p.clearing_margin_m, "LocalMapParams.clearing_margin_m");
-  check_positive(p.clearing_depth_m, "LocalMapParams.clearing_depth_m");
-  check_non_negative(p.clearing_beyond_m, "LocalMapParams.clearing_beyond_m");
+  detail::check_non_negative(p.range_sigma_m, "LocalMapParams.range_sigma_m");
+  detail::check_non_negative(p.angle_sigma_rad, "LocalMapParams.angle_sigma_rad");
+  detail::check_positive(p.cell_sigma_m, "LocalMapParams.cell_sigma_m");
+  detail::check_positive(p.gate_sigmas, "LocalMapParams.gate_sigmas");
+  detail::check_non_negative(p.drift_m_per_sqrt_m, "LocalMapParams.drift_m_per_sqrt_m");
+  detail::check_non_negative(p.clearing_margin_m, "LocalMapParams.clearing_margin_m");
+  detail::check_positive(p.clearing_depth_m, "LocalMapParams.clearing_depth_m");
+  detail::check_non_negative(p.clearing_beyond_m, "LocalMapParams.clearing_beyond_m");
   if (p.clearing_depth_m <= p.clearing_margin_m) {
     throw std::invalid_argument("LocalMapParams.clearing_depth_m must exceed clearing_margin_m");
   }
-  check_positive(p.visibility_bin_rad, "LocalMapParams.visibility_bin_rad");
+  detail::check_positive(p.visibility_bin_rad, "LocalMapParams.visibility_bin_rad");
   if (p.visibility_bin_rad > 0.5) throw std::invalid_argument("LocalMapParams.visibility_bin_rad must be <= 0.5 rad");
-  check_positive(p.discontinuity_m, "LocalMapParams.discontinuity_m");
+  detail::check_positive(p.discontinuity_m, "LocalMapParams.discontinuity_m");
   check_traversability_params(p.traversability);
   detail::check_num_threads(p.num_threads, "LocalMapParams");
 }
@@ -307,37 +280,6 @@ Workspace& thread_workspace() {
   thread_local Workspace workspace;
   return workspace;
 }
-
-/// The sums over a set of known cells that a least-squares plane needs: x, y the geometric cell
-/// indices, z the height relative to a reference. x and y sums are whole numbers, exact in double.
-struct Moments {
-  double n = 0, x = 0, y = 0, z = 0, xx = 0, xy = 0, yy = 0, xz = 0, yz = 0, zz = 0;
-
-  void add(double cx, double cy, double cz) {
-    n += 1.0;
-    x += cx;
-    y += cy;
-    z += cz;
-    xx += cx * cx;
-    xy += cx * cy;
-    yy += cy * cy;
-    xz += cx * cz;
-    yz += cy * cz;
-    zz += cz * cz;
-  }
-  Moments& operator+=(const Moments& o) {
-    n += o.n, x += o.x, y += o.y, z += o.z, xx += o.xx, xy += o.xy, yy += o.yy, xz += o.xz, yz += o.yz, zz += o.zz;
-    return *this;
-  }
-  Moments operator-(const Moments& o) const {
-    return {n - o.n, x - o.x, y - o.y, z - o.z, xx - o.xx, xy - o.xy, yy - o.yy, xz - o.xz, yz - o.yz, zz - o.zz};
-  }
-};
-
-/// The lowest and highest height of a window along y (NaN-free: +inf and -inf when all unknown).
-struct Extremes {
-  float lowest, highest;
-};
 
 /// Where one scan's points go: the cell of a point, floor(x / res) - origin on each axis through
 /// the map's tables (without a call to floor: the truncation of the difference, one lower when
@@ -591,63 +533,6 @@ void refresh_clearance(const LayerData& layer, std::size_t cells) {
   }
 }
 
-/// The moments of geometric row `x` (heights `z` in map order, NaN unknown, relative to
-/// `reference`) summed over the windows [j - r, j + r] clipped to the row, from differences of
-/// prefix sums, into sums[0, n), and each window's lowest and highest height into extremes[0, n).
-void row_windows(const std::vector<float>& z, double x, double reference, int r, std::vector<Moments>& prefix,
-                 Moments* sums, Extremes* extremes) {
-  const int n = static_cast<int>(z.size());
-  prefix[0] = Moments();
-  for (int j = 0; j < n; ++j) {
-    prefix[j + 1] = prefix[j];
-    if (!std::isnan(z[j])) prefix[j + 1].add(x, j, z[j] - reference);
-  }
-  for (int j = 0; j < n; ++j) {
-    const int lo = std::max(j - r, 0), hi = std::min(j + r, n - 1);
-    sums[j] = prefix[hi + 1] - prefix[lo];
-    Extremes e{kInfF, -kInfF};
-    for (int k = lo; k <= hi; ++k) {  // std::min/max keep the first argument against NaN
-      e.lowest = std::min(e.lowest, z[k]);
-      e.highest = std::max(e.highest, z[k]);
-    }
-    extremes[j] = e;
-  }
-}
-
-/// The least-squares plane z = a x + b y + c of a window from its moments (x, y in cells): the
-/// gradient |(a, b)| per cell and the RMS vertical residual; invalid for collinear cells.
-struct PlaneFit {
-  bool valid = false;
-  double gradient = 0.0, roughness = 0.0;
-};
-PlaneFit fit_plane(const Moments& m) {
-  const double w = 1.0 / m.n;  // the means and covariances of the window's cells
-  const double mx = m.x * w, my = m.y * w, mz = m.z * w;
-  const double cxx = m.xx * w - mx * mx, cxy = m.xy * w - mx * my, cyy = m.yy * w - my * my;
-  const double cxz = m.xz * w - mx * mz, cyz = m.yz * w - my * mz, czz = m.zz * w - mz * mz;
-  const double det = cxx * cyy - cxy * cxy;
-  PlaneFit fit;
-  if (!(det > 1e-9)) return fit;
-  const double a = (cyy * cxz - cxy * cyz) / det, b = (cxx * cyz - cxy * cxz) / det;
-  fit.valid = true;
-  fit.gradient = std::sqrt(a * a + b * b);
-  fit.roughness = std::sqrt(std::max(czz - a * cxz - b * cyz, 0.0));
-  return fit;
-}
-
-/// TraversabilityParams' formula (local_map.hpp).
-float traversability(const TraversabilityParams& tp, double slope, double step, double roughness, float clearance) {
-  if (slope > tp.max_slope_rad || step > tp.max_step_m || roughness > tp.max_roughness_m ||
-      clearance < tp.min_clearance_m) {
-    return 0.0F;
-  }
-  const double weights = tp.slope_weight + tp.step_weight + tp.roughness_weight;
-  const double cost = (tp.slope_weight * slope / tp.max_slope_rad + tp.step_weight * step / tp.max_step_m +
-                       tp.roughness_weight * roughness / tp.max_roughness_m) /
-                      weights;
-  return static_cast<float>(1.0 - cost);
-}
-
 }  // namespace
 
 LocalMap::LocalMap(const LocalMapParams& params) : params_(params) {
@@ -840,83 +725,7 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
 }
 
 void LocalMap::update_planner_layers() {
-  const TraversabilityParams& tp = params_.traversability;
-  const int n = geometry_.size.x();
-  const int r = static_cast<int>(std::round(tp.footprint_radius_m / params_.resolution_m));
-  const CellIndex start = start_index();
-  const LayerData layer = layer_data(layers_);
-  const float* height = layer[kElevation];
-  // The stored row and column of each geometric one: no wrap-around arithmetic in the loops, and
-  // windows are clipped at the map's border (they never wrap).
-  std::vector<std::size_t> row_of(static_cast<std::size_t>(n)), column_of(static_cast<std::size_t>(n));
-  for (int g = 0; g < n; ++g) {
-    row_of[g] = static_cast<std::size_t>((g + start.x()) % n) * static_cast<std::size_t>(n);
-    column_of[g] = static_cast<std::size_t>((g + start.y()) % n);
-  }
-  // Heights relative to the first known one in storage order keep the sums of squares small.
-  double reference = 0.0;
-  for (std::size_t cell = 0; cell < geometry_.num_cells(); ++cell) {
-    if (!std::isnan(height[cell])) {
-      reference = height[cell];
-      break;
-    }
-  }
-  // The window sums are box sums: along y by prefix sums within each row (pass 1), along x by
-  // prefix sums down each column (pass 2), so a window costs the same whatever its size.
-  // prefix[(i + 1) n + j] ends as the sum of the row windows of column j over rows 0..i.
-  thread_local std::vector<Moments> prefix_workspace;
-  thread_local std::vector<Extremes> extremes_workspace;
-  std::vector<Moments>& prefix = prefix_workspace;  // the calling thread's, also inside the parts
-  std::vector<Extremes>& extremes = extremes_workspace;
-  const auto cells = static_cast<std::size_t>(n) * static_cast<std::size_t>(n);
-  prefix.resize(cells + static_cast<std::size_t>(n));
-  std::fill(prefix.begin(), prefix.begin() + n, Moments());
-  extremes.resize(cells);  // geometric order
-  const int parts = detail::fixed_parts(cells, 16384);
-  // Pass 1: the window sums of each geometric row.
-  detail::for_each_part(params_.num_threads, parts, [&](int part) {
-    const auto [begin, end] = detail::part_range(static_cast<std::size_t>(n), part, parts);
-    std::vector<float> z(static_cast<std::size_t>(n));
-    std::vector<Moments> row_prefix(static_cast<std::size_t>(n) + 1);
-    for (std::size_t gi = begin; gi < end; ++gi) {
-      for (int gj = 0; gj < n; ++gj) z[gj] = height[row_of[gi] + column_of[gj]];
-      row_windows(z, static_cast<double>(gi), reference, r, row_prefix, prefix.data() + (gi + 1) * n,
-                  extremes.data() + gi * n);
-    }
-  });
-  // Pass 2: the prefix sums down the columns.
-  for (std::size_t k = static_cast<std::size_t>(n); k < prefix.size(); ++k) prefix[k] += prefix[k - n];
-  // Pass 3: each known cell's window (a difference of two prefix sums, and the extremes of its
-  // rows' windows), its plane fit and traversability.
-  detail::for_each_part(params_.num_threads, parts, [&](int part) {
-    const auto [begin, end] = detail::part_range(static_cast<std::size_t>(n), part, parts);
-    for (std::size_t gi = begin; gi < end; ++gi) {
-      const int lo = std::max(static_cast<int>(gi) - r, 0), hi = std::min(static_cast<int>(gi) + r, n - 1);
-      for (int gj = 0; gj < n; ++gj) {
-        const std::size_t cell = row_of[gi] + column_of[gj];
-        float* out[] = {layer[kStep] + cell, layer[kSlope] + cell, layer[kRoughness] + cell,
-                        layer[kTraversability] + cell};
-        for (float* value : out) *value = kNaN;
-        if (std::isnan(height[cell])) continue;
-        float lowest = kInfF, highest = -kInfF;
-        for (int a = lo; a <= hi; ++a) {
-          const Extremes& e = extremes[static_cast<std::size_t>(a) * n + gj];
-          lowest = std::min(lowest, e.lowest);
-          highest = std::max(highest, e.highest);
-        }
-        *out[0] = highest - lowest;
-        const Moments window =
-            prefix[static_cast<std::size_t>(hi + 1) * n + gj] - prefix[static_cast<std::size_t>(lo) * n + gj];
-        if (window.n < tp.min_window_cells) continue;
-        const PlaneFit fit = fit_plane(window);
-        if (!fit.valid) continue;
-        const double slope = std::atan(fit.gradient / params_.resolution_m);
-        *out[1] = static_cast<float>(slope);
-        *out[2] = static_cast<float>(fit.roughness);
-        *out[3] = traversability(tp, slope, *out[0], fit.roughness, layer[kClearance][cell]);
-      }
-    }
-  });
+  add_traversability_layers(layers_, params_.traversability, "elevation", start_index(), params_.num_threads);
 }
 
 ElevationMap LocalMap::to_elevation_map() const {

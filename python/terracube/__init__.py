@@ -30,7 +30,7 @@ from .elevation import (
 )
 from .evaluation import absolute_trajectory_error, compare_region_layouts, relative_pose_error
 from .fuzzy import FuzzyElevationMap, FuzzyParams, fit_fuzzy_elevation_map
-from .local_map import LocalMap, LocalMapParams, TraversabilityParams
+from .local_map import LocalMap, LocalMapParams
 from .mapping import LoopClosure, Mapper, MapperParams, ScanReport, run_mapper
 from .pose_graph import PoseGraphEdge, PoseGraphParams, optimize_pose_graph
 from .registration import (
@@ -48,6 +48,7 @@ from .registration import (
     register_maps_all_cells,
     register_points,
 )
+from .traversability import TraversabilityParams, add_traversability_layers
 
 __version__ = "0.1.0"
 
@@ -100,6 +101,7 @@ __all__ = [
     "TerrainParams",
     "build_elevation_map",
     "classify_terrain",
+    "add_traversability_layers",
     "dem_without_overhangs",
     "fit_fuzzy_elevation_map",
     "PointBasedParams",

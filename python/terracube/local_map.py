@@ -11,60 +11,9 @@ import numpy as np
 from . import _core
 from .collapse import CollapseParams, _as_points, _checked, _num_threads
 from .elevation import ElevationMap, MapGeometry
+from .traversability import TraversabilityParams
 
 __all__ = ["LocalMap", "LocalMapParams", "TraversabilityParams"]
-
-
-@dataclass
-class TraversabilityParams:
-    """Thresholds of the ``traversability`` layer, mirroring ``terracube::TraversabilityParams``.
-
-    With, per cell, the plane ``z = a x + b y + c`` fitted by least squares to the known heights of
-    the square window of half-side ``footprint_radius`` around it: ``slope = atan(|(a, b)|)``,
-    ``roughness`` = RMS vertical distance to the plane and ``step`` = highest minus lowest height
-    in the window. The traversability is 0 when ``slope > max_slope``, ``step > max_step``,
-    ``roughness > max_roughness`` or ``clearance < min_clearance``, and otherwise
-    ``1 - (ws slope/max_slope + wt step/max_step + wr roughness/max_roughness) / (ws + wt + wr)``;
-    NaN where the cell has no height or its window fewer than ``min_window_cells`` known cells.
-
-    Attributes
-    ----------
-    footprint_radius : float
-        Half-side of the window [m] (the robot's footprint), >= 0.
-    max_slope : float
-        [rad], > 0 (0.35 rad, about 20 degrees).
-    max_step, max_roughness : float
-        [m], > 0.
-    min_clearance : float
-        The robot's height [m]: lower free space under an overhang blocks the cell.
-    slope_weight, step_weight, roughness_weight : float
-        >= 0, not all 0.
-    min_window_cells : int
-        >= 3.
-    """
-
-    footprint_radius: float = 0.3
-    max_slope: float = 0.35
-    max_step: float = 0.2
-    max_roughness: float = 0.05
-    min_clearance: float = 0.7
-    slope_weight: float = 1.0
-    step_weight: float = 1.0
-    roughness_weight: float = 1.0
-    min_window_cells: int = 4
-
-    def to_core(self) -> _core.TraversabilityParams:
-        params = _checked(_core.TraversabilityParams)()
-        params.footprint_radius_m = float(self.footprint_radius)
-        params.max_slope_rad = float(self.max_slope)
-        params.max_step_m = float(self.max_step)
-        params.max_roughness_m = float(self.max_roughness)
-        params.min_clearance_m = float(self.min_clearance)
-        params.slope_weight = float(self.slope_weight)
-        params.step_weight = float(self.step_weight)
-        params.roughness_weight = float(self.roughness_weight)
-        params.min_window_cells = int(self.min_window_cells)
-        return params
 
 
 @dataclass

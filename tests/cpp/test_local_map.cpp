@@ -418,6 +418,41 @@ TEST(LocalMap, PlannerLayersMatchANaiveFitOfEveryWindow) {
   EXPECT_GT(fitted, n * n / 2);
 }
 
+TEST(LocalMap, PlannerLayersAreThoseOfItsCopyInMapOrder) {
+  // The circular buffer is shifted after the second update: the planner layers computed in
+  // storage order equal, bit for bit, those add_traversability_layers gives the copy in map order.
+  LocalMapParams params = small_map_params();
+  params.length_m = 3.0;
+  params.compute_planner_layers = true;
+  LocalMap map(params);
+  for (const Eigen::Vector2d& at : {Eigen::Vector2d(0.0, 0.0), Eigen::Vector2d(0.73, -0.41)}) {
+    std::vector<Eigen::Vector3d> points;
+    for (int k = 0; k < 900; ++k) {
+      const double x = -1.4 + 0.1 * (k % 30), y = -1.4 + 0.1 * (k / 30);  // sensor frame
+      if (k % 7 == 0) continue;                                           // holes
+      points.emplace_back(x, y, 0.04 * std::sin(2.0 * (x + at.x())) + 0.1 * (x + at.x() > 0.5) - 1.0);
+    }
+    map.update(PointsView<double>(points.data()->data(), points.size()), pose_at(at.x(), at.y(), 1.0));
+  }
+  ASSERT_NE(map.start_index().matrix(), Eigen::Vector2i::Zero());
+  const ElevationMap ordered = map.to_elevation_map();
+  ElevationMap copy = ordered;
+  for (const char* name : {"step", "slope", "roughness", "traversability"}) copy.get(name).setConstant(-7.0F);
+  add_traversability_layers(copy, params.traversability, "elevation");
+  int known = 0;
+  for (const char* name : {"step", "slope", "roughness", "traversability"}) {
+    const Layer& a = ordered.get(name);
+    const Layer& b = copy.get(name);
+    for (Eigen::Index k = 0; k < a.size(); ++k) {
+      ASSERT_EQ(std::isnan(a.data()[k]), std::isnan(b.data()[k])) << name << " " << k;
+      if (std::isnan(a.data()[k])) continue;
+      ASSERT_EQ(a.data()[k], b.data()[k]) << name << " " << k;
+      ++known;
+    }
+  }
+  EXPECT_GT(known, 4 * 500);
+}
+
 // --- simulator ---------------------------------------------------------------------------------
 
 sim::RotatingLidar test_lidar() {

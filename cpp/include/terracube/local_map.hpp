@@ -17,33 +17,9 @@
 #include "terracube/collapse.hpp"
 #include "terracube/cube_grid.hpp"
 #include "terracube/elevation_map.hpp"
+#include "terracube/traversability.hpp"
 
 namespace terracube {
-
-/// Thresholds of the traversability layer (an extension beyond the papers). With, per cell, the
-/// plane z = a x + b y + c fitted by least squares to the known cells of the (2r + 1)^2 window
-/// around it, r = round(footprint_radius_m / resolution):
-///   slope     = atan(sqrt(a^2 + b^2))                         [rad]
-///   roughness = RMS distance of the window's heights to the plane (vertical) [m]
-///   step      = highest minus lowest height in the window      [m]
-/// the traversability is
-///   0                                                        when slope > max_slope_rad, step >
-///        max_step_m, roughness > max_roughness_m or clearance < min_clearance_m;
-///   1 - (w_s slope / max_slope + w_t step / max_step + w_r roughness / max_roughness) / (w_s + w_t + w_r)
-///        otherwise,
-/// so 1 is flat, smooth open ground and 0 impassable; NaN where the cell has no height or its
-/// window fewer than min_window_cells known cells (or only collinear ones).
-struct TraversabilityParams {
-  double footprint_radius_m = 0.3;  ///< half-side of the window (robot footprint) [m], >= 0
-  double max_slope_rad = 0.35;      ///< about 20 degrees, > 0
-  double max_step_m = 0.2;          ///< > 0
-  double max_roughness_m = 0.05;    ///< > 0
-  double min_clearance_m = 0.7;     ///< robot height ([TC]'s robot height) [m], >= 0
-  double slope_weight = 1.0;        ///< >= 0; the three weights must not all be 0
-  double step_weight = 1.0;
-  double roughness_weight = 1.0;
-  int min_window_cells = 4;  ///< >= 3
-};
 
 /// Parameters of LocalMap. Defaults: a 20 x 20 m map at 0.1 m, [CBC]'s cube edge and sigma.
 struct LocalMapParams {

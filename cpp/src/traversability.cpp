@@ -1,0 +1,239 @@
+// Planner layers: box sums of a least-squares plane's moments over every cell's window, the
+// window's extremes, and the traversability formula (traversability.hpp).
+#include "terracube/traversability.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <cstddef>
+#include <limits>
+#include <stdexcept>
+#include <vector>
+
+#include "number_text.hpp"
+#include "parallel.hpp"
+
+namespace terracube {
+
+namespace {
+
+constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+constexpr float kInfF = std::numeric_limits<float>::infinity();
+
+/// The sums over a set of known cells that a least-squares plane needs: x, y the geometric cell
+/// indices, z the height relative to a reference. x and y sums are whole numbers, exact in double.
+struct Moments {
+  double n = 0, x = 0, y = 0, z = 0, xx = 0, xy = 0, yy = 0, xz = 0, yz = 0, zz = 0;
+
+  void add(double cx, double cy, double cz) {
+    n += 1.0;
+    x += cx;
+    y += cy;
+    z += cz;
+    xx += cx * cx;
+    xy += cx * cy;
+    yy += cy * cy;
+    xz += cx * cz;
+    yz += cy * cz;
+    zz += cz * cz;
+  }
+  Moments& operator+=(const Moments& o) {
+    n += o.n, x += o.x, y += o.y, z += o.z, xx += o.xx, xy += o.xy, yy += o.yy, xz += o.xz, yz += o.yz, zz += o.zz;
+    return *this;
+  }
+  Moments operator-(const Moments& o) const {
+    return {n - o.n, x - o.x, y - o.y, z - o.z, xx - o.xx, xy - o.xy, yy - o.yy, xz - o.xz, yz - o.yz, zz - o.zz};
+  }
+};
+
+/// The lowest and highest height of a window along y (NaN-free: +inf and -inf when all unknown).
+struct Extremes {
+  float lowest, highest;
+};
+
+/// The moments of geometric row `x` (heights `z` in map order, NaN unknown, relative to
+/// `reference`) summed over the windows [j - r, j + r] clipped to the row, from differences of
+/// prefix sums, into sums[0, n), and each window's lowest and highest height into extremes[0, n).
+void row_windows(const std::vector<float>& z, double x, double reference, int r, std::vector<Moments>& prefix,
+                 Moments* sums, Extremes* extremes) {
+  const int n = static_cast<int>(z.size());
+  prefix[0] = Moments();
+  for (int j = 0; j < n; ++j) {
+    prefix[j + 1] = prefix[j];
+    if (!std::isnan(z[j])) prefix[j + 1].add(x, j, z[j] - reference);
+  }
+  for (int j = 0; j < n; ++j) {
+    const int lo = std::max(j - r, 0), hi = std::min(j + r, n - 1);
+    sums[j] = prefix[hi + 1] - prefix[lo];
+    Extremes e{kInfF, -kInfF};
+    for (int k = lo; k <= hi; ++k) {  // std::min/max keep the first argument against NaN
+      e.lowest = std::min(e.lowest, z[k]);
+      e.highest = std::max(e.highest, z[k]);
+    }
+    extremes[j] = e;
+  }
+}
+
+/// The least-squares plane z = a x + b y + c of a window from its moments (x, y in cells): the
+/// gradient |(a, b)| per cell and the RMS vertical residual; invalid for collinear cells.
+struct PlaneFit {
+  bool valid = false;
+  double gradient = 0.0, roughness = 0.0;
+};
+PlaneFit fit_plane(const Moments& m) {
+  const double w = 1.0 / m.n;  // the means and covariances of the window's cells
+  const double mx = m.x * w, my = m.y * w, mz = m.z * w;
+  const double cxx = m.xx * w - mx * mx, cxy = m.xy * w - mx * my, cyy = m.yy * w - my * my;
+  const double cxz = m.xz * w - mx * mz, cyz = m.yz * w - my * mz, czz = m.zz * w - mz * mz;
+  const double det = cxx * cyy - cxy * cxy;
+  PlaneFit fit;
+  if (!(det > 1e-9)) return fit;
+  const double a = (cyy * cxz - cxy * cyz) / det, b = (cxx * cyz - cxy * cxz) / det;
+  fit.valid = true;
+  fit.gradient = std::sqrt(a * a + b * b);
+  fit.roughness = std::sqrt(std::max(czz - a * cxz - b * cyz, 0.0));
+  return fit;
+}
+
+/// TraversabilityParams' formula (traversability.hpp).
+float traversability(const TraversabilityParams& tp, double slope, double step, double roughness, float clearance) {
+  if (slope > tp.max_slope_rad || step > tp.max_step_m || roughness > tp.max_roughness_m ||
+      clearance < tp.min_clearance_m) {
+    return 0.0F;
+  }
+  const double weights = tp.slope_weight + tp.step_weight + tp.roughness_weight;
+  const double cost = (tp.slope_weight * slope / tp.max_slope_rad + tp.step_weight * step / tp.max_step_m +
+                       tp.roughness_weight * roughness / tp.max_roughness_m) /
+                      weights;
+  return static_cast<float>(1.0 - cost);
+}
+
+/// Where the cells of a (possibly circular) map are stored: per geometric row its stored row
+/// times the row length, per geometric column its stored column. No wrap-around arithmetic in
+/// the loops, and windows are clipped at the map's border (they never wrap).
+struct StorageOrder {
+  std::vector<std::size_t> row, column;
+
+  StorageOrder(const CellIndex& size, const CellIndex& start)
+      : row(static_cast<std::size_t>(size.x())), column(static_cast<std::size_t>(size.y())) {
+    for (int g = 0; g < size.x(); ++g) {
+      row[g] = static_cast<std::size_t>((g + start.x()) % size.x()) * static_cast<std::size_t>(size.y());
+    }
+    for (int g = 0; g < size.y(); ++g) column[g] = static_cast<std::size_t>((g + start.y()) % size.y());
+  }
+};
+
+/// The layers add_traversability_layers reads and writes, in storage order.
+struct PlannerData {
+  const float* height;
+  const float* clearance;  // null: nothing overhangs
+  float *step, *slope, *roughness, *traversability;
+};
+
+/// Pass 3 for the cells of geometric rows [begin, end): each known cell's window (a difference
+/// of two prefix sums, and the extremes of its rows' windows), its plane fit and traversability.
+void fit_rows(const PlannerData& d, const StorageOrder& order, const std::vector<Moments>& prefix,
+              const std::vector<Extremes>& extremes, int r, double resolution, const TraversabilityParams& tp,
+              std::size_t begin, std::size_t end) {
+  const int rows = static_cast<int>(order.row.size()), n = static_cast<int>(order.column.size());
+  for (std::size_t gi = begin; gi < end; ++gi) {
+    const int lo = std::max(static_cast<int>(gi) - r, 0), hi = std::min(static_cast<int>(gi) + r, rows - 1);
+    for (int gj = 0; gj < n; ++gj) {
+      const std::size_t cell = order.row[gi] + order.column[gj];
+      float* out[] = {d.step + cell, d.slope + cell, d.roughness + cell, d.traversability + cell};
+      for (float* value : out) *value = kNaN;
+      if (std::isnan(d.height[cell])) continue;
+      float lowest = kInfF, highest = -kInfF;
+      for (int a = lo; a <= hi; ++a) {
+        const Extremes& e = extremes[static_cast<std::size_t>(a) * n + gj];
+        lowest = std::min(lowest, e.lowest);
+        highest = std::max(highest, e.highest);
+      }
+      *out[0] = highest - lowest;
+      const Moments window =
+          prefix[static_cast<std::size_t>(hi + 1) * n + gj] - prefix[static_cast<std::size_t>(lo) * n + gj];
+      if (window.n < tp.min_window_cells) continue;
+      const PlaneFit fit = fit_plane(window);
+      if (!fit.valid) continue;
+      const double slope = std::atan(fit.gradient / resolution);
+      *out[1] = static_cast<float>(slope);
+      *out[2] = static_cast<float>(fit.roughness);
+      const float clearance = d.clearance != nullptr ? d.clearance[cell] : kInfF;
+      *out[3] = traversability(tp, slope, *out[0], fit.roughness, clearance);
+    }
+  }
+}
+
+}  // namespace
+
+void check_traversability_params(const TraversabilityParams& p) {
+  detail::check_non_negative(p.footprint_radius_m, "TraversabilityParams.footprint_radius_m");
+  detail::check_positive(p.max_slope_rad, "TraversabilityParams.max_slope_rad");
+  detail::check_positive(p.max_step_m, "TraversabilityParams.max_step_m");
+  detail::check_positive(p.max_roughness_m, "TraversabilityParams.max_roughness_m");
+  detail::check_non_negative(p.min_clearance_m, "TraversabilityParams.min_clearance_m");
+  detail::check_non_negative(p.slope_weight, "TraversabilityParams.slope_weight");
+  detail::check_non_negative(p.step_weight, "TraversabilityParams.step_weight");
+  detail::check_non_negative(p.roughness_weight, "TraversabilityParams.roughness_weight");
+  if (p.slope_weight + p.step_weight + p.roughness_weight <= 0.0) {
+    throw std::invalid_argument("TraversabilityParams: the slope, step and roughness weights must not all be 0");
+  }
+  if (p.min_window_cells < 3) throw std::invalid_argument("TraversabilityParams.min_window_cells must be >= 3");
+}
+
+void add_traversability_layers(ElevationMap& map, const TraversabilityParams& tp, const std::string& height_layer,
+                               const CellIndex& start, int num_threads) {
+  check_traversability_params(tp);
+  detail::check_num_threads(num_threads, "add_traversability_layers");
+  const CellIndex size = map.geometry().size;
+  if ((start < 0).any() || (start >= size.max(1)).any()) {
+    throw std::invalid_argument("add_traversability_layers: start must be a cell index of the map");
+  }
+  const double resolution = map.geometry().resolution_m;
+  const double radius = std::round(tp.footprint_radius_m / resolution);
+  const int r = static_cast<int>(std::min(radius, 16384.0));  // a window over the whole map at most
+  for (const char* name : {"step", "slope", "roughness", "traversability"}) {
+    if (!map.exists(name)) map.add(name);
+  }
+  const PlannerData d{map.get(height_layer).data(), map.exists("clearance") ? map.get("clearance").data() : nullptr,
+                      map.get("step").data(),       map.get("slope").data(),
+                      map.get("roughness").data(),  map.get("traversability").data()};
+  const std::size_t cells = map.geometry().num_cells();
+  if (cells == 0) return;
+  const StorageOrder order(size, start);
+  const auto rows = static_cast<std::size_t>(size.x()), n = static_cast<std::size_t>(size.y());
+  // Heights relative to the first known one in map order keep the sums of squares small (and
+  // the layers the same bits whatever the storage order).
+  double reference = std::numeric_limits<double>::quiet_NaN();
+  for (std::size_t gi = 0; gi < rows && std::isnan(reference); ++gi) {
+    for (std::size_t gj = 0; gj < n && std::isnan(reference); ++gj)
+      reference = d.height[order.row[gi] + order.column[gj]];
+  }
+  // The window sums are box sums: along y by prefix sums within each row (pass 1), along x by
+  // prefix sums down each column (pass 2), so a window costs the same whatever its size.
+  // prefix[(i + 1) n + j] ends as the sum of the row windows of column j over rows 0..i.
+  thread_local std::vector<Moments> prefix_workspace;
+  thread_local std::vector<Extremes> extremes_workspace;
+  std::vector<Moments>& prefix = prefix_workspace;  // the calling thread's, also inside the parts
+  std::vector<Extremes>& extremes = extremes_workspace;
+  prefix.resize(cells + n);
+  std::fill(prefix.begin(), prefix.begin() + static_cast<std::ptrdiff_t>(n), Moments());
+  extremes.resize(cells);  // geometric order
+  const int parts = detail::fixed_parts(cells, 16384);
+  detail::for_each_part(num_threads, parts, [&](int part) {  // pass 1: each geometric row's windows
+    const auto [begin, end] = detail::part_range(rows, part, parts);
+    std::vector<float> z(n);
+    std::vector<Moments> row_prefix(n + 1);
+    for (std::size_t gi = begin; gi < end; ++gi) {
+      for (std::size_t gj = 0; gj < n; ++gj) z[gj] = d.height[order.row[gi] + order.column[gj]];
+      row_windows(z, static_cast<double>(gi), reference, r, row_prefix, prefix.data() + (gi + 1) * n,
+                  extremes.data() + gi * n);
+    }
+  });
+  for (std::size_t k = n; k < prefix.size(); ++k) prefix[k] += prefix[k - n];  // pass 2
+  detail::for_each_part(num_threads, parts, [&](int part) {
+    const auto [begin, end] = detail::part_range(rows, part, parts);
+    fit_rows(d, order, prefix, extremes, r, resolution, tp, begin, end);
+  });
+}
+
+}  // namespace terracube

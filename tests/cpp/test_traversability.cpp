@@ -1,0 +1,96 @@
+// add_traversability_layers on an ElevationMap: closed forms of a tilted plane and a step, the
+// clearance veto, unknown cells, and the errors.
+#include <gtest/gtest.h>
+#include <terracube/traversability.hpp>
+
+#include <cmath>
+#include <limits>
+#include <stdexcept>
+
+namespace terracube {
+namespace {
+
+constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+
+/// A 20 x 12 map at 0.1 m whose "mean" is height(i, j).
+template <typename Height>
+ElevationMap map_of(Height&& height) {
+  MapGeometry geometry;
+  geometry.resolution_m = 0.1;
+  geometry.size = CellIndex(20, 12);
+  ElevationMap map(geometry);
+  Layer mean(20, 12);
+  for (int i = 0; i < 20; ++i) {
+    for (int j = 0; j < 12; ++j) mean(i, j) = static_cast<float>(height(i, j));
+  }
+  map.add("mean", mean);
+  return map;
+}
+
+TEST(Traversability, ATiltedPlaneHasItsSlopeNoRoughnessAndTheFormulasCost) {
+  const double slope = 0.1;  // rad, rising along y
+  ElevationMap map = map_of([&](int, int j) { return std::tan(slope) * 0.1 * j; });
+  TraversabilityParams params;  // 7 x 7 windows, no clearance layer: nothing overhangs
+  add_traversability_layers(map, params);
+  for (const auto& [i, j] : {std::pair{0, 0}, std::pair{10, 6}, std::pair{19, 11}}) {
+    EXPECT_NEAR(map.get("slope")(i, j), slope, 1e-5);
+    EXPECT_NEAR(map.get("roughness")(i, j), 0.0, 1e-5);
+    // The window spans 3 rows of y beside a border cell, 7 inside.
+    const int columns = std::min(j + 3, 11) - std::max(j - 3, 0);
+    const double step = std::tan(slope) * 0.1 * columns;
+    EXPECT_NEAR(map.get("step")(i, j), step, 1e-6);
+    const double cost = (slope / params.max_slope_rad + step / params.max_step_m) / 3.0;
+    EXPECT_NEAR(map.get("traversability")(i, j), 1.0 - cost, 1e-5);
+  }
+}
+
+TEST(Traversability, AStepBlocksItsNeighbourhoodAndALowClearanceItsCell) {
+  ElevationMap map = map_of([](int i, int) { return i >= 10 ? 0.3 : 0.0; });
+  map.get("mean")(2, 2) = kNaN;
+  Layer clearance = Layer::Constant(20, 12, std::numeric_limits<float>::infinity());
+  clearance(15, 6) = 0.5F;  // under a 0.7 m robot's height
+  map.add("clearance", clearance);
+  add_traversability_layers(map);
+  EXPECT_FLOAT_EQ(map.get("step")(9, 6), 0.3F);
+  EXPECT_EQ(map.get("traversability")(9, 6), 0.0F);  // the step is over max_step_m
+  EXPECT_EQ(map.get("traversability")(15, 6), 0.0F);
+  EXPECT_EQ(map.get("step")(15, 6), 0.0F);
+  EXPECT_GT(map.get("traversability")(15, 3), 0.99F);  // flat, open
+  for (const char* name : {"step", "slope", "roughness", "traversability"}) {
+    EXPECT_TRUE(std::isnan(map.get(name)(2, 2))) << name;
+  }
+}
+
+TEST(Traversability, AWindowWithTooFewKnownCellsHasNoSlope) {
+  ElevationMap map = map_of([](int i, int j) { return (i == 5 && j < 3) || (i == 6 && j == 0) ? 0.0 : kNaN; });
+  TraversabilityParams params;
+  params.min_window_cells = 5;
+  add_traversability_layers(map, params);
+  EXPECT_EQ(map.get("step")(5, 0), 0.0F);
+  EXPECT_TRUE(std::isnan(map.get("slope")(5, 0)));  // 4 known cells
+  params.min_window_cells = 4;
+  add_traversability_layers(map, params);
+  EXPECT_NEAR(map.get("slope")(5, 0), 0.0, 1e-6);
+}
+
+TEST(Traversability, BadCallsThrowNamingTheProblem) {
+  ElevationMap map = map_of([](int, int) { return 0.0; });
+  EXPECT_THROW(add_traversability_layers(map, {}, "elevation"), std::out_of_range);
+  TraversabilityParams bad;
+  bad.max_step_m = 0.0;
+  try {
+    add_traversability_layers(map, bad);
+    FAIL();
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("max_step_m"), std::string::npos);
+  }
+  EXPECT_THROW(add_traversability_layers(map, {}, "mean", CellIndex(20, 0)), std::invalid_argument);
+  EXPECT_THROW(add_traversability_layers(map, {}, "mean", CellIndex(0, 0), -1), std::invalid_argument);
+  TraversabilityParams huge;
+  huge.footprint_radius_m = 1e300;  // a window over the whole map
+  add_traversability_layers(map, huge);
+  EXPECT_EQ(map.get("step")(0, 0), 0.0F);
+}
+
+}  // namespace
+}  // namespace terracube

@@ -1,0 +1,74 @@
+"""add_traversability_layers on any ElevationMap: a plain numpy least-squares fit of every window
+of a real scan's DEM, the LocalMap's own planner layers, and the errors."""
+
+import numpy as np
+import pytest
+import terracube as tc
+
+
+def naive_planner_layers(height: np.ndarray, resolution: float, params: tc.TraversabilityParams):
+    """Every cell's window fitted by np.linalg.lstsq, written plainly."""
+    r = int(round(params.footprint_radius / resolution))
+    nx, ny = height.shape
+    out = {name: np.full(height.shape, np.nan) for name in ("step", "slope", "roughness", "traversability")}
+    for i in range(nx):
+        for j in range(ny):
+            if np.isnan(height[i, j]):
+                continue
+            window = height[max(i - r, 0) : i + r + 1, max(j - r, 0) : j + r + 1]
+            a, b = np.nonzero(~np.isnan(window))
+            z = window[a, b].astype(np.float64)
+            out["step"][i, j] = z.max() - z.min()
+            design = np.c_[a, b, np.ones_like(a)].astype(np.float64)
+            if len(z) < params.min_window_cells or np.linalg.matrix_rank(design) < 3:
+                continue
+            plane = np.linalg.lstsq(design, z, rcond=None)[0]
+            slope = np.arctan(np.hypot(plane[0], plane[1]) / resolution)
+            roughness = np.sqrt(np.mean((design @ plane - z) ** 2))
+            step = out["step"][i, j]
+            out["slope"][i, j], out["roughness"][i, j] = slope, roughness
+            blocked = slope > params.max_slope or step > params.max_step or roughness > params.max_roughness
+            cost = (slope / params.max_slope + step / params.max_step + roughness / params.max_roughness) / 3
+            out["traversability"][i, j] = 0.0 if blocked else 1.0 - cost
+    return out
+
+
+def test_the_layers_of_a_kitti_dem_match_a_numpy_fit_of_every_window(shared_data):
+    points = shared_data.kitti_xyzi(0)[:, :3]
+    elevation_map = tc.build_elevation_map(points, 0.2, origin=(-6.0, -6.0), size=(60, 60))
+    params = tc.TraversabilityParams(footprint_radius=0.4)  # 5 x 5 windows
+    assert tc.add_traversability_layers(elevation_map, params) is elevation_map
+    expected = naive_planner_layers(elevation_map["mean"], 0.2, params)
+    for name, want in expected.items():
+        got = elevation_map[name]
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(want), err_msg=name)
+        np.testing.assert_allclose(got[~np.isnan(got)], want[~np.isnan(want)], atol=2e-5, err_msg=name)
+    traversable = elevation_map["traversability"]
+    assert 0.2 < np.mean(traversable[np.isfinite(traversable)] > 0.5) < 0.95  # road, and the car beside it
+
+
+def test_a_local_maps_layers_are_those_of_its_copy_and_a_clearance_layer_blocks(shared_data):
+    local = tc.LocalMap(length=8.0, resolution=0.1)
+    local.update(shared_data.kitti_xyzi(0), np.eye(4))
+    copy = local.to_elevation_map()
+    own = {name: copy[name].copy() for name in ("step", "slope", "roughness", "traversability")}
+    tc.add_traversability_layers(copy, layer="elevation")
+    for name, want in own.items():
+        np.testing.assert_array_equal(copy[name], want, err_msg=name)
+    copy["clearance"] = np.full(copy.geometry.size, 0.5, dtype=np.float32)  # under a 0.7 m robot
+    tc.add_traversability_layers(copy, layer="elevation")
+    assert np.all(copy["traversability"][np.isfinite(copy["traversability"])] == 0.0)
+
+
+def test_bad_calls_name_the_problem():
+    elevation_map = tc.build_elevation_map(np.random.default_rng(1).uniform(0, 2, (500, 3)), 0.2)
+    with pytest.raises(KeyError, match="elevation"):
+        tc.add_traversability_layers(elevation_map, layer="elevation")
+    with pytest.raises(ValueError, match="max_step_m"):
+        tc.add_traversability_layers(elevation_map, max_step=0.0)
+    with pytest.raises(TypeError, match="ElevationMap"):
+        tc.add_traversability_layers(np.zeros((3, 3)))
+    with pytest.raises(TypeError, match="not both"):
+        tc.add_traversability_layers(elevation_map, tc.TraversabilityParams(), max_step=0.1)
+    with pytest.raises(ValueError, match="num_threads"):
+        tc.add_traversability_layers(elevation_map, num_threads=-1)
