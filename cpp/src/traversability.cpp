@@ -154,8 +154,8 @@ void fit_rows(const PlannerData& d, const StorageOrder& order, const std::vector
       if (window.n < tp.min_window_cells) continue;
       const PlaneFit fit = fit_plane(window);
       if (!fit.valid) continue;
-      const double slope = std::atan(fit.gradient / resolution);
-      *out[1] = static_cast<float>(slope);
+      const float slope = std::atan(static_cast<float>(fit.gradient / resolution));  // float: the layer's type
+      *out[1] = slope;
       *out[2] = static_cast<float>(fit.roughness);
       const float clearance = d.clearance != nullptr ? d.clearance[cell] : kInfF;
       *out[3] = traversability(tp, slope, *out[0], fit.roughness, clearance);

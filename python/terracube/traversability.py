@@ -77,7 +77,9 @@ def add_traversability_layers(
     ``traversability`` of an :class:`~terracube.ElevationMap`, from its height ``layer`` ("mean",
     the DEM of :func:`~terracube.build_elevation_map`; "elevation" for a LocalMap's copy) and, when
     the map has one, its ``clearance`` layer (free height above each cell; without it nothing
-    overhangs). ``kwargs`` are :class:`TraversabilityParams` fields. Returns the map.
+    overhangs). A ``step`` layer already there is replaced (the step to the 8 neighbours of
+    :func:`~terracube.dem_without_overhangs` becomes the window's). ``kwargs`` are
+    :class:`TraversabilityParams` fields. Returns the map.
 
     >>> m = tc.build_elevation_map(points, 0.1)
     >>> tc.add_traversability_layers(m, max_step=0.15)["traversability"]
