@@ -129,7 +129,7 @@ struct PlannerData {
   float *step, *slope, *roughness, *traversability;
 };
 
-/// Pass 3 for the cells of geometric rows [begin, end): each known cell's window (a difference
+/// Pass 3 for the cells of geometric rows [begin, end): each known (finite) cell's window (a difference
 /// of two prefix sums, and the extremes of its rows' windows), its plane fit and traversability.
 void fit_rows(const PlannerData& d, const StorageOrder& order, const std::vector<Moments>& prefix,
               const std::vector<Extremes>& extremes, int r, double resolution, const TraversabilityParams& tp,
@@ -141,7 +141,7 @@ void fit_rows(const PlannerData& d, const StorageOrder& order, const std::vector
       const std::size_t cell = order.row[gi] + order.column[gj];
       float* out[] = {d.step + cell, d.slope + cell, d.roughness + cell, d.traversability + cell};
       for (float* value : out) *value = kNaN;
-      if (std::isnan(d.height[cell])) continue;
+      if (!std::isfinite(d.height[cell])) continue;
       float lowest = kInfF, highest = -kInfF;
       for (int a = lo; a <= hi; ++a) {
         const Extremes& e = extremes[static_cast<std::size_t>(a) * n + gj];
@@ -205,8 +205,10 @@ void add_traversability_layers(ElevationMap& map, const TraversabilityParams& tp
   // the layers the same bits whatever the storage order).
   double reference = std::numeric_limits<double>::quiet_NaN();
   for (std::size_t gi = 0; gi < rows && std::isnan(reference); ++gi) {
-    for (std::size_t gj = 0; gj < n && std::isnan(reference); ++gj)
-      reference = d.height[order.row[gi] + order.column[gj]];
+    for (std::size_t gj = 0; gj < n && std::isnan(reference); ++gj) {
+      const float h = d.height[order.row[gi] + order.column[gj]];
+      if (std::isfinite(h)) reference = h;
+    }
   }
   // The window sums are box sums: along y by prefix sums within each row (pass 1), along x by
   // prefix sums down each column (pass 2), so a window costs the same whatever its size.
@@ -224,7 +226,10 @@ void add_traversability_layers(ElevationMap& map, const TraversabilityParams& tp
     std::vector<float> z(n);
     std::vector<Moments> row_prefix(n + 1);
     for (std::size_t gi = begin; gi < end; ++gi) {
-      for (std::size_t gj = 0; gj < n; ++gj) z[gj] = d.height[order.row[gi] + order.column[gj]];
+      for (std::size_t gj = 0; gj < n; ++gj) {
+        const float h = d.height[order.row[gi] + order.column[gj]];
+        z[gj] = std::isfinite(h) ? h : kNaN;  // +-inf heights are unknown too
+      }
       row_windows(z, static_cast<double>(gi), reference, r, row_prefix, prefix.data() + (gi + 1) * n,
                   extremes.data() + gi * n);
     }

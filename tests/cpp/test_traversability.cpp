@@ -47,6 +47,7 @@ TEST(Traversability, ATiltedPlaneHasItsSlopeNoRoughnessAndTheFormulasCost) {
 TEST(Traversability, AStepBlocksItsNeighbourhoodAndALowClearanceItsCell) {
   ElevationMap map = map_of([](int i, int) { return i >= 10 ? 0.3 : 0.0; });
   map.get("mean")(2, 2) = kNaN;
+  map.get("mean")(3, 9) = std::numeric_limits<float>::infinity();  // unknown too, not a step
   Layer clearance = Layer::Constant(20, 12, std::numeric_limits<float>::infinity());
   clearance(15, 6) = 0.5F;  // under a 0.7 m robot's height
   map.add("clearance", clearance);
@@ -58,7 +59,10 @@ TEST(Traversability, AStepBlocksItsNeighbourhoodAndALowClearanceItsCell) {
   EXPECT_GT(map.get("traversability")(15, 3), 0.99F);  // flat, open
   for (const char* name : {"step", "slope", "roughness", "traversability"}) {
     EXPECT_TRUE(std::isnan(map.get(name)(2, 2))) << name;
+    EXPECT_TRUE(std::isnan(map.get(name)(3, 9))) << name;
   }
+  EXPECT_EQ(map.get("step")(3, 8), 0.0F);
+  EXPECT_GT(map.get("traversability")(3, 8), 0.99F);
 }
 
 TEST(Traversability, AWindowWithTooFewKnownCellsHasNoSlope) {

@@ -38,7 +38,7 @@ struct TraversabilityParams {
 void check_traversability_params(const TraversabilityParams& params);
 
 /// Adds the layers "step", "slope", "roughness" and "traversability" to `map` (or refreshes them
-/// in place) from its `height_layer` ("mean" for build_elevation_map's maps, "elevation" for a
+/// in place) from its `height_layer` (NaN or +-inf: unknown; "mean" for build_elevation_map's maps, "elevation" for a
 /// LocalMap's) and, when the map has one, its "clearance" layer (free height above each cell [m];
 /// without it nothing overhangs). A "step" layer already there is replaced (dem_without_overhangs'
 /// step to the 8 neighbours becomes the window's). `start` is the storage index of the map's
