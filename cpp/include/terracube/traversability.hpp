@@ -38,14 +38,15 @@ struct TraversabilityParams {
 void check_traversability_params(const TraversabilityParams& params);
 
 /// Adds the layers "step", "slope", "roughness" and "traversability" to `map` (or refreshes them
-/// in place) from its `height_layer` (NaN or +-inf: unknown; "mean" for build_elevation_map's maps, "elevation" for a
-/// LocalMap's) and, when the map has one, its "clearance" layer (free height above each cell [m];
-/// without it nothing overhangs). A "step" layer already there is replaced (dem_without_overhangs'
-/// step to the 8 neighbours becomes the window's). `start` is the storage index of the map's
-/// geometric cell (0, 0): (0, 0) for an ElevationMap, LocalMap::start_index() for a circular
-/// buffer, whose windows then stop at the map's border instead of wrapping. The same bits for any `num_threads` (1: the
-/// calling thread, 0: one per processor). Throws std::invalid_argument on invalid parameters and
-/// std::out_of_range when the height layer is missing.
+/// in place) from its `height_layer` ("mean" for build_elevation_map's maps, "elevation" for a
+/// LocalMap's; NaN or +-inf is unknown) and, when the map has one, its "clearance" layer (free
+/// height above each cell [m]; without it nothing overhangs). A "step" layer already there is
+/// replaced (dem_without_overhangs' step to the 8 neighbours becomes the window's). `start` is the
+/// storage index of the map's geometric cell (0, 0): (0, 0) for an ElevationMap,
+/// LocalMap::start_index() for a circular buffer, whose windows then stop at the map's border
+/// instead of wrapping. The same bits for any `num_threads` (1: the calling thread, 0: one per
+/// processor). Throws std::invalid_argument on invalid parameters and std::out_of_range when the
+/// height layer is missing.
 void add_traversability_layers(ElevationMap& map, const TraversabilityParams& params = {},
                                const std::string& height_layer = "mean", const CellIndex& start = CellIndex(0, 0),
                                int num_threads = 1);
