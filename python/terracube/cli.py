@@ -1109,6 +1109,23 @@ def map_command(
 # ------------------------------------------------------------------------------------------ stream
 
 
+def stream_params(length, resolution, edge, sigma, robot_height, method):
+    """The LocalMapParams of ``terracube stream``'s options (a folder of scans or a bag), checked:
+    ValueError naming a bad value before any scan is read."""
+    from . import sigma_from_robot_height
+    from .collapse import CollapseParams
+    from .local_map import LocalMapParams
+
+    if sigma is None and robot_height is not None:
+        sigma = sigma_from_robot_height(robot_height, edge)
+    collapse = CollapseParams(edge=edge, method=method)
+    if sigma is not None:
+        collapse.sigma = sigma
+    params = LocalMapParams(length=length, resolution=resolution, collapse=collapse)
+    params.to_core()
+    return params
+
+
 @app.command("stream")
 def stream_command(
     scans: Path = typer.Argument(
@@ -1152,9 +1169,6 @@ def stream_command(
     """
     from tqdm import tqdm
 
-    from . import sigma_from_robot_height
-    from .collapse import CollapseParams
-    from .local_map import LocalMapParams
     from .mapping import detect_pose_format, match_scans_to_poses, read_kitti_calibration, read_pose_file
     from .stream import run_stream
 
@@ -1171,13 +1185,7 @@ def stream_command(
         calibration = read_kitti_calibration(calib) if calib is not None else None
         stamps, odometry = read_pose_file(poses, pose_format, calibration)
         indices = match_scans_to_poses(files, len(odometry))
-        if sigma is None and robot_height is not None:
-            sigma = sigma_from_robot_height(robot_height, edge)
-        collapse = CollapseParams(edge=edge, method=method)
-        if sigma is not None:
-            collapse.sigma = sigma
-        params = LocalMapParams(length=length, resolution=resolution, collapse=collapse)
-        params.to_core()  # refuses bad values before any scan is read
+        params = stream_params(length, resolution, edge, sigma, robot_height, method)
     sequence = tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="streaming")
     with _exit_on_bad_input("stream"):
         report = run_stream(

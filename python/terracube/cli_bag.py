@@ -1,14 +1,14 @@
 """ROS bags on the command line: ``terracube bag-info BAG``, and a bag as the input of ``map``,
-``collapse``, ``dem``, ``classify`` and ``fem``.
+``stream``, ``collapse``, ``dem``, ``classify`` and ``fem``.
 
-:func:`register` adds the ``bag-info`` command and gives each of those five commands the options
+:func:`register` adds the ``bag-info`` command and gives each of those six commands the options
 ``--points TOPIC`` (the PointCloud2 topic; optional when the bag has one), ``--out DIR`` (write the
-usual files there, and the results as a bag beside them), ``--bag-storage`` and, for ``map``,
-``--odom TOPIC`` or ``--tf BASE_FRAME`` (where the poses come from). The commands' own code is left
-as it is: a wrapper takes the bag options off each callback. Given a bag, ``map`` runs
-:func:`map_bag`; a per-scan stage runs its unchanged command once per cloud, on the cloud saved as a
-temporary ``BAGNAME_0000.npy`` (so outputs are named as for loose files), in the cloud's own frame
-(the per-scan stages use no pose).
+usual files there, and the results as a bag beside them), ``--bag-storage`` and, for ``map`` and
+``stream``, ``--odom TOPIC`` or ``--tf BASE_FRAME`` (where the poses come from). The commands' own
+code is left as it is: a wrapper takes the bag options off each callback. Given a bag, ``map``
+runs :func:`map_bag` and ``stream`` :func:`stream_bag`; a per-scan stage runs its unchanged command
+once per cloud, on the cloud saved as a temporary ``BAGNAME_0000.npy`` (so outputs are named as
+for loose files), in the cloud's own frame (the per-scan stages use no pose).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-__all__ = ["BagOptions", "is_bag", "map_bag", "register", "run_stage_on_bag"]
+__all__ = ["BagOptions", "is_bag", "map_bag", "register", "run_stage_on_bag", "stream_bag"]
 
 BAG_STORAGES = ("mcap", "sqlite3", "ros1")
 
@@ -265,6 +265,72 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
         typer.echo(f"written: {path}")
 
 
+def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
+    """``terracube stream BAG``: the local map over every cloud of the topic, posed by --odom or
+    --tf; with --out, the local map as a GridMap and its traversability as an OccupancyGrid every
+    --every clouds (every cloud when 0), in the poses' frame, stamped like the cloud."""
+    from .bag import occupancy_from_traversability, read_bag
+    from .cli import _echo_report, _exit_on_bad_input, _fail, _writable_folder, stream_params
+    from .stream import run_stream
+
+    for option, flag in (("poses", "--poses"), ("calib", "--calib")):
+        if values.get(option) is not None:
+            raise _fail(f"{flag} is for a folder of scans; a bag takes its poses from --odom or --tf")
+    if (bag_options.odom is None) == (bag_options.tf is None):
+        raise _fail("a bag needs one pose source: --odom TOPIC (Odometry or PoseStamped) or --tf BASE_FRAME")
+    output_dir = _writable_folder(bag_options.out or values["output_dir"])
+    with _exit_on_bad_input("command line"):
+        params = stream_params(
+            values["length"],
+            values["resolution"],
+            values["edge"],
+            values.get("sigma"),
+            values.get("robot_height"),
+            values["method"],
+        )
+    with _exit_on_bad_input():  # the bag's errors name it
+        topic = _points_topic(bag, bag_options.points)
+        clouds = read_bag(bag, topic, bag_options.odom or "/tf", base_frame=bag_options.tf)
+    limit = values.get("limit")
+    total = len(clouds) if limit is None else min(len(clouds), max(limit, 0))
+    writer = _output_bag(output_dir, f"{bag.stem}_stream", bag_options.storage) if bag_options.out else None
+
+    def publish(local_map, name: str, stamp: float) -> None:
+        frame = clouds.pose_frame or "odom"  # known once the first cloud is read
+        ordered = local_map.to_elevation_map()
+        writer.write_grid_map(ordered, stamp=stamp, frame_id=frame)
+        occupancy = occupancy_from_traversability(ordered["traversability"])
+        writer.write_occupancy_grid(ordered, occupancy, stamp=stamp, frame_id=frame)
+
+    def scans():
+        for index, (stamp, points, pose) in enumerate(clouds):
+            if index >= total:
+                return
+            yield f"{bag.stem}_{index:04d}", points, pose, stamp
+
+    try:
+        with _exit_on_bad_input("stream"):
+            report = run_stream(
+                _progress(scans(), total, "streaming"),
+                output_dir,
+                params,
+                every=values.get("every", 0),
+                animation=values.get("animation"),
+                png=values.get("png", True),
+                on_update=publish if writer is not None else None,
+            )
+    except BaseException:
+        if writer is not None:
+            writer.abort()
+        raise
+    _echo_report(report)
+    dropped = sum(clouds.no_returns)
+    if dropped:
+        typer.echo(f"{dropped:,} no-returns dropped")
+    if writer is not None:
+        typer.echo(f"bag: {writer.close()} ({', '.join(f'{k} x{v}' for k, v in writer.counts.items())})")
+
+
 # ------------------------------------------------------------------------------------------ bag-info
 
 
@@ -296,13 +362,15 @@ _POINTS = typer.Option(
 _ODOM = typer.Option(
     None,
     "--odom",
-    help="Bag input (map): poses from this Odometry/PoseStamped topic, the cloud's mount from /tf_static.",
+    help="Bag input (map, stream): poses from this Odometry/PoseStamped topic, the cloud's mount "
+    "from /tf_static.",
     show_default=False,
 )
 _TF = typer.Option(
     None,
     "--tf",
-    help="Bag input (map): poses of BASE_FRAME from /tf (in the tree's root), the mount from /tf_static.",
+    help="Bag input (map, stream): poses of BASE_FRAME from /tf (in the tree's root), the mount "
+    "from /tf_static.",
     metavar="BASE_FRAME",
     show_default=False,
 )
@@ -310,7 +378,7 @@ _OUT = typer.Option(
     None,
     "--out",
     help="Bag input: write the usual files to DIR and the results as a bag there too (GridMap, "
-    "OccupancyGrid of classes, labelled PointCloud2).",
+    "OccupancyGrid of classes or, for stream, of traversability, labelled PointCloud2).",
     show_default=False,
 )
 _STORAGE = typer.Option("mcap", "--bag-storage", help="Bag written by --out: mcap, sqlite3 (ROS 2) or ros1.")
@@ -324,8 +392,11 @@ _BAG_PARAMETERS = {
 }
 
 
-def _with_bag_input(callback, is_map: bool):
-    """``callback`` with the bag options added to its signature (typer reads ``__signature__``)."""
+def _with_bag_input(callback, posed=None):
+    """``callback`` with the bag options added to its signature (typer reads ``__signature__``).
+    ``posed`` (map_bag, stream_bag) runs a command whose scans need poses; without it every cloud
+    runs the command on its own (run_stage_on_bag)."""
+    is_map = posed is not None
     from .cli import _fail
 
     signature = inspect.signature(callback)
@@ -370,7 +441,7 @@ def _with_bag_input(callback, is_map: bool):
                 raise _fail("--poses is required for a folder of scans")
             return callback(**values)
         if is_map:
-            return map_bag(source, values, bag_options)
+            return posed(source, values, bag_options)
         return run_stage_on_bag(callback, input_name, values, source, bag_options)
 
     input_help = (
@@ -388,11 +459,12 @@ def _with_bag_input(callback, is_map: bool):
 
 
 def register(app: typer.Typer) -> None:
-    """Add ``bag-info`` and the bag input of map, collapse, dem, classify and fem to ``app`` (once)."""
+    """Add ``bag-info`` and the bag input of map, stream, collapse, dem, classify and fem to ``app``
+    (once)."""
     if any(info.name == "bag-info" for info in app.registered_commands):
         return
     for info in app.registered_commands:
         name = info.name or (info.callback.__name__ if info.callback else None)
-        if name in ("map", "collapse", "dem", "classify", "fem"):
-            info.callback = _with_bag_input(info.callback, is_map=name == "map")
+        if name in ("map", "stream", "collapse", "dem", "classify", "fem"):
+            info.callback = _with_bag_input(info.callback, {"map": map_bag, "stream": stream_bag}.get(name))
     app.command("bag-info")(bag_info_command)

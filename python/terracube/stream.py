@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
@@ -82,6 +82,7 @@ def run_stream(
     every: int = 0,
     animation: str | Path | None = None,
     png: bool = True,
+    on_update: Callable[[LocalMap, str, float], None] | None = None,
 ) -> StageReport:
     """Fuse a sequence of scans into a :class:`LocalMap` and write it.
 
@@ -99,6 +100,9 @@ def run_stream(
     animation : path, optional
         A ``.gif`` (Pillow) or ``.mp4`` (ffmpeg) of the elevation, one frame per ``every`` scans
         (every scan when ``every`` is 0).
+    on_update : callable, optional
+        Called as ``on_update(local_map, name, stamp)`` after every ``every``-th update (every
+        update when ``every`` is 0): e.g. to publish the map (``terracube stream BAG --out``).
 
     Returns
     -------
@@ -127,6 +131,8 @@ def run_stream(
         cleared += int(update.num_cleared_cells)
         replaced += int(update.num_replaced_cells)
         frame_due = count % (every or 1) == 0
+        if on_update is not None and frame_due:
+            on_update(local_map, name, stamp)
         if animation is not None and frame_due:
             ordered = local_map.to_elevation_map()
             frames.append(

@@ -822,6 +822,58 @@ def test_map_on_a_kitti_bag_gives_the_map_of_the_loose_files_and_pose_file(cli, 
         }
 
 
+def test_stream_on_a_kitti_bag_gives_the_local_map_of_the_loose_files_and_publishes_it(
+    cli, kitti_bags, tmp_path
+):
+    from rosbags.highlevel import AnyReader
+    from terracube.poses import write_tum_poses
+
+    root = kitti_bags["root"]
+    tum = tmp_path / "velodyne_tum.txt"
+    write_tum_poses(tum, [stamp_of(f) * 1e-9 for f in range(FRAMES)], kitti_velodyne_poses(root)[:FRAMES])
+    options = ["--length", "12", "--resolution", "0.2", "--no-png"]
+    velodyne = root / "kitti_seq00" / "velodyne"
+    loose = cli("stream", velodyne, "--poses", tum, "--limit", FRAMES, "-o", tmp_path / "loose", *options)
+    assert loose.exit_code == 0, loose.output
+    expected = tc.ElevationMap.load(tmp_path / "loose" / "local_map.npz")
+    for name, pose_options in {"odom": ["--odom", "/odom"], "tf": ["--tf", "base_link"]}.items():
+        bag = kitti_bags["odometry" if name == "odom" else "tf"]
+        result = cli(
+            "stream", bag, "--points", "/velodyne_points", *pose_options, "--out", tmp_path / name, *options
+        )
+        assert result.exit_code == 0, result.output
+        got = tc.ElevationMap.load(tmp_path / name / "local_map.npz")
+        assert got.layers == expected.layers
+        np.testing.assert_allclose(got.geometry.origin, expected.geometry.origin, atol=1e-9)
+        np.testing.assert_array_equal(got["count"], expected["count"], err_msg=name)
+        for layer in expected.layers:
+            np.testing.assert_allclose(got[layer], expected[layer], atol=1e-5, equal_nan=True, err_msg=layer)
+        # The bag beside the files: the local map after every cloud, with its traversability as
+        # an OccupancyGrid (-1 unknown, 0 open ground ... 100 blocked), in the poses' frame.
+        with AnyReader([tmp_path / name / f"{bag.stem}_stream"]) as reader:
+            counts = {c.topic: c.msgcount for c in reader.connections}
+            grids = [
+                reader.deserialize(raw, c.msgtype)
+                for c, _, raw in reader.messages()
+                if c.topic.endswith("occupancy")
+            ]
+        assert counts == {"/terracube/grid_map": FRAMES, "/terracube/occupancy": FRAMES}
+        occupancy = np.asarray(grids[-1].data)
+        traversable = np.isfinite(expected["traversability"])
+        assert np.count_nonzero(occupancy >= 0) == np.count_nonzero(traversable)
+        # In the poses' frame: the odometry's, or the TF tree's root.
+        assert grids[-1].header.frame_id == {"odom": "world", "tf": "map"}[name]
+    bag = kitti_bags["odometry"]
+    every = cli("stream", bag, "--odom", "/odom", "--every", "2", "--out", tmp_path / "every", *options)
+    assert every.exit_code == 0, every.output
+    with AnyReader([tmp_path / "every" / "odometry_stream"]) as reader:
+        assert {c.topic: c.msgcount for c in reader.connections}["/terracube/grid_map"] == FRAMES // 2
+    result = cli("stream", kitti_bags["odometry"], "--points", "/velodyne_points", "-o", tmp_path / "x")
+    assert result.exit_code == 2 and "--odom TOPIC" in result.output
+    result = cli("stream", kitti_bags["odometry"], "--odom", "/odom", "--poses", tum, "-o", tmp_path / "x")
+    assert result.exit_code == 2 and "--poses is for a folder of scans" in result.output
+
+
 def test_classify_on_every_cloud_of_a_bag_writes_files_and_a_bag(cli, bags, tmp_path):
     from rosbags.highlevel import AnyReader
 
