@@ -347,6 +347,20 @@ def _pictures(*draw: Callable[[], Path]) -> list[Path]:
         return [picture() for picture in draw]
 
 
+def reason_counts(cube_reasons) -> str:
+    """The shadow-aware rule's cubes counted by CubeReason, removed ones first: "removed_free_below
+    1,995, removed_above_kept 1,090, kept: supported 15,803, ..."."""
+    from .collapse import CubeReason
+
+    counts = np.bincount(np.asarray(cube_reasons), minlength=len(CubeReason.__members__))
+    names = sorted(
+        CubeReason.__members__.items(), key=lambda item: (not item[0].startswith("removed"), int(item[1]))
+    )
+    parts = [f"{name} {counts[int(value)]:,}" for name, value in names]
+    removed = sum(1 for name, _ in names if name.startswith("removed"))
+    return ", ".join(parts[:removed]) + "; kept: " + ", ".join(parts[removed:])
+
+
 def _run_collapse(
     points,
     name,
@@ -375,6 +389,8 @@ def _run_collapse(
     )
     if result.num_cropped:
         report.lines.append(f"  {result.num_cropped:,} points outside the crop box were left out")
+    if len(result.cube_reasons):
+        report.lines.append("  cubes by reason (shadow_aware): " + reason_counts(result.cube_reasons))
     cloud = output_dir / f"{name}_classified.{output_format}"
     report.add("classified cloud", scan.write(cloud, result.overhang, as_classification=las_classification))
     if png:

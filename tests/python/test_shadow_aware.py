@@ -428,6 +428,13 @@ def test_cli_collapse_method_shadow_aware_writes_the_same_mask(tmp_path):
     expected = tc.collapse_overhangs(points, 0.5, 4, method="shadow_aware").overhang
     np.testing.assert_array_equal(saved, expected)
     assert expected.sum() > 100 and not tc.collapse_overhangs(points, 0.5, 4).overhang.any()
+    # The report counts the cubes by the reason they were kept or removed.
+    reasons = tc.collapse_overhangs(points, 0.5, 4, method="shadow_aware").cube_reasons
+    counts = np.bincount(reasons, minlength=7)
+    assert counts[5] > 0
+    line = next(line for line in result.output.splitlines() if "cubes by reason" in line)
+    assert f"removed_free_below {counts[5]:,}" in line and f"supported {counts[0]:,}" in line
+    assert "cubes by reason" not in CliRunner().invoke(app, args).output  # the paper's rule has none
 
 
 def test_cli_dem_method_shadow_aware_leaves_the_crown_out_of_the_map(tmp_path):
