@@ -700,6 +700,7 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
     const Clearing distances{params_.clearing_margin_m, params_.clearing_depth_m,
                              std::max(params_.clearing_beyond_m, res), sensor.z()};
     for_each_seen_through(w, layer[kElevation], layer[kMin], n, res, origin, sensor, distances, [&](std::size_t cell) {
+      if (w.start[cell + 1] > w.start[cell]) return;  // measured again: fused, or replaced by the gate
       clear_cell(layer, {reference_, sum_, sum_squares_}, cell);
       ++report.num_cleared_cells;
     });

@@ -555,6 +555,31 @@ TEST(LocalMap, AMovingBoxLeavesNoGhostOnceSeenThrough) {
   EXPECT_GT(kept.high, 5);
 }
 
+TEST(LocalMap, AThinPoleMeasuredAgainIsFusedNotClearedByTheRaysBesideIt) {
+  // A pole 3 m ahead fills a sliver of its cell; rays beside it, in the same cell, reach a wall at
+  // 8 m. Seen twice from the same pose, the cell is fused (its count doubles), not cleared.
+  std::vector<Eigen::Vector3d> points;  // sensor frame, the sensor 1 m above the ground
+  for (double x = 1.0; x < 8.0; x += 0.05) {
+    for (double y = -2.0; y < 2.0; y += 0.05) points.emplace_back(x, y, -1.0);
+  }
+  for (double z = -1.0; z < 2.0; z += 0.02) {
+    for (double y = -2.0; y < 2.0; y += 0.02) points.emplace_back(8.0, y, z);  // the wall
+    points.emplace_back(3.02, 0.02, z < 0.0 ? z : 0.0);                        // the pole, 1 m tall
+  }
+  LocalMapParams params;
+  params.length_m = 20.0;
+  LocalMap map(params);
+  const Eigen::Matrix4d pose = pose_at(0.0, 0.0, 1.0);
+  map.update(PointsView<double>(points.data()->data(), points.size()), pose);
+  const CellIndex cell = *map.index_of(Eigen::Vector2d(3.02, 0.02));
+  const float once = map.get("count")(cell.x(), cell.y());
+  ASSERT_GT(once, 40.0F);
+  ASSERT_GT(map.get("elevation")(cell.x(), cell.y()), 0.3F);  // the pole, not the ground
+  const LocalMapUpdate second = map.update(PointsView<double>(points.data()->data(), points.size()), pose);
+  EXPECT_EQ(second.num_cleared_cells, 0U);
+  EXPECT_EQ(map.get("count")(cell.x(), cell.y()), 2.0F * once);
+}
+
 /// Cells whose true surface is the terrain: not within 0.3 m of a primitive that is not an overhang.
 bool terrain_cell(const sim::Scene& scene, const Eigen::Vector2d& c) {
   for (const sim::Primitive& p : scene.primitives()) {

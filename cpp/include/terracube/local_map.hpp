@@ -58,8 +58,10 @@ struct LocalMapParams {
   /// and keeps each bin's nearest horizontal range (returns 1000 km or more away, or within a
   /// micrometre of the vertical through the sensor, are left out); a bin counts when all its returns
   /// lie beyond.
-  /// Transparent and porous things (car windows, foliage) are cleared too, and measured again
-  /// when hit again.
+  /// A cell this scan measures again is not cleared (rays that pass beside a thin pole inside its
+  /// cell would otherwise clear it every scan): its measurement is fused, or replaces the height
+  /// when it fails the gate. Transparent and porous things (car windows, foliage) that no return
+  /// lands in this time are cleared too, and measured again when hit again.
   bool clear_seen_through = true;
   double clearing_margin_m = 0.1;      ///< >= 0
   double clearing_depth_m = 0.5;       ///< > clearing_margin_m
