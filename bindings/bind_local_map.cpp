@@ -37,6 +37,8 @@ void bind_local_map(py::module_& m) {
       .def_readwrite("length_m", &LocalMapParams::length_m)
       .def_readwrite("resolution_m", &LocalMapParams::resolution_m)
       .def_readwrite("collapse", &LocalMapParams::collapse)
+      .def_readwrite("min_range_m", &LocalMapParams::min_range_m)
+      .def_readwrite("max_range_m", &LocalMapParams::max_range_m)
       .def_readwrite("range_sigma_m", &LocalMapParams::range_sigma_m)
       .def_readwrite("angle_sigma_rad", &LocalMapParams::angle_sigma_rad)
       .def_readwrite("cell_sigma_m", &LocalMapParams::cell_sigma_m)
@@ -57,6 +59,7 @@ void bind_local_map(py::module_& m) {
       .def_readonly("num_in_map", &LocalMapUpdate::num_in_map)
       .def_readonly("num_overhang", &LocalMapUpdate::num_overhang)
       .def_readonly("num_dropped_non_finite", &LocalMapUpdate::num_dropped_non_finite)
+      .def_readonly("num_out_of_range", &LocalMapUpdate::num_out_of_range)
       .def_readonly("num_fused_cells", &LocalMapUpdate::num_fused_cells)
       .def_readonly("num_replaced_cells", &LocalMapUpdate::num_replaced_cells)
       .def_readonly("num_cleared_cells", &LocalMapUpdate::num_cleared_cells)
@@ -64,9 +67,10 @@ void bind_local_map(py::module_& m) {
       .def("__repr__", [](const LocalMapUpdate& u) {
         std::ostringstream text;
         text << "LocalMapUpdate(num_points=" << u.num_points << ", num_in_map=" << u.num_in_map
-             << ", num_overhang=" << u.num_overhang << ", num_fused_cells=" << u.num_fused_cells
-             << ", num_replaced_cells=" << u.num_replaced_cells << ", num_cleared_cells=" << u.num_cleared_cells
-             << ", map_reset=" << (u.map_reset ? "True" : "False") << ")";
+             << ", num_overhang=" << u.num_overhang << ", num_out_of_range=" << u.num_out_of_range
+             << ", num_fused_cells=" << u.num_fused_cells << ", num_replaced_cells=" << u.num_replaced_cells
+             << ", num_cleared_cells=" << u.num_cleared_cells << ", map_reset=" << (u.map_reset ? "True" : "False")
+             << ")";
         return text.str();
       });
 

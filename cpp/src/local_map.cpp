@@ -65,6 +65,11 @@ int cells_per_side(const LocalMapParams& p) {
 void check_local_map_params(const LocalMapParams& p) {
   cells_per_side(p);
   detail::check_collapse_params(p.collapse);
+  detail::check_non_negative(p.min_range_m, "LocalMapParams.min_range_m");
+  if (!(p.max_range_m > p.min_range_m)) {
+    throw std::invalid_argument("LocalMapParams.max_range_m must exceed min_range_m (+inf: no limit), got " +
+                                detail::number_text(p.max_range_m));
+  }
   detail::check_non_negative(p.range_sigma_m, "LocalMapParams.range_sigma_m");
   detail::check_non_negative(p.angle_sigma_rad, "LocalMapParams.angle_sigma_rad");
   detail::check_positive(p.cell_sigma_m, "LocalMapParams.cell_sigma_m");
@@ -316,14 +321,18 @@ struct ScanBinning {
   }
 };
 
-/// The one pass that levels the scan (by the pose): every finite return goes into the visibility
-/// image (when clearing), those inside `area` (the map's area with a cell to spare) into w.points,
-/// the cloud that collapse_overhangs and the binning read. Returns the NaN/Inf rows.
+/// The one pass that levels the scan (by the pose): every finite return within the range limits
+/// (LocalMapParams' min_range_m and max_range_m, counted in `out_of_range` otherwise) goes into the
+/// visibility image (when clearing), those inside `area` (the map's area with a cell to spare) into
+/// w.points, the cloud that collapse_overhangs and the binning read. Returns the NaN/Inf rows.
 template <typename Scalar>
 detail::NonFiniteRows level_scan(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose, const CropBox& area,
-                                 const Eigen::Vector3d& sensor, bool clearing, Workspace& w) {
+                                 const LocalMapParams& params, bool clearing, Workspace& w, std::size_t& out_of_range) {
   detail::NonFiniteRows non_finite;
   w.points.clear();
+  const Eigen::Vector3d sensor = pose.block<3, 1>(0, 3);
+  const double nearest = params.min_range_m * params.min_range_m;
+  const double farthest = params.max_range_m * params.max_range_m;  // +inf without a limit
   detail::visit_leveled(points, pose, area, [&](const auto& cloud) {
     Eigen::Vector3d p;
     for (std::size_t row = 0; row < cloud.size(); ++row) {
@@ -332,7 +341,13 @@ detail::NonFiniteRows level_scan(const PointsView<Scalar>& points, const Eigen::
         non_finite.add(row);
         continue;
       }
-      if (clearing) w.visibility.add(p - sensor);
+      const Eigen::Vector3d v = p - sensor;  // the range is the sensor frame's: the pose is rigid
+      const double range_squared = v.squaredNorm();
+      if (!(range_squared >= nearest && range_squared <= farthest)) {
+        ++out_of_range;
+        continue;
+      }
+      if (clearing) w.visibility.add(v);
       if (status == 0) w.points.push_back(p);
     }
   });
@@ -350,7 +365,7 @@ template <typename Scalar>
 CollapseResult level_and_collapse(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose, const CropBox& area,
                                   const LocalMapParams& params, bool clearing, Workspace& w, LocalMapUpdate& report) {
   const Eigen::Vector3d sensor = pose.block<3, 1>(0, 3);
-  const detail::NonFiniteRows non_finite = level_scan(points, pose, area, sensor, clearing, w);
+  const detail::NonFiniteRows non_finite = level_scan(points, pose, area, params, clearing, w, report.num_out_of_range);
   if (w.points.size() >= kNotKept) {
     throw std::invalid_argument("LocalMap.update: over 2^32 - 1 points inside the map; split the scan");
   }

@@ -1109,7 +1109,7 @@ def map_command(
 # ------------------------------------------------------------------------------------------ stream
 
 
-def stream_params(length, resolution, edge, sigma, robot_height, method):
+def stream_params(length, resolution, edge, sigma, robot_height, method, min_range=0.1, max_range=None):
     """The LocalMapParams of ``terracube stream``'s options (a folder of scans or a bag), checked:
     ValueError naming a bad value before any scan is read."""
     from . import sigma_from_robot_height
@@ -1121,7 +1121,13 @@ def stream_params(length, resolution, edge, sigma, robot_height, method):
     collapse = CollapseParams(edge=edge, method=method)
     if sigma is not None:
         collapse.sigma = sigma
-    params = LocalMapParams(length=length, resolution=resolution, collapse=collapse)
+    params = LocalMapParams(
+        length=length,
+        resolution=resolution,
+        collapse=collapse,
+        min_range=min_range,
+        max_range=math.inf if max_range is None else max_range,
+    )
     params.to_core()
     return params
 
@@ -1160,6 +1166,14 @@ def stream_command(
         "--method",
         help="Overhang rule: paper ([CBC] Algorithm 1) or shadow_aware (also over unseen ground).",
     ),
+    min_range: float = typer.Option(
+        0.1,
+        "--min-range",
+        help="Returns nearer the sensor take no part [m] (the robot's body: 2.5 on KITTI).",
+    ),
+    max_range: float | None = typer.Option(
+        None, "--max-range", help="Returns farther from the sensor take no part [m].", show_default=False
+    ),
     png: bool = OPTIONS["png"].info,
 ) -> None:
     """Fuse a scan sequence into a robot-centric local map (terracube.LocalMap) and write it.
@@ -1185,7 +1199,7 @@ def stream_command(
         calibration = read_kitti_calibration(calib) if calib is not None else None
         stamps, odometry = read_pose_file(poses, pose_format, calibration)
         indices = match_scans_to_poses(files, len(odometry))
-        params = stream_params(length, resolution, edge, sigma, robot_height, method)
+        params = stream_params(length, resolution, edge, sigma, robot_height, method, min_range, max_range)
     sequence = tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="streaming")
     with _exit_on_bad_input("stream"):
         report = run_stream(

@@ -287,6 +287,8 @@ def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
             values.get("sigma"),
             values.get("robot_height"),
             values["method"],
+            values.get("min_range", 0.1),
+            values.get("max_range"),
         )
     with _exit_on_bad_input():  # the bag's errors name it
         topic = _points_topic(bag, bag_options.points)

@@ -27,6 +27,10 @@ class LocalMapParams:
     collapse : CollapseParams
         Overhang removal of each scan ([CBC]); its transform and crop are set per scan (the pose and
         the map's area), its other fields are used as given.
+    min_range, max_range : float
+        Returns nearer the sensor than ``min_range`` (the robot's own body; no-returns stored as
+        (0, 0, 0)) or farther than ``max_range`` take no part [m]; ``max_range=inf``: no limit.
+        KITTI's HDL-64 sees its car within 2.5 m.
     range_sigma, angle_sigma : float
         Measurement noise: a return at range r and elevation angle phi has the height variance
         ``range_sigma**2 sin(phi)**2 + (r angle_sigma)**2 cos(phi)**2`` [m], [rad].
@@ -63,6 +67,8 @@ class LocalMapParams:
     length: float = 20.0
     resolution: float = 0.1
     collapse: CollapseParams = field(default_factory=CollapseParams)
+    min_range: float = 0.1
+    max_range: float = math.inf
     range_sigma: float = 0.02
     angle_sigma: float = 0.0015
     cell_sigma: float = 0.02
@@ -83,6 +89,8 @@ class LocalMapParams:
         params.length_m = float(self.length)
         params.resolution_m = float(self.resolution)
         params.collapse = self.collapse.to_core()
+        params.min_range_m = float(self.min_range)
+        params.max_range_m = float(self.max_range)
         params.range_sigma_m = float(self.range_sigma)
         params.angle_sigma_rad = float(self.angle_sigma)
         params.cell_sigma_m = float(self.cell_sigma)

@@ -118,7 +118,7 @@ def run_stream(
     local_map = LocalMap(params=params or LocalMapParams())
     report = StageReport("stream", 0)
     frames: list[tuple[str, np.ndarray, np.ndarray]] = []
-    seconds, count, cleared, replaced = 0.0, 0, 0, 0
+    seconds, count, cleared, replaced, out_of_range = 0.0, 0, 0, 0, 0
     for name, points, pose, stamp in scans:
         start = time.perf_counter()
         try:
@@ -129,6 +129,7 @@ def run_stream(
         count += 1
         report.points += int(update.num_points)
         cleared += int(update.num_cleared_cells)
+        out_of_range += int(update.num_out_of_range)
         replaced += int(update.num_replaced_cells)
         frame_due = count % (every or 1) == 0
         if on_update is not None and frame_due:
@@ -176,4 +177,11 @@ def run_stream(
         f"{1e3 * seconds / count:.1f} ms per update, {known:,} cells known at the end, "
         f"{cleared:,} cells cleared as seen through, {replaced:,} replaced by the gate",
     )
+    if out_of_range:
+        params = local_map.params
+        report.lines.insert(
+            1,
+            f"  {out_of_range:,} returns outside {params.min_range:g}..{params.max_range:g} m from the "
+            "sensor left out (min_range, max_range)",
+        )
     return report

@@ -304,9 +304,45 @@ TEST(LocalMap, ParametersAreValidated) {
     p.traversability.slope_weight = p.traversability.step_weight = p.traversability.roughness_weight = 0.0;
   });
   refused([](LocalMapParams& p) { p.num_threads = -1; });
+  refused([](LocalMapParams& p) { p.min_range_m = -1.0; });
+  refused([](LocalMapParams& p) { p.max_range_m = p.min_range_m; });
+  refused([](LocalMapParams& p) { p.max_range_m = kNaN; });
   LocalMap map;
   EXPECT_EQ(map.geometry().size.x(), 200);
   EXPECT_THROW(map.get("nope"), std::out_of_range);
+}
+
+TEST(LocalMap, RangeLimitsLeaveTheRobotsOwnBodyAndFarReturnsOut) {
+  // Flat ground 1 m below the sensor out to 9 m, the robot's hood 0.8 m ahead of it, a no-return
+  // stored as (0, 0, 0): only the ground between min_range_m and max_range_m is fused.
+  std::vector<Eigen::Vector3d> points;
+  for (double x = -9.0; x < 9.0; x += 0.05) {
+    for (double y = -9.0; y < 9.0; y += 0.05) points.emplace_back(x, y, -1.0);
+  }
+  for (double y = -0.5; y < 0.5; y += 0.02) points.emplace_back(0.8, y, -0.2);  // the hood
+  points.emplace_back(0.0, 0.0, 0.0);
+  LocalMapParams params;
+  params.length_m = 20.0;
+  params.min_range_m = 1.5;
+  params.max_range_m = 6.0;
+  LocalMap map(params);
+  const LocalMapUpdate update = map.update(PointsView<double>(points.data()->data(), points.size()), pose_at(0, 0, 1));
+  std::size_t expected_out = 0;
+  for (const Eigen::Vector3d& p : points) expected_out += p.norm() < 1.5 || p.norm() > 6.0 ? 1 : 0;
+  EXPECT_EQ(update.num_out_of_range, expected_out);
+  const auto elevation = [&](double x, double y) {
+    const CellIndex c = *map.index_of(Eigen::Vector2d(x, y));
+    return map.get("elevation")(c.x(), c.y());
+  };
+  EXPECT_TRUE(std::isnan(elevation(0.85, 0.05)));  // the hood's cell, and the ground under it
+  EXPECT_TRUE(std::isnan(elevation(0.05, 0.05)));  // the no-return at the sensor
+  EXPECT_TRUE(std::isnan(elevation(7.05, 0.05)));  // beyond max_range_m
+  EXPECT_NEAR(elevation(3.05, 0.05), 0.0, 1e-6);
+  // With the defaults (0.1 m, no far limit) the hood is an obstacle in front of the robot.
+  LocalMap plain;
+  plain.update(PointsView<double>(points.data()->data(), points.size()), pose_at(0, 0, 1));
+  const CellIndex hood = *plain.index_of(Eigen::Vector2d(0.85, 0.05));
+  EXPECT_NEAR(plain.get("max")(hood.x(), hood.y()), 0.8, 1e-6);
 }
 
 // --- planner layers ----------------------------------------------------------------------------

@@ -244,3 +244,45 @@ def test_shadow_aware_removal_keeps_a_crown_over_hidden_ground_out_of_the_map():
     assert (heights["paper"] > 1.0).all()  # the crown as the cells' height
     assert np.isnan(heights["shadow_aware"]).all()  # no height: the ground there was never seen
     assert (overhang > 1.0).all()  # the crown is kept as the overhang above
+
+
+def test_min_range_leaves_the_kitti_cars_own_body_out_of_the_map(shared_data, tmp_path):
+    # KITTI's HDL-64 sees its car within 2.5 m (the hood, the roof rack): with the default 0.1 m
+    # those returns stand about a metre above the road in front of the robot.
+    from terracube.cli import app
+    from terracube.mapping import read_kitti_calibration, read_pose_file
+    from typer.testing import CliRunner
+
+    calibration = read_kitti_calibration(shared_data.path("kitti_seq00/calib.txt"))
+    poses = read_pose_file(shared_data.path("kitti_seq00/poses.txt"), "kitti", calibration)[1]
+    scans = [shared_data.kitti_xyzi(frame)[:, :3] for frame in range(6)]
+    body = scans[5][np.linalg.norm(scans[5], axis=1) < 2.5].astype(np.float64)
+    assert len(body) > 20
+    body = body @ poses[5][:3, :3].T + poses[5][:3, 3]
+    road = poses[5][2, 3] - 1.73  # the sensor's height above the road
+    heights = {}
+    for min_range in (0.1, 2.5):
+        local = terracube.LocalMap(min_range=min_range)
+        for scan, pose in zip(scans, poses[:6], strict=True):
+            update = local.update(scan, pose)
+        cells = {local.index_of(p[:2]) for p in body}
+        heights[min_range] = np.array([local["max"][c] for c in cells]) - road
+        assert update.num_out_of_range == (len(body) if min_range == 2.5 else 0)
+    assert np.all(heights[0.1] > 0.8)
+    assert np.all(~(heights[2.5] > 0.1))  # the road under it, or nothing
+
+    kitti = shared_data.root / "kitti_seq00"
+    args = [
+        "stream",
+        str(kitti / "velodyne"),
+        "--poses",
+        str(kitti / "poses.txt"),
+        "-o",
+        str(tmp_path),
+        "--no-png",
+    ]
+    result = CliRunner().invoke(app, [*args, "--limit", "2", "--min-range", "2.5", "--max-range", "40"])
+    assert result.exit_code == 0, result.output
+    assert "returns outside 2.5..40 m from the sensor left out" in result.output
+    result = CliRunner().invoke(app, [*args, "--min-range", "5", "--max-range", "4"])
+    assert result.exit_code != 0 and "max_range_m must exceed min_range_m" in result.output

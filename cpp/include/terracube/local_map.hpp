@@ -29,6 +29,11 @@ struct LocalMapParams {
   /// map's area); every other field is used as given (drop_non_finite decides whether NaN/Inf rows
   /// are dropped or refused).
   CollapseParams collapse;
+  /// Returns nearer the sensor than min_range_m (the robot's own body, no-returns stored as
+  /// (0, 0, 0)) or farther than max_range_m take no part (counted in LocalMapUpdate::num_out_of_range);
+  /// 0 <= min_range_m < max_range_m (+inf: no limit).
+  double min_range_m = 0.1;
+  double max_range_m = std::numeric_limits<double>::infinity();
   /// Measurement noise model: a return at range r and elevation angle phi from the sensor has
   /// the height variance  var_z = range_sigma^2 sin^2(phi) + (r angle_sigma)^2 cos^2(phi)  (range
   /// noise along the beam, angular noise across it). A cell's measurement from one scan is the
@@ -84,6 +89,7 @@ struct LocalMapUpdate {
   std::size_t num_in_map = 0;    ///< finite rows inside the map's area
   std::size_t num_overhang = 0;  ///< rows collapse_overhangs flagged (not fused)
   std::size_t num_dropped_non_finite = 0;
+  std::size_t num_out_of_range = 0;    ///< rows nearer than min_range_m or farther than max_range_m
   std::size_t num_fused_cells = 0;     ///< cells that got a measurement
   std::size_t num_replaced_cells = 0;  ///< of those, cells whose measurement failed the gate
   std::size_t num_cleared_cells = 0;   ///< cells cleared because this scan saw through them
