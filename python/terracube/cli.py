@@ -1109,26 +1109,37 @@ def map_command(
 # ------------------------------------------------------------------------------------------ stream
 
 
-def stream_params(length, resolution, edge, sigma, robot_height, method, min_range=0.1, max_range=None):
-    """The LocalMapParams of ``terracube stream``'s options (a folder of scans or a bag), checked:
-    ValueError naming a bad value before any scan is read."""
-    from . import sigma_from_robot_height
-    from .collapse import CollapseParams
+#: The options of ``terracube stream`` that --config and --preset also set.
+STREAM_CONFIG_OPTIONS = (
+    "config",
+    "preset",
+    "min_range",
+    "max_range",
+    "edge",
+    "sigma",
+    "robot_height",
+    "collapse_method",
+)
+
+
+def stream_params(values: dict[str, Any]):
+    """The LocalMapParams of ``terracube stream``'s options (a folder of scans or a bag): the
+    --config / --preset frame range limits and collapse section, the options given over them;
+    exit 2 naming a bad value before any scan is read. The map's area and each scan's pose replace
+    the frame's crop and leveling."""
     from .local_map import LocalMapParams
 
-    if sigma is None and robot_height is not None:
-        sigma = sigma_from_robot_height(robot_height, edge)
-    collapse = CollapseParams(edge=edge, method=method)
-    if sigma is not None:
-        collapse.sigma = sigma
-    params = LocalMapParams(
-        length=length,
-        resolution=resolution,
-        collapse=collapse,
-        min_range=min_range,
-        max_range=math.inf if max_range is None else max_range,
-    )
-    params.to_core()
+    cfg = command_config("stream", {name: values.get(name) for name in STREAM_CONFIG_OPTIONS})
+    with _exit_on_bad_input("command line"):
+        max_range = cfg.frame.max_range
+        params = LocalMapParams(
+            length=values["length"],
+            resolution=values["resolution"],
+            collapse=cfg.collapse,
+            min_range=cfg.frame.min_range,
+            max_range=math.inf if max_range is None else max_range,
+        )
+        params.to_core()
     return params
 
 
@@ -1154,32 +1165,22 @@ def stream_command(
         None, "--animation", help="Write a .gif (or .mp4 with ffmpeg) of the elevation.", show_default=False
     ),
     limit: int | None = typer.Option(None, "--limit", help="Use the first N scans only.", show_default=False),
-    edge: float = typer.Option(0.5, "--edge", "-e", help="Cube edge E [m] of the overhang removal."),
-    sigma: int | None = typer.Option(
-        None, "--sigma", "-s", help="σ [cubes]: gap that makes an overhang. [default 2]", show_default=False
-    ),
-    robot_height: float | None = typer.Option(
-        None, "--robot-height", help="Robot height [m]: sets σ = ceil(height / E) unless --sigma is given."
-    ),
-    method: str = typer.Option(
-        "paper",
-        "--method",
-        help="Overhang rule: paper ([CBC] Algorithm 1) or shadow_aware (also over unseen ground).",
-    ),
-    min_range: float = typer.Option(
-        0.1,
-        "--min-range",
-        help="Returns nearer the sensor take no part [m] (the robot's body: 2.5 on KITTI).",
-    ),
-    max_range: float | None = typer.Option(
-        None, "--max-range", help="Returns farther from the sensor take no part [m].", show_default=False
-    ),
+    config: Path | None = OPTIONS["config"].info,
+    preset: str | None = OPTIONS["preset"].info,
+    min_range: float | None = OPTIONS["min_range"].info,
+    max_range: float | None = OPTIONS["max_range"].info,
+    edge: float | None = OPTIONS["edge"].info,
+    sigma: int | None = OPTIONS["sigma"].info,
+    robot_height: float | None = OPTIONS["robot_height"].info,
+    collapse_method: str | None = OPTIONS["collapse_method"].info,
     png: bool = OPTIONS["png"].info,
 ) -> None:
     """Fuse a scan sequence into a robot-centric local map (terracube.LocalMap) and write it.
 
     Writes local_map.npz (elevation, variance, clearance, traversability, ... in map order),
     local_elevation.png and local_traversability.png, plus a PNG every --every scans or --animation.
+    --config and --preset give the range limits (frame section: --preset kitti leaves KITTI's car
+    out) and the overhang removal (collapse section); each scan's pose levels it.
     """
     from tqdm import tqdm
 
@@ -1199,7 +1200,8 @@ def stream_command(
         calibration = read_kitti_calibration(calib) if calib is not None else None
         stamps, odometry = read_pose_file(poses, pose_format, calibration)
         indices = match_scans_to_poses(files, len(odometry))
-        params = stream_params(length, resolution, edge, sigma, robot_height, method, min_range, max_range)
+        options = {name: value for name, value in locals().items() if name in STREAM_CONFIG_OPTIONS}
+        params = stream_params({**options, "length": length, "resolution": resolution})
     sequence = tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="streaming")
     with _exit_on_bad_input("stream"):
         report = run_stream(

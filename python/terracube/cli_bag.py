@@ -279,17 +279,7 @@ def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     if (bag_options.odom is None) == (bag_options.tf is None):
         raise _fail("a bag needs one pose source: --odom TOPIC (Odometry or PoseStamped) or --tf BASE_FRAME")
     output_dir = _writable_folder(bag_options.out or values["output_dir"])
-    with _exit_on_bad_input("command line"):
-        params = stream_params(
-            values["length"],
-            values["resolution"],
-            values["edge"],
-            values.get("sigma"),
-            values.get("robot_height"),
-            values["method"],
-            values.get("min_range", 0.1),
-            values.get("max_range"),
-        )
+    params = stream_params(values)
     with _exit_on_bad_input():  # the bag's errors name it
         topic = _points_topic(bag, bag_options.points)
         clouds = read_bag(bag, topic, bag_options.odom or "/tf", base_frame=bag_options.tf)

@@ -284,5 +284,10 @@ def test_min_range_leaves_the_kitti_cars_own_body_out_of_the_map(shared_data, tm
     result = CliRunner().invoke(app, [*args, "--limit", "2", "--min-range", "2.5", "--max-range", "40"])
     assert result.exit_code == 0, result.output
     assert "returns outside 2.5..40 m from the sensor left out" in result.output
+    result = CliRunner().invoke(app, [*args, "--limit", "1", "--preset", "kitti"])  # min_range 2.5
+    assert (
+        result.exit_code == 0
+        and f"{len(scans[0][np.linalg.norm(scans[0], axis=1) < 2.5])} returns" in result.output
+    )
     result = CliRunner().invoke(app, [*args, "--min-range", "5", "--max-range", "4"])
-    assert result.exit_code != 0 and "max_range_m must exceed min_range_m" in result.output
+    assert result.exit_code != 0 and "max_range must be a distance [m] beyond min_range" in result.output
