@@ -1,10 +1,11 @@
-// Planner layers: box sums of a least-squares plane's moments over every cell's window, the
-// window's extremes, and the traversability formula (traversability.hpp).
+// Planner layers: a least-squares plane's moments summed over every cell's window (sliding down
+// the rows), the window's extremes, and the traversability formula (traversability.hpp).
 #include "terracube/traversability.hpp"
 
 #include <algorithm>
 #include <cmath>
 #include <cstddef>
+#include <cstdint>
 #include <limits>
 #include <stdexcept>
 #include <vector>
@@ -38,6 +39,10 @@ struct Moments {
   }
   Moments& operator+=(const Moments& o) {
     n += o.n, x += o.x, y += o.y, z += o.z, xx += o.xx, xy += o.xy, yy += o.yy, xz += o.xz, yz += o.yz, zz += o.zz;
+    return *this;
+  }
+  Moments& operator-=(const Moments& o) {
+    n -= o.n, x -= o.x, y -= o.y, z -= o.z, xx -= o.xx, xy -= o.xy, yy -= o.yy, xz -= o.xz, yz -= o.yz, zz -= o.zz;
     return *this;
   }
   Moments operator-(const Moments& o) const {
@@ -129,37 +134,78 @@ struct PlannerData {
   float *step, *slope, *roughness, *traversability;
 };
 
-/// Pass 3 for the cells of geometric rows [begin, end): each known (finite) cell's window (a difference
-/// of two prefix sums, and the extremes of its rows' windows), its plane fit and traversability.
-void fit_rows(const PlannerData& d, const StorageOrder& order, const std::vector<Moments>& prefix,
-              const std::vector<Extremes>& extremes, int r, double resolution, const TraversabilityParams& tp,
-              std::size_t begin, std::size_t end) {
-  const int rows = static_cast<int>(order.row.size()), n = static_cast<int>(order.column.size());
-  for (std::size_t gi = begin; gi < end; ++gi) {
-    const int lo = std::max(static_cast<int>(gi) - r, 0), hi = std::min(static_cast<int>(gi) + r, rows - 1);
-    for (int gj = 0; gj < n; ++gj) {
-      const std::size_t cell = order.row[gi] + order.column[gj];
-      float* out[] = {d.step + cell, d.slope + cell, d.roughness + cell, d.traversability + cell};
-      for (float* value : out) *value = kNaN;
-      if (!std::isfinite(d.height[cell])) continue;
-      float lowest = kInfF, highest = -kInfF;
-      for (int a = lo; a <= hi; ++a) {
-        const Extremes& e = extremes[static_cast<std::size_t>(a) * n + gj];
-        lowest = std::min(lowest, e.lowest);
-        highest = std::max(highest, e.highest);
-      }
-      *out[0] = highest - lowest;
-      const Moments window =
-          prefix[static_cast<std::size_t>(hi + 1) * n + gj] - prefix[static_cast<std::size_t>(lo) * n + gj];
-      if (window.n < tp.min_window_cells) continue;
-      const PlaneFit fit = fit_plane(window);
-      if (!fit.valid) continue;
-      const float slope = std::atan(static_cast<float>(fit.gradient / resolution));  // float: the layer's type
-      *out[1] = slope;
-      *out[2] = static_cast<float>(fit.roughness);
-      const float clearance = d.clearance != nullptr ? d.clearance[cell] : kInfF;
-      *out[3] = traversability(tp, slope, *out[0], fit.roughness, clearance);
+/// The windows of the cells of one geometric row: the moments summed over the rows of the
+/// window (`sums`, per column) and each row's window extremes (`extremes`, a ring of `slots` rows:
+/// row a in slot a mod slots).
+struct RowWindows {
+  const std::vector<Moments>& sums;
+  const std::vector<Extremes>& extremes;
+  int slots, lo, hi;  // the rows of the window
+};
+
+/// Each known (finite) cell of geometric row `gi`: its window's step, plane fit and traversability.
+void fit_row(const PlannerData& d, const StorageOrder& order, const RowWindows& w, std::size_t gi, double resolution,
+             const TraversabilityParams& tp) {
+  const std::size_t n = order.column.size();
+  for (std::size_t gj = 0; gj < n; ++gj) {
+    const std::size_t cell = order.row[gi] + order.column[gj];
+    float* out[] = {d.step + cell, d.slope + cell, d.roughness + cell, d.traversability + cell};
+    for (float* value : out) *value = kNaN;
+    if (!std::isfinite(d.height[cell])) continue;
+    float lowest = kInfF, highest = -kInfF;
+    for (int a = w.lo; a <= w.hi; ++a) {
+      const Extremes& e = w.extremes[static_cast<std::size_t>(a % w.slots) * n + gj];
+      lowest = std::min(lowest, e.lowest);
+      highest = std::max(highest, e.highest);
     }
+    *out[0] = highest - lowest;
+    const Moments& window = w.sums[gj];
+    if (window.n < tp.min_window_cells) continue;
+    const PlaneFit fit = fit_plane(window);
+    if (!fit.valid) continue;
+    const float slope = std::atan(static_cast<float>(fit.gradient / resolution));  // float: the layer's type
+    *out[1] = slope;
+    *out[2] = static_cast<float>(fit.roughness);
+    const float clearance = d.clearance != nullptr ? d.clearance[cell] : kInfF;
+    *out[3] = traversability(tp, slope, *out[0], fit.roughness, clearance);
+  }
+}
+
+/// The planner layers of the cells of geometric rows [begin, end). The windows slide down the
+/// rows: each row's window sums along y (row_windows) enter a ring of the window's rows and a
+/// running sum per column as the window reaches them, and leave it as it passes them, so a window
+/// costs the same whatever its size and the memory is that of the window's rows, not the map's.
+/// A part starts its sums afresh: the same bits whatever the number of threads.
+void planner_rows(const PlannerData& d, const StorageOrder& order, double reference, int r, double resolution,
+                  const TraversabilityParams& tp, std::size_t begin, std::size_t end) {
+  if (begin == end) return;  // more parts than rows (a map of a few long rows)
+  const int rows = static_cast<int>(order.row.size());
+  const std::size_t n = order.column.size();
+  const int slots = static_cast<int>(std::min<std::int64_t>(2 * std::int64_t{r} + 1, rows));
+  std::vector<Moments> ring(static_cast<std::size_t>(slots) * n), sums(n), row_prefix(n + 1);
+  std::vector<Extremes> extremes(static_cast<std::size_t>(slots) * n);
+  std::vector<float> z(n);
+  const auto slot = [&](int a) { return static_cast<std::size_t>(a % slots) * n; };
+  const auto enter = [&](int a) {
+    for (std::size_t gj = 0; gj < n; ++gj) {
+      const float h = d.height[order.row[static_cast<std::size_t>(a)] + order.column[gj]];
+      z[gj] = std::isfinite(h) ? h : kNaN;  // +-inf heights are unknown too
+    }
+    row_windows(z, a, reference, r, row_prefix, ring.data() + slot(a), extremes.data() + slot(a));
+    for (std::size_t gj = 0; gj < n; ++gj) sums[gj] += ring[slot(a) + gj];
+  };
+  const auto leave = [&](int a) {
+    for (std::size_t gj = 0; gj < n; ++gj) sums[gj] -= ring[slot(a) + gj];
+  };
+  const int first = static_cast<int>(begin);
+  for (int a = std::max(first - r, 0); a <= std::min(first + r, rows - 1); ++a) enter(a);
+  for (int gi = first; gi < static_cast<int>(end); ++gi) {
+    if (gi > first) {
+      if (gi - r - 1 >= 0) leave(gi - r - 1);  // before its slot is reused
+      if (gi + r <= rows - 1) enter(gi + r);
+    }
+    const RowWindows windows{sums, extremes, slots, std::max(gi - r, 0), std::min(gi + r, rows - 1)};
+    fit_row(d, order, windows, static_cast<std::size_t>(gi), resolution, tp);
   }
 }
 
@@ -210,34 +256,10 @@ void add_traversability_layers(ElevationMap& map, const TraversabilityParams& tp
       if (std::isfinite(h)) reference = h;
     }
   }
-  // The window sums are box sums: along y by prefix sums within each row (pass 1), along x by
-  // prefix sums down each column (pass 2), so a window costs the same whatever its size.
-  // prefix[(i + 1) n + j] ends as the sum of the row windows of column j over rows 0..i.
-  thread_local std::vector<Moments> prefix_workspace;
-  thread_local std::vector<Extremes> extremes_workspace;
-  std::vector<Moments>& prefix = prefix_workspace;  // the calling thread's, also inside the parts
-  std::vector<Extremes>& extremes = extremes_workspace;
-  prefix.resize(cells + n);
-  std::fill(prefix.begin(), prefix.begin() + static_cast<std::ptrdiff_t>(n), Moments());
-  extremes.resize(cells);  // geometric order
   const int parts = detail::fixed_parts(cells, 16384);
-  detail::for_each_part(num_threads, parts, [&](int part) {  // pass 1: each geometric row's windows
-    const auto [begin, end] = detail::part_range(rows, part, parts);
-    std::vector<float> z(n);
-    std::vector<Moments> row_prefix(n + 1);
-    for (std::size_t gi = begin; gi < end; ++gi) {
-      for (std::size_t gj = 0; gj < n; ++gj) {
-        const float h = d.height[order.row[gi] + order.column[gj]];
-        z[gj] = std::isfinite(h) ? h : kNaN;  // +-inf heights are unknown too
-      }
-      row_windows(z, static_cast<double>(gi), reference, r, row_prefix, prefix.data() + (gi + 1) * n,
-                  extremes.data() + gi * n);
-    }
-  });
-  for (std::size_t k = n; k < prefix.size(); ++k) prefix[k] += prefix[k - n];  // pass 2
   detail::for_each_part(num_threads, parts, [&](int part) {
     const auto [begin, end] = detail::part_range(rows, part, parts);
-    fit_rows(d, order, prefix, extremes, r, resolution, tp, begin, end);
+    planner_rows(d, order, reference, r, resolution, tp, begin, end);
   });
 }
 

@@ -3,9 +3,11 @@
 #include <gtest/gtest.h>
 #include <terracube/traversability.hpp>
 
+#include <Eigen/QR>
 #include <cmath>
 #include <limits>
 #include <stdexcept>
+#include <vector>
 
 namespace terracube {
 namespace {
@@ -75,6 +77,56 @@ TEST(Traversability, AWindowWithTooFewKnownCellsHasNoSlope) {
   params.min_window_cells = 4;
   add_traversability_layers(map, params);
   EXPECT_NEAR(map.get("slope")(5, 0), 0.0, 1e-6);
+}
+
+TEST(Traversability, PartsAndThreadsGiveTheNaiveFitOfEveryWindowBitForBitAlike) {
+  // 240 x 150 cells: the rows are cut into two parts whose windows start afresh; every cell's slope
+  // and roughness against a plain least-squares solve over its window, on 1, 2 and all threads.
+  MapGeometry geometry;
+  geometry.size = CellIndex(240, 150);
+  ElevationMap map(geometry);
+  Layer height(240, 150);
+  for (int i = 0; i < 240; ++i) {
+    for (int j = 0; j < 150; ++j) {
+      height(i, j) = (i * 7 + j * 3) % 11 == 0 ? kNaN : static_cast<float>(0.3 * std::sin(0.07 * i) + 0.01 * (j % 5));
+    }
+  }
+  map.add("mean", height);
+  TraversabilityParams params;
+  params.footprint_radius_m = 0.2;  // 5 x 5 windows
+  add_traversability_layers(map, params);
+  for (const int threads : {2, 0}) {
+    ElevationMap again = map;
+    add_traversability_layers(again, params, "mean", CellIndex(0, 0), threads);
+    for (const char* name : {"step", "slope", "roughness", "traversability"}) {
+      const Layer& a = map.get(name);
+      const Layer& b = again.get(name);
+      for (Eigen::Index k = 0; k < a.size(); ++k) {
+        ASSERT_TRUE(a.data()[k] == b.data()[k] || (std::isnan(a.data()[k]) && std::isnan(b.data()[k]))) << name;
+      }
+    }
+  }
+  for (int i = 0; i < 240; ++i) {
+    for (int j = 0; j < 150; ++j) {
+      if (std::isnan(height(i, j))) continue;
+      std::vector<Eigen::Vector3d> cells;
+      for (int a = std::max(i - 2, 0); a <= std::min(i + 2, 239); ++a) {
+        for (int b = std::max(j - 2, 0); b <= std::min(j + 2, 149); ++b) {
+          if (!std::isnan(height(a, b))) cells.emplace_back(a, b, height(a, b));
+        }
+      }
+      Eigen::MatrixXd design(cells.size(), 3);
+      Eigen::VectorXd z(cells.size());
+      for (std::size_t k = 0; k < cells.size(); ++k) {
+        design.row(static_cast<Eigen::Index>(k)) << cells[k].x(), cells[k].y(), 1.0;
+        z(static_cast<Eigen::Index>(k)) = cells[k].z();
+      }
+      const Eigen::Vector3d plane = design.colPivHouseholderQr().solve(z);
+      const double roughness = std::sqrt((design * plane - z).squaredNorm() / static_cast<double>(cells.size()));
+      ASSERT_NEAR(map.get("slope")(i, j), std::atan(plane.head<2>().norm() / 0.1), 1e-5) << i << " " << j;
+      ASSERT_NEAR(map.get("roughness")(i, j), roughness, 1e-5) << i << " " << j;
+    }
+  }
 }
 
 TEST(Traversability, BadCallsThrowNamingTheProblem) {
