@@ -1200,8 +1200,20 @@ def stream_command(
         calibration = read_kitti_calibration(calib) if calib is not None else None
         stamps, odometry = read_pose_file(poses, pose_format, calibration)
         indices = match_scans_to_poses(files, len(odometry))
-        options = {name: value for name, value in locals().items() if name in STREAM_CONFIG_OPTIONS}
-        params = stream_params({**options, "length": length, "resolution": resolution})
+        params = stream_params(
+            dict(
+                config=config,
+                preset=preset,
+                min_range=min_range,
+                max_range=max_range,
+                edge=edge,
+                sigma=sigma,
+                robot_height=robot_height,
+                collapse_method=collapse_method,
+                length=length,
+                resolution=resolution,
+            )
+        )
     sequence = tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="streaming")
     with _exit_on_bad_input("stream"):
         report = run_stream(

@@ -388,23 +388,24 @@ def _with_bag_input(callback, posed=None):
     """``callback`` with the bag options added to its signature (typer reads ``__signature__``).
     ``posed`` (map_bag, stream_bag) runs a command whose scans need poses; without it every cloud
     runs the command on its own (run_stage_on_bag)."""
-    is_map = posed is not None
     from .cli import _fail
+
+    needs_poses = posed is not None
 
     signature = inspect.signature(callback)
     names = list(signature.parameters)
     input_name = names[0]  # every wrapped command takes its scan(s) as the first argument
     parameters = list(signature.parameters.values())
-    if is_map:  # a bag carries its own poses: --poses becomes optional
+    if needs_poses:  # a bag carries its own poses: --poses becomes optional
         parameters = [
             p.replace(default=typer.Option(None, "--poses", "-p", help=p.default.help, show_default=False))
             if p.name == "poses"
             else p
             for p in parameters
         ]
-    taken = {"odom", "tf"} if is_map else set()
+    taken = {"odom", "tf"} if needs_poses else set()
     for name, (option, annotation) in _BAG_PARAMETERS.items():
-        if name in ("odom", "tf") and not is_map:
+        if name in ("odom", "tf") and not needs_poses:
             continue
         parameters.append(
             inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=option, annotation=annotation)
@@ -429,17 +430,17 @@ def _with_bag_input(callback, posed=None):
             ]
             if given:
                 raise _fail(f"{' '.join(given)}: only for a bag input (.bag, .mcap or a ROS 2 bag folder)")
-            if is_map and values.get("poses") is None:
+            if needs_poses and values.get("poses") is None:
                 raise _fail("--poses is required for a folder of scans")
             return callback(**values)
-        if is_map:
+        if needs_poses:
             return posed(source, values, bag_options)
         return run_stage_on_bag(callback, input_name, values, source, bag_options)
 
     input_help = (
         "\n\nA ROS bag (.bag, .mcap or a ROS 2 bag folder) as input: --points TOPIC picks the "
         "PointCloud2 topic"
-        + (", --odom TOPIC or --tf BASE_FRAME the poses" if is_map else ", every cloud is processed")
+        + (", --odom TOPIC or --tf BASE_FRAME the poses" if needs_poses else ", every cloud is processed")
         + "; --out DIR writes the files and the results as a bag there."
     )
     command.__doc__ = inspect.cleandoc(callback.__doc__ or "") + input_help
