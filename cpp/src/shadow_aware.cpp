@@ -19,6 +19,8 @@ namespace {
 constexpr std::int32_t kNone = std::numeric_limits<std::int32_t>::max();
 constexpr std::int64_t kMaxColumns = std::int64_t{1} << 27;
 constexpr std::int64_t kMaxSectorSteps = std::int64_t{1} << 27;
+/// How far below every return a sensor origin may lie [m] (a scan of a steep slope from its foot).
+constexpr double kMaxSensorBelowCloud_m = 10.0;
 constexpr double kInf = std::numeric_limits<double>::infinity();
 
 /// Per-call arrays kept by the calling thread (first touching fresh pages costs more than the rule).
@@ -190,6 +192,14 @@ class FreeSpaceFloor {
     if (!(farthest / grid.edge_m < static_cast<double>(kMaxSectorSteps))) {
       throw std::invalid_argument("shadow_aware: the sensor origin lies too far from the cloud (" +
                                   detail::number_text(farthest) + " m); set sensor_origin in the leveled frame");
+    }
+    // A ground sensor sees some ground below it: one far under every return (a survey in its own
+    // coordinates with the default origin at 0) would reason from rays out of the ground.
+    const double below = grid.min_corner.z() - origin.z();
+    if (below > kMaxSensorBelowCloud_m) {
+      throw std::invalid_argument("shadow_aware: the sensor origin lies " + detail::number_text(below) +
+                                  " m below the lowest point; set sensor_origin to the scanner's position in the "
+                                  "leveled frame, or use the paper's method");
     }
     steps_ = static_cast<std::int64_t>(farthest / grid.edge_m) + 2;
     if (steps_ > kMaxSectorSteps / sectors_) {

@@ -180,7 +180,8 @@ class CollapseParams:
         ``CollapseResult.cube_reasons`` (:data:`CubeReason`).
     sensor_origin : (3,) floats or None
         shadow_aware: the sensor position [m] in the leveled frame; None: the transform's
-        translation (the origin of a single scan's own frame).
+        translation (the origin of a single scan's own frame). A position more than 10 m below
+        every point (a survey in its own coordinates, with None) is refused with a ValueError.
     ground_radius : float
         shadow_aware: ground is looked for within this distance [m] (a square window), >= 0.
     ground_support : int

@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <random>
 #include <stdexcept>
+#include <string>
 
 namespace terracube {
 namespace {
@@ -160,6 +161,21 @@ TEST(ShadowAware, BadParametersThrowInvalidArgumentNamingThem) {
   params = shadow_aware_params();
   params.shadow_aware.sensor_origin = Eigen::Vector3d(0.0, std::nan(""), 0.0);
   EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument);
+  // A survey in its own coordinates (the ground 49 m up) with the default origin at 0.
+  Points survey;
+  add_grid(survey, 0, 10, 0, 10, 49.0);
+  add_grid(survey, 2, 6, 2, 6, 55.0);
+  params = shadow_aware_params();
+  try {
+    collapse_overhangs(survey, params);
+    FAIL() << "an origin 49 m under the cloud was accepted";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("49 m below the lowest point"), std::string::npos) << e.what();
+  }
+  params.shadow_aware.sensor_origin = Eigen::Vector3d(5.0, 5.0, 50.5);
+  EXPECT_GT(collapse_overhangs(survey, params).num_overhang, 0U);
+  params.shadow_aware.sensor_origin = Eigen::Vector3d(5.0, 5.0, 40.0);  // a slope's foot, 9 m down
+  EXPECT_NO_THROW(collapse_overhangs(survey, params));
 }
 
 TEST(ShadowAware, HostileCloudsAndParametersGiveAResultOrAStandardException) {

@@ -37,7 +37,8 @@ const char* cube_reason_name(CubeReason reason);
 /// Parameters of the shadow-aware rule (CollapseParams::shadow_aware).
 struct ShadowAwareParams {
   /// The sensor's position [m] in the leveled frame; unset: the transform's translation (the
-  /// sensor at the origin of the cloud's own frame, as for a single scan).
+  /// sensor at the origin of the cloud's own frame, as for a single scan). A position more than
+  /// 10 m below every point (a survey in its own coordinates, with the default) is refused.
   std::optional<Eigen::Vector3d> sensor_origin;
   /// Ground is looked for within this horizontal distance [m] (a square of ceil(r / E) columns
   /// each side), >= 0.
@@ -94,7 +95,8 @@ using NextPoints = std::function<std::size_t(CubePoint* out, std::size_t capacit
 ///     its bottom is wide (min_bottom_neighbours), when F is below its bottom face by
 ///     free_margin_m; it is kept otherwise (a wall or trunk whose foot is hidden).
 /// O(N + |L| + columns + azimuth_bins * range steps); single-threaded, deterministic.
-/// Throws std::invalid_argument on invalid parameters or a grid of more than 2^27 columns.
+/// Throws std::invalid_argument on invalid parameters, a grid of more than 2^27 columns or a
+/// sensor origin more than 10 m below every point.
 ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vector<std::int64_t>& sorted_occupied,
                                           const NextPoints& next_points, int sigma,
                                           const Eigen::Vector3d& sensor_origin, const ShadowAwareParams& params = {});
