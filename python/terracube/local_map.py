@@ -58,7 +58,8 @@ class LocalMapParams:
         Gap [m] between one scan's sorted heights in a cell that makes it discontinuous; the points
         above the gap count as an overhang.
     compute_planner_layers : bool
-        Refresh step, slope, roughness and traversability after every update.
+        Refresh step, slope, roughness and traversability after every update (False: only when
+        :meth:`LocalMap.update_planner_layers` is called, e.g. at a planner's slower rate).
     traversability : TraversabilityParams
     num_threads : int
         1 (default) the calling thread, 0 one per processor; the map is the same bit for bit.
@@ -208,6 +209,13 @@ class LocalMap:
         if points.ndim == 2 and points.shape[1] > 3:
             points = points[:, :3]  # a strided view: x, y, z of wider rows (intensity, ...)
         return self._core.update(points, _as_pose(pose), float(stamp))
+
+    def update_planner_layers(self) -> None:
+        """Refresh ``step``, ``slope``, ``roughness`` and ``traversability`` from ``elevation`` and
+        ``clearance`` (:func:`terracube.add_traversability_layers` on the circular buffer). With
+        ``compute_planner_layers=False`` a planner that runs slower than the sensor calls this when
+        it plans, instead of after every scan. Releases the GIL."""
+        self._core.update_planner_layers()
 
     def move_to(self, position: Sequence[float]) -> bool:
         """Centre the map on ``(x, y)``; True when the move dropped every cell."""

@@ -291,3 +291,21 @@ def test_min_range_leaves_the_kitti_cars_own_body_out_of_the_map(shared_data, tm
     )
     result = CliRunner().invoke(app, [*args, "--min-range", "5", "--max-range", "4"])
     assert result.exit_code != 0 and "max_range must be a distance [m] beyond min_range" in result.output
+
+
+def test_planner_layers_on_demand_equal_those_of_every_update(shared_data):
+    # A planner slower than the sensor: compute_planner_layers=False, then update_planner_layers()
+    # when it plans gives the layers a map refreshed after every scan holds.
+    scans = [shared_data.kitti_xyzi(frame)[:, :3] for frame in range(2)]
+    every, on_demand = (
+        terracube.LocalMap(length=10.0),
+        terracube.LocalMap(length=10.0, compute_planner_layers=False),
+    )
+    for k, scan in enumerate(scans):
+        every.update(scan, pose_at(0.5 * k, 0.0, 0.0))
+        on_demand.update(scan, pose_at(0.5 * k, 0.0, 0.0))
+    assert np.all(np.isnan(on_demand["traversability"]))
+    on_demand.update_planner_layers()
+    for name in ("step", "slope", "roughness", "traversability"):
+        np.testing.assert_array_equal(on_demand[name], every[name], err_msg=name)
+    assert np.isfinite(every["traversability"]).sum() > 2000
