@@ -489,6 +489,8 @@ def _read_las(path: Path) -> dict[str, np.ndarray]:
 
 _PCD_ENCODINGS = ("ascii", "binary", "binary_compressed")
 _PCD_MAX_HEADER = 1 << 16
+# Values per point over all fields (PCL's largest descriptors, VFH and ESF, have 308 and 640).
+_PCD_MAX_VALUES = 4096
 
 
 def _pcd_header(data: bytes):
@@ -517,6 +519,12 @@ def _pcd_header(data: bytes):
         raise _FormatError(
             f"PCD header: FIELDS, SIZE, TYPE and COUNT differ in length "
             f"({len(fields)}, {len(metadata.size)}, {len(metadata.type)}, {len(metadata.count)})"
+        )
+    # pypcd4 makes a column per value of a field: a COUNT of 10^20 would never return.
+    if any(count < 1 for count in metadata.count) or sum(metadata.count) > _PCD_MAX_VALUES:
+        raise _FormatError(
+            f"PCD header: COUNT {' '.join(map(str, metadata.count))} must give each field 1 or more values, "
+            f"{_PCD_MAX_VALUES} in all at most"
         )
     if not {"x", "y", "z"} <= set(fields):
         raise _FormatError(f"PCD has no x, y, z fields (has {', '.join(fields)})")

@@ -276,6 +276,19 @@ def test_a_binary_compressed_pcd_asking_for_gigabytes_is_refused_before_decompre
         read_points(path)
 
 
+@pytest.mark.parametrize("count", ["99999999999999999999", "5000"])
+def test_a_pcd_count_that_would_never_return_is_refused_at_once(tmp_path, count):
+    # pypcd4 makes one column per value: a fuzzed COUNT of 10^20 hung the reader.
+    header = (
+        f"VERSION 0.7\nFIELDS x y z ring\nSIZE 4 4 4 2\nTYPE F F F U\nCOUNT {count} 1 1 1\n"
+        "WIDTH 3\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 3\nDATA binary_compressed\n"
+    )
+    path = tmp_path / "count.pcd"
+    path.write_bytes(header.encode() + struct.pack("<II", 10, 42) + bytes(10))
+    with pytest.raises(ValueError, match=rf"count.pcd: PCD header: COUNT {count} 1 1 1 must give each field"):
+        read_points(path)
+
+
 def test_a_real_binary_compressed_pcd_still_reads(tmp_path):
     from terracube.io import write_pcd
 
