@@ -348,17 +348,15 @@ def _pictures(*draw: Callable[[], Path]) -> list[Path]:
 
 
 def reason_counts(cube_reasons) -> str:
-    """The shadow-aware rule's cubes counted by CubeReason, removed ones first: "removed_free_below
-    1,995, removed_above_kept 1,090, kept: supported 15,803, ..."."""
+    """The shadow-aware rule's cubes counted by CubeReason, removed ones first: "removed_above_kept
+    1,090, removed_free_below 1,995; kept: supported 15,803, ..."."""
     from .collapse import CubeReason
 
     counts = np.bincount(np.asarray(cube_reasons), minlength=len(CubeReason.__members__))
-    names = sorted(
-        CubeReason.__members__.items(), key=lambda item: (not item[0].startswith("removed"), int(item[1]))
-    )
-    parts = [f"{name} {counts[int(value)]:,}" for name, value in names]
-    removed = sum(1 for name, _ in names if name.startswith("removed"))
-    return ", ".join(parts[:removed]) + "; kept: " + ", ".join(parts[removed:])
+    text = {name: f"{name} {counts[int(value)]:,}" for name, value in CubeReason.__members__.items()}
+    removed = [line for name, line in text.items() if name.startswith("removed")]
+    kept = [line for name, line in text.items() if not name.startswith("removed")]
+    return ", ".join(removed) + "; kept: " + ", ".join(kept)
 
 
 def _run_collapse(

@@ -71,6 +71,13 @@ class SharedData:
         """SemanticKITTI semantic classes of frame `frame` (uint32, value & 0xFFFF)."""
         return read_semantic_kitti_label(self.path(f"kitti_seq00/labels/{frame:06d}.label"))
 
+    def kitti_poses(self) -> np.ndarray:
+        """(K, 4, 4) KITTI 00 ground-truth poses as Velodyne poses (odometry <- sensor), via calib.txt."""
+        from terracube.mapping import read_kitti_calibration, read_pose_file
+
+        calibration = read_kitti_calibration(self.path("kitti_seq00/calib.txt"))
+        return read_pose_file(self.path("kitti_seq00/poses.txt"), "kitti", calibration)[1]
+
     def ouster_xyzi(self) -> np.ndarray:
         """The Ouster 128-beam scan 000000 with invalid returns dropped: (N, 4) float32."""
         return read_kitti_bin(self.path("ouster128/ouster128_000000_xyzi_valid.bin"))

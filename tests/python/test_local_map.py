@@ -250,11 +250,9 @@ def test_min_range_leaves_the_kitti_cars_own_body_out_of_the_map(shared_data, tm
     # KITTI's HDL-64 sees its car within 2.5 m (the hood, the roof rack): with the default 0.1 m
     # those returns stand about a metre above the road in front of the robot.
     from terracube.cli import app
-    from terracube.mapping import read_kitti_calibration, read_pose_file
     from typer.testing import CliRunner
 
-    calibration = read_kitti_calibration(shared_data.path("kitti_seq00/calib.txt"))
-    poses = read_pose_file(shared_data.path("kitti_seq00/poses.txt"), "kitti", calibration)[1]
+    poses = shared_data.kitti_poses()
     scans = [shared_data.kitti_xyzi(frame)[:, :3] for frame in range(6)]
     body = scans[5][np.linalg.norm(scans[5], axis=1) < 2.5].astype(np.float64)
     assert len(body) > 20

@@ -77,10 +77,7 @@ def test_bad_calls_name_the_problem():
 def test_a_local_map_of_kitti_is_open_on_the_road_and_blocked_at_cars_and_walls(shared_data):
     # KITTI 00 frames 0-2 fused at their poses; each cell's majority SemanticKITTI label in frame 2
     # (3 or more points) against the planner's traversability there.
-    from terracube.mapping import read_kitti_calibration, read_pose_file
-
-    calibration = read_kitti_calibration(shared_data.path("kitti_seq00/calib.txt"))
-    poses = read_pose_file(shared_data.path("kitti_seq00/poses.txt"), "kitti", calibration)[1]
+    poses = shared_data.kitti_poses()
     local = tc.LocalMap(length=30.0, resolution=0.2, collapse=tc.CollapseParams(sigma=4))
     for frame in range(3):
         local.update(shared_data.kitti_xyzi(frame)[:, :3], poses[frame])
