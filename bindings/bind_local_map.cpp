@@ -37,6 +37,7 @@ void bind_local_map(py::module_& m) {
       .def_readwrite("length_m", &LocalMapParams::length_m)
       .def_readwrite("resolution_m", &LocalMapParams::resolution_m)
       .def_readwrite("collapse", &LocalMapParams::collapse)
+      .def_readwrite("max_cells", &LocalMapParams::max_cells)
       .def_readwrite("min_range_m", &LocalMapParams::min_range_m)
       .def_readwrite("max_range_m", &LocalMapParams::max_range_m)
       .def_readwrite("range_sigma_m", &LocalMapParams::range_sigma_m)

@@ -44,6 +44,8 @@ enum LayerId {
   kTraversability,
 };
 using LayerData = std::array<float*, kLayerNames.size()>;
+/// A map's memory per cell: its float layers and an update's per-cell work (Workspace).
+constexpr double kBytesPerCell = 4.0 * kLayerNames.size() + 16.0;
 
 LayerData layer_data(ElevationMap& map) {
   LayerData data{};
@@ -58,6 +60,14 @@ int cells_per_side(const LocalMapParams& p) {
   if (!(cells >= 1.0 && cells <= 16384.0)) {
     throw std::invalid_argument("LocalMapParams: length / resolution must give 1 to 16384 cells per side, got " +
                                 detail::number_text(cells));
+  }
+  if (!(cells * cells <= static_cast<double>(p.max_cells))) {
+    throw std::invalid_argument("LocalMapParams: a map of " + detail::number_text(p.length_m) + " m at " +
+                                detail::number_text(p.resolution_m) + " m would need " + detail::number_text(cells) +
+                                " x " + detail::number_text(cells) + " cells (about " +
+                                detail::number_text(std::ceil(cells * cells * kBytesPerCell / 1e6)) +
+                                " MB), over max_cells = " + std::to_string(p.max_cells) +
+                                "; use a shorter length or a coarser resolution (or raise max_cells)");
   }
   return static_cast<int>(cells);
 }

@@ -169,9 +169,8 @@ class CollapseParams:
         Largest V + M allowed for the dense storage [bytes].
     num_threads : int
         Threads for the passes over the points on the dense storage: 1 runs on the calling
-        thread alone, 0 uses one per processor; the result is the same whatever the number. As with
-        :class:`terracube.ElevationParams`, a forked child of a process that used several runs on
-        one.
+        thread alone, 0 uses one per processor; the result is the same whatever the number (as
+        :class:`terracube.ElevationParams`').
     method : {"paper", "shadow_aware"}
         "paper" ([CBC] Algorithm 1, exactly) or "shadow_aware": the ground under columns without
         one is estimated from the neighbourhood, and a chain of cubes (gaps < σ) floating σ or more

@@ -203,12 +203,10 @@ class ElevationParams:
     max_cells : int
         Memory guard on the number of cells.
     num_threads : int
-        Threads: 1 runs on the calling thread alone, 0 uses one per processor. The map is the same
-        bit for bit whatever the number; small clouds (under about 32,000 points per thread) use
-        fewer, and so do calls that find the pool's threads asleep (they sleep after 20 ms without
-        work, and only calls that keep coming for 20 ms or a large one wake them; see the README). The pool's
-        threads do not survive ``fork()``, so in a forked child (a ``multiprocessing`` "fork"
-        worker) of a process that used several threads, calls run on one.
+        Threads: 1 runs on the calling thread alone (the default), 0 uses one per processor
+        (oneTBB, in an arena made for this call). The work is cut into parts by its size alone, so
+        the map is the same bit for bit whatever the number, in forked children
+        (``multiprocessing`` "fork" workers) too.
     """
 
     resolution: float = 0.1

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import operator
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -24,6 +25,9 @@ class LocalMapParams:
     ----------
     length, resolution : float
         Side of the square map and cell edge [m]; ``round(length / resolution)`` cells a side.
+    max_cells : int
+        Memory guard: a map keeps about 72 bytes a cell, so the default 16 M cells (4096 x 4096,
+        409.6 m at 0.1 m) is about 1.2 GB; a larger map is refused with its size named.
     collapse : CollapseParams
         Overhang removal of each scan ([CBC]); its transform and crop are set per scan (the pose and
         the map's area), its other fields are used as given.
@@ -67,6 +71,7 @@ class LocalMapParams:
 
     length: float = 20.0
     resolution: float = 0.1
+    max_cells: int = 1 << 24
     collapse: CollapseParams = field(default_factory=CollapseParams)
     min_range: float = 0.1
     max_range: float = math.inf
@@ -89,6 +94,7 @@ class LocalMapParams:
         params = _checked(_core.LocalMapParams)()
         params.length_m = float(self.length)
         params.resolution_m = float(self.resolution)
+        params.max_cells = _max_cells(self.max_cells)
         params.collapse = self.collapse.to_core()
         params.min_range_m = float(self.min_range)
         params.max_range_m = float(self.max_range)
@@ -107,6 +113,13 @@ class LocalMapParams:
         params.traversability = self.traversability.to_core()
         params.num_threads = _num_threads(self.num_threads)
         return params
+
+
+def _max_cells(value) -> int:
+    cells = operator.index(value)
+    if cells < 1:
+        raise ValueError(f"LocalMapParams.max_cells must be a positive number of cells, got {cells}")
+    return cells
 
 
 def _as_pose(pose) -> np.ndarray:

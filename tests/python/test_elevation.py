@@ -929,12 +929,12 @@ def _threaded_counts_in_child(points, queue):
 
 @pytest.mark.skipif(sys.platform != "linux", reason="fork() start method")
 def test_a_forked_child_of_a_process_that_used_threads_still_builds_instead_of_hanging():
-    # The pool's threads do not exist in a forked child of a process that had started them (with
-    # GCC's libgomp, which the library used before, the child hung); the child's calls run on one.
+    # A thread runtime's workers do not exist in a forked child of a process that had started them
+    # (with GCC's libgomp, which the library once used, the child hung); oneTBB starts new ones.
     import multiprocessing
 
     points = np.random.default_rng(5).random((150_000, 3)) * [60.0, 60.0, 8.0]
-    expected_map = tc.build_elevation_map(points, 0.5, num_threads=2)  # starts the pool here
+    expected_map = tc.build_elevation_map(points, 0.5, num_threads=2)  # starts TBB's workers here
     expected = (float(expected_map["count"].sum()), int(tc.collapse_overhangs(points, 0.5, 2).num_overhang))
     context = multiprocessing.get_context("fork")
     queue = context.Queue()

@@ -144,6 +144,12 @@ def test_bad_input_is_refused_and_leaves_the_map_unchanged():
         m.update(points, sensor, stamp=math.inf)
     with pytest.raises(ValueError, match="length_m"):
         terracube.LocalMap(length=-1.0)
+    # A map too large for memory is refused with its size, before anything is allocated.
+    with pytest.raises(ValueError, match=r"10000 x 10000 cells \(about 7200 MB\), over max_cells = 16777216"):
+        terracube.LocalMap(length=1e4, resolution=1.0)
+    with pytest.raises(ValueError, match="max_cells = 100"):
+        terracube.LocalMap(length=2.0, max_cells=100)
+    assert terracube.LocalMap(length=2.0, max_cells=400).geometry.size.tolist() == [20, 20]
     with pytest.raises(ValueError, match="clearing_depth_m must exceed"):
         terracube.LocalMap(clearing_depth=0.05)
     with pytest.raises(ValueError, match="max_slope"):

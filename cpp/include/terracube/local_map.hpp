@@ -25,6 +25,9 @@ namespace terracube {
 struct LocalMapParams {
   double length_m = 20.0;     ///< side of the square map [m], > 0; cells = round(length / resolution)
   double resolution_m = 0.1;  ///< cell edge [m], > 0
+  /// Largest number of cells allowed (memory guard): a map keeps about 72 bytes a cell (14 float
+  /// layers and the update's per-cell work), so the default 16 M cells (4096 x 4096) is about 1.2 GB.
+  std::size_t max_cells = std::size_t{1} << 24;
   /// Overhang removal of each scan. update() sets its transform (the scan's pose) and crop (the
   /// map's area); every other field is used as given (drop_non_finite decides whether NaN/Inf rows
   /// are dropped or refused).
