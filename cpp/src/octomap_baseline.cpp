@@ -4,10 +4,12 @@
 
 #include <algorithm>
 #include <array>
+#include <limits>
 #include <stdexcept>
 #include <string>
 
 #include "cloud_frame.hpp"
+#include "number_text.hpp"
 #include "terracube/baselines.hpp"
 
 namespace terracube {
@@ -37,6 +39,11 @@ std::vector<std::uint8_t> octomap_mask(const Cloud& cloud, const CollapseParams&
     throw std::invalid_argument("the OctoMap baseline holds at most 65536 cubes per axis; this cloud needs " +
                                 std::to_string(grid.ixmax) + " x " + std::to_string(grid.iymax) + " x " +
                                 std::to_string(grid.izmax));
+  }
+  // OctoMap keeps float coordinates: its 65536 keys per axis must span a finite float extent.
+  if (!(static_cast<double>(kOctomapKeys) * grid.edge_m < static_cast<double>(std::numeric_limits<float>::max()))) {
+    throw std::invalid_argument("the OctoMap baseline stores float coordinates: an edge of " +
+                                detail::number_text(grid.edge_m) + " m times its 65536 keys overflows float");
   }
   const double inverse_edge = 1.0 / grid.edge_m;
   // The tree's voxel with key k spans [(k - 32768) E, (k - 32768 + 1) E): the centre of CBC cube

@@ -45,6 +45,15 @@ TEST(OctomapBaseline, RejectsGridsBeyondSixteenBitKeys) {
   EXPECT_THROW(octomap_column_overhangs(PointsView<double>(points), params), std::invalid_argument);
 }
 
+TEST(OctomapBaseline, RejectsAnEdgeWhoseTreeOverflowsFloat) {
+  const std::vector<Eigen::Vector3d> points = {{0, 0, 0}, {1, 2, 3}};
+  CollapseParams params;
+  params.edge_m = 1e300;  // one cube holds everything, but OctoMap's float coordinates cannot
+  EXPECT_THROW(octomap_column_overhangs(PointsView<double>(points), params), std::invalid_argument);
+  params.edge_m = 1e30;  // 65536 keys of 1e30 m still fit a float
+  EXPECT_EQ(octomap_column_overhangs(PointsView<double>(points), params), std::vector<std::uint8_t>(2, 0));
+}
+
 TEST(OctomapBaseline, EmptyCloudGivesEmptyMask) {
   EXPECT_TRUE(octomap_column_overhangs(PointsView<double>(), CollapseParams{}).empty());
 }
