@@ -258,9 +258,9 @@ void collapse_dense(Workspace& workspace, const CollapseParams& params, const Ne
     }
   }
   std::vector<std::int32_t>& ground = workspace.ground;  // M
-  result.removed_cubes = removed_cubes_of(
-      occupied, params, next_points,
-      result, [&](std::int64_t column) -> auto& { return ground[static_cast<std::size_t>(column)]; });
+  result.removed_cubes = removed_cubes_of(occupied, params, next_points, result, [&](std::int64_t column) -> auto& {
+    return ground[static_cast<std::size_t>(column)];
+  });
   // R's bits cleared in V: a row is overhang when its cube's bit is gone.
   for (const std::int64_t cube : result.removed_cubes) {
     occupancy[static_cast<std::size_t>(cube >> 6)] &= ~(std::uint64_t{1} << (cube & 63));

@@ -73,7 +73,7 @@ int cells_per_side(const LocalMapParams& p) {
 }
 
 void check_local_map_params(const LocalMapParams& p) {
-  cells_per_side(p);
+  const int side = cells_per_side(p);
   detail::check_collapse_params(p.collapse);
   detail::check_non_negative(p.min_range_m, "LocalMapParams.min_range_m");
   if (!(p.max_range_m > p.min_range_m)) {
@@ -95,6 +95,7 @@ void check_local_map_params(const LocalMapParams& p) {
   if (p.visibility_bin_rad > 0.5) throw std::invalid_argument("LocalMapParams.visibility_bin_rad must be <= 0.5 rad");
   detail::check_positive(p.discontinuity_m, "LocalMapParams.discontinuity_m");
   check_traversability_params(p.traversability);
+  traversability_window_radius(p.traversability, p.resolution_m, CellIndex(side, side));
   detail::check_num_threads(p.num_threads, "LocalMapParams");
 }
 

@@ -226,6 +226,20 @@ void check_traversability_params(const TraversabilityParams& p) {
   if (p.min_window_cells < 3) throw std::invalid_argument("TraversabilityParams.min_window_cells must be >= 3");
 }
 
+int traversability_window_radius(const TraversabilityParams& tp, double resolution_m, const CellIndex& size) {
+  detail::check_positive(resolution_m, "add_traversability_layers: the map's resolution");
+  const double radius =
+      std::min(std::round(tp.footprint_radius_m / resolution_m), static_cast<double>(size.maxCoeff()));
+  if (!(radius <= kMaxWindowRadius)) {
+    throw std::invalid_argument(
+        "TraversabilityParams.footprint_radius_m " + detail::number_text(tp.footprint_radius_m) + " m at " +
+        detail::number_text(resolution_m) + " m cells is a window of " + detail::number_text(2.0 * radius + 1.0) +
+        " cells a side, over " + std::to_string(2 * kMaxWindowRadius + 1) +
+        "; use a coarser resolution or a smaller footprint");
+  }
+  return static_cast<int>(radius);
+}
+
 void add_traversability_layers(ElevationMap& map, const TraversabilityParams& tp, const std::string& height_layer,
                                const CellIndex& start, int num_threads) {
   check_traversability_params(tp);
@@ -235,8 +249,13 @@ void add_traversability_layers(ElevationMap& map, const TraversabilityParams& tp
     throw std::invalid_argument("add_traversability_layers: start must be a cell index of the map");
   }
   const double resolution = map.geometry().resolution_m;
-  const double radius = std::round(tp.footprint_radius_m / resolution);
-  const int r = static_cast<int>(std::min(radius, 16384.0));  // a window over the whole map at most
+  const int r = traversability_window_radius(tp, resolution, size);
+  const auto window_rows = static_cast<double>(std::min(2 * r + 1, std::max(size.x(), 1)));
+  if (window_rows * size.y() * sizeof(Moments) > 1e9) {  // the ring of planner_rows, per part
+    throw std::invalid_argument("add_traversability_layers: the sums of a window's " +
+                                detail::number_text(window_rows) + " rows of " + std::to_string(size.y()) +
+                                " cells would need over 1 GB; use a coarser resolution or a smaller footprint");
+  }
   for (const char* name : {"step", "slope", "roughness", "traversability"}) {
     if (!map.exists(name)) map.add(name);
   }

@@ -28,7 +28,8 @@ class TraversabilityParams:
     Attributes
     ----------
     footprint_radius : float
-        Half-side of the window [m] (the robot's footprint), >= 0.
+        Half-side of the window [m] (the robot's footprint), >= 0; at most 255 cells (a window of
+        511 cells a side, or the whole map when it is smaller), else refused.
     max_slope : float
         [rad], > 0 (0.35 rad, about 20 degrees).
     max_step, max_roughness : float

@@ -146,6 +146,18 @@ TEST(Traversability, BadCallsThrowNamingTheProblem) {
   huge.footprint_radius_m = 1e300;  // a window over the whole map
   add_traversability_layers(map, huge);
   EXPECT_EQ(map.get("step")(0, 0), 0.0F);
+  // A window of more than 511 cells a side would cost over 2000 reads a cell: refused, named.
+  ElevationMap fine(MapGeometry{0.001, Eigen::Vector2d::Zero(), CellIndex(600, 3)});
+  fine.add("mean", 0.0F);
+  try {
+    add_traversability_layers(fine);  // 0.3 m at 1 mm: 601 cells a side
+    FAIL();
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("601 cells a side, over 511"), std::string::npos) << e.what();
+  }
+  huge.footprint_radius_m = 0.255;  // 511 cells: the widest window taken
+  add_traversability_layers(fine, huge);
+  EXPECT_EQ(fine.get("step")(0, 0), 0.0F);
 }
 
 }  // namespace

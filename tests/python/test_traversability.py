@@ -72,6 +72,11 @@ def test_bad_calls_name_the_problem():
         tc.add_traversability_layers(elevation_map, tc.TraversabilityParams(), max_step=0.1)
     with pytest.raises(ValueError, match="num_threads"):
         tc.add_traversability_layers(elevation_map, num_threads=-1)
+    # A footprint of thousands of cells (two points 2.6 m apart at 0.1 mm: 1401 x 26001 cells) is
+    # refused at once; its windows' extremes would take hours.
+    fine = tc.build_elevation_map(np.array([[0.0, 0.0, -5.1], [0.14, 2.6, 1e9]]), 1e-4)
+    with pytest.raises(ValueError, match="window of 6001 cells a side, over 511"):
+        tc.add_traversability_layers(fine)
 
 
 def test_a_local_map_of_kitti_is_open_on_the_road_and_blocked_at_cars_and_walls(shared_data):

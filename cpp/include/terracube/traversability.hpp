@@ -37,6 +37,13 @@ struct TraversabilityParams {
 /// Throws std::invalid_argument naming the first invalid field.
 void check_traversability_params(const TraversabilityParams& params);
 
+/// The window's half-side r = round(footprint_radius_m / resolution_m) in cells on a map of `size`
+/// cells, at most its longer side (a window over the whole map). Throws std::invalid_argument when
+/// r > kMaxWindowRadius: a window's extremes cost 2 (2r + 1) reads a cell, so a footprint of
+/// hundreds of cells (a fine resolution) on a large map would take hours.
+constexpr int kMaxWindowRadius = 255;
+int traversability_window_radius(const TraversabilityParams& params, double resolution_m, const CellIndex& size);
+
 /// Adds the layers "step", "slope", "roughness" and "traversability" to `map` (or refreshes them
 /// in place) from its `height_layer` ("mean" for build_elevation_map's maps, "elevation" for a
 /// LocalMap's; NaN or +-inf is unknown) and, when the map has one, its "clearance" layer (free
@@ -45,8 +52,9 @@ void check_traversability_params(const TraversabilityParams& params);
 /// storage index of the map's geometric cell (0, 0): (0, 0) for an ElevationMap,
 /// LocalMap::start_index() for a circular buffer, whose windows then stop at the map's border
 /// instead of wrapping. The same bits for any `num_threads` (1: the calling thread, 0: one per
-/// processor). Throws std::invalid_argument on invalid parameters and std::out_of_range when the
-/// height layer is missing.
+/// processor). Throws std::invalid_argument on invalid parameters (a window wider than
+/// kMaxWindowRadius, or whose rows' sums would need over 1 GB: a map of very many columns) and
+/// std::out_of_range when the height layer is missing.
 void add_traversability_layers(ElevationMap& map, const TraversabilityParams& params = {},
                                const std::string& height_layer = "mean", const CellIndex& start = CellIndex(0, 0),
                                int num_threads = 1);
