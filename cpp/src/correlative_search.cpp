@@ -10,11 +10,15 @@
 #include <vector>
 
 #include "cloud_frame.hpp"
+#include "number_text.hpp"
 #include "terracube/icp.hpp"
 
 namespace terracube {
 
 namespace {
+
+/// The most (yaw, translation) candidates one search scores (each keeps 40 bytes: 160 MB).
+constexpr double kMaxCandidates = 4e6;
 
 void check_search_params(const CorrelativeSearchParams& p) {
   const auto positive = [](double v) { return v > 0.0 && std::isfinite(v); };
@@ -28,6 +32,15 @@ void check_search_params(const CorrelativeSearchParams& p) {
     throw std::invalid_argument("correlative search yaw_window_rad must lie in [0, 3.2] [rad]");
   }
   if (p.yaw_hypotheses < 1) throw std::invalid_argument("correlative search yaw_hypotheses must be at least 1");
+  // Every (yaw, translation) candidate is scored and kept: bound them (the defaults: 15 x 11^2).
+  const double per_axis = 2.0 * std::floor(std::ceil(p.window_m / p.cell_m - 1e-9) / p.step_cells) + 1.0;
+  const double candidates = per_axis * per_axis * p.yaw_hypotheses;
+  if (candidates > kMaxCandidates) {
+    throw std::invalid_argument(
+        "correlative search: " + std::to_string(p.yaw_hypotheses) + " yaw hypotheses x " +
+        detail::number_text(per_axis) + "^2 translations is " + detail::number_text(candidates) + " candidates, over " +
+        detail::number_text(kMaxCandidates) + "; use fewer yaw hypotheses, a larger cell or step, or a smaller window");
+  }
   if (!(p.tie_tolerance >= 0.0 && p.tie_tolerance < 1.0)) {
     throw std::invalid_argument("correlative search tie_tolerance must lie in [0, 1)");
   }

@@ -92,7 +92,10 @@ void check_local_map_params(const LocalMapParams& p) {
     throw std::invalid_argument("LocalMapParams.clearing_depth_m must exceed clearing_margin_m");
   }
   detail::check_positive(p.visibility_bin_rad, "LocalMapParams.visibility_bin_rad");
-  if (p.visibility_bin_rad > 0.5) throw std::invalid_argument("LocalMapParams.visibility_bin_rad must be <= 0.5 rad");
+  if (!(p.visibility_bin_rad >= 0.001 && p.visibility_bin_rad <= 0.5)) {  // 0.001: 6.3 M bins, 25 MB
+    throw std::invalid_argument("LocalMapParams.visibility_bin_rad must lie in [0.001, 0.5] rad, got " +
+                                detail::number_text(p.visibility_bin_rad));
+  }
   detail::check_positive(p.discontinuity_m, "LocalMapParams.discontinuity_m");
   check_traversability_params(p.traversability);
   traversability_window_radius(p.traversability, p.resolution_m, CellIndex(side, side));

@@ -16,6 +16,7 @@
 #include <oneapi/tbb/parallel_for.h>
 #include <oneapi/tbb/task_arena.h>
 
+#include <algorithm>
 #include <cstddef>
 #include <stdexcept>
 #include <string>
@@ -56,7 +57,8 @@ void for_each_part(int num_threads, int parts, const Body& body) {
     for (int part = 0; part < parts; ++part) body(part);
     return;
   }
-  tbb::task_arena arena(num_threads == 0 ? tbb::task_arena::automatic : num_threads);
+  // No more slots than parts: an arena of a billion slots (a mistyped num_threads) crashed TBB.
+  tbb::task_arena arena(num_threads == 0 ? tbb::task_arena::automatic : std::min(num_threads, parts));
   arena.execute([&] {
     tbb::parallel_for(tbb::blocked_range<int>(0, parts, 1), [&](const tbb::blocked_range<int>& range) {
       for (int part = range.begin(); part < range.end(); ++part) body(part);

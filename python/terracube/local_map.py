@@ -57,7 +57,7 @@ class LocalMapParams:
         ``clearing_margin`` [m] below its height (a person or car that left); rays below all its
         points (under a car's body) say nothing.
     visibility_bin : float
-        Angular bin of the see-through test [rad].
+        Angular bin of the see-through test [rad], 0.001 to 0.5.
     discontinuity : float
         Gap [m] between one scan's sorted heights in a cell that makes it discontinuous; the points
         above the gap count as an overhang.

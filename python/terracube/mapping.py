@@ -231,9 +231,11 @@ class Mapper:
         xyz = np.asarray(points)
         if xyz.ndim == 2 and xyz.shape[1] >= 3 and xyz.dtype in (np.float32, np.float64):
             squared = np.einsum("ij,ij->i", xyz[:, :3], xyz[:, :3], dtype=np.float64)
-            keep = squared >= float(self.params.min_range) ** 2
+            nearest = float(self.params.min_range)  # x * x: inf for 1e300, where ** 2 raises
+            keep = squared >= nearest * nearest
             if self.params.max_range is not None:
-                keep &= squared <= float(self.params.max_range) ** 2
+                farthest = float(self.params.max_range)
+                keep &= squared <= farthest * farthest
             keep |= ~np.isfinite(squared)  # NaN and infinite points: the C++ mapper names the problem
             if not keep.all():
                 self.points_out_of_range += int(len(keep) - np.count_nonzero(keep))

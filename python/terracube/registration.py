@@ -74,7 +74,8 @@ class RegistrationParams:
         Translation step of the search in cells (>= 1).
     search_yaw_window, search_yaw_hypotheses : float, int
         ``search_yaw_hypotheses`` yaw offsets spread evenly over +- ``search_yaw_window`` [rad]
-        about the source origin (1: the start's yaw only).
+        about the source origin (1: the start's yaw only). The yaws times the translations searched
+        (``(2 ceil(window / cell) / step + 1)**2``) may be at most 4 million candidates.
     search_refine : bool
         Coarse to fine: search again around the best hypothesis with cells a third as large
         (within one coarse cell) and 5 yaws within one yaw step.

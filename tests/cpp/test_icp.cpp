@@ -1406,9 +1406,16 @@ TEST(CorrelativeSearch, RejectsBadParametersAndGuesses) {
         bad([](auto& p) { p.cell_m = std::numeric_limits<double>::quiet_NaN(); }),
         bad([](auto& p) { p.step_cells = 0; }), bad([](auto& p) { p.yaw_window_rad = -0.1; }),
         bad([](auto& p) { p.yaw_hypotheses = 0; }), bad([](auto& p) { p.window_m = 1e6; }),
-        bad([](auto& p) { p.tie_tolerance = 1.0; }), bad([](auto& p) { p.tie_tolerance = -0.1; })}) {
+        bad([](auto& p) { p.tie_tolerance = 1.0; }), bad([](auto& p) { p.tie_tolerance = -0.1; }),
+        bad([](auto& p) { p.yaw_hypotheses = 1000000000; })}) {  // std::bad_alloc before
     EXPECT_THROW(correlative_search(empty, empty, identity, params), std::invalid_argument);
   }
+  // The candidates are bounded, not the parts: 11^2 translations x 33057 yaws is the most.
+  CorrelativeSearchParams widest;
+  widest.yaw_hypotheses = 33057;
+  EXPECT_NO_THROW(correlative_search(empty, empty, identity, widest));
+  widest.yaw_hypotheses = 33058;
+  EXPECT_THROW(correlative_search(empty, empty, identity, widest), std::invalid_argument);
   Eigen::Matrix4d sheared = identity;
   sheared(0, 1) = 0.5;
   EXPECT_THROW(correlative_search(empty, empty, sheared), std::invalid_argument);

@@ -298,6 +298,7 @@ TEST(LocalMap, ParametersAreValidated) {
   refused([](LocalMapParams& p) { p.length_m = 1e9; });
   refused([](LocalMapParams& p) { p.length_m = 1000.0; });  // 10000 x 10000 cells: over max_cells
   refused([](LocalMapParams& p) { p.max_cells = 199 * 200; });
+  refused([](LocalMapParams& p) { p.visibility_bin_rad = 1e-300; });             // an image of 10^600 bins crashed
   refused([](LocalMapParams& p) { p.length_m = 0.5, p.resolution_m = 0.001; });  // a 0.3 m footprint: 601 cells
   refused([](LocalMapParams& p) { p.range_sigma_m = -1.0; });
   refused([](LocalMapParams& p) { p.gate_sigmas = 0.0; });

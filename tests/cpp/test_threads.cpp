@@ -44,6 +44,13 @@ TEST(Parts, EveryPartRunsExactlyOnceOnAnyNumberOfThreads) {
   }
 }
 
+TEST(Parts, AnAbsurdThreadCountRunsOnNoMoreThreadsThanParts) {
+  // A billion arena slots crashed TBB (found by fuzzing num_threads); the parts bound them.
+  std::vector<std::atomic<int>> runs(3);
+  detail::for_each_part(1000000000, 3, [&](int part) { runs[static_cast<std::size_t>(part)].fetch_add(1); });
+  for (const auto& run : runs) EXPECT_EQ(run.load(), 1);
+}
+
 TEST(Parts, OneThreadRunsThePartsInOrderOnTheCallingThread) {
   std::vector<int> order;
   const std::thread::id caller = std::this_thread::get_id();

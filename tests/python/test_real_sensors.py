@@ -77,6 +77,10 @@ def test_the_mapper_api_takes_a_max_range_and_counts_what_it_left_out():
     np.testing.assert_array_equal(mapper.global_map()["count"], reference.global_map()["count"])
     with pytest.raises(ValueError, match="max_range must be a distance"):
         Mapper(MapperParams(min_range=1.0, max_range=0.5))
+    # A huge range limit leaves everything out (OverflowError from ``1e300 ** 2`` before).
+    everything_out = Mapper(MapperParams(min_range=1e300))
+    everything_out.add_scan(points, np.eye(4))
+    assert everything_out.points_out_of_range == len(points)
 
 
 def test_register_leaves_out_each_scans_no_returns_and_names_the_ground_reference():

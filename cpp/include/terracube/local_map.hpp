@@ -74,7 +74,7 @@ struct LocalMapParams {
   double clearing_margin_m = 0.1;      ///< >= 0
   double clearing_depth_m = 0.5;       ///< > clearing_margin_m
   double clearing_beyond_m = 0.5;      ///< >= 0 (at least one cell is used)
-  double visibility_bin_rad = 0.0087;  ///< > 0, <= 0.5
+  double visibility_bin_rad = 0.0087;  ///< in [0.001, 0.5]
   /// A cell is discontinuous when one scan's sorted kept heights in it have a gap over this [m].
   double discontinuity_m = 1.0;
   /// Recompute step, slope, roughness and traversability after every update (else call
