@@ -180,16 +180,24 @@ for line in sys.stdin:
 """
 
 
-def _limit_memory() -> None:
-    resource.setrlimit(resource.RLIMIT_AS, (MEMORY_LIMIT_BYTES, MEMORY_LIMIT_BYTES))
-
-
 class Worker:
-    """A subprocess reading the files it is sent, under a memory limit and a per-case alarm."""
+    """A subprocess that answers one case per line it is sent (the file readers' ``WORKER`` by
+    default, or the API fuzzer's), under a memory limit and a per-case alarm."""
 
-    def __init__(self, stderr: Path):
-        code = WORKER.format(python=str(package_root()), alarm=int(CASE_SECONDS))
+    def __init__(
+        self,
+        stderr: Path,
+        code: str | None = None,
+        memory_limit: int = MEMORY_LIMIT_BYTES,
+        case_seconds: float = CASE_SECONDS,
+    ):
+        code = code or WORKER.format(python=str(package_root()), alarm=int(CASE_SECONDS))
         self.stderr_path = stderr
+        self.case_seconds = case_seconds
+
+        def limit_memory() -> None:
+            resource.setrlimit(resource.RLIMIT_AS, (memory_limit, memory_limit))
+
         with stderr.open("w") as sink:  # a file, not a pipe nobody reads (which could fill and block)
             self.process = subprocess.Popen(
                 [sys.executable, "-c", code],
@@ -197,7 +205,7 @@ class Worker:
                 stdout=subprocess.PIPE,
                 stderr=sink,
                 text=True,
-                preexec_fn=_limit_memory,
+                preexec_fn=limit_memory,
             )
         if self._answer(120.0) != {"ready": True}:
             raise RuntimeError(f"the fuzz worker did not start: {self.stop()}")
@@ -207,12 +215,13 @@ class Worker:
         line = self.process.stdout.readline() if ready else ""
         return json.loads(line) if line else None
 
-    def run(self, path: Path) -> dict:
-        """{"outcome": "read" | "rejected" | "failure", "error": ...}; after a failure that is not
-        an exception (crash, hang) the worker is gone and a new one must be made."""
-        self.process.stdin.write(f"{path}\n")
+    def run(self, case: Path | str) -> dict:
+        """{"outcome": "read" | "rejected" | "failure", "error": ...} for one case (a file's path,
+        or the API fuzzer's case seed); after a failure that is not an exception (crash, hang) the
+        worker is gone and a new one must be made."""
+        self.process.stdin.write(f"{case}\n")
         self.process.stdin.flush()
-        answer = self._answer(CASE_SECONDS + 20.0)
+        answer = self._answer(self.case_seconds + 20.0)
         if answer is not None:
             return answer
         return {"outcome": "failure", "error": self.stop(), "worker_lost": True}

@@ -1,9 +1,12 @@
 #!/usr/bin/env python3
-"""Fuzz terracube's Python readers for a bounded time: ``python tests/fuzz/run.py --seconds 60``.
+"""Fuzz terracube for a bounded time: ``python tests/fuzz/run.py --seconds 60 [--target api]``.
 
-Exits 1 when a mutated file gave anything but points or a ValueError (another exception, a crash,
-a hang, memory beyond the limit); the failing files are kept in ``--work``/findings with the seed to
-replay them (``fuzz_readers.replay``).
+``--target readers`` (the default) mutates files of every format: exits 1 when one gave anything but
+points or a ValueError (another exception, a crash, a hang, memory beyond the limit); the failing
+files are kept in ``--work``/findings with the seed to replay them (``fuzz_readers.replay``).
+``--target api`` calls the Python API with hostile clouds, poses and parameters (``fuzz_api``):
+exits 1 when a call gave anything but a result or a ValueError/TypeError/KeyError; a failing case
+replays with ``fuzz_api.run_case(case_seed)``.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import fuzz_api  # noqa: E402
 from fuzz_readers import build_corpus, fuzz  # noqa: E402
 
 
@@ -24,8 +28,15 @@ def main() -> int:
     parser.add_argument("--cases", type=int, default=None, help="stop after this many cases")
     parser.add_argument("--seed", type=int, default=0, help="seed of the whole run (default 0)")
     parser.add_argument("--work", type=Path, default=None, help="folder for the corpus and findings")
+    parser.add_argument("--target", choices=("readers", "api"), default="readers", help="what to fuzz")
     args = parser.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="terracube-fuzz-"))
+    if args.target == "api":
+        done, failures = fuzz_api.fuzz(work, seed=args.seed, cases=args.cases, seconds=args.seconds)
+        print(f"fuzz api: {done} cases from seed {args.seed}, {len(failures)} failures")
+        for case_seed, error in failures:
+            print(f"  case seed {case_seed}: {error}")
+        return 1 if failures else 0
     seeds = build_corpus(work / "corpus")
     done, findings = fuzz(seeds, work, seed=args.seed, cases=args.cases, seconds=args.seconds)
     print(f"fuzz: {done} cases over {len(seeds)} seed files (seed {args.seed}), {len(findings)} failures")

@@ -1,15 +1,19 @@
-"""A short, fixed run of the reader fuzzer (tests/fuzz/): 150 seeded mutations over every readable
-format must each give points or a ValueError, in a worker under a memory limit and an alarm. The
-longer run is ``python tests/fuzz/run.py --seconds 60``."""
+"""Short, fixed runs of the fuzzers (tests/fuzz/): 150 seeded mutations over every readable format
+must each give points or a ValueError, and 120 seeded API calls with hostile clouds, poses and
+parameters a result or a ValueError/TypeError/KeyError, in a worker under a memory limit and an
+alarm. The longer runs are ``python tests/fuzz/run.py --seconds 60 [--target api]``."""
 
 from __future__ import annotations
 
 import sys
 from pathlib import Path
 
+import numpy as np
+
 FUZZ_DIR = Path(__file__).resolve().parents[1] / "fuzz"
 sys.path.insert(0, str(FUZZ_DIR))
 
+import fuzz_api  # noqa: E402
 import fuzz_readers  # noqa: E402
 
 
@@ -25,3 +29,14 @@ def test_150_seeded_mutations_give_points_or_a_value_error(tmp_path):
     done, findings = fuzz_readers.fuzz(seeds, tmp_path, seed=39, cases=150, seconds=None)
     assert done == 150
     assert findings == [], "\n".join(f"{f.seed_file} (case seed {f.case_seed}): {f.error}" for f in findings)
+
+
+def test_120_seeded_api_calls_give_a_result_or_a_named_refusal(tmp_path):
+    done, failures = fuzz_api.fuzz(tmp_path, seed=0, cases=120, seconds=None)
+    assert done == 120
+    assert failures == [], "\n".join(f"case seed {seed}: {error}" for seed, error in failures)
+
+
+def test_an_api_case_is_drawn_from_its_seed_alone():
+    first, again = (fuzz_api.cloud(np.random.default_rng(11)) for _ in range(2))
+    np.testing.assert_array_equal(first, again)

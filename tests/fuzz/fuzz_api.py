@@ -1,0 +1,250 @@
+"""Seeded fuzzing of terracube's Python API with hostile clouds, poses and parameters.
+
+Every call must answer with a result or a ``ValueError`` / ``TypeError`` / ``KeyError`` naming the
+problem, in bounded time and memory: never another exception (``MemoryError`` from an allocation
+the input asked for, ``OverflowError``, ``RuntimeError``), a crash or a hang. A case is drawn from its
+seed alone: a cloud (empty, one point, all equal, 1e300 or 1e-300 wide, NaN/Inf rows, float32
+extremes, Fortran order), a pose (shifted, turned, non-rigid, NaN) and either extreme arguments of
+one function or the defaults of a parameter struct with a few fields set to 0, -1, NaN, +-inf,
+1e300, 2^31 ... Cases run in the reader fuzzer's worker (a subprocess under a memory limit and an
+alarm, restarted after a crash); a failure replays with ``run_case(seed)``.
+
+Used by ``tests/fuzz/run.py --target api`` (a bounded run for CI) and ``tests/python/test_fuzz_quick.py``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import numpy as np
+
+MEMORY_LIMIT_BYTES = 6 << 30  # the largest maps the guards allow (64 M cells) take about 2 GB
+CASE_SECONDS = 30.0
+FLOATS = [0.0, -1.0, math.nan, math.inf, -math.inf, 1e300, 1e-300, 1e-9, 1e9, 0.5, 3.0]
+INTEGERS = [0, -1, 1, 2, 7, 10**9, 2**31, 2**63 - 1]
+
+
+def cloud(rng: np.random.Generator) -> np.ndarray:
+    """An (N, 3) cloud of one of fourteen hostile kinds."""
+    n = int(rng.choice([0, 1, 2, 3, 5, 50, 1000, 20000]))
+    kind = int(rng.integers(0, 14))
+    normal = rng.normal(0.0, 10.0, (n, 3))
+    if kind == 1:
+        points = np.tile(rng.normal(0.0, 1.0, (1, 3)), (n, 1))  # one point, n times
+    elif kind == 2:
+        points = normal * 10.0 ** rng.integers(3, 300)  # up to 1e300 wide
+    elif kind == 3:
+        points = normal / 10.0 + 10.0 ** rng.integers(5, 300)  # far from the origin
+    elif kind == 4:
+        points = normal * 1e-300  # denormal spread
+    elif kind in (5, 6) and n > 0:
+        points = normal
+        rows = rng.integers(0, n, max(1, n // 10))
+        points[rows, rng.integers(0, 3)] = math.nan if kind == 5 else math.inf
+    elif kind == 7:
+        points = np.c_[rng.uniform(-1e4, 1e4, (n, 2)), rng.normal(0.0, 1.0, n)]  # 20 km flat
+    elif kind == 8:
+        points = np.c_[rng.uniform(-1.0, 1.0, (n, 2)), rng.uniform(-1e6, 1e6, n)]  # 2000 km tall
+    elif kind == 9:
+        points = np.c_[np.linspace(0.0, 1e6, n), np.zeros((n, 2))]  # a line
+    elif kind == 10:
+        points = np.full((n, 3), -0.0)
+    elif kind == 11:
+        points = normal.astype(np.float32)
+    elif kind == 12:
+        points = rng.uniform(-3e38, 3e38, (n, 3)).astype(np.float32)  # float32's extremes
+    elif kind == 13:
+        points = normal
+        points[:, 2] = rng.choice([0.0, 5.0, 1e9], n)  # layers far apart
+    else:
+        points = normal
+    return np.asfortranarray(points) if rng.random() < 0.2 else points
+
+
+def pose(rng: np.random.Generator) -> np.ndarray:
+    """A 4x4 pose: identity, shifted (up to 1e300), turned, non-rigid or NaN."""
+    matrix = np.eye(4)
+    kind = int(rng.integers(0, 6))
+    if kind == 1:
+        matrix[:3, 3] = rng.normal(0.0, 10.0, 3)
+    elif kind == 2:
+        matrix[:3, 3] = 10.0 ** rng.integers(5, 300) * rng.normal(0.0, 1.0, 3)
+    elif kind == 3:
+        yaw = rng.uniform(-3.2, 3.2)
+        matrix[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
+    elif kind == 4:
+        matrix[0, 0] = 2.0
+    elif kind == 5:
+        matrix[:3, 3] = math.nan
+    return matrix
+
+
+def perturb(params, rng: np.random.Generator, share: float = 0.08):
+    """A copy of a parameter dataclass with about `share` of its numbers set to extremes."""
+    changes = {}
+    for field in dataclasses.fields(params):
+        value = getattr(params, field.name)
+        if dataclasses.is_dataclass(value):
+            changes[field.name] = perturb(value, rng, share)
+        elif rng.random() < share:
+            if isinstance(value, bool):
+                changes[field.name] = not value
+            elif isinstance(value, int):
+                changes[field.name] = int(rng.choice(INTEGERS))
+            elif isinstance(value, float):
+                changes[field.name] = float(rng.choice(FLOATS))
+    try:
+        return dataclasses.replace(params, **changes)
+    except (ValueError, TypeError):  # refused at once: as good as a refusal later
+        return params
+
+
+def _function_case(tc, rng: np.random.Generator, points: np.ndarray) -> None:
+    """One function with extreme arguments."""
+    which = int(rng.integers(0, 11))
+    edge = float(rng.choice([0.5, 0.1, 1e-3, 1e-9, 100.0, 1e300, 0.0, -1.0, math.nan]))
+    sigma = int(rng.choice([1, 2, 4, 100, 10**9, 0]))
+    resolution = float(rng.choice([0.1, 1.0, 1e-4, 1e-12, 1e6, 0.0, math.inf]))
+    drop = bool(rng.random() < 0.5)
+    if which == 0:
+        method = str(rng.choice(["paper", "shadow_aware"]))
+        tc.collapse_overhangs(points, edge, sigma, drop_non_finite=drop, method=method, transform=pose(rng))
+    elif which == 1:
+        tc.classify_terrain(tc.build_elevation_map(points, resolution, drop_non_finite=drop))
+    elif which == 2:
+        tc.dem_without_overhangs(points, edge, sigma, resolution)
+    elif which == 3:
+        local = tc.LocalMap(float(rng.choice([20.0, 1.0, 0.05, 1e4])), float(rng.choice([0.1, 1.0, 1e-3])))
+        for _ in range(3):
+            local.update(points, pose(rng))
+        local.update_planner_layers()
+    elif which == 4:
+        tc.register_points(points, cloud(rng), initial=pose(rng))
+    elif which == 5:
+        source = tc.build_elevation_map(points, resolution, drop_non_finite=drop)
+        target = tc.build_elevation_map(cloud(rng), resolution, drop_non_finite=drop)
+        tc.register_maps(source, target, initial=pose(rng))
+    elif which == 6:
+        tc.fit_fuzzy_elevation_map(points)
+    elif which == 7:
+        tc.point_based_overhangs(points, edge, sigma)
+    elif which == 8:
+        tc.octomap_column_overhangs(points, edge, sigma)
+    elif which == 9:
+        tc.add_traversability_layers(tc.build_elevation_map(points, resolution, drop_non_finite=drop))
+    else:
+        tc.run_mapper([points, cloud(rng)], [pose(rng), pose(rng)])
+
+
+def _parameter_case(tc, rng: np.random.Generator, points: np.ndarray) -> None:
+    """A stage with a parameter struct whose fields are partly extreme."""
+    which = int(rng.integers(0, 9))
+    if which == 0:
+        method = str(rng.choice(["paper", "shadow_aware"]))
+        tc.collapse_overhangs(points, params=perturb(tc.CollapseParams(method=method), rng))
+    elif which == 1:
+        elevation_map = tc.build_elevation_map(
+            points, params=perturb(tc.ElevationParams(drop_non_finite=True), rng)
+        )
+        tc.classify_terrain(elevation_map, perturb(tc.TerrainParams(), rng))
+    elif which == 2:
+        local = tc.LocalMap(params=perturb(tc.LocalMapParams(length=float(rng.choice([2.0, 20.0]))), rng))
+        for _ in range(3):
+            local.update(points, pose(rng), stamp=float(rng.choice([math.nan, 0.0, 1e9, -5.0, 1e300])))
+    elif which == 3:
+        tc.register_points(points, cloud(rng), params=perturb(tc.RegistrationParams(), rng))
+    elif which == 4:
+        source = tc.build_elevation_map(points, 0.2, drop_non_finite=True)
+        target = tc.build_elevation_map(cloud(rng), 0.2, drop_non_finite=True)
+        tc.register_maps(source, target, params=perturb(tc.RegistrationParams(), rng))
+    elif which == 5:
+        tc.fit_fuzzy_elevation_map(points, perturb(tc.FuzzyParams(), rng))
+    elif which == 6:
+        mapper = tc.Mapper(perturb(tc.MapperParams(), rng))
+        for _ in range(3):
+            mapper.add_scan(points, pose(rng))
+        mapper.global_map()
+    elif which == 7:
+        collapse, elevation = perturb(tc.CollapseParams(), rng), perturb(tc.ElevationParams(), rng)
+        tc.dem_without_overhangs(points, collapse=collapse, elevation=elevation)
+    else:
+        elevation_map = tc.build_elevation_map(points, 0.2, drop_non_finite=True)
+        tc.add_traversability_layers(elevation_map, perturb(tc.TraversabilityParams(), rng))
+
+
+def run_case(seed: int) -> None:
+    """The case of `seed`: raises whatever terracube raises."""
+    import terracube as tc
+
+    rng = np.random.default_rng(seed)
+    points = cloud(rng)
+    (_function_case if rng.random() < 0.5 else _parameter_case)(tc, rng, points)
+
+
+WORKER = """
+import json, signal, sys
+sys.path.insert(0, {python!r})
+sys.path.insert(0, {fuzz!r})
+import numpy as np
+import fuzz_api
+
+class Alarm(Exception):
+    pass
+
+def on_alarm(*_):
+    raise Alarm()
+
+signal.signal(signal.SIGALRM, on_alarm)
+np.seterr(all="ignore")  # numpy's own overflow warnings on extreme clouds are not findings
+print(json.dumps({{"ready": True}}), flush=True)
+for line in sys.stdin:
+    signal.alarm({alarm})
+    try:
+        fuzz_api.run_case(int(line))
+        outcome = {{"outcome": "read"}}
+    except (ValueError, TypeError, KeyError):
+        outcome = {{"outcome": "rejected"}}
+    except Alarm:
+        outcome = {{"outcome": "failure", "error": "alarm: no answer within {alarm} s"}}
+    except BaseException as error:
+        outcome = {{"outcome": "failure", "error": f"{{type(error).__name__}}: {{str(error)[:300]}}"}}
+    finally:
+        signal.alarm(0)
+    print(json.dumps(outcome), flush=True)
+"""
+
+
+def fuzz(work, *, seed: int, cases: int | None, seconds: float | None) -> tuple[int, list[tuple[int, str]]]:
+    """Runs cases seed, seed + 1, ... until ``cases`` are done or ``seconds`` have passed.
+    Returns (cases run, [(case seed, error)])."""
+    from pathlib import Path
+
+    import fuzz_readers
+
+    work = Path(work)
+    work.mkdir(parents=True, exist_ok=True)
+    code = WORKER.format(
+        python=str(fuzz_readers.package_root()),
+        fuzz=str(Path(__file__).resolve().parent),
+        alarm=int(CASE_SECONDS),
+    )
+
+    def worker():
+        return fuzz_readers.Worker(work / "api-worker-stderr.txt", code, MEMORY_LIMIT_BYTES, CASE_SECONDS)
+
+    current = worker()
+    findings: list[tuple[int, str]] = []
+    start, done = time.monotonic(), 0
+    try:
+        while (cases is None or done < cases) and (seconds is None or time.monotonic() - start < seconds):
+            answer = current.run(str(seed + done))
+            if answer["outcome"] == "failure":
+                findings.append((seed + done, answer["error"]))
+                if answer.get("worker_lost"):
+                    current = worker()
+            done += 1
+    finally:
+        current.close()
+    return done, findings
