@@ -145,11 +145,27 @@ def mutate(data: bytes, rng: random.Random) -> bytes:
 
 # ----------------------------------------------------------------------------------------- worker
 
+REFUSALS = (ValueError, FileNotFoundError)  # what a reader may answer a bad file with
+
+
+def answer_case(path: str) -> None:
+    """One reader case: the file at `path` read as a cloud, or as a config when it is YAML."""
+    from terracube.config import load_config
+    from terracube.io import read_cloud
+
+    if path.endswith(".yaml"):
+        load_config(path)
+    else:
+        read_cloud(path)
+
+
+# A fuzzer's worker: `module` (this one or fuzz_api) answers one case a line with answer_case();
+# its REFUSALS are "rejected", anything else a failure.
 WORKER = """
 import json, signal, sys
 sys.path.insert(0, {python!r})
-from terracube.config import load_config
-from terracube.io import read_cloud
+sys.path.insert(0, {fuzz!r})
+from {module} import REFUSALS, answer_case
 
 class Alarm(Exception):
     pass
@@ -160,15 +176,11 @@ def on_alarm(*_):
 signal.signal(signal.SIGALRM, on_alarm)
 print(json.dumps({{"ready": True}}), flush=True)
 for line in sys.stdin:
-    path = line.strip()
     signal.alarm({alarm})
     try:
-        if path.endswith(".yaml"):
-            load_config(path)
-        else:
-            read_cloud(path)
+        answer_case(line.strip())
         outcome = {{"outcome": "read"}}
-    except (ValueError, FileNotFoundError) as error:
+    except REFUSALS:
         outcome = {{"outcome": "rejected"}}
     except Alarm:
         outcome = {{"outcome": "failure", "error": "alarm: no answer within {alarm} s"}}
@@ -181,17 +193,22 @@ for line in sys.stdin:
 
 
 class Worker:
-    """A subprocess that answers one case per line it is sent (the file readers' ``WORKER`` by
-    default, or the API fuzzer's), under a memory limit and a per-case alarm."""
+    """A subprocess that answers one case per line it is sent with `module`'s answer_case() (this
+    module's file reader, or fuzz_api's calls), under a memory limit and a per-case alarm."""
 
     def __init__(
         self,
         stderr: Path,
-        code: str | None = None,
+        module: str = "fuzz_readers",
         memory_limit: int = MEMORY_LIMIT_BYTES,
         case_seconds: float = CASE_SECONDS,
     ):
-        code = code or WORKER.format(python=str(package_root()), alarm=int(CASE_SECONDS))
+        code = WORKER.format(
+            python=str(package_root()),
+            fuzz=str(Path(__file__).resolve().parent),
+            module=module,
+            alarm=int(case_seconds),
+        )
         self.stderr_path = stderr
         self.case_seconds = case_seconds
 
