@@ -2,14 +2,16 @@
 
 Every call must answer with a result or a ``ValueError`` / ``TypeError`` / ``KeyError`` naming the
 problem, in bounded time and memory: never another exception (``MemoryError`` from an allocation
-the input asked for, ``OverflowError``, ``RuntimeError``), a crash or a hang. A case is drawn from its
-seed alone: a cloud (empty, one point, all equal, 1e300 or 1e-300 wide, NaN/Inf rows, float32
+the input asked for, ``OverflowError``, ``RuntimeError``), a crash or a hang. A case is drawn from
+its seed alone: a cloud (empty, one point, all equal, 1e300 or 1e-300 wide, NaN/Inf rows, float32
 extremes, Fortran order), a pose (shifted, turned, non-rigid, NaN) and either extreme arguments of
-one function or the defaults of a parameter struct with a few fields set to 0, -1, NaN, +-inf,
-1e300, 2^31 ... Cases run in the reader fuzzer's worker (a subprocess under a memory limit and an
-alarm, restarted after a crash); a failure replays with ``run_case(seed)``.
+one function, the defaults of a parameter struct with a few fields set to 0, -1, NaN, +-inf, 1e300,
+2^31 ..., or maps, local maps, fuzzy maps and files used with such values. Cases run in the reader
+fuzzer's worker (a subprocess under a memory limit and an alarm, restarted after a crash), which
+calls ``answer_case``; a failure replays with ``run_case(seed)``.
 
-Used by ``tests/fuzz/run.py --target api`` (a bounded run for CI) and ``tests/python/test_fuzz_quick.py``.
+Used by ``tests/fuzz/run.py --target api`` (a bounded run for CI) and
+``tests/python/test_fuzz_quick.py``.
 """
 
 from __future__ import annotations
@@ -174,13 +176,61 @@ def _parameter_case(tc, rng: np.random.Generator, points: np.ndarray) -> None:
         tc.add_traversability_layers(elevation_map, perturb(tc.TraversabilityParams(), rng))
 
 
+def _object_case(tc, rng: np.random.Generator, points: np.ndarray) -> None:
+    """Maps, local maps, fuzzy maps and files used with hostile values."""
+    import tempfile
+    from pathlib import Path
+
+    value = float(rng.choice(FLOATS))
+    which = int(rng.integers(0, 6))
+    if which == 0:
+        size = [int(rng.choice([0, 1, 3, 2**31, -1])), int(rng.choice([0, 2, 5]))]
+        empty = tc.ElevationMap.empty(float(rng.choice([0.1, value])), (value, 0.0), size)
+        empty["mean"] = np.full(tuple(empty.geometry.size), value, dtype=rng.choice([np.float32, np.float64]))
+        empty["other"] = rng.normal(0.0, 1.0, (int(rng.integers(0, 4)), 3))  # often the wrong shape
+        tc.points_of_map(empty)
+        tc.classify_terrain(empty)
+    elif which == 1:
+        local = tc.LocalMap(length=2.0)
+        local.update(points, pose(rng))
+        local.index_of((value, float(rng.choice(FLOATS))))
+        local.position_of((int(rng.choice(INTEGERS)), int(rng.choice(INTEGERS))))
+        local.move_to((value, 0.0))
+        tc.classify_terrain(local.to_elevation_map(), reference="local_ground")
+    elif which == 2:
+        fem = tc.fit_fuzzy_elevation_map(points)
+        fem.evaluate(cloud(rng)[:, :2] if rng.random() < 0.5 else np.full((3, 2), value))
+    elif which == 3:
+        elevation_map = tc.build_elevation_map(points, float(rng.choice([0.1, 1.0])), drop_non_finite=True)
+        with tempfile.TemporaryDirectory() as folder:
+            loaded = tc.ElevationMap.load(elevation_map.save(Path(folder) / "map.npz"))
+            assert loaded.layers == elevation_map.layers
+    elif which == 4:
+        with tempfile.TemporaryDirectory() as folder:
+            path = tc.io.write_pcd(
+                Path(folder) / "cloud.pcd", {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2]}
+            )
+            back = tc.io.read_points(path)
+            assert back.shape == (len(points), 3)
+    else:
+        with tempfile.TemporaryDirectory() as folder:
+            path = tc.io.write_kitti_bin(Path(folder) / "scan.bin", points)
+            assert tc.io.read_points(path).shape == (len(points), 3)
+
+
 def run_case(seed: int) -> None:
     """The case of `seed`: raises whatever terracube raises."""
     import terracube as tc
 
     rng = np.random.default_rng(seed)
     points = cloud(rng)
-    (_function_case if rng.random() < 0.5 else _parameter_case)(tc, rng, points)
+    family = rng.random()
+    if family < 0.4:
+        _function_case(tc, rng, points)
+    elif family < 0.8:
+        _parameter_case(tc, rng, points)
+    else:
+        _object_case(tc, rng, points)
 
 
 REFUSALS = (ValueError, TypeError, KeyError)  # what a call may answer bad arguments with
