@@ -131,11 +131,13 @@ LOW_FILL_RATIO = 0.02
 def auto_extent(points: np.ndarray, config) -> tuple[list[float], list[int]] | None:
     """(origin [m], size [cells]) of the automatic map window of ``points`` in the config's frame, or
     None when no point is inside the crop box. See :data:`AUTO_EXTENT_PERCENTILES`."""
+    resolution = float(config.elevation.resolution)
+    if not (resolution > 0 and math.isfinite(resolution)):  # checked here: the window divides by it
+        raise ValueError(f"resolution must be a positive finite length in metres, got {resolution:g}")
     leveled, inside = leveled_points(points, config)
     xy = leveled[inside, :2]
     if len(xy) == 0:
         return None
-    resolution = float(config.elevation.resolution)
     low, high = np.percentile(xy, AUTO_EXTENT_PERCENTILES, axis=0)
     margin = np.maximum(AUTO_EXTENT_MARGIN * (high - low), 2.0 * resolution)
     low = np.maximum(low - margin, xy.min(axis=0))

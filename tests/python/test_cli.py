@@ -122,6 +122,16 @@ def test_a_bad_edge_exits_with_code_2(runner, tmp_path):
     assert "edge" in result.output
 
 
+@pytest.mark.parametrize("resolution", ["nan", "0", "-0.1", "inf"])
+def test_a_bad_resolution_is_named_not_blamed_on_the_map_window(runner, tmp_path, resolution):
+    # The automatic map window divides by it: NaN used to come out as "origin must be two finite
+    # coordinates" (and a numpy warning).
+    path, _ = _scan(tmp_path)
+    result = runner.invoke(app, ["dem", str(path), "-o", str(tmp_path), "-r", resolution])
+    assert result.exit_code == 2
+    assert "resolution must be a positive finite length in metres" in result.output
+
+
 # --------------------------------------------------------------------------------------------
 # register, fem, view, classified clouds, GeoTIFF, the console script
 # --------------------------------------------------------------------------------------------
