@@ -132,9 +132,11 @@ class FrameParams:
         """(N,) bool: the points whose distance from the sensor lies in [min_range, max_range]."""
         xyz = np.asarray(points)[:, :3]
         squared = np.einsum("ij,ij->i", xyz, xyz, dtype=np.float64)
-        keep = squared >= float(self.min_range) ** 2  # NaN compares False: dropped too
+        nearest = float(self.min_range)  # x * x: inf for 1e300, where ** 2 raises
+        keep = squared >= nearest * nearest  # NaN compares False: dropped too
         if self.max_range is not None:
-            keep &= squared <= float(self.max_range) ** 2
+            farthest = float(self.max_range)
+            keep &= squared <= farthest * farthest
         return keep
 
 

@@ -128,12 +128,19 @@ AUTO_EXTENT_MARGIN = 0.1
 LOW_FILL_RATIO = 0.02
 
 
+def checked_resolution(config) -> float:
+    """The config's map resolution [m]; a ValueError naming it unless positive and finite (checked
+    before anything divides by it)."""
+    resolution = float(config.elevation.resolution)
+    if not (resolution > 0 and math.isfinite(resolution)):
+        raise ValueError(f"resolution must be a positive finite length in metres, got {resolution:g}")
+    return resolution
+
+
 def auto_extent(points: np.ndarray, config) -> tuple[list[float], list[int]] | None:
     """(origin [m], size [cells]) of the automatic map window of ``points`` in the config's frame, or
     None when no point is inside the crop box. See :data:`AUTO_EXTENT_PERCENTILES`."""
-    resolution = float(config.elevation.resolution)
-    if not (resolution > 0 and math.isfinite(resolution)):  # checked here: the window divides by it
-        raise ValueError(f"resolution must be a positive finite length in metres, got {resolution:g}")
+    resolution = checked_resolution(config)  # the window divides by it
     leveled, inside = leveled_points(points, config)
     xy = leveled[inside, :2]
     if len(xy) == 0:
@@ -185,7 +192,7 @@ def terrain_params(config):
         if terrain.reference == "sensor_height":
             return terrain, f"sensor height {terrain.sensor_height:g} m"
         return terrain, f"local ground, {terrain.local_ground_radius} cells"
-    radius = max(3, round(ESTIMATED_GROUND_WINDOW_M / float(config.elevation.resolution)))
+    radius = max(3, round(ESTIMATED_GROUND_WINDOW_M / checked_resolution(config)))
     estimated = dataclasses.replace(terrain, reference="local_ground", local_ground_radius=radius)
     return estimated, (
         f"local ground, {radius} cells (estimated: no sensor height given; "
@@ -216,7 +223,8 @@ def range_note(points: np.ndarray, keep: np.ndarray, frame) -> str | None:
     xyz = np.asarray(points)[~keep, :3]
     zeros = int(np.count_nonzero(np.all(xyz == 0, axis=1)))
     squared = np.einsum("ij,ij->i", xyz, xyz, dtype=np.float64)
-    far = int(np.count_nonzero(squared > float(frame.max_range) ** 2)) if frame.max_range is not None else 0
+    farthest = float(frame.max_range) if frame.max_range is not None else math.inf
+    far = int(np.count_nonzero(squared > farthest * farthest))  # x * x: inf for 1e300, where ** 2 raises
     parts = [f"{zeros:,} no-returns at (0, 0, 0)"] if zeros else []
     near = dropped - zeros - far
     if near:
@@ -240,8 +248,8 @@ def fill_note(elevation_map) -> str | None:
         return None
     points = float(count.sum())
     resolution = float(elevation_map.geometry.resolution)
-    density = points / (count.size * resolution**2)  # points per m2 over the map
-    suggested = max(resolution, math.ceil(10 * math.sqrt(4.0 / density)) / 10)
+    density = points / (count.size * resolution * resolution)  # points per m2 over the map (0 at 1e300 m)
+    suggested = max(resolution, math.ceil(10 * math.sqrt(4.0 / density)) / 10) if density > 0 else resolution
     if filled < LOW_FILL_RATIO * count.size:
         return (
             f"  warning: only {filled / count.size:.1%} of the {count.size:,} cells hold data; a smaller "

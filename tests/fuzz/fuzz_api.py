@@ -6,9 +6,10 @@ the input asked for, ``OverflowError``, ``RuntimeError``), a crash or a hang. A 
 its seed alone: a cloud (empty, one point, all equal, 1e300 or 1e-300 wide, NaN/Inf rows, float32
 extremes, Fortran order), a pose (shifted, turned, non-rigid, NaN) and either extreme arguments of
 one function, the defaults of a parameter struct with a few fields set to 0, -1, NaN, +-inf, 1e300,
-2^31 ..., or maps, local maps, fuzzy maps and files used with such values. Cases run in the reader
-fuzzer's worker (a subprocess under a memory limit and an alarm, restarted after a crash), which
-calls ``answer_case``; a failure replays with ``run_case(seed)``.
+2^31 ..., maps, local maps, fuzzy maps and files used with such values, or a command line
+(collapse, dem, classify, fem) with such options, which must exit 0 or 2 (``CommandFailed``).
+Cases run in the reader fuzzer's worker (a subprocess under a memory limit and an alarm,
+restarted after a crash), which calls ``answer_case``; a failure replays with ``run_case(seed)``.
 
 Used by ``tests/fuzz/run.py --target api`` (a bounded run for CI) and
 ``tests/python/test_fuzz_quick.py``.
@@ -218,6 +219,108 @@ def _object_case(tc, rng: np.random.Generator, points: np.ndarray) -> None:
             assert tc.io.read_points(path).shape == (len(points), 3)
 
 
+#: Options of the single-scan commands that take numbers (and a few words), and the values tried.
+COMMAND_OPTIONS = {
+    "collapse": [
+        "--edge",
+        "--sigma",
+        "--robot-height",
+        "--min-range",
+        "--max-range",
+        "--roll",
+        "--pitch",
+        "--num-threads",
+        "--method",
+        "--crop",
+    ],
+    "dem": [
+        "--resolution",
+        "--origin",
+        "--size",
+        "--edge",
+        "--sigma",
+        "--robot-height",
+        "--min-range",
+        "--max-range",
+        "--roll",
+        "--pitch",
+        "--crop",
+        "--num-threads",
+        "--method",
+    ],
+    "classify": [
+        "--resolution",
+        "--origin",
+        "--size",
+        "--sensor-height",
+        "--reference",
+        "--ground-radius",
+        "--ground-height",
+        "--high-height",
+        "--std-dev",
+        "--edge",
+        "--sigma",
+        "--num-threads",
+        "--crop",
+    ],
+    "fem": ["--resolution", "--origin", "--size", "--rules", "--membership", "--edge", "--sigma", "--crop"],
+}
+COMMAND_VALUES = [
+    "nan",
+    "inf",
+    "-inf",
+    "0",
+    "-1",
+    "1e300",
+    "1e-300",
+    "2147483648",
+    "-0",
+    "0.5",
+    "3",
+    "abc",
+    "",
+]
+_scan_file: list = []
+
+
+class CommandFailed(Exception):
+    """A command ended with neither success (0) nor a named refusal (2)."""
+
+
+def _command_case(rng: np.random.Generator) -> None:
+    """A command line (collapse, dem, classify, fem) with one or two options set to hostile text:
+    it must exit 0 or 2 (an ``error:`` line), never 1 with a traceback."""
+    import tempfile
+    from pathlib import Path
+
+    from terracube.cli import app
+    from terracube.io import write_kitti_bin
+    from typer.testing import CliRunner
+
+    if not _scan_file:  # a small flat scan, written once per process
+        folder = Path(tempfile.mkdtemp(prefix="terracube-fuzz-cli-"))
+        ground = np.random.default_rng(0)
+        points = np.c_[ground.uniform(-20.0, 20.0, (3000, 2)), ground.normal(0.0, 0.2, 3000)]
+        _scan_file.append(write_kitti_bin(folder / "scan.bin", points.astype(np.float32)))
+    command = str(rng.choice(list(COMMAND_OPTIONS)))
+    args = [command, str(_scan_file[0]), "-o", str(_scan_file[0].parent / "out"), "--no-png"]
+    args += ["--epochs", "1"] if command == "fem" else []
+    numbers = COMMAND_VALUES[:11]
+    for option in rng.choice(COMMAND_OPTIONS[command], int(rng.integers(1, 3)), replace=False):
+        if option == "--size":
+            args += [option, str(rng.choice(numbers)), str(rng.choice(numbers))]
+        elif option in ("--origin", "--crop"):
+            args += [
+                option,
+                ",".join(str(rng.choice(numbers)) for _ in range(2 if option == "--origin" else 6)),
+            ]
+        else:
+            args += [option, str(rng.choice(COMMAND_VALUES))]
+    result = CliRunner().invoke(app, args)
+    if result.exit_code not in (0, 2) or not isinstance(result.exception, (SystemExit, type(None))):
+        raise CommandFailed(f"{' '.join(args[4:])}: exit {result.exit_code}, {result.exception!r}")
+
+
 def run_case(seed: int) -> None:
     """The case of `seed`: raises whatever terracube raises."""
     import terracube as tc
@@ -225,12 +328,14 @@ def run_case(seed: int) -> None:
     rng = np.random.default_rng(seed)
     points = cloud(rng)
     family = rng.random()
-    if family < 0.4:
+    if family < 0.35:
         _function_case(tc, rng, points)
-    elif family < 0.8:
+    elif family < 0.7:
         _parameter_case(tc, rng, points)
-    else:
+    elif family < 0.85:
         _object_case(tc, rng, points)
+    else:
+        _command_case(rng)
 
 
 REFUSALS = (ValueError, TypeError, KeyError)  # what a call may answer bad arguments with

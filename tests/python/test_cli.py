@@ -122,14 +122,28 @@ def test_a_bad_edge_exits_with_code_2(runner, tmp_path):
     assert "edge" in result.output
 
 
+@pytest.mark.parametrize("command", ["dem", "classify"])
 @pytest.mark.parametrize("resolution", ["nan", "0", "-0.1", "inf"])
-def test_a_bad_resolution_is_named_not_blamed_on_the_map_window(runner, tmp_path, resolution):
-    # The automatic map window divides by it: NaN used to come out as "origin must be two finite
-    # coordinates" (and a numpy warning).
+def test_a_bad_resolution_is_named_not_blamed_on_the_map_window(runner, tmp_path, command, resolution):
+    # The automatic map window and classify's ground window divide by it: NaN came out as "origin
+    # must be two finite coordinates", 0 as a ZeroDivisionError traceback.
     path, _ = _scan(tmp_path)
-    result = runner.invoke(app, ["dem", str(path), "-o", str(tmp_path), "-r", resolution])
-    assert result.exit_code == 2
+    result = runner.invoke(app, [command, str(path), "-o", str(tmp_path), "-r", resolution, "--no-png"])
+    assert result.exit_code == 2, result.output
     assert "resolution must be a positive finite length in metres" in result.output
+
+
+@pytest.mark.parametrize(
+    "options",
+    [["--max-range", "1e300"], ["--min-range", "1e300"], ["-r", "1e300"]],
+    ids=lambda o: " ".join(o),
+)
+def test_huge_ranges_and_cells_end_with_a_map_or_an_error_line_not_an_overflow(runner, tmp_path, options):
+    # 1e300 ** 2 raised OverflowError in the range filter and in the fill note (found by fuzzing).
+    path, _ = _scan(tmp_path)
+    result = runner.invoke(app, ["classify", str(path), "-o", str(tmp_path), "--no-png", *options])
+    assert result.exit_code in (0, 2) and not isinstance(result.exception, OverflowError), result.output
+    assert result.exit_code == 0 or "error:" in result.output
 
 
 # --------------------------------------------------------------------------------------------
