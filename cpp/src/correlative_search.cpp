@@ -83,8 +83,12 @@ struct OccupancyGrid {
     ny = static_cast<std::int64_t>(cells_y);
     occupied.assign(static_cast<std::size_t>(nx * ny), 0);
     for (const Eigen::Vector2d& q : fixed) {
-      const auto a = static_cast<std::int64_t>(std::floor((q.x() - origin.x()) / cell));
-      const auto b = static_cast<std::int64_t>(std::floor((q.y() - origin.y()) / cell));
+      // Inside by construction, up to rounding: at 1e300 m the margin is lost in (low / cell) - margin,
+      // and a target point could land on the grid's border (its neighbours beyond it). Such a point
+      // is left out rather than written out of bounds.
+      const double fa = std::floor((q.x() - origin.x()) / cell), fb = std::floor((q.y() - origin.y()) / cell);
+      if (!(fa >= 1.0 && fa < cells_x - 1.0 && fb >= 1.0 && fb < cells_y - 1.0)) continue;
+      const auto a = static_cast<std::int64_t>(fa), b = static_cast<std::int64_t>(fb);
       for (std::int64_t da = -1; da <= 1; ++da) {
         for (std::int64_t db = -1; db <= 1; ++db) occupied[static_cast<std::size_t>((a + da) * ny + b + db)] = 1;
       }

@@ -1426,6 +1426,12 @@ TEST(CorrelativeSearch, RejectsBadParametersAndGuesses) {
   const CorrelativeSearchResult wild = correlative_search(some, some, far);
   EXPECT_EQ(wild.transform, far);
   EXPECT_EQ(wild.score, 0U);
+  // Points 1e300 m out (a map of 1e300 m cells): the grid's margin is lost to rounding there, and
+  // its border points were written outside it (a heap overflow under ASan; found by fuzzing the
+  // command line's --resolution). Now nothing is written out of bounds; the guess comes back.
+  const ClassifiedPoints huge{{Eigen::Vector3d(-5e299, -5e299, 1), Eigen::Vector3d(-5e299, -5e299, 2)}, {2, 2}};
+  const CorrelativeSearchResult lost = correlative_search(huge, huge, identity);
+  EXPECT_TRUE(lost.transform.allFinite());
 }
 
 TEST(RegisterPoints, PaperIcpIsTheDefaultsWithoutSearchExtrapolationOrCoarseToFine) {

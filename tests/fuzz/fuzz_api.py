@@ -109,7 +109,7 @@ def _function_case(tc, rng: np.random.Generator, points: np.ndarray) -> None:
     which = int(rng.integers(0, 11))
     edge = float(rng.choice([0.5, 0.1, 1e-3, 1e-9, 100.0, 1e300, 0.0, -1.0, math.nan]))
     sigma = int(rng.choice([1, 2, 4, 100, 10**9, 0]))
-    resolution = float(rng.choice([0.1, 1.0, 1e-4, 1e-12, 1e6, 0.0, math.inf]))
+    resolution = float(rng.choice([0.1, 1.0, 1e-4, 1e-12, 1e6, 1e300, 0.0, math.inf]))
     drop = bool(rng.random() < 0.5)
     if which == 0:
         method = str(rng.choice(["paper", "shadow_aware"]))
