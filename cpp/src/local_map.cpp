@@ -562,6 +562,21 @@ void refresh_clearance(const LayerData& layer, std::size_t cells) {
   }
 }
 
+/// The origin cell of an n x n map centred on `position`: floor(position / resolution) - n / 2 per
+/// axis. Throws (naming `what`) unless the position is finite, within 1e12 m and within 2^52 cells
+/// of the origin (a finer resolution than that would overflow the cell index).
+Eigen::Matrix<std::int64_t, 2, 1> origin_cell_at(const Eigen::Vector2d& position, double resolution, int n,
+                                                 const std::string& what) {
+  const Eigen::Vector2d cells = position / resolution;
+  if (!position.allFinite() || (position.array().abs() > 1e12).any() || (cells.array().abs() > 0x1p52).any()) {
+    throw std::invalid_argument(what +
+                                " must be finite and within 1e12 m of the origin, and no more than 2^52 cells of " +
+                                detail::number_text(resolution) + " m from it");
+  }
+  return {static_cast<std::int64_t>(std::floor(cells.x())) - n / 2,
+          static_cast<std::int64_t>(std::floor(cells.y())) - n / 2};
+}
+
 }  // namespace
 
 LocalMap::LocalMap(const LocalMapParams& params) : params_(params) {
@@ -600,6 +615,11 @@ std::optional<CellIndex> LocalMap::index_of(const Eigen::Vector2d& position) con
 }
 
 Eigen::Vector2d LocalMap::position_of(const CellIndex& index) const {
+  if ((index.array() < 0).any() || (index.array() >= geometry_.size.array()).any()) {
+    throw std::out_of_range("LocalMap.position_of: (" + std::to_string(index.x()) + ", " + std::to_string(index.y()) +
+                            ") is not a cell of the " + std::to_string(geometry_.size.x()) + " x " +
+                            std::to_string(geometry_.size.y()) + " map");
+  }
   const CellIndex start = start_index();
   const std::int64_t gi = (index.x() - start.x() + geometry_.size.x()) % geometry_.size.x();
   const std::int64_t gj = (index.y() - start.y() + geometry_.size.y()) % geometry_.size.y();
@@ -618,13 +638,9 @@ void LocalMap::clear_cells(std::size_t first, std::size_t count, std::size_t str
 void LocalMap::clear() { clear_cells(0, geometry_.num_cells(), 1); }
 
 bool LocalMap::move_to(const Eigen::Vector2d& position) {
-  if (!position.allFinite() || (position.array().abs() > 1e12).any()) {
-    throw std::invalid_argument("LocalMap.move_to: the position must be finite (and within 1e12 m)");
-  }
   const int n = geometry_.size.x();
-  const Eigen::Matrix<std::int64_t, 2, 1> target(
-      static_cast<std::int64_t>(std::floor(position.x() / params_.resolution_m)) - n / 2,
-      static_cast<std::int64_t>(std::floor(position.y() / params_.resolution_m)) - n / 2);
+  const Eigen::Matrix<std::int64_t, 2, 1> target =
+      origin_cell_at(position, params_.resolution_m, n, "LocalMap.move_to: the position");
   const Eigen::Matrix<std::int64_t, 2, 1> shift = target - origin_cell_;
   const bool reset = std::abs(shift.x()) >= n || std::abs(shift.y()) >= n;
   if (reset) {
@@ -662,9 +678,6 @@ template <typename Scalar>
 LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose, double stamp_s) {
   detail::check_rigid_transform(pose, "pose");
   if (std::isinf(stamp_s)) throw std::invalid_argument("LocalMap.update: stamp must be finite (or NaN)");
-  if ((pose.block<2, 1>(0, 3).array().abs() > 1e12).any()) {
-    throw std::invalid_argument("LocalMap.update: the pose's position must be within 1e12 m");
-  }
   const double absolute_stamp = std::isnan(stamp_s) ? static_cast<double>(num_updates_) : stamp_s;
   // "time" is float: relative to the first update's stamp, ROS stamps (1.7e9 s) keep their ms.
   if (!time_origin_s_) time_origin_s_ = absolute_stamp;
@@ -672,8 +685,8 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
   const int n = geometry_.size.x();
   const double res = params_.resolution_m;
   const Eigen::Vector3d sensor = pose.block<3, 1>(0, 3);
-  const Eigen::Matrix<std::int64_t, 2, 1> target(static_cast<std::int64_t>(std::floor(sensor.x() / res)) - n / 2,
-                                                 static_cast<std::int64_t>(std::floor(sensor.y() / res)) - n / 2);
+  const Eigen::Matrix<std::int64_t, 2, 1> target =
+      origin_cell_at(sensor.head<2>(), res, n, "LocalMap.update: the pose's position");
   LocalMapUpdate report;
   report.num_points = points.size;
 

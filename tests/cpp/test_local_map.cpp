@@ -264,6 +264,8 @@ TEST(LocalMap, BadPosesAndRowsAreRefusedAndLeaveTheMapUnchanged) {
                std::invalid_argument);
   EXPECT_THROW(map.update(view, pose_at(0, 0, 1), std::numeric_limits<double>::infinity()), std::invalid_argument);
   EXPECT_THROW(map.move_to({kNaN, 0.0}), std::invalid_argument);
+  EXPECT_THROW(map.position_of(CellIndex(-1, 0)), std::out_of_range);
+  EXPECT_THROW(map.position_of(CellIndex(0, map.geometry().size.y())), std::out_of_range);
   const ElevationMap after = map.to_elevation_map();
   for (const std::string& name : before.layers()) {
     const Layer& a = before.get(name);
@@ -314,6 +316,19 @@ TEST(LocalMap, ParametersAreValidated) {
   LocalMap map;
   EXPECT_EQ(map.geometry().size.x(), 200);
   EXPECT_THROW(map.get("nope"), std::out_of_range);
+}
+
+TEST(LocalMap, APositionBeyondExactCellIndicesIsRefusedNotOverflowed) {
+  // At 1e-300 m cells, 10 m is 1e301 cells: its int64 index overflowed and the update hung (found
+  // by fuzzing). Refused before anything changes; near the origin the map still works.
+  LocalMapParams params;
+  params.length_m = 1e-298;
+  params.resolution_m = 1e-300;  // 100 x 100 cells
+  LocalMap map(params);
+  const std::vector<Eigen::Vector3d> scan = {{0, 0, 0}};
+  EXPECT_THROW(map.update(PointsView<double>(scan), pose_at(10.0, 0, 1)), std::invalid_argument);
+  EXPECT_THROW(map.move_to({10.0, 0.0}), std::invalid_argument);
+  EXPECT_NO_THROW(map.move_to({1e-299, 0.0}));
 }
 
 TEST(LocalMap, RangeLimitsLeaveTheRobotsOwnBodyAndFarReturnsOut) {

@@ -1,7 +1,7 @@
 """Seeded fuzzing of terracube's Python API with hostile clouds, poses and parameters.
 
-Every call must answer with a result or a ``ValueError`` / ``TypeError`` / ``KeyError`` naming the
-problem, in bounded time and memory: never another exception (``MemoryError`` from an allocation
+Every call must answer with a result or a ``ValueError`` / ``TypeError`` / ``KeyError`` /
+``IndexError`` naming the problem, in bounded time and memory: never another exception (``MemoryError`` from an allocation
 the input asked for, ``OverflowError``, ``RuntimeError``), a crash or a hang. A case is drawn from
 its seed alone: a cloud (empty, one point, all equal, 1e300 or 1e-300 wide, NaN/Inf rows, float32
 extremes, Fortran order), a pose (shifted, turned, non-rigid, NaN) and either extreme arguments of
@@ -338,7 +338,7 @@ def run_case(seed: int) -> None:
         _command_case(rng)
 
 
-REFUSALS = (ValueError, TypeError, KeyError)  # what a call may answer bad arguments with
+REFUSALS = (ValueError, TypeError, KeyError, IndexError)  # what a call may answer bad arguments with
 
 
 def answer_case(line: str) -> None:

@@ -127,7 +127,7 @@ class LocalMap {
   CellIndex start_index() const;
   /// Storage index of the cell holding `position` [m], or nothing outside the map.
   std::optional<CellIndex> index_of(const Eigen::Vector2d& position) const;
-  /// Centre [m] of the cell at storage index `index`.
+  /// Centre [m] of the cell at storage index `index`; std::out_of_range when it is no cell of the map.
   Eigen::Vector2d position_of(const CellIndex& index) const;
 
   /// A layer in storage order; std::out_of_range naming the missing layer.
@@ -138,8 +138,9 @@ class LocalMap {
   /// moves the map to the pose (see move_to), removes overhangs, clears cells seen through, fuses
   /// the kept points and refreshes the planner layers. `stamp_s` goes into "time" (NaN: the
   /// number of the update). An empty scan only moves the map. Throws std::invalid_argument on a
-  /// non-finite or non-rigid pose, NaN/Inf rows (unless collapse.drop_non_finite) or a non-finite
-  /// stamp other than NaN, before changing anything: a failed update leaves the map as it was.
+  /// non-finite or non-rigid pose (or a position move_to refuses), NaN/Inf rows (unless
+  /// collapse.drop_non_finite) or a non-finite stamp other than NaN, before changing anything: a
+  /// failed update leaves the map as it was.
   LocalMapUpdate update(const PointsView<float>& points, const Eigen::Matrix4d& pose,
                         double stamp_s = std::numeric_limits<double>::quiet_NaN());
   LocalMapUpdate update(const PointsView<double>& points, const Eigen::Matrix4d& pose,
@@ -147,7 +148,8 @@ class LocalMap {
 
   /// Centres the map on the cell of `position` [m]. Cells that leave are dropped, cells that
   /// enter are empty; a move by the map's size or more drops every cell (returns true then).
-  /// Throws std::invalid_argument on a non-finite position.
+  /// Throws std::invalid_argument unless the position is finite, within 1e12 m and within 2^52
+  /// cells of the origin (its cell index exact in a double).
   bool move_to(const Eigen::Vector2d& position);
   /// Drops every cell (the map stays where it is).
   void clear();
