@@ -1,13 +1,14 @@
 """Seeded fuzzing of terracube's Python API with hostile clouds, poses and parameters.
 
 Every call must answer with a result or a ``ValueError`` / ``TypeError`` / ``KeyError`` /
-``IndexError`` naming the problem, in bounded time and memory: never another exception (``MemoryError`` from an allocation
-the input asked for, ``OverflowError``, ``RuntimeError``), a crash or a hang. A case is drawn from
-its seed alone: a cloud (empty, one point, all equal, 1e300 or 1e-300 wide, NaN/Inf rows, float32
-extremes, Fortran order), a pose (shifted, turned, non-rigid, NaN) and either extreme arguments of
-one function, the defaults of a parameter struct with a few fields set to 0, -1, NaN, +-inf, 1e300,
-2^31 ..., maps, local maps, fuzzy maps and files used with such values, or a command line
-(collapse, dem, classify, fem) with such options, which must exit 0 or 2 (``CommandFailed``).
+``IndexError`` naming the problem, in bounded time and memory: never another exception
+(``MemoryError`` from an allocation the input asked for, ``OverflowError``, ``RuntimeError``), a
+crash or a hang. A case is drawn from its seed alone: a cloud (empty, one point, all equal, 1e300
+or 1e-300 wide, NaN/Inf rows, float32 extremes, Fortran order), a pose (shifted, turned,
+non-rigid, NaN) and either extreme arguments of one function, the defaults of a parameter struct
+with a few fields set to 0, -1, NaN, +-inf, 1e300, 2^31 ..., maps, local maps, fuzzy maps and files
+used with such values, or a command line (collapse, dem, classify, fem) with such options, which
+must exit 0 or 2 (``CommandFailed``).
 Cases run in the reader fuzzer's worker (a subprocess under a memory limit and an alarm,
 restarted after a crash), which calls ``answer_case``; a failure replays with ``run_case(seed)``.
 
