@@ -135,6 +135,10 @@ void lane_minimum(const std::int32_t* a, const std::int32_t* b, std::int64_t lan
 /// lines' minima are contiguous loops, also when the lines are the grid's columns.
 void line_minimum(const std::int32_t* in, std::ptrdiff_t stride, std::int64_t n, std::int64_t lanes,
                   std::int64_t radius, std::int32_t* out, std::vector<std::int32_t>& buffer) {
+  if (n <= 0) return;
+  // A window reaching past both ends is the whole line: the same minima with radius n - 1, and a
+  // grid two million columns long and one wide no longer pads its columns by millions of kNone.
+  radius = std::min(radius, n - 1);
   const std::int64_t width = 2 * radius + 1, padded = n + 2 * radius;
   buffer.resize(static_cast<std::size_t>(3 * padded * lanes));
   std::int32_t* const line = buffer.data();              // the lines with radius kNone on each side

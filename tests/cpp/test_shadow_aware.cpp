@@ -209,6 +209,26 @@ TEST(ShadowAware, HostileCloudsAndParametersGiveAResultOrAStandardException) {
   EXPECT_GT(returned, 20);
 }
 
+TEST(ShadowAware, AGroundWindowWiderThanTheCloudIsTheWholeCloud) {
+  // A 200 km long, one column wide cloud with a ground radius of 1e9 m: the window's minima padded
+  // each column by 2 x 400,000 empty cubes, band after band (hours; found by fuzzing). A window
+  // past both ends of a line is the whole line: the same result as a radius just covering it.
+  Points points;
+  for (int k = 0; k <= 400; ++k) {
+    points.push_back({500.0 * k, 0.0, 0.0});
+    if (k % 2 == 0) points.push_back({500.0 * k, 0.0, 6.0});  // something overhead in half the columns
+  }
+  CollapseParams params = shadow_aware_params(2);
+  params.shadow_aware.sensor_origin = Eigen::Vector3d(0.0, 0.0, 1.7);
+  params.shadow_aware.azimuth_bins = 1;
+  params.shadow_aware.ground_radius_m = 1e9;
+  const CollapseResult wide = collapse_overhangs(points, params);
+  params.shadow_aware.ground_radius_m = 2.1e5;  // just over the cloud's length
+  const CollapseResult covering = collapse_overhangs(points, params);
+  EXPECT_EQ(wide.overhang, covering.overhang);
+  EXPECT_EQ(wide.cube_reasons, covering.cube_reasons);
+}
+
 TEST(ShadowAware, ThePaperMethodLeavesNoReasons) {
   Points points;
   add_grid(points, 0, 4, 0, 4, 0.0);
