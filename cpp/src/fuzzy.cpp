@@ -13,6 +13,9 @@ namespace terracube {
 
 namespace {
 
+/// The most hybrid-learning epochs one fit runs (see check_params).
+constexpr int kMaxEpochs = 100000;
+
 /// MFs evaluated per coordinate: 2 for triangles, the 5 nearest for Gaussians.
 constexpr int kWindow = 5;
 constexpr int kGaussianHalfWindow = 2;
@@ -126,7 +129,12 @@ void check_params(const FuzzyParams& p) {
   if (!(p.gaussian_width > 0.0) || !std::isfinite(p.gaussian_width)) {
     throw std::invalid_argument("gaussian_width must be a positive fraction of the centre spacing");
   }
-  if (p.epochs < 0) throw std::invalid_argument("epochs must not be negative");
+  // Every epoch is run (no early stop) and keeps its RMSE: 10^9 epochs ran for days and grew the
+  // history without bound. Hybrid learning settles within tens to hundreds of epochs.
+  if (p.epochs < 0 || p.epochs > kMaxEpochs) {
+    throw std::invalid_argument("epochs must be 0.." + std::to_string(kMaxEpochs) + ", got " +
+                                std::to_string(p.epochs));
+  }
   if (!(p.learning_rate > 0.0) || !std::isfinite(p.learning_rate)) {
     throw std::invalid_argument("learning_rate must be a positive finite fraction of the centre spacing");
   }

@@ -43,7 +43,7 @@ class FuzzyParams:
     gaussian_width : float
         Gaussian width as a fraction of the initial centre spacing (0.5).
     epochs : int
-        Hybrid-learning epochs; 0 = least squares only on uniformly spaced centres (10).
+        Hybrid-learning epochs, 0 to 100000; 0 = least squares only on uniformly spaced centres (10).
     learning_rate : float
         Initial gradient step as a fraction of the smaller centre spacing (0.1).
     ridge : float

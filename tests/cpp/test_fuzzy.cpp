@@ -303,6 +303,7 @@ TEST(FitFuzzyElevationMap, RejectsNanRowsAndBadParameters) {
   };
   expect_bad([](FuzzyParams& p) { p.rules_x = 1; }, "at least 2 x 2 rules");
   expect_bad([](FuzzyParams& p) { p.epochs = -1; }, "epochs");
+  expect_bad([](FuzzyParams& p) { p.epochs = 1000000000; }, "epochs must be 0..100000");  // days, and its history
   expect_bad([](FuzzyParams& p) { p.learning_rate = 0.0; }, "learning_rate");
   expect_bad([](FuzzyParams& p) { p.ridge = -1.0; }, "ridge");
   expect_bad([](FuzzyParams& p) { p.smoothness = std::nan(""); }, "smoothness");

@@ -82,7 +82,7 @@ struct FuzzyParams {
   MembershipFamily membership = MembershipFamily::kTriangularPartition;
   /// Gaussian width s as a fraction of the initial centre spacing, > 0 (kGaussian only).
   double gaussian_width = 0.5;
-  /// Hybrid-learning epochs, >= 0; 0 = least squares only on uniformly spaced centres.
+  /// Hybrid-learning epochs, 0..100000; 0 = least squares only on uniformly spaced centres.
   int epochs = 10;
   StepRule step_rule = StepRule::kGuarded;
   /// Initial gradient step kappa as a fraction of the smaller initial centre spacing, > 0.
