@@ -85,11 +85,19 @@ def pose(rng: np.random.Generator) -> np.ndarray:
     return matrix
 
 
+#: Memory guards: raising them is the caller's choice to allow that much memory (a MemoryError
+#: is then the honest answer), so they keep their defaults.
+MEMORY_GUARDS = ("max_cells", "dense_budget_bytes")
+
+
 def perturb(params, rng: np.random.Generator, share: float = 0.08):
-    """A copy of a parameter dataclass with about `share` of its numbers set to extremes."""
+    """A copy of a parameter dataclass with about `share` of its numbers (not its memory guards)
+    set to extremes."""
     changes = {}
     for field in dataclasses.fields(params):
         value = getattr(params, field.name)
+        if field.name in MEMORY_GUARDS:
+            continue
         if dataclasses.is_dataclass(value):
             changes[field.name] = perturb(value, rng, share)
         elif rng.random() < share:
