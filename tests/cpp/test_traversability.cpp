@@ -158,6 +158,16 @@ TEST(Traversability, BadCallsThrowNamingTheProblem) {
   huge.footprint_radius_m = 0.255;  // 511 cells: the widest window taken
   add_traversability_layers(fine, huge);
   EXPECT_EQ(fine.get("step")(0, 0), 0.0F);
+  // A window's rows of two million cells each would need 7 x 2e6 x 80 bytes of sums: refused.
+  ElevationMap wide(MapGeometry{0.1, Eigen::Vector2d::Zero(), CellIndex(7, 2000000)});
+  wide.add("mean", 0.0F);
+  try {
+    add_traversability_layers(wide);
+    FAIL();
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("would need over 1 GB"), std::string::npos) << e.what();
+  }
+  EXPECT_FALSE(wide.exists("step"));  // refused before any layer is added
 }
 
 }  // namespace

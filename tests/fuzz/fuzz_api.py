@@ -229,50 +229,23 @@ def _object_case(tc, rng: np.random.Generator, points: np.ndarray) -> None:
 
 
 #: Options of the single-scan commands that take numbers (and a few words), and the values tried.
+_OVERHANG_OPTIONS = ("--edge", "--sigma", "--robot-height", "--method", "--crop", "--num-threads")
+_RANGE_OPTIONS = ("--min-range", "--max-range", "--roll", "--pitch")
+_MAP_OPTIONS = ("--resolution", "--origin", "--size")
 COMMAND_OPTIONS = {
-    "collapse": [
-        "--edge",
-        "--sigma",
-        "--robot-height",
-        "--min-range",
-        "--max-range",
-        "--roll",
-        "--pitch",
-        "--num-threads",
-        "--method",
-        "--crop",
-    ],
-    "dem": [
-        "--resolution",
-        "--origin",
-        "--size",
-        "--edge",
-        "--sigma",
-        "--robot-height",
-        "--min-range",
-        "--max-range",
-        "--roll",
-        "--pitch",
-        "--crop",
-        "--num-threads",
-        "--method",
-    ],
+    "collapse": [*_OVERHANG_OPTIONS, *_RANGE_OPTIONS],
+    "dem": [*_MAP_OPTIONS, *_OVERHANG_OPTIONS, *_RANGE_OPTIONS],
     "classify": [
-        "--resolution",
-        "--origin",
-        "--size",
+        *_MAP_OPTIONS,
+        *_OVERHANG_OPTIONS,
         "--sensor-height",
         "--reference",
         "--ground-radius",
         "--ground-height",
         "--high-height",
         "--std-dev",
-        "--edge",
-        "--sigma",
-        "--num-threads",
-        "--crop",
     ],
-    "fem": ["--resolution", "--origin", "--size", "--rules", "--membership", "--edge", "--sigma", "--crop"],
+    "fem": [*_MAP_OPTIONS, "--edge", "--sigma", "--crop", "--rules", "--membership"],
 }
 COMMAND_VALUES = [
     "nan",
