@@ -34,7 +34,7 @@ class LocalMapParams:
     min_range, max_range : float
         Returns nearer the sensor than ``min_range`` (the robot's own body; no-returns stored as
         (0, 0, 0)) or farther than ``max_range`` take no part [m]; ``max_range=inf``: no limit.
-        KITTI's HDL-64 sees its car within 2.5 m.
+        KITTI's HDL-64 sees its car within 3 m (the hood's front edge at 2.7-2.8 m).
     range_sigma, angle_sigma : float
         Measurement noise: a return at range r and elevation angle phi has the height variance
         ``range_sigma**2 sin(phi)**2 + (r angle_sigma)**2 cos(phi)**2`` [m], [rad].

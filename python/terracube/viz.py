@@ -111,9 +111,17 @@ _LAYER_LABELS = {
     "discontinuity": "vertical gap in the cell (1) or not (0)",
     "overhang_min": "lowest overhang point z [m]",
     "clearance": "clearance under the lowest overhang [m]",
-    "step": "largest height step to a neighbour [m]",
+    "step": "height step to the neighbours (planner layers: in the footprint) [m]",
     "relative_height": "height above the ground reference [m]",
     "ground": "ground reference z [m]",
+    "elevation": "fused elevation z [m]",
+    "variance": "variance of the elevation [m²]",
+    "time": "time of the last measurement [s]",
+    "slope": "slope of the footprint's plane [rad]",
+    "roughness": "roughness about the footprint's plane [m]",
+    "traversability": "traversability (0 blocked .. 1 open ground)",
+    "fem": "fuzzy elevation z [m]",
+    "fem_confidence": "rule support of the fuzzy elevation [points]",
 }
 
 _CLASS_NAMES = {

@@ -510,6 +510,22 @@ def test_to_png_writes_a_png_file(tmp_path):
     assert len(data) > len(PNG_MAGIC) and data.startswith(PNG_MAGIC)
 
 
+def test_every_layer_the_library_writes_has_its_own_colour_bar_label():
+    """The label names the layer's unit; only a user's own layers fall back to '<name> [m]'
+    (a LocalMap's traversability, a fraction, once read 'traversability [m]')."""
+    from terracube.viz import _LAYER_LABELS
+
+    points = np.c_[np.random.default_rng(0).uniform(-5, 5, (2000, 2)), np.zeros(2000)]
+    dem, _ = tc.dem_without_overhangs(points, resolution=0.5)
+    tc.fit_fuzzy_elevation_map(points, tc.FuzzyParams(epochs=1)).to_layer(dem)
+    tc.add_traversability_layers(dem)
+    local = tc.LocalMap(length=4.0)
+    local.update(points, np.eye(4))
+    written = set(dem.layers) | set(local.to_elevation_map().layers)
+    assert written - set(_LAYER_LABELS) == set()
+    assert "[m]" not in _LAYER_LABELS["traversability"] and "[rad]" in _LAYER_LABELS["slope"]
+
+
 def test_to_geotiff_round_trips_values_orientation_and_transform(tmp_path):
     rasterio = pytest.importorskip("rasterio")
     elevation_map = tc.ElevationMap.empty(0.5, (10.0, 20.0), (3, 4))

@@ -153,7 +153,7 @@ def test_without_a_sensor_height_the_ground_is_estimated_and_holds_on_an_11_degr
 def test_every_preset_loads_and_sets_what_its_sensor_needs():
     assert set(preset_names()) >= {"ouster128", "kitti_hdl64", "tls_plot", "airborne_las"}
     kitti = load_config(None, preset="kitti_hdl64")
-    assert kitti.terrain.sensor_height == 1.73 and kitti.frame.min_range == 2.5
+    assert kitti.terrain.sensor_height == 1.73 and kitti.frame.min_range == 3.0
     ouster = load_config(None, preset="ouster128")
     assert ouster.frame.min_range > 0 and ouster.frame.max_range == 40.0
     for name in preset_names():
@@ -163,11 +163,28 @@ def test_every_preset_loads_and_sets_what_its_sensor_needs():
     assert load_config(None, preset="kitti") == load_config(None, preset="hdl64") == kitti
 
 
+def test_the_kitti_preset_leaves_out_the_car_and_nothing_else(shared_data):
+    """By SemanticKITTI's labels (frames 0-2): every return nearer than the preset's min_range is
+    the car (unlabelled, or 'outlier' for the hood's front edge at 2.7-2.8 m), and no such return of
+    the car lies beyond it: the nearest labelled world returns (road, sidewalk) start near 4 m."""
+    min_range = load_config(None, preset="kitti_hdl64").frame.min_range
+    for frame in range(3):
+        xyz = shared_data.kitti_xyzi(frame)[:, :3]
+        labels = shared_data.kitti_labels(frame)
+        distance = np.linalg.norm(xyz, axis=1)
+        near = distance < min_range
+        assert set(np.unique(labels[near])) <= {0, 1}, frame  # unlabelled, outlier
+        assert (labels[near] == 1).sum() > 0, frame  # the hood's edge (2.5 m left it in)
+        assert distance[near & (labels == 1)].max() > 2.5, frame
+        assert not np.any((labels == 1) & ~near & (distance < 6.0)), frame
+        assert set(np.unique(labels[~near & (distance < 6.0)])) - {0} <= {40, 44, 48, 60, 70, 80}, frame
+
+
 def test_a_config_file_wins_over_the_preset(tmp_path):
     path = tmp_path / "mine.yaml"
     path.write_text("terrain:\n  sensor_height: 2.0\n")
     config = load_config(path, preset="kitti_hdl64")
-    assert config.terrain.sensor_height == 2.0 and config.frame.min_range == 2.5
+    assert config.terrain.sensor_height == 2.0 and config.frame.min_range == 3.0
 
 
 def test_the_presets_ship_inside_the_package():
