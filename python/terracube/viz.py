@@ -136,11 +136,47 @@ _CLASS_NAMES = {
 _INFINITE_COLOR = (0.82, 0.82, 0.82)
 
 
-def _extent(geometry) -> tuple[float, float, float, float]:
-    """(left, right, bottom, top) of the map [m], for imshow(..., origin="lower")."""
+def _extent(geometry, drawn: tuple[int, int] | None = None, k: int = 1) -> tuple[float, float, float, float]:
+    """(left, right, bottom, top) of the map [m], for imshow(..., origin="lower"); of a ``drawn``
+    array of k x k blocks (see _block_factor) when given."""
     x0, y0 = (float(v) for v in geometry.origin)
-    nx, ny = (int(v) for v in geometry.size)
-    return (x0, x0 + nx * geometry.resolution, y0, y0 + ny * geometry.resolution)
+    nx, ny = drawn if drawn is not None else (int(v) for v in geometry.size)
+    return (x0, x0 + nx * k * geometry.resolution, y0, y0 + ny * k * geometry.resolution)
+
+
+#: A map more cells wide than this (about a panel's pixels) is drawn in square blocks of cells:
+#: resampled cell by cell, most of a sparse map's cells would fall between the pixels, and drawing
+#: millions of cells takes seconds.
+_DRAWN_CELLS = 1200
+
+
+def _block_factor(geometry) -> int:
+    """k: a map is drawn in k x k blocks of cells (1: cell by cell)."""
+    return max(1, -(-max(int(v) for v in geometry.size) // _DRAWN_CELLS))
+
+
+def _blocks(values: np.ndarray, k: int, fill) -> np.ndarray:
+    """(ceil(nx / k), ceil(ny / k), k * k): the cells of each k x k block of an (nx, ny) array, the
+    blocks at the far edges padded with ``fill``."""
+    nx, ny = values.shape
+    bx, by = -(-nx // k), -(-ny // k)
+    padded = np.full((bx * k, by * k), fill, dtype=values.dtype)
+    padded[:nx, :ny] = values
+    return padded.reshape(bx, k, by, k).swapaxes(1, 2).reshape(bx, by, k * k)
+
+
+def _drawn_values(values: np.ndarray, k: int) -> np.ndarray:
+    """A layer as drawn in k x k blocks: each block's largest finite value, else +-inf when it holds
+    an infinite one, else NaN (empty)."""
+    if k == 1:
+        return values
+    blocks = _blocks(values.astype(np.result_type(values.dtype, np.float32), copy=False), k, np.nan)
+    finite = np.isfinite(blocks)
+    largest = np.where(finite, blocks, -np.inf).max(axis=2)
+    infinite = np.where(
+        (blocks == np.inf).any(axis=2), np.inf, np.where((blocks == -np.inf).any(axis=2), -np.inf, np.nan)
+    )
+    return np.where(finite.any(axis=2), largest, infinite)
 
 
 def _require_cells(geometry) -> None:
@@ -193,11 +229,29 @@ def _style_axes(ax, geometry) -> None:
     ax.ticklabel_format(useOffset=False, style="plain")  # projected coordinates read as written
 
 
+#: How notable each TerrainClass (by value) is when a block of cells shows one class: obstacles,
+#: overhanging and vertical objects first, then edges, ground and unknown.
+_CLASS_RANK = np.array([0, 1, 4, 3, 4, 2], dtype=np.int16)
+
+
+def _drawn_classes(classes: np.ndarray, k: int) -> np.ndarray:
+    """Classes as drawn in k x k blocks: each block's most notable class (_CLASS_RANK; the first
+    such cell in the block on a tie)."""
+    if k == 1:
+        return classes
+    blocks = _blocks(classes, k, 0)
+    notable = _CLASS_RANK[blocks].argmax(axis=2)
+    return np.take_along_axis(blocks, notable[..., None], axis=2)[..., 0]
+
+
 def _draw_layer(ax, values: np.ndarray, geometry, cmap_name: str, vmin: float, vmax: float):
-    """imshow of an (nx, ny) layer, x right and y up; NaN transparent, +-inf in light grey."""
+    """imshow of an (nx, ny) layer, x right and y up; NaN transparent, +-inf in light grey. A map
+    wider than _DRAWN_CELLS is drawn in blocks (_drawn_values)."""
     plt = _pyplot()
     cmap = plt.get_cmap(cmap_name).with_extremes(bad=(1.0, 1.0, 1.0, 0.0))
-    extent = _extent(geometry)
+    k = _block_factor(geometry)
+    values = _drawn_values(values, k)
+    extent = _extent(geometry, values.shape, k)
     finite = np.where(np.isfinite(values), values, np.nan)
     image = ax.imshow(
         finite.T, origin="lower", extent=extent, cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest"
@@ -353,11 +407,14 @@ def plot_dem_comparison(
         ax.set_title(label, fontsize="medium")
     changed = lower | emptied
     if changed.any():
-        # Outline the cells overhang removal changed, in the "before" panel.
-        padded = np.pad(changed, 1).astype(float)
-        left, right, bottom, top = _extent(g)
-        xs = np.linspace(left - g.resolution / 2, right + g.resolution / 2, padded.shape[0])
-        ys = np.linspace(bottom - g.resolution / 2, top + g.resolution / 2, padded.shape[1])
+        # Outline the cells (or blocks, as drawn) overhang removal changed, in the "before" panel.
+        k = _block_factor(g)
+        drawn = _blocks(changed, k, False).any(axis=2) if k > 1 else changed
+        padded = np.pad(drawn, 1).astype(float)
+        left, right, bottom, top = _extent(g, drawn.shape, k)
+        step = k * g.resolution
+        xs = np.linspace(left - step / 2, right + step / 2, padded.shape[0])
+        ys = np.linspace(bottom - step / 2, top + step / 2, padded.shape[1])
         axes[0].contour(xs, ys, padded.T, levels=[0.5], colors="red", linewidths=0.9)
         axes[0].legend(
             [plt.Line2D([], [], color="red", linewidth=1.2)],
@@ -405,10 +462,12 @@ def plot_terrain_classes(
     else:
         figsize = (width + 3.2, height + 1.0)
     fig, ax = plt.subplots(figsize=figsize, **_layout())
+    k = _block_factor(geometry)
+    drawn = _drawn_classes(classes.astype(np.int16), k)
     ax.imshow(
-        classes.T.astype(np.int16),
+        drawn.T,
         origin="lower",
-        extent=_extent(geometry),
+        extent=_extent(geometry, drawn.shape, k),
         cmap=cmap,
         norm=norm,
         interpolation="nearest",

@@ -510,6 +510,56 @@ def test_to_png_writes_a_png_file(tmp_path):
     assert len(data) > len(PNG_MAGIC) and data.startswith(PNG_MAGIC)
 
 
+def test_wide_maps_are_drawn_in_blocks_that_keep_every_cell_with_data(tmp_path):
+    """A map wider than a picture's pixels is drawn in k x k blocks, each its largest finite value
+    (else +-inf, else empty), against a plain loop; the classes' blocks show their most notable
+    class; the pictures of such a map are written."""
+    from terracube.viz import _DRAWN_CELLS, _block_factor, _drawn_classes, _drawn_values
+
+    rng = np.random.default_rng(5)
+    values = np.where(rng.random((7, 5)) < 0.4, rng.normal(size=(7, 5)), np.nan).astype(np.float32)
+    values[6, 4], values[0, 4], values[3, 3] = np.inf, -np.inf, np.inf
+    drawn = _drawn_values(values, 3)
+    assert drawn.shape == (3, 2)
+    for bi in range(3):
+        for bj in range(2):
+            block = values[3 * bi : 3 * bi + 3, 3 * bj : 3 * bj + 3]
+            finite = block[np.isfinite(block)]
+            if finite.size:
+                expected = finite.max()
+            elif (block == np.inf).any():
+                expected = np.inf
+            elif (block == -np.inf).any():
+                expected = -np.inf
+            else:
+                expected = np.nan
+            np.testing.assert_array_equal(drawn[bi, bj], expected)
+    assert _drawn_values(values, 1) is values
+    classes = rng.integers(0, 6, (7, 5)).astype(np.int16)
+    shown = _drawn_classes(classes, 3)
+    order = [0, 1, 5, 3, 2, 4]  # unknown, ground, edge, overhanging, obstacle = vertical
+    for bi in range(3):
+        for bj in range(2):
+            block = classes[3 * bi : 3 * bi + 3, 3 * bj : 3 * bj + 3]
+            best = max(block.ravel(), key=lambda c: min(order.index(c), 4))
+            assert min(order.index(shown[bi, bj]), 4) == min(order.index(best), 4)
+
+    wide = tc.ElevationMap.empty(0.1, (0.0, 0.0), (2 * _DRAWN_CELLS + 1, 30))
+    assert _block_factor(wide.geometry) == 3 and _block_factor(special_map().geometry) == 1
+    heights = np.full(tuple(wide.geometry.size), np.nan, np.float32)
+    heights[::97, ::7] = 1.0  # sparse: most cells would fall between the pixels
+    for name in ("max", "mean", "min", "std_dev", "discontinuity"):
+        wide[name] = heights if name != "std_dev" else np.where(np.isnan(heights), np.nan, 0.0)
+    wide["discontinuity"] = np.where(np.isnan(heights), np.nan, 0.0)
+    classes = tc.classify_terrain(wide)
+    for path in (
+        wide.to_png("max", tmp_path / "max.png"),
+        tc.viz.plot_terrain_classes(wide, classes, tmp_path / "classes.png"),
+        tc.viz.plot_dem_comparison(wide, wide, tmp_path / "comparison.png"),
+    ):
+        assert path.read_bytes().startswith(PNG_MAGIC)
+
+
 def test_every_layer_the_library_writes_has_its_own_colour_bar_label():
     """The label names the layer's unit; only a user's own layers fall back to '<name> [m]'
     (a LocalMap's traversability, a fraction, once read 'traversability [m]')."""
