@@ -10,7 +10,8 @@
 # Environment: THREADS (default "1 2"), WHAT (0 refilled map + classes, 1 fresh map + classes, 2 fresh
 # map, 3 fresh map + classes with cold caches: each call after 64 MB were written and read, untimed;
 # 4 fresh map + classes from the scan as float64 x y z rows, numpy's default dtype; 5 collapse_overhangs, 6 the
-# same from float64 rows; default "0"), ROUNDS (400), REPS (20), TERRACUBE_DATA_DIR (else ../shared/data). Each side's
+# same from float64 rows; default "0"), ROUNDS (400), REPS (20), TERRACUBE_DATA_DIR (else ../shared/data),
+# SCAN (another cloud as KITTI-style float32 x y z i rows, e.g. written by terracube.io.write_kitti_bin). Each side's
 # library sources are compiled with -Dterracube=tcA / tcB (so both link into one program); the list
 # below is the map path's, extend it if a build misses a symbol.
 set -euo pipefail
@@ -19,8 +20,8 @@ repo=$(git -C "$(dirname "$0")/.." rev-parse --show-toplevel)
 base=${1:?usage: ab_builds.sh BASE [NEW]}
 new=${2:-}
 data=${TERRACUBE_DATA_DIR:-$repo/../shared/data}
-kitti=$data/kitti_seq00/velodyne/000000.bin
-[ -f "$kitti" ] || { echo "ab_builds.sh: $kitti not found (set TERRACUBE_DATA_DIR)" >&2; exit 2; }
+kitti=${SCAN:-$data/kitti_seq00/velodyne/000000.bin}
+[ -f "$kitti" ] || { echo "ab_builds.sh: $kitti not found (set TERRACUBE_DATA_DIR or SCAN)" >&2; exit 2; }
 # The map path's sources; a revision compiles those it has (cpu_features, threads and
 # quantize_kernels exist only before the simplification of issue 33).
 sources="elevation_map cloud_frame cpu_features threads quantize_kernels collapse shadow_aware terrain"

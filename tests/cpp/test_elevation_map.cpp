@@ -489,17 +489,18 @@ TEST(BuildElevationMapEdgeCases, DiscontinuityOfManyElevationsWithGapsAtTheThres
   // them. Cells of 2 to 60 elevations built from runs of close values separated by gaps of exactly
   // the threshold, one ulp less or more, or random, at random offsets (so gaps straddle bucket
   // borders every way), a cell with an outlier far above the rest (the sorted fallback), for a
-  // representable and a non-representable threshold, against the naive sorted scan.
+  // representable and a non-representable threshold, and one of a few ulps of heights 300 km up
+  // (rounding as large as the buckets), against the naive sorted scan.
   std::mt19937 random(5);
   std::uniform_real_distribution<double> unit(0.0, 1.0);
-  for (const double threshold : {1.0, 0.3}) {
-    SCOPED_TRACE("threshold " + std::to_string(threshold));
+  for (const auto& [threshold, base] : {std::pair{1.0, 0.0}, std::pair{0.3, 0.0}, std::pair{3e-10, 3e5}}) {
+    SCOPED_TRACE("threshold " + std::to_string(threshold) + " at " + std::to_string(base));
     std::vector<Eigen::Vector3d> points;
     const CellIndex size(20, 20);
     for (int cell = 0; cell < 400; ++cell) {
       const double x = 0.05 + 0.1 * (cell / 20);
       const double y = 0.05 + 0.1 * (cell % 20);
-      double z = -5.0 + 10.0 * unit(random);
+      double z = base + (-5.0 + 10.0 * unit(random)) * threshold;
       const int count = 2 + static_cast<int>(59 * unit(random));
       for (int k = 0; k < count; ++k) {
         points.emplace_back(x, y, z);
@@ -1248,9 +1249,7 @@ TEST(BuildElevationMapSelection, FloatRowsWithASelectionSkipUnselectedNaNRows) {
     }
     use[77] = 1;
     expect_throw_with<std::invalid_argument>(
-        [&] {
-          build_elevation_map(view, fixed_extent(0.25, {0, 0}, {4, 4}), &use);
-        },
+        [&] { build_elevation_map(view, fixed_extent(0.25, {0, 0}, {4, 4}), &use); },
         {"1 of 6000 point rows contain NaN or Inf (first at row 77)"});
     use[77] = 0;
   }
@@ -1285,9 +1284,7 @@ TEST(BuildElevationMapSelection, DoubleRowsWithASelectionSkipUnselectedNaNRows) 
     }
     use[78] = 1;
     expect_throw_with<std::invalid_argument>(
-        [&] {
-          build_elevation_map(view, fixed_extent(0.25, {0, 0}, {4, 4}), &use);
-        },
+        [&] { build_elevation_map(view, fixed_extent(0.25, {0, 0}, {4, 4}), &use); },
         {"1 of 6001 point rows contain NaN or Inf (first at row 78)"});
     use[78] = 0;
   }
@@ -1609,9 +1606,7 @@ TEST(BuildElevationMapBadInput, NanAndInfRowsThrowWithTheirCount) {
                                            {"2 of 5 point rows contain NaN or Inf (first at row 1)"});
   // A fixed extent does not skip the check.
   expect_throw_with<std::invalid_argument>(
-      [&] {
-        build_elevation_map(PointsView<double>(points), fixed_extent(1.0, {0, 0}, {3, 3}));
-      },
+      [&] { build_elevation_map(PointsView<double>(points), fixed_extent(1.0, {0, 0}, {3, 3})); },
       {"2 of 5 point rows contain NaN or Inf (first at row 1)", "drop_non_finite"});
   const std::vector<float> floats = as_floats(points, 4);
   EXPECT_THROW(build_elevation_map(PointsView<float>(floats.data(), points.size(), 4, 1), ElevationParams{}),
@@ -1701,10 +1696,7 @@ TEST(BuildElevationMapBadInput, ZeroOrNegativeSizeIsRejected) {
   const std::vector<Eigen::Vector3d> points = {{0, 0, 0}};
   for (const CellIndex& size : {CellIndex(0, 4), CellIndex(4, 0), CellIndex(-1, 4)}) {
     expect_throw_with<std::invalid_argument>(
-        [&] {
-          build_elevation_map(PointsView<double>(points), fixed_extent(0.1, {0, 0}, size));
-        },
-        {"at least 1 x 1"});
+        [&] { build_elevation_map(PointsView<double>(points), fixed_extent(0.1, {0, 0}, size)); }, {"at least 1 x 1"});
   }
   ElevationParams params = fixed_extent(0.1, {std::numeric_limits<double>::quiet_NaN(), 0}, {4, 4});
   EXPECT_THROW(build_elevation_map(PointsView<double>(points), params), std::invalid_argument);
