@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "cloud_frame.hpp"
+#include "height_gap.hpp"
 #include "number_text.hpp"
 #include "parallel.hpp"
 
@@ -276,41 +277,6 @@ void group_by_cell(std::size_t cells, Workspace& w) {
 constexpr std::array<const char*, 6> kBuiltLayers = {"count", "min", "max", "mean", "std_dev", "discontinuity"};
 using BuiltLayers = std::array<float*, kBuiltLayers.size()>;
 
-/// Whether the elevations z[0, n), in [lowest, highest], hold two neighbours in sorted order more
-/// than `threshold` apart, in O(n) without sorting: each elevation goes into the bucket
-/// floor((z - lowest) * 2 / threshold), which never decreases as z grows (rounding is monotonic),
-/// and two elevations of one bucket lie at most threshold / 2 and a few ulps apart. So sorted
-/// neighbours either share a bucket (no gap) or are the highest of one non-empty bucket and the
-/// lowest of the next, and only those pairs are compared, with the same subtraction as a sorted
-/// scan. A cell needing more than two buckets per elevation (an outlier far off) is sorted instead.
-bool has_gap(const double* z, std::size_t n, double lowest, double highest, double threshold,
-             std::vector<double>& buffer) {
-  const double per_metre = 2.0 / threshold;
-  const double last = (highest - lowest) * per_metre;  // the highest bucket (NaN or inf: sort)
-  if (!(last < 2.0 * static_cast<double>(n))) {
-    buffer.assign(z, z + n);
-    std::sort(buffer.begin(), buffer.end());
-    for (std::size_t k = 1; k < n; ++k) {
-      if (buffer[k] - buffer[k - 1] > threshold) return true;
-    }
-    return false;
-  }
-  const auto buckets = static_cast<std::size_t>(last) + 1;
-  buffer.assign(2 * buckets, std::numeric_limits<double>::quiet_NaN());  // lowest, highest per bucket
-  for (std::size_t k = 0; k < n; ++k) {
-    double* bucket = &buffer[2 * static_cast<std::size_t>((z[k] - lowest) * per_metre)];
-    bucket[0] = std::isnan(bucket[0]) ? z[k] : std::min(bucket[0], z[k]);
-    bucket[1] = std::isnan(bucket[1]) ? z[k] : std::max(bucket[1], z[k]);
-  }
-  double below = buffer[1];  // the highest elevation of the last non-empty bucket (bucket 0 holds lowest)
-  for (std::size_t b = 1; b < buckets; ++b) {
-    if (std::isnan(buffer[2 * b])) continue;
-    if (buffer[2 * b] - below > threshold) return true;
-    below = buffer[2 * b + 1];
-  }
-  return false;
-}
-
 /// The six layers of cells [begin, end). Mean and population std-dev come from the sums of the
 /// elevations relative to the cell's first one, added in row order (a shifted one-pass variance:
 /// with `first` one of the samples, it stays accurate at large absolute heights). Only a cell whose
@@ -319,7 +285,7 @@ void write_cells(const Workspace& cells, std::size_t begin, std::size_t end, dou
                  const BuiltLayers& layers) {
   constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
   const auto [count, min, max, mean, std_dev, discontinuity] = layers;
-  std::vector<double> buffer;  // has_gap's
+  std::vector<double> buffer;  // lowest_gap's
   for (std::size_t cell = begin; cell < end; ++cell) {
     const double* z = cells.heights.data() + cells.start[cell];
     const std::uint32_t n = cells.start[cell + 1] - cells.start[cell];
@@ -345,8 +311,10 @@ void write_cells(const Workspace& cells, std::size_t begin, std::size_t end, dou
     mean[cell] = static_cast<float>(first + offset_of_mean);
     std_dev[cell] = static_cast<float>(std::sqrt(variance));
     bool gap = false;
-    if (std::isgreater(highest - lowest, discontinuity_m))
-      gap = has_gap(z, n, lowest, highest, discontinuity_m, buffer);
+    if (std::isgreater(highest - lowest, discontinuity_m)) {
+      const auto height = [z](std::size_t k) { return z[k]; };
+      gap = detail::lowest_gap(n, lowest, highest, discontinuity_m, height, buffer).has_value();
+    }
     discontinuity[cell] = gap ? 1.0F : 0.0F;
   }
 }

@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "cloud_frame.hpp"
+#include "height_gap.hpp"
 #include "number_text.hpp"
 #include "parallel.hpp"
 
@@ -244,7 +245,6 @@ struct ScanCell {
 /// A kept point's height and height variance (LocalMapParams' noise model).
 struct KeptPoint {
   double z, variance;
-  bool operator<(const KeptPoint& o) const { return z != o.z ? z < o.z : variance < o.variance; }
 };
 
 /// The cell of a point that is not binned: outside the map, or an overhang.
@@ -258,7 +258,8 @@ struct Workspace {
   std::vector<std::uint32_t> point_cell;  // per point: its stored cell when kept in the map, else kNotKept
   // Counting sort of the kept points by cell: cell c holds kept[start[c], start[c + 1]), in point order.
   std::vector<std::uint32_t> start, fill;
-  std::vector<KeptPoint> kept, sorted;
+  std::vector<KeptPoint> kept;
+  std::vector<double> gap_buffer;    // measure_cell's
   std::vector<double> overhang_min;  // per cell: this scan's lowest overhang point above it, or +inf
   std::vector<std::size_t> row_offset, column;
   // for_each_seen_through's row: per stored column, the cells' y and their azimuth and elevation bins.
@@ -274,24 +275,24 @@ struct Workspace {
   }
 };
 
-/// One scan's measurement of a cell from its kept points (in point order). A cell whose sorted
+/// One scan's measurement of a cell from its kept points, in point order. A cell whose sorted
 /// heights hold a gap over `threshold` is discontinuous: its measurement is the points below the
-/// first gap (the ground under whatever [CBC]'s cubes kept above it, e.g. where a cell straddles
-/// two cube columns) and the first point above the gap is an overhang (into `overhang_min`).
-ScanCell measure_cell(const KeptPoint* begin, const KeptPoint* end, double threshold, std::vector<KeptPoint>& sorted,
+/// lowest gap (the ground under whatever [CBC]'s cubes kept above it, e.g. where a cell straddles
+/// two cube columns) and the lowest point above the gap is an overhang (into `overhang_min`).
+ScanCell measure_cell(const KeptPoint* begin, const KeptPoint* end, double threshold, std::vector<double>& buffer,
                       double& overhang_min) {
   ScanCell c;
   for (const KeptPoint* p = begin; p != end; ++p) c.add(p->z, p->variance);
   if (c.count < 2 || c.highest - c.lowest <= threshold) return c;  // no gap can be wider than the span
-  sorted.assign(begin, end);
-  std::sort(sorted.begin(), sorted.end());
-  std::size_t top = 1;
-  while (top < sorted.size() && sorted[top].z - sorted[top - 1].z <= threshold) ++top;
-  if (top == sorted.size()) return c;
-  overhang_min = std::min(overhang_min, sorted[top].z);
+  const auto height = [begin](std::size_t k) { return begin[k].z; };
+  const auto gap = detail::lowest_gap(c.count, c.lowest, c.highest, threshold, height, buffer);
+  if (!gap) return c;
+  overhang_min = std::min(overhang_min, gap->above);
   c = ScanCell();
   c.gap = true;
-  for (std::size_t k = 0; k < top; ++k) c.add(sorted[k].z, sorted[k].variance);
+  for (const KeptPoint* p = begin; p != end; ++p) {
+    if (p->z <= gap->below) c.add(p->z, p->variance);
+  }
   return c;
 }
 
@@ -754,7 +755,7 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
   for (std::size_t cell = 0; cell < cells; ++cell) {
     const KeptPoint* begin = w.kept.data() + w.start[cell];
     const KeptPoint* end = w.kept.data() + w.start[cell + 1];
-    const ScanCell c = measure_cell(begin, end, params_.discontinuity_m, w.sorted, w.overhang_min[cell]);
+    const ScanCell c = measure_cell(begin, end, params_.discontinuity_m, w.gap_buffer, w.overhang_min[cell]);
     if (w.overhang_min[cell] < kInf) layer[kOverhangMin][cell] = static_cast<float>(w.overhang_min[cell]);
     if (c.count == 0) continue;
     ++report.num_fused_cells;

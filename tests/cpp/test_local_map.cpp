@@ -244,6 +244,64 @@ TEST(LocalMap, ACellWithAGapInItsHeightsIsMeasuredBelowTheGap) {
   EXPECT_TRUE(std::isnan(at("overhang_min", 0.55)));
 }
 
+TEST(LocalMap, CellsOfManyHeightsAreMeasuredBelowTheLowestGapAsASortedScanFindsIt) {
+  // The lowest gap is found in buckets, not by sorting: 100 cells of 2-80 heights in runs whose
+  // steps are the threshold, one ulp less or more, or random, against the naive sorted scan: the
+  // count and highest height under the lowest gap, their mean as the elevation, the first height
+  // over it as the overhang, the discontinuity flag.
+  LocalMapParams params = small_map_params();
+  params.collapse.sigma = 1000;  // nothing collapses: the gaps inside the cells alone decide
+  params.discontinuity_m = 0.3;
+  params.min_range_m = 0.0;  // the middle column passes by the sensor
+  std::mt19937 random(11);
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  std::vector<Eigen::Vector3d> points;
+  std::vector<std::vector<double>> heights(100);
+  for (int cell = 0; cell < 100; ++cell) {
+    const double x = 0.05 + 0.1 * (cell / 10) - 0.5, y = 0.05 + 0.1 * (cell % 10) - 0.5;
+    double z = -1.8 + 0.3 * unit(random);
+    const int count = 2 + static_cast<int>(79 * unit(random));
+    for (int k = 0; k < count; ++k) {
+      heights[cell].push_back(z);
+      const double choice = unit(random);
+      if (choice < 0.1) {
+        z += 0.3;
+      } else if (choice < 0.15) {
+        z = std::nextafter(z + 0.3, 1e300);
+      } else if (choice < 0.2) {
+        z += 0.3 * (1.0 + 3.0 * unit(random));
+      } else {
+        z += 0.2 * unit(random);
+      }
+    }
+    std::shuffle(heights[cell].begin(), heights[cell].end(), random);
+    for (const double h : heights[cell]) points.emplace_back(x, y, h);
+  }
+  LocalMap map(params);
+  map.update(PointsView<double>(points.data()->data(), points.size()), pose_at(0, 0, 0));
+  for (int cell = 0; cell < 100; ++cell) {
+    std::vector<double> sorted = heights[cell];
+    std::sort(sorted.begin(), sorted.end());
+    std::size_t top = 1;
+    while (top < sorted.size() && sorted[top] - sorted[top - 1] <= 0.3) ++top;
+    double sum = 0.0;
+    for (std::size_t k = 0; k < top; ++k) sum += sorted[k];
+    const auto index = map.index_of({0.05 + 0.1 * (cell / 10) - 0.5, 0.05 + 0.1 * (cell % 10) - 0.5});
+    ASSERT_TRUE(index.has_value());
+    const auto at = [&](const char* layer) { return static_cast<double>(map.get(layer)(index->x(), index->y())); };
+    SCOPED_TRACE("cell " + std::to_string(cell));
+    EXPECT_EQ(at("count"), static_cast<double>(top));
+    EXPECT_EQ(at("max"), static_cast<double>(static_cast<float>(sorted[top - 1])));
+    EXPECT_NEAR(at("elevation"), sum / static_cast<double>(top), 1e-6);
+    EXPECT_EQ(at("discontinuity"), top < sorted.size() ? 1.0 : 0.0);
+    if (top < sorted.size()) {
+      EXPECT_EQ(at("overhang_min"), static_cast<double>(static_cast<float>(sorted[top])));
+    } else {
+      EXPECT_TRUE(std::isnan(at("overhang_min")));
+    }
+  }
+}
+
 TEST(LocalMap, BadPosesAndRowsAreRefusedAndLeaveTheMapUnchanged) {
   LocalMap map(small_map_params());
   const std::vector<Eigen::Vector3d> points = grid_scan(0.0, 0.0, 20, 0.1);
