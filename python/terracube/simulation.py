@@ -20,7 +20,7 @@ from __future__ import annotations
 import enum
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, get_type_hints
 
 import numpy as np
 
@@ -315,6 +315,12 @@ class Trajectory(NamedTuple):
     poses: np.ndarray  #: (K, 4, 4) ground truth, world <- sensor
     odometry: np.ndarray  #: (K, 4, 4) drifting odometry, odometry[0] == poses[0]
     arc_length: np.ndarray  #: (K,) along the road [m], unwrapped
+
+
+# A NamedTuple's generated __new__ keeps this module's postponed annotations as names it cannot
+# resolve (it lives in another namespace): give it the resolved types, for help() and the API pages.
+for _named in (Primitive, Scan, Trajectory):
+    _named.__new__.__annotations__ = get_type_hints(_named)
 
 
 class SyntheticWorld:
