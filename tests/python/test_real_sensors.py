@@ -109,6 +109,46 @@ def test_a_few_far_returns_no_longer_blow_up_the_automatic_map_window(tmp_path):
     assert np.all(np.array(origin) <= lo) and np.all(np.array(origin) + 0.1 * np.array(size) >= hi)
 
 
+def test_the_window_and_the_leveled_points_match_a_plain_computation():
+    """auto_extent and leveled_points (column by column, no copy without leveling) against the
+    formula written plainly: leveled rows, finite and inside the crop box, their 1st..99th
+    percentiles widened by 10 % (at least two cells), clipped to their extent, snapped to cells."""
+    from terracube.pipeline import leveled_points
+
+    rng = np.random.default_rng(8)
+    points = np.vstack(
+        [_ground_scene(n=5000), rng.uniform(-60, 60, (50, 3)), [[np.nan, 1, 1], [1, np.inf, 1]]]
+    )
+    flat = default_config()
+    config = flat.replace("frame", roll_deg=3.0, pitch_deg=-2.0, crop=[[-30, -40, -5], [50, 30, 5]])
+    for cfg in (flat, config):
+        transform = cfg.frame.transform()
+        with np.errstate(invalid="ignore"):
+            expected = np.array([transform[:3, :3] @ p + transform[:3, 3] for p in points])
+        box = cfg.frame.crop_box()
+        keep = np.array(
+            [
+                np.isfinite(q).all()
+                and (box is None or all(box[0][k] <= q[k] <= box[1][k] for k in range(3)))
+                for q in expected
+            ]
+        )
+        leveled, inside = leveled_points(points, cfg)
+        np.testing.assert_allclose(leveled[keep], expected[keep], rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(inside, keep)
+        xy = expected[keep, :2]
+        low, high = np.percentile(xy[:, 0], [1, 99]), np.percentile(xy[:, 1], [1, 99])
+        low, high = np.array([low[0], high[0]]), np.array([low[1], high[1]])
+        margin = np.maximum(0.1 * (high - low), 0.2)
+        low, high = np.maximum(low - margin, xy.min(axis=0)), np.minimum(high + margin, xy.max(axis=0))
+        origin = np.floor(low / 0.1) * 0.1
+        size = np.maximum(np.floor((high - origin) / 0.1).astype(int) + 1, 1)
+        window = auto_extent(points, cfg)
+        np.testing.assert_allclose(window[0], origin, rtol=0, atol=1e-9)
+        assert window[1] == list(size)
+    assert leveled_points(points, flat)[0].base is points or leveled_points(points, flat)[0] is points
+
+
 def test_a_map_with_almost_no_filled_cell_gets_a_warning(tmp_path):
     config = default_config().replace("elevation", origin=[-50.0, -50.0], size=[1000, 1000])
     report = run_stage("dem", _ground_scene(n=2000), "sparse", tmp_path, config, png=False)
