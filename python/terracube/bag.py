@@ -298,7 +298,8 @@ def decode_pointcloud2(msg, *, keep_invalid: bool = False) -> tuple[np.ndarray, 
     wide = any(array.dtype.kind != "f" or array.dtype.itemsize > 4 for array in (x, y, z))
     xyz = np.empty((points.size, 3), dtype=np.float64 if wide else np.float32)
     xyz[:, 0], xyz[:, 1], xyz[:, 2] = x, y, z
-    valid = np.isfinite(xyz).all(axis=1) & (xyz != 0).any(axis=1)
+    x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]  # columns: row-wise reductions of (N, 3) are slow
+    valid = np.isfinite(x) & np.isfinite(y) & np.isfinite(z) & ((x != 0) | (y != 0) | (z != 0))
     no_returns = int(points.size - np.count_nonzero(valid))
     fields = {}
     for name in dtype.names:

@@ -130,8 +130,10 @@ class FrameParams:
 
     def in_range(self, points: np.ndarray) -> np.ndarray:
         """(N,) bool: the points whose distance from the sensor lies in [min_range, max_range]."""
-        xyz = np.asarray(points)[:, :3]
-        squared = np.einsum("ij,ij->i", xyz, xyz, dtype=np.float64)
+        xyz = np.asarray(points)
+        x, y, z = (xyz[:, axis].astype(np.float64) for axis in range(3))
+        with np.errstate(over="ignore", invalid="ignore"):  # inf for 1e300, NaN for NaN: both dropped
+            squared = x * x + y * y + z * z
         nearest = float(self.min_range)  # x * x: inf for 1e300, where ** 2 raises
         keep = squared >= nearest * nearest  # NaN compares False: dropped too
         if self.max_range is not None:
