@@ -240,7 +240,7 @@ def _drawn_classes(classes: np.ndarray, k: int) -> np.ndarray:
     if k == 1:
         return classes
     blocks = _blocks(classes, k, 0)
-    notable = _CLASS_RANK[blocks].argmax(axis=2)
+    notable = _CLASS_RANK[np.clip(blocks, 0, len(_CLASS_RANK) - 1)].argmax(axis=2)  # other codes: as edges
     return np.take_along_axis(blocks, notable[..., None], axis=2)[..., 0]
 
 
