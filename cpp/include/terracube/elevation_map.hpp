@@ -99,7 +99,8 @@ struct ElevationParams {
 
 /// Builds the map in O(N + cells): one pass bins the points, a counting sort groups their
 /// elevations by cell, and one pass over the cells writes the layers; only cells whose max - min
-/// exceeds the discontinuity threshold (no other cell can hold a longer gap) are sorted.
+/// exceeds the discontinuity threshold (no other cell can hold a longer gap) are searched for one,
+/// in buckets of half the threshold (O(their elevations), the same answer as sorting them).
 /// Layers: "count" (0 for empty), "min", "max", "mean" (the DEM), "std_dev" (population, from the
 /// elevations relative to the cell's first, added in row order), "discontinuity" (1 or 0); NaN
 /// where a cell holds no point. Points outside the map are ignored. `use` (optional, one flag per
