@@ -165,11 +165,20 @@ def _blocks(values: np.ndarray, k: int, fill) -> np.ndarray:
     return padded.reshape(bx, k, by, k).swapaxes(1, 2).reshape(bx, by, k * k)
 
 
-def _drawn_values(values: np.ndarray, k: int) -> np.ndarray:
-    """A layer as drawn in k x k blocks: each block's largest finite value, else +-inf when it holds
-    an infinite one, else NaN (empty)."""
+#: Layers whose low values are the ones a planner must not miss (a low overhang, a blocked cell):
+#: their blocks show the smallest value. Every other layer's blocks show the largest (the highest
+#: point, the steepest slope, the biggest step).
+_LOW_IS_NOTABLE = frozenset({"clearance", "traversability"})
+
+
+def _drawn_values(values: np.ndarray, k: int, lowest: bool = False) -> np.ndarray:
+    """A layer as drawn in k x k blocks: each block's largest finite value (smallest with
+    ``lowest``), else +-inf when it holds an infinite one (+inf first; -inf first with ``lowest``),
+    else NaN (empty)."""
     if k == 1:
         return values
+    if lowest:
+        return -_drawn_values(-values, k)
     blocks = _blocks(values.astype(np.result_type(values.dtype, np.float32), copy=False), k, np.nan)
     finite = np.isfinite(blocks)
     largest = np.where(finite, blocks, -np.inf).max(axis=2)
@@ -244,13 +253,13 @@ def _drawn_classes(classes: np.ndarray, k: int) -> np.ndarray:
     return np.take_along_axis(blocks, notable[..., None], axis=2)[..., 0]
 
 
-def _draw_layer(ax, values: np.ndarray, geometry, cmap_name: str, vmin: float, vmax: float):
-    """imshow of an (nx, ny) layer, x right and y up; NaN transparent, +-inf in light grey. A map
-    wider than _DRAWN_CELLS is drawn in blocks (_drawn_values)."""
+def _draw_layer(ax, values: np.ndarray, geometry, cmap_name: str, vmin: float, vmax: float, name: str = ""):
+    """imshow of an (nx, ny) layer ``name``, x right and y up; NaN transparent, +-inf in light grey.
+    A map wider than _DRAWN_CELLS is drawn in blocks (_drawn_values, _LOW_IS_NOTABLE)."""
     plt = _pyplot()
     cmap = plt.get_cmap(cmap_name).with_extremes(bad=(1.0, 1.0, 1.0, 0.0))
     k = _block_factor(geometry)
-    values = _drawn_values(values, k)
+    values = _drawn_values(values, k, lowest=name in _LOW_IS_NOTABLE)
     extent = _extent(geometry, values.shape, k)
     finite = np.where(np.isfinite(values), values, np.nan)
     image = ax.imshow(
@@ -326,8 +335,10 @@ def plot_layer(
 
     Empty cells (NaN) stay white, infinite values (``clearance`` where no overhang lies above) are
     light grey; the colour scale runs between the 1st and 99th percentiles of the finite values
-    unless ``vmin``/``vmax`` are given. The ``class`` layer is drawn with
-    :func:`plot_terrain_classes`. Returns the path.
+    unless ``vmin``/``vmax`` are given. A map more than 1200 cells wide is drawn in square blocks of
+    cells, each showing its largest value (its smallest for ``clearance`` and ``traversability``,
+    where low values are the ones that block a robot), so that no cell with data disappears. The
+    ``class`` layer is drawn with :func:`plot_terrain_classes`. Returns the path.
     """
     values = np.asarray(elevation_map[name])
     geometry = elevation_map.geometry
@@ -343,7 +354,7 @@ def plot_layer(
     high = high if vmax is None else float(vmax)
     width, height = _panel_size(geometry, 9.0)
     fig, ax = plt.subplots(figsize=(width + 1.6, height + 1.0), **_layout())
-    image = _draw_layer(ax, values, geometry, cmap, low, high)
+    image = _draw_layer(ax, values, geometry, cmap, low, high, name)
     _style_axes(ax, geometry)
     bar = fig.colorbar(image, ax=ax, extend=_extend(values, low, high), shrink=0.9, pad=0.02)
     bar.set_label(_LAYER_LABELS.get(name, f"{name} [m]"))
@@ -402,7 +413,7 @@ def plot_dem_comparison(
         ),
     )
     for ax, values, label in panels:
-        image = _draw_layer(ax, values, g, "viridis", low, high)
+        image = _draw_layer(ax, values, g, "viridis", low, high, layer)
         _style_axes(ax, g)
         ax.set_title(label, fontsize="medium")
     changed = lower | emptied

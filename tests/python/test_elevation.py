@@ -512,28 +512,35 @@ def test_to_png_writes_a_png_file(tmp_path):
 
 def test_wide_maps_are_drawn_in_blocks_that_keep_every_cell_with_data(tmp_path):
     """A map wider than a picture's pixels is drawn in k x k blocks, each its largest finite value
-    (else +-inf, else empty), against a plain loop; the classes' blocks show their most notable
+    (else +-inf, else empty; the smallest for clearance and traversability), against a plain loop; the classes' blocks show their most notable
     class; the pictures of such a map are written."""
-    from terracube.viz import _DRAWN_CELLS, _block_factor, _drawn_classes, _drawn_values
+    from terracube.viz import _DRAWN_CELLS, _LOW_IS_NOTABLE, _block_factor, _drawn_classes, _drawn_values
 
     rng = np.random.default_rng(5)
     values = np.where(rng.random((7, 5)) < 0.4, rng.normal(size=(7, 5)), np.nan).astype(np.float32)
     values[6, 4], values[0, 4], values[3, 3] = np.inf, -np.inf, np.inf
-    drawn = _drawn_values(values, 3)
-    assert drawn.shape == (3, 2)
-    for bi in range(3):
-        for bj in range(2):
-            block = values[3 * bi : 3 * bi + 3, 3 * bj : 3 * bj + 3]
-            finite = block[np.isfinite(block)]
-            if finite.size:
-                expected = finite.max()
-            elif (block == np.inf).any():
-                expected = np.inf
-            elif (block == -np.inf).any():
-                expected = -np.inf
-            else:
-                expected = np.nan
-            np.testing.assert_array_equal(drawn[bi, bj], expected)
+    values[1, 1] = -np.inf  # a block with both infinities: +inf drawn, or -inf for the lowest
+    values[0:3, 0:3][np.isfinite(values[0:3, 0:3])] = np.nan
+    values[0, 0] = np.inf
+    for lowest in (False, True):
+        drawn = _drawn_values(values, 3, lowest=lowest)
+        assert drawn.shape == (3, 2)
+        first, second = (-np.inf, np.inf) if lowest else (np.inf, -np.inf)
+        for bi in range(3):
+            for bj in range(2):
+                block = values[3 * bi : 3 * bi + 3, 3 * bj : 3 * bj + 3]
+                finite = block[np.isfinite(block)]
+                if finite.size:
+                    expected = finite.min() if lowest else finite.max()
+                elif (block == first).any():
+                    expected = first
+                elif (block == second).any():
+                    expected = second
+                else:
+                    expected = np.nan
+                np.testing.assert_array_equal(drawn[bi, bj], expected)
+    assert _drawn_values(values, 3, lowest=True)[0, 0] == -np.inf  # the block holding both
+    assert {"clearance", "traversability"} <= _LOW_IS_NOTABLE and "max" not in _LOW_IS_NOTABLE
     assert _drawn_values(values, 1) is values
     classes = rng.integers(0, 6, (7, 5)).astype(np.int16)
     shown = _drawn_classes(classes, 3)
