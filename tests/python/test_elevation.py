@@ -512,8 +512,9 @@ def test_to_png_writes_a_png_file(tmp_path):
 
 def test_wide_maps_are_drawn_in_blocks_that_keep_every_cell_with_data(tmp_path):
     """A map wider than a picture's pixels is drawn in k x k blocks, each its largest finite value
-    (else +-inf, else empty; the smallest for clearance and traversability), against a plain loop; the classes' blocks show their most notable
-    class; the pictures of such a map are written."""
+    (else +-inf, else empty; the smallest for clearance and traversability), against a plain
+    loop; the classes' blocks show their most notable class; the pictures of such a map are
+    written."""
     from terracube.viz import _DRAWN_CELLS, _LOW_IS_NOTABLE, _block_factor, _drawn_classes, _drawn_values
 
     rng = np.random.default_rng(5)
