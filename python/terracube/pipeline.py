@@ -251,18 +251,19 @@ def fill_note(elevation_map) -> str | None:
     resolution = float(elevation_map.geometry.resolution)
     density = points / (count.size * resolution * resolution)  # points per m2 over the map (0 at 1e300 m)
     suggested = max(resolution, math.ceil(10 * math.sqrt(4.0 / density)) / 10) if density > 0 else resolution
+    sparse = points / filled < SPARSE_POINTS_PER_CELL
+    airborne = " (an airborne tile: --preset airborne_las)" if sparse else ""
     if filled < LOW_FILL_RATIO * count.size:
         return (
             f"  warning: only {filled / count.size:.1%} of the {count.size:,} cells hold data; a smaller "
             "window (--max-range, --crop, or --origin with --size) or a coarser --resolution "
-            f"(--resolution {suggested:g}: about four points a cell) gives a readable map"
+            f"(--resolution {suggested:g}: about four points a cell) gives a readable map{airborne}"
         )
-    if points / filled >= SPARSE_POINTS_PER_CELL:
+    if not sparse:
         return None
     return (
         f"  note: the cells with data hold {points / filled:.1f} points on average ({density:.1f} points "
-        f"per m2): --resolution {suggested:g} gives cells of about four points (an airborne tile: "
-        "--preset airborne_las)"
+        f"per m2): --resolution {suggested:g} gives cells of about four points{airborne}"
     )
 
 

@@ -154,6 +154,9 @@ def test_a_map_with_almost_no_filled_cell_gets_a_warning(tmp_path):
     report = run_stage("dem", _ground_scene(n=2000), "sparse", tmp_path, config, png=False)
     warning = [line for line in report.lines if "warning:" in line]
     assert len(warning) == 1 and "of the 1,000,000 cells hold data" in warning[0]
+    counts = np.load(tmp_path / "sparse_dem.npz")["layer_count"]
+    sparse = counts.sum() / np.count_nonzero(counts) < 1.5  # the cells with data hold single points
+    assert ("--preset airborne_las" in warning[0]) == sparse
     report = run_stage("dem", _ground_scene(n=2000), "dense", tmp_path, png=False)
     assert not any("warning:" in line for line in report.lines)
 
@@ -163,6 +166,7 @@ def test_cells_finer_than_the_point_spacing_get_a_note_with_a_cell_size_that_fit
     report = run_stage("dem", _ground_scene(n=4000), "tile", tmp_path, png=False)
     note = [line for line in report.lines if "note:" in line]
     assert len(note) == 1 and "--resolution 0.7 gives cells of about four points" in note[0], report.lines
+    assert "--preset airborne_las" in note[0]
     config = default_config().replace("elevation", resolution=0.7)
     report = run_stage("dem", _ground_scene(n=4000), "coarse", tmp_path, config, png=False)
     assert not any("note:" in line or "warning:" in line for line in report.lines), report.lines
