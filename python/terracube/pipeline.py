@@ -488,22 +488,23 @@ def _run_dem(
     return report
 
 
-def map_of_scan(points, name, config, remove_overhangs: bool):
+def map_of_scan(points, name, config, remove_overhangs: bool, elevation=None):
     """The elevation map of one scan (raw, or without overhangs), a description of it, and the
-    :class:`terracube.CollapseResult` (None for the raw map). ValueError when no point is in the map."""
+    :class:`terracube.CollapseResult` (None for the raw map). ``elevation``: the map's
+    :class:`terracube.ElevationParams` (default :func:`elevation_params`, with the automatic window
+    from the points). ValueError when no point is in the map."""
     from . import build_elevation_map, dem_without_overhangs
 
+    elevation = elevation_params(config, points) if elevation is None else elevation
     if remove_overhangs:
         collapse = collapse_params(config)
-        elevation_map, result = dem_without_overhangs(
-            points, collapse=collapse, elevation=elevation_params(config, points)
-        )
+        elevation_map, result = dem_without_overhangs(points, collapse=collapse, elevation=elevation)
         source = (
             f"DEM without overhangs (edge {collapse.edge} m, sigma {collapse.sigma}; "
             f"{result.num_overhang:,} overhang points)"
         )
     else:
-        elevation_map, result = build_elevation_map(points, params=elevation_params(config, points)), None
+        elevation_map, result = build_elevation_map(points, params=elevation), None
         source = "raw map"
     _require_data(name, elevation_map)
     return elevation_map, source, result
@@ -518,8 +519,9 @@ def classified_map(points, name, config, remove_overhangs: bool):
 
     terrain, _ = terrain_params(config)
     terrain.to_core()  # checks the thresholds before the map is built
+    elevation = elevation_params(config, points)  # the automatic window is not the map's time
     start = time.perf_counter()
-    elevation_map, source, _ = map_of_scan(points, name, config, remove_overhangs)
+    elevation_map, source, _ = map_of_scan(points, name, config, remove_overhangs, elevation)
     map_ms = _elapsed_ms(start)
     start = time.perf_counter()
     classes = classify_terrain(elevation_map, terrain)
