@@ -76,7 +76,11 @@ void check_params(const MapperParams& p) {
   if (p.optimize_interval_keyframes < 1) {
     throw std::invalid_argument("MapperParams.optimize_interval_keyframes must be >= 1");
   }
-  if (p.pose_graph_iterations < 1) throw std::invalid_argument("MapperParams.pose_graph_iterations must be >= 1");
+  if (p.pose_graph_iterations < 1 || p.pose_graph_iterations > kMaxIterationsLimit) {
+    throw std::invalid_argument("MapperParams.pose_graph_iterations must lie in [1, " +
+                                std::to_string(kMaxIterationsLimit) + "], got " +
+                                std::to_string(p.pose_graph_iterations));
+  }
   if (p.lidar_only && !p.use_registration) {
     throw std::invalid_argument("MapperParams.lidar_only needs use_registration (nothing else moves the robot)");
   }

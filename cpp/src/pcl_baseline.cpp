@@ -11,6 +11,7 @@
 #include <string>
 
 #include "cloud_frame.hpp"
+#include "terracube/icp.hpp"
 
 namespace terracube {
 
@@ -37,8 +38,9 @@ class Counting : public Registration {
 void check(const Eigen::Matrix4d& initial, const PclIcpParams& params) {
   detail::check_rigid_transform(initial, "initial transform");
   if (!(params.max_correspondence_distance_m > 0.0) || !std::isfinite(params.max_correspondence_distance_m) ||
-      params.max_iterations < 1) {
-    throw std::invalid_argument("PCL ICP needs a positive max correspondence distance and at least 1 iteration");
+      params.max_iterations < 1 || params.max_iterations > kMaxIterationsLimit) {
+    throw std::invalid_argument("PCL ICP needs a positive max correspondence distance and 1 to " +
+                                std::to_string(kMaxIterationsLimit) + " iterations");
   }
 }
 

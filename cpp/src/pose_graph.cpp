@@ -15,6 +15,8 @@
 #include <stdexcept>
 #include <string>
 
+#include "terracube/icp.hpp"
+
 namespace terracube {
 
 namespace {
@@ -33,7 +35,10 @@ void check_rigid(const Eigen::Matrix4d& pose, const std::string& what) {
 }
 
 void check_params(const PoseGraphParams& p, std::size_t num_poses) {
-  if (p.max_iterations < 1) throw std::invalid_argument("max_iterations must be at least 1");
+  if (p.max_iterations < 1 || p.max_iterations > kMaxIterationsLimit) {
+    throw std::invalid_argument("max_iterations must lie in [1, " + std::to_string(kMaxIterationsLimit) + "], got " +
+                                std::to_string(p.max_iterations));
+  }
   if (!(p.robust_loss_scale > 0.0) || !std::isfinite(p.robust_loss_scale)) {
     throw std::invalid_argument("robust_loss_scale must be positive and finite");
   }

@@ -22,7 +22,10 @@ void check_registration_params(const RegistrationParams& p) {
   if (!(p.correspondence_distance_decay > 0.0 && p.correspondence_distance_decay <= 1.0)) {
     throw std::invalid_argument("correspondence distance decay must lie in (0, 1]");
   }
-  if (p.max_iterations < 1) throw std::invalid_argument("max iterations must be at least 1");
+  if (p.max_iterations < 1 || p.max_iterations > kMaxIterationsLimit) {
+    throw std::invalid_argument("max_iterations must lie in [1, " + std::to_string(kMaxIterationsLimit) + "], got " +
+                                std::to_string(p.max_iterations));
+  }
   if (!non_negative(p.rotation_tolerance_rad) || !non_negative(p.translation_tolerance_m) ||
       !non_negative(p.error_threshold_m)) {
     throw std::invalid_argument("tolerances and the error threshold must be finite and >= 0");

@@ -115,7 +115,7 @@ class MapperParams:
     loop_min_inlier_ratio : float
         ... when this share of the new map's weighted cells found a correspondence.
     pose_graph_iterations : int
-        Ceres iterations.
+        Ceres iterations at most, 1 to 10,000.
     optimize_interval_keyframes : int
         While a revisit keeps closing loops, the pose graph is optimised (and the global map rebuilt)
         at most once per this many keyframes; :meth:`Mapper.optimize` applies loops still pending

@@ -71,7 +71,7 @@ class PoseGraphParams:
     Attributes
     ----------
     max_iterations : int
-        Levenberg-Marquardt iterations at most (>= 1).
+        Levenberg-Marquardt iterations at most, 1 to 10,000.
     robust_loss : {"cauchy", "huber"}
         Loss on robust edges: Cauchy ``a^2 log(1 + s / a^2)`` or Huber (quadratic up to ``a``).
     robust_loss_scale : float

@@ -93,7 +93,7 @@ class RegistrationParams:
     correspondence_distance_decay : float
         In (0, 1]; 1 keeps the limit fixed.
     max_iterations : int
-        Updates at most.
+        Updates at most, 1 to 10,000.
     rotation_tolerance, translation_tolerance : float
         Converged when an update is smaller than both [rad], [m].
     error_threshold : float
@@ -375,7 +375,7 @@ class PclIcpParams:
     max_correspondence_distance : float
         Pairs farther apart than this [m] are ignored.
     max_iterations : int
-        Iterations at most.
+        Iterations at most, 1 to 10,000.
     transformation_epsilon : float
         Stop when the squared translation of an iteration falls below this [m^2].
     rotation_epsilon : float

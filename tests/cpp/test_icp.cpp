@@ -451,6 +451,7 @@ TEST(RegisterPoints, RejectsBadGuessesParametersAndPoints) {
   rejects([](RegistrationParams& p) { p.min_correspondence_distance_m = 5.0; });
   rejects([](RegistrationParams& p) { p.correspondence_distance_decay = 0.0; });
   rejects([](RegistrationParams& p) { p.max_iterations = 0; });
+  rejects([](RegistrationParams& p) { p.max_iterations = kMaxIterationsLimit + 1; });
   rejects([](RegistrationParams& p) { p.class_weights[2] = -1.0; });
   rejects([](RegistrationParams& p) { p.class_weights[3] = std::numeric_limits<double>::quiet_NaN(); });
   rejects([](RegistrationParams& p) { p.min_correspondences = 2; });

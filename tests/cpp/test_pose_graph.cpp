@@ -1,4 +1,5 @@
 #include <gtest/gtest.h>
+#include <terracube/icp.hpp>
 #include <terracube/pose_graph.hpp>
 
 #include <Eigen/Dense>
@@ -345,6 +346,8 @@ TEST(PoseGraph, BadInputThrowsNamingTheProblem) {
   EXPECT_THROW(optimize_pose_graph(poses, edge, params), std::invalid_argument);
   params = {};
   params.max_iterations = 0;
+  EXPECT_THROW(optimize_pose_graph(poses, edge, params), std::invalid_argument);
+  params.max_iterations = terracube::kMaxIterationsLimit + 1;
   EXPECT_THROW(optimize_pose_graph(poses, edge, params), std::invalid_argument);
   params = {};
   params.robust_loss_scale = 0.0;

@@ -295,3 +295,24 @@ def test_a_real_binary_compressed_pcd_still_reads(tmp_path):
     xyz = np.zeros((50_000, 3), np.float32)  # all zeros: LZF's best case
     path = write_pcd(tmp_path / "zeros.pcd", {"xyz": xyz}, encoding="binary_compressed")
     np.testing.assert_array_equal(read_points(path), xyz)
+
+
+def test_an_iteration_count_no_solver_needs_is_refused_instead_of_running_for_days():
+    """ICP, PCL's ICP, the pose graph and the mapper's pose graph stop at max_iterations when a pair
+    never converges: a count of 10**9 would be a call that seems to hang. Above 10,000 it is refused,
+    with the parameter's name; 10,000 itself runs."""
+    import terracube as tc
+    from terracube.mapping import Mapper, MapperParams
+
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-5, 5, (300, 3))
+    for call in (
+        lambda n: tc.register_points(points, points, max_iterations=n),
+        lambda n: tc.pcl_icp(points, points, max_iterations=n),
+        lambda n: tc.optimize_pose_graph([np.eye(4), np.eye(4)], [(0, 1, np.eye(4))], max_iterations=n),
+    ):
+        with pytest.raises(ValueError, match="1 to 10000|\\[1, 10000\\], got 1000000000"):
+            call(10**9)
+        call(10_000)
+    with pytest.raises(ValueError, match=r"pose_graph_iterations must lie in \[1, 10000\], got 10001"):
+        Mapper(MapperParams(pose_graph_iterations=10_001))

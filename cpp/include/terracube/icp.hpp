@@ -92,6 +92,11 @@ struct CorrelativeSearchResult {
 CorrelativeSearchResult correlative_search(const ClassifiedPoints& source, const ClassifiedPoints& target,
                                            const Eigen::Matrix4d& guess, const CorrelativeSearchParams& params = {});
 
+/// The most updates an iterative solver here may be asked for (RegistrationParams,
+/// PclIcpParams, PoseGraphParams, MapperParams): one that has not converged in 10,000 will not,
+/// and a larger count only turns a bad pair into a call that seems to hang.
+constexpr int kMaxIterationsLimit = 10000;
+
 /// Parameters of register_maps / register_points; defaults follow the paper where it gives them.
 struct RegistrationParams {
   /// Before the ICP (a departure, issue 38: the ICP's basin alone is a few degrees of yaw), a
@@ -119,7 +124,7 @@ struct RegistrationParams {
   double max_correspondence_distance_m = 1.5;
   double min_correspondence_distance_m = 0.3;
   double correspondence_distance_decay = 0.85;  ///< in (0, 1]; 1 keeps the limit fixed
-  int max_iterations = 30;                      ///< >= 1
+  int max_iterations = 30;                      ///< in [1, kMaxIterationsLimit]
   /// Stop (converged) when an update rotates less than this [rad] and moves less than
   /// translation_tolerance_m [m].
   double rotation_tolerance_rad = 5e-4;

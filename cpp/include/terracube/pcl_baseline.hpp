@@ -13,7 +13,7 @@ namespace terracube {
 /// The settings of pcl::IterativeClosestPoint that terracube's ICP mirrors.
 struct PclIcpParams {
   double max_correspondence_distance_m = 1.0;  ///< setMaxCorrespondenceDistance [m]
-  int max_iterations = 30;                     ///< setMaximumIterations
+  int max_iterations = 30;                     ///< setMaximumIterations, in [1, kMaxIterationsLimit] (icp.hpp)
   double transformation_epsilon = 1e-10;       ///< setTransformationEpsilon (squared translation [m^2])
   double rotation_epsilon = 1.0 - 1e-10;       ///< setTransformationRotationEpsilon (cosine of the angle)
   double euclidean_fitness_epsilon = 0.0;      ///< setEuclideanFitnessEpsilon [m^2]; 0 disables it

@@ -33,7 +33,7 @@ enum class RobustLoss : std::uint8_t {
 
 /// Parameters of optimize_pose_graph.
 struct PoseGraphParams {
-  int max_iterations = 100;  ///< Levenberg-Marquardt iterations at most, >= 1
+  int max_iterations = 100;  ///< Levenberg-Marquardt iterations at most, in [1, kMaxIterationsLimit] (icp.hpp)
   RobustLoss robust_loss = RobustLoss::kCauchy;
   double robust_loss_scale = 1.0;  ///< a, in whitened residual units (standard deviations), > 0
   /// Nodes held at their initial pose: at least one (the gauge), each < number of poses.
