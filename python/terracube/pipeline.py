@@ -239,6 +239,13 @@ def range_note(points: np.ndarray, keep: np.ndarray, frame) -> str | None:
 SPARSE_POINTS_PER_CELL = 1.5
 
 
+def _airborne_resolution() -> float:
+    """The cell size [m] of the airborne_las preset."""
+    from .config import load_config
+
+    return float(load_config(None, preset="airborne_las").elevation.resolution)
+
+
 def fill_note(elevation_map) -> str | None:
     """A warning line when fewer than :data:`LOW_FILL_RATIO` of the map's cells hold data, or a note
     when the cells with data hold fewer than :data:`SPARSE_POINTS_PER_CELL` points on average (an
@@ -252,7 +259,10 @@ def fill_note(elevation_map) -> str | None:
     density = points / (count.size * resolution * resolution)  # points per m2 over the map (0 at 1e300 m)
     suggested = max(resolution, math.ceil(10 * math.sqrt(4.0 / density)) / 10) if density > 0 else resolution
     sparse = points / filled < SPARSE_POINTS_PER_CELL
-    airborne = " (an airborne tile: --preset airborne_las)" if sparse else ""
+    # The airborne preset helps only a map finer than its cells (not one already made with it).
+    airborne = (
+        " (an airborne tile: --preset airborne_las)" if sparse and resolution < _airborne_resolution() else ""
+    )
     if filled < LOW_FILL_RATIO * count.size:
         return (
             f"  warning: only {filled / count.size:.1%} of the {count.size:,} cells hold data; a smaller "

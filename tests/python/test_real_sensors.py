@@ -167,6 +167,13 @@ def test_cells_finer_than_the_point_spacing_get_a_note_with_a_cell_size_that_fit
     note = [line for line in report.lines if "note:" in line]
     assert len(note) == 1 and "--resolution 0.7 gives cells of about four points" in note[0], report.lines
     assert "--preset airborne_las" in note[0]
+    # a map already as coarse as the preset's cells is not sent to the preset
+    airborne = load_config(None, preset="airborne_las")
+    for resolution, hinted in ((0.1, True), (0.5, False), (0.7, False)):
+        config = airborne.replace("elevation", resolution=resolution)
+        report = run_stage("dem", _ground_scene(n=300), f"r{resolution}", tmp_path, config, png=False)
+        lines = [line for line in report.lines if "note:" in line or "warning:" in line]
+        assert any("--preset airborne_las" in line for line in lines) == hinted, (resolution, lines)
     config = default_config().replace("elevation", resolution=0.7)
     report = run_stage("dem", _ground_scene(n=4000), "coarse", tmp_path, config, png=False)
     assert not any("note:" in line or "warning:" in line for line in report.lines), report.lines
