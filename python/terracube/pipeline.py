@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import glob
+import functools
 import math
 import threading
 import time
@@ -239,6 +240,7 @@ def range_note(points: np.ndarray, keep: np.ndarray, frame) -> str | None:
 SPARSE_POINTS_PER_CELL = 1.5
 
 
+@functools.cache
 def _airborne_resolution() -> float:
     """The cell size [m] of the airborne_las preset."""
     from .config import load_config
