@@ -22,8 +22,8 @@ Example
 from __future__ import annotations
 
 import dataclasses
-import glob
 import functools
+import glob
 import math
 import threading
 import time
