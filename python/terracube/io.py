@@ -969,6 +969,28 @@ def read_crs(path: PathLike) -> str | None:
     return None
 
 
+def crs_length_unit(crs: str | None) -> tuple[str, float | None] | None:
+    """The unit a CRS (WKT or ``EPSG:code``, e.g. :func:`read_crs`) measures x and y in: (name,
+    metres per unit), e.g. ``("US survey foot", 0.3048006096)``, ``("degree", None)`` for a
+    geographic CRS; None without a CRS, when it cannot be parsed, or without the ``geo`` extra
+    (rasterio, which reads the CRS)."""
+    if not crs:
+        return None
+    try:
+        from rasterio.crs import CRS
+        from rasterio.errors import CRSError
+    except ImportError:
+        return None
+    try:
+        parsed = CRS.from_user_input(crs)
+        if parsed.is_geographic:
+            return "degree", None
+        name, factor = parsed.linear_units_factor
+    except (CRSError, ValueError):
+        return None
+    return str(name), float(factor)
+
+
 def write_geotiff(elevation_map, layer: str, path: PathLike, *, crs: str | None = None) -> Path:
     """Write one map layer as a deflate-compressed GeoTIFF (needs the ``geo`` extra: rasterio).
 

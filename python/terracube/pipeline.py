@@ -248,6 +248,32 @@ def _airborne_resolution() -> float:
     return float(load_config(None, preset="airborne_las").elevation.resolution)
 
 
+def unit_note(source: Path | None, config) -> str | None:
+    """A warning line when the CRS of a LAS/LAZ ``source`` does not measure in metres: terracube takes
+    the coordinates as they are, so every length of the settings acts in the file's unit (a foot
+    file's 0.5 m cells are 0.15 m), or, for a geographic CRS, x and y are degrees."""
+    from .io import crs_length_unit, read_crs
+
+    if source is None or source.suffix.lower() not in (".las", ".laz"):
+        return None
+    unit = crs_length_unit(read_crs(source))
+    if unit is None or unit[1] == 1.0:
+        return None
+    name, factor = unit
+    if factor is None:
+        return (
+            f"  warning: the CRS of {source.name} is geographic: x and y are degrees of longitude and "
+            "latitude, not metres; reproject the cloud to a projected CRS (e.g. its UTM zone) first"
+        )
+    resolution = float(config.elevation.resolution)
+    return (
+        f"  warning: the CRS of {source.name} measures in {name} (1 {name} = {factor:.7g} m) and terracube "
+        f"takes the coordinates as they are: every length set (cells, cube edge, robot height, ranges) "
+        f"acts in {name} here, e.g. the cells of {resolution:g} are {resolution * factor:.3g} m; for "
+        f"metric settings divide the lengths by {factor:.7g} (--resolution {resolution / factor:.3g})"
+    )
+
+
 def fill_note(elevation_map) -> str | None:
     """A warning line when fewer than :data:`LOW_FILL_RATIO` of the map's cells hold data, or a note
     when the cells with data hold fewer than :data:`SPARSE_POINTS_PER_CELL` points on average (an
@@ -783,9 +809,9 @@ def run_stage(
     scan = ScanOutput(points, keep, None if source is None else Path(source))
     kept = points if keep.all() else np.ascontiguousarray(points[keep])
     report = _RUNNERS[stage](kept, name, output_dir, config, scan=scan, **options)
-    note = range_note(points, keep, config.frame)
-    if note is not None:
-        report.lines.insert(1, note)
+    for note in (range_note(points, keep, config.frame), unit_note(scan.source, config)):
+        if note is not None:
+            report.lines.insert(1, note)
     return report
 
 

@@ -321,6 +321,40 @@ def test_the_crs_of_the_bundled_airborne_las_reaches_the_geotiff(tmp_path, share
         assert dataset.crs is not None and "Nebraska" in dataset.crs.to_wkt()
 
 
+def test_the_length_unit_of_a_crs_is_read_and_a_file_not_in_metres_gets_a_warning(tmp_path, shared_data):
+    """Two of the bundled airborne tiles measure in feet: their coordinates are used as they are, so
+    a run says that every length of the settings acts in feet there (and a geographic CRS in
+    degrees); a metric tile gets no such line."""
+    pytest.importorskip("rasterio")
+    pytest.importorskip("laspy")
+    from terracube.io import crs_length_unit
+
+    folder = "als_classified/"
+    units = {
+        "laspy_autzen_trim.laz": ("foot", 0.3048),
+        "laspy_wkt_geotiff_ground_veg_building.las": ("US survey foot", 1200 / 3937),
+        "lidR_Topography.laz": ("metre", 1.0),
+    }
+    for name, (unit, factor) in units.items():
+        found = crs_length_unit(read_crs(shared_data.path(folder + name)))
+        assert found is not None and found[0] == unit and found[1] == pytest.approx(factor, rel=1e-12), found
+    assert crs_length_unit("EPSG:4326") == ("degree", None)
+    assert crs_length_unit(None) is None and crs_length_unit("not a crs") is None
+
+    points = _ground_scene(n=3000) + [500_000.0, 4_000_000.0, 100.0]
+    config = default_config().replace("elevation", resolution=0.5)
+    lines = {}
+    for label, epsg in (("feet", 2229), ("metres", 32611), ("degrees", 4326)):  # ftUS, UTM 11N, lon/lat
+        source = tmp_path / f"{label}.las"
+        _georeferenced_las(source, points, None, epsg)
+        report = run_stage("dem", read_points(source), label, tmp_path, config, source=source, png=False)
+        lines[label] = [line for line in report.lines if "CRS of" in line]
+    assert len(lines["feet"]) == 1 and "US survey foot" in lines["feet"][0], lines
+    assert "the cells of 0.5 are 0.152 m" in lines["feet"][0] and "--resolution 1.64" in lines["feet"][0]
+    assert lines["metres"] == []
+    assert len(lines["degrees"]) == 1 and "geographic" in lines["degrees"][0]
+
+
 def test_a_classified_las_keeps_every_input_dimension_and_vlr_with_the_labels_added(tmp_path):
     laspy = pytest.importorskip("laspy")
     from terracube.io import TERRAIN_LAS_CLASSES
