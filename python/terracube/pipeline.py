@@ -256,7 +256,11 @@ def unit_note(source: Path | None, config) -> str | None:
 
     if source is None or source.suffix.lower() not in (".las", ".laz"):
         return None
-    unit = crs_length_unit(read_crs(source))
+    try:
+        crs = read_crs(source)
+    except Exception:  # noqa: BLE001 - an advisory line: a CRS that cannot be read says nothing
+        return None
+    unit = crs_length_unit(crs)
     if unit is None or unit[1] == 1.0:
         return None
     name, factor = unit
