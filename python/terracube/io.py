@@ -991,12 +991,31 @@ def crs_length_unit(crs: str | None) -> tuple[str, float | None] | None:
     return str(name), float(factor)
 
 
+#: Layers measured in the unit of length of the map's coordinates (metres in a sensor frame); the
+#: others: "variance" in its square, "slope" in radians, "time" in seconds, the rest without a unit.
+_LENGTH_LAYERS = frozenset(
+    {"min", "max", "mean", "std_dev", "elevation", "overhang_min", "clearance", "step", "roughness"}
+    | {"relative_height", "ground", "fem"}
+)
+
+
+def _band_unit(layer: str, crs: str | None) -> str:
+    """The GDAL unit type of a layer's band: the CRS's length unit (metre without one)."""
+    unit = crs_length_unit(crs)
+    length = "metre" if unit is None or unit[1] is None else unit[0]
+    if layer in _LENGTH_LAYERS:
+        return length
+    return {"variance": f"{length}^2", "slope": "radian", "time": "second"}.get(layer, "")
+
+
 def write_geotiff(elevation_map, layer: str, path: PathLike, *, crs: str | None = None) -> Path:
     """Write one map layer as a deflate-compressed GeoTIFF (needs the ``geo`` extra: rasterio).
 
     Float layers are float32 with nodata NaN; the ``class`` layer is uint8 with nodata 0 (unknown),
     the class names as the band's category names and a colour table. ``crs`` (WKT or ``EPSG:code``,
-    e.g. :func:`read_crs` of the input) georeferences it; None leaves the sensor frame unnamed.
+    e.g. :func:`read_crs` of the input) georeferences it; None leaves the sensor frame unnamed. The
+    band's unit is that of the values: heights in the CRS's unit of length (metre without a CRS or
+    with a geographic one; read with the CRS by :func:`crs_length_unit`), slope in radian.
     """
     try:
         import rasterio
@@ -1032,6 +1051,7 @@ def write_geotiff(elevation_map, layer: str, path: PathLike, *, crs: str | None 
     with atomic_path(path) as temporary, rasterio.open(temporary, "w", **profile) as dataset:
         dataset.write(raster, 1)
         dataset.set_band_description(1, layer)
+        dataset.units = (_band_unit(layer, crs),)
         if is_class:  # the category names as band metadata in the file, and GDAL's own in a .aux.xml
             names = [c.name.lower() for c in TerrainClass]
             dataset.update_tags(1, CATEGORY_NAMES=",".join(names))

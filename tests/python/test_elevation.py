@@ -597,7 +597,20 @@ def test_to_geotiff_round_trips_values_orientation_and_transform(tmp_path):
         assert dataset.count == 1 and dataset.dtypes[0] == "float32"
         assert dataset.crs.to_epsg() == 32633 and np.isnan(dataset.nodata)
         assert dataset.compression is not None and dataset.compression.value == "DEFLATE"
+        assert dataset.units == ("metre",)
     assert raster.shape == (4, 3)  # rows along y, columns along x
+    # each band names the unit of its values: the CRS's length unit (metre without one)
+    elevation_map["variance"], elevation_map["slope"], elevation_map["count"] = values, values, values
+    for layer, crs, unit in (
+        ("max", "EPSG:2229", "US survey foot"),
+        ("max", None, "metre"),
+        ("max", "EPSG:4326", "metre"),  # degrees measure x and y only
+        ("variance", None, "metre^2"),
+        ("slope", "EPSG:2229", "radian"),
+        ("count", None, None),
+    ):
+        with rasterio.open(elevation_map.to_geotiff(layer, tmp_path / "u.tif", crs=crs)) as dataset:
+            assert dataset.units == (unit,), (layer, crs, dataset.units)
     for i in range(3):
         for j in range(4):
             row = 3 - j  # row 0 is the largest y

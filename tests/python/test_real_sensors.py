@@ -319,6 +319,7 @@ def test_the_crs_of_the_bundled_airborne_las_reaches_the_geotiff(tmp_path, share
     elevation_map = tc.build_elevation_map(read_points(path)[:, :3], 1.0)
     with rasterio.open(write_geotiff(elevation_map, "max", tmp_path / "a.tif", crs=wkt)) as dataset:
         assert dataset.crs is not None and "Nebraska" in dataset.crs.to_wkt()
+        assert dataset.units == ("US survey foot",)  # the file's heights are in its CRS's feet
 
 
 def test_the_length_unit_of_a_crs_is_read_and_a_file_not_in_metres_gets_a_warning(tmp_path, shared_data):
