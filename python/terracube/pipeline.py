@@ -248,16 +248,14 @@ def _airborne_resolution() -> float:
     return float(load_config(None, preset="airborne_las").elevation.resolution)
 
 
-def unit_note(source: Path | None, config) -> str | None:
-    """A warning line when the CRS of a LAS/LAZ ``source`` does not measure in metres: terracube takes
-    the coordinates as they are, so every length of the settings acts in the file's unit (a foot
-    file's 0.5 m cells are 0.15 m), or, for a geographic CRS, x and y are degrees."""
-    from .io import crs_length_unit, read_crs
+def unit_note(scan: ScanOutput, config) -> str | None:
+    """A warning line when the CRS of the scan's LAS/LAZ source does not measure in metres: terracube
+    takes the coordinates as they are, so every length of the settings acts in the file's unit (a
+    foot file's 0.5 m cells are 0.15 m), or, for a geographic CRS, x and y are degrees."""
+    from .io import crs_length_unit
 
-    if source is None or source.suffix.lower() not in (".las", ".laz"):
-        return None
     try:
-        crs = read_crs(source)
+        crs = scan.crs
     except Exception:  # noqa: BLE001 - an advisory line: a CRS that cannot be read says nothing
         return None
     unit = crs_length_unit(crs)
@@ -266,14 +264,14 @@ def unit_note(source: Path | None, config) -> str | None:
     name, factor = unit
     if factor is None:
         return (
-            f"  warning: the CRS of {source.name} is geographic: x and y are degrees of longitude and "
+            f"  warning: the CRS of {scan.source.name} is geographic: x and y are degrees of longitude and "
             "latitude, not metres; reproject the cloud to a projected CRS (e.g. its UTM zone) first"
         )
     resolution = float(config.elevation.resolution)
     return (
-        f"  warning: the CRS of {source.name} measures in {name} (1 {name} = {factor:.7g} m) and terracube "
-        f"takes the coordinates as they are: every length set (cells, cube edge, robot height, ranges) "
-        f"acts in {name} here, e.g. the cells of {resolution:g} are {resolution * factor:.3g} m; for "
+        f"  warning: the CRS of {scan.source.name} measures in {name} (1 {name} = {factor:.7g} m) and "
+        "terracube takes the coordinates as they are: every length set (cells, cube edge, robot height, "
+        f"ranges) acts in {name} here, e.g. the cells of {resolution:g} are {resolution * factor:.3g} m; for "
         f"metric settings divide the lengths by {factor:.7g} (--resolution {resolution / factor:.3g})"
     )
 
@@ -371,6 +369,13 @@ class ScanOutput:
     points: np.ndarray
     keep: np.ndarray
     source: Path | None = None
+
+    @functools.cached_property
+    def crs(self) -> str | None:
+        """The source file's CRS (:func:`terracube.io.read_crs`), read once; None without one."""
+        from .io import read_crs
+
+        return read_crs(self.source) if self.source is not None else None
 
     def labels(self, kept_labels: np.ndarray) -> np.ndarray:
         """(N,) labels of every input point from those of the kept ones (0 / False elsewhere)."""
@@ -577,10 +582,9 @@ def _add_notes(report: StageReport, elevation_map) -> None:
 
 
 def _geotiff(elevation_map, layer: str, path: Path, scan: ScanOutput) -> Path:
-    from .io import read_crs, write_geotiff
+    from .io import write_geotiff
 
-    crs = read_crs(scan.source) if scan.source is not None else None
-    return write_geotiff(elevation_map, layer, path, crs=crs)
+    return write_geotiff(elevation_map, layer, path, crs=scan.crs)
 
 
 #: How far [m] the cells' typical lowest point may lie from the sensor-height ground plane before
@@ -813,7 +817,7 @@ def run_stage(
     scan = ScanOutput(points, keep, None if source is None else Path(source))
     kept = points if keep.all() else np.ascontiguousarray(points[keep])
     report = _RUNNERS[stage](kept, name, output_dir, config, scan=scan, **options)
-    for note in (range_note(points, keep, config.frame), unit_note(scan.source, config)):
+    for note in (range_note(points, keep, config.frame), unit_note(scan, config)):
         if note is not None:
             report.lines.insert(1, note)
     return report
