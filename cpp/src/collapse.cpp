@@ -111,10 +111,10 @@ struct CubeIndexer {
   Index layer;
 };
 
-/// V as a bit per cube plus M as a 32-bit layer per column [bytes].
+/// V as a bit per cube, its summary as a bit per 64 cubes, plus M as a 32-bit layer per column [bytes].
 std::size_t dense_bytes(const CubeGrid& grid) {
-  return static_cast<std::size_t>((grid.num_cubes() + 63) / 64) * 8 +
-         static_cast<std::size_t>(grid.num_columns()) * sizeof(std::int32_t);
+  const auto words = static_cast<std::size_t>((grid.num_cubes() + 63) / 64);
+  return (words + (words + 63) / 64) * 8 + static_cast<std::size_t>(grid.num_columns()) * sizeof(std::int32_t);
 }
 
 CubeStorage choose_storage(const CubeGrid& grid, const CollapseParams& params, std::size_t num_used) {
@@ -155,11 +155,13 @@ struct Workspace {
   std::vector<DenseIndex> dense_cubes;    ///< I per row, dense storage
   std::vector<SparseIndex> sparse_cubes;  ///< I per row, sparse storage
   std::vector<std::uint64_t> occupancy;   ///< V, dense storage
+  std::vector<std::uint64_t> summary;     ///< a bit per word of V: set when the word may not be 0
   std::vector<std::int32_t> ground;       ///< M, dense storage
 
   void release_if_large() {
-    const std::size_t bytes =
-        4 * dense_cubes.capacity() + 8 * (sparse_cubes.capacity() + occupancy.capacity()) + 4 * ground.capacity();
+    const std::size_t bytes = 4 * dense_cubes.capacity() +
+                              8 * (sparse_cubes.capacity() + occupancy.capacity() + summary.capacity()) +
+                              4 * ground.capacity();
     if (bytes > (std::size_t{64} << 20)) *this = Workspace();
   }
 };
@@ -228,20 +230,29 @@ std::size_t write_mask(const std::vector<Index>& cube_of_row, int num_threads, c
 }
 
 /// Dense storage: V is a bit per cube of the grid, M a layer per column. Reading V in index order
-/// lists L already sorted (a bucket sort, O(cubes / 64 + |L|)). The workspace keeps V all 0 and M
-/// all -1 between calls: a call clears only what it set, O(|L|), not the whole grid.
+/// lists L already sorted (a bucket sort). A summary bit per word of V marks the words that hold a
+/// cube, so the listing skips empty stretches of the grid 4096 cubes at a time: O(cubes / 4096 +
+/// |L|), which matters for a long-range scan (an Ouster scan at E = 0.5 m: 44 M cubes, 22 k
+/// occupied). The workspace keeps V, the summary and M clear between calls: a call clears only
+/// what it set, O(|L|), not the whole grid.
 void collapse_dense(Workspace& workspace, const CollapseParams& params, const NextPoints& next_points,
                     CollapseResult& result) {
   const int num_threads = params.num_threads;
   const CubeGrid& grid = result.grid;
   const std::vector<DenseIndex>& cubes = workspace.dense_cubes;
   const auto words = static_cast<std::size_t>((grid.num_cubes() + 63) / 64);
+  const std::size_t summary_words = (words + 63) / 64;
   const auto num_columns = static_cast<std::size_t>(grid.num_columns());
   if (workspace.occupancy.size() < words) workspace.occupancy.resize(words, 0);
+  if (workspace.summary.size() < summary_words) workspace.summary.resize(summary_words, 0);
   if (workspace.ground.size() < num_columns) workspace.ground.resize(num_columns, -1);
   std::uint64_t* const occupancy = workspace.occupancy.data();  // V
-  const auto mark = [occupancy](DenseIndex cube) {
-    if (cube != kNoCube<DenseIndex>) occupancy[cube >> 6] |= std::uint64_t{1} << (cube & 63);
+  std::uint64_t* const summary = workspace.summary.data();
+  const auto mark = [occupancy, summary](DenseIndex cube) {
+    if (cube != kNoCube<DenseIndex>) {
+      occupancy[cube >> 6] |= std::uint64_t{1} << (cube & 63);
+      summary[cube >> 12] |= std::uint64_t{1} << ((cube >> 6) & 63);
+    }
   };
   // Rows in two interleaved halves: neighbouring rows of a scan often set bits of one word, and
   // each such update would wait for the one before.
@@ -252,9 +263,12 @@ void collapse_dense(Workspace& workspace, const CollapseParams& params, const Ne
   }
   if (cubes.size() % 2 == 1) mark(cubes.back());
   std::vector<std::int64_t>& occupied = result.occupied_cubes;  // L, sorted
-  for (std::size_t word = 0; word < words; ++word) {
-    for (std::uint64_t bits = occupancy[word]; bits != 0; bits &= bits - 1) {
-      occupied.push_back(static_cast<std::int64_t>(word * 64) + __builtin_ctzll(bits));
+  for (std::size_t block = 0; block < summary_words; ++block) {
+    for (std::uint64_t marked = summary[block]; marked != 0; marked &= marked - 1) {
+      const std::size_t word = block * 64 + static_cast<std::size_t>(__builtin_ctzll(marked));
+      for (std::uint64_t bits = occupancy[word]; bits != 0; bits &= bits - 1) {
+        occupied.push_back(static_cast<std::int64_t>(word * 64) + __builtin_ctzll(bits));
+      }
     }
   }
   std::vector<std::int32_t>& ground = workspace.ground;  // M
@@ -268,8 +282,9 @@ void collapse_dense(Workspace& workspace, const CollapseParams& params, const Ne
   result.num_overhang = write_mask(
       cubes, num_threads, [occupancy](DenseIndex cube) { return ((occupancy[cube >> 6] >> (cube & 63)) & 1U) == 0; },
       result.overhang);
-  for (const std::int64_t cube : occupied) {  // V and M cleared for the next call
+  for (const std::int64_t cube : occupied) {  // V, its summary and M cleared for the next call
     occupancy[static_cast<std::size_t>(cube >> 6)] = 0;
+    summary[static_cast<std::size_t>(cube >> 12)] = 0;
     ground[static_cast<std::size_t>(cube % grid.num_columns())] = -1;
   }
 }
