@@ -229,30 +229,13 @@ std::size_t write_mask(const std::vector<Index>& cube_of_row, int num_threads, c
   return total;
 }
 
-/// Dense storage: V is a bit per cube of the grid, M a layer per column. Reading V in index order
-/// lists L already sorted (a bucket sort). A summary bit per word of V marks the words that hold a
-/// cube, so the listing skips empty stretches of the grid 4096 cubes at a time: O(cubes / 4096 +
-/// |L|), which matters for a long-range scan (an Ouster scan at E = 0.5 m: 44 M cubes, 22 k
-/// occupied). The workspace keeps V, the summary and M clear between calls: a call clears only
-/// what it set, O(|L|), not the whole grid.
-void collapse_dense(Workspace& workspace, const CollapseParams& params, const NextPoints& next_points,
-                    CollapseResult& result) {
-  const int num_threads = params.num_threads;
-  const CubeGrid& grid = result.grid;
-  const std::vector<DenseIndex>& cubes = workspace.dense_cubes;
-  const auto words = static_cast<std::size_t>((grid.num_cubes() + 63) / 64);
-  const std::size_t summary_words = (words + 63) / 64;
-  const auto num_columns = static_cast<std::size_t>(grid.num_columns());
-  if (workspace.occupancy.size() < words) workspace.occupancy.resize(words, 0);
-  if (workspace.summary.size() < summary_words) workspace.summary.resize(summary_words, 0);
-  if (workspace.ground.size() < num_columns) workspace.ground.resize(num_columns, -1);
-  std::uint64_t* const occupancy = workspace.occupancy.data();  // V
-  std::uint64_t* const summary = workspace.summary.data();
+/// Sets V's bit of every row's cube and, with kSummary, the summary's bit of that bit's word.
+template <bool kSummary>
+void mark_occupied(const std::vector<DenseIndex>& cubes, std::uint64_t* occupancy, std::uint64_t* summary) {
   const auto mark = [occupancy, summary](DenseIndex cube) {
-    if (cube != kNoCube<DenseIndex>) {
-      occupancy[cube >> 6] |= std::uint64_t{1} << (cube & 63);
-      summary[cube >> 12] |= std::uint64_t{1} << ((cube >> 6) & 63);
-    }
+    if (cube == kNoCube<DenseIndex>) return;
+    occupancy[cube >> 6] |= std::uint64_t{1} << (cube & 63);
+    if constexpr (kSummary) summary[cube >> 12] |= std::uint64_t{1} << ((cube >> 6) & 63);
   };
   // Rows in two interleaved halves: neighbouring rows of a scan often set bits of one word, and
   // each such update would wait for the one before.
@@ -262,14 +245,45 @@ void collapse_dense(Workspace& workspace, const CollapseParams& params, const Ne
     mark(cubes[half + row]);
   }
   if (cubes.size() % 2 == 1) mark(cubes.back());
+}
+
+/// Appends the cubes of V's word `word` to L, in ascending order.
+void list_word(std::uint64_t bits, std::size_t word, std::vector<std::int64_t>& occupied) {
+  for (; bits != 0; bits &= bits - 1) occupied.push_back(static_cast<std::int64_t>(word * 64) + __builtin_ctzll(bits));
+}
+
+/// Dense storage: V is a bit per cube of the grid, M a layer per column. Reading V in index order
+/// lists L already sorted (a bucket sort). When V has more words than the cloud has rows (a
+/// long-range scan: an Ouster scan at E = 0.5 m has 44 M cubes, 22 k of them occupied), a summary
+/// bit per word of V marks the words that hold a cube and the listing skips empty stretches 4096
+/// cubes at a time; on smaller grids reading every word costs less than keeping the summary.
+/// The workspace keeps V, the summary and M clear between calls: a call clears only what it set,
+/// O(|L|), not the whole grid.
+void collapse_dense(Workspace& workspace, const CollapseParams& params, const NextPoints& next_points,
+                    CollapseResult& result) {
+  const CubeGrid& grid = result.grid;
+  const std::vector<DenseIndex>& cubes = workspace.dense_cubes;
+  const auto words = static_cast<std::size_t>((grid.num_cubes() + 63) / 64);
+  const bool summarise = words > cubes.size();
+  const std::size_t summary_words = summarise ? (words + 63) / 64 : 0;
+  const auto num_columns = static_cast<std::size_t>(grid.num_columns());
+  if (workspace.occupancy.size() < words) workspace.occupancy.resize(words, 0);
+  if (workspace.summary.size() < summary_words) workspace.summary.resize(summary_words, 0);
+  if (workspace.ground.size() < num_columns) workspace.ground.resize(num_columns, -1);
+  std::uint64_t* const occupancy = workspace.occupancy.data();  // V
+  std::uint64_t* const summary = workspace.summary.data();
   std::vector<std::int64_t>& occupied = result.occupied_cubes;  // L, sorted
-  for (std::size_t block = 0; block < summary_words; ++block) {
-    for (std::uint64_t marked = summary[block]; marked != 0; marked &= marked - 1) {
-      const std::size_t word = block * 64 + static_cast<std::size_t>(__builtin_ctzll(marked));
-      for (std::uint64_t bits = occupancy[word]; bits != 0; bits &= bits - 1) {
-        occupied.push_back(static_cast<std::int64_t>(word * 64) + __builtin_ctzll(bits));
+  if (summarise) {
+    mark_occupied<true>(cubes, occupancy, summary);
+    for (std::size_t block = 0; block < summary_words; ++block) {
+      for (std::uint64_t marked = summary[block]; marked != 0; marked &= marked - 1) {
+        const std::size_t word = block * 64 + static_cast<std::size_t>(__builtin_ctzll(marked));
+        list_word(occupancy[word], word, occupied);
       }
     }
+  } else {
+    mark_occupied<false>(cubes, occupancy, summary);
+    for (std::size_t word = 0; word < words; ++word) list_word(occupancy[word], word, occupied);
   }
   std::vector<std::int32_t>& ground = workspace.ground;  // M
   result.removed_cubes = removed_cubes_of(occupied, params, next_points, result, [&](std::int64_t column) -> auto& {
@@ -280,11 +294,11 @@ void collapse_dense(Workspace& workspace, const CollapseParams& params, const Ne
     occupancy[static_cast<std::size_t>(cube >> 6)] &= ~(std::uint64_t{1} << (cube & 63));
   }
   result.num_overhang = write_mask(
-      cubes, num_threads, [occupancy](DenseIndex cube) { return ((occupancy[cube >> 6] >> (cube & 63)) & 1U) == 0; },
-      result.overhang);
+      cubes, params.num_threads,
+      [occupancy](DenseIndex cube) { return ((occupancy[cube >> 6] >> (cube & 63)) & 1U) == 0; }, result.overhang);
   for (const std::int64_t cube : occupied) {  // V, its summary and M cleared for the next call
     occupancy[static_cast<std::size_t>(cube >> 6)] = 0;
-    summary[static_cast<std::size_t>(cube >> 12)] = 0;
+    if (summarise) summary[static_cast<std::size_t>(cube >> 12)] = 0;
     ground[static_cast<std::size_t>(cube % grid.num_columns())] = -1;
   }
 }
