@@ -556,7 +556,8 @@ def print_measurement(measurement: Measurement) -> None:
 
 
 def print_targets(measurements: list[Measurement], quick: bool) -> None:
-    """The issue's targets: numpy >= 20x, OctoMap >= 10x, collapse <= 3 ms on the 500k synthetic cloud."""
+    """The targets: numpy >= 20x, OctoMap >= 10x, collapse <= 3 ms on the 500k synthetic cloud (the
+    first issue's), and issue 33's OctoMap >= 20x (its numpy bar is the map's)."""
     print("\nTargets (reported, not asserted):")
     numpy_ratios = [m.ms["numpy"] / m.ms["collapse"] for m in measurements]
     octomap_ratios = [m.ms["octomap"] / m.ms["collapse"] for m in measurements if m.ms.get("octomap")]
@@ -577,6 +578,10 @@ def print_targets(measurements: list[Measurement], quick: bool) -> None:
             print(f"      below 20x already at the floor for: {', '.join(below)}")
     print_target("  (same vs the np.unique path only)", unique_ratios, lambda r: r >= 20.0, "x")
     print_target("collapse vs OctoMap >= 10x on every input", octomap_ratios, lambda r: r >= 10.0, "x")
+    # Issue 33 (one implementation per algorithm) keeps this bar for the simplified core.
+    print_target(
+        "issue 33: collapse vs OctoMap >= 20x on every input", octomap_ratios, lambda r: r >= 20.0, "x"
+    )
     synthetic = [m for m in measurements if m.cloud.name.startswith("synthetic")]
     label = "collapse <= 3 ms on the 500k synthetic cloud"
     if quick:
