@@ -248,18 +248,25 @@ def _airborne_resolution() -> float:
     return float(load_config(None, preset="airborne_las").elevation.resolution)
 
 
-def unit_note(scan: ScanOutput, config) -> str | None:
-    """A warning line when the CRS of the scan's LAS/LAZ source does not measure in metres: terracube
-    takes the coordinates as they are, so every length of the settings acts in the file's unit (a
-    foot file's 0.5 m cells are 0.15 m), or, for a geographic CRS, x and y are degrees."""
+def _scan_length_unit(scan: ScanOutput) -> tuple[str, float | None] | None:
+    """The unit of length of the scan's CRS (:func:`terracube.io.crs_length_unit`) when it is not
+    the metre; None for metres, without a CRS, or when it cannot be read."""
     from .io import crs_length_unit
 
     try:
         crs = scan.crs
-    except Exception:  # noqa: BLE001 - an advisory line: a CRS that cannot be read says nothing
+    except Exception:  # noqa: BLE001 - advisory lines: a CRS that cannot be read says nothing
         return None
     unit = crs_length_unit(crs)
-    if unit is None or unit[1] == 1.0:
+    return None if unit is None or unit[1] == 1.0 else unit
+
+
+def unit_note(scan: ScanOutput, config) -> str | None:
+    """A warning line when the CRS of the scan's LAS/LAZ source does not measure in metres: terracube
+    takes the coordinates as they are, so every length of the settings acts in the file's unit (a
+    foot file's 0.5 m cells are 0.15 m), or, for a geographic CRS, x and y are degrees."""
+    unit = _scan_length_unit(scan)
+    if unit is None:
         return None
     name, factor = unit
     if factor is None:
@@ -276,17 +283,19 @@ def unit_note(scan: ScanOutput, config) -> str | None:
     )
 
 
-def fill_note(elevation_map) -> str | None:
+def fill_note(elevation_map, unit: str | None = None) -> str | None:
     """A warning line when fewer than :data:`LOW_FILL_RATIO` of the map's cells hold data, or a note
     when the cells with data hold fewer than :data:`SPARSE_POINTS_PER_CELL` points on average (an
-    airborne tile at 0.1 m: a speckle of single points), with the cell size that holds about four."""
+    airborne tile at 0.1 m: a speckle of single points), with the cell size that holds about four.
+    ``unit`` names the unit of length of the map's coordinates when it is not the metre (a LAS file
+    in feet: the density is then per square foot)."""
     count = np.asarray(elevation_map["count"])
     filled = int(np.count_nonzero(count > 0))
     if count.size == 0 or filled == 0:
         return None
     points = float(count.sum())
     resolution = float(elevation_map.geometry.resolution)
-    density = points / (count.size * resolution * resolution)  # points per m2 over the map (0 at 1e300 m)
+    density = points / (count.size * resolution * resolution)  # per unit squared over the map (0 at 1e300)
     suggested = max(resolution, math.ceil(10 * math.sqrt(4.0 / density)) / 10) if density > 0 else resolution
     sparse = points / filled < SPARSE_POINTS_PER_CELL
     # The airborne preset helps only a map finer than its cells (not one already made with it).
@@ -303,7 +312,8 @@ def fill_note(elevation_map) -> str | None:
         return None
     return (
         f"  note: the cells with data hold {points / filled:.1f} points on average ({density:.1f} points "
-        f"per m2): --resolution {suggested:g} gives cells of about four points{airborne}"
+        f"per {'m2' if unit is None else 'square ' + unit}): --resolution {suggested:g} gives cells of about "
+        f"four points{airborne}"
     )
 
 
@@ -497,7 +507,7 @@ def _run_dem(
         f"{lower:,} cells lower, {emptied:,} emptied; raw DEM {raw_ms:.1f} ms, DEM without overhangs "
         f"{clean_ms:.1f} ms"
     )
-    _add_notes(report, raw)
+    _add_notes(report, raw, scan)
     report.add("map", clean.save(output_dir / f"{name}_dem.npz"))
     if geotiff:
         report.add("GeoTIFF", _geotiff(clean, "max", output_dir / f"{name}_dem_max.tif", scan))
@@ -575,8 +585,9 @@ def classified_map(points, name, config, remove_overhangs: bool):
     return elevation_map, classes, source, map_ms, _elapsed_ms(start)
 
 
-def _add_notes(report: StageReport, elevation_map) -> None:
-    note = fill_note(elevation_map)
+def _add_notes(report: StageReport, elevation_map, scan: ScanOutput) -> None:
+    unit = _scan_length_unit(scan)
+    note = fill_note(elevation_map, None if unit is None else unit[0])
     if note is not None:
         report.lines.append(note)
 
@@ -650,7 +661,7 @@ def _run_classify(
     hint = _ground_plane_hint(elevation_map, terrain)
     if hint is not None:
         report.lines.append(hint)
-    _add_notes(report, elevation_map)
+    _add_notes(report, elevation_map, scan)
     report.add("map", elevation_map.save(output_dir / f"{name}_classes.npz"))
     if cloud_format is not None:
         labels = point_classes(*leveled_points(points, config), elevation_map, classes)
@@ -706,7 +717,7 @@ def _run_fem(
         f"{g.size[0] * g.size[1]:,} cells ({g.resolution:g} m) filled, RMSE to the mean DEM {rmse:.3f} m; "
         f"{elapsed_ms:.1f} ms"
     )
-    _add_notes(report, elevation_map)
+    _add_notes(report, elevation_map, scan)
     report.add(
         "map (layers fem, fem_confidence and the DEM's)", elevation_map.save(output_dir / f"{name}_fem.npz")
     )

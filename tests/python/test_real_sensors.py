@@ -342,7 +342,7 @@ def test_the_length_unit_of_a_crs_is_read_and_a_file_not_in_metres_gets_a_warnin
     assert crs_length_unit("EPSG:4326") == ("degree", None)
     assert crs_length_unit(None) is None and crs_length_unit("not a crs") is None
 
-    points = _ground_scene(n=3000) + [500_000.0, 4_000_000.0, 100.0]
+    points = _ground_scene(n=1200) + [500_000.0, 4_000_000.0, 100.0]
     config = default_config().replace("elevation", resolution=0.5)
     lines = {}
     for label, epsg in (("feet", 2229), ("metres", 32611), ("degrees", 4326)):  # ftUS, UTM 11N, lon/lat
@@ -350,6 +350,9 @@ def test_the_length_unit_of_a_crs_is_read_and_a_file_not_in_metres_gets_a_warnin
         _georeferenced_las(source, points, None, epsg)
         report = run_stage("dem", read_points(source), label, tmp_path, config, source=source, png=False)
         lines[label] = [line for line in report.lines if "CRS of" in line]
+        density = [line for line in report.lines if "points per" in line]  # about 1.1 points a cell
+        unit = {"feet": "square US survey foot", "metres": "m2", "degrees": "square degree"}[label]
+        assert len(density) == 1 and f"points per {unit})" in density[0], report.lines
     assert len(lines["feet"]) == 1 and "US survey foot" in lines["feet"][0], lines
     assert "the cells of 0.5 are 0.152 m" in lines["feet"][0] and "--resolution 1.64" in lines["feet"][0]
     assert lines["metres"] == []
