@@ -283,12 +283,14 @@ def unit_note(scan: ScanOutput, config) -> str | None:
     )
 
 
-def fill_note(elevation_map, unit: str | None = None) -> str | None:
+def fill_note(elevation_map, unit: str | None = None, airborne: bool = True) -> str | None:
     """A warning line when fewer than :data:`LOW_FILL_RATIO` of the map's cells hold data, or a note
     when the cells with data hold fewer than :data:`SPARSE_POINTS_PER_CELL` points on average (an
     airborne tile at 0.1 m: a speckle of single points), with the cell size that holds about four.
     ``unit`` names the unit of length of the map's coordinates when it is not the metre (a LAS file
-    in feet: the density is then per square foot)."""
+    in feet: the density is then per square foot). ``airborne`` allows the hint that a speckle of
+    single points may be an airborne tile (``--preset airborne_las``); a ground sensor's far field
+    looks the same and is better cut by ``--max-range``."""
     count = np.asarray(elevation_map["count"])
     filled = int(np.count_nonzero(count > 0))
     if count.size == 0 or filled == 0:
@@ -300,7 +302,9 @@ def fill_note(elevation_map, unit: str | None = None) -> str | None:
     sparse = points / filled < SPARSE_POINTS_PER_CELL
     # The airborne preset helps only a map finer than its cells (not one already made with it).
     airborne = (
-        " (an airborne tile: --preset airborne_las)" if sparse and resolution < _airborne_resolution() else ""
+        " (an airborne tile: --preset airborne_las)"
+        if airborne and sparse and resolution < _airborne_resolution()
+        else ""
     )
     if filled < LOW_FILL_RATIO * count.size:
         return (
@@ -587,7 +591,9 @@ def classified_map(points, name, config, remove_overhangs: bool):
 
 def _add_notes(report: StageReport, elevation_map, scan: ScanOutput) -> None:
     unit = _scan_length_unit(scan)
-    note = fill_note(elevation_map, None if unit is None else unit[0])
+    # Airborne tiles come as LAS/LAZ (or as arrays); a bag, a KITTI .bin or a PCD is a ground sensor's.
+    airborne = scan.source is None or scan.source.suffix.lower() in (".las", ".laz")
+    note = fill_note(elevation_map, None if unit is None else unit[0], airborne)
     if note is not None:
         report.lines.append(note)
 

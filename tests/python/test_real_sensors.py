@@ -174,6 +174,14 @@ def test_cells_finer_than_the_point_spacing_get_a_note_with_a_cell_size_that_fit
         report = run_stage("dem", _ground_scene(n=300), f"r{resolution}", tmp_path, config, png=False)
         lines = [line for line in report.lines if "note:" in line or "warning:" in line]
         assert any("--preset airborne_las" in line for line in lines) == hinted, (resolution, lines)
+    # a ground sensor's far field (a bag, a KITTI .bin, a PCD) is not sent to the airborne preset
+    sparse = _ground_scene(n=4000)
+    for suffix, hinted in ((".bin", False), (".pcd", False), (".laz", True)):
+        source = tmp_path / f"scan{suffix}"
+        source.touch()  # run_stage reads the points given; the source only names their file
+        report = run_stage("dem", sparse, f"s{suffix[1:]}", tmp_path, source=source, png=False)
+        note = [line for line in report.lines if "note:" in line]
+        assert len(note) == 1 and ("--preset airborne_las" in note[0]) == hinted, (suffix, note)
     config = default_config().replace("elevation", resolution=0.7)
     report = run_stage("dem", _ground_scene(n=4000), "coarse", tmp_path, config, png=False)
     assert not any("note:" in line or "warning:" in line for line in report.lines), report.lines
