@@ -191,8 +191,9 @@ TEST(CollapseVsNaive, RandomScenesAreIdenticalForEveryStorage) {
 
 TEST(CollapseVsNaive, ConsecutiveCallsOnGridsOfEverySizeShareNoState) {
   // The dense path keeps V, its summary and M per thread and restores them after each call:
-  // alternate sparse-looking grids (V larger than the cloud: the summary path), dense small grids
-  // (the byte map) and an empty-looking tall grid, each checked against the naive Algorithm 1.
+  // alternate sparse-looking grids (V has more words than the cloud has rows: the summary path),
+  // small grids holding many points (every word of V read) and an empty-looking tall grid, each
+  // checked against the naive Algorithm 1.
   for (std::uint32_t round = 0; round < 6; ++round) {
     SCOPED_TRACE("round " + std::to_string(round));
     auto spread = test::random_scene(100 + round, 400, 40.0);  // ~160^3 cubes at 0.25 m: 64k words
