@@ -118,6 +118,7 @@ def run_stream(
     local_map = LocalMap(params=params or LocalMapParams())
     report = StageReport("stream", 0)
     frames: list[tuple[str, np.ndarray, np.ndarray]] = []
+    pictures: list[Path] = []  # one every `every` scans
     seconds, count, cleared, replaced, out_of_range = 0.0, 0, 0, 0, 0
     for name, points, pose, stamp in scans:
         start = time.perf_counter()
@@ -140,13 +141,8 @@ def run_stream(
                 (f"{Path(name).stem} ({count})", ordered["elevation"].copy(), ordered.geometry.origin)
             )
         elif every > 0 and frame_due and png:
-            report.outputs.append(
-                _frame_png(
-                    local_map,
-                    output_dir / f"local_elevation_{count:06d}.png",
-                    f"{Path(name).stem}: elevation",
-                )
-            )
+            path = output_dir / f"local_elevation_{count:06d}.png"
+            pictures.append(_frame_png(local_map, path, f"{Path(name).stem}: elevation"))
     if count == 0:
         raise ValueError("no scan to fuse")
     final = local_map.to_elevation_map()
@@ -166,6 +162,12 @@ def run_stream(
                 vmin=0.0,
                 vmax=1.0,
             ),
+        )
+    if pictures:
+        report.outputs.extend(pictures)
+        last = f" ... {pictures[-1].name}" if len(pictures) > 1 else ""
+        report.lines.append(
+            f"  pictures every {every} scans: {len(pictures)} in {output_dir} ({pictures[0].name}{last})"
         )
     if animation is not None and frames:
         report.add("animation", _write_animation(frames, Path(animation), local_map.resolution))

@@ -178,6 +178,10 @@ def test_stream_command_on_kitti_frames_writes_the_map_pictures_and_an_animation
         "local_elevation_000004.png",
         "local_elevation_000006.png",
     ]
+    assert (
+        f"pictures every 2 scans: 3 in {out} (local_elevation_000002.png ... local_elevation_000006.png)"
+        in (result.output.replace("\n", ""))
+    )
     for name in ("local_map.npz", "local_elevation.png", "local_traversability.png"):
         assert (out / name).is_file(), name
     saved = terracube.ElevationMap.load(out / "local_map.npz")
