@@ -301,7 +301,7 @@ def fill_note(elevation_map, unit: str | None = None, airborne: bool = True) -> 
     suggested = max(resolution, math.ceil(10 * math.sqrt(4.0 / density)) / 10) if density > 0 else resolution
     sparse = points / filled < SPARSE_POINTS_PER_CELL
     # The airborne preset helps only a map finer than its cells (not one already made with it).
-    airborne = (
+    hint = (
         " (an airborne tile: --preset airborne_las)"
         if airborne and sparse and resolution < _airborne_resolution()
         else ""
@@ -310,14 +310,14 @@ def fill_note(elevation_map, unit: str | None = None, airborne: bool = True) -> 
         return (
             f"  warning: only {filled / count.size:.1%} of the {count.size:,} cells hold data; a smaller "
             "window (--max-range, --crop, or --origin with --size) or a coarser --resolution "
-            f"(--resolution {suggested:g}: about four points a cell) gives a readable map{airborne}"
+            f"(--resolution {suggested:g}: about four points a cell) gives a readable map{hint}"
         )
     if not sparse:
         return None
     return (
         f"  note: the cells with data hold {points / filled:.1f} points on average ({density:.1f} points "
         f"per {'m2' if unit is None else 'square ' + unit}): --resolution {suggested:g} gives cells of about "
-        f"four points{airborne}"
+        f"four points{hint}"
     )
 
 
