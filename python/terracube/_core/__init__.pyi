@@ -182,11 +182,14 @@ class CubeReason:
       removed_free_below
     
       thin
+    
+      removed_connected
     """
     __members__: typing.ClassVar[dict[str, CubeReason]]
     below_ground: typing.ClassVar[CubeReason]
     no_ground_estimate: typing.ClassVar[CubeReason]
     removed_above_kept: typing.ClassVar[CubeReason]
+    removed_connected: typing.ClassVar[CubeReason]
     removed_free_below: typing.ClassVar[CubeReason]
     shadowed: typing.ClassVar[CubeReason]
     supported: typing.ClassVar[CubeReason]
@@ -226,6 +229,7 @@ class CubeReason:
     def value(self) -> int:
         ...
 class ShadowAwareParams:
+    remove_connected: bool
     def __init__(self) -> None:
         ...
     @property
