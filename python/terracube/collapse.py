@@ -204,9 +204,9 @@ class CollapseParams:
     remove_connected : bool
         shadow_aware: a shadowed chain (floating, wide, no ray under it) that touches a removed
         chain of a neighbouring column (their layers overlap or meet within one layer) goes too,
-        and so on across the overhang: a crown's far side, a deck over a shadowed road. It also
-        takes the top of a building seen only above vegetation in front of it, hence off by
-        default (docs/performance.md measures both).
+        and so on across the overhang (the side of a crown no ray passed under). It also takes
+        the top of a building seen only above vegetation in front of it, hence off by default
+        (docs/performance.md measures both).
     """
 
     edge: float = 0.5

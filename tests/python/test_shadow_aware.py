@@ -436,6 +436,7 @@ def test_transform_translation_is_the_default_sensor_origin():
         ("azimuth_bins", 0, "azimuth_bins"),
         ("free_margin", -0.1, "free_margin_m"),
         ("min_bottom_neighbours", 25, "min_bottom_neighbours"),
+        ("remove_connected", "yes", "remove_connected"),
         ("sensor_origin", (0.0, float("inf"), 0.0), "sensor_origin"),
         ("sensor_origin", (0.0, 1.0), "sensor_origin"),
     ],

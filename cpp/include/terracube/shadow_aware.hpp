@@ -65,9 +65,9 @@ struct ShadowAwareParams {
   /// Step 5: a shadowed chain (it floats, its bottom is wide, no ray shows the space under it
   /// empty) that touches a removed chain of one of the 8 columns around it (their layers overlap
   /// or meet within one layer) is part of the same overhang and goes too, and so on across the
-  /// overhang: a crown whose far side no ray passed under, a deck over a shadowed road. It also
-  /// takes the upper part of a building seen only above the vegetation in front of it (measured in
-  /// docs/performance.md), hence off by default.
+  /// overhang (the side of a crown that no ray passed under). It also takes the upper part of a
+  /// building seen only above the vegetation in front of it (docs/performance.md measures both),
+  /// hence off by default.
   bool remove_connected = false;
 };
 
