@@ -98,8 +98,7 @@ void bind_collapse(py::module_& m) {
       .value("shadowed", CubeReason::kShadowed)
       .value("removed_above_kept", CubeReason::kRemovedAboveKept)
       .value("removed_free_below", CubeReason::kRemovedFreeBelow)
-      .value("thin", CubeReason::kThin)
-      .value("removed_connected", CubeReason::kRemovedConnected);
+      .value("thin", CubeReason::kThin);
 
   py::class_<ShadowAwareParams>(m, "ShadowAwareParams")
       .def(py::init<>())
@@ -108,7 +107,6 @@ void bind_collapse(py::module_& m) {
       .def_readwrite("ground_support", &ShadowAwareParams::ground_support)
       .def_readwrite("free_margin_m", &ShadowAwareParams::free_margin_m)
       .def_readwrite("min_bottom_neighbours", &ShadowAwareParams::min_bottom_neighbours)
-      .def_readwrite("remove_connected", &ShadowAwareParams::remove_connected)
       .def_readwrite("bottom_window", &ShadowAwareParams::bottom_window)
       .def_readwrite("azimuth_bins", &ShadowAwareParams::azimuth_bins);
 

@@ -402,75 +402,8 @@ class ColumnJudge {
 };
 
 bool is_removal(CubeReason reason) {
-  return reason == CubeReason::kRemovedAboveKept || reason == CubeReason::kRemovedFreeBelow ||
-         reason == CubeReason::kRemovedConnected;
+  return reason == CubeReason::kRemovedAboveKept || reason == CubeReason::kRemovedFreeBelow;
 }
-
-/// Step 5: every shadowed chain connected to a removed chain through touching chains of
-/// neighbouring columns becomes kRemovedConnected. A flood fill from the removed chains: the
-/// chains it reaches are those of their connected components, whatever the order of the visits.
-class ConnectedRemoval {
- public:
-  ConnectedRemoval(const CubeGrid& grid, const Workspace& w, int sigma, std::vector<CubeReason>& reasons)
-      : grid_(grid), w_(w), sigma_(sigma), reasons_(reasons) {}
-
-  void run() {
-    for (std::int64_t column = 0; column < grid_.num_columns(); ++column) {
-      for_each_chain(column, [&](std::size_t first, std::size_t last) {
-        if (is_removal(reason_at(first))) pending_.push_back({column, first, last});
-      });
-    }
-    while (!pending_.empty()) {
-      const Chain chain = pending_.back();
-      pending_.pop_back();
-      spread_from(chain);
-    }
-  }
-
- private:
-  struct Chain {
-    std::int64_t column;
-    std::size_t first, last;  // positions in by_column
-  };
-
-  /// The shadowed chains of the 8 columns around `from` whose layers overlap or meet its own
-  /// within one layer: removed, and their neighbours visited in turn.
-  void spread_from(const Chain& from) {
-    const std::int64_t ix = from.column % grid_.ixmax, iy = from.column / grid_.ixmax;
-    const std::int64_t low = layer_at(from.first) - 1, high = layer_at(from.last) + 1;
-    for (std::int64_t y = std::max<std::int64_t>(0, iy - 1); y <= std::min(grid_.iymax - 1, iy + 1); ++y) {
-      for (std::int64_t x = std::max<std::int64_t>(0, ix - 1); x <= std::min(grid_.ixmax - 1, ix + 1); ++x) {
-        const std::int64_t column = x + y * grid_.ixmax;
-        for_each_chain(column, [&](std::size_t first, std::size_t last) {
-          if (reason_at(first) != CubeReason::kShadowed || layer_at(last) < low || layer_at(first) > high) return;
-          for (std::size_t i = first; i <= last; ++i) reason_at(i) = CubeReason::kRemovedConnected;
-          pending_.push_back({column, first, last});
-        });
-      }
-    }
-  }
-
-  /// Calls visit(first, last) for each chain of `column` (gaps < σ), bottom-up.
-  template <typename Visit>
-  void for_each_chain(std::int64_t column, Visit&& visit) const {
-    const auto end = static_cast<std::size_t>(w_.start[static_cast<std::size_t>(column) + 1]);
-    for (auto first = static_cast<std::size_t>(w_.start[static_cast<std::size_t>(column)]); first < end;) {
-      std::size_t last = first;
-      while (last + 1 < end && layer_at(last + 1) - layer_at(last) - 1 < sigma_) ++last;
-      visit(first, last);
-      first = last + 1;
-    }
-  }
-
-  std::int64_t layer_at(std::size_t i) const { return w_.layer_of[static_cast<std::size_t>(w_.by_column[i])]; }
-  CubeReason& reason_at(std::size_t i) { return reasons_[static_cast<std::size_t>(w_.by_column[i])]; }
-
-  const CubeGrid& grid_;
-  const Workspace& w_;
-  int sigma_;
-  std::vector<CubeReason>& reasons_;
-  std::vector<Chain> pending_;
-};
 
 }  // namespace
 
@@ -490,8 +423,6 @@ const char* cube_reason_name(CubeReason reason) {
       return "removed_free_below";
     case CubeReason::kThin:
       return "thin";
-    case CubeReason::kRemovedConnected:
-      return "removed_connected";
   }
   return "unknown";
 }
@@ -567,7 +498,6 @@ ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vecto
   for (std::int64_t iy = 0; iy < grid.iymax; ++iy) {
     for (std::int64_t ix = 0; ix < grid.ixmax; ++ix) judge.judge(ix, iy, decision.reasons);
   }
-  if (params.remove_connected) ConnectedRemoval(grid, w, sigma, decision.reasons).run();
   for (std::size_t position = 0; position < sorted_occupied.size(); ++position) {
     if (is_removal(decision.reasons[position])) decision.removed_cubes.push_back(sorted_occupied[position]);
   }

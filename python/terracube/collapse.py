@@ -26,9 +26,8 @@ CubeGrid = _core.CubeGrid
 CollapseResult = _core.CollapseResult
 #: Why the shadow-aware rule kept or removed a cube: ``CollapseResult.cube_reasons`` holds these
 #: values (uint8), one per cube of ``occupied_cubes``. supported (0), below_ground (1),
-#: no_ground_estimate (2), shadowed (3) and thin (6) are kept; removed_above_kept (4),
-#: removed_free_below (5) and removed_connected (7, with ``remove_connected``) are removed. See
-#: ``terracube/shadow_aware.hpp``.
+#: no_ground_estimate (2), shadowed (3) and thin (6) are kept; removed_above_kept (4) and
+#: removed_free_below (5) are removed. See ``terracube/shadow_aware.hpp``.
 CubeReason = _core.CubeReason
 
 #: ``method`` of :func:`collapse_overhangs`: "paper" is [CBC] Algorithm 1 bit for bit (the default);
@@ -201,12 +200,6 @@ class CollapseParams:
         ceiling), 1..8.
     azimuth_bins : int
         shadow_aware: azimuth sectors of the free-space floor around the sensor, >= 1.
-    remove_connected : bool
-        shadow_aware: a shadowed chain (floating, wide, no ray under it) that touches a removed
-        chain of a neighbouring column (their layers overlap or meet within one layer) goes too,
-        and so on across the overhang (the side of a crown no ray passed under). It also takes
-        the top of a building seen only above vegetation in front of it, hence off by default
-        (docs/performance.md measures both).
     """
 
     edge: float = 0.5
@@ -225,7 +218,6 @@ class CollapseParams:
     min_bottom_neighbours: int = 4
     bottom_window: int = 2
     azimuth_bins: int = 512
-    remove_connected: bool = False
 
     def to_core(self) -> _core.CollapseParams:
         if self.storage not in _STORAGE:
@@ -262,9 +254,6 @@ class CollapseParams:
             if isinstance(value, bool) or int(value) != value:
                 raise ValueError(f"{name} must be a whole number, got {value!r}")
             setattr(core, name, int(value))
-        if not isinstance(self.remove_connected, (bool, np.bool_)):
-            raise ValueError(f"remove_connected must be True or False, got {self.remove_connected!r}")
-        core.remove_connected = bool(self.remove_connected)
         return core
 
 

@@ -93,30 +93,6 @@ TEST(ShadowAware, ACrownOverACurbGoesWhileTheTrunkAndCurbStay) {
   EXPECT_EQ(collapse_overhangs(points, paper).num_overhang, 0U);
 }
 
-TEST(ShadowAware, RemoveConnectedTakesTheShadowedSideOfACrownAndNoSeparateWall) {
-  Points points;
-  add_grid(points, 1, 5, -5, 5, -1.7);
-  add_grid(points, 14, 20, -5, -0.5, -1.7, 0.1);  // ground beyond the crown, seen on one side only
-  add_face_x(points, 5.0, -5, 5, -1.7, -1.4);     // 0.3 m curb
-  add_grid(points, 5, 5.5, -5, 5, -1.4);
-  for (const double z : {1.6, 2.4}) add_grid(points, 7.75, 10.25, -1.25, 1.25, z);
-  add_grid(points, 10.5, 12.0, 1.5, 6.5, -1.7);  // apart from the crown: the road before a wall
-  add_face_x(points, 12.5, 2.0, 6.0, 0.6, 3.0);  // seen only from 2.3 m above the road
-  const CollapseResult alone = collapse_overhangs(points, shadow_aware_params());
-  EXPECT_EQ(reason_at(alone, {8.5, -1.0, 1.6}), CubeReason::kRemovedFreeBelow);  // rays under this side
-  EXPECT_EQ(reason_at(alone, {8.5, 1.0, 1.6}), CubeReason::kShadowed);           // none under that one
-  EXPECT_EQ(reason_at(alone, {12.5, 4.0, 2.0}), CubeReason::kShadowed);
-  CollapseParams params = shadow_aware_params();
-  params.shadow_aware.remove_connected = true;
-  const CollapseResult connected = collapse_overhangs(points, params);
-  EXPECT_EQ(reason_at(connected, {8.5, -1.0, 1.6}), CubeReason::kRemovedFreeBelow);
-  EXPECT_EQ(reason_at(connected, {8.5, 1.0, 1.6}), CubeReason::kRemovedConnected);
-  EXPECT_EQ(reason_at(connected, {10.0, 1.0, 2.4}), CubeReason::kRemovedConnected);
-  EXPECT_EQ(reason_at(connected, {12.5, 4.0, 2.0}), CubeReason::kShadowed);  // touches nothing removed
-  EXPECT_EQ(reason_at(connected, {5.0, 0.0, -1.4}), CubeReason::kSupported);
-  EXPECT_GT(connected.num_overhang, alone.num_overhang);
-}
-
 TEST(ShadowAware, SparseScanRingsUnderACeilingGo) {
   Points points;
   add_grid(points, 1, 6, -4, 4, -1.7);  // the floor, seen before the rings and beyond them, not under them
@@ -218,7 +194,6 @@ TEST(ShadowAware, HostileCloudsAndParametersGiveAResultOrAStandardException) {
     params.shadow_aware.ground_radius_m = rng() % 4 == 0 ? lengths[rng() % 7] : 5.0;
     params.shadow_aware.ground_support = static_cast<int>(rng() % 11);
     params.shadow_aware.min_bottom_neighbours = static_cast<int>(rng() % 10) - 1;
-    params.shadow_aware.remove_connected = rng() % 2 == 0;
     params.shadow_aware.free_margin_m = rng() % 4 == 0 ? -1.0 : 0.25;
     params.shadow_aware.azimuth_bins = rng() % 4 == 0 ? static_cast<int>(rng()) : 512;
     if (rng() % 3 == 0) params.shadow_aware.sensor_origin = Eigen::Vector3d(lengths[rng() % 7], 0.0, 1.0);

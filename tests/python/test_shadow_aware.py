@@ -15,8 +15,8 @@ import pytest
 import terracube as tc
 from terracube.collapse import CubeReason
 
-SUPPORTED, BELOW_GROUND, NO_GROUND, SHADOWED, ABOVE_KEPT, FREE_BELOW, THIN, CONNECTED = range(8)
-REMOVED = (ABOVE_KEPT, FREE_BELOW, CONNECTED)
+SUPPORTED, BELOW_GROUND, NO_GROUND, SHADOWED, ABOVE_KEPT, FREE_BELOW, THIN = range(7)
+REMOVED = (ABOVE_KEPT, FREE_BELOW)
 
 
 def pseudo_angle(dx: float, dy: float) -> float:
@@ -37,7 +37,6 @@ def naive_shadow_aware(
     margin=0.25,
     neighbours=4,
     window=2,
-    connected=False,
 ) -> list[int]:
     """The reason of every cube of `occupied` (sorted cube indices I of `grid`), computed plainly
     from the leveled `points` that took part."""
@@ -163,28 +162,6 @@ def naive_shadow_aware(
             kept_below = kept_below or reason in (SUPPORTED, SHADOWED, THIN, NO_GROUND)
             for layer in chain:
                 reason_of[(ix, iy, layer)] = reason
-    # 5. with `connected`: until nothing changes, a shadowed chain beside (8 columns around) a
-    # removed chain whose layers overlap or meet its own within one layer is removed
-    changed = connected
-    while changed:
-        changed = False
-        for (ix, iy), chains in chains_by_column.items():
-            for chain in chains:
-                if reason_of[(ix, iy, chain[0])] != SHADOWED:
-                    continue
-                beside_removed = any(
-                    reason_of[(ix + dx, iy + dy, other[0])] in REMOVED
-                    and other[0] <= chain[-1] + 1
-                    and other[-1] >= chain[0] - 1
-                    for dx in (-1, 0, 1)
-                    for dy in (-1, 0, 1)
-                    for other in chains_by_column.get((ix + dx, iy + dy), [])
-                    if dx or dy
-                )
-                if beside_removed:
-                    for layer in chain:
-                        reason_of[(ix, iy, layer)] = CONNECTED
-                    changed = True
     out = []
     for cube in occupied:
         column = int(cube) % columns
@@ -360,31 +337,6 @@ def test_random_scenes_match_the_naive_reference_for_any_thread_count_and_storag
     assert results[0].overhang.any()
 
 
-def test_remove_connected_matches_the_naive_reference_on_random_scenes():
-    """Blobs floating over a ground seen from the origin, the ground beyond 6 m missing in three
-    wide sectors (no ray ends beyond a blob there): remove_connected takes the shadowed chains
-    that touch removed ones, as the naive fixpoint does, and changes nothing else."""
-    connected_total = 0
-    for seed in range(3):
-        rng = np.random.default_rng(100 + seed)
-        ground = np.column_stack([rng.uniform(-15, 15, (4000, 2)), rng.normal(-1.7, 0.05, 4000)])
-        azimuth = np.arctan2(ground[:, 1], ground[:, 0])
-        ground = ground[(np.hypot(ground[:, 0], ground[:, 1]) < 6) | (np.cos(3 * azimuth) < 0.3)]
-        blobs = rng.uniform(-12, 12, (10, 3)) * [1, 1, 0.1] + [0, 0, 2.0]
-        canopy = np.vstack([b + rng.normal(0, 0.9, (200, 3)) * [1, 1, 0.4] for b in blobs])
-        points = np.vstack([ground, canopy])
-        sigma = int(rng.integers(2, 5))
-        alone = shadow_aware(points, sigma)
-        params = tc.CollapseParams(0.5, sigma, method="shadow_aware", remove_connected=True)
-        result = tc.collapse_overhangs(points, params=params)
-        reasons = check_against_naive(result, points, sigma, connected=True)
-        before = np.asarray(alone.cube_reasons)
-        changed = reasons != before
-        assert (before[changed] == SHADOWED).all() and (reasons[changed] == CONNECTED).all()
-        connected_total += int(changed.sum())
-    assert connected_total > 100  # cubes; 1,171 when written
-
-
 def test_parameters_reach_the_core_and_match_the_naive_reference():
     rng = np.random.default_rng(9)
     points = np.vstack(
@@ -436,7 +388,6 @@ def test_transform_translation_is_the_default_sensor_origin():
         ("azimuth_bins", 0, "azimuth_bins"),
         ("free_margin", -0.1, "free_margin_m"),
         ("min_bottom_neighbours", 25, "min_bottom_neighbours"),
-        ("remove_connected", "yes", "remove_connected"),
         ("sensor_origin", (0.0, float("inf"), 0.0), "sensor_origin"),
         ("sensor_origin", (0.0, 1.0), "sensor_origin"),
     ],
@@ -448,7 +399,7 @@ def test_bad_parameters_raise_value_errors_naming_them(field, value, message):
 
 
 def test_reason_names_are_documented():
-    assert [CubeReason(i).name for i in range(8)] == [
+    assert [CubeReason(i).name for i in range(7)] == [
         "supported",
         "below_ground",
         "no_ground_estimate",
@@ -456,10 +407,8 @@ def test_reason_names_are_documented():
         "removed_above_kept",
         "removed_free_below",
         "thin",
-        "removed_connected",
     ]
     assert tc._core.cube_reason_name(5) == "removed_free_below"
-    assert tc._core.cube_reason_name(7) == "removed_connected"
 
 
 def test_cli_collapse_method_shadow_aware_writes_the_same_mask(tmp_path):

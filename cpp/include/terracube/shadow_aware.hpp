@@ -29,7 +29,6 @@ enum class CubeReason : std::uint8_t {
   kRemovedAboveKept = 4,  ///< removed: a kept chain (not below G) lies under it, σ or more empty cubes down
   kRemovedFreeBelow = 5,  ///< removed: its chain floats σ or more above G and a ray crossed the column below it
   kThin = 6,              ///< kept: it floats, no kept chain below, its bottom is thin (a trunk or pole)
-  kRemovedConnected = 7,  ///< removed (remove_connected): shadowed, but it touches a removed chain beside it
 };
 
 /// The short name of a reason ("supported", "below_ground", ...), as Python shows it.
@@ -62,13 +61,6 @@ struct ShadowAwareParams {
   /// Azimuth sectors of the free-space floor around the sensor (pseudo-angle bins), >= 1. Each
   /// should hold a few azimuth steps of the sensor (KITTI's HDL-64: about 2000 per turn).
   int azimuth_bins = 512;
-  /// Step 5: a shadowed chain (it floats, its bottom is wide, no ray shows the space under it
-  /// empty) that touches a removed chain of one of the 8 columns around it (their layers overlap
-  /// or meet within one layer) is part of the same overhang and goes too, and so on across the
-  /// overhang (the side of a crown that no ray passed under). It also takes the upper part of a
-  /// building seen only above the vegetation in front of it (docs/performance.md measures both),
-  /// hence off by default.
-  bool remove_connected = false;
 };
 
 /// The decision of shadow_aware_collapse().
@@ -101,9 +93,7 @@ using NextPoints = std::function<std::size_t(CubePoint* out, std::size_t capacit
 ///  4. each column's chains are judged bottom-up as CubeReason says: a floating chain (bottom σ or
 ///     more empty cubes above G) is removed over a kept chain (as in [CBC] Algorithm 1), or, when
 ///     its bottom is wide (min_bottom_neighbours), when F is below its bottom face by
-///     free_margin_m; it is kept otherwise (a wall or trunk whose foot is hidden);
-///  5. with remove_connected, the shadowed chains connected to a removed chain through chains of
-///     neighbouring columns that touch (see remove_connected) are removed too.
+///     free_margin_m; it is kept otherwise (a wall or trunk whose foot is hidden).
 /// O(N + |L| + columns + azimuth_bins * range steps); single-threaded, deterministic.
 /// Throws std::invalid_argument on invalid parameters, a grid of more than 2^27 columns or a
 /// sensor origin more than 10 m below every point.

@@ -182,14 +182,11 @@ class CubeReason:
       removed_free_below
     
       thin
-    
-      removed_connected
     """
     __members__: typing.ClassVar[dict[str, CubeReason]]
     below_ground: typing.ClassVar[CubeReason]
     no_ground_estimate: typing.ClassVar[CubeReason]
     removed_above_kept: typing.ClassVar[CubeReason]
-    removed_connected: typing.ClassVar[CubeReason]
     removed_free_below: typing.ClassVar[CubeReason]
     shadowed: typing.ClassVar[CubeReason]
     supported: typing.ClassVar[CubeReason]
@@ -229,7 +226,6 @@ class CubeReason:
     def value(self) -> int:
         ...
 class ShadowAwareParams:
-    remove_connected: bool
     def __init__(self) -> None:
         ...
     @property
