@@ -79,48 +79,63 @@ int within_one_layer(std::int32_t other, std::int32_t layer) {
   return static_cast<std::uint32_t>(other) - static_cast<std::uint32_t>(layer) + 1U <= 2U ? 1 : 0;
 }
 
+/// 1 when `other` (not kNone) lies σ or more layers above `layer`, 0 otherwise; both are layers
+/// (>= 0), so their difference cannot overflow.
+int far_above(std::int32_t other, std::int32_t layer, int sigma) {
+  return (other != kNone) & (other - layer >= sigma) ? 1 : 0;
+}
+
+/// Step 1's test of a column's lowest layer from the lowest layers of its 3x3 neighbourhood
+/// (itself included): `near` of them within one layer of it, `far` σ or more layers above it.
+/// Reliable ground needs `support` near ones, and more near ones than far ones: a patch of
+/// multipath returns under the road can reach `support`, but the road lies over most of its
+/// neighbours.
+bool is_reliable(int near, int far, int support) { return (near >= support) & (near > far); }
+
 /// Step 1 at one column, its neighbourhood clipped to the grid: its lowest layer if reliable, else kNone.
-std::int32_t reliable_at(const CubeGrid& grid, const std::vector<std::int32_t>& lowest, int support, std::int64_t ix,
-                         std::int64_t iy) {
+std::int32_t reliable_at(const CubeGrid& grid, const std::vector<std::int32_t>& lowest, int support, int sigma,
+                         std::int64_t ix, std::int64_t iy) {
   const std::int64_t nx = grid.ixmax, ny = grid.iymax;
   const std::int32_t layer = lowest[static_cast<std::size_t>(ix + iy * nx)];
   if (layer == kNone) return kNone;
-  int count = 0;
+  int near = 0, far = 0;
   for (std::int64_t y = std::max<std::int64_t>(0, iy - 1); y <= std::min(ny - 1, iy + 1); ++y) {
     for (std::int64_t x = std::max<std::int64_t>(0, ix - 1); x <= std::min(nx - 1, ix + 1); ++x) {
-      count += within_one_layer(lowest[static_cast<std::size_t>(x + y * nx)], layer);
+      const std::int32_t other = lowest[static_cast<std::size_t>(x + y * nx)];
+      near += within_one_layer(other, layer);
+      far += far_above(other, layer, sigma);
     }
   }
-  return count >= support ? layer : kNone;
+  return is_reliable(near, far, support) ? layer : kNone;
 }
 
-/// Step 1: a column's lowest layer where `support` columns of its 3x3 neighbourhood (itself
-/// included) have their lowest cube within one layer of it; kNone elsewhere. The grid's border
-/// clipped (reliable_at), the inner columns of a row in one branch-free run the compiler vectorises.
-void reliable_ground(const CubeGrid& grid, const std::vector<std::int32_t>& lowest, int support,
+/// Step 1: a column's lowest layer where it is reliable ground (is_reliable); kNone elsewhere.
+/// The grid's border clipped (reliable_at), the inner columns of a row in one branch-free run the
+/// compiler vectorises.
+void reliable_ground(const CubeGrid& grid, const std::vector<std::int32_t>& lowest, int support, int sigma,
                      std::vector<std::int32_t>& reliable) {
   const std::int64_t nx = grid.ixmax, ny = grid.iymax;
   reliable.resize(lowest.size());
   for (std::int64_t iy = 0; iy < ny; ++iy) {
     std::int32_t* const out = reliable.data() + iy * nx;
     if (iy == 0 || iy == ny - 1 || nx < 3) {
-      for (std::int64_t ix = 0; ix < nx; ++ix) out[ix] = reliable_at(grid, lowest, support, ix, iy);
+      for (std::int64_t ix = 0; ix < nx; ++ix) out[ix] = reliable_at(grid, lowest, support, sigma, ix, iy);
       continue;
     }
     const std::int32_t* const row = lowest.data() + iy * nx;
     const std::int32_t* const below = row - nx;
     const std::int32_t* const above = row + nx;
-    out[0] = reliable_at(grid, lowest, support, 0, iy);
+    out[0] = reliable_at(grid, lowest, support, sigma, 0, iy);
     for (std::int64_t ix = 1; ix < nx - 1; ++ix) {
       const std::int32_t layer = row[ix];
-      int count = 0;
+      int near = 0, far = 0;
       for (std::int64_t x = ix - 1; x <= ix + 1; ++x) {
-        count +=
-            within_one_layer(below[x], layer) + within_one_layer(row[x], layer) + within_one_layer(above[x], layer);
+        near += within_one_layer(below[x], layer) + within_one_layer(row[x], layer) + within_one_layer(above[x], layer);
+        far += far_above(below[x], layer, sigma) + far_above(row[x], layer, sigma) + far_above(above[x], layer, sigma);
       }
-      out[ix] = layer != kNone && count >= support ? layer : kNone;
+      out[ix] = (layer != kNone) & is_reliable(near, far, support) ? layer : kNone;
     }
-    out[nx - 1] = reliable_at(grid, lowest, support, nx - 1, iy);
+    out[nx - 1] = reliable_at(grid, lowest, support, sigma, nx - 1, iy);
   }
 }
 
@@ -475,7 +490,7 @@ ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vecto
   Workspace& w = thread_workspace();
   split_cubes(sorted_occupied, num_columns, w);
   lowest_layers(num_columns, w);
-  reliable_ground(grid, w.lowest, params.ground_support, w.reliable);
+  reliable_ground(grid, w.lowest, params.ground_support, sigma, w.reliable);
   // The window in columns, clipped to the grid in doubles: a radius of 1e300 m is finite, and its
   // column count would overflow a 64-bit integer.
   const auto radius = static_cast<std::int64_t>(std::min(std::ceil(params.ground_radius_m / grid.edge_m - 1e-9),

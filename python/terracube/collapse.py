@@ -185,7 +185,9 @@ class CollapseParams:
         shadow_aware: ground is looked for within this distance [m] (a square window), >= 0.
     ground_support : int
         shadow_aware: a column's lowest cube is reliable ground when this many columns of its 3x3
-        neighbourhood (itself included) have their lowest cube within one layer of it, 1..9.
+        neighbourhood (itself included) have their lowest cube within one layer of it, and more
+        of them than have theirs σ or more layers above it (not a patch of multipath returns
+        under the road), 1..9.
     free_margin : float
         shadow_aware: a ray proves the space under a chain empty only when it passes at least this
         far [m] below the chain's bottom face (not through a car's windows), >= 0.

@@ -58,6 +58,20 @@ TEST(ShadowAware, AMultipathPointBelowTheRoadIsKeptAndDecidesNothing) {
   EXPECT_EQ(reason_at(result, {6.0, 0.0, -1.7}), CubeReason::kSupported);
 }
 
+TEST(ShadowAware, AMultipathPatchUnderTheRoadIsNoGround) {
+  Points points;
+  add_grid(points, 1, 12, -3, 3, -1.7);
+  // Three returns 2.5 m under the road in three neighbouring columns (a reflection of a car or a
+  // window): together they pass the 3-of-9 support test, but the road lies over them.
+  const Points ghosts = {{6.0, 0.0, -4.2}, {6.5, 0.0, -4.2}, {6.0, 0.5, -4.2}};
+  points.insert(points.end(), ghosts.begin(), ghosts.end());
+  const CollapseResult result = collapse_overhangs(points, shadow_aware_params());
+  EXPECT_EQ(result.num_overhang, 0U);
+  for (const Eigen::Vector3d& ghost : ghosts) EXPECT_EQ(reason_at(result, ghost), CubeReason::kBelowGround);
+  EXPECT_EQ(reason_at(result, {6.0, 0.0, -1.7}), CubeReason::kSupported);
+  EXPECT_EQ(reason_at(result, {9.0, 2.0, -1.7}), CubeReason::kSupported);
+}
+
 TEST(ShadowAware, AWallWhoseFootIsHiddenBehindACarStays) {
   Points points;
   add_grid(points, 1, 6, -4, 4, -1.7);

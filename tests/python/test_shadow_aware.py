@@ -48,11 +48,14 @@ def naive_shadow_aware(
         column = int(cube) % columns
         layers.setdefault((column % nx, column // nx), []).append(int(cube) // columns)
     lowest = {key: min(values) for key, values in layers.items()}
-    # 1. reliable ground: `support` columns of the 3x3 block have their lowest cube within a layer
+    # 1. reliable ground: `support` columns of the 3x3 block have their lowest cube within a layer,
+    # and more of them than have theirs sigma or more layers above
     reliable = {}
     for (ix, iy), layer in lowest.items():
-        near = [lowest.get((ix + dx, iy + dy)) for dx in (-1, 0, 1) for dy in (-1, 0, 1)]
-        if sum(1 for other in near if other is not None and abs(other - layer) <= 1) >= support:
+        block = [lowest.get((ix + dx, iy + dy)) for dx in (-1, 0, 1) for dy in (-1, 0, 1)]
+        near = sum(1 for other in block if other is not None and abs(other - layer) <= 1)
+        far = sum(1 for other in block if other is not None and other - layer >= sigma)
+        if near >= support and near > far:
             reliable[(ix, iy)] = layer
     # 2. G0: the lowest reliable ground in the square window
     reach = math.ceil(radius / edge - 1e-9)
@@ -296,6 +299,22 @@ def test_a_multipath_point_below_the_road_decides_nothing():
     check_against_naive(result, points, 4)
     assert not result.overhang.any()
     assert reasons_of_points(result, ghost)[0] == BELOW_GROUND
+
+
+def test_a_multipath_patch_under_the_road_is_no_ground():
+    """Three returns 2.5 m under the road in three neighbouring columns (a reflection): they pass
+    the 3-of-9 support test, but the road lies over most of their neighbours, so they are no
+    ground, and the road over them and around them stays."""
+    road = ground_patch(1, 12, -3, 3)
+    ghosts = np.array([[6.0, 0.0, -4.2], [6.5, 0.0, -4.2], [6.0, 0.5, -4.2]])
+    points = np.vstack([road, ghosts])
+    result = shadow_aware(points)
+    check_against_naive(result, points, 4)
+    assert not result.overhang.any()
+    assert (reasons_of_points(result, ghosts) == BELOW_GROUND).all()
+    # the same patch alone (no road over it) is ground
+    alone = shadow_aware(np.vstack([ground_patch(5.5, 7.0, -0.5, 1.0, z=-4.2), ghosts]))
+    assert (reasons_of_points(alone, ghosts) == SUPPORTED).all()
 
 
 def test_empty_and_single_point_clouds():

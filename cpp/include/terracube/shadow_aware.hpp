@@ -44,8 +44,9 @@ struct ShadowAwareParams {
   /// each side), >= 0.
   double ground_radius_m = 5.0;
   /// A column's lowest cube is reliable ground when at least this many columns of its 3x3
-  /// neighbourhood (itself included) have their lowest cube within one layer of it: isolated
-  /// returns below the ground never qualify. In 1..9.
+  /// neighbourhood (itself included) have their lowest cube within one layer of it, and more of
+  /// them do than have their lowest cube σ or more layers above it: isolated returns below the
+  /// ground never qualify, nor a small patch of them under the road. In 1..9.
   int ground_support = 3;
   /// A ray proves the space under a chain empty only when it passes at least this far [m] below the
   /// chain's bottom face (rays through a car's windows or beside a wall's edge pass just under it), >= 0.
@@ -82,7 +83,8 @@ using NextPoints = std::function<std::size_t(CubePoint* out, std::size_t capacit
 
 /// The shadow-aware rule over the occupied cubes L (sorted ascending, indices I of `grid`):
 ///  1. the lowest cube of each column is reliable ground when `ground_support` columns of its 3x3
-///     neighbourhood have their lowest cube within one layer of it;
+///     neighbourhood have their lowest cube within one layer of it, and more of them than have
+///     theirs σ or more layers above it;
 ///  2. G0(column) is the lowest reliable ground within the ground radius (a square window);
 ///  3. the rays from the sensor to the points whose cube is not below G0 - 1 give, per
 ///     (pseudo-azimuth sector, range step E), the lowest slope of the rays that end beyond the step:
