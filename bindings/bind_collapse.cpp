@@ -105,6 +105,7 @@ void bind_collapse(py::module_& m) {
       .def_readwrite("sensor_origin", &ShadowAwareParams::sensor_origin)
       .def_readwrite("ground_radius_m", &ShadowAwareParams::ground_radius_m)
       .def_readwrite("ground_support", &ShadowAwareParams::ground_support)
+      .def_readwrite("hidden_ground_margin_m", &ShadowAwareParams::hidden_ground_margin_m)
       .def_readwrite("free_margin_m", &ShadowAwareParams::free_margin_m)
       .def_readwrite("min_bottom_neighbours", &ShadowAwareParams::min_bottom_neighbours)
       .def_readwrite("bottom_window", &ShadowAwareParams::bottom_window)

@@ -196,6 +196,11 @@ double pseudo_angle(double dx, double dy) {
   return dx < 0.0 ? 2.0 - dy / (-dx - dy) : 3.0 + dx / (dx - dy);
 }
 
+/// The height [m] of the bottom face of the cubes of `layer`.
+double bottom_face(const CubeGrid& grid, std::int64_t layer) {
+  return grid.min_corner.z() + (static_cast<double>(layer) - 0.5) * grid.edge_m;
+}
+
 /// Step 3: horizontal geometry of the rays from the sensor, per (range step E, sector).
 class FreeSpaceFloor {
  public:
@@ -225,8 +230,11 @@ class FreeSpaceFloor {
       throw std::invalid_argument("shadow_aware: " + std::to_string(sectors_) + " azimuth bins x " +
                                   std::to_string(steps_) + " range steps is too many; crop the cloud");
     }
-    slope_.assign(static_cast<std::size_t>(steps_ * sectors_), kInf);
+    reset();
   }
+
+  /// Forgets every ray.
+  void reset() { slope_.assign(static_cast<std::size_t>(steps_ * sectors_), kInf); }
 
   /// Adds the ray from the sensor to `point`.
   void add_ray(const Eigen::Vector3d& point) {
@@ -252,15 +260,24 @@ class FreeSpaceFloor {
 
   /// F: the lowest height [m] at which a ray crosses the centre of column (ix, iy), +inf if none does.
   double floor_of(std::int64_t ix, std::int64_t iy) const {
-    // The column's centre as CubeGrid::center() gives it (z unused), without its divisions.
-    const Eigen::Vector3d centre(grid_.min_corner.x() + grid_.edge_m * static_cast<double>(ix),
-                                 grid_.min_corner.y() + grid_.edge_m * static_cast<double>(iy), 0.0);
     double distance = 0.0;
-    const std::int64_t bin = bin_of(centre, distance);
+    const std::int64_t bin = column_bin(ix, iy, distance);
     if (bin < 0) return kInf;
     const double slope = slope_[static_cast<std::size_t>(bin)];
     return slope == kInf ? kInf : origin_.z() + slope * distance;
   }
+
+  /// The bin of the centre of column (ix, iy) and its horizontal distance [m]; -1 at the sensor.
+  std::int64_t column_bin(std::int64_t ix, std::int64_t iy, double& distance) const {
+    // The column's centre as CubeGrid::center() gives it (z unused), without its divisions.
+    const Eigen::Vector3d centre(grid_.min_corner.x() + grid_.edge_m * static_cast<double>(ix),
+                                 grid_.min_corner.y() + grid_.edge_m * static_cast<double>(iy), 0.0);
+    return bin_of(centre, distance);
+  }
+
+  std::int64_t sectors() const { return sectors_; }
+  std::int64_t steps() const { return steps_; }
+  const Eigen::Vector3d& origin() const { return origin_; }
 
  private:
   /// The bin of a point's horizontal position and its horizontal distance; -1 at the sensor.
@@ -284,6 +301,49 @@ class FreeSpaceFloor {
   std::vector<double>& slope_;
 };
 
+/// Step 1b: reliable ground the sensor cannot have seen is no ground (multipath and reflections
+/// under the road). A reliable lowest cube below the sensor is opaque: a ray to a point more than
+/// `margin` under its bottom face, farther out in its sector, would have ended on it. Per (sector,
+/// range step) the steepest such limit, (bottom face - margin - sensor z) / distance of the
+/// column's centre, is carried outwards; a reliable lowest cube whose top face lies under the limit
+/// of the nearer steps of its sector loses its reliability. Rays pass under crowns and decks
+/// (above the sensor) and under car bodies (less than `margin` above the road): neither hides
+/// anything. The limits use the bins of `floor` and its storage (w.slope), which holds no ray yet.
+void hide_occluded_ground(const CubeGrid& grid, FreeSpaceFloor& floor, double margin, Workspace& w) {
+  const std::int64_t sectors = floor.sectors();
+  const double sensor_z = floor.origin().z();
+  std::vector<double>& horizon = w.slope;
+  horizon.assign(static_cast<std::size_t>(floor.steps() * sectors), -kInf);
+  for (std::int64_t iy = 0; iy < grid.iymax; ++iy) {  // the limits, at each column's centre
+    for (std::int64_t ix = 0; ix < grid.ixmax; ++ix) {
+      const std::int32_t layer = w.reliable[static_cast<std::size_t>(ix + iy * grid.ixmax)];
+      double distance = 0.0;
+      const std::int64_t bin = layer == kNone ? -1 : floor.column_bin(ix, iy, distance);
+      if (bin < 0 || !(bottom_face(grid, layer) < sensor_z)) continue;
+      double& slot = horizon[static_cast<std::size_t>(bin)];
+      slot = std::max(slot, (bottom_face(grid, layer) - margin - sensor_z) / distance);
+    }
+  }
+  std::vector<double> nearer(static_cast<std::size_t>(sectors), -kInf);  // per sector, from the sensor out
+  for (std::int64_t step = 0; step < floor.steps(); ++step) {
+    double* const slots = horizon.data() + step * sectors;
+    for (std::size_t sector = 0; sector < nearer.size(); ++sector) {
+      const double here = slots[sector];
+      slots[sector] = nearer[sector];
+      nearer[sector] = std::max(nearer[sector], here);
+    }
+  }
+  for (std::int64_t iy = 0; iy < grid.iymax; ++iy) {  // the reliable lowest cubes under a nearer limit
+    for (std::int64_t ix = 0; ix < grid.ixmax; ++ix) {
+      std::int32_t& layer = w.reliable[static_cast<std::size_t>(ix + iy * grid.ixmax)];
+      double distance = 0.0;
+      const std::int64_t bin = layer == kNone ? -1 : floor.column_bin(ix, iy, distance);
+      if (bin >= 0 && (bottom_face(grid, layer) + grid.edge_m - sensor_z) / distance < horizon[bin]) layer = kNone;
+    }
+  }
+  floor.reset();
+}
+
 /// Step 3's rays: those to the points whose cube is not below G0 - 1 (`ground`, per column).
 void add_rays(const CubeGrid& grid, const NextPoints& next_points, const std::vector<std::int32_t>& ground,
               FreeSpaceFloor& floor, std::vector<CubePoint>& chunk) {
@@ -299,11 +359,6 @@ void add_rays(const CubeGrid& grid, const NextPoints& next_points, const std::ve
       if (below == kNone || layer >= std::int64_t{below} - 1) floor.add_ray(taking_part.point);  // not below G0
     }
   }
-}
-
-/// The height [m] of the bottom face of the cubes of `layer`.
-double bottom_face(const CubeGrid& grid, std::int64_t layer) {
-  return grid.min_corner.z() + (static_cast<double>(layer) - 0.5) * grid.edge_m;
 }
 
 /// L's positions column by column (a counting sort by column; layers stay ascending).
@@ -454,6 +509,10 @@ void check_shadow_aware_params(const ShadowAwareParams& params) {
     throw std::invalid_argument("shadow_aware ground_support must be 1..9 columns of a 3x3 neighbourhood, got " +
                                 std::to_string(params.ground_support));
   }
+  if (!(params.hidden_ground_margin_m >= 0.0) || !std::isfinite(params.hidden_ground_margin_m)) {
+    throw std::invalid_argument("shadow_aware hidden_ground_margin_m must be a finite length >= 0 m, got " +
+                                detail::number_text(params.hidden_ground_margin_m));
+  }
   if (!(params.free_margin_m >= 0.0) || !std::isfinite(params.free_margin_m)) {
     throw std::invalid_argument("shadow_aware free_margin_m must be a finite length >= 0 m, got " +
                                 detail::number_text(params.free_margin_m));
@@ -491,12 +550,13 @@ ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vecto
   split_cubes(sorted_occupied, num_columns, w);
   lowest_layers(num_columns, w);
   reliable_ground(grid, w.lowest, params.ground_support, sigma, w.reliable);
+  FreeSpaceFloor floor(grid, sensor_origin, params.azimuth_bins, w.slope);
+  hide_occluded_ground(grid, floor, params.hidden_ground_margin_m, w);
   // The window in columns, clipped to the grid in doubles: a radius of 1e300 m is finite, and its
   // column count would overflow a 64-bit integer.
   const auto radius = static_cast<std::int64_t>(std::min(std::ceil(params.ground_radius_m / grid.edge_m - 1e-9),
                                                          static_cast<double>(std::max(grid.ixmax, grid.iymax))));
   window_minimum(grid, radius, w.reliable, w.scratch, w.ground, w.line);  // G0
-  FreeSpaceFloor floor(grid, sensor_origin, params.azimuth_bins, w.slope);
   add_rays(grid, next_points, w.ground, floor, w.chunk);
   floor.finish();
   // Step 2 again: a lowest cube with a ray under it is no ground (a crown's underside), then G.

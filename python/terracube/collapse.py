@@ -188,6 +188,10 @@ class CollapseParams:
         neighbourhood (itself included) have their lowest cube within one layer of it, and more
         of them than have theirs σ or more layers above it (not a patch of multipath returns
         under the road), 1..9.
+    hidden_ground_margin : float
+        shadow_aware: reliable ground lying more than this far [m] under the line of sight over
+        reliable ground nearer the sensor (and below it) is no ground: the sensor cannot have seen
+        it through the road (multipath, reflections), >= 0.
     free_margin : float
         shadow_aware: a ray proves the space under a chain empty only when it passes at least this
         far [m] below the chain's bottom face (not through a car's windows), >= 0.
@@ -216,6 +220,7 @@ class CollapseParams:
     sensor_origin: tuple[float, float, float] | None = None
     ground_radius: float = 5.0
     ground_support: int = 3
+    hidden_ground_margin: float = 2.0
     free_margin: float = 0.25
     min_bottom_neighbours: int = 4
     bottom_window: int = 2
@@ -250,6 +255,7 @@ class CollapseParams:
                 raise ValueError(f"sensor_origin must be 3 finite numbers [m], got {self.sensor_origin!r}")
             core.sensor_origin = origin
         core.ground_radius_m = float(self.ground_radius)
+        core.hidden_ground_margin_m = float(self.hidden_ground_margin)
         core.free_margin_m = float(self.free_margin)
         for name in ("ground_support", "min_bottom_neighbours", "bottom_window", "azimuth_bins"):
             value = getattr(self, name)

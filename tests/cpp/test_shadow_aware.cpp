@@ -4,6 +4,7 @@
 #include <terracube/collapse.hpp>
 
 #include <algorithm>
+#include <cmath>
 #include <random>
 #include <stdexcept>
 #include <string>
@@ -70,6 +71,34 @@ TEST(ShadowAware, AMultipathPatchUnderTheRoadIsNoGround) {
   for (const Eigen::Vector3d& ghost : ghosts) EXPECT_EQ(reason_at(result, ghost), CubeReason::kBelowGround);
   EXPECT_EQ(reason_at(result, {6.0, 0.0, -1.7}), CubeReason::kSupported);
   EXPECT_EQ(reason_at(result, {9.0, 2.0, -1.7}), CubeReason::kSupported);
+}
+
+TEST(ShadowAware, ADeepReflectionBehindTheRoadIsNoGround) {
+  // Nine returns 8 m under the road, 20 m out, in three columns with no return around them (a
+  // reflection, as on the bundled Ouster scan): they pass the support test, but the line of sight
+  // to them runs 8 m under the road nearer the sensor.
+  Points points;
+  add_grid(points, 1, 24, -4, 4, -1.7);
+  points.erase(
+      std::remove_if(points.begin(), points.end(),
+                     [](const Eigen::Vector3d& p) { return std::abs(p.x() - 20.25) <= 1.0 && std::abs(p.y()) <= 1.0; }),
+      points.end());
+  const std::size_t road = points.size();
+  Points ghosts;
+  for (int k = 0; k < 9; ++k) ghosts.emplace_back(20.0 + 0.05 * k, -0.5 + 0.5 * (k % 3), -9.7);
+  points.insert(points.end(), ghosts.begin(), ghosts.end());
+  CollapseParams params = shadow_aware_params(2);
+  const CollapseResult result = collapse_overhangs(points, params);
+  EXPECT_EQ(result.num_overhang, 0U);
+  for (const Eigen::Vector3d& ghost : ghosts) EXPECT_EQ(reason_at(result, ghost), CubeReason::kBelowGround);
+  // Without the test the ghosts are the ground of the road around them, and their rays clear it.
+  params.shadow_aware.hidden_ground_margin_m = 100.0;
+  const CollapseResult off = collapse_overhangs(points, params);
+  EXPECT_GT(std::count(off.overhang.begin(), off.overhang.begin() + static_cast<std::ptrdiff_t>(road), 1), 0);
+  // Seen from above them, with nothing in between, the same returns are ground.
+  params.shadow_aware.sensor_origin = Eigen::Vector3d(20.0, 0.0, -8.0);
+  const CollapseResult above = collapse_overhangs(ghosts, params);
+  for (const Eigen::Vector3d& ghost : ghosts) EXPECT_EQ(reason_at(above, ghost), CubeReason::kSupported);
 }
 
 TEST(ShadowAware, AWallWhoseFootIsHiddenBehindACarStays) {
@@ -170,6 +199,9 @@ TEST(ShadowAware, BadParametersThrowInvalidArgumentNamingThem) {
   params.shadow_aware.ground_support = 10;
   EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument);
   params = shadow_aware_params();
+  params.shadow_aware.hidden_ground_margin_m = -0.5;
+  EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument);
+  params = shadow_aware_params();
   params.shadow_aware.azimuth_bins = 0;
   EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument);
   params = shadow_aware_params();
@@ -209,6 +241,7 @@ TEST(ShadowAware, HostileCloudsAndParametersGiveAResultOrAStandardException) {
     params.shadow_aware.ground_support = static_cast<int>(rng() % 11);
     params.shadow_aware.min_bottom_neighbours = static_cast<int>(rng() % 10) - 1;
     params.shadow_aware.free_margin_m = rng() % 4 == 0 ? -1.0 : 0.25;
+    params.shadow_aware.hidden_ground_margin_m = rng() % 4 == 0 ? lengths[rng() % 7] - 1.0 : 2.0;
     params.shadow_aware.azimuth_bins = rng() % 4 == 0 ? static_cast<int>(rng()) : 512;
     if (rng() % 3 == 0) params.shadow_aware.sensor_origin = Eigen::Vector3d(lengths[rng() % 7], 0.0, 1.0);
     try {

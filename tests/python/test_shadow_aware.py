@@ -37,6 +37,7 @@ def naive_shadow_aware(
     margin=0.25,
     neighbours=4,
     window=2,
+    hidden=2.0,
 ) -> list[int]:
     """The reason of every cube of `occupied` (sorted cube indices I of `grid`), computed plainly
     from the leveled `points` that took part."""
@@ -57,6 +58,36 @@ def naive_shadow_aware(
         far = sum(1 for other in block if other is not None and other - layer >= sigma)
         if near >= support and near > far:
             reliable[(ix, iy)] = layer
+
+    # 1b. reliable ground under the line of sight over nearer reliable ground below the sensor, by
+    # more than `hidden`, is no ground
+    def centre(ix, iy, iz):
+        return corner[0] + edge * ix, corner[1] + edge * iy, corner[2] + edge * iz
+
+    def sector_and_step(x, y):
+        dx, dy = x - origin[0], y - origin[1]
+        distance = math.sqrt(dx * dx + dy * dy)
+        sector = min(sectors - 1, int(pseudo_angle(dx, dy) / 4.0 * sectors)) if distance > 0 else None
+        return sector, int(distance * (1.0 / edge)) if distance > 0 else None, distance
+
+    def bottom_face(layer):
+        return corner[2] + (layer - 0.5) * edge
+
+    placed = {key: sector_and_step(*centre(*key, 0)[:2]) for key in reliable}
+    limits: dict[int, list[tuple[int, float]]] = {}  # per sector: (step, slope of the sight line's limit)
+    for key, layer in reliable.items():
+        sector, step, distance = placed[key]
+        if sector is not None and bottom_face(layer) < origin[2]:
+            limits.setdefault(sector, []).append((step, (bottom_face(layer) - hidden - origin[2]) / distance))
+
+    def hidden_under_nearer_ground(key, layer):
+        sector, step, distance = placed[key]
+        if sector is None:
+            return False
+        slope = (bottom_face(layer) + edge - origin[2]) / distance  # to the top face
+        return any(other < step and slope < limit for other, limit in limits.get(sector, []))
+
+    reliable = {key: layer for key, layer in reliable.items() if not hidden_under_nearer_ground(key, layer)}
     # 2. G0: the lowest reliable ground in the square window
     reach = math.ceil(radius / edge - 1e-9)
 
@@ -70,15 +101,6 @@ def naive_shadow_aware(
         return min(found) if found else None
 
     first_ground = {key: window_minimum(reliable, *key) for key in layers}
-
-    def centre(ix, iy, iz):
-        return corner[0] + edge * ix, corner[1] + edge * iy, corner[2] + edge * iz
-
-    def sector_and_step(x, y):
-        dx, dy = x - origin[0], y - origin[1]
-        distance = math.sqrt(dx * dx + dy * dy)
-        sector = min(sectors - 1, int(pseudo_angle(dx, dy) / 4.0 * sectors)) if distance > 0 else None
-        return sector, int(distance * (1.0 / edge)) if distance > 0 else None, distance
 
     # 3. rays to the points whose cube is not below its column's G0 - 1
     rays = []
@@ -100,9 +122,6 @@ def naive_shadow_aware(
             return math.inf
         slopes = rays[(rays[:, 0] == sector) & (rays[:, 1] > step), 2]
         return origin[2] + slopes.min() * distance if slopes.size else math.inf
-
-    def bottom_face(layer):
-        return corner[2] + (layer - 0.5) * edge
 
     # a reliable lowest cube with a ray under it is no ground; G from the others
     reliable = {key: layer for key, layer in reliable.items() if not free_floor(*key) < bottom_face(layer)}
@@ -315,6 +334,40 @@ def test_a_multipath_patch_under_the_road_is_no_ground():
     # the same patch alone (no road over it) is ground
     alone = shadow_aware(np.vstack([ground_patch(5.5, 7.0, -0.5, 1.0, z=-4.2), ghosts]))
     assert (reasons_of_points(alone, ghosts) == SUPPORTED).all()
+
+
+def test_a_deep_reflection_behind_the_road_is_no_ground():
+    """Nine returns 8 m under the road, 20 m out, in a row of three columns with no return around
+    them (a reflection, as on the bundled Ouster scan): they pass the 3x3 support test, but the
+    line of sight to them runs under the road nearer the sensor, so they are no ground, and the
+    road that their rays pass under stays. The same returns seen from above (nothing between
+    them and the sensor) stay ground."""
+    road = ground_patch(1, 24, -4, 4, z=-1.7)
+    road = road[(np.abs(road[:, 0] - 20.25) > 1.0) | (np.abs(road[:, 1]) > 1.0)]  # a hole around them
+    ghosts = np.array([[20.0 + 0.05 * k, -0.5 + 0.5 * (k % 3), -9.7] for k in range(9)])
+    points = np.vstack([road, ghosts])
+    result = shadow_aware(points, 2)
+    check_against_naive(result, points, 2)
+    assert not result.overhang[: len(road)].any()
+    assert (reasons_of_points(result, ghosts) == BELOW_GROUND).all()
+    params = tc.CollapseParams(edge=0.5, sigma=2, method="shadow_aware", hidden_ground_margin=100.0)
+    off = tc.collapse_overhangs(points, params=params)
+    check_against_naive(off, points, 2, hidden=100.0)
+    assert off.overhang[: len(road)].any()  # without the test the road over them goes
+    above = shadow_aware(ghosts, 2, sensor_origin=(20.0, 0.0, -8.0))
+    assert (reasons_of_points(above, ghosts) == SUPPORTED).all()
+
+
+@pytest.mark.parametrize("sigma", [2, 3, 4])
+def test_the_ouster_street_over_a_deep_reflection_stays(shared_data, sigma):
+    """The Ouster scan 000000 without a crop: nine returns 9.5 m under the street, 22 m out, pass
+    the support test; without the hidden-ground test their rays remove 75 street points (z < 0.3 m,
+    the street lies at about -0.1 m in that scan's frame)."""
+    points = shared_data.ouster_xyzi()[:, :3]
+    result = tc.collapse_overhangs(points, 0.5, sigma, method="shadow_aware")
+    street = points[:, 2] < 0.3
+    assert np.count_nonzero(result.overhang & street) == 0
+    assert (reasons_of_points(result, points[points[:, 2] < -9.0]) == BELOW_GROUND).all()
 
 
 def test_empty_and_single_point_clouds():

@@ -48,6 +48,11 @@ struct ShadowAwareParams {
   /// them do than have their lowest cube σ or more layers above it: isolated returns below the
   /// ground never qualify, nor a small patch of them under the road. In 1..9.
   int ground_support = 3;
+  /// Reliable ground that lies more than this far [m] under the line of sight over reliable ground
+  /// nearer the sensor (and below it) is no ground: the sensor cannot have seen it through the
+  /// road (multipath, reflections). Rays pass under car bodies by less, under crowns and decks
+  /// (above the sensor) by any height. >= 0.
+  double hidden_ground_margin_m = 2.0;
   /// A ray proves the space under a chain empty only when it passes at least this far [m] below the
   /// chain's bottom face (rays through a car's windows or beside a wall's edge pass just under it), >= 0.
   double free_margin_m = 0.25;
@@ -84,7 +89,9 @@ using NextPoints = std::function<std::size_t(CubePoint* out, std::size_t capacit
 /// The shadow-aware rule over the occupied cubes L (sorted ascending, indices I of `grid`):
 ///  1. the lowest cube of each column is reliable ground when `ground_support` columns of its 3x3
 ///     neighbourhood have their lowest cube within one layer of it, and more of them than have
-///     theirs σ or more layers above it;
+///     theirs σ or more layers above it, and when no reliable lowest cube nearer the sensor in its
+///     (pseudo-azimuth sector) hides it: one below the sensor whose bottom face lies more than
+///     hidden_ground_margin_m above the ray to this cube's top face (both at their column's centre);
 ///  2. G0(column) is the lowest reliable ground within the ground radius (a square window);
 ///  3. the rays from the sensor to the points whose cube is not below G0 - 1 give, per
 ///     (pseudo-azimuth sector, range step E), the lowest slope of the rays that end beyond the step:
