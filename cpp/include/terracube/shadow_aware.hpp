@@ -90,7 +90,7 @@ using NextPoints = std::function<std::size_t(CubePoint* out, std::size_t capacit
 ///  1. the lowest cube of each column is reliable ground when `ground_support` columns of its 3x3
 ///     neighbourhood have their lowest cube within one layer of it, and more of them than have
 ///     theirs σ or more layers above it, and when no reliable lowest cube nearer the sensor in its
-///     (pseudo-azimuth sector) hides it: one below the sensor whose bottom face lies more than
+///     pseudo-azimuth sector hides it: one below the sensor whose bottom face lies more than
 ///     hidden_ground_margin_m above the ray to this cube's top face (both at their column's centre);
 ///  2. G0(column) is the lowest reliable ground within the ground radius (a square window);
 ///  3. the rays from the sensor to the points whose cube is not below G0 - 1 give, per
