@@ -266,6 +266,18 @@ OPTIONS: dict[str, Option] = {
         ),
         sets=[("collapse", "method")],
     ),
+    "sensor_origin": _option(
+        tuple[float, float, float] | None,
+        "--sensor-origin",
+        help=_help(
+            "Sensor position X Y Z [m] in the leveled frame, for --method shadow_aware "
+            "(none: the scan's own origin), e.g. --sensor-origin 0 0 1.8.",
+            "collapse",
+            "sensor_origin",
+        ),
+        sets=[("collapse", "sensor_origin")],
+        metavar="X Y Z",
+    ),
     # elevation map
     "resolution": _option(
         float | None,
@@ -419,7 +431,7 @@ OPTIONS: dict[str, Option] = {
 
 _FRAME = ("min_range", "max_range", "roll", "pitch", "crop")
 _EXTENT = ("resolution", "origin", "size")
-_OVERHANGS = ("edge", "sigma", "robot_height", "collapse_method")
+_OVERHANGS = ("edge", "sigma", "robot_height", "collapse_method", "sensor_origin")
 _TERRAIN = ("sensor_height", "reference", "ground_radius", "ground_height", "high_height", "std_dev")
 
 #: The options of each command that takes shared ones, in --help order.

@@ -482,3 +482,30 @@ def test_every_stage_command_lists_its_shared_options_in_help(runner, command):
     assert result.exit_code == 0
     assert "--config" in result.output and "--crop" in result.output and "--png" in result.output
     assert len(STAGE_OPTIONS[command]) >= 10
+
+
+def test_sensor_origin_reaches_the_shadow_aware_rule(runner, tmp_path):
+    """--sensor-origin X Y Z sets collapse.sensor_origin: the CLI writes the mask the library gives
+    for that origin, and an origin far below every point is refused by the library's check."""
+    path, points = _scan(tmp_path)
+    # A crown over a 0.3 m curb that hides the ground under it from a sensor 1.8 m up at the origin.
+    rng = np.random.default_rng(5)
+    curb = np.c_[np.full(300, 3.0), rng.uniform(0, 10, 300), rng.uniform(0, 0.3, 300)]
+    crown = np.c_[rng.uniform(3.5, 6.0, (600, 2)), rng.uniform(3.0, 3.6, 600)]
+    ground = points[(points[:, 0] < 3.0) & (points[:, 2] < 0.5)]
+    points = np.vstack([ground, curb, crown]).astype(np.float32)
+    np.save(path, points)
+    common = ["--edge", "0.5", "--sigma", "2", "--method", "shadow_aware", "-f", "npz", "--no-png"]
+    masks = {}
+    for origin in ((0.0, 0.0, 1.8), (20.0, 5.0, 1.8)):
+        out = tmp_path / f"out{origin[0]:.0f}"
+        args = ["collapse", str(path), "-o", str(out), *common, "--sensor-origin", *map(str, origin)]
+        result = runner.invoke(app, args)
+        assert result.exit_code == 0, result.output
+        masks[origin] = np.load(out / "scan_classified.npz")["overhang"]
+        expected = tc.collapse_overhangs(points, 0.5, 2, method="shadow_aware", sensor_origin=origin).overhang
+        np.testing.assert_array_equal(masks[origin], expected)
+    assert not np.array_equal(*masks.values())  # the origin changes what the rays prove
+    args = ["collapse", str(path), "-o", str(tmp_path / "low"), *common, "--sensor-origin", "0", "0", "-50"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 2 and "sensor" in result.output
