@@ -301,6 +301,21 @@ class FreeSpaceFloor {
   std::vector<double>& slope_;
 };
 
+/// Calls f(layer, bin, distance) for each column with a reliable lowest cube: `layer` is its entry
+/// of w.reliable (f may clear it), `bin` and `distance` those of the column's centre in `floor`.
+template <typename F>
+void for_each_reliable_column(const CubeGrid& grid, const FreeSpaceFloor& floor, Workspace& w, F&& f) {
+  for (std::int64_t iy = 0; iy < grid.iymax; ++iy) {
+    for (std::int64_t ix = 0; ix < grid.ixmax; ++ix) {
+      std::int32_t& layer = w.reliable[static_cast<std::size_t>(ix + iy * grid.ixmax)];
+      if (layer == kNone) continue;
+      double distance = 0.0;
+      const std::int64_t bin = floor.column_bin(ix, iy, distance);
+      if (bin >= 0) f(layer, static_cast<std::size_t>(bin), distance);
+    }
+  }
+}
+
 /// Step 1b: reliable ground the sensor cannot have seen is no ground (multipath and reflections
 /// under the road). A reliable lowest cube below the sensor is opaque: a ray to a point more than
 /// `margin` under its bottom face, farther out in its sector, would have ended on it. Per (sector,
@@ -314,16 +329,10 @@ void hide_occluded_ground(const CubeGrid& grid, FreeSpaceFloor& floor, double ma
   const double sensor_z = floor.origin().z();
   std::vector<double>& horizon = w.slope;
   horizon.assign(static_cast<std::size_t>(floor.steps() * sectors), -kInf);
-  for (std::int64_t iy = 0; iy < grid.iymax; ++iy) {  // the limits, at each column's centre
-    for (std::int64_t ix = 0; ix < grid.ixmax; ++ix) {
-      const std::int32_t layer = w.reliable[static_cast<std::size_t>(ix + iy * grid.ixmax)];
-      double distance = 0.0;
-      const std::int64_t bin = layer == kNone ? -1 : floor.column_bin(ix, iy, distance);
-      if (bin < 0 || !(bottom_face(grid, layer) < sensor_z)) continue;
-      double& slot = horizon[static_cast<std::size_t>(bin)];
-      slot = std::max(slot, (bottom_face(grid, layer) - margin - sensor_z) / distance);
-    }
-  }
+  for_each_reliable_column(grid, floor, w, [&](std::int32_t layer, std::size_t bin, double distance) {
+    const double bottom = bottom_face(grid, layer);  // the limits, at each column's centre
+    if (bottom < sensor_z) horizon[bin] = std::max(horizon[bin], (bottom - margin - sensor_z) / distance);
+  });
   std::vector<double> nearer(static_cast<std::size_t>(sectors), -kInf);  // per sector, from the sensor out
   for (std::int64_t step = 0; step < floor.steps(); ++step) {
     double* const slots = horizon.data() + step * sectors;
@@ -333,14 +342,9 @@ void hide_occluded_ground(const CubeGrid& grid, FreeSpaceFloor& floor, double ma
       nearer[sector] = std::max(nearer[sector], here);
     }
   }
-  for (std::int64_t iy = 0; iy < grid.iymax; ++iy) {  // the reliable lowest cubes under a nearer limit
-    for (std::int64_t ix = 0; ix < grid.ixmax; ++ix) {
-      std::int32_t& layer = w.reliable[static_cast<std::size_t>(ix + iy * grid.ixmax)];
-      double distance = 0.0;
-      const std::int64_t bin = layer == kNone ? -1 : floor.column_bin(ix, iy, distance);
-      if (bin >= 0 && (bottom_face(grid, layer) + grid.edge_m - sensor_z) / distance < horizon[bin]) layer = kNone;
-    }
-  }
+  for_each_reliable_column(grid, floor, w, [&](std::int32_t& layer, std::size_t bin, double distance) {
+    if ((bottom_face(grid, layer) + grid.edge_m - sensor_z) / distance < horizon[bin]) layer = kNone;  // hidden
+  });
   floor.reset();
 }
 
