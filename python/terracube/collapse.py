@@ -187,7 +187,7 @@ class CollapseParams:
         shadow_aware: a column's lowest cube is reliable ground when this many columns of its 3x3
         neighbourhood (itself included) have their lowest cube within one layer of it, and more
         of them than have theirs σ or more layers above it (not a patch of multipath returns
-        under the road), 1..9.
+        under the road; 4, the default, needs a 2 x 2 block, not an L of three columns), 1..9.
     hidden_ground_margin : float
         shadow_aware: reliable ground lying more than this far [m] under the line of sight over
         reliable ground nearer the sensor (and below it) is no ground: the sensor cannot have seen
@@ -219,7 +219,7 @@ class CollapseParams:
     method: str = "paper"
     sensor_origin: tuple[float, float, float] | None = None
     ground_radius: float = 5.0
-    ground_support: int = 3
+    ground_support: int = 4
     hidden_ground_margin: float = 2.0
     free_margin: float = 0.25
     min_bottom_neighbours: int = 4

@@ -62,9 +62,9 @@ TEST(ShadowAware, AMultipathPointBelowTheRoadIsKeptAndDecidesNothing) {
 TEST(ShadowAware, AMultipathPatchUnderTheRoadIsNoGround) {
   Points points;
   add_grid(points, 1, 12, -3, 3, -1.7);
-  // Three returns 2.5 m under the road in three neighbouring columns (a reflection of a car or a
-  // window): together they pass the 3-of-9 support test, but the road lies over them.
-  const Points ghosts = {{6.0, 0.0, -4.2}, {6.5, 0.0, -4.2}, {6.0, 0.5, -4.2}};
+  // Four returns 2.5 m under the road in a 2 x 2 block of columns (a reflection of a car or a
+  // window): together they pass the 4-of-9 support test, but the road lies over them.
+  const Points ghosts = {{6.0, 0.0, -4.2}, {6.5, 0.0, -4.2}, {6.0, 0.5, -4.2}, {6.5, 0.5, -4.2}};
   points.insert(points.end(), ghosts.begin(), ghosts.end());
   const CollapseResult result = collapse_overhangs(points, shadow_aware_params());
   EXPECT_EQ(result.num_overhang, 0U);
@@ -74,9 +74,9 @@ TEST(ShadowAware, AMultipathPatchUnderTheRoadIsNoGround) {
 }
 
 TEST(ShadowAware, ADeepReflectionBehindTheRoadIsNoGround) {
-  // Nine returns 8 m under the road, 20 m out, in three columns with no return around them (a
-  // reflection, as on the bundled Ouster scan): they pass the support test, but the line of sight
-  // to them runs 8 m under the road nearer the sensor.
+  // Twelve returns 8 m under the road, 20 m out, in a 2 x 2 block of columns with no return around
+  // them (a reflection, as on the Ouster scan 000000): they pass the support test, but the line of
+  // sight to them runs 8 m under the road nearer the sensor.
   Points points;
   add_grid(points, 1, 24, -4, 4, -1.7);
   points.erase(
@@ -85,7 +85,8 @@ TEST(ShadowAware, ADeepReflectionBehindTheRoadIsNoGround) {
       points.end());
   const std::size_t road = points.size();
   Points ghosts;
-  for (int k = 0; k < 9; ++k) ghosts.emplace_back(20.0 + 0.05 * k, -0.5 + 0.5 * (k % 3), -9.7);
+  for (int k = 0; k < 12; ++k)
+    ghosts.emplace_back(20.0 + 0.5 * (k % 2) + 0.05 * (k / 4), -0.5 + 0.5 * (k / 2 % 2), -9.7);
   points.insert(points.end(), ghosts.begin(), ghosts.end());
   CollapseParams params = shadow_aware_params(2);
   const CollapseResult result = collapse_overhangs(points, params);

@@ -105,9 +105,9 @@ def test_shadow_aware_removes_canopy_without_crop_and_no_road_sidewalk_parking_c
     shared_data, sigma, recall_floor
 ):
     """Frames 0-2, E = 0.5 m, no crop (multipath below the road decides nothing). Measured with the
-    defaults: canopy recall 0.451 at σ 4 and 0.274 at σ 5 (the paper's rule with the crop: 0.12
-    and 0.06); road, sidewalk, parking, car and pole: 0; building + fence + trunk removed 0.49 % and
-    0.21 %. The issue's 0.5 recall is not reached (docs/performance.md says why)."""
+    defaults: canopy recall 0.451 at σ 4 and 0.269 at σ 5 (the paper's rule with the crop: 0.12
+    and 0.06); road, sidewalk, parking, car and pole: 0; building + fence + trunk removed 0.48 % and
+    0.20 %. The issue's 0.5 recall is not reached (docs/performance.md says why)."""
     canopy_total = canopy_removed = paper_removed = structure_total = structure_removed = 0
     never = dict.fromkeys(SHADOW_AWARE_NEVER, 0)
     for frame in FRAMES:

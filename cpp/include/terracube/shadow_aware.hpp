@@ -46,8 +46,10 @@ struct ShadowAwareParams {
   /// A column's lowest cube is reliable ground when at least this many columns of its 3x3
   /// neighbourhood (itself included) have their lowest cube within one layer of it, and more of
   /// them do than have their lowest cube σ or more layers above it: isolated returns below the
-  /// ground never qualify, nor a small patch of them under the road. In 1..9.
-  int ground_support = 3;
+  /// ground never qualify, nor a small patch of them under the road. The default, 4, is a 2 x 2
+  /// block's worth: an L of three columns (a reflection 2 m under the street of the bundled Ouster
+  /// sample) is not enough. In 1..9.
+  int ground_support = 4;
   /// Reliable ground that lies more than this far [m] under the line of sight over reliable ground
   /// nearer the sensor (and below it) is no ground: the sensor cannot have seen it through the
   /// road (multipath, reflections). Rays pass under car bodies by less, under crowns and decks
