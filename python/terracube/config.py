@@ -470,6 +470,8 @@ def _type_name(hint: Any) -> str:
         return " or ".join(_type_name(a) for a in args)
     if isinstance(origin, type) and issubclass(origin, Mapping):
         return f"a mapping of {_type_name(args[0])} to {_plural(args[1])}" if len(args) == 2 else "a mapping"
+    if origin is tuple and len(set(args)) == 1 and args[0] is not Ellipsis:  # tuple[float, float, float]
+        return f"a list of {len(args)} {_plural(args[0])}"
     return "a list" + (f" of {_plural(args[0])}" if args else "")
 
 

@@ -132,6 +132,10 @@ def test_whole_numbers_and_yaml_1_1_exponents_are_read_as_floats(tmp_path):
         ("elevation:\n  size: [10, ten]\n", r"elevation\.size must be a list of whole numbers or null"),
         ("elevation:\n  origin: [0, 0]\n", r"section 'elevation': give both origin and size"),
         ("frame:\n  crop: [1, 2, 3]\n", r"frame\.crop must be a list of lists of numbers or null"),
+        (
+            "collapse:\n  sensor_origin: [0, 1.8]\n",
+            r"collapse\.sensor_origin must be a list of 3 numbers or null",
+        ),
         ("frame:\n  crop: [[1, 2, 3]]\n", r"section 'frame': crop must be \[\[xmin"),
         ("frame:\n  crop: [[1, 0, 0], [0, 1, 1]]\n", r"min corner \[1\.0, 0\.0, 0\.0\] exceeds"),
         ("collapse: 0.5\n", r"section 'collapse' must be a mapping of keys, got float"),
