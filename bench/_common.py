@@ -162,6 +162,16 @@ def header_line(field: str, text: str) -> str:
     return f"  {field:<8}: {text}"
 
 
+def core_build() -> str:
+    """Where the timed C++ module comes from and when it was built: a bench times the installed
+    ``terracube``, which a change to the C++ core does not update until it is installed again."""
+    from terracube import _core
+
+    path = Path(_core.__file__)
+    built = datetime.datetime.fromtimestamp(path.stat().st_mtime).isoformat(timespec="minutes")
+    return f"{path} (built {built})"
+
+
 def print_header(
     title: str,
     details: Iterable[str],
@@ -187,6 +197,7 @@ def print_header(
             f"python {platform.python_version()}, numpy {np.__version__}, terracube {tc.__version__}",
         )
     )
+    print(header_line("core", core_build()))
     print(header_line("date", datetime.datetime.now().isoformat(timespec="seconds")))
     for line in details:
         print(line)

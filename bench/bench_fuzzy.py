@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 import terracube as tc
+from _common import core_build
 
 PAPER_RULES = (19, 10)
 PAPER_AREA_M = (20.0, 10.0)
@@ -120,6 +121,7 @@ def main() -> None:
     parser.add_argument("--data-dir", default=None)
     args = parser.parse_args()
     print(f"machine: {machine_info()}")
+    print(f"core: {core_build()}")
     print(
         f"{'scene':<18} {'points':>8} {'rules':>9} {'params':>6} {'fit':>8} {'time [ms]':>10} "
         f"{'train RMSE':>11} {'truth RMSE':>11}"

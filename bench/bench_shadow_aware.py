@@ -36,7 +36,7 @@ import sys
 
 import numpy as np
 import terracube as tc
-from _common import header_line, interleaved_median_ms, parse_benchmark_args
+from _common import core_build, header_line, interleaved_median_ms, parse_benchmark_args
 from terracube import simulation as sim
 
 EDGE = 0.5
@@ -343,6 +343,7 @@ def main(argv: list[str] | None = None) -> int:
     sigmas = (4, 5)
     print("Shadow-aware overhang removal (issue 34), E = 0.5 m")
     print(header_line("machine", "shared 2-vCPU VM, loaded by other builds: timings are ratios in one run"))
+    print(header_line("core", core_build()))
     if (args.data_dir / "kitti_seq00/labels/000000.label").is_file():
         print(f"\nKITTI seq 00 frames {list(frames)} with SemanticKITTI labels")
         print(
