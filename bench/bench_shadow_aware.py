@@ -72,6 +72,21 @@ def every_nth_ring(xyz: np.ndarray, n: int) -> np.ndarray:
     return ring % n == 0
 
 
+def kitti_scans(data_dir, frames, rings: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(points, labels, canopy mask) of each frame, keeping every ``rings``-th scan ring."""
+    scans = []
+    for frame in frames:
+        xyz = np.fromfile(data_dir / f"kitti_seq00/velodyne/{frame:06d}.bin", np.float32).reshape(-1, 4)[
+            :, :3
+        ]
+        labels = np.fromfile(data_dir / f"kitti_seq00/labels/{frame:06d}.label", np.uint32) & 0xFFFF
+        if rings > 1:
+            kept = every_nth_ring(xyz, rings)
+            xyz, labels = xyz[kept], labels[kept]
+        scans.append((xyz, labels, kitti_canopy(xyz.astype(np.float64), labels)))
+    return scans
+
+
 def kitti_rows(data_dir, frames, sigmas) -> list[dict]:
     rows = []
     methods = {  # name: (arguments, every n-th ring)
@@ -81,21 +96,14 @@ def kitti_rows(data_dir, frames, sigmas) -> list[dict]:
         "shadow_aware, 1/2 rings": (dict(method="shadow_aware"), 2),
         "shadow_aware, 1/4 rings": (dict(method="shadow_aware"), 4),
     }
+    scans = {rings: kitti_scans(data_dir, frames, rings) for rings in {r for _, r in methods.values()}}
     for sigma in sigmas:
         for name, (kwargs, rings) in methods.items():
             total = {"canopy": 0, "canopy_removed": 0, "removed": 0}
             total.update({key: 0 for key in (*NEVER, *STRUCTURE)})
             total.update({key + "_all": 0 for key in STRUCTURE})
-            for frame in frames:
-                xyz = np.fromfile(data_dir / f"kitti_seq00/velodyne/{frame:06d}.bin", np.float32).reshape(
-                    -1, 4
-                )[:, :3]
-                labels = np.fromfile(data_dir / f"kitti_seq00/labels/{frame:06d}.label", np.uint32) & 0xFFFF
-                if rings > 1:
-                    kept = every_nth_ring(xyz, rings)
-                    xyz, labels = xyz[kept], labels[kept]
+            for xyz, labels, canopy in scans[rings]:
                 removed = tc.collapse_overhangs(xyz, EDGE, sigma, **kwargs).overhang
-                canopy = kitti_canopy(xyz.astype(np.float64), labels)
                 total["canopy"] += int(canopy.sum())
                 total["canopy_removed"] += int((canopy & removed).sum())
                 total["removed"] += int(removed.sum())
