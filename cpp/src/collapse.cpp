@@ -83,7 +83,8 @@ struct CubeIndexer {
         ixmax(static_cast<Index>(grid.ixmax)),
         layer(static_cast<Index>(grid.num_columns())) {}
 
-  Index operator()(const Eigen::Vector3d& p, bool takes_part) const {
+  // Inlined into each of the layouts' passes (GCC would otherwise call it once per row).
+  [[gnu::always_inline]] Index operator()(const Eigen::Vector3d& p, bool takes_part) const {
     const double x = (p.x() - min_corner.x()) * inverse_edge + 0.5;  // round half up
     const double y = (p.y() - min_corner.y()) * inverse_edge + 0.5;
     const double z = (p.z() - min_corner.z()) * inverse_edge + 0.5;
@@ -140,7 +141,9 @@ detail::CloudExtent measure_extent_in_parts(const Cloud& cloud, bool drop_non_fi
   std::vector<detail::CloudExtent> extents(static_cast<std::size_t>(parts));
   detail::for_each_part(num_threads, parts, [&](int part) {
     const auto [begin, end] = detail::part_range(cloud.size(), part, parts);
-    extents[static_cast<std::size_t>(part)] = detail::extent_of_rows(cloud, begin, end);
+    cloud.with_fixed_layout([&, begin = begin, end = end](const auto& rows) {
+      extents[static_cast<std::size_t>(part)] = detail::extent_of_rows(rows, begin, end);
+    });
   });
   detail::CloudExtent extent;
   for (const detail::CloudExtent& piece : extents) extent.merge(piece);
@@ -179,11 +182,14 @@ void cube_of_rows(const Cloud& cloud, const CubeGrid& grid, int num_threads, std
   const int parts = detail::fixed_parts(cloud.size(), kRowsPerPart);
   detail::for_each_part(num_threads, parts, [&](int part) {
     const auto [begin, end] = detail::part_range(cloud.size(), part, parts);
-    Index* const out = cubes.data();  // a local pointer: the stores cannot change it
-    for (std::size_t row = begin; row < end; ++row) {
-      const Eigen::Vector3d p = cloud.level(row);
-      out[row] = index_of(p, cloud.in_crop(p));
-    }
+    cloud.with_fixed_layout([&, begin = begin, end = end](const auto& rows) {
+      Index* const out = cubes.data();  // local copies: a store to out[] could change members
+      const CubeIndexer<Index> index_in_grid = index_of;
+      for (std::size_t row = begin; row < end; ++row) {
+        const Eigen::Vector3d p = rows.level(row);
+        out[row] = index_in_grid(p, rows.in_crop(p));
+      }
+    });
   });
 }
 
