@@ -20,6 +20,8 @@ py::array to_bool_array(std::vector<std::uint8_t>&& mask) {
 void bind_baselines(py::module_& m) {
   py::class_<PointBasedParams>(m, "PointBasedParams")
       .def(py::init<>())
+      .def("check", &check_point_based_params,
+           "Raises ValueError naming the first field out of range (as every call taking them).")
       .def_readwrite("edge_m", &PointBasedParams::edge_m)
       .def_readwrite("sigma", &PointBasedParams::sigma)
       .def_readwrite("variance_threshold_m2", &PointBasedParams::variance_threshold_m2)

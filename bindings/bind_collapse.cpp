@@ -102,6 +102,8 @@ void bind_collapse(py::module_& m) {
 
   py::class_<ShadowAwareParams>(m, "ShadowAwareParams")
       .def(py::init<>())
+      .def("check", &check_shadow_aware_params,
+           "Raises ValueError naming the first field out of range (as every call taking them).")
       .def_readwrite("sensor_origin", &ShadowAwareParams::sensor_origin)
       .def_readwrite("ground_radius_m", &ShadowAwareParams::ground_radius_m)
       .def_readwrite("ground_support", &ShadowAwareParams::ground_support)
@@ -113,6 +115,8 @@ void bind_collapse(py::module_& m) {
 
   py::class_<CollapseParams>(m, "CollapseParams")
       .def(py::init<>())
+      .def("check", &check_collapse_params,
+           "Raises ValueError naming the first field out of range (as every call taking them).")
       .def_readwrite("edge_m", &CollapseParams::edge_m)
       .def_readwrite("sigma", &CollapseParams::sigma)
       .def_readwrite("transform", &CollapseParams::transform)

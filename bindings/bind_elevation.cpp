@@ -54,10 +54,7 @@ void bind_elevation(py::module_& m) {
       .def_property_readonly("length", &MapGeometry::length_m, "(2,) map length along x and y [m]")
       .def_property_readonly("num_cells", &MapGeometry::num_cells)
       .def(
-          "position_of",
-          [](const MapGeometry& g, int i, int j) {
-            return Eigen::Vector2d(g.position_of({i, j}));
-          },
+          "position_of", [](const MapGeometry& g, int i, int j) { return Eigen::Vector2d(g.position_of({i, j})); },
           py::arg("i"), py::arg("j"), "centre of cell (i, j) [m]")
       .def(
           "index_of",
@@ -94,6 +91,8 @@ void bind_elevation(py::module_& m) {
 
   py::class_<ElevationParams>(m, "ElevationParams")
       .def(py::init<>())
+      .def("check", &check_elevation_params,
+           "Raises ValueError naming the first field out of range (as every call taking them).")
       .def_readwrite("resolution_m", &ElevationParams::resolution_m)
       .def(
           "set_extent",
@@ -158,6 +157,8 @@ void bind_elevation(py::module_& m) {
 
   py::class_<TerrainParams>(m, "TerrainParams")
       .def(py::init<>())
+      .def("check", &check_terrain_params,
+           "Raises ValueError naming the first field out of range (as every call taking them).")
       .def_readwrite("ground_height_m", &TerrainParams::ground_height_m)
       .def_readwrite("std_dev_m", &TerrainParams::std_dev_m)
       .def_readwrite("robot_height_m", &TerrainParams::robot_height_m)

@@ -17,6 +17,8 @@ void bind_fuzzy(py::module_& m) {
 
   py::class_<FuzzyParams>(m, "FuzzyParams")
       .def(py::init<>())
+      .def("check", &check_fuzzy_params,
+           "Raises ValueError naming the first field out of range (as every call taking them).")
       .def_readwrite("rules_x", &FuzzyParams::rules_x)
       .def_readwrite("rules_y", &FuzzyParams::rules_y)
       .def_readwrite("membership", &FuzzyParams::membership)
@@ -28,9 +30,7 @@ void bind_fuzzy(py::module_& m) {
       .def_readwrite("smoothness", &FuzzyParams::smoothness)
       .def(
           "set_extent",
-          [](FuzzyParams& p, double x0, double y0, double x1, double y1) {
-            p.extent = Extent2d{{x0, y0}, {x1, y1}};
-          },
+          [](FuzzyParams& p, double x0, double y0, double x1, double y1) { p.extent = Extent2d{{x0, y0}, {x1, y1}}; },
           py::arg("x_min"), py::arg("y_min"), py::arg("x_max"), py::arg("y_max"))
       .def("clear_extent", [](FuzzyParams& p) { p.extent.reset(); })
       .def_property_readonly("has_extent", [](const FuzzyParams& p) { return p.extent.has_value(); })

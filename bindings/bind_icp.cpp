@@ -72,6 +72,8 @@ void bind_icp(py::module_& m) {
 
   py::class_<RegistrationParams>(m, "RegistrationParams")
       .def(py::init<>())
+      .def("check", &check_registration_params,
+           "Raises ValueError naming the first field out of range (as every call taking them).")
       .def_static("paper_icp", &RegistrationParams::paper_icp,
                   "the paper's plain weighted ICP: no correlative search, extrapolation or coarse-to-fine")
       .def_readwrite("correlative_search", &RegistrationParams::correlative_search)
@@ -202,6 +204,8 @@ void bind_icp(py::module_& m) {
   m.attr("has_pcl") = true;
   py::class_<PclIcpParams>(m, "PclIcpParams")
       .def(py::init<>())
+      .def("check", &check_pcl_icp_params,
+           "Raises ValueError naming the first field out of range (as every call taking them).")
       .def_readwrite("max_correspondence_distance_m", &PclIcpParams::max_correspondence_distance_m)
       .def_readwrite("max_iterations", &PclIcpParams::max_iterations)
       .def_readwrite("transformation_epsilon", &PclIcpParams::transformation_epsilon)

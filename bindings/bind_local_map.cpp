@@ -34,6 +34,8 @@ Eigen::Matrix4d pose_matrix(const py::array& pose) {
 void bind_local_map(py::module_& m) {
   py::class_<LocalMapParams>(m, "LocalMapParams")
       .def(py::init<>())
+      .def("check", &check_local_map_params,
+           "Raises ValueError naming the first field out of range (as every call taking them).")
       .def_readwrite("length_m", &LocalMapParams::length_m)
       .def_readwrite("resolution_m", &LocalMapParams::resolution_m)
       .def_readwrite("collapse", &LocalMapParams::collapse)

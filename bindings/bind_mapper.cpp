@@ -38,6 +38,8 @@ Eigen::Matrix4d as_pose(const py::array& pose) {
 void bind_mapper(py::module_& m) {
   py::class_<MapperParams>(m, "MapperParams")
       .def(py::init<>())
+      .def("check", &check_mapper_params,
+           "Raises ValueError naming the first field out of range (as every call taking them).")
       .def_readwrite("keyframe_distance_m", &MapperParams::keyframe_distance_m)
       .def_readwrite("keyframe_rotation_rad", &MapperParams::keyframe_rotation_rad)
       .def_readwrite("resolution_m", &MapperParams::resolution_m)

@@ -10,6 +10,8 @@ namespace terracube::python {
 void bind_traversability(py::module_& m) {
   py::class_<TraversabilityParams>(m, "TraversabilityParams")
       .def(py::init<>())
+      .def("check", &check_traversability_params,
+           "Raises ValueError naming the first field out of range (as every call taking them).")
       .def_readwrite("footprint_radius_m", &TraversabilityParams::footprint_radius_m)
       .def_readwrite("max_slope_rad", &TraversabilityParams::max_slope_rad)
       .def_readwrite("max_step_m", &TraversabilityParams::max_step_m)

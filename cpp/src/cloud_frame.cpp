@@ -28,21 +28,6 @@ void check_rigid_transform(const Eigen::Matrix4d& transform, const char* what) {
   }
 }
 
-void check_collapse_params(const CollapseParams& params) {
-  if (!(params.edge_m > 0.0) || !std::isfinite(params.edge_m)) {
-    throw std::invalid_argument("edge must be a positive finite length in metres, got " + number_text(params.edge_m));
-  }
-  if (!std::isfinite(1.0 / params.edge_m)) {
-    throw std::invalid_argument("edge " + number_text(params.edge_m) + " m is too small to quantise with");
-  }
-  if (params.sigma < 1) {
-    throw std::invalid_argument("sigma must be at least 1 cube, got " + std::to_string(params.sigma));
-  }
-  check_rigid_transform(params.transform, "transform");
-  check_crop(params.crop);
-  check_num_threads(params.num_threads, "CollapseParams");
-}
-
 void check_crop(const std::optional<CropBox>& crop) {
   if (crop && (!crop->min.allFinite() || !crop->max.allFinite() || (crop->min.array() > crop->max.array()).any())) {
     throw std::invalid_argument("crop box must be finite with min <= max on every axis");

@@ -22,10 +22,6 @@ void check_rigid_transform(const Eigen::Matrix4d& transform, const char* what);
 /// Throws std::invalid_argument unless the crop box (if any) is finite with min <= max.
 void check_crop(const std::optional<CropBox>& crop);
 
-/// Throws std::invalid_argument unless edge > 0 and finite, sigma >= 1, the transform is rigid,
-/// the crop valid and num_threads >= 0.
-void check_collapse_params(const CollapseParams& params);
-
 /// What a row of a cloud is once leveled and cropped.
 enum class RowStatus { kUsed = 0, kNonFinite = 1, kCropped = 2 };
 

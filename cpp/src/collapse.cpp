@@ -13,6 +13,7 @@
 #include <unordered_map>
 
 #include "cloud_frame.hpp"
+#include "number_text.hpp"
 #include "parallel.hpp"
 
 namespace terracube {
@@ -334,8 +335,7 @@ void collapse_sparse(const std::vector<SparseIndex>& cubes, const NextPoints& ne
 
 template <typename Scalar>
 CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapseParams& params) {
-  detail::check_collapse_params(params);
-  check_shadow_aware_params(params.shadow_aware);
+  check_collapse_params(params);
   if (points.size > 0 && points.data == nullptr) {
     throw std::invalid_argument("points view has no data but claims " + std::to_string(points.size) + " rows");
   }
@@ -378,6 +378,23 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
 }
 
 }  // namespace
+
+void check_collapse_params(const CollapseParams& params) {
+  if (!(params.edge_m > 0.0) || !std::isfinite(params.edge_m)) {
+    throw std::invalid_argument("edge must be a positive finite length in metres, got " +
+                                detail::number_text(params.edge_m));
+  }
+  if (!std::isfinite(1.0 / params.edge_m)) {
+    throw std::invalid_argument("edge " + detail::number_text(params.edge_m) + " m is too small to quantise with");
+  }
+  if (params.sigma < 1) {
+    throw std::invalid_argument("sigma must be at least 1 cube, got " + std::to_string(params.sigma));
+  }
+  detail::check_rigid_transform(params.transform, "transform");
+  detail::check_crop(params.crop);
+  detail::check_num_threads(params.num_threads, "CollapseParams");
+  check_shadow_aware_params(params.shadow_aware);
+}
 
 int sigma_from_robot_height(double robot_height_m, double edge_m) {
   if (!(robot_height_m > 0.0) || !std::isfinite(robot_height_m)) {

@@ -20,7 +20,9 @@ namespace {
 /// The most (yaw, translation) candidates one search scores (each keeps 40 bytes: 160 MB).
 constexpr double kMaxCandidates = 4e6;
 
-void check_search_params(const CorrelativeSearchParams& p) {
+}  // namespace
+
+void check_correlative_search_params(const CorrelativeSearchParams& p) {
   const auto positive = [](double v) { return v > 0.0 && std::isfinite(v); };
   if (!positive(p.window_m)) throw std::invalid_argument("correlative search window_m must be positive and finite [m]");
   if (!positive(p.cell_m)) throw std::invalid_argument("correlative search cell_m must be positive and finite [m]");
@@ -45,6 +47,8 @@ void check_search_params(const CorrelativeSearchParams& p) {
     throw std::invalid_argument("correlative search tie_tolerance must lie in [0, 1)");
   }
 }
+
+namespace {
 
 // The occupancy grid's size limit (bytes): beyond it the search returns the guess.
 constexpr double kMaxGridCells = 2.5e8;
@@ -193,7 +197,7 @@ CorrelativeSearchResult search_level(const std::vector<Eigen::Vector2d>& moving,
 
 CorrelativeSearchResult correlative_search(const ClassifiedPoints& source, const ClassifiedPoints& target,
                                            const Eigen::Matrix4d& guess, const CorrelativeSearchParams& params) {
-  check_search_params(params);
+  check_correlative_search_params(params);
   detail::check_rigid_transform(guess, "correlative search guess");
   if (source.classes.size() != source.points.size() || target.classes.size() != target.points.size()) {
     throw std::invalid_argument("correlative search: points and classes differ in number");

@@ -118,6 +118,8 @@ constexpr std::size_t kCellsPerPart = 16384;
 /// The cell of a row that takes no part (outside the map, not selected, NaN/Inf or cropped).
 constexpr std::uint32_t kOutside = std::numeric_limits<std::uint32_t>::max();
 
+}  // namespace
+
 void check_elevation_params(const ElevationParams& params) {
   if (!(params.resolution_m > 0.0) || !std::isfinite(params.resolution_m) ||
       !std::isfinite(1.0 / params.resolution_m)) {
@@ -138,6 +140,8 @@ void check_elevation_params(const ElevationParams& params) {
   detail::check_rigid_transform(params.transform, "transform");
   detail::check_crop(params.crop);
 }
+
+namespace {
 
 MapGeometry make_geometry(const ElevationParams& params, const detail::CloudExtent& extent) {
   MapGeometry geometry;

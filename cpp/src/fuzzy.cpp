@@ -13,7 +13,7 @@ namespace terracube {
 
 namespace {
 
-/// The most hybrid-learning epochs one fit runs (see check_params).
+/// The most hybrid-learning epochs one fit runs (see check_fuzzy_params).
 constexpr int kMaxEpochs = 100000;
 
 /// MFs evaluated per coordinate: 2 for triangles, the 5 nearest for Gaussians.
@@ -115,7 +115,9 @@ void project_centers(Eigen::VectorXd& c, double lo, double hi, double gap) {
   for (Eigen::Index k = m - 2; k >= 0; --k) c[k] = std::min(c[k], c[k + 1] - gap);
 }
 
-void check_params(const FuzzyParams& p) {
+}  // namespace
+
+void check_fuzzy_params(const FuzzyParams& p) {
   if (p.rules_x < 2 || p.rules_y < 2) {
     throw std::invalid_argument("a fuzzy elevation map needs at least 2 x 2 rules, got " + std::to_string(p.rules_x) +
                                 " x " + std::to_string(p.rules_y));
@@ -155,6 +157,8 @@ void check_params(const FuzzyParams& p) {
     }
   }
 }
+
+namespace {
 
 using RowsXY = Eigen::Ref<const Eigen::Matrix<double, Eigen::Dynamic, 2, Eigen::RowMajor>>;
 
@@ -404,7 +408,7 @@ FuzzyElevationMap::FuzzyElevationMap(const FuzzyParams& params, Eigen::VectorXd 
   if (!params_.extent) throw std::invalid_argument("a fuzzy elevation map from parameters needs params.extent");
   params_.rules_x = static_cast<int>(centers_x_.size());
   params_.rules_y = static_cast<int>(centers_y_.size());
-  check_params(params_);
+  check_fuzzy_params(params_);
   extent_ = *params_.extent;
   const auto check_axis = [](const Eigen::VectorXd& c, double lo, double hi, const char* axis) {
     for (Eigen::Index k = 0; k < c.size(); ++k) {
@@ -495,7 +499,7 @@ namespace {
 template <typename Scalar>
 FuzzyElevationMap fit_impl(const PointsView<Scalar>& points, const FuzzyParams& params,
                            const std::vector<std::uint8_t>* use) {
-  check_params(params);
+  check_fuzzy_params(params);
   if (points.size > 0 && points.data == nullptr) throw std::invalid_argument("points view has no data");
   if (use && use->size() != points.size) {
     throw std::invalid_argument("the point selection has " + std::to_string(use->size()) + " flags for " +

@@ -33,7 +33,6 @@ using Matrix6d = Eigen::Matrix<double, 6, 6>;
 using Vector6d = Eigen::Matrix<double, 6, 1>;
 using detail::cells_of_map;
 using detail::check_points;
-using detail::check_registration_params;
 using detail::fit_ground_planes;
 using detail::GroundCells;
 using detail::GroundPlane;

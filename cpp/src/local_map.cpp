@@ -73,9 +73,11 @@ int cells_per_side(const LocalMapParams& p) {
   return static_cast<int>(cells);
 }
 
+}  // namespace
+
 void check_local_map_params(const LocalMapParams& p) {
   const int side = cells_per_side(p);
-  detail::check_collapse_params(p.collapse);
+  check_collapse_params(p.collapse);
   detail::check_non_negative(p.min_range_m, "LocalMapParams.min_range_m");
   if (!(p.max_range_m > p.min_range_m)) {
     throw std::invalid_argument("LocalMapParams.max_range_m must exceed min_range_m (+inf: no limit), got " +
@@ -102,6 +104,8 @@ void check_local_map_params(const LocalMapParams& p) {
   traversability_window_radius(p.traversability, p.resolution_m, CellIndex(side, side));
   detail::check_num_threads(p.num_threads, "LocalMapParams");
 }
+
+namespace {
 
 /// A monotone stand-in for the azimuth of (x, y), in [0, 4) ("diamond angle"): one division
 /// instead of atan2. Bins of it are at most twice as wide in angle as their mean. Quadrant q

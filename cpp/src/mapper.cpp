@@ -37,7 +37,9 @@ void check_positive(double value, const char* name) {
   }
 }
 
-void check_params(const MapperParams& p) {
+}  // namespace
+
+void check_mapper_params(const MapperParams& p) {
   check_positive(p.keyframe_distance_m, "keyframe_distance_m");
   check_positive(p.keyframe_rotation_rad, "keyframe_rotation_rad");
   check_positive(p.resolution_m, "resolution_m");
@@ -89,7 +91,11 @@ void check_params(const MapperParams& p) {
     throw std::invalid_argument("MapperParams: local_map_size_m / resolution_m = " + std::to_string(cells) +
                                 " cells per side (at most 8192)");
   }
+  check_terrain_params(p.terrain);
+  check_registration_params(p.registration);
 }
+
+namespace {
 
 void check_pose(const Eigen::Matrix4d& pose) {
   if (!pose.allFinite()) throw std::invalid_argument("odometry pose contains NaN or Inf");
@@ -689,7 +695,7 @@ void Mapper::Impl::optimize() {
 }
 
 Mapper::Mapper(const MapperParams& params) {
-  check_params(params);
+  check_mapper_params(params);
   impl_ = std::make_unique<Impl>(params);
 }
 Mapper::~Mapper() = default;

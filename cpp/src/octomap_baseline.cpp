@@ -24,7 +24,7 @@ std::vector<std::uint8_t> octomap_mask(const Cloud& cloud, const CollapseParams&
 
 template <typename Scalar>
 std::vector<std::uint8_t> octomap_impl(const PointsView<Scalar>& points, const CollapseParams& params) {
-  detail::check_collapse_params(params);
+  check_collapse_params(params);
   return detail::visit_leveled(points, params.transform, params.crop,
                                [&](const auto& cloud) { return octomap_mask(cloud, params); });
 }

@@ -11,6 +11,7 @@
 #include <string>
 
 #include "cloud_frame.hpp"
+#include "number_text.hpp"
 #include "terracube/icp.hpp"
 
 namespace terracube {
@@ -35,13 +36,29 @@ class Counting : public Registration {
   int iterations() const { return this->nr_iterations_; }
 };
 
-void check(const Eigen::Matrix4d& initial, const PclIcpParams& params) {
-  detail::check_rigid_transform(initial, "initial transform");
+}  // namespace
+
+void check_pcl_icp_params(const PclIcpParams& params) {
   if (!(params.max_correspondence_distance_m > 0.0) || !std::isfinite(params.max_correspondence_distance_m) ||
       params.max_iterations < 1 || params.max_iterations > kMaxIterationsLimit) {
     throw std::invalid_argument("PCL ICP needs a positive max correspondence distance and 1 to " +
                                 std::to_string(kMaxIterationsLimit) + " iterations");
   }
+  const double epsilons[] = {params.transformation_epsilon, params.rotation_epsilon, params.euclidean_fitness_epsilon,
+                             params.relative_mse_epsilon};
+  for (const double epsilon : epsilons) {
+    if (!(epsilon >= 0.0) || !std::isfinite(epsilon)) {
+      throw std::invalid_argument("PCL ICP's convergence epsilons must be finite and >= 0, got " +
+                                  detail::number_text(epsilon));
+    }
+  }
+}
+
+namespace {
+
+void check(const Eigen::Matrix4d& initial, const PclIcpParams& params) {
+  detail::check_rigid_transform(initial, "initial transform");
+  check_pcl_icp_params(params);
 }
 
 template <typename Registration>

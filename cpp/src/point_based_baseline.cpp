@@ -20,6 +20,8 @@ struct CellPoint {
   std::size_t row;
 };
 
+}  // namespace
+
 void check_point_based_params(const PointBasedParams& params) {
   if (!(params.edge_m > 0.0) || !std::isfinite(params.edge_m)) {
     throw std::invalid_argument("edge must be a positive finite length in metres, got " +
@@ -33,6 +35,8 @@ void check_point_based_params(const PointBasedParams& params) {
   detail::check_rigid_transform(params.transform, "transform");
   detail::check_crop(params.crop);
 }
+
+namespace {
 
 /// Population variance of the heights of [begin, end).
 double height_variance(const std::vector<CellPoint>& points, std::size_t begin, std::size_t end) {

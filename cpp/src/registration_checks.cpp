@@ -8,7 +8,7 @@
 
 #include "registration_verdict.hpp"
 
-namespace terracube::detail {
+namespace terracube {
 
 void check_registration_params(const RegistrationParams& p) {
   const auto positive = [](double v) { return v > 0.0 && std::isfinite(v); };
@@ -46,8 +46,11 @@ void check_registration_params(const RegistrationParams& p) {
   }
   if (!non_negative(p.ground_weight)) throw std::invalid_argument("ground weight must be finite and >= 0");
   if (!positive(p.ground_cell_m)) throw std::invalid_argument("ground cell must be positive and finite [m]");
-  check_trust_params(p);
+  check_correlative_search_params(p.search);  // validated even when correlative_search is off
+  detail::check_trust_params(p);
 }
+
+namespace detail {
 
 void check_points(const ClassifiedPoints& set, const char* what) {
   if (set.classes.size() != set.points.size()) {
@@ -75,4 +78,5 @@ void check_points(const ClassifiedPoints& set, const char* what) {
   }
 }
 
-}  // namespace terracube::detail
+}  // namespace detail
+}  // namespace terracube

@@ -20,6 +20,8 @@ constexpr std::uint8_t kOverhanging = static_cast<std::uint8_t>(TerrainClass::kO
 constexpr std::uint8_t kVertical = static_cast<std::uint8_t>(TerrainClass::kVerticalObject);
 constexpr std::uint8_t kEdge = static_cast<std::uint8_t>(TerrainClass::kHorizontalEdge);
 
+}  // namespace
+
 void check_terrain_params(const TerrainParams& params) {
   const auto positive = [](double v) { return v > 0.0 && std::isfinite(v); };
   if (!positive(params.ground_height_m) || !positive(params.std_dev_m) || !positive(params.robot_height_m)) {
@@ -32,6 +34,8 @@ void check_terrain_params(const TerrainParams& params) {
   if (params.local_ground_radius_cells < 0) throw std::invalid_argument("local ground radius must be >= 0 cells");
   detail::check_num_threads(params.num_threads, "TerrainParams");
 }
+
+namespace {
 
 /// Running minimum of a line of `n` values (`stride` apart) over windows [k - r, k + r] clipped to
 /// the line, in O(1) per value whatever r (van Herk 1992; Gil and Werman 1993): cut the line,

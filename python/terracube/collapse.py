@@ -245,6 +245,7 @@ class CollapseParams:
             raise ValueError(f"method must be one of {sorted(COLLAPSE_METHODS)}, got {self.method!r}")
         params.method = COLLAPSE_METHODS[self.method]
         params.shadow_aware = self._shadow_aware_core()
+        params.check()  # the core's own ranges, before any scan (and in a config file)
         return params
 
     def _shadow_aware_core(self) -> _core.ShadowAwareParams:
@@ -296,6 +297,7 @@ class PointBasedParams:
         params.variance_threshold_m2 = float(self.variance_threshold)
         _set_frame(params, self.transform, self.crop)
         params.drop_non_finite = bool(self.drop_non_finite)
+        params.check()  # the core's own ranges, before any scan (and in a config file)
         return params
 
 

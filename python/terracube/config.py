@@ -3,7 +3,8 @@
 A configuration is one section per registered parameter dataclass (``frame``, ``collapse``,
 ``elevation``, ``terrain``, ``fuzzy``, ``registration``, ``pcl_icp``, ``mapper``). Each section's
 YAML is checked by a pydantic model made from its dataclass's fields, so the two cannot drift;
-the dataclass itself then checks the values it refuses (``__post_init__`` or ``to_core``).
+the dataclass then checks the values it refuses (``__post_init__``, and ``to_core``, which runs the
+C++ core's own check of the ranges), so a bad file fails when it is read, not at the first scan.
 ``default_config()`` holds the defaults, :func:`dump_config` writes them as commented YAML (the
 comments come from each dataclass's numpy-style ``Attributes`` docstring) and :func:`load_config`
 merges a YAML file over the defaults: a file gives only the keys it changes.

@@ -231,6 +231,7 @@ class ElevationParams:
         params.drop_non_finite = bool(self.drop_non_finite)
         params.max_cells = int(self.max_cells)
         params.num_threads = _num_threads(self.num_threads)
+        params.check()  # the core's own ranges, before any scan (and in a config file)
         return params
 
 
@@ -375,6 +376,7 @@ class TerrainParams:
         params.sensor_height_m = float(self.sensor_height)
         params.local_ground_radius_cells = int(self.local_ground_radius)
         params.num_threads = _num_threads(self.num_threads)
+        params.check()  # the core's own ranges, before any scan (and in a config file)
         return params
 
 

@@ -100,6 +100,7 @@ class FuzzyParams:
         if self.step_rule not in rules:
             raise ValueError(f"step_rule must be one of {sorted(rules)}, got {self.step_rule!r}")
         params.step_rule = rules[self.step_rule]
+        params.check()  # the core's own ranges, before any scan (and in a config file)
         return params
 
     @classmethod

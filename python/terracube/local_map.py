@@ -112,6 +112,7 @@ class LocalMapParams:
         params.compute_planner_layers = bool(self.compute_planner_layers)
         params.traversability = self.traversability.to_core()
         params.num_threads = _num_threads(self.num_threads)
+        params.check()  # the core's own ranges, before any scan (and in a config file)
         return params
 
 

@@ -203,6 +203,7 @@ class MapperParams:
         params.loop_min_inlier_ratio = float(self.loop_min_inlier_ratio)
         params.pose_graph_iterations = int(self.pose_graph_iterations)
         params.optimize_interval_keyframes = int(self.optimize_interval_keyframes)
+        params.check()  # the core's own ranges, before any scan (and in a config file)
         return params
 
 

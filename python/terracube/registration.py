@@ -238,6 +238,7 @@ class RegistrationParams:
                 f"pairing must be 'source_to_target' or 'target_to_source', got {self.pairing!r}"
             )
         params.pairing = getattr(_core.Pairing, self.pairing)
+        params.check()  # the core's own ranges, before any scan (and in a config file)
         return params
 
 
@@ -403,6 +404,7 @@ class PclIcpParams:
         params.rotation_epsilon = float(self.rotation_epsilon)
         params.euclidean_fitness_epsilon = float(self.euclidean_fitness_epsilon)
         params.relative_mse_epsilon = float(self.relative_mse_epsilon)
+        params.check()  # the core's own ranges, before any scan (and in a config file)
         return params
 
 

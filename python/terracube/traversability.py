@@ -63,6 +63,7 @@ class TraversabilityParams:
         params.step_weight = float(self.step_weight)
         params.roughness_weight = float(self.roughness_weight)
         params.min_window_cells = int(self.min_window_cells)
+        params.check()  # the core's own ranges, before any scan (and in a config file)
         return params
 
 

@@ -5,7 +5,10 @@
 #include <gtest/gtest.h>
 #include <terracube/collapse.hpp>
 #include <terracube/elevation_map.hpp>
+#include <terracube/fuzzy.hpp>
 #include <terracube/icp.hpp>
+#include <terracube/local_map.hpp>
+#include <terracube/mapper.hpp>
 #include <terracube/terrain.hpp>
 
 #include <cmath>
@@ -14,6 +17,7 @@
 #include <new>
 #include <random>
 #include <stdexcept>
+#include <string>
 #include <vector>
 
 namespace terracube {
@@ -106,6 +110,66 @@ TEST(HostileCalls, SeededMutationsOfCloudsAndParametersEndInAResultOrAnException
   EXPECT_EQ(answered, 3 * 400);
   // Enough cases pass the checks to reach the algorithms, or the fuzzing proves little.
   EXPECT_GT(returned, 3 * 400 / 5) << returned << " of " << answered << " calls returned a result";
+}
+
+/// What `call` throws as std::invalid_argument ("" when it returns).
+template <typename Call>
+std::string refusal_of(const Call& call) {
+  try {
+    call();
+  } catch (const std::invalid_argument& error) {
+    return error.what();
+  }
+  return "";
+}
+
+// Each parameter struct's public check accepts its defaults and refuses a bad field with the
+// message that the call taking the struct gives, so a configuration can be checked before a scan.
+TEST(ParameterChecks, EachCheckAcceptsTheDefaultsAndRefusesWhatItsCallRefuses) {
+  const std::vector<double> rows = {0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 3};
+  const PointsView<double> cloud(rows.data(), 4);
+  EXPECT_EQ(refusal_of([] { check_collapse_params({}); }), "");
+  for (int field = 0; field < 3; ++field) {
+    CollapseParams bad;
+    if (field == 0) bad.edge_m = -1.0;
+    if (field == 1) bad.shadow_aware.ground_support = 12;
+    if (field == 2) bad.shadow_aware.free_margin_m = kNaN;
+    const std::string refusal = refusal_of([&] { check_collapse_params(bad); });
+    EXPECT_NE(refusal, "") << "field " << field;
+    EXPECT_EQ(refusal, refusal_of([&] { collapse_overhangs(cloud, bad); }));
+  }
+  EXPECT_EQ(refusal_of([] { check_elevation_params({}); }), "");
+  ElevationParams coarse;
+  coarse.resolution_m = 0.0;
+  EXPECT_NE(refusal_of([&] { check_elevation_params(coarse); }), "");
+  EXPECT_EQ(refusal_of([&] { check_elevation_params(coarse); }),
+            refusal_of([&] { build_elevation_map(cloud, coarse); }));
+  EXPECT_EQ(refusal_of([] { check_terrain_params({}); }), "");
+  TerrainParams flat;
+  flat.std_dev_m = -1.0;
+  ElevationMap map = build_elevation_map(cloud, {});
+  EXPECT_NE(refusal_of([&] { check_terrain_params(flat); }), "");
+  EXPECT_EQ(refusal_of([&] { check_terrain_params(flat); }), refusal_of([&] { classify_terrain(map, flat); }));
+  EXPECT_EQ(refusal_of([] { check_registration_params({}); }), "");
+  RegistrationParams searching;
+  searching.search.window_m = -1.0;  // checked even when the search is off
+  searching.correlative_search = false;
+  EXPECT_NE(refusal_of([&] { check_registration_params(searching); }).find("window_m"), std::string::npos);
+  EXPECT_EQ(refusal_of([] { check_fuzzy_params({}); }), "");
+  FuzzyParams one_rule;
+  one_rule.rules_x = 1;
+  EXPECT_EQ(refusal_of([&] { check_fuzzy_params(one_rule); }),
+            refusal_of([&] { fit_fuzzy_elevation_map(cloud, one_rule); }));
+  EXPECT_EQ(refusal_of([] { check_mapper_params({}); }), "");
+  MapperParams mapper;
+  mapper.registration.max_iterations = 0;  // the mapper's own registration is checked with it
+  EXPECT_NE(refusal_of([&] { check_mapper_params(mapper); }), "");
+  EXPECT_EQ(refusal_of([&] { check_mapper_params(mapper); }), refusal_of([&] { Mapper{mapper}; }));
+  EXPECT_EQ(refusal_of([] { check_local_map_params({}); }), "");
+  LocalMapParams local;
+  local.collapse.shadow_aware.bottom_window = 0;
+  EXPECT_NE(refusal_of([&] { check_local_map_params(local); }), "");
+  EXPECT_EQ(refusal_of([&] { check_local_map_params(local); }), refusal_of([&] { LocalMap{local}; }));
 }
 
 }  // namespace

@@ -149,6 +149,47 @@ def test_a_bad_file_names_itself_and_the_problem(tmp_path, text, message):
         load_config(path)
 
 
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("collapse:\n  edge: -1\n", r"section 'collapse': edge must be a positive finite length in metres"),
+        (
+            "collapse:\n  ground_support: 12\n",
+            r"section 'collapse': shadow_aware ground_support must be 1\.\.9",
+        ),
+        ("collapse:\n  bottom_window: 0\n", r"section 'collapse': shadow_aware bottom_window must be 1\.\.8"),
+        (
+            "collapse:\n  free_margin: .nan\n",
+            r"section 'collapse': shadow_aware free_margin_m must be a finite",
+        ),
+        (
+            "elevation:\n  resolution: 0\n",
+            r"section 'elevation': resolution must be a positive finite length",
+        ),
+        (
+            "terrain:\n  std_dev: -0.1\n",
+            r"section 'terrain': ground height, std-dev and robot height thresholds",
+        ),
+        ("fuzzy:\n  rules_x: 1\n", r"section 'fuzzy': a fuzzy elevation map needs at least 2 x 2 rules"),
+        ("registration:\n  search_window: -1\n", r"section 'registration': correlative search window_m"),
+        ("mapper:\n  keyframe_distance: 0\n", r"section 'mapper': MapperParams\.keyframe_distance_m must be"),
+    ],
+)
+def test_values_the_core_refuses_are_refused_when_the_file_is_read(tmp_path, text, message):
+    """The ranges live in the C++ checks (``check_*_params``); a file is checked against them at
+    load time, naming the file and section, not at the first scan of a run."""
+    path = _write(tmp_path, text, "bad_robot.yaml")
+    with pytest.raises(ConfigError, match=r"bad_robot\.yaml: " + message):
+        load_config(path)
+
+
+@pytest.mark.skipif(not tc.has_pcl(), reason="this build has no PCL baseline")
+def test_a_negative_pcl_epsilon_is_refused_when_the_file_is_read(tmp_path):
+    path = _write(tmp_path, "pcl_icp:\n  transformation_epsilon: -1\n", "bad_robot.yaml")
+    with pytest.raises(ConfigError, match=r"bad_robot\.yaml: section 'pcl_icp': .*epsilons must be finite"):
+        load_config(path)
+
+
 def test_a_missing_file_is_a_config_error_naming_it(tmp_path):
     with pytest.raises(ConfigError, match=r"nothing\.yaml: no such configuration file"):
         load_config(tmp_path / "nothing.yaml")

@@ -25,6 +25,10 @@ struct PointBasedParams {
   bool drop_non_finite = false;
 };
 
+/// Throws std::invalid_argument naming the first field out of range; point_based_overhangs calls it first, and a
+/// configuration can call it before the first scan.
+void check_point_based_params(const PointBasedParams& params);
+
 /// The point-based method [CBC] compares collapsible cubes with (section I and Table I, its refs.
 /// [3], [7]): per 2D cell, the height variance of the cell's points is tested first; in the cells
 /// that exceed it, the points are sorted by height and searched bottom-up for a vertical gap of σ

@@ -51,6 +51,11 @@ struct CollapseParams {
   ShadowAwareParams shadow_aware;
 };
 
+/// Throws std::invalid_argument naming the first field out of range (edge, sigma, a non-rigid
+/// transform, the crop, num_threads, then shadow_aware's); collapse_overhangs calls it first, and a
+/// configuration can call it before the first scan.
+void check_collapse_params(const CollapseParams& params);
+
 /// σ = ceil(robot_height_m / edge_m), at least 1 (section III).
 int sigma_from_robot_height(double robot_height_m, double edge_m);
 

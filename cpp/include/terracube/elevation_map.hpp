@@ -97,6 +97,10 @@ struct ElevationParams {
   int num_threads = 1;
 };
 
+/// Throws std::invalid_argument naming the first field out of range; build_elevation_map calls it first, and a
+/// configuration can call it before the first scan.
+void check_elevation_params(const ElevationParams& params);
+
 /// Builds the map in O(N + cells): one pass bins the points, a counting sort groups their
 /// elevations by cell, and one pass over the cells writes the layers; only cells whose max - min
 /// exceeds the discontinuity threshold (no other cell can hold a longer gap) are searched for one,

@@ -104,6 +104,10 @@ struct FuzzyParams {
   double min_confidence = 3.0;
 };
 
+/// Throws std::invalid_argument naming the first field out of range; fitting a FuzzyElevationMap calls it first, and a
+/// configuration can call it before the first scan.
+void check_fuzzy_params(const FuzzyParams& params);
+
 /// A zero-order Takagi-Sugeno fuzzy surface z = f(x, y); see the top of this header.
 class FuzzyElevationMap {
  public:

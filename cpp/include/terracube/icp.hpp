@@ -72,6 +72,10 @@ struct CorrelativeSearchParams {
   double tie_tolerance = 0.03;
 };
 
+/// Throws std::invalid_argument naming the first field out of range (and a search of over 4 M
+/// candidates); correlative_search calls it first.
+void check_correlative_search_params(const CorrelativeSearchParams& params);
+
 /// Outcome of correlative_search.
 struct CorrelativeSearchResult {
   Eigen::Matrix4d transform = Eigen::Matrix4d::Identity();  ///< the best hypothesis (target <- source)
@@ -190,6 +194,10 @@ struct RegistrationParams {
   double trust_max_rmse_m = 0.2;    ///< > 0 [m]
   double trust_min_held = 0.05;     ///< in [0, 1]
 };
+
+/// Throws std::invalid_argument naming the first field out of range; the registration calls it first, and a
+/// configuration can call it before the first scan.
+void check_registration_params(const RegistrationParams& params);
 
 /// Why registration stopped.
 enum class StopReason : std::uint8_t {

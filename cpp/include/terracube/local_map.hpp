@@ -86,6 +86,10 @@ struct LocalMapParams {
   int num_threads = 1;
 };
 
+/// Throws std::invalid_argument naming the first field out of range; the LocalMap calls it first, and a
+/// configuration can call it before the first scan.
+void check_local_map_params(const LocalMapParams& params);
+
 /// What one LocalMap::update did.
 struct LocalMapUpdate {
   std::size_t num_points = 0;    ///< rows given

@@ -129,6 +129,10 @@ struct MapperParams {
   int optimize_interval_keyframes = 5;
 };
 
+/// Throws std::invalid_argument naming the first field out of range; the Mapper calls it first, and a
+/// configuration can call it before the first scan.
+void check_mapper_params(const MapperParams& params);
+
 /// What happened to one scan given to Mapper::add_scan.
 struct ScanReport {
   bool keyframe = false;            ///< a local map was built from this scan

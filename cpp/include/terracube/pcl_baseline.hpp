@@ -20,6 +20,10 @@ struct PclIcpParams {
   double relative_mse_epsilon = 1e-5;          ///< getConvergeCriteria()->setRelativeMSE (PCL's default)
 };
 
+/// Throws std::invalid_argument naming the first field out of range; the PCL ICP baseline calls it first, and a
+/// configuration can call it before the first scan.
+void check_pcl_icp_params(const PclIcpParams& params);
+
 /// Outcome of pcl_icp.
 struct PclIcpResult {
   Eigen::Matrix4d transform = Eigen::Matrix4d::Identity();  ///< source -> target

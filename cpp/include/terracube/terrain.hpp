@@ -40,6 +40,10 @@ struct TerrainParams {
   int num_threads = 1;
 };
 
+/// Throws std::invalid_argument naming the first field out of range; classify_terrain calls it first, and a
+/// configuration can call it before the first scan.
+void check_terrain_params(const TerrainParams& params);
+
 /// Per-cell classes (TerrainClass values), rows along x as the map's layers.
 using TerrainClasses = Eigen::Matrix<std::uint8_t, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
 

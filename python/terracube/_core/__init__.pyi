@@ -228,6 +228,10 @@ class CubeReason:
 class ShadowAwareParams:
     def __init__(self) -> None:
         ...
+    def check(self) -> None:
+        """
+        Raises ValueError naming the first field out of range (as every call taking them).
+        """
     @property
     def azimuth_bins(self) -> int:
         ...
@@ -284,6 +288,10 @@ class CollapseParams:
     storage: CubeStorage
     def __init__(self) -> None:
         ...
+    def check(self) -> None:
+        """
+        Raises ValueError naming the first field out of range (as every call taking them).
+        """
     @property
     def dense_budget_bytes(self) -> int:
         ...
@@ -366,6 +374,10 @@ class PointBasedParams:
     drop_non_finite: bool
     def __init__(self) -> None:
         ...
+    def check(self) -> None:
+        """
+        Raises ValueError naming the first field out of range (as every call taking them).
+        """
     @property
     def edge_m(self) -> float:
         ...
@@ -453,6 +465,10 @@ class ElevationParams:
     drop_non_finite: bool
     def __init__(self) -> None:
         ...
+    def check(self) -> None:
+        """
+        Raises ValueError naming the first field out of range (as every call taking them).
+        """
     def clear_extent(self) -> None:
         ...
     def set_extent(self, origin_x: typing.SupportsFloat | typing.SupportsIndex, origin_y: typing.SupportsFloat | typing.SupportsIndex, size_x: typing.SupportsInt | typing.SupportsIndex, size_y: typing.SupportsInt | typing.SupportsIndex) -> None:
@@ -546,6 +562,10 @@ class TerrainParams:
     reference: GroundReference
     def __init__(self) -> None:
         ...
+    def check(self) -> None:
+        """
+        Raises ValueError naming the first field out of range (as every call taking them).
+        """
     @property
     def ground_height_m(self) -> float:
         ...
@@ -677,6 +697,10 @@ class FuzzyParams:
     step_rule: StepRule
     def __init__(self) -> None:
         ...
+    def check(self) -> None:
+        """
+        Raises ValueError naming the first field out of range (as every call taking them).
+        """
     def clear_extent(self) -> None:
         ...
     def set_extent(self, x_min: typing.SupportsFloat | typing.SupportsIndex, y_min: typing.SupportsFloat | typing.SupportsIndex, x_max: typing.SupportsFloat | typing.SupportsIndex, y_max: typing.SupportsFloat | typing.SupportsIndex) -> None:
@@ -937,6 +961,10 @@ class RegistrationParams:
         """
     def __init__(self) -> None:
         ...
+    def check(self) -> None:
+        """
+        Raises ValueError naming the first field out of range (as every call taking them).
+        """
     @property
     def class_weights(self) -> typing.Annotated[list[float], "FixedSize(6)"]:
         ...
@@ -1178,6 +1206,10 @@ class CorrelativeSearchResult:
 class PclIcpParams:
     def __init__(self) -> None:
         ...
+    def check(self) -> None:
+        """
+        Raises ValueError naming the first field out of range (as every call taking them).
+        """
     @property
     def euclidean_fitness_epsilon(self) -> float:
         ...
@@ -1648,6 +1680,10 @@ class MapperParams:
     yaw_only_registration: bool
     def __init__(self) -> None:
         ...
+    def check(self) -> None:
+        """
+        Raises ValueError naming the first field out of range (as every call taking them).
+        """
     @property
     def discontinuity_m(self) -> float:
         ...
@@ -1922,6 +1958,10 @@ class Mapper:
 class TraversabilityParams:
     def __init__(self) -> None:
         ...
+    def check(self) -> None:
+        """
+        Raises ValueError naming the first field out of range (as every call taking them).
+        """
     @property
     def footprint_radius_m(self) -> float:
         ...
@@ -1983,6 +2023,10 @@ class LocalMapParams:
     traversability: TraversabilityParams
     def __init__(self) -> None:
         ...
+    def check(self) -> None:
+        """
+        Raises ValueError naming the first field out of range (as every call taking them).
+        """
     @property
     def angle_sigma_rad(self) -> float:
         ...
