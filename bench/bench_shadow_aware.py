@@ -66,10 +66,18 @@ def kitti_canopy(xyz: np.ndarray, labels: np.ndarray) -> np.ndarray:
 
 
 def every_nth_ring(xyz: np.ndarray, n: int) -> np.ndarray:
-    """The rows of every n-th scan ring (a KITTI scan stores its rings a turn each)."""
+    """The rows of every n-th scan ring. A KITTI scan stores its rings a turn each, the azimuth
+    rising through each turn: a ring starts where it wraps from +pi to -pi. Rows at the seam
+    jitter across it (a wrap back and forth within a few rows), so a wrap within 200 rows of the
+    last one starts no ring: HDL-64 scans split into 65 rings (64, the first cut at the seam)."""
     azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
-    ring = np.concatenate([[0], np.cumsum(np.abs(np.diff(azimuth)) > np.pi)])
-    return ring % n == 0
+    starts = [0]
+    for wrap in np.flatnonzero(np.diff(azimuth) < -np.pi) + 1:
+        if wrap - starts[-1] >= 200:
+            starts.append(int(wrap))
+    ring = np.zeros(len(xyz), dtype=np.int64)
+    ring[starts[1:]] = 1
+    return np.cumsum(ring) % n == 0
 
 
 def kitti_scans(data_dir, frames, rings: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
