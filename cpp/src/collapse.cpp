@@ -368,14 +368,10 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
     } release_on_exit{workspace};
     if (result.storage_used == CubeStorage::kDense) {
       cube_of_rows(cloud, result.grid, params.num_threads, workspace.dense_cubes);
-      cloud.with_fixed_layout([&](const auto& rows) {
-        collapse_dense(workspace, params, points_of_rows(rows, workspace.dense_cubes), result);
-      });
+      collapse_dense(workspace, params, points_of_rows(cloud, workspace.dense_cubes), result);
     } else {
       cube_of_rows(cloud, result.grid, params.num_threads, workspace.sparse_cubes);
-      cloud.with_fixed_layout([&](const auto& rows) {
-        collapse_sparse(workspace.sparse_cubes, points_of_rows(rows, workspace.sparse_cubes), params, result);
-      });
+      collapse_sparse(workspace.sparse_cubes, points_of_rows(cloud, workspace.sparse_cubes), params, result);
     }
   });
   return result;
