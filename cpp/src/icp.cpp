@@ -16,7 +16,6 @@
 #include "ground_planes.hpp"
 #include "map_points.hpp"
 #include "registration_checks.hpp"
-#include "registration_verdict.hpp"
 
 namespace terracube {
 
