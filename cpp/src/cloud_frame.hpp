@@ -11,7 +11,6 @@
 #include <optional>
 #include <stdexcept>
 #include <string>
-#include <type_traits>
 
 #include "terracube/collapse.hpp"
 #include "terracube/cube_grid.hpp"
@@ -63,7 +62,8 @@ class LeveledCloud {
   /// Whether every row is used as stored: no transform, no crop, (N, 3) or (N, 4) rows with x, y,
   /// z side by side (plain_extent_of_rows reads such rows without leveling them).
   static constexpr bool kPlainRows = !kTransform && !kCrop && kRowStride != kAnyRowStride;
-  static constexpr std::ptrdiff_t kStride = kRowStride;
+  static constexpr std::ptrdiff_t kStride = kRowStride;  ///< kAnyRowStride: read at run time
+  using ScalarType = Scalar;
   /// The stored scalars of `row` (x, y, z at offsets 0, 1, 2 when kPlainRows).
   const Scalar* row_data(std::size_t row) const {
     const std::ptrdiff_t stride = kRowStride == kAnyRowStride ? points_.row_stride : kRowStride;
@@ -177,7 +177,7 @@ struct CloudExtent {
 /// extent_of_rows.
 template <typename Cloud>
 std::optional<CloudExtent> plain_extent_of_rows(const Cloud& cloud, std::size_t begin, std::size_t end) {
-  using Scalar = std::remove_cv_t<std::remove_reference_t<decltype(*cloud.row_data(0))>>;
+  using Scalar = typename Cloud::ScalarType;
   constexpr int kStride = static_cast<int>(Cloud::kStride);
   using Lanes = Eigen::Array<Scalar, 4 * kStride, 1>;
   Lanes lo = Lanes::Constant(std::numeric_limits<Scalar>::infinity()), hi = -lo, poison = Lanes::Zero();
