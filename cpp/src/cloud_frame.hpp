@@ -181,8 +181,11 @@ std::optional<CloudExtent> plain_extent_of_rows(const Cloud& cloud, std::size_t 
   constexpr int kStride = static_cast<int>(Cloud::kStride);
   using Lanes = Eigen::Array<Scalar, 4 * kStride, 1>;
   Lanes lo = Lanes::Constant(std::numeric_limits<Scalar>::infinity()), hi = -lo, poison = Lanes::Zero();
+  // Four rows of (N, 4) end with the fourth value of the last row, which need not be in memory
+  // (a view of x, y, z with a row stride of 4): the last row of the range is left to the tail.
+  const std::size_t blocks_end = kStride == 4 && end > begin ? end - 1 : end;
   std::size_t row = begin;
-  for (; row + 4 <= end; row += 4) {
+  for (; row + 4 <= blocks_end; row += 4) {
     const Eigen::Map<const Lanes> rows(cloud.row_data(row));
     lo = lo.min(rows);
     hi = hi.max(rows);
