@@ -11,6 +11,8 @@ namespace terracube::python {
 
 namespace {
 
+using Directions = Eigen::Matrix<double, Eigen::Dynamic, 3, Eigen::RowMajor>;
+
 const char* storage_name(CubeStorage storage) {
   switch (storage) {
     case CubeStorage::kDense:
@@ -79,9 +81,7 @@ void bind_collapse(py::module_& m) {
       .value("sparse", CubeStorage::kSparse);
 
   py::class_<CropBox>(m, "CropBox")
-      .def(py::init([](const Eigen::Vector3d& min, const Eigen::Vector3d& max) {
-             return CropBox{min, max};
-           }),
+      .def(py::init([](const Eigen::Vector3d& min, const Eigen::Vector3d& max) { return CropBox{min, max}; }),
            py::arg("min"), py::arg("max"))
       .def_readwrite("min", &CropBox::min)
       .def_readwrite("max", &CropBox::max);
@@ -111,7 +111,22 @@ void bind_collapse(py::module_& m) {
       .def_readwrite("free_margin_m", &ShadowAwareParams::free_margin_m)
       .def_readwrite("min_bottom_neighbours", &ShadowAwareParams::min_bottom_neighbours)
       .def_readwrite("bottom_window", &ShadowAwareParams::bottom_window)
-      .def_readwrite("azimuth_bins", &ShadowAwareParams::azimuth_bins);
+      .def_readwrite("azimuth_bins", &ShadowAwareParams::azimuth_bins)
+      .def_property(
+          "no_return_directions",
+          [](const ShadowAwareParams& params) {
+            Directions out(static_cast<Eigen::Index>(params.no_return_directions.size()), 3);
+            for (Eigen::Index k = 0; k < out.rows(); ++k) out.row(k) = params.no_return_directions[k].transpose();
+            return out;
+          },
+          [](ShadowAwareParams& params, const Directions& directions) {
+            params.no_return_directions.resize(static_cast<std::size_t>(directions.rows()));
+            for (Eigen::Index k = 0; k < directions.rows(); ++k) {
+              params.no_return_directions[k] = directions.row(k).transpose();
+            }
+          },
+          "(M, 3) float64: directions of the beams that returned nothing (a copy)")
+      .def_readwrite("no_return_range_m", &ShadowAwareParams::no_return_range_m);
 
   py::class_<CollapseParams>(m, "CollapseParams")
       .def(py::init<>())

@@ -63,8 +63,8 @@ std::vector<std::int64_t> removed_cubes_of(const std::vector<std::int64_t>& sort
     return collapse_columns(sorted_occupied, result.grid.num_columns(), params.sigma, ground_of);
   }
   const Eigen::Vector3d origin = params.shadow_aware.sensor_origin.value_or(params.transform.block<3, 1>(0, 3));
-  ShadowAwareDecision decision =
-      shadow_aware_collapse(result.grid, sorted_occupied, next_points, params.sigma, origin, params.shadow_aware);
+  ShadowAwareDecision decision = shadow_aware_collapse(result.grid, sorted_occupied, next_points, params.sigma, origin,
+                                                       params.shadow_aware, params.transform.topLeftCorner<3, 3>());
   result.cube_reasons = std::move(decision.reasons);
   return std::move(decision.removed_cubes);
 }

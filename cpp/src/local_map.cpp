@@ -78,6 +78,11 @@ int cells_per_side(const LocalMapParams& p) {
 void check_local_map_params(const LocalMapParams& p) {
   const int side = cells_per_side(p);
   check_collapse_params(p.collapse);
+  if (!p.collapse.shadow_aware.no_return_directions.empty()) {
+    throw std::invalid_argument(
+        "LocalMapParams.collapse.shadow_aware.no_return_directions must be empty: a map's parameters hold no "
+        "beams of one scan");
+  }
   detail::check_non_negative(p.min_range_m, "LocalMapParams.min_range_m");
   if (!(p.max_range_m > p.min_range_m)) {
     throw std::invalid_argument("LocalMapParams.max_range_m must exceed min_range_m (+inf: no limit), got " +

@@ -245,6 +245,18 @@ class FreeSpaceFloor {
     slot = std::min(slot, (point.z() - origin_.z()) / distance);
   }
 
+  /// Adds a beam without a return, `direction` in the leveled frame: one at or above the horizon
+  /// ends `range` out (past the last step when that lies beyond the grid); the rest are not used.
+  void add_free_beam(const Eigen::Vector3d& direction, double range) {
+    const double horizontal = std::hypot(direction.x(), direction.y());
+    if (!(direction.z() >= 0.0) || !(horizontal > 0.0)) return;  // below the horizon, or straight up
+    const double end = range * horizontal / direction.norm();    // horizontal distance where it ends
+    const auto step = static_cast<std::int64_t>(std::min(end * inverse_edge_, static_cast<double>(steps_ - 1)));
+    const std::int64_t bin = step * sectors_ + sector_of(direction.x(), direction.y());
+    double& slot = slope_[static_cast<std::size_t>(bin)];
+    slot = std::min(slot, direction.z() / horizontal);
+  }
+
   /// After the last ray: each bin holds the lowest slope of the rays that END beyond its step.
   void finish() {
     std::vector<double> beyond(static_cast<std::size_t>(sectors_), kInf);  // per sector, from the far end in
@@ -287,10 +299,13 @@ class FreeSpaceFloor {
     const double step = distance * inverse_edge_;
     // Outside the bins only if the caller's array changed during the call: no ray then.
     if (!(distance > 0.0) || !(step < static_cast<double>(steps_))) return -1;
-    const auto sector =
-        std::min<std::int64_t>(sectors_ - 1, static_cast<std::int64_t>(pseudo_angle(dx, dy) / 4.0 * sectors_));
     // Step-major: the points of a scan ring at one range fall in one row of sectors, side by side.
-    return static_cast<std::int64_t>(step) * sectors_ + sector;
+    return static_cast<std::int64_t>(step) * sectors_ + sector_of(dx, dy);
+  }
+
+  /// The sector of the horizontal direction (dx, dy) != 0.
+  std::int64_t sector_of(double dx, double dy) const {
+    return std::min<std::int64_t>(sectors_ - 1, static_cast<std::int64_t>(pseudo_angle(dx, dy) / 4.0 * sectors_));
   }
 
   const CubeGrid& grid_;
@@ -530,6 +545,17 @@ void check_shadow_aware_params(const ShadowAwareParams& params) {
     throw std::invalid_argument("shadow_aware min_bottom_neighbours must be 0.." + std::to_string(around) +
                                 " columns, got " + std::to_string(params.min_bottom_neighbours));
   }
+  if (!(params.no_return_range_m > 0.0) || !std::isfinite(params.no_return_range_m)) {
+    throw std::invalid_argument("shadow_aware no_return_range_m must be a positive finite length, got " +
+                                detail::number_text(params.no_return_range_m));
+  }
+  for (std::size_t k = 0; k < params.no_return_directions.size(); ++k) {
+    const Eigen::Vector3d& direction = params.no_return_directions[k];
+    if (!direction.allFinite() || direction.isZero(0.0)) {
+      throw std::invalid_argument("shadow_aware no_return_directions row " + std::to_string(k) +
+                                  " must be a finite, non-zero direction");
+    }
+  }
   if (params.azimuth_bins < 1 || params.azimuth_bins > (1 << 20)) {
     throw std::invalid_argument("shadow_aware azimuth_bins must be 1..2^20, got " +
                                 std::to_string(params.azimuth_bins));
@@ -538,8 +564,10 @@ void check_shadow_aware_params(const ShadowAwareParams& params) {
 
 ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vector<std::int64_t>& sorted_occupied,
                                           const NextPoints& next_points, int sigma,
-                                          const Eigen::Vector3d& sensor_origin, const ShadowAwareParams& params) {
+                                          const Eigen::Vector3d& sensor_origin, const ShadowAwareParams& params,
+                                          const Eigen::Matrix3d& leveling) {
   check_shadow_aware_params(params);
+  if (!leveling.allFinite()) throw std::invalid_argument("shadow_aware leveling rotation must be finite");
   if (sigma < 1) throw std::invalid_argument("sigma must be at least 1 cube, got " + std::to_string(sigma));
   if (!sensor_origin.allFinite()) throw std::invalid_argument("shadow_aware sensor origin must be finite");
   ShadowAwareDecision decision;
@@ -562,6 +590,9 @@ ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vecto
                                                          static_cast<double>(std::max(grid.ixmax, grid.iymax))));
   window_minimum(grid, radius, w.reliable, w.scratch, w.ground, w.line);  // G0
   add_rays(grid, next_points, w.ground, floor, w.chunk);
+  for (const Eigen::Vector3d& direction : params.no_return_directions) {
+    floor.add_free_beam(leveling * direction, params.no_return_range_m);
+  }
   floor.finish();
   // Step 2 again: a lowest cube with a ray under it is no ground (a crown's underside), then G.
   for (std::int64_t iy = 0; iy < grid.iymax; ++iy) {

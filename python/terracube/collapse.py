@@ -16,6 +16,7 @@ __all__ = [
     "COLLAPSE_METHODS",
     "PointBasedParams",
     "collapse_overhangs",
+    "no_return_directions",
     "point_based_overhangs",
     "octomap_column_overhangs",
     "sigma_from_robot_height",
@@ -206,6 +207,10 @@ class CollapseParams:
         ceiling), 1..8.
     azimuth_bins : int
         shadow_aware: azimuth sectors of the free-space floor around the sensor, >= 1.
+    no_return_range : float
+        shadow_aware: how far [m] a beam that returned nothing (``no_returns`` of
+        :func:`collapse_overhangs`) shows the space empty, > 0: a range within which the sensor
+        sees every surface that matters (dark cars, foliage).
     """
 
     edge: float = 0.5
@@ -225,6 +230,7 @@ class CollapseParams:
     min_bottom_neighbours: int = 4
     bottom_window: int = 2
     azimuth_bins: int = 512
+    no_return_range: float = 30.0
 
     def to_core(self) -> _core.CollapseParams:
         if self.storage not in _STORAGE:
@@ -258,6 +264,7 @@ class CollapseParams:
         core.ground_radius_m = float(self.ground_radius)
         core.hidden_ground_margin_m = float(self.hidden_ground_margin)
         core.free_margin_m = float(self.free_margin)
+        core.no_return_range_m = float(self.no_return_range)
         for name in ("ground_support", "min_bottom_neighbours", "bottom_window", "azimuth_bins"):
             value = getattr(self, name)
             if isinstance(value, bool) or int(value) != value:
@@ -313,6 +320,7 @@ def collapse_overhangs(
     num_threads: int = 1,
     method: str = "paper",
     sensor_origin=None,
+    no_returns=None,
     params: CollapseParams | None = None,
 ) -> CollapseResult:
     """Remove overhangs with collapsible cubes ([CBC] Algorithm 1, or its shadow-aware extension).
@@ -324,6 +332,12 @@ def collapse_overhangs(
     edge, sigma, transform, crop, drop_non_finite, storage, num_threads, method, sensor_origin
         See :class:`CollapseParams`; ``params`` overrides them all when given. ``method="paper"``
         (the default) reproduces the paper; ``method="shadow_aware"`` is recommended for mapping.
+    no_returns : (M, 3) array or None
+        shadow_aware: directions of the beams of this scan that returned nothing, in the points'
+        frame (the empty pixels of an organised scan: :func:`terracube.no_return_directions`). A
+        beam level with or above the horizon crossed free space out to ``no_return_range``, so it
+        shows the space under a crown or a deck empty as a ray to a point does; lower beams are not
+        used (a dark or wet road returns nothing too). Ignored by the paper's method.
 
     Returns
     -------
@@ -352,7 +366,80 @@ def collapse_overhangs(
             method=method,
             sensor_origin=sensor_origin,
         )
-    return _core.collapse_overhangs(_as_points(points), params.to_core())
+    core = params.to_core()
+    if no_returns is not None:
+        directions = np.asarray(no_returns, dtype=np.float64)
+        if directions.ndim != 2 or directions.shape[1] != 3:
+            raise ValueError(
+                f"no_returns must be an (M, 3) array of directions, got shape {directions.shape}"
+            )
+        core.shadow_aware.no_return_directions = directions
+        core.check()  # each direction finite and non-zero, before the scan
+    return _core.collapse_overhangs(_as_points(points), core)
+
+
+def _circular_mean(angles: np.ndarray, weights: np.ndarray, axis: int) -> np.ndarray:
+    """The mean direction [rad] of `angles` weighted by `weights` (0 or 1) along `axis`; NaN where
+    every weight is 0."""
+    s = (np.sin(angles) * weights).sum(axis=axis)
+    c = (np.cos(angles) * weights).sum(axis=axis)
+    return np.where(weights.sum(axis=axis) > 0, np.arctan2(s, c), np.nan)
+
+
+def _filled(values: np.ndarray, *, periodic: bool) -> np.ndarray:
+    """NaN entries of a per-row or per-column table filled by a straight line through the others
+    (index -> value; angles unwrapped first when `periodic`)."""
+    known = np.flatnonzero(np.isfinite(values))
+    if known.size == len(values):
+        return values
+    samples = np.unwrap(values[known]) if periodic else values[known]
+    if known.size == 1:
+        line = np.full(len(values), samples[0])
+    else:
+        line = np.polyval(np.polyfit(known, samples, 1), np.arange(len(values)))
+    return np.where(np.isfinite(values), values, line)
+
+
+def no_return_directions(organised) -> np.ndarray:
+    """The directions of the empty pixels of an organised scan, for ``collapse_overhangs(no_returns=)``.
+
+    ``organised`` is an (H, W, 3) array of x, y, z [m] in the sensor frame: a row per beam (ring),
+    a column per firing, as an organised PCD or ROS PointCloud2 stores a spinning lidar's scan
+    (e.g. Ouster's, staggered or not); a pixel without a return holds NaN or (0, 0, 0). Each
+    beam's elevation is the median over its returns, and each pixel's azimuth that of its column
+    plus its beam's offset (both circular means over the returns, a straight line through the
+    others for a column or beam without any), so no sensor metadata is needed. Returns (M, 3)
+    float64 unit vectors, M = the empty pixels, in row-major order. Raises ValueError for another
+    shape, or an image without a return to measure the beams by.
+    """
+    xyz = np.asarray(organised, dtype=np.float64)
+    if xyz.ndim != 3 or xyz.shape[2] != 3:
+        raise ValueError(f"organised must be an (H, W, 3) array (rows = beams), got shape {xyz.shape}")
+    finite = np.isfinite(xyz).all(axis=2)
+    valid = finite & (np.abs(np.where(finite[..., None], xyz, 0.0)).sum(axis=2) > 0)
+    if not valid.any():
+        raise ValueError("organised has no return to measure the beams' directions by")
+    if valid.all():
+        return np.zeros((0, 3))
+    x, y, z = (np.where(valid, xyz[..., k], 0.0) for k in range(3))
+    horizontal = np.hypot(x, y)
+    elevation = np.arctan2(z, horizontal)
+    azimuth = np.arctan2(y, x)
+    weight = valid.astype(np.float64)
+    beam_elevation = np.array(
+        [np.median(row[ok]) if ok.any() else np.nan for row, ok in zip(elevation, valid, strict=True)]
+    )
+    offset = np.zeros(xyz.shape[0])
+    for _ in range(3):  # column azimuths and beam offsets, each from the other
+        column = _circular_mean(azimuth - np.nan_to_num(offset)[:, None], weight, axis=0)
+        offset = _circular_mean(azimuth - np.nan_to_num(column)[None, :], weight, axis=1)
+    column = _filled(column, periodic=True)
+    offset = _filled(offset, periodic=True)
+    beam_elevation = _filled(beam_elevation, periodic=False)
+    rows, columns = np.nonzero(~valid)
+    a = column[columns] + offset[rows]
+    e = beam_elevation[rows]
+    return np.column_stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
 
 
 def point_based_overhangs(

@@ -371,6 +371,7 @@ TEST(LocalMap, ParametersAreValidated) {
   refused([](LocalMapParams& p) { p.min_range_m = -1.0; });
   refused([](LocalMapParams& p) { p.max_range_m = p.min_range_m; });
   refused([](LocalMapParams& p) { p.max_range_m = kNaN; });
+  refused([](LocalMapParams& p) { p.collapse.shadow_aware.no_return_directions = {Eigen::Vector3d(1, 0, 0)}; });
   LocalMap map;
   EXPECT_EQ(map.geometry().size.x(), 200);
   EXPECT_THROW(map.get("nope"), std::out_of_range);

@@ -3,6 +3,8 @@
 #include <gtest/gtest.h>
 #include <terracube/collapse.hpp>
 
+#include <Eigen/Geometry>
+
 #include <algorithm>
 #include <cmath>
 #include <random>
@@ -171,6 +173,68 @@ TEST(ShadowAware, APoleBesideAFloatingSignStaysWhileTheSignGoes) {
   EXPECT_EQ(reason_at(result, {9.0, 1.0, 1.0}), CubeReason::kRemovedFreeBelow);  // 5 of 8 beside it
 }
 
+/// A crown 11-14 m out behind a 1.2 m hedge: nothing the sensor saw lies beyond the hedge under it.
+Points crown_behind_a_hedge() {
+  Points points;
+  add_grid(points, 1, 8, -5, 5, -1.7);
+  add_face_x(points, 8.0, -5, 5, -1.7, -0.5);
+  add_grid(points, 8, 8.5, -5, 5, -0.5);
+  for (const double z : {1.6, 2.4}) add_grid(points, 11, 14, -1.5, 1.5, z);
+  return points;
+}
+
+/// Beams from the sensor fanned over azimuths -20..20 degrees at `elevation` [rad].
+std::vector<Eigen::Vector3d> fan_of_beams(double elevation) {
+  std::vector<Eigen::Vector3d> beams;
+  for (double azimuth = -20.0; azimuth <= 20.0; azimuth += 0.1) {
+    const double a = azimuth * M_PI / 180.0;
+    beams.emplace_back(std::cos(elevation) * std::cos(a), std::cos(elevation) * std::sin(a), std::sin(elevation));
+  }
+  return beams;
+}
+
+TEST(ShadowAware, BeamsWithoutAReturnUnderACrownShowItsColumnsEmpty) {
+  const Points points = crown_behind_a_hedge();
+  const Eigen::Vector3d crown(12.0, 0.5, 1.6);
+  CollapseParams params = shadow_aware_params();
+  EXPECT_EQ(reason_at(collapse_overhangs(points, params), crown), CubeReason::kShadowed);  // no ray under it
+  params.shadow_aware.no_return_directions = fan_of_beams(0.0);  // level beams pass 1.35 m under it
+  const CollapseResult seen = collapse_overhangs(points, params);
+  EXPECT_EQ(reason_at(seen, crown), CubeReason::kRemovedFreeBelow);
+  EXPECT_EQ(reason_at(seen, {12.5, -1.5, 2.4}), CubeReason::kRemovedFreeBelow);
+  EXPECT_EQ(reason_at(seen, {8.0, 0.0, -0.5}), CubeReason::kSupported);  // the hedge stays
+  params.shadow_aware.no_return_range_m = 10.0;                          // they end before the crown
+  EXPECT_EQ(reason_at(collapse_overhangs(points, params), crown), CubeReason::kShadowed);
+  params.shadow_aware.no_return_range_m = 30.0;
+  params.shadow_aware.no_return_directions = fan_of_beams(-0.01);  // below the horizon: a dark road
+  EXPECT_EQ(reason_at(collapse_overhangs(points, params), crown), CubeReason::kShadowed);
+  params.shadow_aware.no_return_directions = fan_of_beams(0.15);  // 1.8 m up at 12 m: through the crown
+  EXPECT_EQ(reason_at(collapse_overhangs(points, params), crown), CubeReason::kShadowed);
+  params.shadow_aware.no_return_directions = {Eigen::Vector3d(0.0, 0.0, 1.0)};  // straight up: no column
+  EXPECT_EQ(reason_at(collapse_overhangs(points, params), crown), CubeReason::kShadowed);
+  params.method = CollapseMethod::kPaper;
+  params.shadow_aware.no_return_directions = fan_of_beams(0.0);
+  EXPECT_EQ(collapse_overhangs(points, params).num_overhang, 0U);  // the paper's rule ignores them
+}
+
+TEST(ShadowAware, BeamsWithoutAReturnAreRotatedByTheLevelingTransform) {
+  // The scene and its beams seen from a sensor yawed 90 degrees and rolled 5: the transform levels
+  // both, so the reasons are those of the level scene.
+  const Eigen::Matrix3d rotation =
+      (Eigen::AngleAxisd(M_PI / 2, Eigen::Vector3d::UnitZ()) * Eigen::AngleAxisd(0.087, Eigen::Vector3d::UnitX()))
+          .toRotationMatrix();
+  Points tilted;
+  for (const Eigen::Vector3d& p : crown_behind_a_hedge()) tilted.push_back(rotation.transpose() * p);
+  CollapseParams params = shadow_aware_params();
+  params.transform.topLeftCorner<3, 3>() = rotation;
+  for (const Eigen::Vector3d& beam : fan_of_beams(0.0)) {
+    params.shadow_aware.no_return_directions.push_back(rotation.transpose() * beam);
+  }
+  const CollapseResult result = collapse_overhangs(tilted, params);
+  EXPECT_EQ(reason_at(result, {12.0, 0.5, 1.6}), CubeReason::kRemovedFreeBelow);
+  EXPECT_EQ(reason_at(result, {8.0, 0.0, -0.5}), CubeReason::kSupported);
+}
+
 TEST(ShadowAware, TheResultIsTheSameForAnyThreadCountAndStorage) {
   std::mt19937_64 rng(11);
   std::uniform_real_distribution<double> across(-20.0, 20.0), up(1.0, 4.0);
@@ -208,6 +272,22 @@ TEST(ShadowAware, BadParametersThrowInvalidArgumentNamingThem) {
   params = shadow_aware_params();
   params.shadow_aware.sensor_origin = Eigen::Vector3d(0.0, std::nan(""), 0.0);
   EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument);
+  for (const double range : {0.0, -1.0, std::nan(""), HUGE_VAL}) {
+    params = shadow_aware_params();
+    params.shadow_aware.no_return_range_m = range;
+    EXPECT_THROW(collapse_overhangs(points, params), std::invalid_argument) << range;
+  }
+  for (const Eigen::Vector3d& beam :
+       {Eigen::Vector3d(0, 0, 0), Eigen::Vector3d(1, std::nan(""), 0), Eigen::Vector3d(HUGE_VAL, 0, 0)}) {
+    params = shadow_aware_params();
+    params.shadow_aware.no_return_directions = {Eigen::Vector3d(1, 0, 0), beam};
+    try {
+      collapse_overhangs(points, params);
+      FAIL() << "a beam of " << beam.transpose() << " was accepted";
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find("no_return_directions row 1"), std::string::npos) << e.what();
+    }
+  }
   // A survey in its own coordinates (the ground 49 m up) with the default origin at 0.
   Points survey;
   add_grid(survey, 0, 10, 0, 10, 49.0);

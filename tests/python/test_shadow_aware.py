@@ -39,9 +39,12 @@ def naive_shadow_aware(
     neighbours=4,
     window=2,
     hidden=2.0,
+    no_returns=(),
+    no_return_range=30.0,
 ) -> list[int]:
     """The reason of every cube of `occupied` (sorted cube indices I of `grid`), computed plainly
-    from the leveled `points` that took part."""
+    from the leveled `points` that took part and the leveled directions of the beams without a
+    return (`no_returns`)."""
     nx, ny = grid.ixmax, grid.iymax
     columns = nx * ny
     edge, corner = grid.edge, grid.min_corner
@@ -114,6 +117,13 @@ def naive_shadow_aware(
             sector, step, distance = sector_and_step(x, y)
             if sector is not None:
                 rays.append((sector, step, (z - origin[2]) / distance))
+    # ... and the beams without a return at or above the horizon, which end no_return_range out
+    for dx, dy, dz in np.asarray(no_returns, dtype=np.float64).reshape(-1, 3).tolist():
+        horizontal = math.hypot(dx, dy)
+        if dz >= 0.0 and horizontal > 0.0:
+            end = no_return_range * horizontal / math.sqrt(dx * dx + dy * dy + dz * dz)
+            sector = min(sectors - 1, int(pseudo_angle(dx, dy) / 4.0 * sectors))
+            rays.append((sector, int(end * (1.0 / edge)), dz / horizontal))
     rays = np.array(rays, dtype=np.float64).reshape(-1, 3)
 
     def free_floor(ix, iy):
@@ -475,6 +485,93 @@ def test_transform_translation_is_the_default_sensor_origin():
     check_against_naive(moved, leveled(points, transform), 3, (1.0, -2.0, 0.5))
 
 
+def crown_behind_a_hedge():
+    """A 1.2 m hedge at x = 8 hides the ground beyond it; a crown 3.3-4.1 m up at x 11-14: no ray
+    the sensor saw passes under it."""
+    ground = ground_patch(1, 8, -5, 5)
+    hedge = np.vstack([vertical_face(8.0, -5, 5, -1.7, -0.5), slab(8, 8.5, -5, 5, -0.5)])
+    crown = np.vstack([slab(11, 14, -1.5, 1.5, z) for z in (1.6, 2.4)])
+    return np.vstack([ground, hedge]), crown
+
+
+def beams(elevation_deg, azimuths_deg):
+    e, a = np.radians(elevation_deg), np.radians(np.asarray(azimuths_deg, float))
+    return np.column_stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.full(a.size, np.sin(e))])
+
+
+def test_beams_without_a_return_show_the_space_under_a_crown_empty():
+    kept, crown = crown_behind_a_hedge()
+    points = np.vstack([kept, crown])
+    alone = shadow_aware(points)
+    check_against_naive(alone, points, 4)
+    # Only its near edge goes: the rays to the crown's far side pass under it.
+    assert (reasons_of_points(alone, crown) == SHADOWED).mean() > 0.7
+    fan = beams(0.0, np.arange(-20, 20.05, 0.1))
+    seen = shadow_aware(points, no_returns=fan)
+    check_against_naive(seen, points, 4, no_returns=fan)
+    crown_reasons = reasons_of_points(seen, crown)  # its far side is over 5 m from any ground
+    assert (crown_reasons[crown_reasons != NO_GROUND] == FREE_BELOW).all()
+    assert (crown_reasons == FREE_BELOW).mean() > 0.7
+    assert not seen.overhang[: len(kept)].any()
+    for lower in (beams(-0.5, np.arange(-20, 20.05, 0.1)), fan * 2.0 - [0, 0, 0.02]):  # below the horizon
+        np.testing.assert_array_equal(shadow_aware(points, no_returns=lower).overhang, alone.overhang)
+    short = tc.CollapseParams(edge=0.5, sigma=4, method="shadow_aware", no_return_range=10.0)
+    np.testing.assert_array_equal(
+        tc.collapse_overhangs(points, params=short, no_returns=fan).overhang, alone.overhang
+    )
+    assert not tc.collapse_overhangs(points, 0.5, 4, no_returns=fan).overhang.any()  # the paper's rule
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_random_beams_without_a_return_match_the_naive_reference(seed):
+    rng = np.random.default_rng(seed)
+    kept, crown = crown_behind_a_hedge()
+    blobs = rng.uniform(-12, 12, (8, 3)) * [1, 1, 0.1] + [0, 0, 2.0]
+    canopy = np.vstack([b + rng.normal(0, 0.6, (100, 3)) for b in blobs])
+    points = np.vstack([kept, crown, canopy, ground_patch(-12, 0, -12, 12, step=0.3)])
+    directions = rng.normal(size=(3000, 3)) * [1, 1, 0.15] * rng.uniform(0.5, 3.0, (3000, 1))
+    origin = (0.2, -0.1, 0.05)
+    reach = float(rng.uniform(5, 25))
+    params = tc.CollapseParams(
+        edge=0.5, sigma=3, method="shadow_aware", sensor_origin=origin, no_return_range=reach
+    )
+    result = tc.collapse_overhangs(points, params=params, no_returns=directions)
+    reasons = check_against_naive(result, points, 3, origin, no_returns=directions, no_return_range=reach)
+    without = check_against_naive(
+        tc.collapse_overhangs(points, 0.5, 3, method="shadow_aware", sensor_origin=origin), points, 3, origin
+    )
+    assert np.isin(reasons, REMOVED).sum() > np.isin(without, REMOVED).sum()
+
+
+def test_beams_without_a_return_are_leveled_with_the_points():
+    kept, crown = crown_behind_a_hedge()
+    points = np.vstack([kept, crown])
+    points += np.random.default_rng(0).normal(0.0, 0.01, points.shape)  # none on a cube's face
+    transform = tc.leveling_transform(0.06, -0.04)
+    rotation = transform[:3, :3]
+    fan = beams(0.3, np.arange(-20, 20.05, 0.1))  # not level: rotated back, a level one may dip by 1e-17
+    # The scene as a sensor rolled and pitched by the inverse of `transform` sees it.
+    result = tc.collapse_overhangs(
+        points @ rotation, 0.5, 4, method="shadow_aware", transform=transform, no_returns=fan @ rotation
+    )
+    check_against_naive(result, leveled(points @ rotation, transform), 4, no_returns=fan)
+    assert (reasons_of_points(result, points[len(kept) :]) == FREE_BELOW).mean() > 0.7
+
+
+@pytest.mark.parametrize(
+    ("no_returns", "message"),
+    [
+        (np.zeros((2, 3)), "no_return_directions row 0"),
+        ([[1.0, 0.0, 0.0], [np.nan, 0.0, 0.0]], "no_return_directions row 1"),
+        (np.ones((4, 2)), r"\(M, 3\)"),
+        (np.ones(3), r"\(M, 3\)"),
+    ],
+)
+def test_bad_beams_without_a_return_raise_value_errors(no_returns, message):
+    with pytest.raises(ValueError, match=message):
+        shadow_aware(np.zeros((4, 3)), no_returns=no_returns)
+
+
 @pytest.mark.parametrize(
     ("field", "value", "message"),
     [
@@ -488,6 +585,8 @@ def test_transform_translation_is_the_default_sensor_origin():
         ("min_bottom_neighbours", 25, "min_bottom_neighbours"),
         ("sensor_origin", (0.0, float("inf"), 0.0), "sensor_origin"),
         ("sensor_origin", (0.0, 1.0), "sensor_origin"),
+        ("no_return_range", 0.0, "no_return_range_m"),
+        ("no_return_range", float("inf"), "no_return_range_m"),
     ],
 )
 def test_bad_parameters_raise_value_errors_naming_them(field, value, message):
@@ -596,3 +695,117 @@ def test_simulated_trees_behind_curbs_and_a_tunnel_precision_recall_and_structur
     assert recall >= 0.92
     assert (removed & truth).sum() >= 1.5 * (paper & truth).sum()
     assert (removed & structures).sum() <= 0.005 * structures.sum()
+
+
+# ------------------------------------------------------------------- beams of an organised scan
+
+
+def organised_simulated_scan(model, world, pose, seed=2):
+    """A simulated scan as an organised (channels, steps, 3) image with (0, 0, 0) for no return,
+    and the true directions of its empty pixels (row-major), both in the sensor frame."""
+    from terracube import simulation as sim
+
+    rays = sim.sensor_rays(model)  # firing order: the channels of one step, step by step
+    scan = sim.cast_scan(world, pose, model, seed=seed)
+    image = np.zeros((len(rays), 3))
+    image[scan.ray_indices] = scan.points
+    image = image.reshape(model.steps_per_revolution, model.channels, 3).transpose(1, 0, 2)
+    directions = rays.reshape(model.steps_per_revolution, model.channels, 3).transpose(1, 0, 2)
+    empty = ~(image != 0).any(axis=2)
+    return image, directions[empty], scan
+
+
+def angle_deg(a, b) -> np.ndarray:
+    cosine = (a * b).sum(axis=1) / np.linalg.norm(a, axis=1) / np.linalg.norm(b, axis=1)
+    return np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+
+
+def test_no_return_directions_of_a_simulated_scan_are_its_empty_beams():
+    from terracube import simulation as sim
+
+    world = sim.make_scene([sim.Primitive.box((12.0, 0.0, 3.0), (2.0, 6.0, 0.5), 0.0, sim.Label.BRIDGE_DECK)])
+    pose = np.eye(4)
+    pose[:3, :3] = tc.leveling_transform(0.03, -0.05)[:3, :3]
+    pose[2, 3] = 1.7
+    model = sim.RotatingLidar(channels=32, steps_per_revolution=900, max_range=40.0)
+    image, truth, _ = organised_simulated_scan(model, world, pose)
+    assert 0.3 < len(truth) / (image.shape[0] * image.shape[1]) < 0.7  # the sky and the far ground
+    found = tc.no_return_directions(image)
+    assert found.shape == truth.shape
+    np.testing.assert_allclose(np.linalg.norm(found, axis=1), 1.0)
+    assert angle_deg(found, truth).max() < 0.01  # the noise is along the beams only
+
+
+def test_no_return_directions_of_the_ouster_recording_predict_hidden_returns(shared_data):
+    """A real OS1-64 scan (ROS 1 recording, organised column by column): a tenth of its returns
+    hidden, the directions found for them from the rest match the returns' own within 0.05 deg."""
+    pytest.importorskip("rosbags")
+    pytest.importorskip("mcap")
+    from terracube.bag import read_bag
+
+    path = shared_data.path("rosbags/ouster_os1_pointcloudset_ros1.mcap")
+    cloud = next(read_bag(path, "/os1_cloud_node/points", keep_invalid=True).clouds())
+    np.testing.assert_array_equal(cloud.fields["ring"][:64], np.arange(64))  # a column, beam by beam
+    image = cloud.points.astype(np.float64).reshape(2048, 64, 3).transpose(1, 0, 2)
+    returned = (image != 0).any(axis=2)
+    hidden = returned & (np.random.default_rng(1).random(returned.shape) < 0.1)
+    shown = np.where(hidden[..., None], 0.0, image)
+    found = tc.no_return_directions(shown)
+    empty = ~(returned & ~hidden)
+    assert len(found) == empty.sum()
+    error = angle_deg(found[hidden[empty]], image[hidden])
+    assert np.median(error) < 0.01 and np.percentile(error, 99) < 0.05, np.percentile(error, [50, 99])
+
+
+def test_no_return_directions_bad_and_edge_inputs():
+    with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
+        tc.no_return_directions(np.zeros((10, 3)))
+    with pytest.raises(ValueError, match="no return"):
+        tc.no_return_directions(np.full((4, 8, 3), np.nan))
+    full = np.ones((4, 8, 3))
+    assert tc.no_return_directions(full).shape == (0, 3)
+    # A beam without any return takes the elevation of the line through the others.
+    a = np.radians(np.arange(8) * 45.0)
+    image = np.stack(
+        [np.column_stack([np.cos(a), np.sin(a), np.full(8, np.tan(e))]) for e in (-0.2, -0.1, 0.0, 0.1)]
+    )
+    image[2] = np.nan
+    found = tc.no_return_directions(image)
+    expected = np.column_stack([np.cos(a), np.sin(a), np.zeros(8)])
+    assert angle_deg(found, expected).max() < 1e-6
+
+
+def test_no_returns_of_the_simulated_scene_raise_recall_not_removed_structure():
+    """A VLP-32-like scan behind 1.2 m hedges: the beams that returned nothing pass under crowns
+    no ray to a point passes under."""
+    from terracube import simulation as sim
+
+    label = sim.Label
+    parts = []
+    for k, distance in enumerate((12.0, 18.0, 24.0)):
+        azimuth = np.radians(30.0 + 40.0 * k)
+        direction = np.array([np.cos(azimuth), np.sin(azimuth)])
+        x, y = distance * direction
+        parts.append(sim.Primitive.cylinder(x, y, 0.2, -0.5, 3.6, label.TRUNK))
+        parts.append(sim.Primitive.ellipsoid((x, y, 4.6), (2.2, 2.2, 1.4), label.CANOPY))
+        hedge = (distance - 3.0) * direction
+        parts.append(sim.Primitive.box((*hedge, 0.6), (0.3, 2.5, 0.6), float(azimuth), label.WALL))
+    world = sim.make_scene(parts, 0.0)
+    pose = np.eye(4)
+    pose[2, 3] = 1.73
+    model = sim.RotatingLidar(
+        channels=32, vertical_fov_min=-25.0, vertical_fov_max=15.0, steps_per_revolution=1800, max_range=80.0
+    )
+    image, beams_truth, scan = organised_simulated_scan(model, world, pose, seed=3)
+    truth = np.isin(scan.labels, list(sim.OVERHANG_LABELS))
+    structures = np.isin(scan.labels, (label.WALL, label.TRUNK))
+    without = tc.collapse_overhangs(scan.points, 0.5, 4, method="shadow_aware").overhang
+    params = tc.CollapseParams(edge=0.5, sigma=4, method="shadow_aware", no_return_range=80.0)
+    found = tc.no_return_directions(image)
+    assert angle_deg(found, beams_truth).max() < 0.01
+    with_beams = tc.collapse_overhangs(scan.points, params=params, no_returns=found).overhang
+    recall = [(removed & truth).sum() / truth.sum() for removed in (without, with_beams)]
+    print(f"canopy recall without / with the beams: {recall[0]:.3f} / {recall[1]:.3f}")
+    assert recall[1] >= recall[0] + 0.05
+    assert (with_beams & truth).sum() / with_beams.sum() >= 0.98
+    assert not (with_beams & structures).any()

@@ -69,6 +69,16 @@ struct ShadowAwareParams {
   /// Azimuth sectors of the free-space floor around the sensor (pseudo-angle bins), >= 1. Each
   /// should hold a few azimuth steps of the sensor (KITTI's HDL-64: about 2000 per turn).
   int azimuth_bins = 512;
+  /// Directions of the beams of this scan that returned nothing (the empty pixels of an organised
+  /// scan), in the cloud's own frame like its points (CollapseParams::transform rotates them);
+  /// any length but zero, finite. A beam level with or above the horizon (after leveling) crossed
+  /// free space out to no_return_range_m, so it shows the space under a crown or a deck empty as
+  /// a ray to a point does (step 3). Beams below the horizon are not used: a dark or wet road
+  /// returns nothing too. Empty: only the points' rays.
+  std::vector<Eigen::Vector3d> no_return_directions;
+  /// How far [m] a beam without a return shows the space empty: a range within which the sensor
+  /// sees every surface that matters (dark cars, foliage), > 0.
+  double no_return_range_m = 30.0;
 };
 
 /// The decision of shadow_aware_collapse().
@@ -95,7 +105,8 @@ using NextPoints = std::function<std::size_t(CubePoint* out, std::size_t capacit
 ///     pseudo-azimuth sector hides it: one below the sensor whose bottom face lies more than
 ///     hidden_ground_margin_m above the ray to this cube's top face (both at their column's centre);
 ///  2. G0(column) is the lowest reliable ground within the ground radius (a square window);
-///  3. the rays from the sensor to the points whose cube is not below G0 - 1 give, per
+///  3. the rays from the sensor to the points whose cube is not below G0 - 1, and the beams
+///     without a return that point at or above the horizon (ending no_return_range_m out), give, per
 ///     (pseudo-azimuth sector, range step E), the lowest slope of the rays that end beyond the step:
 ///     F(column) = sensor z + that slope * the horizontal distance of the column's centre (from
 ///     the bin of that centre) is the lowest height at which a ray crosses the column;
@@ -105,12 +116,14 @@ using NextPoints = std::function<std::size_t(CubePoint* out, std::size_t capacit
 ///     more empty cubes above G) is removed over a kept chain (as in [CBC] Algorithm 1), or, when
 ///     its bottom is wide (min_bottom_neighbours), when F is below its bottom face by
 ///     free_margin_m; it is kept otherwise (a wall or trunk whose foot is hidden).
-/// O(N + |L| + columns + azimuth_bins * range steps); single-threaded, deterministic.
+/// `leveling` rotates params.no_return_directions into the grid's frame (CollapseParams::transform's
+/// rotation). O(N + |L| + columns + beams + azimuth_bins * range steps); single-threaded, deterministic.
 /// Throws std::invalid_argument on invalid parameters, a grid of more than 2^27 columns or a
 /// sensor origin more than 10 m below every point.
 ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vector<std::int64_t>& sorted_occupied,
                                           const NextPoints& next_points, int sigma,
-                                          const Eigen::Vector3d& sensor_origin, const ShadowAwareParams& params = {});
+                                          const Eigen::Vector3d& sensor_origin, const ShadowAwareParams& params = {},
+                                          const Eigen::Matrix3d& leveling = Eigen::Matrix3d::Identity());
 
 /// Throws std::invalid_argument naming the first invalid field of `params`.
 void check_shadow_aware_params(const ShadowAwareParams& params);

@@ -275,6 +275,20 @@ class ShadowAwareParams:
     def min_bottom_neighbours(self, arg0: typing.SupportsInt | typing.SupportsIndex) -> None:
         ...
     @property
+    def no_return_directions(self) -> typing.Annotated[numpy.typing.NDArray[numpy.float64], "[m, 3]"]:
+        """
+        (M, 3) float64: directions of the beams that returned nothing (a copy)
+        """
+    @no_return_directions.setter
+    def no_return_directions(self, arg1: typing.Annotated[numpy.typing.ArrayLike, numpy.float64, "[m, 3]"]) -> None:
+        ...
+    @property
+    def no_return_range_m(self) -> float:
+        ...
+    @no_return_range_m.setter
+    def no_return_range_m(self, arg0: typing.SupportsFloat | typing.SupportsIndex) -> None:
+        ...
+    @property
     def sensor_origin(self) -> typing.Annotated[numpy.typing.NDArray[numpy.float64], "[3, 1]"] | None:
         ...
     @sensor_origin.setter
