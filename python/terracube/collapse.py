@@ -400,28 +400,58 @@ def _filled(values: np.ndarray, *, periodic: bool) -> np.ndarray:
     return np.where(np.isfinite(values), values, line)
 
 
-def no_return_directions(organised) -> np.ndarray:
+def _organised_image(points, ring) -> np.ndarray:
+    """(H, W, 3) float64 from an (H, W, 3) array, or from (N, 3) rows and their beam numbers."""
+    xyz = np.asarray(points, dtype=np.float64)
+    if ring is None:
+        if xyz.ndim != 3 or xyz.shape[2] != 3:
+            raise ValueError(
+                "organised must be an (H, W, 3) array (rows = beams), or (N, 3) with ring, "
+                f"got shape {xyz.shape}"
+            )
+        return xyz
+    beam = np.asarray(ring)
+    if xyz.ndim != 2 or xyz.shape[1] < 3 or beam.shape != (len(xyz),):
+        raise ValueError(
+            f"with ring, organised must be (N, 3) and ring (N,), got {xyz.shape} and {beam.shape}"
+        )
+    if len(beam) == 0 or not np.issubdtype(beam.dtype, np.integer):
+        raise ValueError("ring must be a non-empty array of whole beam numbers")
+    beams, counts = np.unique(beam, return_counts=True)
+    if (counts != counts[0]).any():
+        raise ValueError(
+            f"each beam needs the same number of pixels; ring counts range {counts.min()}..{counts.max()}"
+        )
+    order = np.argsort(beam, kind="stable")  # each beam's pixels in firing order
+    return xyz[order, :3].reshape(len(beams), counts[0], 3)
+
+
+def no_return_directions(organised, ring=None, origin=None) -> np.ndarray:
     """The directions of the empty pixels of an organised scan, for ``collapse_overhangs(no_returns=)``.
 
-    ``organised`` is an (H, W, 3) array of x, y, z [m] in the sensor frame: a row per beam (ring),
-    a column per firing, as an organised PCD or ROS PointCloud2 stores a spinning lidar's scan
-    (e.g. Ouster's, staggered or not); a pixel without a return holds NaN or (0, 0, 0). Each
-    beam's elevation is the median over its returns, and each pixel's azimuth that of its column
-    plus its beam's offset (both circular means over the returns, a straight line through the
-    others for a column or beam without any), so no sensor metadata is needed. Returns (M, 3)
-    float64 unit vectors, M = the empty pixels, in row-major order. Raises ValueError for another
-    shape, or an image without a return to measure the beams by.
+    ``organised`` is an (H, W, 3) array of x, y, z [m]: a row per beam, a column per firing, as an
+    organised PCD or ROS PointCloud2 stores a spinning lidar's scan (e.g. Ouster's, staggered or
+    not); or the (N, 3) rows of such a cloud in any order with ``ring`` (N,), each row's beam
+    number (the PCD or PointCloud2 ``ring`` field; every beam with the same number of pixels, in
+    firing order). A pixel without a return holds NaN or (0, 0, 0). ``origin``: the sensor's
+    position in the points' frame (default (0, 0, 0), the sensor frame). Each beam's elevation is
+    the median over its returns, and each pixel's azimuth that of its column plus its beam's offset
+    (both circular means over the returns, a straight line through the others for a column or beam
+    without any), so no sensor metadata is needed. Returns (M, 3) float64 unit vectors, one per
+    empty pixel (row-major in the image). Raises ValueError for other shapes or an image without a
+    return to measure the beams by.
     """
-    xyz = np.asarray(organised, dtype=np.float64)
-    if xyz.ndim != 3 or xyz.shape[2] != 3:
-        raise ValueError(f"organised must be an (H, W, 3) array (rows = beams), got shape {xyz.shape}")
-    finite = np.isfinite(xyz).all(axis=2)
-    valid = finite & (np.abs(np.where(finite[..., None], xyz, 0.0)).sum(axis=2) > 0)
+    image = _organised_image(organised, ring)
+    sensor = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
+    if sensor.shape != (3,) or not np.isfinite(sensor).all():
+        raise ValueError(f"origin must be 3 finite numbers [m], got {origin!r}")
+    valid = np.isfinite(image).all(axis=2) & (image != 0).any(axis=2)  # NaN or (0, 0, 0): no return
     if not valid.any():
         raise ValueError("organised has no return to measure the beams' directions by")
     if valid.all():
         return np.zeros((0, 3))
-    x, y, z = (np.where(valid, xyz[..., k], 0.0) for k in range(3))
+    xyz = np.where(valid[..., None], image - sensor, 0.0)
+    x, y, z = xyz[..., 0], xyz[..., 1], xyz[..., 2]
     horizontal = np.hypot(x, y)
     elevation = np.arctan2(z, horizontal)
     azimuth = np.arctan2(y, x)

@@ -755,11 +755,25 @@ def test_no_return_directions_of_the_ouster_recording_predict_hidden_returns(sha
     assert len(found) == empty.sum()
     error = angle_deg(found[hidden[empty]], image[hidden])
     assert np.median(error) < 0.01 and np.percentile(error, 99) < 0.05, np.percentile(error, [50, 99])
+    # The cloud's own rows with their ring field lay out the same image.
+    rows = shown.transpose(1, 0, 2).reshape(-1, 3)
+    np.testing.assert_array_equal(tc.no_return_directions(rows, ring=cloud.fields["ring"]), found)
+    # Seen from 1.5 m under the sensor the same directions need the sensor's position.
+    lifted = np.where((shown != 0).any(axis=2)[..., None], shown + [0.0, 0.0, 1.5], 0.0)
+    np.testing.assert_allclose(tc.no_return_directions(lifted, origin=(0.0, 0.0, 1.5)), found, atol=1e-9)
 
 
 def test_no_return_directions_bad_and_edge_inputs():
     with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
         tc.no_return_directions(np.zeros((10, 3)))
+    with pytest.raises(ValueError, match="same number of pixels"):
+        tc.no_return_directions(np.ones((5, 3)), ring=np.array([0, 0, 1, 1, 1]))
+    with pytest.raises(ValueError, match=r"ring \(N,\)"):
+        tc.no_return_directions(np.ones((5, 3)), ring=np.zeros(4, int))
+    with pytest.raises(ValueError, match="whole beam numbers"):
+        tc.no_return_directions(np.ones((4, 3)), ring=np.zeros(4))
+    with pytest.raises(ValueError, match="origin"):
+        tc.no_return_directions(np.ones((2, 2, 3)), origin=(0.0, np.nan, 0.0))
     with pytest.raises(ValueError, match="no return"):
         tc.no_return_directions(np.full((4, 8, 3), np.nan))
     full = np.ones((4, 8, 3))
