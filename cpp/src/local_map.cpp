@@ -387,7 +387,8 @@ detail::NonFiniteRows level_scan(const PointsView<Scalar>& points, const Eigen::
 /// leveled, bounded cloud ([CBC], or the shadow-aware rule, seen from the pose's position).
 template <typename Scalar>
 CollapseResult level_and_collapse(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose, const CropBox& area,
-                                  const LocalMapParams& params, bool clearing, Workspace& w, LocalMapUpdate& report) {
+                                  const LocalMapParams& params, const std::vector<Eigen::Vector3d>& no_returns,
+                                  bool clearing, Workspace& w, LocalMapUpdate& report) {
   const Eigen::Vector3d sensor = pose.block<3, 1>(0, 3);
   const detail::NonFiniteRows non_finite = level_scan(points, pose, area, params, clearing, w, report.num_out_of_range);
   if (w.points.size() >= kNotKept) {
@@ -402,6 +403,18 @@ CollapseResult level_and_collapse(const PointsView<Scalar>& points, const Eigen:
   collapse.crop.reset();
   collapse.num_threads = params.num_threads;
   if (!collapse.shadow_aware.sensor_origin) collapse.shadow_aware.sensor_origin = sensor;
+  for (std::size_t k = 0; k < no_returns.size(); ++k) {
+    if (!no_returns[k].allFinite() || no_returns[k].isZero(0.0)) {
+      throw std::invalid_argument("LocalMap.update: no_returns row " + std::to_string(k) +
+                                  " must be a finite, non-zero direction");
+    }
+  }
+  if (collapse.method == CollapseMethod::kShadowAware) {  // the beams, leveled by the pose as the points were
+    collapse.shadow_aware.no_return_directions.reserve(no_returns.size());
+    for (const Eigen::Vector3d& beam : no_returns) {
+      collapse.shadow_aware.no_return_directions.push_back(pose.topLeftCorner<3, 3>() * beam);
+    }
+  }
   CollapseResult removed;
   if (!w.points.empty()) removed = collapse_overhangs(w.points, collapse);
   report.num_overhang = removed.num_overhang;
@@ -677,15 +690,18 @@ bool LocalMap::move_to(const Eigen::Vector2d& position) {
   return reset;
 }
 
-LocalMapUpdate LocalMap::update(const PointsView<float>& points, const Eigen::Matrix4d& pose, double stamp_s) {
-  return update_impl(points, pose, stamp_s);
+LocalMapUpdate LocalMap::update(const PointsView<float>& points, const Eigen::Matrix4d& pose, double stamp_s,
+                                const std::vector<Eigen::Vector3d>& no_return_directions) {
+  return update_impl(points, pose, stamp_s, no_return_directions);
 }
-LocalMapUpdate LocalMap::update(const PointsView<double>& points, const Eigen::Matrix4d& pose, double stamp_s) {
-  return update_impl(points, pose, stamp_s);
+LocalMapUpdate LocalMap::update(const PointsView<double>& points, const Eigen::Matrix4d& pose, double stamp_s,
+                                const std::vector<Eigen::Vector3d>& no_return_directions) {
+  return update_impl(points, pose, stamp_s, no_return_directions);
 }
 
 template <typename Scalar>
-LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose, double stamp_s) {
+LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose, double stamp_s,
+                                     const std::vector<Eigen::Vector3d>& no_return_directions) {
   detail::check_rigid_transform(pose, "pose");
   if (std::isinf(stamp_s)) throw std::invalid_argument("LocalMap.update: stamp must be finite (or NaN)");
   const double absolute_stamp = std::isnan(stamp_s) ? static_cast<double>(num_updates_) : stamp_s;
@@ -715,7 +731,8 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
     Workspace& workspace;
     ~ReleaseOnExit() { workspace.release_if_large(); }
   } release_on_exit{w};
-  const CollapseResult removed = level_and_collapse(points, pose, area, params_, clearing, w, report);
+  const CollapseResult removed =
+      level_and_collapse(points, pose, area, params_, no_return_directions, clearing, w, report);
 
   report.map_reset = move_to(sensor.head<2>());
   const LayerData layer = layer_data(layers_);

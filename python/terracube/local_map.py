@@ -210,19 +210,25 @@ class LocalMap:
         i, j = (int(v) for v in index)
         return self._core.position_of(i, j)
 
-    def update(self, points, pose, stamp: float = math.nan) -> _core.LocalMapUpdate:
+    def update(self, points, pose, stamp: float = math.nan, *, no_returns=None) -> _core.LocalMapUpdate:
         """Fuse one scan ((N, 3) or wider float32/float64, x, y, z first, sensor frame) taken at
         ``pose`` (4x4).
 
         ``stamp`` [s] goes into the ``time`` layer, relative to the first update's (NaN: the number of
-        the update). An empty scan
-        only moves the map. ValueError for a non-finite or non-rigid pose, NaN/Inf rows (unless
-        ``collapse.drop_non_finite``) or an infinite stamp, before anything changes. Releases the GIL.
+        the update). ``no_returns``: (M, 3) directions of the scan's beams that returned nothing, in
+        the sensor frame (:func:`terracube.no_return_directions`), for the shadow-aware overhang
+        removal (``collapse.method="shadow_aware"``; ignored by the paper's). An empty scan only
+        moves the map. ValueError for a non-finite or non-rigid pose, NaN/Inf rows (unless
+        ``collapse.drop_non_finite``), a zero or non-finite beam or an infinite stamp, before
+        anything changes. Releases the GIL.
         """
         points = _as_points(points)
         if points.ndim == 2 and points.shape[1] > 3:
             points = points[:, :3]  # a strided view: x, y, z of wider rows (intensity, ...)
-        return self._core.update(points, _as_pose(pose), float(stamp))
+        beams = np.zeros((0, 3)) if no_returns is None else np.asarray(no_returns, dtype=np.float64)
+        if beams.ndim != 2 or beams.shape[1] != 3:
+            raise ValueError(f"no_returns must be an (M, 3) array of directions, got shape {beams.shape}")
+        return self._core.update(points, _as_pose(pose), float(stamp), beams)
 
     def update_planner_layers(self) -> None:
         """Refresh ``step``, ``slope``, ``roughness`` and ``traversability`` from ``elevation`` and

@@ -347,6 +347,48 @@ TEST(LocalMap, BadPosesAndRowsAreRefusedAndLeaveTheMapUnchanged) {
   EXPECT_TRUE((tolerant.get("elevation").array().isNaN()).all());
 }
 
+TEST(LocalMap, BeamsWithoutAReturnKeepACrownBehindAHedgeOutOfTheMap) {
+  // A 1.2 m hedge at x = 8 hides the ground beyond; a crown 3.3-4.1 m up at x 11-14. The sensor is
+  // yawed 30 degrees: the scan and its level beams without a return are in its frame.
+  const Eigen::Matrix4d pose = pose_at(0.0, 0.0, 0.0, M_PI / 6.0);
+  const Eigen::Matrix3d to_sensor = pose.topLeftCorner<3, 3>().transpose();
+  std::vector<Eigen::Vector3d> points;
+  const auto add = [&](double x, double y, double z) { points.push_back(to_sensor * Eigen::Vector3d(x, y, z)); };
+  for (double x = 1.0; x < 8.0; x += 0.25) {
+    for (double y = -5.0; y < 5.0; y += 0.25) add(x, y, -1.7);
+  }
+  for (double y = -5.0; y < 5.0; y += 0.2) {
+    for (double z = -1.7; z < -0.5; z += 0.2) add(8.0, y, z);
+  }
+  for (double x = 11.0; x < 14.0; x += 0.25) {
+    for (double y = -1.5; y < 1.5; y += 0.25) {
+      add(x, y, 1.6);
+      add(x, y, 2.4);
+    }
+  }
+  std::vector<Eigen::Vector3d> beams;
+  for (double azimuth = -20.0; azimuth <= 20.0; azimuth += 0.1) {
+    const double a = azimuth * M_PI / 180.0, e = 0.5 * M_PI / 180.0;
+    beams.push_back(to_sensor * Eigen::Vector3d(std::cos(e) * std::cos(a), std::cos(e) * std::sin(a), std::sin(e)));
+  }
+  LocalMapParams params;
+  params.length_m = 30.0;
+  params.resolution_m = 0.25;
+  params.collapse.edge_m = 0.5;
+  params.collapse.sigma = 4;
+  params.collapse.method = CollapseMethod::kShadowAware;
+  LocalMap without(params), with(params);
+  without.update(PointsView<double>(points), pose);
+  with.update(PointsView<double>(points), pose, kNaN, beams);
+  const CellIndex crown = *with.index_of({12.1, 0.1});
+  EXPECT_GT(without.get("elevation")(crown.x(), crown.y()), 1.0F);  // the crown as the cell's height
+  EXPECT_TRUE(std::isnan(with.get("elevation")(crown.x(), crown.y())));
+  EXPECT_GT(with.get("overhang_min")(crown.x(), crown.y()), 1.0F);  // kept as the overhang above
+  beams.back() = Eigen::Vector3d(0.0, kNaN, 1.0);
+  EXPECT_THROW(with.update(PointsView<double>(points), pose, kNaN, beams), std::invalid_argument);
+  EXPECT_EQ(with.num_updates(), 1U);
+}
+
 TEST(LocalMap, ParametersAreValidated) {
   const auto refused = [](auto change) {
     LocalMapParams params;

@@ -256,6 +256,34 @@ def test_shadow_aware_removal_keeps_a_crown_over_hidden_ground_out_of_the_map():
     assert (overhang > 1.0).all()  # the crown is kept as the overhang above
 
 
+def test_beams_without_a_return_keep_a_crown_behind_a_hedge_out_of_the_map():
+    """The crown-behind-a-hedge scene of test_shadow_aware.py seen from a sensor yawed 30 degrees:
+    no ray to a point passes under the crown, a fan of level beams without a return (sensor frame)
+    does. Given them, the crown's columns hold no height; without them, the crown's."""
+    from test_shadow_aware import beams, crown_behind_a_hedge
+
+    kept, crown = crown_behind_a_hedge()
+    pose = pose_at(0.0, 0.0, 0.0)
+    yaw = np.radians(30.0)
+    pose[:3, :3] = [[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0.0, 0.0, 1.0]]
+    world = np.vstack([kept, crown]) @ pose[:3, :3]  # x R: rows in the yawed sensor frame
+    fan = beams(0.5, np.arange(-50.0, -9.95, 0.1))  # the world's -20..20 degrees, seen yawed by 30
+    collapse = terracube.CollapseParams(edge=0.5, sigma=4, method="shadow_aware")
+    inner = [(x, y) for x in (11.6, 12.4) for y in (-0.6, 0.0, 0.6)]
+    heights = {}
+    for given in (False, True):
+        m = terracube.LocalMap(length=30.0, resolution=0.25, collapse=collapse)
+        m.update(world, pose, no_returns=fan if given else None)
+        heights[given] = np.array([m["elevation"][m.index_of(xy)] for xy in inner])
+    assert (heights[False] > 1.0).all()  # the crown as the cells' height
+    assert np.isnan(heights[True]).all()
+    m = terracube.LocalMap(length=30.0, resolution=0.25, collapse=collapse)
+    for bad, message in (([[0.0, 0.0, 0.0]], "no_returns row 0"), (np.ones(3), r"\(M, 3\)")):
+        with pytest.raises(ValueError, match=message):
+            m.update(world, pose, no_returns=bad)
+    assert m.num_updates == 0
+
+
 def test_min_range_leaves_the_kitti_cars_own_body_out_of_the_map(shared_data, tmp_path):
     # KITTI's HDL-64 sees its car within 3 m (the roof rack, and the hood whose front edge returns
     # at 2.7-2.8 m): with the default 0.1 m those returns stand about a metre above the road in
