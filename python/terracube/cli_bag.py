@@ -280,9 +280,12 @@ def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
         raise _fail("a bag needs one pose source: --odom TOPIC (Odometry or PoseStamped) or --tf BASE_FRAME")
     output_dir = _writable_folder(bag_options.out or values["output_dir"])
     params = stream_params(values)
+    beams = params.collapse.method == "shadow_aware"  # the empty pixels of organised clouds help it
     with _exit_on_bad_input():  # the bag's errors name it
         topic = _points_topic(bag, bag_options.points)
-        clouds = read_bag(bag, topic, bag_options.odom or "/tf", base_frame=bag_options.tf)
+        clouds = read_bag(
+            bag, topic, bag_options.odom or "/tf", base_frame=bag_options.tf, keep_invalid=beams
+        )
     limit = values.get("limit")
     total = len(clouds) if limit is None else min(len(clouds), max(limit, 0))
     writer = _output_bag(output_dir, f"{bag.stem}_stream", bag_options.storage) if bag_options.out else None
@@ -294,11 +297,15 @@ def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
         occupancy = occupancy_from_traversability(ordered["traversability"])
         writer.write_occupancy_grid(ordered, occupancy, stamp=stamp, frame_id=frame)
 
+    used_beams = []
+
     def scans():
-        for index, (stamp, points, pose) in enumerate(clouds):
+        for index, cloud in enumerate(clouds.clouds()):
             if index >= total:
                 return
-            yield f"{bag.stem}_{index:04d}", points, pose, stamp
+            points, no_returns = returns_and_empty_beams(cloud) if beams else (cloud.points, None)
+            used_beams.append(0 if no_returns is None else len(no_returns))
+            yield f"{bag.stem}_{index:04d}", points, cloud.pose, cloud.stamp, no_returns
 
     try:
         with _exit_on_bad_input("stream"):
@@ -317,10 +324,34 @@ def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
         raise
     _echo_report(report)
     dropped = sum(clouds.no_returns)
-    if dropped:
+    if sum(used_beams):
+        typer.echo(f"{sum(used_beams):,} beams without a return (from the ring field) showed free space")
+    elif dropped:
         typer.echo(f"{dropped:,} no-returns dropped")
     if writer is not None:
         typer.echo(f"bag: {writer.close()} ({', '.join(f'{k} x{v}' for k, v in writer.counts.items())})")
+
+
+def returns_and_empty_beams(cloud) -> tuple[np.ndarray, np.ndarray | None]:
+    """The returns of a cloud read with ``keep_invalid``, and the directions of its empty pixels
+    (:func:`terracube.no_return_directions`) when a ``ring`` field lays it out as an organised scan
+    (the same number of pixels per beam); None otherwise."""
+    from .collapse import no_return_directions
+
+    xyz = cloud.points
+    valid = np.isfinite(xyz).all(axis=1) & (xyz != 0).any(axis=1)
+    ring = cloud.fields.get("ring")
+    directions = None
+    if (
+        ring is not None
+        and ring.ndim == 1
+        and np.issubdtype(ring.dtype, np.integer)
+        and 0 < valid.sum() < len(xyz)
+    ):
+        _, counts = np.unique(ring, return_counts=True)
+        if (counts == counts[0]).all():
+            directions = no_return_directions(xyz, ring=ring)
+    return (xyz if valid.all() else np.ascontiguousarray(xyz[valid])), directions
 
 
 # ------------------------------------------------------------------------------------------ bag-info

@@ -90,7 +90,9 @@ def run_stream(
     ----------
     scans
         ``(name, points, pose, stamp)`` per scan, in order: (N, 3) or wider points [m] in the sensor
-        frame, the 4x4 odometry pose (odometry <- sensor) and its time [s]. Read lazily.
+        frame, the 4x4 odometry pose (odometry <- sensor) and its time [s]; or
+        ``(name, points, pose, stamp, no_returns)`` with the (M, 3) directions of the scan's beams
+        that returned nothing (or None), for ``LocalMap.update``. Read lazily.
     output_dir
         Writes ``local_map.npz`` (every layer in map order, read with ``ElevationMap.load``) and,
         with ``png``, ``local_elevation.png`` and ``local_traversability.png``.
@@ -120,10 +122,10 @@ def run_stream(
     frames: list[tuple[str, np.ndarray, np.ndarray]] = []
     pictures: list[Path] = []  # one every `every` scans
     seconds, count, cleared, replaced, out_of_range = 0.0, 0, 0, 0, 0
-    for name, points, pose, stamp in scans:
+    for name, points, pose, stamp, *beams in scans:
         start = time.perf_counter()
         try:
-            update = local_map.update(points, pose, stamp)
+            update = local_map.update(points, pose, stamp, no_returns=beams[0] if beams else None)
         except (ValueError, TypeError) as error:
             raise ValueError(f"{name}: {error}") from error
         seconds += time.perf_counter() - start

@@ -941,3 +941,27 @@ def test_collapse_on_every_cloud_of_a_ros2_bag_writes_a_ros1_bag(cli, bags, tmp_
     # Bag options on a loose file are refused.
     result = cli("dem", bags / "LICENSE.embag", "--points", "/x")
     assert result.exit_code == 2 and "--points: only for a bag input" in result.output
+
+
+def test_stream_shadow_aware_on_an_organised_bag_uses_its_beams_without_a_return(cli, bags, tmp_path):
+    """The OS1-64 recording (ring field, (0, 0, 0) for no return): with --method shadow_aware the
+    empty pixels become beams for the overhang removal; the returns alone are fused."""
+    from terracube.bag import read_bag
+    from terracube.cli_bag import returns_and_empty_beams
+
+    path = bags / "ouster_os1_pointcloudset_ros1.mcap"
+    cloud = next(read_bag(path, OUSTER_TOPIC, keep_invalid=True).clouds())
+    points, beams = returns_and_empty_beams(cloud)
+    assert len(points) == 64 * 2048 - 85356 and len(beams) == 85356
+    np.testing.assert_allclose(np.linalg.norm(beams, axis=1), 1.0)
+    assert returns_and_empty_beams(next(read_bag(path, OUSTER_TOPIC).clouds()))[1] is None  # no empty pixel
+    options = ["--tf", "os1_sensor", "--length", "20", "--resolution", "0.2", "--no-png"]
+    result = cli(
+        "stream", path, "--points", OUSTER_TOPIC, "--method", "shadow_aware", "-o", tmp_path / "s", *options
+    )
+    assert result.exit_code == 0, result.output
+    assert f"{85356 + 85263:,} beams without a return" in result.output
+    paper = cli("stream", path, "--points", OUSTER_TOPIC, "-o", tmp_path / "p", *options)
+    assert paper.exit_code == 0 and "170,619 no-returns dropped" in paper.output
+    for name in ("s", "p"):
+        assert tc.ElevationMap.load(tmp_path / name / "local_map.npz")["count"].sum() > 0
