@@ -85,6 +85,40 @@ def pose(rng: np.random.Generator) -> np.ndarray:
     return matrix
 
 
+def beams(rng: np.random.Generator):
+    """Directions of beams without a return: None, none, a few, many, tiny or huge, some zero or NaN."""
+    m = int(rng.choice([-1, 0, 1, 5, 1000, 100000]))
+    if m < 0:
+        return None
+    directions = rng.normal(0.0, 1.0, (m, 3)) * 10.0 ** float(rng.choice([0, -300, 300, -30]))
+    kind = int(rng.integers(0, 4))
+    if kind == 1 and m > 0:
+        directions[rng.integers(0, m)] = 0.0
+    elif kind == 2 and m > 0:
+        directions[rng.integers(0, m), rng.integers(0, 3)] = float(rng.choice([math.nan, math.inf]))
+    return directions
+
+
+def organised(rng: np.random.Generator, points: np.ndarray):
+    """An organised image (H, W, 3) of a cloud, or its rows with a ring field: empty pixels as
+    (0, 0, 0) or NaN, beams whose pixel counts may differ."""
+    n = len(points)
+    height = int(rng.choice([1, 2, 4, 64]))
+    width = max(1, n // height)
+    image = np.resize(points, (height, width, 3)).astype(float) if n else np.zeros((height, width, 3))
+    empty = rng.random((height, width)) < float(rng.choice([0.0, 0.3, 1.0]))
+    image[empty] = float(rng.choice([0.0, math.nan]))
+    if rng.random() < 0.5:
+        return {"organised": image}
+    ring = np.repeat(np.arange(height), width)
+    if rng.random() < 0.3 and ring.size:
+        ring[0] = height + 5  # a beam of one pixel
+    return {
+        "organised": image.reshape(-1, 3),
+        "ring": ring.astype(rng.choice([np.int64, np.uint16, np.float64])),
+    }
+
+
 #: Memory guards: raising them is the caller's choice to allow that much memory (a MemoryError
 #: is then the honest answer), so they keep their defaults.
 MEMORY_GUARDS = ("max_cells", "dense_budget_bytes")
@@ -115,14 +149,22 @@ def perturb(params, rng: np.random.Generator, share: float = 0.08):
 
 def _function_case(tc, rng: np.random.Generator, points: np.ndarray) -> None:
     """One function with extreme arguments."""
-    which = int(rng.integers(0, 11))
+    which = int(rng.integers(0, 12))
     edge = float(rng.choice([0.5, 0.1, 1e-3, 1e-9, 100.0, 1e300, 0.0, -1.0, math.nan]))
     sigma = int(rng.choice([1, 2, 4, 100, 10**9, 0]))
     resolution = float(rng.choice([0.1, 1.0, 1e-4, 1e-12, 1e6, 1e300, 0.0, math.inf]))
     drop = bool(rng.random() < 0.5)
     if which == 0:
         method = str(rng.choice(["paper", "shadow_aware"]))
-        tc.collapse_overhangs(points, edge, sigma, drop_non_finite=drop, method=method, transform=pose(rng))
+        tc.collapse_overhangs(
+            points,
+            edge,
+            sigma,
+            drop_non_finite=drop,
+            method=method,
+            transform=pose(rng),
+            no_returns=beams(rng),
+        )
     elif which == 1:
         tc.classify_terrain(tc.build_elevation_map(points, resolution, drop_non_finite=drop))
     elif which == 2:
@@ -130,7 +172,7 @@ def _function_case(tc, rng: np.random.Generator, points: np.ndarray) -> None:
     elif which == 3:
         local = tc.LocalMap(float(rng.choice([20.0, 1.0, 0.05, 1e4])), float(rng.choice([0.1, 1.0, 1e-3])))
         for _ in range(3):
-            local.update(points, pose(rng))
+            local.update(points, pose(rng), no_returns=beams(rng))
         local.update_planner_layers()
     elif which == 4:
         tc.register_points(points, cloud(rng), initial=pose(rng))
@@ -146,8 +188,11 @@ def _function_case(tc, rng: np.random.Generator, points: np.ndarray) -> None:
         tc.octomap_column_overhangs(points, edge, sigma)
     elif which == 9:
         tc.add_traversability_layers(tc.build_elevation_map(points, resolution, drop_non_finite=drop))
-    else:
+    elif which == 10:
         tc.run_mapper([points, cloud(rng)], [pose(rng), pose(rng)])
+    else:
+        origin = [None, (0.0, 0.0, 1.7), (math.nan, 0.0, 0.0)][int(rng.integers(0, 3))]
+        tc.no_return_directions(**organised(rng, points), origin=origin)
 
 
 def _parameter_case(tc, rng: np.random.Generator, points: np.ndarray) -> None:
