@@ -378,12 +378,10 @@ def collapse_overhangs(
     return _core.collapse_overhangs(_as_points(points), core)
 
 
-def _circular_mean(angles: np.ndarray, weights: np.ndarray, axis: int) -> np.ndarray:
-    """The mean direction [rad] of `angles` weighted by `weights` (0 or 1) along `axis`; NaN where
-    every weight is 0."""
-    s = (np.sin(angles) * weights).sum(axis=axis)
-    c = (np.cos(angles) * weights).sum(axis=axis)
-    return np.where(weights.sum(axis=axis) > 0, np.arctan2(s, c), np.nan)
+def _unit(values: np.ndarray) -> np.ndarray:
+    """Complex numbers scaled to length 1 (0 stays 0): the direction of a sum of headings."""
+    length = np.abs(values)
+    return np.where(length > 0, values / np.where(length > 0, length, 1.0), 0)
 
 
 def _filled(values: np.ndarray, *, periodic: bool) -> np.ndarray:
@@ -454,15 +452,19 @@ def no_return_directions(organised, ring=None, origin=None) -> np.ndarray:
     x, y, z = xyz[..., 0], xyz[..., 1], xyz[..., 2]
     horizontal = np.hypot(x, y)
     elevation = np.arctan2(z, horizontal)
-    azimuth = np.arctan2(y, x)
-    weight = valid.astype(np.float64)
     beam_elevation = np.array(
         [np.median(row[ok]) if ok.any() else np.nan for row, ok in zip(elevation, valid, strict=True)]
     )
-    offset = np.zeros(xyz.shape[0])
+    # Each return's azimuth as a unit complex number (0 without one): a circular mean is the
+    # direction of a sum, and the sums over columns and over beams are matrix products.
+    heading = _unit(np.where(valid, x + 1j * y, 0))
+    offset = np.ones(xyz.shape[0], dtype=complex)  # each beam's azimuth offset, as e^(i offset)
     for _ in range(3):  # column azimuths and beam offsets, each from the other
-        column = _circular_mean(azimuth - np.nan_to_num(offset)[:, None], weight, axis=0)
-        offset = _circular_mean(azimuth - np.nan_to_num(column)[None, :], weight, axis=1)
+        column_sum = heading.T @ np.conj(offset)
+        offset_sum = heading @ np.conj(_unit(column_sum))
+        offset = _unit(offset_sum)
+    column = np.where(column_sum != 0, np.angle(column_sum), np.nan)
+    offset = np.where(offset_sum != 0, np.angle(offset_sum), np.nan)
     column = _filled(column, periodic=True)
     offset = _filled(offset, periodic=True)
     beam_elevation = _filled(beam_elevation, periodic=False)
