@@ -429,9 +429,10 @@ def no_return_directions(organised, ring=None, origin=None) -> np.ndarray:
 
     ``organised`` is an (H, W, 3) array of x, y, z [m]: a row per beam, a column per firing, as an
     organised PCD or ROS PointCloud2 stores a spinning lidar's scan (e.g. Ouster's, staggered or
-    not); or the (N, 3) rows of such a cloud in any order with ``ring`` (N,), each row's beam
-    number (the PCD or PointCloud2 ``ring`` field; every beam with the same number of pixels, in
-    firing order). A pixel without a return holds NaN or (0, 0, 0). ``origin``: the sensor's
+    not); or the (N, 3) rows of such a cloud with ``ring`` (N,), each row's beam number (the PCD
+    or PointCloud2 ``ring`` field): the beams interleaved in any way (row or column first), each
+    beam's rows in firing order, as many for every beam. A pixel without a return holds NaN or
+    (0, 0, 0). ``origin``: the sensor's
     position in the points' frame (default (0, 0, 0), the sensor frame). Each beam's elevation is
     the median over its returns, and each pixel's azimuth that of its column plus its beam's offset
     (both circular means over the returns, a straight line through the others for a column or beam
