@@ -11,8 +11,6 @@ namespace terracube::python {
 
 namespace {
 
-using Directions = Eigen::Matrix<double, Eigen::Dynamic, 3, Eigen::RowMajor>;
-
 const char* storage_name(CubeStorage storage) {
   switch (storage) {
     case CubeStorage::kDense:
@@ -112,20 +110,6 @@ void bind_collapse(py::module_& m) {
       .def_readwrite("min_bottom_neighbours", &ShadowAwareParams::min_bottom_neighbours)
       .def_readwrite("bottom_window", &ShadowAwareParams::bottom_window)
       .def_readwrite("azimuth_bins", &ShadowAwareParams::azimuth_bins)
-      .def_property(
-          "no_return_directions",
-          [](const ShadowAwareParams& params) {
-            Directions out(static_cast<Eigen::Index>(params.no_return_directions.size()), 3);
-            for (Eigen::Index k = 0; k < out.rows(); ++k) out.row(k) = params.no_return_directions[k].transpose();
-            return out;
-          },
-          [](ShadowAwareParams& params, const Directions& directions) {
-            params.no_return_directions.resize(static_cast<std::size_t>(directions.rows()));
-            for (Eigen::Index k = 0; k < directions.rows(); ++k) {
-              params.no_return_directions[k] = directions.row(k).transpose();
-            }
-          },
-          "(M, 3) float64: directions of the beams that returned nothing (a copy)")
       .def_readwrite("no_return_range_m", &ShadowAwareParams::no_return_range_m);
 
   py::class_<CollapseParams>(m, "CollapseParams")
@@ -185,13 +169,15 @@ void bind_collapse(py::module_& m) {
 
   m.def(
       "collapse_overhangs",
-      [](const py::array& points, const CollapseParams& params) {
+      [](const py::array& points, const CollapseParams& params, const py::object& no_returns) {
+        py::object keep;
+        const PointsView<double> beams = directions_view(no_returns, "no_returns", keep);
         return with_points(points, "points", [&](const auto& view) {
           py::gil_scoped_release release;
-          return collapse_overhangs(view, params);
+          return collapse_overhangs(view, params, beams);
         });
       },
-      py::arg("points"), py::arg("params"));
+      py::arg("points"), py::arg("params"), py::arg("no_returns") = py::none());
   m.def(
       "cube_reason_name", [](int reason) { return cube_reason_name(static_cast<CubeReason>(reason)); },
       py::arg("reason"));

@@ -102,17 +102,17 @@ void bind_local_map(py::module_& m) {
       .def(
           "update",
           [](LocalMap& map, const py::array& points, const py::array& pose, double stamp,
-             const Eigen::Matrix<double, Eigen::Dynamic, 3, Eigen::RowMajor>& no_returns) {
+             const py::object& no_returns) {
             const Eigen::Matrix4d matrix = pose_matrix(pose);
-            std::vector<Eigen::Vector3d> beams(static_cast<std::size_t>(no_returns.rows()));
-            for (Eigen::Index k = 0; k < no_returns.rows(); ++k) beams[k] = no_returns.row(k).transpose();
+            py::object keep;
+            const PointsView<double> beams = directions_view(no_returns, "no_returns", keep);
             return with_points(points, "points", [&](const auto& view) {
               py::gil_scoped_release release;
               return map.update(view, matrix, stamp, beams);
             });
           },
           py::arg("points"), py::arg("pose"), py::arg("stamp") = std::numeric_limits<double>::quiet_NaN(),
-          py::arg("no_returns") = Eigen::Matrix<double, Eigen::Dynamic, 3, Eigen::RowMajor>(0, 3))
+          py::arg("no_returns") = py::none())
       .def(
           "move_to", [](LocalMap& map, double x, double y) { return map.move_to({x, y}); }, py::arg("x"), py::arg("y"))
       .def("clear", &LocalMap::clear)

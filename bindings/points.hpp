@@ -44,6 +44,22 @@ auto with_points(const py::array& array, const char* name, F&& f) {
                        py::str(array.dtype()).cast<std::string>() + "; convert with .astype(numpy.float64)");
 }
 
+/// A view of an optional (M, 3) array of directions: none for None; float64 of any strides
+/// viewed as it is, anything else converted once into `keep` (which must outlive the view).
+/// Raises ValueError for another shape.
+inline PointsView<double> directions_view(const py::object& directions, const char* name, py::object& keep) {
+  if (directions.is_none()) return {};
+  auto array = py::array_t<double, py::array::forcecast>::ensure(directions);
+  if (!array || array.ndim() != 2 || array.shape(1) != 3) {
+    throw py::value_error(std::string(name) + " must be an (M, 3) array of directions");
+  }
+  if (array.strides(0) % 8 != 0 || array.strides(1) % 8 != 0) {
+    array = py::array_t<double, py::array::c_style | py::array::forcecast>::ensure(array);
+  }
+  keep = array;
+  return {array.data(), static_cast<std::size_t>(array.shape(0)), array.strides(0) / 8, array.strides(1) / 8};
+}
+
 inline py::array read_only(py::array array) {
   array.attr("setflags")(py::arg("write") = false);
   return array;

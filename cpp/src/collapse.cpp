@@ -58,13 +58,15 @@ std::vector<std::int64_t> collapse_columns(const std::vector<std::int64_t>& sort
 template <typename GroundOf>
 std::vector<std::int64_t> removed_cubes_of(const std::vector<std::int64_t>& sorted_occupied,
                                            const CollapseParams& params, const NextPoints& next_points,
-                                           CollapseResult& result, GroundOf&& ground_of) {
+                                           const PointsView<double>& no_returns, CollapseResult& result,
+                                           GroundOf&& ground_of) {
   if (params.method != CollapseMethod::kShadowAware) {
     return collapse_columns(sorted_occupied, result.grid.num_columns(), params.sigma, ground_of);
   }
   const Eigen::Vector3d origin = params.shadow_aware.sensor_origin.value_or(params.transform.block<3, 1>(0, 3));
-  ShadowAwareDecision decision = shadow_aware_collapse(result.grid, sorted_occupied, next_points, params.sigma, origin,
-                                                       params.shadow_aware, params.transform.topLeftCorner<3, 3>());
+  ShadowAwareDecision decision =
+      shadow_aware_collapse(result.grid, sorted_occupied, next_points, params.sigma, origin, params.shadow_aware,
+                            no_returns, params.transform.topLeftCorner<3, 3>());
   result.cube_reasons = std::move(decision.reasons);
   return std::move(decision.removed_cubes);
 }
@@ -267,7 +269,7 @@ void list_word(std::uint64_t bits, std::size_t word, std::vector<std::int64_t>& 
 /// The workspace keeps V, the summary and M clear between calls: a call clears only what it set,
 /// O(|L|), not the whole grid.
 void collapse_dense(Workspace& workspace, const CollapseParams& params, const NextPoints& next_points,
-                    CollapseResult& result) {
+                    const PointsView<double>& no_returns, CollapseResult& result) {
   const CubeGrid& grid = result.grid;
   const std::vector<DenseIndex>& cubes = workspace.dense_cubes;
   const auto words = static_cast<std::size_t>((grid.num_cubes() + 63) / 64);
@@ -293,9 +295,9 @@ void collapse_dense(Workspace& workspace, const CollapseParams& params, const Ne
     for (std::size_t word = 0; word < words; ++word) list_word(occupancy[word], word, occupied);
   }
   std::vector<std::int32_t>& ground = workspace.ground;  // M
-  result.removed_cubes = removed_cubes_of(occupied, params, next_points, result, [&](std::int64_t column) -> auto& {
-    return ground[static_cast<std::size_t>(column)];
-  });
+  result.removed_cubes =
+      removed_cubes_of(occupied, params, next_points, no_returns, result,
+                       [&](std::int64_t column) -> auto& { return ground[static_cast<std::size_t>(column)]; });
   // R's bits cleared in V: a row is overhang when its cube's bit is gone.
   for (const std::int64_t cube : result.removed_cubes) {
     occupancy[static_cast<std::size_t>(cube >> 6)] &= ~(std::uint64_t{1} << (cube & 63));
@@ -312,8 +314,8 @@ void collapse_dense(Workspace& workspace, const CollapseParams& params, const Ne
 
 /// Sparse storage: L is the sorted distinct cubes of the rows and M a hash map over the columns
 /// that hold points, so memory is O(N) whatever the extent.
-void collapse_sparse(const std::vector<SparseIndex>& cubes, const NextPoints& next_points, const CollapseParams& params,
-                     CollapseResult& result) {
+void collapse_sparse(const std::vector<SparseIndex>& cubes, const NextPoints& next_points,
+                     const PointsView<double>& no_returns, const CollapseParams& params, CollapseResult& result) {
   const int num_threads = params.num_threads;
   std::vector<std::int64_t>& occupied = result.occupied_cubes;  // L
   occupied.reserve(cubes.size());
@@ -325,7 +327,7 @@ void collapse_sparse(const std::vector<SparseIndex>& cubes, const NextPoints& ne
   std::unordered_map<std::int64_t, std::int64_t> ground;  // M, only for columns that hold points
   ground.reserve(occupied.size());
   result.removed_cubes = removed_cubes_of(
-      occupied, params, next_points, result,
+      occupied, params, next_points, no_returns, result,
       [&](std::int64_t column) -> std::int64_t& { return ground.try_emplace(column, -1).first->second; });
   const std::vector<std::int64_t>& removed = result.removed_cubes;  // sorted, as L is
   result.num_overhang = write_mask(
@@ -334,8 +336,10 @@ void collapse_sparse(const std::vector<SparseIndex>& cubes, const NextPoints& ne
 }
 
 template <typename Scalar>
-CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapseParams& params) {
+CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapseParams& params,
+                             const PointsView<double>& no_returns) {
   check_collapse_params(params);
+  check_directions(no_returns, "no_return_directions");
   if (points.size > 0 && points.data == nullptr) {
     throw std::invalid_argument("points view has no data but claims " + std::to_string(points.size) + " rows");
   }
@@ -368,10 +372,11 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
     } release_on_exit{workspace};
     if (result.storage_used == CubeStorage::kDense) {
       cube_of_rows(cloud, result.grid, params.num_threads, workspace.dense_cubes);
-      collapse_dense(workspace, params, points_of_rows(cloud, workspace.dense_cubes), result);
+      collapse_dense(workspace, params, points_of_rows(cloud, workspace.dense_cubes), no_returns, result);
     } else {
       cube_of_rows(cloud, result.grid, params.num_threads, workspace.sparse_cubes);
-      collapse_sparse(workspace.sparse_cubes, points_of_rows(cloud, workspace.sparse_cubes), params, result);
+      collapse_sparse(workspace.sparse_cubes, points_of_rows(cloud, workspace.sparse_cubes), no_returns, params,
+                      result);
     }
   });
   return result;
@@ -426,16 +431,19 @@ Eigen::Matrix4d leveling_transform(double roll_rad, double pitch_rad) {
   return transform;
 }
 
-CollapseResult collapse_overhangs(const PointsView<float>& points, const CollapseParams& params) {
-  return collapse_impl(points, params);
+CollapseResult collapse_overhangs(const PointsView<float>& points, const CollapseParams& params,
+                                  const PointsView<double>& no_return_directions) {
+  return collapse_impl(points, params, no_return_directions);
 }
 
-CollapseResult collapse_overhangs(const PointsView<double>& points, const CollapseParams& params) {
-  return collapse_impl(points, params);
+CollapseResult collapse_overhangs(const PointsView<double>& points, const CollapseParams& params,
+                                  const PointsView<double>& no_return_directions) {
+  return collapse_impl(points, params, no_return_directions);
 }
 
-CollapseResult collapse_overhangs(const std::vector<Eigen::Vector3d>& points, const CollapseParams& params) {
-  return collapse_impl(PointsView<double>(points), params);
+CollapseResult collapse_overhangs(const std::vector<Eigen::Vector3d>& points, const CollapseParams& params,
+                                  const PointsView<double>& no_return_directions) {
+  return collapse_impl(PointsView<double>(points), params, no_return_directions);
 }
 
 }  // namespace terracube

@@ -78,11 +78,6 @@ int cells_per_side(const LocalMapParams& p) {
 void check_local_map_params(const LocalMapParams& p) {
   const int side = cells_per_side(p);
   check_collapse_params(p.collapse);
-  if (!p.collapse.shadow_aware.no_return_directions.empty()) {
-    throw std::invalid_argument(
-        "LocalMapParams.collapse.shadow_aware.no_return_directions must be empty: a map's parameters hold no "
-        "beams of one scan");
-  }
   detail::check_non_negative(p.min_range_m, "LocalMapParams.min_range_m");
   if (!(p.max_range_m > p.min_range_m)) {
     throw std::invalid_argument("LocalMapParams.max_range_m must exceed min_range_m (+inf: no limit), got " +
@@ -264,6 +259,7 @@ constexpr std::uint32_t kNotKept = std::numeric_limits<std::uint32_t>::max();
 struct Workspace {
   VisibilityImage visibility;
   std::vector<Eigen::Vector3d> points;    // the leveled scan inside the map's area
+  std::vector<Eigen::Vector3d> beams;     // its beams without a return, leveled
   std::vector<std::uint32_t> point_cell;  // per point: its stored cell when kept in the map, else kNotKept
   // Counting sort of the kept points by cell: cell c holds kept[start[c], start[c + 1]), in point order.
   std::vector<std::uint32_t> start, fill;
@@ -387,8 +383,8 @@ detail::NonFiniteRows level_scan(const PointsView<Scalar>& points, const Eigen::
 /// leveled, bounded cloud ([CBC], or the shadow-aware rule, seen from the pose's position).
 template <typename Scalar>
 CollapseResult level_and_collapse(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose, const CropBox& area,
-                                  const LocalMapParams& params, const std::vector<Eigen::Vector3d>& no_returns,
-                                  bool clearing, Workspace& w, LocalMapUpdate& report) {
+                                  const LocalMapParams& params, const PointsView<double>& no_returns, bool clearing,
+                                  Workspace& w, LocalMapUpdate& report) {
   const Eigen::Vector3d sensor = pose.block<3, 1>(0, 3);
   const detail::NonFiniteRows non_finite = level_scan(points, pose, area, params, clearing, w, report.num_out_of_range);
   if (w.points.size() >= kNotKept) {
@@ -403,20 +399,13 @@ CollapseResult level_and_collapse(const PointsView<Scalar>& points, const Eigen:
   collapse.crop.reset();
   collapse.num_threads = params.num_threads;
   if (!collapse.shadow_aware.sensor_origin) collapse.shadow_aware.sensor_origin = sensor;
-  for (std::size_t k = 0; k < no_returns.size(); ++k) {
-    if (!no_returns[k].allFinite() || no_returns[k].isZero(0.0)) {
-      throw std::invalid_argument("LocalMap.update: no_returns row " + std::to_string(k) +
-                                  " must be a finite, non-zero direction");
-    }
-  }
+  w.beams.clear();
   if (collapse.method == CollapseMethod::kShadowAware) {  // the beams, leveled by the pose as the points were
-    collapse.shadow_aware.no_return_directions.reserve(no_returns.size());
-    for (const Eigen::Vector3d& beam : no_returns) {
-      collapse.shadow_aware.no_return_directions.push_back(pose.topLeftCorner<3, 3>() * beam);
-    }
+    for (std::size_t k = 0; k < no_returns.size; ++k)
+      w.beams.push_back(pose.topLeftCorner<3, 3>() * no_returns.point(k));
   }
   CollapseResult removed;
-  if (!w.points.empty()) removed = collapse_overhangs(w.points, collapse);
+  if (!w.points.empty()) removed = collapse_overhangs(w.points, collapse, PointsView<double>(w.beams));
   report.num_overhang = removed.num_overhang;
   return removed;
 }
@@ -691,19 +680,20 @@ bool LocalMap::move_to(const Eigen::Vector2d& position) {
 }
 
 LocalMapUpdate LocalMap::update(const PointsView<float>& points, const Eigen::Matrix4d& pose, double stamp_s,
-                                const std::vector<Eigen::Vector3d>& no_return_directions) {
+                                const PointsView<double>& no_return_directions) {
   return update_impl(points, pose, stamp_s, no_return_directions);
 }
 LocalMapUpdate LocalMap::update(const PointsView<double>& points, const Eigen::Matrix4d& pose, double stamp_s,
-                                const std::vector<Eigen::Vector3d>& no_return_directions) {
+                                const PointsView<double>& no_return_directions) {
   return update_impl(points, pose, stamp_s, no_return_directions);
 }
 
 template <typename Scalar>
 LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose, double stamp_s,
-                                     const std::vector<Eigen::Vector3d>& no_return_directions) {
+                                     const PointsView<double>& no_return_directions) {
   detail::check_rigid_transform(pose, "pose");
   if (std::isinf(stamp_s)) throw std::invalid_argument("LocalMap.update: stamp must be finite (or NaN)");
+  check_directions(no_return_directions, "LocalMap.update: no_returns");
   const double absolute_stamp = std::isnan(stamp_s) ? static_cast<double>(num_updates_) : stamp_s;
   // "time" is float: relative to the first update's stamp, ROS stamps (1.7e9 s) keep their ms.
   if (!time_origin_s_) time_origin_s_ = absolute_stamp;

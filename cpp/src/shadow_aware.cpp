@@ -245,16 +245,19 @@ class FreeSpaceFloor {
     slot = std::min(slot, (point.z() - origin_.z()) / distance);
   }
 
-  /// Adds a beam without a return, `direction` in the leveled frame: one at or above the horizon
-  /// ends `range` out (past the last step when that lies beyond the grid); the rest are not used.
-  void add_free_beam(const Eigen::Vector3d& direction, double range) {
-    const double horizontal = std::hypot(direction.x(), direction.y());
-    if (!(direction.z() >= 0.0) || !(horizontal > 0.0)) return;  // below the horizon, or straight up
-    const double end = range * horizontal / direction.norm();    // horizontal distance where it ends
+  /// Adds a beam without a return, `d` in the leveled frame, scaled so that its largest component
+  /// is about 1 (its squares neither overflow nor vanish): one at or above the horizon ends `range`
+  /// out (past the last step when that lies beyond the grid); the rest are not used.
+  void add_free_beam(const Eigen::Vector3d& d, double range) {
+    if (!(d.z() >= 0.0)) return;  // below the horizon
+    const double horizontal_squared = d.x() * d.x() + d.y() * d.y();
+    if (!(horizontal_squared > 0.0)) return;  // straight up: it crosses no column
+    const double horizontal = std::sqrt(horizontal_squared);
+    const double end = range * horizontal / std::sqrt(horizontal_squared + d.z() * d.z());  // horizontally
     const auto step = static_cast<std::int64_t>(std::min(end * inverse_edge_, static_cast<double>(steps_ - 1)));
-    const std::int64_t bin = step * sectors_ + sector_of(direction.x(), direction.y());
+    const std::int64_t bin = step * sectors_ + sector_of(d.x(), d.y());
     double& slot = slope_[static_cast<std::size_t>(bin)];
-    slot = std::min(slot, direction.z() / horizontal);
+    slot = std::min(slot, d.z() / horizontal);
   }
 
   /// After the last ray: each bin holds the lowest slope of the rays that END beyond its step.
@@ -549,24 +552,28 @@ void check_shadow_aware_params(const ShadowAwareParams& params) {
     throw std::invalid_argument("shadow_aware no_return_range_m must be a positive finite length, got " +
                                 detail::number_text(params.no_return_range_m));
   }
-  for (std::size_t k = 0; k < params.no_return_directions.size(); ++k) {
-    const Eigen::Vector3d& direction = params.no_return_directions[k];
-    if (!direction.allFinite() || direction.isZero(0.0)) {
-      throw std::invalid_argument("shadow_aware no_return_directions row " + std::to_string(k) +
-                                  " must be a finite, non-zero direction");
-    }
-  }
   if (params.azimuth_bins < 1 || params.azimuth_bins > (1 << 20)) {
     throw std::invalid_argument("shadow_aware azimuth_bins must be 1..2^20, got " +
                                 std::to_string(params.azimuth_bins));
   }
 }
 
+void check_directions(const PointsView<double>& directions, const char* name) {
+  for (std::size_t k = 0; k < directions.size; ++k) {
+    const Eigen::Vector3d d = directions.point(k);
+    if (!d.allFinite() || d.isZero(0.0)) {
+      throw std::invalid_argument(std::string(name) + " row " + std::to_string(k) +
+                                  " must be a finite, non-zero direction");
+    }
+  }
+}
+
 ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vector<std::int64_t>& sorted_occupied,
                                           const NextPoints& next_points, int sigma,
                                           const Eigen::Vector3d& sensor_origin, const ShadowAwareParams& params,
-                                          const Eigen::Matrix3d& leveling) {
+                                          const PointsView<double>& no_returns, const Eigen::Matrix3d& leveling) {
   check_shadow_aware_params(params);
+  check_directions(no_returns, "no_return_directions");
   if (!leveling.allFinite()) throw std::invalid_argument("shadow_aware leveling rotation must be finite");
   if (sigma < 1) throw std::invalid_argument("sigma must be at least 1 cube, got " + std::to_string(sigma));
   if (!sensor_origin.allFinite()) throw std::invalid_argument("shadow_aware sensor origin must be finite");
@@ -590,8 +597,9 @@ ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vecto
                                                          static_cast<double>(std::max(grid.ixmax, grid.iymax))));
   window_minimum(grid, radius, w.reliable, w.scratch, w.ground, w.line);  // G0
   add_rays(grid, next_points, w.ground, floor, w.chunk);
-  for (const Eigen::Vector3d& direction : params.no_return_directions) {
-    floor.add_free_beam(leveling * direction, params.no_return_range_m);
+  for (std::size_t k = 0; k < no_returns.size; ++k) {
+    const Eigen::Vector3d direction = no_returns.point(k);
+    floor.add_free_beam(leveling * (direction / direction.cwiseAbs().maxCoeff()), params.no_return_range_m);
   }
   floor.finish();
   // Step 2 again: a lowest cube with a ray under it is no ground (a crown's underside), then G.

@@ -366,16 +366,16 @@ def collapse_overhangs(
             method=method,
             sensor_origin=sensor_origin,
         )
-    core = params.to_core()
-    if no_returns is not None:
-        directions = np.asarray(no_returns, dtype=np.float64)
-        if directions.ndim != 2 or directions.shape[1] != 3:
-            raise ValueError(
-                f"no_returns must be an (M, 3) array of directions, got shape {directions.shape}"
-            )
-        core.shadow_aware.no_return_directions = directions
-        core.check()  # each direction finite and non-zero, before the scan
-    return _core.collapse_overhangs(_as_points(points), core)
+    beams = None if no_returns is None else _as_directions(no_returns)
+    return _core.collapse_overhangs(_as_points(points), params.to_core(), beams)
+
+
+def _as_directions(directions) -> np.ndarray:
+    """An (M, 3) float64 array of directions (not copied when it is one); ValueError otherwise."""
+    array = np.asarray(directions, dtype=np.float64)
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise ValueError(f"no_returns must be an (M, 3) array of directions, got shape {array.shape}")
+    return array
 
 
 def _unit(values: np.ndarray) -> np.ndarray:

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import _core
-from .collapse import CollapseParams, _as_points, _checked, _num_threads
+from .collapse import CollapseParams, _as_directions, _as_points, _checked, _num_threads
 from .elevation import ElevationMap, MapGeometry
 from .traversability import TraversabilityParams
 
@@ -225,9 +225,7 @@ class LocalMap:
         points = _as_points(points)
         if points.ndim == 2 and points.shape[1] > 3:
             points = points[:, :3]  # a strided view: x, y, z of wider rows (intensity, ...)
-        beams = np.zeros((0, 3)) if no_returns is None else np.asarray(no_returns, dtype=np.float64)
-        if beams.ndim != 2 or beams.shape[1] != 3:
-            raise ValueError(f"no_returns must be an (M, 3) array of directions, got shape {beams.shape}")
+        beams = None if no_returns is None else _as_directions(no_returns)
         return self._core.update(points, _as_pose(pose), float(stamp), beams)
 
     def update_planner_layers(self) -> None:

@@ -197,24 +197,26 @@ TEST(ShadowAware, BeamsWithoutAReturnUnderACrownShowItsColumnsEmpty) {
   const Points points = crown_behind_a_hedge();
   const Eigen::Vector3d crown(12.0, 0.5, 1.6);
   CollapseParams params = shadow_aware_params();
-  EXPECT_EQ(reason_at(collapse_overhangs(points, params), crown), CubeReason::kShadowed);  // no ray under it
-  params.shadow_aware.no_return_directions = fan_of_beams(0.0);  // level beams pass 1.35 m under it
-  const CollapseResult seen = collapse_overhangs(points, params);
+  const auto reason_with = [&](const std::vector<Eigen::Vector3d>& beams) {
+    return reason_at(collapse_overhangs(points, params, PointsView<double>(beams)), crown);
+  };
+  EXPECT_EQ(reason_with({}), CubeReason::kShadowed);             // no ray under it
+  const std::vector<Eigen::Vector3d> level = fan_of_beams(0.0);  // they pass 1.35 m under it
+  const CollapseResult seen = collapse_overhangs(points, params, PointsView<double>(level));
   EXPECT_EQ(reason_at(seen, crown), CubeReason::kRemovedFreeBelow);
   EXPECT_EQ(reason_at(seen, {12.5, -1.5, 2.4}), CubeReason::kRemovedFreeBelow);
   EXPECT_EQ(reason_at(seen, {8.0, 0.0, -0.5}), CubeReason::kSupported);  // the hedge stays
-  params.shadow_aware.no_return_range_m = 10.0;                          // they end before the crown
-  EXPECT_EQ(reason_at(collapse_overhangs(points, params), crown), CubeReason::kShadowed);
+  std::vector<Eigen::Vector3d> scaled;                                   // any length, 1e-310 (subnormal) to 1e300
+  for (std::size_t k = 0; k < level.size(); ++k) scaled.push_back(level[k] * (k % 2 == 0 ? 1e-310 : 1e300));
+  EXPECT_EQ(collapse_overhangs(points, params, PointsView<double>(scaled)).overhang, seen.overhang);
+  params.shadow_aware.no_return_range_m = 10.0;  // they end before the crown
+  EXPECT_EQ(reason_with(level), CubeReason::kShadowed);
   params.shadow_aware.no_return_range_m = 30.0;
-  params.shadow_aware.no_return_directions = fan_of_beams(-0.01);  // below the horizon: a dark road
-  EXPECT_EQ(reason_at(collapse_overhangs(points, params), crown), CubeReason::kShadowed);
-  params.shadow_aware.no_return_directions = fan_of_beams(0.15);  // 1.8 m up at 12 m: through the crown
-  EXPECT_EQ(reason_at(collapse_overhangs(points, params), crown), CubeReason::kShadowed);
-  params.shadow_aware.no_return_directions = {Eigen::Vector3d(0.0, 0.0, 1.0)};  // straight up: no column
-  EXPECT_EQ(reason_at(collapse_overhangs(points, params), crown), CubeReason::kShadowed);
+  EXPECT_EQ(reason_with(fan_of_beams(-0.01)), CubeReason::kShadowed);  // below the horizon: a dark road
+  EXPECT_EQ(reason_with(fan_of_beams(0.15)), CubeReason::kShadowed);   // 1.8 m up at 12 m: through the crown
+  EXPECT_EQ(reason_with({Eigen::Vector3d(0.0, 0.0, 1.0)}), CubeReason::kShadowed);  // straight up: no column
   params.method = CollapseMethod::kPaper;
-  params.shadow_aware.no_return_directions = fan_of_beams(0.0);
-  EXPECT_EQ(collapse_overhangs(points, params).num_overhang, 0U);  // the paper's rule ignores them
+  EXPECT_EQ(collapse_overhangs(points, params, PointsView<double>(level)).num_overhang, 0U);  // ignored
 }
 
 TEST(ShadowAware, BeamsWithoutAReturnAreRotatedByTheLevelingTransform) {
@@ -227,10 +229,9 @@ TEST(ShadowAware, BeamsWithoutAReturnAreRotatedByTheLevelingTransform) {
   for (const Eigen::Vector3d& p : crown_behind_a_hedge()) tilted.push_back(rotation.transpose() * p);
   CollapseParams params = shadow_aware_params();
   params.transform.topLeftCorner<3, 3>() = rotation;
-  for (const Eigen::Vector3d& beam : fan_of_beams(0.0)) {
-    params.shadow_aware.no_return_directions.push_back(rotation.transpose() * beam);
-  }
-  const CollapseResult result = collapse_overhangs(tilted, params);
+  std::vector<Eigen::Vector3d> beams;
+  for (const Eigen::Vector3d& beam : fan_of_beams(0.0)) beams.push_back(rotation.transpose() * beam);
+  const CollapseResult result = collapse_overhangs(tilted, params, PointsView<double>(beams));
   EXPECT_EQ(reason_at(result, {12.0, 0.5, 1.6}), CubeReason::kRemovedFreeBelow);
   EXPECT_EQ(reason_at(result, {8.0, 0.0, -0.5}), CubeReason::kSupported);
 }
@@ -279,10 +280,9 @@ TEST(ShadowAware, BadParametersThrowInvalidArgumentNamingThem) {
   }
   for (const Eigen::Vector3d& beam :
        {Eigen::Vector3d(0, 0, 0), Eigen::Vector3d(1, std::nan(""), 0), Eigen::Vector3d(HUGE_VAL, 0, 0)}) {
-    params = shadow_aware_params();
-    params.shadow_aware.no_return_directions = {Eigen::Vector3d(1, 0, 0), beam};
+    const std::vector<Eigen::Vector3d> beams = {Eigen::Vector3d(1, 0, 0), beam};
     try {
-      collapse_overhangs(points, params);
+      collapse_overhangs(points, shadow_aware_params(), PointsView<double>(beams));
       FAIL() << "a beam of " << beam.transpose() << " was accepted";
     } catch (const std::invalid_argument& e) {
       EXPECT_NE(std::string(e.what()).find("no_return_directions row 1"), std::string::npos) << e.what();

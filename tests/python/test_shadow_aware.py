@@ -118,8 +118,11 @@ def naive_shadow_aware(
             if sector is not None:
                 rays.append((sector, step, (z - origin[2]) / distance))
     # ... and the beams without a return at or above the horizon, which end no_return_range out
-    for dx, dy, dz in np.asarray(no_returns, dtype=np.float64).reshape(-1, 3).tolist():
-        horizontal = math.hypot(dx, dy)
+    # (each scaled by its largest component first, as the core does against overflow)
+    for direction in np.asarray(no_returns, dtype=np.float64).reshape(-1, 3).tolist():
+        largest = max(abs(v) for v in direction)
+        dx, dy, dz = (v / largest for v in direction)
+        horizontal = math.sqrt(dx * dx + dy * dy)
         if dz >= 0.0 and horizontal > 0.0:
             end = no_return_range * horizontal / math.sqrt(dx * dx + dy * dy + dz * dz)
             sector = min(sectors - 1, int(pseudo_angle(dx, dy) / 4.0 * sectors))

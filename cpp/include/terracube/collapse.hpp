@@ -86,10 +86,16 @@ struct CollapseResult {
 /// bottom-up keeping its ground in M and collapses the cubes σ or more empty cubes above it.
 /// Each calling thread keeps its work buffers (the cube indices, and V and M of the dense storage)
 /// for its next call, released after a call that needed over 64 MB.
+/// `no_return_directions`: the scan's beams that returned nothing, in the points' frame, for
+/// CollapseMethod::kShadowAware (shadow_aware_collapse's `no_returns`); viewed, not copied.
 /// Throws std::invalid_argument on a non-positive edge, σ < 1, a non-rigid transform, NaN/Inf
-/// rows (unless dropped) or an extent whose cube count would overflow a 64-bit index.
-CollapseResult collapse_overhangs(const PointsView<float>& points, const CollapseParams& params = {});
-CollapseResult collapse_overhangs(const PointsView<double>& points, const CollapseParams& params = {});
-CollapseResult collapse_overhangs(const std::vector<Eigen::Vector3d>& points, const CollapseParams& params = {});
+/// rows (unless dropped), a zero or non-finite beam or an extent whose cube count would overflow
+/// a 64-bit index.
+CollapseResult collapse_overhangs(const PointsView<float>& points, const CollapseParams& params = {},
+                                  const PointsView<double>& no_return_directions = {});
+CollapseResult collapse_overhangs(const PointsView<double>& points, const CollapseParams& params = {},
+                                  const PointsView<double>& no_return_directions = {});
+CollapseResult collapse_overhangs(const std::vector<Eigen::Vector3d>& points, const CollapseParams& params = {},
+                                  const PointsView<double>& no_return_directions = {});
 
 }  // namespace terracube

@@ -145,14 +145,14 @@ class LocalMap {
   /// non-finite or non-rigid pose (or a position move_to refuses), NaN/Inf rows (unless
   /// collapse.drop_non_finite) or a non-finite stamp other than NaN, before changing anything: a
   /// failed update leaves the map as it was. `no_return_directions`: the scan's beams that
-  /// returned nothing, in the sensor frame (ShadowAwareParams::no_return_directions; used by the
-  /// shadow-aware overhang removal only).
+  /// returned nothing, in the sensor frame, for the shadow-aware overhang removal
+  /// (collapse_overhangs); a zero or non-finite one is refused too.
   LocalMapUpdate update(const PointsView<float>& points, const Eigen::Matrix4d& pose,
                         double stamp_s = std::numeric_limits<double>::quiet_NaN(),
-                        const std::vector<Eigen::Vector3d>& no_return_directions = {});
+                        const PointsView<double>& no_return_directions = {});
   LocalMapUpdate update(const PointsView<double>& points, const Eigen::Matrix4d& pose,
                         double stamp_s = std::numeric_limits<double>::quiet_NaN(),
-                        const std::vector<Eigen::Vector3d>& no_return_directions = {});
+                        const PointsView<double>& no_return_directions = {});
 
   /// Centres the map on the cell of `position` [m]. Cells that leave are dropped, cells that
   /// enter are empty; a move by the map's size or more drops every cell (returns true then).
@@ -173,7 +173,7 @@ class LocalMap {
  private:
   template <typename Scalar>
   LocalMapUpdate update_impl(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose, double stamp_s,
-                             const std::vector<Eigen::Vector3d>& no_return_directions);
+                             const PointsView<double>& no_return_directions);
   void clear_cells(std::size_t first, std::size_t count, std::size_t stride);
   std::int64_t storage_of(std::int64_t global, int axis) const;
 

@@ -69,15 +69,9 @@ struct ShadowAwareParams {
   /// Azimuth sectors of the free-space floor around the sensor (pseudo-angle bins), >= 1. Each
   /// should hold a few azimuth steps of the sensor (KITTI's HDL-64: about 2000 per turn).
   int azimuth_bins = 512;
-  /// Directions of the beams of this scan that returned nothing (the empty pixels of an organised
-  /// scan), in the cloud's own frame like its points (CollapseParams::transform rotates them);
-  /// any length but zero, finite. A beam level with or above the horizon (after leveling) crossed
-  /// free space out to no_return_range_m, so it shows the space under a crown or a deck empty as
-  /// a ray to a point does (step 3). Beams below the horizon are not used: a dark or wet road
-  /// returns nothing too. Empty: only the points' rays.
-  std::vector<Eigen::Vector3d> no_return_directions;
-  /// How far [m] a beam without a return shows the space empty: a range within which the sensor
-  /// sees every surface that matters (dark cars, foliage), > 0.
+  /// How far [m] a beam without a return (the `no_returns` of shadow_aware_collapse) shows the
+  /// space empty: a range within which the sensor sees every surface that matters (dark cars,
+  /// foliage), > 0.
   double no_return_range_m = 30.0;
 };
 
@@ -116,14 +110,23 @@ using NextPoints = std::function<std::size_t(CubePoint* out, std::size_t capacit
 ///     more empty cubes above G) is removed over a kept chain (as in [CBC] Algorithm 1), or, when
 ///     its bottom is wide (min_bottom_neighbours), when F is below its bottom face by
 ///     free_margin_m; it is kept otherwise (a wall or trunk whose foot is hidden).
-/// `leveling` rotates params.no_return_directions into the grid's frame (CollapseParams::transform's
-/// rotation). O(N + |L| + columns + beams + azimuth_bins * range steps); single-threaded, deterministic.
-/// Throws std::invalid_argument on invalid parameters, a grid of more than 2^27 columns or a
-/// sensor origin more than 10 m below every point.
+/// `no_returns`: the directions of the scan's beams that returned nothing (the empty pixels of an
+/// organised scan; any length but zero), which `leveling` (CollapseParams::transform's rotation)
+/// turns into the grid's frame. A beam level with or above the horizon there crossed free space
+/// out to no_return_range_m, so in step 3 it counts as a ray to a point that far; beams below the
+/// horizon are not used (a dark or wet road returns nothing too).
+/// O(N + |L| + columns + beams + azimuth_bins * range steps); single-threaded, deterministic.
+/// Throws std::invalid_argument on invalid parameters or beams, a grid of more than 2^27 columns
+/// or a sensor origin more than 10 m below every point.
 ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vector<std::int64_t>& sorted_occupied,
                                           const NextPoints& next_points, int sigma,
                                           const Eigen::Vector3d& sensor_origin, const ShadowAwareParams& params = {},
+                                          const PointsView<double>& no_returns = {},
                                           const Eigen::Matrix3d& leveling = Eigen::Matrix3d::Identity());
+
+/// Throws std::invalid_argument "<name> row k must be a finite, non-zero direction" for the first
+/// such row of `directions`.
+void check_directions(const PointsView<double>& directions, const char* name);
 
 /// Throws std::invalid_argument naming the first invalid field of `params`.
 void check_shadow_aware_params(const ShadowAwareParams& params);

@@ -275,14 +275,6 @@ class ShadowAwareParams:
     def min_bottom_neighbours(self, arg0: typing.SupportsInt | typing.SupportsIndex) -> None:
         ...
     @property
-    def no_return_directions(self) -> typing.Annotated[numpy.typing.NDArray[numpy.float64], "[m, 3]"]:
-        """
-        (M, 3) float64: directions of the beams that returned nothing (a copy)
-        """
-    @no_return_directions.setter
-    def no_return_directions(self, arg1: typing.Annotated[numpy.typing.ArrayLike, numpy.float64, "[m, 3]"]) -> None:
-        ...
-    @property
     def no_return_range_m(self) -> float:
         ...
     @no_return_range_m.setter
@@ -2184,7 +2176,7 @@ class LocalMap:
         ...
     def to_elevation_map(self) -> ElevationMap:
         ...
-    def update(self, points: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], pose: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], stamp: typing.SupportsFloat | typing.SupportsIndex = ..., no_returns: typing.Annotated[numpy.typing.ArrayLike, numpy.float64, "[m, 3]"] = ...) -> LocalMapUpdate:
+    def update(self, points: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], pose: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], stamp: typing.SupportsFloat | typing.SupportsIndex = ..., no_returns: typing.Any = None) -> LocalMapUpdate:
         ...
     def update_planner_layers(self) -> None:
         ...
@@ -2222,7 +2214,7 @@ def classify_terrain(map: ElevationMap, params: TerrainParams) -> numpy.typing.N
     """
     (nx, ny) uint8 classes; adds class, relative_height, ground layers
     """
-def collapse_overhangs(points: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], params: CollapseParams) -> CollapseResult:
+def collapse_overhangs(points: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], params: CollapseParams, no_returns: typing.Any = None) -> CollapseResult:
     ...
 def compare_region_layouts(map_centres: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], dsm_centres: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], relations: RegionRelations = ...) -> RegionLayoutComparison:
     ...
