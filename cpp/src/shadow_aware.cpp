@@ -24,11 +24,19 @@ constexpr double kMaxSensorBelowCloud_m = 10.0;
 constexpr double kInf = std::numeric_limits<double>::infinity();
 
 /// Per-call arrays kept by the calling thread (first touching fresh pages costs more than the rule).
+/// A column with a reliable lowest cube, and the bin and horizontal distance of its centre in the
+/// free-space floor.
+struct PlacedColumn {
+  std::size_t column, bin;
+  double distance;
+};
+
 struct Workspace {
   std::vector<std::int32_t> column_of;  ///< the column of each cube of L
   std::vector<std::int32_t> layer_of;   ///< the layer of each cube of L
   std::vector<std::int32_t> lowest;     ///< lowest occupied layer per column, kNone if empty
   std::vector<std::int32_t> reliable;   ///< the lowest layer where it is reliable ground, else kNone
+  std::vector<PlacedColumn> placed;     ///< the reliable columns, placed in the free-space floor
   std::vector<std::int32_t> scratch;    ///< the window minimum along x
   std::vector<std::int32_t> ground;     ///< G per column, kNone if no reliable ground in the window
   std::vector<std::int32_t> start;      ///< first position of each column in `by_column`
@@ -277,8 +285,12 @@ class FreeSpaceFloor {
   double floor_of(std::int64_t ix, std::int64_t iy) const {
     double distance = 0.0;
     const std::int64_t bin = column_bin(ix, iy, distance);
-    if (bin < 0) return kInf;
-    const double slope = slope_[static_cast<std::size_t>(bin)];
+    return bin < 0 ? kInf : floor_at(static_cast<std::size_t>(bin), distance);
+  }
+
+  /// F at a column centre of bin `bin` (>= 0) and horizontal distance `distance` (column_bin's).
+  double floor_at(std::size_t bin, double distance) const {
+    const double slope = slope_[bin];
     return slope == kInf ? kInf : origin_.z() + slope * distance;
   }
 
@@ -319,18 +331,29 @@ class FreeSpaceFloor {
   std::vector<double>& slope_;
 };
 
-/// Calls f(layer, bin, distance) for each column with a reliable lowest cube: `layer` is its entry
-/// of w.reliable (f may clear it), `bin` and `distance` those of the column's centre in `floor`.
-template <typename F>
-void for_each_reliable_column(const CubeGrid& grid, const FreeSpaceFloor& floor, Workspace& w, F&& f) {
+/// w.placed: the columns with a reliable lowest cube (step 1), in column order, with the bin and
+/// horizontal distance of their centres in `floor` (those at the sensor left out), computed once
+/// for the passes of steps 1b and 2.
+void place_reliable_columns(const CubeGrid& grid, const FreeSpaceFloor& floor, Workspace& w) {
+  w.placed.clear();
   for (std::int64_t iy = 0; iy < grid.iymax; ++iy) {
     for (std::int64_t ix = 0; ix < grid.ixmax; ++ix) {
-      std::int32_t& layer = w.reliable[static_cast<std::size_t>(ix + iy * grid.ixmax)];
-      if (layer == kNone) continue;
+      const auto column = static_cast<std::size_t>(ix + iy * grid.ixmax);
+      if (w.reliable[column] == kNone) continue;
       double distance = 0.0;
       const std::int64_t bin = floor.column_bin(ix, iy, distance);
-      if (bin >= 0) f(layer, static_cast<std::size_t>(bin), distance);
+      if (bin >= 0) w.placed.push_back({column, static_cast<std::size_t>(bin), distance});
     }
+  }
+}
+
+/// Calls f(layer, bin, distance) for each column of w.placed still reliable: `layer` is its entry
+/// of w.reliable (f may clear it), `bin` and `distance` those of the column's centre in the floor.
+template <typename F>
+void for_each_reliable_column(Workspace& w, F&& f) {
+  for (const PlacedColumn& placed : w.placed) {
+    std::int32_t& layer = w.reliable[placed.column];
+    if (layer != kNone) f(layer, placed.bin, placed.distance);
   }
 }
 
@@ -347,7 +370,7 @@ void hide_occluded_ground(const CubeGrid& grid, FreeSpaceFloor& floor, double ma
   const double sensor_z = floor.origin().z();
   std::vector<double>& horizon = w.slope;
   horizon.assign(static_cast<std::size_t>(floor.steps() * sectors), -kInf);
-  for_each_reliable_column(grid, floor, w, [&](std::int32_t layer, std::size_t bin, double distance) {
+  for_each_reliable_column(w, [&](std::int32_t layer, std::size_t bin, double distance) {
     const double bottom = bottom_face(grid, layer);  // the limits, at each column's centre
     if (bottom < sensor_z) horizon[bin] = std::max(horizon[bin], (bottom - margin - sensor_z) / distance);
   });
@@ -360,7 +383,7 @@ void hide_occluded_ground(const CubeGrid& grid, FreeSpaceFloor& floor, double ma
       nearer[sector] = std::max(nearer[sector], here);
     }
   }
-  for_each_reliable_column(grid, floor, w, [&](std::int32_t& layer, std::size_t bin, double distance) {
+  for_each_reliable_column(w, [&](std::int32_t& layer, std::size_t bin, double distance) {
     if ((bottom_face(grid, layer) + grid.edge_m - sensor_z) / distance < horizon[bin]) layer = kNone;  // hidden
   });
   floor.reset();
@@ -590,6 +613,7 @@ ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vecto
   lowest_layers(num_columns, w);
   reliable_ground(grid, w.lowest, params.ground_support, sigma, w.reliable);
   FreeSpaceFloor floor(grid, sensor_origin, params.azimuth_bins, w.slope);
+  place_reliable_columns(grid, floor, w);
   hide_occluded_ground(grid, floor, params.hidden_ground_margin_m, w);
   // The window in columns, clipped to the grid in doubles: a radius of 1e300 m is finite, and its
   // column count would overflow a 64-bit integer.
@@ -603,12 +627,9 @@ ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vecto
   }
   floor.finish();
   // Step 2 again: a lowest cube with a ray under it is no ground (a crown's underside), then G.
-  for (std::int64_t iy = 0; iy < grid.iymax; ++iy) {
-    for (std::int64_t ix = 0; ix < grid.ixmax; ++ix) {
-      std::int32_t& layer = w.reliable[static_cast<std::size_t>(ix + iy * grid.ixmax)];
-      if (layer != kNone && floor.floor_of(ix, iy) < bottom_face(grid, layer)) layer = kNone;
-    }
-  }
+  for_each_reliable_column(w, [&](std::int32_t& layer, std::size_t bin, double distance) {
+    if (floor.floor_at(bin, distance) < bottom_face(grid, layer)) layer = kNone;
+  });
   window_minimum(grid, radius, w.reliable, w.scratch, w.ground, w.line);
   order_by_column(num_columns, w);
   decision.reasons.assign(sorted_occupied.size(), CubeReason::kSupported);
