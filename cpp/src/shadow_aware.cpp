@@ -582,6 +582,10 @@ void check_shadow_aware_params(const ShadowAwareParams& params) {
 }
 
 void check_directions(const PointsView<double>& directions, const char* name) {
+  if (directions.size > 0 && directions.data == nullptr) {
+    throw std::invalid_argument(std::string(name) + " view has no data but claims " + std::to_string(directions.size) +
+                                " rows");
+  }
   for (std::size_t k = 0; k < directions.size; ++k) {
     const Eigen::Vector3d d = directions.point(k);
     if (!d.allFinite() || d.isZero(0.0)) {

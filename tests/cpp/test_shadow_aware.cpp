@@ -288,6 +288,8 @@ TEST(ShadowAware, BadParametersThrowInvalidArgumentNamingThem) {
       EXPECT_NE(std::string(e.what()).find("no_return_directions row 1"), std::string::npos) << e.what();
     }
   }
+  EXPECT_THROW(collapse_overhangs(points, shadow_aware_params(), PointsView<double>(nullptr, 4)),
+               std::invalid_argument);
   // A survey in its own coordinates (the ground 49 m up) with the default origin at 0.
   Points survey;
   add_grid(survey, 0, 10, 0, 10, 49.0);

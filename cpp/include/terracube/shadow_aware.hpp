@@ -125,7 +125,7 @@ ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vecto
                                           const Eigen::Matrix3d& leveling = Eigen::Matrix3d::Identity());
 
 /// Throws std::invalid_argument "<name> row k must be a finite, non-zero direction" for the first
-/// such row of `directions`.
+/// such row of `directions` (and for a view without data that claims rows).
 void check_directions(const PointsView<double>& directions, const char* name);
 
 /// Throws std::invalid_argument naming the first invalid field of `params`.
