@@ -266,14 +266,8 @@ STRUCTURES = (L.WALL, L.TRUNK, L.PILLAR, L.TUNNEL_WALL)
 
 def empty_beams(scan, sensor) -> np.ndarray:
     """The directions of the beams of `scan` that returned nothing, as a user finds them: the scan
-    laid out as the organised (channels, steps) image a driver publishes, then
-    ``no_return_directions`` of it."""
-    rays = sim.sensor_rays(sensor)  # the channels of one step, step by step
-    image = np.zeros((len(rays), 3))
-    image[scan.ray_indices] = scan.points
-    return tc.no_return_directions(
-        image.reshape(sensor.steps_per_revolution, sensor.channels, 3).transpose(1, 0, 2)
-    )
+    laid out as the organised image a driver publishes, then ``no_return_directions`` of it."""
+    return tc.no_return_directions(sim.organised_image(scan, sensor))
 
 
 def simulated_metrics(world, world_T_sensor, sensor, sigma, method) -> dict:

@@ -43,6 +43,7 @@ __all__ = [
     "make_loop_scene",
     "make_scene",
     "cast_scan",
+    "organised_image",
     "sensor_rays",
     "generate_trajectory",
     "generate_sequence",
@@ -446,6 +447,22 @@ def cast_scan(
     NaN/Inf or non-rigid pose. The GIL is released while casting.
     """
     return Scan(*_sim.cast_scan(world.scene, _pose(world_T_sensor), _sensor(model), _seed(seed)))
+
+
+def organised_image(scan: Scan, model: RotatingLidar) -> np.ndarray:
+    """The scan laid out as the organised image a spinning lidar's driver publishes: (channels,
+    steps_per_revolution, 3) float64, a row per beam, (0, 0, 0) where a ray returned nothing
+    (:func:`terracube.no_return_directions` takes it). ValueError for another scanner or a scan of
+    another sensor."""
+    if not isinstance(model, RotatingLidar):
+        raise ValueError(f"an organised image needs a RotatingLidar, got {type(model).__name__}")
+    rays = model.channels * model.steps_per_revolution
+    indices = np.asarray(scan.ray_indices, dtype=np.int64)
+    if indices.size and (indices.min() < 0 or indices.max() >= rays):
+        raise ValueError(f"the scan's ray indices exceed this sensor's {rays} rays")
+    image = np.zeros((rays, 3))
+    image[indices] = scan.points  # firing order: the channels of one step, step by step
+    return image.reshape(model.steps_per_revolution, model.channels, 3).transpose(1, 0, 2)
 
 
 def generate_trajectory(

@@ -665,13 +665,7 @@ def test_simulated_trees_behind_curbs_and_a_tunnel_precision_recall_and_structur
     label = sim.Label
     parts = []
     for k, distance in enumerate((8.0, 14.0, 20.0, 26.0)):
-        azimuth = np.radians(25.0 + 25.0 * k)
-        direction = np.array([np.cos(azimuth), np.sin(azimuth)])
-        x, y = distance * direction
-        parts.append(sim.Primitive.cylinder(x, y, 0.2, -0.5, 3.6, label.TRUNK))
-        parts.append(sim.Primitive.ellipsoid((x, y, 4.6), (2.2, 2.2, 1.4), label.CANOPY))
-        curb = (distance - 3.0) * direction
-        parts.append(sim.Primitive.box((*curb, 0.15), (0.15, 3.0, 0.15), float(azimuth), label.WALL))
+        parts += tree_behind(sim, distance, 25.0 + 25.0 * k, "curb")
     for side in (-3.2, 3.2):
         parts.append(sim.Primitive.box((-16.0, side, 2.0), (6.0, 0.2, 2.0), 0.0, label.TUNNEL_WALL))
     parts.append(sim.Primitive.box((-16.0, 0.0, 4.2), (6.0, 3.4, 0.2), 0.0, label.TUNNEL_CEILING))
@@ -708,14 +702,36 @@ def organised_simulated_scan(model, world, pose, seed=2):
     and the true directions of its empty pixels (row-major), both in the sensor frame."""
     from terracube import simulation as sim
 
-    rays = sim.sensor_rays(model)  # firing order: the channels of one step, step by step
     scan = sim.cast_scan(world, pose, model, seed=seed)
-    image = np.zeros((len(rays), 3))
-    image[scan.ray_indices] = scan.points
-    image = image.reshape(model.steps_per_revolution, model.channels, 3).transpose(1, 0, 2)
+    image = sim.organised_image(scan, model)
+    rays = sim.sensor_rays(model)  # firing order: the channels of one step, step by step
     directions = rays.reshape(model.steps_per_revolution, model.channels, 3).transpose(1, 0, 2)
-    empty = ~(image != 0).any(axis=2)
+    returned = np.zeros(len(rays), bool)
+    returned[scan.ray_indices] = True
+    empty = ~returned.reshape(model.steps_per_revolution, model.channels).T
+    # Independently: ray r is channel r % channels of step r // channels.
+    channel, step = scan.ray_indices % model.channels, scan.ray_indices // model.channels
+    np.testing.assert_array_equal(image[channel, step], scan.points)
+    assert ((image != 0).any(axis=2) == ~empty).all()
     return image, directions[empty], scan
+
+
+def tree_behind(sim, distance, azimuth_deg, obstacle):
+    """A tree (trunk to 3.6 m, crown 3.2-6 m, 4.4 m across) `distance` m out at `azimuth_deg`, and
+    3 m in front of it a 0.3 m curb (`obstacle="curb"`) or a 1.2 m hedge."""
+    azimuth = np.radians(azimuth_deg)
+    direction = np.array([np.cos(azimuth), np.sin(azimuth)])
+    x, y = distance * direction
+    front = (distance - 3.0) * direction
+    if obstacle == "curb":
+        block = sim.Primitive.box((*front, 0.15), (0.15, 3.0, 0.15), float(azimuth), sim.Label.WALL)
+    else:
+        block = sim.Primitive.box((*front, 0.6), (0.3, 2.5, 0.6), float(azimuth), sim.Label.WALL)
+    return [
+        sim.Primitive.cylinder(x, y, 0.2, -0.5, 3.6, sim.Label.TRUNK),
+        sim.Primitive.ellipsoid((x, y, 4.6), (2.2, 2.2, 1.4), sim.Label.CANOPY),
+        block,
+    ]
 
 
 def angle_deg(a, b) -> np.ndarray:
@@ -800,13 +816,7 @@ def test_no_returns_of_the_simulated_scene_raise_recall_not_removed_structure():
     label = sim.Label
     parts = []
     for k, distance in enumerate((12.0, 18.0, 24.0)):
-        azimuth = np.radians(30.0 + 40.0 * k)
-        direction = np.array([np.cos(azimuth), np.sin(azimuth)])
-        x, y = distance * direction
-        parts.append(sim.Primitive.cylinder(x, y, 0.2, -0.5, 3.6, label.TRUNK))
-        parts.append(sim.Primitive.ellipsoid((x, y, 4.6), (2.2, 2.2, 1.4), label.CANOPY))
-        hedge = (distance - 3.0) * direction
-        parts.append(sim.Primitive.box((*hedge, 0.6), (0.3, 2.5, 0.6), float(azimuth), label.WALL))
+        parts += tree_behind(sim, distance, 30.0 + 40.0 * k, "hedge")
     world = sim.make_scene(parts, 0.0)
     pose = np.eye(4)
     pose[2, 3] = 1.73
@@ -826,3 +836,17 @@ def test_no_returns_of_the_simulated_scene_raise_recall_not_removed_structure():
     assert recall[1] >= recall[0] + 0.05
     assert (with_beams & truth).sum() / with_beams.sum() >= 0.98
     assert not (with_beams & structures).any()
+
+
+def test_organised_image_refuses_another_scanner_or_sensor():
+    from terracube import simulation as sim
+
+    world = sim.make_scene([], 0.0)
+    pose = np.eye(4)
+    pose[2, 3] = 1.7
+    small = sim.RotatingLidar(channels=16, steps_per_revolution=360)
+    scan = sim.cast_scan(world, pose, sim.RotatingLidar(channels=32, steps_per_revolution=720))
+    with pytest.raises(ValueError, match="exceed this sensor's 5760 rays"):
+        sim.organised_image(scan, small)
+    with pytest.raises(ValueError, match="RotatingLidar"):
+        sim.organised_image(scan, sim.Tilting2DScanner())
