@@ -50,31 +50,29 @@ struct Moments {
   }
 };
 
-/// The lowest and highest height of a window along y (NaN-free: +inf and -inf when all unknown).
-struct Extremes {
-  float lowest, highest;
-};
-
-/// The moments of geometric row `x` (heights `z` in map order, NaN unknown, relative to
-/// `reference`) summed over the windows [j - r, j + r] clipped to the row, from differences of
-/// prefix sums, into sums[0, n), and each window's lowest and highest height into extremes[0, n).
-void row_windows(const std::vector<float>& z, double x, double reference, int r, std::vector<Moments>& prefix,
-                 Moments* sums, Extremes* extremes) {
-  const int n = static_cast<int>(z.size());
+/// The moments of geometric row `x` summed over the windows [j - r, j + r] clipped to the row, from
+/// differences of prefix sums, into sums[0, n), and each window's lowest and highest height into
+/// lowest[0, n) and highest[0, n) (+inf and -inf when all unknown). `padded` holds the row's n
+/// heights in map order (NaN unknown; the moments take them relative to `reference`) between r NaNs
+/// on each side, so that every
+/// window reads 2 r + 1 of them: loops without bounds to clip, which the compiler vectorises.
+void row_windows(const std::vector<float>& padded, double x, double reference, int r, std::vector<Moments>& prefix,
+                 Moments* sums, float* lowest, float* highest) {
+  const int n = static_cast<int>(padded.size()) - 2 * r;
+  const float* z = padded.data() + r;
   prefix[0] = Moments();
   for (int j = 0; j < n; ++j) {
     prefix[j + 1] = prefix[j];
     if (!std::isnan(z[j])) prefix[j + 1].add(x, j, z[j] - reference);
   }
-  for (int j = 0; j < n; ++j) {
-    const int lo = std::max(j - r, 0), hi = std::min(j + r, n - 1);
-    sums[j] = prefix[hi + 1] - prefix[lo];
-    Extremes e{kInfF, -kInfF};
-    for (int k = lo; k <= hi; ++k) {  // std::min/max keep the first argument against NaN
-      e.lowest = std::min(e.lowest, z[k]);
-      e.highest = std::max(e.highest, z[k]);
+  for (int j = 0; j < n; ++j) sums[j] = prefix[std::min(j + r, n - 1) + 1] - prefix[std::max(j - r, 0)];
+  std::fill(lowest, lowest + n, kInfF);
+  std::fill(highest, highest + n, -kInfF);
+  for (int d = -r; d <= r; ++d) {
+    for (int j = 0; j < n; ++j) {  // std::min/max keep the first argument against NaN
+      lowest[j] = std::min(lowest[j], z[j + d]);
+      highest[j] = std::max(highest[j], z[j + d]);
     }
-    extremes[j] = e;
   }
 }
 
@@ -99,18 +97,28 @@ PlaneFit fit_plane(const Moments& m) {
   return fit;
 }
 
-/// TraversabilityParams' formula (traversability.hpp).
-float traversability(const TraversabilityParams& tp, double slope, double step, double roughness, float clearance) {
-  if (slope > tp.max_slope_rad || step > tp.max_step_m || roughness > tp.max_roughness_m ||
-      clearance < tp.min_clearance_m) {
-    return 0.0F;
+/// TraversabilityParams' formula (traversability.hpp), its weights divided by their thresholds
+/// and their sum once per call.
+class TraversabilityCost {
+ public:
+  explicit TraversabilityCost(const TraversabilityParams& tp) : tp_(tp) {
+    const double weights = tp.slope_weight + tp.step_weight + tp.roughness_weight;
+    slope_ = tp.slope_weight / (tp.max_slope_rad * weights);
+    step_ = tp.step_weight / (tp.max_step_m * weights);
+    roughness_ = tp.roughness_weight / (tp.max_roughness_m * weights);
   }
-  const double weights = tp.slope_weight + tp.step_weight + tp.roughness_weight;
-  const double cost = (tp.slope_weight * slope / tp.max_slope_rad + tp.step_weight * step / tp.max_step_m +
-                       tp.roughness_weight * roughness / tp.max_roughness_m) /
-                      weights;
-  return static_cast<float>(1.0 - cost);
-}
+  float operator()(double slope, double step, double roughness, float clearance) const {
+    if (slope > tp_.max_slope_rad || step > tp_.max_step_m || roughness > tp_.max_roughness_m ||
+        clearance < tp_.min_clearance_m) {
+      return 0.0F;
+    }
+    return static_cast<float>(1.0 - (slope_ * slope + step_ * step + roughness_ * roughness));
+  }
+
+ private:
+  const TraversabilityParams& tp_;
+  double slope_, step_, roughness_;  // w / (max * (w_s + w_t + w_r))
+};
 
 /// Where the cells of a (possibly circular) map are stored: per geometric row its stored row
 /// times the row length, per geometric column its stored column. No wrap-around arithmetic in
@@ -134,48 +142,42 @@ struct PlannerData {
   float *step, *slope, *roughness, *traversability;
 };
 
-/// The windows of the cells of one geometric row: the moments summed over the rows of the
-/// window (`sums`, per column) and each row's window extremes (`extremes`, a ring of `slots` rows:
-/// row a in slot a mod slots).
+/// The windows of the cells of one geometric row, per column: the moments summed over the window
+/// and its lowest and highest height.
 struct RowWindows {
   const std::vector<Moments>& sums;
-  const std::vector<Extremes>& extremes;
-  int slots, lo, hi;  // the rows of the window
+  const std::vector<float>& lowest;
+  const std::vector<float>& highest;
 };
 
 /// Each known (finite) cell of geometric row `gi`: its window's step, plane fit and traversability.
 void fit_row(const PlannerData& d, const StorageOrder& order, const RowWindows& w, std::size_t gi, double resolution,
-             const TraversabilityParams& tp) {
+             int min_window_cells, const TraversabilityCost& cost) {
   const std::size_t n = order.column.size();
   for (std::size_t gj = 0; gj < n; ++gj) {
     const std::size_t cell = order.row[gi] + order.column[gj];
     float* out[] = {d.step + cell, d.slope + cell, d.roughness + cell, d.traversability + cell};
     for (float* value : out) *value = kNaN;
     if (!std::isfinite(d.height[cell])) continue;
-    float lowest = kInfF, highest = -kInfF;
-    for (int a = w.lo; a <= w.hi; ++a) {
-      const Extremes& e = w.extremes[static_cast<std::size_t>(a % w.slots) * n + gj];
-      lowest = std::min(lowest, e.lowest);
-      highest = std::max(highest, e.highest);
-    }
-    *out[0] = highest - lowest;
+    *out[0] = w.highest[gj] - w.lowest[gj];
     const Moments& window = w.sums[gj];
-    if (window.n < tp.min_window_cells) continue;
+    if (window.n < min_window_cells) continue;
     const PlaneFit fit = fit_plane(window);
     if (!fit.valid) continue;
     const float slope = std::atan(static_cast<float>(fit.gradient / resolution));  // float: the layer's type
     *out[1] = slope;
     *out[2] = static_cast<float>(fit.roughness);
     const float clearance = d.clearance != nullptr ? d.clearance[cell] : kInfF;
-    *out[3] = traversability(tp, slope, *out[0], fit.roughness, clearance);
+    *out[3] = cost(slope, *out[0], fit.roughness, clearance);
   }
 }
 
 /// The planner layers of the cells of geometric rows [begin, end). The windows slide down the
-/// rows: each row's window sums along y (row_windows) enter a ring of the window's rows and a
-/// running sum per column as the window reaches them, and leave it as it passes them, so a window
-/// costs the same whatever its size and the memory is that of the window's rows, not the map's.
-/// A part starts its sums afresh: the same bits whatever the number of threads.
+/// rows: each row's window sums and extremes along y (row_windows) enter a ring of the window's
+/// rows (row a in slot a mod slots) and the moments a running sum per column as the window
+/// reaches them, and leave it as it passes them, so a window's moments cost the same whatever its
+/// size and the memory is that of the window's rows, not the map's. A part starts its sums
+/// afresh: the same bits whatever the number of threads.
 void planner_rows(const PlannerData& d, const StorageOrder& order, double reference, int r, double resolution,
                   const TraversabilityParams& tp, std::size_t begin, std::size_t end) {
   if (begin == end) return;  // more parts than rows (a map of a few long rows)
@@ -183,20 +185,23 @@ void planner_rows(const PlannerData& d, const StorageOrder& order, double refere
   const std::size_t n = order.column.size();
   const int slots = static_cast<int>(std::min<std::int64_t>(2 * std::int64_t{r} + 1, rows));
   std::vector<Moments> ring(static_cast<std::size_t>(slots) * n), sums(n), row_prefix(n + 1);
-  std::vector<Extremes> extremes(static_cast<std::size_t>(slots) * n);
-  std::vector<float> z(n);
+  std::vector<float> lowest_ring(static_cast<std::size_t>(slots) * n), highest_ring(lowest_ring.size());
+  std::vector<float> lowest(n), highest(n);
+  std::vector<float> padded(n + 2 * static_cast<std::size_t>(r), kNaN);
   const auto slot = [&](int a) { return static_cast<std::size_t>(a % slots) * n; };
   const auto enter = [&](int a) {
     for (std::size_t gj = 0; gj < n; ++gj) {
       const float h = d.height[order.row[static_cast<std::size_t>(a)] + order.column[gj]];
-      z[gj] = std::isfinite(h) ? h : kNaN;  // +-inf heights are unknown too
+      padded[r + gj] = std::isfinite(h) ? h : kNaN;  // +-inf heights are unknown too
     }
-    row_windows(z, a, reference, r, row_prefix, ring.data() + slot(a), extremes.data() + slot(a));
-    for (std::size_t gj = 0; gj < n; ++gj) sums[gj] += ring[slot(a) + gj];
+    const std::size_t s = slot(a);
+    row_windows(padded, a, reference, r, row_prefix, ring.data() + s, lowest_ring.data() + s, highest_ring.data() + s);
+    for (std::size_t gj = 0; gj < n; ++gj) sums[gj] += ring[s + gj];
   };
   const auto leave = [&](int a) {
     for (std::size_t gj = 0; gj < n; ++gj) sums[gj] -= ring[slot(a) + gj];
   };
+  const TraversabilityCost cost(tp);
   const int first = static_cast<int>(begin);
   for (int a = std::max(first - r, 0); a <= std::min(first + r, rows - 1); ++a) enter(a);
   for (int gi = first; gi < static_cast<int>(end); ++gi) {
@@ -204,8 +209,17 @@ void planner_rows(const PlannerData& d, const StorageOrder& order, double refere
       if (gi - r - 1 >= 0) leave(gi - r - 1);  // before its slot is reused
       if (gi + r <= rows - 1) enter(gi + r);
     }
-    const RowWindows windows{sums, extremes, slots, std::max(gi - r, 0), std::min(gi + r, rows - 1)};
-    fit_row(d, order, windows, static_cast<std::size_t>(gi), resolution, tp);
+    std::fill(lowest.begin(), lowest.end(), kInfF);
+    std::fill(highest.begin(), highest.end(), -kInfF);
+    for (int a = std::max(gi - r, 0); a <= std::min(gi + r, rows - 1); ++a) {
+      const float* row_lowest = lowest_ring.data() + slot(a);
+      const float* row_highest = highest_ring.data() + slot(a);
+      for (std::size_t gj = 0; gj < n; ++gj) {
+        lowest[gj] = std::min(lowest[gj], row_lowest[gj]);
+        highest[gj] = std::max(highest[gj], row_highest[gj]);
+      }
+    }
+    fit_row(d, order, {sums, lowest, highest}, static_cast<std::size_t>(gi), resolution, tp.min_window_cells, cost);
   }
 }
 
