@@ -143,13 +143,16 @@ void bind_elevation(py::module_& m) {
       .def_readonly("collapse", &OverhangFreeMap::collapse);
   m.def(
       "build_overhang_free_map",
-      [](const py::array& points, const CollapseParams& collapse, const ElevationParams& elevation) {
+      [](const py::array& points, const CollapseParams& collapse, const ElevationParams& elevation,
+         const py::object& no_returns) {
+        py::object keep;
+        const PointsView<double> beams = directions_view(no_returns, "no_returns", keep);
         return with_points(points, "points", [&](const auto& view) {
           py::gil_scoped_release release;
-          return build_overhang_free_map(view, collapse, elevation);
+          return build_overhang_free_map(view, collapse, elevation, beams);
         });
       },
-      py::arg("points"), py::arg("collapse"), py::arg("elevation"));
+      py::arg("points"), py::arg("collapse"), py::arg("elevation"), py::arg("no_returns") = py::none());
 
   py::enum_<GroundReference>(m, "GroundReference")
       .value("sensor_height", GroundReference::kSensorHeight)

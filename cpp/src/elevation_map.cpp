@@ -448,10 +448,10 @@ void add_clearance(const Cloud& cloud, const std::vector<std::uint8_t>& overhang
 
 template <typename Scalar>
 OverhangFreeMap overhang_free_impl(const PointsView<Scalar>& points, const CollapseParams& collapse,
-                                   const ElevationParams& elevation) {
+                                   const ElevationParams& elevation, const PointsView<double>& no_returns) {
   check_elevation_params(elevation);  // before any geometry is derived from it
   OverhangFreeMap out;
-  out.collapse = collapse_overhangs(points, collapse);
+  out.collapse = collapse_overhangs(points, collapse, no_returns);
   ElevationParams params = elevation;
   params.transform = collapse.transform;
   params.crop = collapse.crop;
@@ -496,12 +496,12 @@ void build_elevation_map_into(ElevationMap& map, const PointsView<double>& point
   build_impl(points, params, use, &map);
 }
 OverhangFreeMap build_overhang_free_map(const PointsView<float>& points, const CollapseParams& collapse,
-                                        const ElevationParams& elevation) {
-  return overhang_free_impl(points, collapse, elevation);
+                                        const ElevationParams& elevation, const PointsView<double>& no_returns) {
+  return overhang_free_impl(points, collapse, elevation, no_returns);
 }
 OverhangFreeMap build_overhang_free_map(const PointsView<double>& points, const CollapseParams& collapse,
-                                        const ElevationParams& elevation) {
-  return overhang_free_impl(points, collapse, elevation);
+                                        const ElevationParams& elevation, const PointsView<double>& no_returns) {
+  return overhang_free_impl(points, collapse, elevation, no_returns);
 }
 
 }  // namespace terracube

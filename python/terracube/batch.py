@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .pipeline import SCAN_SUFFIXES, STAGES, expand_inputs, read_scan, run_stage
+from .pipeline import SCAN_SUFFIXES, STAGES, expand_inputs, read_stage_input, run_stage
 
 __all__ = ["FileRecord", "expand_inputs", "process_file", "run_batch", "format_summary", "SCAN_SUFFIXES"]
 
@@ -73,10 +73,17 @@ def process_file(
     start = time.perf_counter()
     record = FileRecord(str(path), stage, "failed")
     try:
-        points = read_scan(path)
+        points, no_returns = read_stage_input(path, config)
         record.points = int(len(points))
         report = run_stage(
-            stage, points, name or path.stem, Path(output_dir), config, source=path, **(options or {})
+            stage,
+            points,
+            name or path.stem,
+            Path(output_dir),
+            config,
+            source=path,
+            no_returns=no_returns,
+            **(options or {}),
         )
         record.outputs = [str(p) for p in report.outputs]
         record.lines = list(report.lines)

@@ -643,15 +643,25 @@ def _echo_report(report) -> None:
 def _add_stage_command(stage: str) -> None:
     @with_options(stage)
     def command(input_path: Path = _INPUT, output_dir: Path = _OUTPUT_DIR, options=None) -> None:
-        from .pipeline import run_stage
+        from .pipeline import read_stage_input, run_stage
 
         config = command_config(stage, options)
         outputs = stage_output_options(stage, options)
         _writable_folder(output_dir)
-        points = _read_scan(input_path)
+        with _exit_on_bad_input():
+            points, no_returns = read_stage_input(input_path, config)
         with _exit_on_bad_input(input_path.stem):
             _echo_report(
-                run_stage(stage, points, input_path.stem, output_dir, config, source=input_path, **outputs)
+                run_stage(
+                    stage,
+                    points,
+                    input_path.stem,
+                    output_dir,
+                    config,
+                    source=input_path,
+                    no_returns=no_returns,
+                    **outputs,
+                )
             )
 
     command.__doc__ = _STAGE_HELP[stage]

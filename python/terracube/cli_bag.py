@@ -334,24 +334,13 @@ def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
 
 def returns_and_empty_beams(cloud) -> tuple[np.ndarray, np.ndarray | None]:
     """The returns of a cloud read with ``keep_invalid``, and the directions of its empty pixels
-    (:func:`terracube.no_return_directions`) when a ``ring`` field lays it out as an organised scan
-    (the same number of pixels per beam); None otherwise."""
-    from .collapse import no_return_directions
+    when a ``ring`` field lays it out as an organised scan (:func:`terracube.pipeline.empty_beams`)."""
+    from .pipeline import empty_beams
 
     xyz = cloud.points
     valid = np.isfinite(xyz).all(axis=1) & (xyz != 0).any(axis=1)
-    ring = cloud.fields.get("ring")
-    directions = None
-    if (
-        ring is not None
-        and ring.ndim == 1
-        and np.issubdtype(ring.dtype, np.integer)
-        and 0 < valid.sum() < len(xyz)
-    ):
-        _, counts = np.unique(ring, return_counts=True)
-        if (counts == counts[0]).all():
-            directions = no_return_directions(xyz, ring=ring)
-    return (xyz if valid.all() else np.ascontiguousarray(xyz[valid])), directions
+    returns = xyz if valid.all() else np.ascontiguousarray(xyz[valid])
+    return returns, empty_beams(xyz, cloud.fields.get("ring"))
 
 
 # ------------------------------------------------------------------------------------------ bag-info

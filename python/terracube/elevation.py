@@ -15,6 +15,7 @@ from .classes import TERRAIN_COLORS, TerrainClass
 from .collapse import (
     CollapseParams,
     CollapseResult,
+    _as_directions,
     _as_points,
     _as_use_mask,
     _checked,
@@ -287,6 +288,7 @@ def dem_without_overhangs(
     *,
     collapse: CollapseParams | None = None,
     elevation: ElevationParams | None = None,
+    no_returns=None,
 ) -> tuple[ElevationMap, CollapseResult]:
     """The DEM without overhangs of [CBC] section IV-C, plus ``clearance`` and ``step`` layers.
 
@@ -305,6 +307,9 @@ def dem_without_overhangs(
         Cell edge [m] (ignored when ``elevation`` is given).
     collapse, elevation : CollapseParams, ElevationParams, optional
         All parameters of each step; the collapse's transform and crop box apply to the map too.
+    no_returns : (M, 3) array or None
+        The scan's beams that returned nothing, for ``method="shadow_aware"`` (see
+        :func:`terracube.collapse_overhangs`).
 
     Returns
     -------
@@ -316,7 +321,8 @@ def dem_without_overhangs(
     """
     collapse = collapse or CollapseParams(edge, sigma)
     elevation = elevation or ElevationParams(resolution)
-    result = _core.build_overhang_free_map(_as_points(points), collapse.to_core(), elevation.to_core())
+    beams = None if no_returns is None else _as_directions(no_returns)
+    result = _core.build_overhang_free_map(_as_points(points), collapse.to_core(), elevation.to_core(), beams)
     return ElevationMap(result.map), result.collapse
 
 

@@ -44,6 +44,7 @@ __all__ = [
     "build_global_map",
     "collapse_params",
     "elevation_params",
+    "empty_beams",
     "expand_inputs",
     "fill_note",
     "ground_reference_given",
@@ -52,6 +53,8 @@ __all__ = [
     "point_classes",
     "range_note",
     "read_scan",
+    "read_scan_and_beams",
+    "read_stage_input",
     "register_scans",
     "registration_record",
     "run_stage",
@@ -81,6 +84,47 @@ def read_scan(path: str | Path) -> np.ndarray:
     from .io import read_points
 
     return read_points(path)
+
+
+def read_scan_and_beams(path: str | Path, origin=None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The points of one scan file (as :func:`read_scan`) and the directions of its beams that
+    returned nothing, seen from ``origin`` (the file's origin when None; :func:`empty_beams`), for
+    ``method="shadow_aware"``; None when the file does not lay the scan out."""
+    from .io import read_cloud
+
+    fields = read_cloud(path)
+    return fields["xyz"], empty_beams(fields["xyz"], fields.get("ring"), origin)
+
+
+def read_stage_input(path: str | Path, config) -> tuple[np.ndarray, np.ndarray | None]:
+    """What a per-scan stage reads of a scan file under ``config``: its points, and its beams
+    without a return when the overhang removal is ``shadow_aware`` (:func:`read_scan_and_beams`,
+    from the collapse's ``sensor_origin`` when set, else the file's origin)."""
+    if config is None or config.collapse.method != "shadow_aware":
+        return read_scan(path), None
+    origin = config.collapse.sensor_origin
+    if origin is not None:  # given in the leveled frame: back into the file's
+        transform = config.frame.transform()
+        origin = transform[:3, :3].T @ (np.asarray(origin, dtype=np.float64) - transform[:3, 3])
+    return read_scan_and_beams(path, origin)
+
+
+def empty_beams(xyz: np.ndarray, ring: np.ndarray | None, origin=None) -> np.ndarray | None:
+    """The directions of the empty pixels (NaN or (0, 0, 0)) of an organised scan, seen from
+    ``origin`` (the points' origin when None), from :func:`terracube.no_return_directions`, when an
+    integer ``ring`` field lays the rows out (as many pixels per beam, as Ouster drivers write
+    them); None otherwise (no ring field, a driver that drops the empty pixels, or none empty)."""
+    from .collapse import no_return_directions
+
+    if ring is None or ring.ndim != 1 or not np.issubdtype(ring.dtype, np.integer) or len(ring) != len(xyz):
+        return None
+    valid = np.isfinite(xyz).all(axis=1) & (xyz != 0).any(axis=1)
+    if not 0 < np.count_nonzero(valid) < len(xyz):
+        return None
+    _, counts = np.unique(ring, return_counts=True)
+    if not (counts == counts[0]).all():
+        return None
+    return no_return_directions(xyz, ring=ring, origin=origin)
 
 
 def expand_inputs(inputs: Iterable[str | Path]) -> list[Path]:
@@ -376,13 +420,15 @@ class StageReport:
 
 @dataclass
 class ScanOutput:
-    """Every point of one input scan, which of them the stage used (in range), and the file it came
-    from: the classified cloud a stage writes holds every input point (the unused ones labelled 0)
-    and, written as LAS/LAZ from a LAS/LAZ input, every dimension and VLR of the input."""
+    """Every point of one input scan, which of them the stage used (in range), the file it came
+    from and its beams without a return (``no_returns``, or None): the classified cloud a stage
+    writes holds every input point (the unused ones labelled 0) and, written as LAS/LAZ from a
+    LAS/LAZ input, every dimension and VLR of the input."""
 
     points: np.ndarray
     keep: np.ndarray
     source: Path | None = None
+    no_returns: np.ndarray | None = None
 
     @functools.cached_property
     def crs(self) -> str | None:
@@ -454,7 +500,7 @@ def _run_collapse(
     _check_cloud_format(output_format)
     params = collapse_params(config)
     start = time.perf_counter()
-    result = collapse_overhangs(points, params=params)
+    result = collapse_overhangs(points, params=params, no_returns=scan.no_returns)
     elapsed_ms = _elapsed_ms(start)
     grid = result.grid
     report = StageReport(name, int(result.num_points))
@@ -468,6 +514,7 @@ def _run_collapse(
         report.lines.append(f"  {result.num_cropped:,} points outside the crop box were left out")
     if len(result.cube_reasons):
         report.lines.append("  cubes by reason (shadow_aware): " + reason_counts(result.cube_reasons))
+    _add_beams_note(report, params, scan)
     cloud = output_dir / f"{name}_classified.{output_format}"
     report.add("classified cloud", scan.write(cloud, result.overhang, as_classification=las_classification))
     if png:
@@ -497,7 +544,10 @@ def _run_dem(
     g = raw.geometry
     start = time.perf_counter()
     clean, result = dem_without_overhangs(
-        points, collapse=collapse, elevation=elevation_params(config, origin=g.origin, size=g.size)
+        points,
+        collapse=collapse,
+        elevation=elevation_params(config, origin=g.origin, size=g.size),
+        no_returns=scan.no_returns,
     )
     clean_ms = _elapsed_ms(start)
     before, after = raw["max"], clean["max"]
@@ -511,6 +561,7 @@ def _run_dem(
         f"{lower:,} cells lower, {emptied:,} emptied; raw DEM {raw_ms:.1f} ms, DEM without overhangs "
         f"{clean_ms:.1f} ms"
     )
+    _add_beams_note(report, collapse, scan)
     _add_notes(report, raw, scan)
     report.add("map", clean.save(output_dir / f"{name}_dem.npz"))
     if geotiff:
@@ -549,17 +600,20 @@ def _run_dem(
     return report
 
 
-def map_of_scan(points, name, config, remove_overhangs: bool, elevation=None):
+def map_of_scan(points, name, config, remove_overhangs: bool, elevation=None, no_returns=None):
     """The elevation map of one scan (raw, or without overhangs), a description of it, and the
     :class:`terracube.CollapseResult` (None for the raw map). ``elevation``: the map's
     :class:`terracube.ElevationParams` (default :func:`elevation_params`, with the automatic window
-    from the points). ValueError when no point is in the map."""
+    from the points); ``no_returns``: the scan's beams without a return, for the shadow-aware
+    removal. ValueError when no point is in the map."""
     from . import build_elevation_map, dem_without_overhangs
 
     elevation = elevation_params(config, points) if elevation is None else elevation
     if remove_overhangs:
         collapse = collapse_params(config)
-        elevation_map, result = dem_without_overhangs(points, collapse=collapse, elevation=elevation)
+        elevation_map, result = dem_without_overhangs(
+            points, collapse=collapse, elevation=elevation, no_returns=no_returns
+        )
         source = (
             f"DEM without overhangs (edge {collapse.edge} m, sigma {collapse.sigma}; "
             f"{result.num_overhang:,} overhang points)"
@@ -571,10 +625,11 @@ def map_of_scan(points, name, config, remove_overhangs: bool, elevation=None):
     return elevation_map, source, result
 
 
-def classified_map(points, name, config, remove_overhangs: bool):
+def classified_map(points, name, config, remove_overhangs: bool, no_returns=None):
     """(elevation map, (nx, ny) uint8 classes, description, map ms, classification ms) of one scan.
 
-    The classes are measured from :func:`terrain_params`' ground reference.
+    The classes are measured from :func:`terrain_params`' ground reference; ``no_returns`` as
+    :func:`map_of_scan`'s.
     """
     from . import classify_terrain
 
@@ -582,11 +637,16 @@ def classified_map(points, name, config, remove_overhangs: bool):
     terrain.to_core()  # checks the thresholds before the map is built
     elevation = elevation_params(config, points)  # the automatic window is not the map's time
     start = time.perf_counter()
-    elevation_map, source, _ = map_of_scan(points, name, config, remove_overhangs, elevation)
+    elevation_map, source, _ = map_of_scan(points, name, config, remove_overhangs, elevation, no_returns)
     map_ms = _elapsed_ms(start)
     start = time.perf_counter()
     classes = classify_terrain(elevation_map, terrain)
     return elevation_map, classes, source, map_ms, _elapsed_ms(start)
+
+
+def _add_beams_note(report: StageReport, collapse, scan: ScanOutput) -> None:
+    if scan.no_returns is not None and collapse.method == "shadow_aware":
+        report.lines.append(f"  {len(scan.no_returns):,} beams without a return showed free space")
 
 
 def _add_notes(report: StageReport, elevation_map, scan: ScanOutput) -> None:
@@ -648,7 +708,7 @@ def _run_classify(
 
     _check_cloud_format(cloud_format)
     elevation_map, classes, source, map_ms, classify_ms = classified_map(
-        points, name, config, remove_overhangs
+        points, name, config, remove_overhangs, scan.no_returns
     )
     g = elevation_map.geometry
     counts = np.bincount(classes.ravel(), minlength=len(TerrainClass))
@@ -703,7 +763,9 @@ def _run_fem(
     from . import fit_fuzzy_elevation_map
 
     start = time.perf_counter()
-    elevation_map, source, collapse = map_of_scan(points, name, config, remove_overhangs)
+    elevation_map, source, collapse = map_of_scan(
+        points, name, config, remove_overhangs, no_returns=scan.no_returns
+    )
     leveled, use = leveled_points(points, config)
     if collapse is not None:
         use &= ~collapse.overhang
@@ -782,6 +844,7 @@ def run_stage(
     config=None,
     *,
     source: str | Path | None = None,
+    no_returns=None,
     **options,
 ) -> StageReport:
     """Run one stage on one scan and write its outputs to ``output_dir`` as ``NAME_...`` files.
@@ -803,6 +866,10 @@ def run_stage(
     source
         The file the points were read from: its CRS goes into GeoTIFFs, and a LAS/LAZ source's
         dimensions and VLRs into a LAS/LAZ classified cloud.
+    no_returns
+        (M, 3) directions of the scan's beams that returned nothing, in the points' frame
+        (:func:`read_scan_and_beams`), or None: the shadow-aware removal (``collapse.method``)
+        takes them as free space; the paper's rule ignores them.
     **options
         The stage's output options, :data:`STAGE_OUTPUT_OPTIONS` (collapse: ``output_format``,
         ``png``, ``las_classification``; dem: ``png``, ``geotiff``; classify: ``remove_overhangs``,
@@ -831,7 +898,7 @@ def run_stage(
     if points.ndim != 2 or points.shape[1] < 3:
         raise ValueError(f"{name}: need an (N, 3) or wider array of points, got shape {points.shape}")
     keep = config.frame.in_range(points)
-    scan = ScanOutput(points, keep, None if source is None else Path(source))
+    scan = ScanOutput(points, keep, None if source is None else Path(source), no_returns)
     kept = points if keep.all() else np.ascontiguousarray(points[keep])
     report = _RUNNERS[stage](kept, name, output_dir, config, scan=scan, **options)
     for note in (range_note(points, keep, config.frame), unit_note(scan, config)):

@@ -2,6 +2,7 @@
 // the whole rule is tests/python/test_shadow_aware.py; these cases keep the C++ core covered alone.
 #include <gtest/gtest.h>
 #include <terracube/collapse.hpp>
+#include <terracube/elevation_map.hpp>
 
 #include <Eigen/Geometry>
 
@@ -217,6 +218,24 @@ TEST(ShadowAware, BeamsWithoutAReturnUnderACrownShowItsColumnsEmpty) {
   EXPECT_EQ(reason_with({Eigen::Vector3d(0.0, 0.0, 1.0)}), CubeReason::kShadowed);  // straight up: no column
   params.method = CollapseMethod::kPaper;
   EXPECT_EQ(collapse_overhangs(points, params, PointsView<double>(level)).num_overhang, 0U);  // ignored
+}
+
+TEST(ShadowAware, TheDemWithoutOverhangsTakesTheBeamsToo) {
+  const Points points = crown_behind_a_hedge();
+  const std::vector<Eigen::Vector3d> level = fan_of_beams(0.0);
+  const CollapseParams params = shadow_aware_params();
+  ElevationParams elevation;
+  elevation.resolution_m = 0.5;
+  const OverhangFreeMap alone = build_overhang_free_map(PointsView<double>(points), params, elevation);
+  const OverhangFreeMap seen =
+      build_overhang_free_map(PointsView<double>(points), params, elevation, PointsView<double>(level));
+  EXPECT_EQ(seen.collapse.overhang, collapse_overhangs(points, params, PointsView<double>(level)).overhang);
+  EXPECT_GT(seen.collapse.num_overhang, alone.collapse.num_overhang);
+  // The crown's cells: a height without the beams, none with them (nothing under it was seen).
+  const auto cell = seen.map.geometry().index_of(Eigen::Vector2d(12.0, 0.6));
+  ASSERT_TRUE(cell.has_value());
+  EXPECT_GT(alone.map.get("max")((*cell).x(), (*cell).y()), 1.0F);
+  EXPECT_TRUE(std::isnan(seen.map.get("max")((*cell).x(), (*cell).y())));
 }
 
 TEST(ShadowAware, BeamsWithoutAReturnAreRotatedByTheLevelingTransform) {

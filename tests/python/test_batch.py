@@ -254,17 +254,17 @@ _SABOTAGE = """
 import os, signal, time
 import terracube.batch as batch
 
-_read_scan = batch.read_scan
+_read_stage_input = batch.read_stage_input
 
-def read_scan(path):
+def read_stage_input(path, config):
     name = os.path.basename(str(path))
     if name.startswith("hang"):
         time.sleep(3600)
     if name.startswith("crash"):
         os.kill(os.getpid(), signal.SIGKILL)
-    return _read_scan(path)
+    return _read_stage_input(path, config)
 
-batch.read_scan = read_scan
+batch.read_stage_input = read_stage_input
 """
 
 
@@ -316,8 +316,10 @@ def test_a_hanging_file_on_a_thread_worker_times_out_and_the_summary_says_so(
 
     folder, _ = scan_folder
     release = threading.Event()
-    real = batch.read_scan
-    monkeypatch.setattr(batch, "read_scan", lambda p: release.wait() if "scan_a" in str(p) else real(p))
+    real = batch.read_stage_input
+    monkeypatch.setattr(
+        batch, "read_stage_input", lambda p, c: release.wait() if "scan_a" in str(p) else real(p, c)
+    )
     inputs = [folder / "scan_b.pcd", folder / "scan_a.npy"]
     try:  # worker threads in this process (processes=False), so the patch reaches them
         records = run_batch(

@@ -850,3 +850,142 @@ def test_organised_image_refuses_another_scanner_or_sensor():
         sim.organised_image(scan, small)
     with pytest.raises(ValueError, match="RotatingLidar"):
         sim.organised_image(scan, sim.Tilting2DScanner())
+
+
+def hedge_scene_image():
+    """The VLP-32-like scan of three trees behind 1.2 m hedges as an organised image, its returns
+    (row order of the image) and the labels of those returns."""
+    from terracube import simulation as sim
+
+    parts = []
+    for k, distance in enumerate((12.0, 18.0, 24.0)):
+        parts += tree_behind(sim, distance, 30.0 + 40.0 * k, "hedge")
+    pose = np.eye(4)
+    pose[2, 3] = 1.73
+    model = sim.RotatingLidar(
+        channels=32, vertical_fov_min=-25.0, vertical_fov_max=15.0, steps_per_revolution=1800, max_range=80.0
+    )
+    scan = sim.cast_scan(sim.make_scene(parts, 0.0), pose, model, seed=3)
+    image = sim.organised_image(scan, model)
+    labels = np.full(model.channels * model.steps_per_revolution, -1)  # pixel (channel, step), row-major
+    ray = scan.ray_indices  # channel ray % channels of step ray // channels
+    labels[(ray % model.channels) * model.steps_per_revolution + ray // model.channels] = scan.labels
+    return image, labels
+
+
+def test_empty_beams_of_a_ring_field_and_when_there_are_none():
+    from terracube.pipeline import empty_beams
+
+    image, _ = hedge_scene_image()
+    xyz = image.reshape(-1, 3).astype(np.float32)
+    ring = np.repeat(np.arange(32, dtype=np.uint16), 1800)
+    # Column-major, as the OS1-64 recording: the beams interleave, each beam's pixels in order.
+    found = empty_beams(
+        image.transpose(1, 0, 2).reshape(-1, 3), np.tile(np.arange(32, dtype=np.uint16), 1800)
+    )
+    expected = tc.no_return_directions(image)
+    assert len(found) == len(expected) == np.count_nonzero(~(xyz != 0).any(axis=1)) > 1000
+    np.testing.assert_allclose(np.sort(found, axis=0), np.sort(expected, axis=0), atol=1e-9)
+    returned = (xyz != 0).any(axis=1)
+    assert empty_beams(xyz, None) is None
+    assert empty_beams(xyz[returned], ring[returned]) is None  # a driver that drops them: unequal rings
+    assert empty_beams(xyz, ring.astype(np.float32)) is None  # not an integer field
+    assert len(empty_beams(xyz[-3600:], ring[-3600:])) > 1800  # the top two beams: mostly sky
+    full = np.where(returned[:, None], xyz, 5.0)
+    assert empty_beams(full, ring) is None  # no empty pixel
+
+
+def test_cli_stages_read_the_empty_pixels_of_an_organised_file_as_beams(tmp_path):
+    """A scan file with a ring field (an Ouster driver's PCD) gives the shadow-aware stages its
+    empty pixels: the same mask as collapse_overhangs given no_return_directions, more canopy out of
+    the DEM than the returns alone, and nothing changes for the paper's rule."""
+    from terracube import simulation as sim
+    from terracube.cli import app
+    from terracube.io import write_pcd
+    from typer.testing import CliRunner
+
+    image, labels = hedge_scene_image()
+    xyz = image.reshape(-1, 3).astype(np.float32)
+    ring = np.repeat(np.arange(32, dtype=np.uint16), 1800)
+    returned = (xyz != 0).any(axis=1)
+    write_pcd(tmp_path / "organised.pcd", {"xyz": xyz, "ring": ring})
+    np.save(tmp_path / "returns.npy", xyz[returned])
+    canopy = labels[returned] == sim.Label.CANOPY
+    structures = np.isin(labels[returned], (sim.Label.WALL, sim.Label.TRUNK))
+    runner = CliRunner()
+    common = ["-e", "0.5", "-s", "4", "--method", "shadow_aware"]
+
+    result = runner.invoke(
+        app, ["collapse", str(tmp_path / "organised.pcd"), "-o", str(tmp_path), "-f", "npz", *common]
+    )
+    assert result.exit_code == 0, result.output
+    beams = tc.no_return_directions(image)
+    assert f"{len(beams):,} beams without a return showed free space" in result.output
+    saved = np.load(tmp_path / "organised_classified.npz")["overhang"].astype(bool)
+    params = tc.CollapseParams(edge=0.5, sigma=4, method="shadow_aware")  # no_return_range: the config's 30 m
+    expected = tc.collapse_overhangs(xyz[returned], params=params, no_returns=beams).overhang
+    assert not saved[~returned].any()
+    np.testing.assert_array_equal(saved[returned], expected)
+    alone = tc.collapse_overhangs(xyz[returned], params=params).overhang
+    assert (expected & canopy).sum() >= (alone & canopy).sum() + 0.05 * canopy.sum()
+    assert not (expected & structures).any()
+
+    high = {}
+    for name in ("organised.pcd", "returns.npy"):
+        out = tmp_path / name.split(".")[0]
+        result = runner.invoke(
+            app, ["dem", str(tmp_path / name), "-o", str(out), "-r", "0.5", "--no-png", *common]
+        )
+        assert result.exit_code == 0, result.output
+        assert ("beams without a return" in result.output) == (name == "organised.pcd")
+        dem = tc.ElevationMap.load(out / f"{name.split('.')[0]}_dem.npz")["max"]
+        high[name] = np.count_nonzero(dem > 1.0)  # crown cells left in the map (sensor frame: ground -1.73)
+    assert high["organised.pcd"] < 0.8 * high["returns.npy"]
+    # dem_without_overhangs takes the same beams
+    _, removed = tc.dem_without_overhangs(xyz[returned], collapse=params, no_returns=beams)
+    np.testing.assert_array_equal(removed.overhang, expected)
+    paper = runner.invoke(
+        app, ["collapse", str(tmp_path / "organised.pcd"), "-o", str(tmp_path / "p"), "-f", "npz"]
+    )
+    assert paper.exit_code == 0 and "beams without a return" not in paper.output
+
+
+def test_batch_and_run_stage_take_the_beams_of_an_organised_file(tmp_path):
+    from terracube.batch import process_file
+    from terracube.config import default_config
+    from terracube.io import read_cloud, write_pcd
+    from terracube.pipeline import read_stage_input, run_stage
+
+    image, _ = hedge_scene_image()
+    xyz = image.reshape(-1, 3).astype(np.float32)
+    write_pcd(
+        tmp_path / "organised.pcd", {"xyz": xyz, "ring": np.repeat(np.arange(32, dtype=np.uint16), 1800)}
+    )
+    config = default_config().replace("collapse", edge=0.5, sigma=4, method="shadow_aware")
+    points, beams = read_stage_input(tmp_path / "organised.pcd", config)
+    np.testing.assert_array_equal(points, xyz)
+    assert len(beams) == len(tc.no_return_directions(image))
+    assert read_stage_input(tmp_path / "organised.pcd", default_config())[1] is None  # the paper's rule
+    # A file whose origin is not the sensor's (the sensor at q): with the sensor origin given (in
+    # the leveled frame, R q), the beams are the sensor's own.
+    q = np.array([0.3, -0.2, 0.5])
+    shifted = np.where((xyz != 0).any(axis=1, keepdims=True), xyz + q, 0.0).astype(np.float32)
+    write_pcd(
+        tmp_path / "shifted.pcd", {"xyz": shifted, "ring": np.repeat(np.arange(32, dtype=np.uint16), 1800)}
+    )
+    tilted = config.replace("frame", roll_deg=3.0)
+    moved = tilted.replace("collapse", sensor_origin=tuple(tilted.frame.transform()[:3, :3] @ q))
+    found = read_stage_input(tmp_path / "shifted.pcd", moved)[1]
+    assert len(found) == len(beams) and angle_deg(found, beams).max() < 1e-3
+    assert angle_deg(read_stage_input(tmp_path / "shifted.pcd", tilted)[1], beams).max() > 0.1  # seen from 0
+    record = process_file("collapse", tmp_path / "organised.pcd", tmp_path / "batch", config, {"png": False})
+    assert record.status == "ok", record.error
+    assert any(f"{len(beams):,} beams without a return" in line for line in record.lines)
+    run_stage("collapse", points, "direct", tmp_path / "direct", config, no_returns=beams, png=False)
+    batch = read_cloud(tmp_path / "batch" / "organised_classified.ply")["label"]
+    direct = read_cloud(tmp_path / "direct" / "direct_classified.ply")["label"]
+    returned = (xyz != 0).any(axis=1)
+    params = tc.CollapseParams(edge=0.5, sigma=4, method="shadow_aware")
+    expected = tc.collapse_overhangs(xyz[returned], params=params, no_returns=beams).overhang
+    np.testing.assert_array_equal(batch, direct)
+    np.testing.assert_array_equal(batch[returned], expected)

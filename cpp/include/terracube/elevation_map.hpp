@@ -136,14 +136,18 @@ void build_elevation_map_into(ElevationMap& map, const PointsView<double>& point
 ///  - "step": the largest |max - max of a neighbour| over the 8 neighbours with data [m].
 /// The map is built in collapse's frame: its transform and crop replace elevation's. Build the raw
 /// DEM with the same ElevationParams (and that transform and crop) to compare.
+/// `no_return_directions`: the scan's beams without a return, for the shadow-aware rule (see
+/// collapse_overhangs).
 struct OverhangFreeMap {
   ElevationMap map;         ///< layers of the kept points, plus clearance and step
   CollapseResult collapse;  ///< the overhang mask and cubes
 };
 OverhangFreeMap build_overhang_free_map(const PointsView<float>& points, const CollapseParams& collapse,
-                                        const ElevationParams& elevation);
+                                        const ElevationParams& elevation,
+                                        const PointsView<double>& no_return_directions = {});
 OverhangFreeMap build_overhang_free_map(const PointsView<double>& points, const CollapseParams& collapse,
-                                        const ElevationParams& elevation);
+                                        const ElevationParams& elevation,
+                                        const PointsView<double>& no_return_directions = {});
 
 /// The "step" layer of a height layer: the largest absolute difference to the 8 neighbours that
 /// have data; 0 where no neighbour has data, NaN where the cell has none.
