@@ -6,16 +6,16 @@
 usual files there, and the results as a bag beside them), ``--bag-storage`` and, for ``map`` and
 ``stream``, ``--odom TOPIC`` or ``--tf BASE_FRAME`` (where the poses come from). The commands' own
 code is left as it is: a wrapper takes the bag options off each callback. Given a bag, ``map``
-runs :func:`map_bag` and ``stream`` :func:`stream_bag`; a per-scan stage runs its unchanged command
-once per cloud, on the cloud saved as a temporary ``BAGNAME_0000.npy`` (so outputs are named as
-for loose files), in the cloud's own frame (the per-scan stages use no pose).
+runs :func:`map_bag` and ``stream`` :func:`stream_bag`; a per-scan stage runs
+:func:`terracube.pipeline.run_stage` with the command's options once per cloud, named
+``BAGNAME_0000``, ... (so outputs are named as for loose files), in the cloud's own frame (the
+per-scan stages use no pose).
 """
 
 from __future__ import annotations
 
 import functools
 import inspect
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -100,43 +100,47 @@ def _write_stage_results(writer, outputs: list[Path], cloud) -> None:
             writer.write_cloud(fields["xyz"], fields.get("label"), stamp=cloud.stamp, frame_id=cloud.frame_id)
 
 
-def _outputs_since(directory: Path, name: str, before: dict[Path, int]) -> list[Path]:
-    """Files ``NAME_*`` in ``directory`` that are new or changed since the ``before`` snapshot."""
-    return sorted(path for path in directory.glob(f"{name}_*") if before.get(path) != path.stat().st_mtime_ns)
-
-
-def _snapshot(directory: Path, name: str) -> dict[Path, int]:
-    return {path: path.stat().st_mtime_ns for path in directory.glob(f"{name}_*")}
-
-
-def run_stage_on_bag(callback, input_name: str, values: dict, bag: Path, bag_options: BagOptions) -> None:
-    """Run a per-scan command (``callback`` with its option ``values``) on every cloud of the bag's
-    point topic as ``NAME_0000``, ``NAME_0001``, ... and, with ``--out``, write what each run wrote
-    (maps as GridMap + OccupancyGrid, labelled clouds as PointCloud2) into a bag ``NAME_STAGE``."""
+def run_stage_on_bag(stage: str, values: dict, bag: Path, bag_options: BagOptions) -> None:
+    """Run a per-scan stage (with the command's option ``values``) on every cloud of the bag's point
+    topic as ``NAME_0000``, ``NAME_0001``, ..., in the cloud's own frame (the per-scan stages use no
+    pose), and, with ``--out``, write what each run wrote (maps as GridMap + OccupancyGrid, labelled
+    clouds as PointCloud2) into a bag ``NAME_STAGE``. With ``--method shadow_aware`` the empty pixels
+    of clouds whose ``ring`` field lays them out are its beams without a return."""
     from .bag import read_bag
-    from .cli import _exit_on_bad_input
+    from .cli import (
+        STAGE_OPTIONS,
+        _echo_report,
+        _exit_on_bad_input,
+        _writable_folder,
+        command_config,
+        stage_output_options,
+    )
+    from .pipeline import run_stage
 
-    output_dir = Path(bag_options.out or values.get("output_dir") or ".")
-    values = {**values, "output_dir": output_dir} if "output_dir" in values else values
-    stage = callback.__name__
+    options = {name: values.get(name) for name in STAGE_OPTIONS[stage]}
+    config = command_config(stage, options)
+    outputs = stage_output_options(stage, options)
+    output_dir = _writable_folder(Path(bag_options.out or values.get("output_dir") or "."))
+    beams = config.collapse.method == "shadow_aware"
     with _exit_on_bad_input():  # the bag's errors name it
         topic = _points_topic(bag, bag_options.points)
-        clouds = read_bag(bag, topic)
+        clouds = read_bag(bag, topic, keep_invalid=beams)
     writer = _output_bag(output_dir, f"{bag.stem}_{stage}", bag_options.storage) if bag_options.out else None
     try:
-        with tempfile.TemporaryDirectory(prefix="terracube-bag-") as scratch:
-            with _exit_on_bad_input():  # the bag's errors name it
-                for index, cloud in enumerate(_progress(clouds.clouds(), len(clouds), stage)):
-                    name = f"{bag.stem}_{index:04d}"
-                    scan = Path(scratch) / f"{name}.npy"
-                    np.save(scan, cloud.points)
-                    before = _snapshot(output_dir, name)
-                    callback(**{**values, input_name: scan})
-                    scan.unlink()
-                    if cloud.no_returns:
-                        typer.echo(f"  {cloud.no_returns:,} no-returns dropped")
-                    if writer is not None:
-                        _write_stage_results(writer, _outputs_since(output_dir, name, before), cloud)
+        with _exit_on_bad_input():  # the bag's errors name it
+            for index, cloud in enumerate(_progress(clouds.clouds(), len(clouds), stage)):
+                name = f"{bag.stem}_{index:04d}"
+                points, no_returns = returns_and_empty_beams(cloud) if beams else (cloud.points, None)
+                with _exit_on_bad_input(name):
+                    report = run_stage(
+                        stage, points, name, output_dir, config, no_returns=no_returns, **outputs
+                    )
+                _echo_report(report)
+                dropped = cloud.no_returns + len(cloud.points) - len(points)
+                if dropped and no_returns is None:
+                    typer.echo(f"  {dropped:,} no-returns dropped")
+                if writer is not None:
+                    _write_stage_results(writer, report.outputs, cloud)
     except BaseException:
         if writer is not None:
             writer.abort()
@@ -455,7 +459,7 @@ def _with_bag_input(callback, posed=None):
             return callback(**values)
         if needs_poses:
             return posed(source, values, bag_options)
-        return run_stage_on_bag(callback, input_name, values, source, bag_options)
+        return run_stage_on_bag(callback.__name__, values, source, bag_options)
 
     input_help = (
         "\n\nA ROS bag (.bag, .mcap or a ROS 2 bag folder) as input: --points TOPIC picks the "

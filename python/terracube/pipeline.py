@@ -720,6 +720,8 @@ def _run_classify(
         f"map {map_ms:.1f} ms, classification {classify_ms:.1f} ms"
     )
     report.lines.append(f"  ground reference: {where}")
+    if remove_overhangs:
+        _add_beams_note(report, config.collapse, scan)
     for terrain_class in TerrainClass:
         count = int(counts[int(terrain_class)])
         share = f" ({count / known:.1%} of cells with data)" if terrain_class and known else ""
@@ -785,6 +787,8 @@ def _run_fem(
         f"{g.size[0] * g.size[1]:,} cells ({g.resolution:g} m) filled, RMSE to the mean DEM {rmse:.3f} m; "
         f"{elapsed_ms:.1f} ms"
     )
+    if remove_overhangs:
+        _add_beams_note(report, config.collapse, scan)
     _add_notes(report, elevation_map, scan)
     report.add(
         "map (layers fem, fem_confidence and the DEM's)", elevation_map.save(output_dir / f"{name}_fem.npz")

@@ -965,3 +965,31 @@ def test_stream_shadow_aware_on_an_organised_bag_uses_its_beams_without_a_return
     assert paper.exit_code == 0 and "170,619 no-returns dropped" in paper.output
     for name in ("s", "p"):
         assert tc.ElevationMap.load(tmp_path / name / "local_map.npz")["count"].sum() > 0
+
+
+def test_a_per_scan_stage_on_an_organised_bag_uses_its_beams_without_a_return(cli, bags, tmp_path):
+    """``terracube collapse BAG --method shadow_aware``: each cloud's empty pixels are its beams, as
+    collapse_overhangs given returns_and_empty_beams of the cloud; the paper's rule drops them."""
+    from terracube.bag import read_bag
+    from terracube.cli_bag import returns_and_empty_beams
+
+    path = bags / "ouster_os1_pointcloudset_ros1.mcap"
+    common = ["--points", OUSTER_TOPIC, "-e", "0.5", "-s", "4", "-f", "npz", "--no-png"]
+    result = cli("collapse", path, "--method", "shadow_aware", "-o", tmp_path / "s", *common)
+    assert result.exit_code == 0, result.output
+    assert (
+        "85,356 beams without a return" in result.output and "85,263 beams without a return" in result.output
+    )
+    params = tc.CollapseParams(edge=0.5, sigma=4, method="shadow_aware")
+    changed = 0
+    for index, cloud in enumerate(read_bag(path, OUSTER_TOPIC, keep_invalid=True).clouds()):
+        points, beams = returns_and_empty_beams(cloud)
+        saved = np.load(tmp_path / "s" / f"{path.stem}_{index:04d}_classified.npz")
+        np.testing.assert_array_equal(saved["xyz"], points)
+        expected = tc.collapse_overhangs(points, params=params, no_returns=beams).overhang
+        np.testing.assert_array_equal(saved["overhang"].astype(bool), expected)
+        changed += np.count_nonzero(expected != tc.collapse_overhangs(points, params=params).overhang)
+    assert changed > 0  # the beams decide some cubes of this recording
+    paper = cli("collapse", path, "-o", tmp_path / "p", *common)
+    assert paper.exit_code == 0 and "85,356 no-returns dropped" in paper.output
+    assert "beams without a return" not in paper.output

@@ -941,6 +941,12 @@ def test_cli_stages_read_the_empty_pixels_of_an_organised_file_as_beams(tmp_path
         dem = tc.ElevationMap.load(out / f"{name.split('.')[0]}_dem.npz")["max"]
         high[name] = np.count_nonzero(dem > 1.0)  # crown cells left in the map (sensor frame: ground -1.73)
     assert high["organised.pcd"] < 0.8 * high["returns.npy"]
+    for stage in ("classify", "fem"):  # their overhang removal takes them too
+        args = [stage, str(tmp_path / "organised.pcd"), "-o", str(tmp_path / stage), "-r", "0.5", "--no-png"]
+        result = runner.invoke(app, [*args, "--remove-overhangs", *common])
+        assert result.exit_code == 0, result.output
+        assert f"{len(beams):,} beams without a return" in result.output
+        assert "beams without a return" not in runner.invoke(app, [*args, "--keep-overhangs", *common]).output
     # dem_without_overhangs takes the same beams
     _, removed = tc.dem_without_overhangs(xyz[returned], collapse=params, no_returns=beams)
     np.testing.assert_array_equal(removed.overhang, expected)
