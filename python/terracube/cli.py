@@ -1207,6 +1207,7 @@ def stream_command(
     from tqdm import tqdm
 
     from .mapping import detect_pose_format, match_scans_to_poses, read_kitti_calibration, read_pose_file
+    from .pipeline import read_returns_and_beams
     from .stream import run_stream
 
     files = _scan_files(scans, limit)
@@ -1237,16 +1238,24 @@ def stream_command(
             )
         )
     sequence = tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="streaming")
+    beams = params.collapse.method == "shadow_aware"  # the empty pixels of organised scans help it
+    used_beams = []
+
+    def scans_of_files():
+        for path, k in sequence:
+            if beams:
+                with _exit_on_bad_input():
+                    points, no_returns = read_returns_and_beams(path)
+                used_beams.append(0 if no_returns is None else len(no_returns))
+            else:
+                points, no_returns = _read_scan(path), None
+            yield str(path), points, odometry[k], float(stamps[k]), no_returns
+
     with _exit_on_bad_input("stream"):
-        report = run_stream(
-            ((str(path), _read_scan(path), odometry[k], float(stamps[k])) for path, k in sequence),
-            output_dir,
-            params,
-            every=every,
-            animation=animation,
-            png=png,
-        )
+        report = run_stream(scans_of_files(), output_dir, params, every=every, animation=animation, png=png)
     _echo_report(report)
+    if sum(used_beams):
+        typer.echo(f"{sum(used_beams):,} beams without a return (from the ring field) showed free space")
 
 
 # ------------------------------------------------------------------------------------------ config, batch

@@ -339,12 +339,13 @@ def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
 def returns_and_empty_beams(cloud) -> tuple[np.ndarray, np.ndarray | None]:
     """The returns of a cloud read with ``keep_invalid``, and the directions of its empty pixels
     when a ``ring`` field lays it out as an organised scan (:func:`terracube.pipeline.empty_beams`)."""
-    from .pipeline import empty_beams
+    from .pipeline import empty_beams, is_return
 
     xyz = cloud.points
-    valid = np.isfinite(xyz).all(axis=1) & (xyz != 0).any(axis=1)
-    returns = xyz if valid.all() else np.ascontiguousarray(xyz[valid])
-    return returns, empty_beams(xyz, cloud.fields.get("ring"))
+    returns = is_return(xyz)
+    return (xyz if returns.all() else np.ascontiguousarray(xyz[returns])), empty_beams(
+        xyz, cloud.fields.get("ring")
+    )
 
 
 # ------------------------------------------------------------------------------------------ bag-info

@@ -48,10 +48,12 @@ __all__ = [
     "expand_inputs",
     "fill_note",
     "ground_reference_given",
+    "is_return",
     "leveled_points",
     "mapper_params",
     "point_classes",
     "range_note",
+    "read_returns_and_beams",
     "read_scan",
     "read_scan_and_beams",
     "read_stage_input",
@@ -96,6 +98,20 @@ def read_scan_and_beams(path: str | Path, origin=None) -> tuple[np.ndarray, np.n
     return fields["xyz"], empty_beams(fields["xyz"], fields.get("ring"), origin)
 
 
+def read_returns_and_beams(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """The returns of one scan file (its rows without NaN/Inf or (0, 0, 0) no-returns) and the
+    directions of its beams that returned nothing (:func:`empty_beams`, None when the file does not
+    lay the scan out): what ``LocalMap.update`` takes as ``points`` and ``no_returns``."""
+    xyz, beams = read_scan_and_beams(path)
+    returns = is_return(xyz)
+    return (xyz if returns.all() else np.ascontiguousarray(xyz[returns])), beams
+
+
+def is_return(xyz: np.ndarray) -> np.ndarray:
+    """(N,) bool: the rows that are returns, finite and not (0, 0, 0) (a driver's no-return)."""
+    return np.isfinite(xyz).all(axis=1) & (xyz != 0).any(axis=1)
+
+
 def read_stage_input(path: str | Path, config) -> tuple[np.ndarray, np.ndarray | None]:
     """What a per-scan stage reads of a scan file under ``config``: its points, and its beams
     without a return when the overhang removal is ``shadow_aware`` (:func:`read_scan_and_beams`,
@@ -118,8 +134,7 @@ def empty_beams(xyz: np.ndarray, ring: np.ndarray | None, origin=None) -> np.nda
 
     if ring is None or ring.ndim != 1 or not np.issubdtype(ring.dtype, np.integer) or len(ring) != len(xyz):
         return None
-    valid = np.isfinite(xyz).all(axis=1) & (xyz != 0).any(axis=1)
-    if not 0 < np.count_nonzero(valid) < len(xyz):
+    if not 0 < np.count_nonzero(is_return(xyz)) < len(xyz):
         return None
     _, counts = np.unique(ring, return_counts=True)
     if not (counts == counts[0]).all():

@@ -995,3 +995,48 @@ def test_batch_and_run_stage_take_the_beams_of_an_organised_file(tmp_path):
     expected = tc.collapse_overhangs(xyz[returned], params=params, no_returns=beams).overhang
     np.testing.assert_array_equal(batch, direct)
     np.testing.assert_array_equal(batch[returned], expected)
+
+
+def test_stream_on_a_folder_of_organised_files_uses_their_beams(tmp_path):
+    """``terracube stream FOLDER --method shadow_aware`` on scans with a ring field: each update gets
+    the file's returns and its empty pixels, as LocalMap.update given them does."""
+    from terracube.cli import app, stream_params
+    from terracube.io import write_pcd
+    from terracube.poses import write_tum_poses
+    from typer.testing import CliRunner
+
+    image, _ = hedge_scene_image()
+    xyz = image.reshape(-1, 3).astype(np.float32)
+    returned = (xyz != 0).any(axis=1)
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    for k in range(2):
+        write_pcd(
+            scans / f"{k:06d}.pcd", {"xyz": xyz, "ring": np.repeat(np.arange(32, dtype=np.uint16), 1800)}
+        )
+    poses = [np.eye(4), np.eye(4)]
+    for k, pose in enumerate(poses):
+        pose[:3, 3] = (0.5 * k, 0.0, 1.73)
+    write_tum_poses(tmp_path / "tum.txt", [0.0, 0.1], poses)
+    options = ["--poses", str(tmp_path / "tum.txt"), "--length", "40", "--resolution", "0.5", "--no-png"]
+    options += ["--robot-height", "2"]
+    result = CliRunner().invoke(
+        app, ["stream", str(scans), "-o", str(tmp_path / "s"), "--method", "shadow_aware", *options]
+    )
+    assert result.exit_code == 0, result.output
+    beams = tc.no_return_directions(image)
+    assert f"{2 * len(beams):,} beams without a return" in result.output
+    params = stream_params(
+        dict(length=40.0, resolution=0.5, collapse_method="shadow_aware", robot_height=2.0)
+    )
+    expected = tc.LocalMap(params=params)
+    for stamp, pose in zip((0.0, 0.1), poses, strict=True):
+        expected.update(xyz[returned], pose, stamp, no_returns=beams)
+    written = tc.ElevationMap.load(tmp_path / "s" / "local_map.npz")
+    np.testing.assert_array_equal(written["elevation"], expected.to_elevation_map()["elevation"])
+    alone = tc.LocalMap(params=params)
+    for stamp, pose in zip((0.0, 0.1), poses, strict=True):
+        alone.update(xyz[returned], pose, stamp)
+    crowns = [np.count_nonzero(m["elevation"] > 1.0) for m in (written, alone.to_elevation_map())]
+    print("cells over 1 m with / without the beams:", crowns)
+    assert crowns[0] < 0.5 * crowns[1]  # the beams keep crowns behind the hedges out of the map
