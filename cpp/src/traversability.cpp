@@ -53,9 +53,9 @@ struct Moments {
 /// The moments of geometric row `x` summed over the windows [j - r, j + r] clipped to the row, from
 /// differences of prefix sums, into sums[0, n), and each window's lowest and highest height into
 /// lowest[0, n) and highest[0, n) (+inf and -inf when all unknown). `padded` holds the row's n
-/// heights in map order (NaN unknown; the moments take them relative to `reference`) between r NaNs
-/// on each side, so that every
-/// window reads 2 r + 1 of them: loops without bounds to clip, which the compiler vectorises.
+/// heights in map order (NaN unknown; the moments take them relative to `reference`) between r
+/// NaNs on each side, so that every window reads 2 r + 1 of them: loops without bounds to clip,
+/// which the compiler vectorises.
 void row_windows(const std::vector<float>& padded, double x, double reference, int r, std::vector<Moments>& prefix,
                  Moments* sums, float* lowest, float* highest) {
   const int n = static_cast<int>(padded.size()) - 2 * r;
