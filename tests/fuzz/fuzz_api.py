@@ -168,7 +168,9 @@ def _function_case(tc, rng: np.random.Generator, points: np.ndarray) -> None:
     elif which == 1:
         tc.classify_terrain(tc.build_elevation_map(points, resolution, drop_non_finite=drop))
     elif which == 2:
-        tc.dem_without_overhangs(points, edge, sigma, resolution)
+        method = str(rng.choice(["paper", "shadow_aware"]))
+        collapse = tc.CollapseParams(edge, sigma, drop_non_finite=drop, method=method)
+        tc.dem_without_overhangs(points, resolution=resolution, collapse=collapse, no_returns=beams(rng))
     elif which == 3:
         local = tc.LocalMap(float(rng.choice([20.0, 1.0, 0.05, 1e4])), float(rng.choice([0.1, 1.0, 1e-3])))
         for _ in range(3):
@@ -192,7 +194,12 @@ def _function_case(tc, rng: np.random.Generator, points: np.ndarray) -> None:
         tc.run_mapper([points, cloud(rng)], [pose(rng), pose(rng)])
     else:
         origin = [None, (0.0, 0.0, 1.7), (math.nan, 0.0, 0.0)][int(rng.integers(0, 3))]
-        tc.no_return_directions(**organised(rng, points), origin=origin)
+        layout = organised(rng, points)
+        tc.no_return_directions(**layout, origin=origin)
+        if "ring" in layout:  # what the CLI reads from a file's ring field
+            from terracube.pipeline import empty_beams
+
+            empty_beams(layout["organised"], layout["ring"], origin)
 
 
 def _parameter_case(tc, rng: np.random.Generator, points: np.ndarray) -> None:
