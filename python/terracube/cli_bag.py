@@ -337,15 +337,11 @@ def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
 
 
 def returns_and_empty_beams(cloud) -> tuple[np.ndarray, np.ndarray | None]:
-    """The returns of a cloud read with ``keep_invalid``, and the directions of its empty pixels
-    when a ``ring`` field lays it out as an organised scan (:func:`terracube.pipeline.empty_beams`)."""
-    from .pipeline import empty_beams, is_return
+    """The returns of a cloud read with ``keep_invalid`` and the directions of its empty pixels
+    (:func:`terracube.pipeline.returns_and_beams` of its points and ``ring`` field)."""
+    from .pipeline import returns_and_beams
 
-    xyz = cloud.points
-    returns = is_return(xyz)
-    return (xyz if returns.all() else np.ascontiguousarray(xyz[returns])), empty_beams(
-        xyz, cloud.fields.get("ring")
-    )
+    return returns_and_beams(cloud.points, cloud.fields.get("ring"))
 
 
 # ------------------------------------------------------------------------------------------ bag-info

@@ -424,6 +424,12 @@ def _organised_image(points, ring) -> np.ndarray:
     return xyz[order, :3].reshape(len(beams), counts[0], 3)
 
 
+def is_return(xyz: np.ndarray) -> np.ndarray:
+    """Which pixels or rows of x, y, z (last axis) are returns: finite and not (0, 0, 0), the two
+    ways drivers store a beam that returned nothing."""
+    return np.isfinite(xyz).all(axis=-1) & (xyz != 0).any(axis=-1)
+
+
 def no_return_directions(organised, ring=None, origin=None) -> np.ndarray:
     """The directions of the empty pixels of an organised scan, for ``collapse_overhangs(no_returns=)``.
 
@@ -444,7 +450,7 @@ def no_return_directions(organised, ring=None, origin=None) -> np.ndarray:
     sensor = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
     if sensor.shape != (3,) or not np.isfinite(sensor).all():
         raise ValueError(f"origin must be 3 finite numbers [m], got {origin!r}")
-    valid = np.isfinite(image).all(axis=2) & (image != 0).any(axis=2)  # NaN or (0, 0, 0): no return
+    valid = is_return(image)
     if not valid.any():
         raise ValueError("organised has no return to measure the beams' directions by")
     if valid.all():

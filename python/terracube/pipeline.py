@@ -48,7 +48,6 @@ __all__ = [
     "expand_inputs",
     "fill_note",
     "ground_reference_given",
-    "is_return",
     "leveled_points",
     "mapper_params",
     "point_classes",
@@ -59,6 +58,7 @@ __all__ = [
     "read_stage_input",
     "register_scans",
     "registration_record",
+    "returns_and_beams",
     "run_stage",
     "scan_trajectory",
     "terrain_params",
@@ -99,17 +99,21 @@ def read_scan_and_beams(path: str | Path, origin=None) -> tuple[np.ndarray, np.n
 
 
 def read_returns_and_beams(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """The returns of one scan file (its rows without NaN/Inf or (0, 0, 0) no-returns) and the
-    directions of its beams that returned nothing (:func:`empty_beams`, None when the file does not
-    lay the scan out): what ``LocalMap.update`` takes as ``points`` and ``no_returns``."""
-    xyz, beams = read_scan_and_beams(path)
+    """:func:`returns_and_beams` of one scan file."""
+    from .io import read_cloud
+
+    fields = read_cloud(path)
+    return returns_and_beams(fields["xyz"], fields.get("ring"))
+
+
+def returns_and_beams(xyz: np.ndarray, ring: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The returns of a scan (its rows without NaN/Inf or (0, 0, 0) no-returns) and the directions
+    of its beams that returned nothing (:func:`empty_beams`, None when ``ring`` does not lay the
+    scan out): what ``LocalMap.update`` takes as ``points`` and ``no_returns``."""
+    from .collapse import is_return
+
     returns = is_return(xyz)
-    return (xyz if returns.all() else np.ascontiguousarray(xyz[returns])), beams
-
-
-def is_return(xyz: np.ndarray) -> np.ndarray:
-    """(N,) bool: the rows that are returns, finite and not (0, 0, 0) (a driver's no-return)."""
-    return np.isfinite(xyz).all(axis=1) & (xyz != 0).any(axis=1)
+    return (xyz if returns.all() else np.ascontiguousarray(xyz[returns])), empty_beams(xyz, ring)
 
 
 def read_stage_input(path: str | Path, config) -> tuple[np.ndarray, np.ndarray | None]:
@@ -130,7 +134,7 @@ def empty_beams(xyz: np.ndarray, ring: np.ndarray | None, origin=None) -> np.nda
     ``origin`` (the points' origin when None), from :func:`terracube.no_return_directions`, when an
     integer ``ring`` field lays the rows out (as many pixels per beam, as Ouster drivers write
     them); None otherwise (no ring field, a driver that drops the empty pixels, or none empty)."""
-    from .collapse import no_return_directions
+    from .collapse import is_return, no_return_directions
 
     if ring is None or ring.ndim != 1 or not np.issubdtype(ring.dtype, np.integer) or len(ring) != len(xyz):
         return None
