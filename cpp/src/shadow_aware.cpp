@@ -234,9 +234,12 @@ class FreeSpaceFloor {
                                   "leveled frame, or use the paper's method");
     }
     steps_ = static_cast<std::int64_t>(farthest / grid.edge_m) + 2;
-    if (steps_ > kMaxSectorSteps / sectors_) {
-      throw std::invalid_argument("shadow_aware: " + std::to_string(sectors_) + " azimuth bins x " +
-                                  std::to_string(steps_) + " range steps is too many; crop the cloud");
+    if (steps_ > kMaxSectorSteps / sectors_) {  // a survey far from the origin, or a huge cloud
+      throw std::invalid_argument("shadow_aware: the cloud reaches " + detail::number_text(farthest) +
+                                  " m from the sensor origin (" + std::to_string(sectors_) + " azimuth bins x " +
+                                  std::to_string(steps_) +
+                                  " range steps is too many); set sensor_origin to the scanner's position in the "
+                                  "leveled frame or crop the cloud (an airborne cloud: use the paper's method)");
     }
     reset();
   }

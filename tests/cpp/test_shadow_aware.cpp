@@ -324,6 +324,17 @@ TEST(ShadowAware, BadParametersThrowInvalidArgumentNamingThem) {
   EXPECT_GT(collapse_overhangs(survey, params).num_overhang, 0U);
   params.shadow_aware.sensor_origin = Eigen::Vector3d(5.0, 5.0, 40.0);  // a slope's foot, 9 m down
   EXPECT_NO_THROW(collapse_overhangs(survey, params));
+  // A tile in map coordinates (an airborne survey 5,000 km east) with the default origin: the
+  // message names the distance to the origin, not the cloud's size.
+  Points tile;
+  add_grid(tile, 5e6, 5e6 + 10, 0, 10, 1.0);
+  try {
+    collapse_overhangs(tile, shadow_aware_params());
+    FAIL() << "an origin 5,000 km from the cloud was accepted";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("reaches 5.00001e+06 m from the sensor origin"), std::string::npos)
+        << e.what();
+  }
 }
 
 TEST(ShadowAware, HostileCloudsAndParametersGiveAResultOrAStandardException) {
