@@ -3,6 +3,7 @@
 #include <pybind11/stl.h>
 #include <terracube/collapse.hpp>
 
+#include <algorithm>
 #include <sstream>
 
 #include "points.hpp"
@@ -96,7 +97,8 @@ void bind_collapse(py::module_& m) {
       .value("shadowed", CubeReason::kShadowed)
       .value("removed_above_kept", CubeReason::kRemovedAboveKept)
       .value("removed_free_below", CubeReason::kRemovedFreeBelow)
-      .value("thin", CubeReason::kThin);
+      .value("thin", CubeReason::kThin)
+      .value("not_used", CubeReason::kNotUsed);
 
   py::class_<ShadowAwareParams>(m, "ShadowAwareParams")
       .def(py::init<>())
@@ -178,6 +180,19 @@ void bind_collapse(py::module_& m) {
         });
       },
       py::arg("points"), py::arg("params"), py::arg("no_returns") = py::none());
+  m.def(
+      "point_reasons",
+      [](const py::array& points, const CollapseParams& params, const CollapseResult& result) {
+        std::vector<CubeReason> reasons = with_points(points, "points", [&](const auto& view) {
+          py::gil_scoped_release release;
+          return point_reasons(view, params, result);
+        });
+        py::array_t<std::uint8_t> out(static_cast<py::ssize_t>(reasons.size()));
+        std::copy_n(reinterpret_cast<const std::uint8_t*>(reasons.data()), reasons.size(), out.mutable_data());
+        return out;
+      },
+      py::arg("points"), py::arg("params"), py::arg("result"),
+      "(N,) uint8: the CubeReason of each point's cube (not_used: it took no part)");
   m.def(
       "cube_reason_name", [](int reason) { return cube_reason_name(static_cast<CubeReason>(reason)); },
       py::arg("reason"));

@@ -382,6 +382,47 @@ CollapseResult collapse_impl(const PointsView<Scalar>& points, const CollapsePar
   return result;
 }
 
+/// point_reasons(): the cube of each row that takes part, found again as cube_of_rows does (64-bit
+/// indices for any grid), looked up in L; neighbouring rows mostly share a cube, so the last one
+/// found is tried first.
+template <typename Scalar>
+std::vector<CubeReason> point_reasons_impl(const PointsView<Scalar>& points, const CollapseParams& params,
+                                           const CollapseResult& result) {
+  const std::vector<std::int64_t>& occupied = result.occupied_cubes;
+  if (result.cube_reasons.size() != occupied.size() || (occupied.empty() && result.num_used > 0)) {
+    throw std::invalid_argument("point_reasons needs the result of a shadow_aware collapse_overhangs (cube reasons)");
+  }
+  if (points.size != result.num_points) {
+    throw std::invalid_argument("point_reasons: " + std::to_string(points.size) + " points given, the result is of " +
+                                std::to_string(result.num_points));
+  }
+  if (points.size > 0 && points.data == nullptr) {
+    throw std::invalid_argument("points view has no data but claims " + std::to_string(points.size) + " rows");
+  }
+  check_collapse_params(params);
+  std::vector<CubeReason> reasons(points.size, CubeReason::kNotUsed);
+  const CubeIndexer<SparseIndex> index_of(result.grid);
+  std::size_t position = 0;  // in L, of the last row's cube
+  detail::visit_leveled(points, params.transform, params.crop, [&](const auto& cloud) {
+    Eigen::Vector3d p;
+    for (std::size_t row = 0; row < cloud.size(); ++row) {
+      if (cloud.map(row, p) != 0) continue;  // NaN/Inf or outside the crop: it took no part
+      const SparseIndex cube = index_of(p, true);
+      if (occupied.empty() || occupied[position] != cube) {
+        const auto found = std::lower_bound(occupied.begin(), occupied.end(), cube);
+        if (found == occupied.end() || *found != cube) {  // also a row outside the grid (kNoCube)
+          throw std::invalid_argument("point_reasons: row " + std::to_string(row) +
+                                      " lies in no occupied cube of the result; pass the points and parameters of "
+                                      "the collapse_overhangs call");
+        }
+        position = static_cast<std::size_t>(found - occupied.begin());
+      }
+      reasons[row] = result.cube_reasons[position];
+    }
+  });
+  return reasons;
+}
+
 }  // namespace
 
 void check_collapse_params(const CollapseParams& params) {
@@ -444,6 +485,16 @@ CollapseResult collapse_overhangs(const PointsView<double>& points, const Collap
 CollapseResult collapse_overhangs(const std::vector<Eigen::Vector3d>& points, const CollapseParams& params,
                                   const PointsView<double>& no_return_directions) {
   return collapse_impl(PointsView<double>(points), params, no_return_directions);
+}
+
+std::vector<CubeReason> point_reasons(const PointsView<float>& points, const CollapseParams& params,
+                                      const CollapseResult& result) {
+  return point_reasons_impl(points, params, result);
+}
+
+std::vector<CubeReason> point_reasons(const PointsView<double>& points, const CollapseParams& params,
+                                      const CollapseResult& result) {
+  return point_reasons_impl(points, params, result);
 }
 
 }  // namespace terracube

@@ -541,6 +541,8 @@ const char* cube_reason_name(CubeReason reason) {
       return "removed_free_below";
     case CubeReason::kThin:
       return "thin";
+    case CubeReason::kNotUsed:
+      return "not_used";
   }
   return "unknown";
 }

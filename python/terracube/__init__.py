@@ -10,12 +10,14 @@ from .collapse import (
     CollapseParams,
     CollapseResult,
     CubeGrid,
+    CubeReason,
     PointBasedParams,
     collapse_overhangs,
     leveling_transform,
     no_return_directions,
     octomap_column_overhangs,
     point_based_overhangs,
+    point_reasons,
     sigma_from_robot_height,
 )
 from .elevation import (
@@ -111,5 +113,7 @@ __all__ = [
     "leveling_transform",
     "octomap_column_overhangs",
     "point_based_overhangs",
+    "point_reasons",
+    "CubeReason",
     "sigma_from_robot_height",
 ]

@@ -614,7 +614,8 @@ _OUTPUT_DIR = typer.Option(Path("terracube_out"), "--output-dir", "-o", help="Wh
 _STAGE_HELP = {
     "collapse": """Remove overhangs (canopy, ceilings, bridge decks) from one scan with collapsible cubes.
 
-    Writes NAME_classified.FORMAT (per-point overhang label) and NAME_overhangs.png.
+    Writes NAME_classified.FORMAT (per-point overhang label) and NAME_overhangs.png; with --method
+    shadow_aware also NAME_reasons.png, each point coloured by why it was kept or removed.
     """,
     "dem": """Build the DEM of one scan with and without overhangs (collapsible cubes); write map, pictures.
 

@@ -18,6 +18,7 @@ __all__ = [
     "collapse_overhangs",
     "no_return_directions",
     "point_based_overhangs",
+    "point_reasons",
     "octomap_column_overhangs",
     "sigma_from_robot_height",
     "leveling_transform",
@@ -28,7 +29,8 @@ CollapseResult = _core.CollapseResult
 #: Why the shadow-aware rule kept or removed a cube: ``CollapseResult.cube_reasons`` holds these
 #: values (uint8), one per cube of ``occupied_cubes``. supported (0), below_ground (1),
 #: no_ground_estimate (2), shadowed (3) and thin (6) are kept; removed_above_kept (4) and
-#: removed_free_below (5) are removed. See ``terracube/shadow_aware.hpp``.
+#: removed_free_below (5) are removed. See ``terracube/shadow_aware.hpp``. :func:`point_reasons`
+#: gives them per point, and not_used (255) for a point that took no part.
 CubeReason = _core.CubeReason
 
 #: ``method`` of :func:`collapse_overhangs`: "paper" is [CBC] Algorithm 1 bit for bit (the default);
@@ -368,6 +370,38 @@ def collapse_overhangs(
         )
     beams = None if no_returns is None else _as_directions(no_returns)
     return _core.collapse_overhangs(_as_points(points), params.to_core(), beams)
+
+
+def point_reasons(
+    points, result: CollapseResult, *, transform=None, crop=None, params: CollapseParams | None = None
+) -> np.ndarray:
+    """Why each point was kept or removed by a shadow-aware :func:`collapse_overhangs` call.
+
+    Parameters
+    ----------
+    points : (N, 3) float32 or float64 array
+        The points of that call.
+    result : CollapseResult
+        Its result (``method="shadow_aware"``).
+    transform, crop, params
+        The call's transform and crop, or its :class:`CollapseParams`: each point's cube is found
+        again with the call's own arithmetic.
+
+    Returns
+    -------
+    (N,) uint8
+        The :data:`CubeReason` of the cube holding each point, ``CubeReason.not_used`` (255) for a
+        point that took no part (NaN/Inf dropped, outside the crop). Colour a cloud by it to see
+        why a crown stayed (shadowed, thin, supported by its trunk) or a wall went.
+
+    Raises
+    ------
+    ValueError
+        A result without cube reasons (the paper's method), or one of other points or parameters.
+    """
+    if params is None:
+        params = CollapseParams(transform=transform, crop=crop, method="shadow_aware")
+    return _core.point_reasons(_as_points(points), params.to_core(), result)
 
 
 def _as_directions(directions) -> np.ndarray:

@@ -496,8 +496,11 @@ def reason_counts(cube_reasons) -> str:
     1,090, removed_free_below 1,995; kept: supported 15,803, ..."."""
     from .collapse import CubeReason
 
-    counts = np.bincount(np.asarray(cube_reasons), minlength=len(CubeReason.__members__))
-    text = {name: f"{name} {counts[int(value)]:,}" for name, value in CubeReason.__members__.items()}
+    counts = np.bincount(np.asarray(cube_reasons, dtype=np.uint8), minlength=256)
+    members = {
+        name: value for name, value in CubeReason.__members__.items() if name != "not_used"
+    }  # points only
+    text = {name: f"{name} {counts[int(value)]:,}" for name, value in members.items()}
     removed = [line for name, line in text.items() if name.startswith("removed")]
     kept = [line for name, line in text.items() if not name.startswith("removed")]
     return ", ".join(removed) + "; kept: " + ", ".join(kept)
@@ -546,6 +549,16 @@ def _run_collapse(
         )
         path = output_dir / f"{name}_overhangs.png"
         report.add("picture", *_pictures(lambda: plot_overhangs(leveled, result.overhang, path, title=title)))
+        if len(result.cube_reasons):  # shadow_aware: why each point stayed or went
+            from .collapse import point_reasons
+            from .viz import plot_reasons
+
+            reasons = point_reasons(points, result, params=params)
+            why = output_dir / f"{name}_reasons.png"
+            why_title = (
+                f"{name}: why shadow_aware kept or removed each point (E {params.edge} m, σ {params.sigma})"
+            )
+            report.add("picture", *_pictures(lambda: plot_reasons(leveled, reasons, why, title=why_title)))
     return report
 
 

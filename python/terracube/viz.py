@@ -8,7 +8,7 @@ import numpy as np
 
 from .io import atomic_path
 
-__all__ = ["plot_overhangs", "plot_layer", "plot_dem_comparison", "plot_terrain_classes"]
+__all__ = ["plot_overhangs", "plot_reasons", "plot_layer", "plot_dem_comparison", "plot_terrain_classes"]
 
 
 def _pyplot():
@@ -88,6 +88,78 @@ def plot_overhangs(
     side.legend(handles=handles, loc="upper right", markerscale=1.5)
     n_all = points.shape[0]
     fig.suptitle(title or f"collapsible cubes: {int(overhang.sum()):,} of {n_all:,} points are overhang")
+    path = Path(path)
+    try:
+        with atomic_path(path) as temporary:
+            fig.savefig(temporary, dpi=110)
+    finally:
+        plt.close(fig)
+    return path
+
+
+#: Colours of the shadow-aware rule's reasons (CubeReason names), in drawing order: kept ones in
+#: greys and blues, then the removed ones in red and orange, on top.
+REASON_COLORS = {
+    "supported": "#c7c7c7",
+    "below_ground": "#8c564b",
+    "no_ground_estimate": "#9467bd",
+    "shadowed": "#1f77b4",
+    "thin": "#17becf",
+    "removed_above_kept": "#ff7f0e",
+    "removed_free_below": "#d62728",
+}
+
+
+def plot_reasons(
+    points: np.ndarray,
+    reasons: np.ndarray,
+    path: str | Path,
+    *,
+    title: str | None = None,
+    max_points: int = 150_000,
+    seed: int = 0,
+) -> Path:
+    """Save a PNG of a cloud coloured by why the shadow-aware rule kept or removed each point
+    (:func:`terracube.point_reasons`): top and side views, a legend with the count of each reason.
+    Points that took no part are not drawn.
+
+    Parameters
+    ----------
+    points : (N, 3) array
+        x, y, z [m], in the frame the overhangs were computed in (leveled).
+    reasons : (N,) uint8
+        :data:`terracube.CubeReason` per point.
+    path, title, max_points, seed
+        As :func:`plot_overhangs`.
+    """
+    from .collapse import CubeReason
+
+    plt = _pyplot()
+    points = np.asarray(points)
+    reasons = np.asarray(reasons)
+    if points.ndim != 2 or points.shape[1] < 3 or reasons.shape != (points.shape[0],):
+        raise ValueError("plot_reasons needs (N, 3) points and (N,) reasons")
+    index = np.flatnonzero(reasons != int(CubeReason.not_used))
+    if index.size > max_points:
+        index = np.sort(np.random.default_rng(seed).choice(index, max_points, replace=False))
+    xyz = points[index, :3].astype(np.float64)
+    drawn = reasons[index]
+    fig, (top, side) = plt.subplots(
+        1, 2, figsize=(14, 6.5), gridspec_kw={"width_ratios": [1.0, 1.4]}, constrained_layout=True
+    )
+    handles = []
+    for name, color in REASON_COLORS.items():
+        mine = drawn == int(CubeReason.__members__[name])
+        size = 0.6 if name == "supported" else 1.5
+        top.scatter(xyz[mine, 0], xyz[mine, 1], c=color, s=size, linewidths=0, rasterized=True)
+        side.scatter(xyz[mine, 0], xyz[mine, 2], c=color, s=size, linewidths=0, rasterized=True)
+        count = int((reasons == int(CubeReason.__members__[name])).sum())
+        handles.append(plt.Line2D([], [], marker="o", ls="", color=color, label=f"{name} ({count:,})"))
+    top.set_aspect("equal")
+    top.set(xlabel="x [m]", ylabel="y [m]", title="top view")
+    side.set(xlabel="x [m]", ylabel="z [m]", title="side view (vertical exaggeration)")
+    side.legend(handles=handles, loc="upper right", markerscale=1.5)
+    fig.suptitle(title or "shadow_aware: why each point was kept or removed")
     path = Path(path)
     try:
         with atomic_path(path) as temporary:

@@ -389,6 +389,59 @@ TEST(ShadowAware, AGroundWindowWiderThanTheCloudIsTheWholeCloud) {
   EXPECT_EQ(wide.cube_reasons, covering.cube_reasons);
 }
 
+TEST(ShadowAware, PointReasonsAreTheReasonsOfEachRowsCube) {
+  // The crown over a curb, tilted and cropped, as float32 rows with a NaN row (dropped).
+  Points scene;
+  add_grid(scene, 1, 5, -5, 5, -1.7);
+  add_grid(scene, 14, 20, -5, 5, -1.7, 0.1);
+  add_face_x(scene, 5.0, -5, 5, -1.7, -1.4);
+  add_face_x(scene, 9.0, -0.2, 0.2, -1.4, 1.5, 0.1);
+  for (const double z : {1.6, 2.4, 3.2, 3.8}) add_grid(scene, 7.75, 10.25, -1.25, 1.25, z);
+  std::vector<float> rows;
+  for (const Eigen::Vector3d& p : scene) rows.insert(rows.end(), {float(p.x()), float(p.y()), float(p.z())});
+  rows.insert(rows.end(), {std::nanf(""), 1.0F, 1.0F});
+  const PointsView<float> view(rows.data(), scene.size() + 1);
+  CollapseParams params = shadow_aware_params();
+  params.transform = leveling_transform(0.02, -0.03);
+  params.crop = CropBox{Eigen::Vector3d(-100, -100, -100), Eigen::Vector3d(100, 4.0, 100)};  // y > 4 m out
+  params.drop_non_finite = true;
+  const CollapseResult result = collapse_overhangs(view, params);
+  const std::vector<CubeReason> reasons = point_reasons(view, params, result);
+  ASSERT_EQ(reasons.size(), view.size);
+  std::size_t not_used = 0, removed = 0;
+  for (std::size_t row = 0; row < view.size; ++row) {
+    const Eigen::Vector3d p = view.point(row);
+    Eigen::Vector3d q;  // [CBC]'s leveled point, as the library computes it
+    for (int i = 0; i < 3; ++i) {
+      q[i] = params.transform(i, 0) * p.x() + params.transform(i, 1) * p.y() + params.transform(i, 2) * p.z() +
+             params.transform(i, 3);
+    }
+    if (!q.allFinite() || q.y() > 4.0) {
+      EXPECT_EQ(reasons[row], CubeReason::kNotUsed) << row;
+      ++not_used;
+      continue;
+    }
+    EXPECT_EQ(reasons[row], reason_at(result, q)) << row;
+    const bool is_removed =
+        reasons[row] == CubeReason::kRemovedFreeBelow || reasons[row] == CubeReason::kRemovedAboveKept;
+    EXPECT_EQ(is_removed, result.overhang[row] == 1) << row;
+    removed += is_removed ? 1 : 0;
+  }
+  EXPECT_EQ(not_used, result.num_cropped + result.num_dropped_non_finite);
+  EXPECT_GT(not_used, 1U);
+  EXPECT_GT(removed, 0U);
+  EXPECT_STREQ(cube_reason_name(CubeReason::kNotUsed), "not_used");
+
+  // Another result, other rows or a paper result: refused, never a wrong lookup.
+  CollapseParams paper = params;
+  paper.method = CollapseMethod::kPaper;
+  EXPECT_THROW(point_reasons(view, paper, collapse_overhangs(view, paper)), std::invalid_argument);
+  EXPECT_THROW(point_reasons(PointsView<float>(rows.data(), view.size - 1), params, result), std::invalid_argument);
+  std::vector<float> moved = rows;
+  moved[0] += 50.0F;  // the first row now lies outside every occupied cube
+  EXPECT_THROW(point_reasons(PointsView<float>(moved.data(), view.size), params, result), std::invalid_argument);
+}
+
 TEST(ShadowAware, ThePaperMethodLeavesNoReasons) {
   Points points;
   add_grid(points, 0, 4, 0, 4, 0.0);

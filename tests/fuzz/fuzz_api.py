@@ -156,15 +156,18 @@ def _function_case(tc, rng: np.random.Generator, points: np.ndarray) -> None:
     drop = bool(rng.random() < 0.5)
     if which == 0:
         method = str(rng.choice(["paper", "shadow_aware"]))
-        tc.collapse_overhangs(
+        transform = pose(rng)
+        result = tc.collapse_overhangs(
             points,
             edge,
             sigma,
             drop_non_finite=drop,
             method=method,
-            transform=pose(rng),
+            transform=transform,
             no_returns=beams(rng),
         )
+        # the reasons of its own points, or of another cloud (a refusal, never a wrong lookup)
+        tc.point_reasons(points if rng.random() < 0.5 else cloud(rng), result, transform=transform)
     elif which == 1:
         tc.classify_terrain(tc.build_elevation_map(points, resolution, drop_non_finite=drop))
     elif which == 2:

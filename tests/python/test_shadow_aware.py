@@ -448,6 +448,43 @@ def test_random_scenes_match_the_naive_reference_for_any_thread_count_and_storag
     assert results[0].overhang.any()
 
 
+def test_point_reasons_are_the_reasons_of_each_points_cube():
+    """tc.point_reasons against this file's own lookup: each point leveled as the core does, its
+    cube quantised here and found in occupied_cubes; not_used for the points cropped away or not
+    finite. The removed reasons are exactly the overhang mask."""
+    rng = np.random.default_rng(21)
+    ground = np.column_stack([rng.uniform(-15, 15, (4000, 2)), rng.normal(-1.7, 0.05, 4000)])
+    blobs = rng.uniform(-15, 15, (12, 3)) * [1, 1, 0.1] + [0, 0, 2.5]
+    canopy = np.vstack([b + rng.normal(0, 0.8, (150, 3)) for b in blobs])
+    points = np.vstack([ground, canopy]).astype(np.float32)
+    points[5] = np.nan
+    transform = tc.leveling_transform(0.03, -0.02)
+    crop = ((-12.0, -12.0, -5.0), (12.0, 12.0, 8.0))
+    params = tc.CollapseParams(
+        edge=0.5, sigma=4, method="shadow_aware", transform=transform, crop=crop, drop_non_finite=True
+    )
+    result = tc.collapse_overhangs(points, params=params)
+    reasons = tc.point_reasons(points, result, params=params)
+    assert reasons.dtype == np.uint8 and reasons.shape == (len(points),)
+    q = leveled(points, transform)
+    with np.errstate(invalid="ignore"):
+        used = np.isfinite(q).all(axis=1) & ((q >= crop[0]) & (q <= crop[1])).all(axis=1)
+    assert (~used).sum() == result.num_cropped + result.num_dropped_non_finite > 100
+    assert (reasons[~used] == int(CubeReason.not_used)).all()
+    np.testing.assert_array_equal(reasons[used], reasons_of_points(result, q[used]))
+    np.testing.assert_array_equal(np.isin(reasons, REMOVED), result.overhang)
+    assert np.isin(reasons, REMOVED).any() and (reasons == SUPPORTED).any()
+    np.testing.assert_array_equal(tc.point_reasons(points, result, transform=transform, crop=crop), reasons)
+
+    paper = tc.collapse_overhangs(points, 0.5, 4, transform=transform, crop=crop, drop_non_finite=True)
+    with pytest.raises(ValueError, match="cube reasons"):
+        tc.point_reasons(points, paper, params=params)
+    with pytest.raises(ValueError, match="points given"):
+        tc.point_reasons(points[:-1], result, params=params)
+    with pytest.raises(ValueError, match="no occupied cube"):  # other points: the ground 2 m up
+        tc.point_reasons(points + np.float32([0, 0, 2]), result, params=params)
+
+
 def test_parameters_reach_the_core_and_match_the_naive_reference():
     rng = np.random.default_rng(9)
     points = np.vstack(
@@ -929,6 +966,7 @@ def test_cli_stages_read_the_empty_pixels_of_an_organised_file_as_beams(tmp_path
     alone = tc.collapse_overhangs(xyz[returned], params=params).overhang
     assert (expected & canopy).sum() >= (alone & canopy).sum() + 0.05 * canopy.sum()
     assert not (expected & structures).any()
+    assert f"picture: {tmp_path / 'organised_reasons.png'}" in result.output  # why each point went
 
     high = {}
     for name in ("organised.pcd", "returns.npy"):
@@ -954,6 +992,8 @@ def test_cli_stages_read_the_empty_pixels_of_an_organised_file_as_beams(tmp_path
         app, ["collapse", str(tmp_path / "organised.pcd"), "-o", str(tmp_path / "p"), "-f", "npz"]
     )
     assert paper.exit_code == 0 and "beams without a return" not in paper.output
+    assert (tmp_path / "p" / "organised_overhangs.png").is_file()
+    assert not (tmp_path / "p" / "organised_reasons.png").exists()  # the paper's rule has no reasons
 
 
 def test_batch_and_run_stage_take_the_beams_of_an_organised_file(tmp_path):

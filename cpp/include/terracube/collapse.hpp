@@ -98,4 +98,16 @@ CollapseResult collapse_overhangs(const PointsView<double>& points, const Collap
 CollapseResult collapse_overhangs(const std::vector<Eigen::Vector3d>& points, const CollapseParams& params = {},
                                   const PointsView<double>& no_return_directions = {});
 
+/// Why each row of `points` was kept or removed by the shadow-aware `result` =
+/// collapse_overhangs(points, params): the CubeReason of the cube that holds the row (from
+/// result.cube_reasons), or CubeReason::kNotUsed for a row that took no part (NaN/Inf dropped,
+/// outside the crop). Each row's cube is found again with the call's own arithmetic (params'
+/// transform and crop, result.grid). For debugging and pictures: O(N log K), not part of a call.
+/// Throws std::invalid_argument unless `result` holds cube reasons (method kShadowAware) and
+/// belongs to these rows: as many rows, and every row's cube among result.occupied_cubes.
+std::vector<CubeReason> point_reasons(const PointsView<float>& points, const CollapseParams& params,
+                                      const CollapseResult& result);
+std::vector<CubeReason> point_reasons(const PointsView<double>& points, const CollapseParams& params,
+                                      const CollapseResult& result);
+
 }  // namespace terracube

@@ -29,6 +29,7 @@ enum class CubeReason : std::uint8_t {
   kRemovedAboveKept = 4,  ///< removed: a kept chain (not below G) lies under it, σ or more empty cubes down
   kRemovedFreeBelow = 5,  ///< removed: its chain floats σ or more above G and a ray crossed the column below it
   kThin = 6,              ///< kept: it floats, no kept chain below, its bottom is thin (a trunk or pole)
+  kNotUsed = 255,         ///< point_reasons() only: the row took no part (NaN/Inf dropped, outside the crop)
 };
 
 /// The short name of a reason ("supported", "below_ground", ...), as Python shows it.

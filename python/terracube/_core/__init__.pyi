@@ -7,7 +7,7 @@ import numpy
 import numpy.typing
 import typing
 from . import simulation
-__all__: list[str] = ['AbsoluteTrajectoryError', 'CollapseMethod', 'CollapseParams', 'CollapseResult', 'CorrelativeSearchParams', 'CorrelativeSearchResult', 'CropBox', 'CubeGrid', 'CubeReason', 'CubeStorage', 'ElevationMap', 'ElevationParams', 'ErrorStatistics', 'FuzzyElevationMap', 'FuzzyParams', 'GroundReference', 'LocalMap', 'LocalMapParams', 'LocalMapUpdate', 'LoopClosure', 'MapGeometry', 'Mapper', 'MapperParams', 'MapperTimings', 'MembershipFamily', 'OverhangFreeMap', 'Pairing', 'PclIcpParams', 'PclIcpResult', 'PointBasedParams', 'PoseGraphEdge', 'PoseGraphParams', 'PoseGraphResult', 'PoseSegmentError', 'RegionLayoutComparison', 'RegionPairError', 'RegionRelations', 'RegionTripleError', 'RegistrationParams', 'RegistrationResult', 'RelativePoseError', 'RelativePoseErrorParams', 'RobustLoss', 'ScanReport', 'SegmentLengthError', 'ShadowAwareParams', 'StepRule', 'StopReason', 'TerrainParams', 'TrajectoryAlignment', 'TraversabilityParams', 'absolute_trajectory_error', 'add_traversability_layers', 'build_elevation_map', 'build_elevation_map_into', 'build_overhang_free_map', 'classify_terrain', 'collapse_overhangs', 'compare_region_layouts', 'correlative_search', 'cube_reason_name', 'error_statistics', 'fit_fuzzy_elevation_map', 'has_pcl', 'leveling_transform', 'octomap_column_overhangs', 'optimize_pose_graph', 'pcl_gicp', 'pcl_icp', 'point_based_overhangs', 'points_of_map', 'register_maps', 'register_points', 'relative_pose_error', 'rigid_alignment', 'sigma_from_robot_height', 'simulation', 'step_layer']
+__all__: list[str] = ['AbsoluteTrajectoryError', 'CollapseMethod', 'CollapseParams', 'CollapseResult', 'CorrelativeSearchParams', 'CorrelativeSearchResult', 'CropBox', 'CubeGrid', 'CubeReason', 'CubeStorage', 'ElevationMap', 'ElevationParams', 'ErrorStatistics', 'FuzzyElevationMap', 'FuzzyParams', 'GroundReference', 'LocalMap', 'LocalMapParams', 'LocalMapUpdate', 'LoopClosure', 'MapGeometry', 'Mapper', 'MapperParams', 'MapperTimings', 'MembershipFamily', 'OverhangFreeMap', 'Pairing', 'PclIcpParams', 'PclIcpResult', 'PointBasedParams', 'PoseGraphEdge', 'PoseGraphParams', 'PoseGraphResult', 'PoseSegmentError', 'RegionLayoutComparison', 'RegionPairError', 'RegionRelations', 'RegionTripleError', 'RegistrationParams', 'RegistrationResult', 'RelativePoseError', 'RelativePoseErrorParams', 'RobustLoss', 'ScanReport', 'SegmentLengthError', 'ShadowAwareParams', 'StepRule', 'StopReason', 'TerrainParams', 'TrajectoryAlignment', 'TraversabilityParams', 'absolute_trajectory_error', 'add_traversability_layers', 'build_elevation_map', 'build_elevation_map_into', 'build_overhang_free_map', 'classify_terrain', 'collapse_overhangs', 'compare_region_layouts', 'correlative_search', 'cube_reason_name', 'error_statistics', 'fit_fuzzy_elevation_map', 'has_pcl', 'leveling_transform', 'octomap_column_overhangs', 'optimize_pose_graph', 'pcl_gicp', 'pcl_icp', 'point_based_overhangs', 'point_reasons', 'points_of_map', 'register_maps', 'register_points', 'relative_pose_error', 'rigid_alignment', 'sigma_from_robot_height', 'simulation', 'step_layer']
 class CubeGrid:
     """
     CBC grid geometry ([CBC] eqs. (1)-(9)); cube (0,0,0) is centred on min_corner.
@@ -182,10 +182,13 @@ class CubeReason:
       removed_free_below
     
       thin
+    
+      not_used
     """
     __members__: typing.ClassVar[dict[str, CubeReason]]
     below_ground: typing.ClassVar[CubeReason]
     no_ground_estimate: typing.ClassVar[CubeReason]
+    not_used: typing.ClassVar[CubeReason]
     removed_above_kept: typing.ClassVar[CubeReason]
     removed_free_below: typing.ClassVar[CubeReason]
     shadowed: typing.ClassVar[CubeReason]
@@ -2238,6 +2241,10 @@ def pcl_icp(source: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], target: 
     ...
 def point_based_overhangs(points: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], params: PointBasedParams) -> numpy.ndarray[typing.Any, numpy.dtype[typing.Any]]:
     ...
+def point_reasons(points: numpy.ndarray[typing.Any, numpy.dtype[typing.Any]], params: CollapseParams, result: CollapseResult) -> numpy.typing.NDArray[numpy.uint8]:
+    """
+    (N,) uint8: the CubeReason of each point's cube (not_used: it took no part)
+    """
 def points_of_map(map: ElevationMap) -> tuple[numpy.typing.NDArray[numpy.float64], numpy.typing.NDArray[numpy.uint8]]:
     """
     ((N, 3) float64 cell centres at max, (N,) uint8 classes)
