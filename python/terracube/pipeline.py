@@ -543,10 +543,9 @@ def _run_collapse(
         from .viz import plot_overhangs
 
         leveled, _ = leveled_points(points, config)
-        title = (
-            f"{name}: {result.num_overhang:,} of {result.num_points:,} points are overhang "
-            f"(collapsible cubes, E = {params.edge} m, sigma = {params.sigma})"
-        )
+        cubes = f"E = {params.edge} m, sigma = {params.sigma}"
+        overhang = f"{result.num_overhang:,} of {result.num_points:,} points are overhang"
+        title = f"{name}: {overhang} (collapsible cubes, {cubes})"
         path = output_dir / f"{name}_overhangs.png"
         report.add("picture", *_pictures(lambda: plot_overhangs(leveled, result.overhang, path, title=title)))
         if len(result.cube_reasons):  # shadow_aware: why each point stayed or went
@@ -555,9 +554,7 @@ def _run_collapse(
 
             reasons = point_reasons(points, result, params=params)
             why = output_dir / f"{name}_reasons.png"
-            why_title = (
-                f"{name}: why shadow_aware kept or removed each point (E {params.edge} m, σ {params.sigma})"
-            )
+            why_title = f"{name}: why shadow_aware kept or removed each point ({cubes})"
             report.add("picture", *_pictures(lambda: plot_reasons(leveled, reasons, why, title=why_title)))
     return report
 

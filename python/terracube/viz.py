@@ -22,6 +22,41 @@ def _pyplot():
     return plt
 
 
+def _drawn_rows(rows: np.ndarray, max_points: int, seed: int) -> np.ndarray:
+    """At most ``max_points`` of ``rows`` (a seeded random subset, in order): quick pictures."""
+    if rows.size > max_points:
+        rows = np.sort(np.random.default_rng(seed).choice(rows, max_points, replace=False))
+    return rows
+
+
+def _cloud_views(plt):
+    """A figure with a labelled top view and side view of a cloud: (fig, top, side)."""
+    fig, (top, side) = plt.subplots(
+        1, 2, figsize=(14, 6.5), gridspec_kw={"width_ratios": [1.0, 1.4]}, constrained_layout=True
+    )
+    top.set_aspect("equal")
+    top.set(xlabel="x [m]", ylabel="y [m]", title="top view")
+    side.set(xlabel="x [m]", ylabel="z [m]", title="side view (vertical exaggeration)")
+    return fig, top, side
+
+
+def _save_cloud_views(plt, fig, path: str | Path, handles: list, title: str) -> Path:
+    """The legend, the title, then the PNG written atomically; the figure is closed."""
+    fig.axes[1].legend(handles=handles, loc="upper right", markerscale=1.5)
+    fig.suptitle(title)
+    path = Path(path)
+    try:
+        with atomic_path(path) as temporary:
+            fig.savefig(temporary, dpi=110)
+    finally:
+        plt.close(fig)
+    return path
+
+
+def _marker(plt, color, label: str):
+    return plt.Line2D([], [], marker="o", ls="", color=color, label=label)
+
+
 def plot_overhangs(
     points: np.ndarray,
     overhang: np.ndarray,
@@ -49,52 +84,25 @@ def plot_overhangs(
     overhang = np.asarray(overhang, dtype=bool)
     if points.ndim != 2 or points.shape[1] < 3 or overhang.shape != (points.shape[0],):
         raise ValueError("plot_overhangs needs (N, 3) points and an (N,) mask")
-    index = np.arange(points.shape[0])
-    if index.size > max_points:
-        index = np.sort(np.random.default_rng(seed).choice(index, max_points, replace=False))
+    index = _drawn_rows(np.arange(points.shape[0]), max_points, seed)
     xyz = points[index, :3].astype(np.float64)
     removed = overhang[index]
     kept = ~removed
 
-    fig, (top, side) = plt.subplots(
-        1, 2, figsize=(14, 6.5), gridspec_kw={"width_ratios": [1.0, 1.4]}, constrained_layout=True
-    )
+    fig, top, side = _cloud_views(plt)
     low, high = np.percentile(xyz[kept, 2], [2, 98]) if kept.any() else (0.0, 1.0)
     scatter = dict(s=0.6, linewidths=0, rasterized=True)
     top.scatter(xyz[kept, 0], xyz[kept, 1], c=xyz[kept, 2], cmap="viridis", vmin=low, vmax=high, **scatter)
     top.scatter(xyz[removed, 0], xyz[removed, 1], c="red", s=1.5, linewidths=0, rasterized=True)
-    top.set_aspect("equal")
-    top.set_xlabel("x [m]")
-    top.set_ylabel("y [m]")
-    top.set_title("top view")
     side.scatter(xyz[kept, 0], xyz[kept, 2], c=xyz[kept, 2], cmap="viridis", vmin=low, vmax=high, **scatter)
     side.scatter(xyz[removed, 0], xyz[removed, 2], c="red", s=1.5, linewidths=0, rasterized=True)
-    side.set_xlabel("x [m]")
-    side.set_ylabel("z [m]")
-    side.set_title("side view (vertical exaggeration)")
     handles = [
-        plt.Line2D(
-            [],
-            [],
-            marker="o",
-            ls="",
-            color=plt.get_cmap("viridis")(0.6),
-            label=f"retained ({int((~overhang).sum()):,})",
-        ),
-        plt.Line2D(
-            [], [], marker="o", ls="", color="red", label=f"overhang, removed ({int(overhang.sum()):,})"
-        ),
+        _marker(plt, plt.get_cmap("viridis")(0.6), f"retained ({int((~overhang).sum()):,})"),
+        _marker(plt, "red", f"overhang, removed ({int(overhang.sum()):,})"),
     ]
-    side.legend(handles=handles, loc="upper right", markerscale=1.5)
     n_all = points.shape[0]
-    fig.suptitle(title or f"collapsible cubes: {int(overhang.sum()):,} of {n_all:,} points are overhang")
-    path = Path(path)
-    try:
-        with atomic_path(path) as temporary:
-            fig.savefig(temporary, dpi=110)
-    finally:
-        plt.close(fig)
-    return path
+    default = f"collapsible cubes: {int(overhang.sum()):,} of {n_all:,} points are overhang"
+    return _save_cloud_views(plt, fig, path, handles, title or default)
 
 
 #: Colours of the shadow-aware rule's reasons (CubeReason names), in drawing order: kept ones in
@@ -139,34 +147,21 @@ def plot_reasons(
     reasons = np.asarray(reasons)
     if points.ndim != 2 or points.shape[1] < 3 or reasons.shape != (points.shape[0],):
         raise ValueError("plot_reasons needs (N, 3) points and (N,) reasons")
-    index = np.flatnonzero(reasons != int(CubeReason.not_used))
-    if index.size > max_points:
-        index = np.sort(np.random.default_rng(seed).choice(index, max_points, replace=False))
+    index = _drawn_rows(np.flatnonzero(reasons != int(CubeReason.not_used)), max_points, seed)
     xyz = points[index, :3].astype(np.float64)
     drawn = reasons[index]
-    fig, (top, side) = plt.subplots(
-        1, 2, figsize=(14, 6.5), gridspec_kw={"width_ratios": [1.0, 1.4]}, constrained_layout=True
-    )
+    fig, top, side = _cloud_views(plt)
     handles = []
     for name, color in REASON_COLORS.items():
-        mine = drawn == int(CubeReason.__members__[name])
+        code = int(CubeReason.__members__[name])
+        mine = drawn == code
         size = 0.6 if name == "supported" else 1.5
         top.scatter(xyz[mine, 0], xyz[mine, 1], c=color, s=size, linewidths=0, rasterized=True)
         side.scatter(xyz[mine, 0], xyz[mine, 2], c=color, s=size, linewidths=0, rasterized=True)
-        count = int((reasons == int(CubeReason.__members__[name])).sum())
-        handles.append(plt.Line2D([], [], marker="o", ls="", color=color, label=f"{name} ({count:,})"))
-    top.set_aspect("equal")
-    top.set(xlabel="x [m]", ylabel="y [m]", title="top view")
-    side.set(xlabel="x [m]", ylabel="z [m]", title="side view (vertical exaggeration)")
-    side.legend(handles=handles, loc="upper right", markerscale=1.5)
-    fig.suptitle(title or "shadow_aware: why each point was kept or removed")
-    path = Path(path)
-    try:
-        with atomic_path(path) as temporary:
-            fig.savefig(temporary, dpi=110)
-    finally:
-        plt.close(fig)
-    return path
+        handles.append(_marker(plt, color, f"{name} ({int((reasons == code).sum()):,})"))
+    return _save_cloud_views(
+        plt, fig, path, handles, title or "shadow_aware: why each point was kept or removed"
+    )
 
 
 # --------------------------------------------------------------------------------------------
