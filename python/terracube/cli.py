@@ -620,7 +620,8 @@ _STAGE_HELP = {
     "dem": """Build the DEM of one scan with and without overhangs (collapsible cubes); write map, pictures.
 
     Writes NAME_dem.npz (the DEM without overhangs, with clearance and step layers), the pictures
-    NAME_dem_comparison.png, NAME_clearance.png and NAME_step.png, and with --geotiff NAME_dem_max.tif.
+    NAME_dem_comparison.png, NAME_clearance.png and NAME_step.png (with --method shadow_aware also
+    NAME_reasons.png, as collapse writes), and with --geotiff NAME_dem_max.tif.
     """,
     "classify": """Classify the cells of one scan's map: ground, obstacle, overhanging, vertical, edge.
 

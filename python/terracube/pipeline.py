@@ -432,7 +432,9 @@ class StageReport:
     outputs: list[Path] = field(default_factory=list)
 
     def add(self, label: str, *paths: Path) -> None:
-        """Record written files and a summary line ``  label: path, path``."""
+        """Record written files and a summary line ``  label: path, path`` (none without files)."""
+        if not paths:
+            return
         self.outputs.extend(paths)
         self.lines.append(f"  {label}: {', '.join(map(str, paths))}")
 
@@ -543,20 +545,30 @@ def _run_collapse(
         from .viz import plot_overhangs
 
         leveled, _ = leveled_points(points, config)
-        cubes = f"E = {params.edge} m, sigma = {params.sigma}"
-        overhang = f"{result.num_overhang:,} of {result.num_points:,} points are overhang"
-        title = f"{name}: {overhang} (collapsible cubes, {cubes})"
+        title = (
+            f"{name}: {result.num_overhang:,} of {result.num_points:,} points are overhang "
+            f"(collapsible cubes, E = {params.edge} m, sigma = {params.sigma})"
+        )
         path = output_dir / f"{name}_overhangs.png"
         report.add("picture", *_pictures(lambda: plot_overhangs(leveled, result.overhang, path, title=title)))
-        if len(result.cube_reasons):  # shadow_aware: why each point stayed or went
-            from .collapse import point_reasons
-            from .viz import plot_reasons
-
-            reasons = point_reasons(points, result, params=params)
-            why = output_dir / f"{name}_reasons.png"
-            why_title = f"{name}: why shadow_aware kept or removed each point ({cubes})"
-            report.add("picture", *_pictures(lambda: plot_reasons(leveled, reasons, why, title=why_title)))
+        report.add(
+            "picture", *_reasons_picture(points, leveled, result, params, output_dir / f"{name}_reasons.png")
+        )
     return report
+
+
+def _reasons_picture(points, leveled, result, params, path: Path) -> list[Path]:
+    """NAME_reasons.png of a shadow-aware removal (the points coloured by why they were kept or
+    removed, :func:`terracube.point_reasons`); nothing for the paper's rule, which has no reasons."""
+    if not len(result.cube_reasons):
+        return []
+    from .collapse import point_reasons
+    from .viz import plot_reasons
+
+    reasons = point_reasons(points, result, params=params)
+    title = f"{path.stem[: -len('_reasons')]}: why shadow_aware kept or removed each point "
+    title += f"(E = {params.edge} m, sigma = {params.sigma})"
+    return _pictures(lambda: plot_reasons(leveled, reasons, path, title=title))
 
 
 def _run_dem(
@@ -625,6 +637,8 @@ def _run_dem(
                 vmin=0.0,
             ),
         )
+        leveled, _ = leveled_points(points, config)
+        pictures += _reasons_picture(points, leveled, result, collapse, output_dir / f"{name}_reasons.png")
         report.add("pictures", *pictures)
     return report
 

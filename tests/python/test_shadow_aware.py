@@ -979,6 +979,13 @@ def test_cli_stages_read_the_empty_pixels_of_an_organised_file_as_beams(tmp_path
         dem = tc.ElevationMap.load(out / f"{name.split('.')[0]}_dem.npz")["max"]
         high[name] = np.count_nonzero(dem > 1.0)  # crown cells left in the map (sensor frame: ground -1.73)
     assert high["organised.pcd"] < 0.8 * high["returns.npy"]
+    pictures = runner.invoke(
+        app, ["dem", str(tmp_path / "organised.pcd"), "-o", str(tmp_path / "png"), *common]
+    )
+    assert pictures.exit_code == 0, pictures.output
+    assert (tmp_path / "png" / "organised_reasons.png").is_file(), (
+        pictures.output
+    )  # why the DEM lost its crowns
     for stage in ("classify", "fem"):  # their overhang removal takes them too
         args = [stage, str(tmp_path / "organised.pcd"), "-o", str(tmp_path / stage), "-r", "0.5", "--no-png"]
         result = runner.invoke(app, [*args, "--remove-overhangs", *common])
