@@ -499,9 +499,8 @@ def reason_counts(cube_reasons) -> str:
     from .collapse import CubeReason
 
     counts = np.bincount(np.asarray(cube_reasons, dtype=np.uint8), minlength=256)
-    members = {
-        name: value for name, value in CubeReason.__members__.items() if name != "not_used"
-    }  # points only
+    # not_used marks points that took no part (point_reasons), never a cube
+    members = {name: value for name, value in CubeReason.__members__.items() if name != "not_used"}
     text = {name: f"{name} {counts[int(value)]:,}" for name, value in members.items()}
     removed = [line for name, line in text.items() if name.startswith("removed")]
     kept = [line for name, line in text.items() if not name.startswith("removed")]
@@ -551,13 +550,11 @@ def _run_collapse(
         )
         path = output_dir / f"{name}_overhangs.png"
         report.add("picture", *_pictures(lambda: plot_overhangs(leveled, result.overhang, path, title=title)))
-        report.add(
-            "picture", *_reasons_picture(points, leveled, result, params, output_dir / f"{name}_reasons.png")
-        )
+        report.add("picture", *_reasons_picture(points, leveled, result, params, output_dir, name))
     return report
 
 
-def _reasons_picture(points, leveled, result, params, path: Path) -> list[Path]:
+def _reasons_picture(points, leveled, result, params, output_dir: Path, name: str) -> list[Path]:
     """NAME_reasons.png of a shadow-aware removal (the points coloured by why they were kept or
     removed, :func:`terracube.point_reasons`); nothing for the paper's rule, which has no reasons."""
     if not len(result.cube_reasons):
@@ -566,8 +563,10 @@ def _reasons_picture(points, leveled, result, params, path: Path) -> list[Path]:
     from .viz import plot_reasons
 
     reasons = point_reasons(points, result, params=params)
-    title = f"{path.stem[: -len('_reasons')]}: why shadow_aware kept or removed each point "
-    title += f"(E = {params.edge} m, sigma = {params.sigma})"
+    path = output_dir / f"{name}_reasons.png"
+    title = (
+        f"{name}: why shadow_aware kept or removed each point (E = {params.edge} m, sigma = {params.sigma})"
+    )
     return _pictures(lambda: plot_reasons(leveled, reasons, path, title=title))
 
 
@@ -638,7 +637,7 @@ def _run_dem(
             ),
         )
         leveled, _ = leveled_points(points, config)
-        pictures += _reasons_picture(points, leveled, result, collapse, output_dir / f"{name}_reasons.png")
+        pictures += _reasons_picture(points, leveled, result, collapse, output_dir, name)
         report.add("pictures", *pictures)
     return report
 

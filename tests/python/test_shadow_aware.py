@@ -983,9 +983,8 @@ def test_cli_stages_read_the_empty_pixels_of_an_organised_file_as_beams(tmp_path
         app, ["dem", str(tmp_path / "organised.pcd"), "-o", str(tmp_path / "png"), *common]
     )
     assert pictures.exit_code == 0, pictures.output
-    assert (tmp_path / "png" / "organised_reasons.png").is_file(), (
-        pictures.output
-    )  # why the DEM lost its crowns
+    # why the DEM lost its crowns
+    assert (tmp_path / "png" / "organised_reasons.png").is_file(), pictures.output
     for stage in ("classify", "fem"):  # their overhang removal takes them too
         args = [stage, str(tmp_path / "organised.pcd"), "-o", str(tmp_path / stage), "-r", "0.5", "--no-png"]
         result = runner.invoke(app, [*args, "--remove-overhangs", *common])
