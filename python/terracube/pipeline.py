@@ -550,18 +550,21 @@ def _run_collapse(
         )
         path = output_dir / f"{name}_overhangs.png"
         report.add("picture", *_pictures(lambda: plot_overhangs(leveled, result.overhang, path, title=title)))
-        report.add("picture", *_reasons_picture(points, leveled, result, params, output_dir, name))
+        report.add("picture", *_reasons_picture(points, result, params, config, output_dir, name, leveled))
     return report
 
 
-def _reasons_picture(points, leveled, result, params, output_dir: Path, name: str) -> list[Path]:
+def _reasons_picture(points, result, params, config, output_dir: Path, name: str, leveled=None) -> list[Path]:
     """NAME_reasons.png of a shadow-aware removal (the points coloured by why they were kept or
-    removed, :func:`terracube.point_reasons`); nothing for the paper's rule, which has no reasons."""
+    removed, :func:`terracube.point_reasons`); nothing for the paper's rule, which has no reasons.
+    ``leveled``: the points in the leveled frame when the caller has them (else leveled here)."""
     if not len(result.cube_reasons):
         return []
     from .collapse import point_reasons
     from .viz import plot_reasons
 
+    if leveled is None:
+        leveled, _ = leveled_points(points, config)
     reasons = point_reasons(points, result, params=params)
     path = output_dir / f"{name}_reasons.png"
     title = (
@@ -636,8 +639,7 @@ def _run_dem(
                 vmin=0.0,
             ),
         )
-        leveled, _ = leveled_points(points, config)
-        pictures += _reasons_picture(points, leveled, result, collapse, output_dir, name)
+        pictures += _reasons_picture(points, result, collapse, config, output_dir, name)
         report.add("pictures", *pictures)
     return report
 
