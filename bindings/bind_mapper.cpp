@@ -81,6 +81,9 @@ void bind_mapper(py::module_& m) {
       .def_readonly("registered", &ScanReport::registered)
       .def_readonly("registration", &ScanReport::registration)
       .def_readonly("loops_closed", &ScanReport::loops_closed)
+      .def_readonly("pose", &ScanReport::pose,
+                    "(4, 4) the scan's estimated world <- sensor when it was added (loop closing may correct "
+                    "the keyframes later)")
       .def("__repr__", [](const ScanReport& r) {
         return "ScanReport(keyframe=" + std::string(r.keyframe ? "True" : "False") +
                ", index=" + std::to_string(r.index) + ", registered=" + (r.registered ? "True" : "False") +

@@ -304,11 +304,17 @@ struct Mapper::Impl {
   TiledElevationMap global;
   MapperTimings timings;
   std::size_t scans = 0;
-  double path_m = 0.0;
-  Eigen::Matrix4d last_odometry = Eigen::Matrix4d::Identity();
-  bool have_last = false;
-  /// LiDAR-only mode: the last step (L_{k-1} <- L_k) of the estimates, the next step's prediction.
-  Eigen::Matrix4d velocity = Eigen::Matrix4d::Identity();
+  /// The robot's progress along its path (restored as a whole when a scan throws).
+  struct Motion {
+    double path_m = 0.0;  ///< path length so far: odometry's (LiDAR-only: the estimates')
+    Eigen::Matrix4d last_odometry = Eigen::Matrix4d::Identity();
+    bool have_last = false;
+    /// LiDAR-only: the newest scan's estimated world <- L, and its motion from the scan before
+    /// (L_previous <- L_newest), the next scan's prediction once have_velocity.
+    Eigen::Matrix4d last_estimate = Eigen::Matrix4d::Identity();
+    Eigen::Matrix4d velocity = Eigen::Matrix4d::Identity();
+    bool have_velocity = false;
+  } motion;
   /// Scans since the previous keyframe (the newest last), points beyond min_range in the sensor frame.
   std::deque<BufferedScan> pending;
   std::size_t pending_loops = 0;  // loop edges added since the last optimisation
@@ -320,6 +326,11 @@ struct Mapper::Impl {
   ScanReport add(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry);
   template <typename Scalar>
   ScanReport add_checked(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry);
+  ScanReport add_with_odometry(std::size_t scan_index, const Eigen::Matrix4d& odometry);
+  ScanReport add_lidar_only(std::size_t scan_index, const Eigen::Matrix4d& attitude);
+  void append_keyframe(Keyframe keyframe, const Eigen::Matrix4d& step, const Eigen::Matrix<double, 6, 1>& sigma,
+                       ScanReport& report);
+  Eigen::Matrix<double, 6, 1> step_sigma(double travelled_m) const;
   void build_local_map(Keyframe& keyframe);
   Eigen::Matrix4d registered_step(const Keyframe& keyframe, const Keyframe& previous, const Eigen::Matrix4d& guess,
                                   ScanReport& report, Eigen::Matrix<double, 6, 1>& sigma);
@@ -420,8 +431,8 @@ void Mapper::Impl::rebuild() {
 template <typename Scalar>
 ScanReport Mapper::Impl::add(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry) {
   check_pose(odometry);
-  if (have_last) {
-    const double step = (odometry.topRightCorner<3, 1>() - last_odometry.topRightCorner<3, 1>()).norm();
+  if (motion.have_last) {
+    const double step = (odometry.topRightCorner<3, 1>() - motion.last_odometry.topRightCorner<3, 1>()).norm();
     if (!(step <= params.max_odometry_step_m)) {
       throw std::invalid_argument("odometry moved " + std::to_string(step) + " m since the previous scan, over " +
                                   "max_odometry_step_m = " + std::to_string(params.max_odometry_step_m) +
@@ -432,16 +443,14 @@ ScanReport Mapper::Impl::add(const PointsView<Scalar>& points, const Eigen::Matr
   struct Rollback {
     Impl& impl;
     std::size_t scans, keyframes, edges;
-    double path;
-    Eigen::Matrix4d last;
-    bool have_last, done = false;
+    Motion motion;
+    bool done = false;
     ~Rollback() {
       if (done) return;
-      impl.scans = scans, impl.timings.scans = scans, impl.path_m = path, impl.last_odometry = last;
-      impl.have_last = have_last;
+      impl.scans = scans, impl.timings.scans = scans, impl.motion = motion;
       impl.keyframes.resize(keyframes), impl.edges.resize(edges), impl.timings.keyframes = keyframes;
     }
-  } rollback{*this, scans, keyframes.size(), edges.size(), path_m, last_odometry, have_last};
+  } rollback{*this, scans, keyframes.size(), edges.size(), motion};
   ScanReport report = add_checked(points, odometry);
   rollback.done = true;
   return report;
@@ -470,63 +479,111 @@ void Mapper::Impl::buffer_scan(const PointsView<Scalar>& points, const Eigen::Ma
 
 template <typename Scalar>
 ScanReport Mapper::Impl::add_checked(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry) {
-  ScanReport report;
   buffer_scan(points, odometry);  // throws on NaN/Inf before anything changes
   const std::size_t scan_index = scans++;
   timings.scans = scans;
-  if (have_last) {
-    path_m += (odometry.topRightCorner<3, 1>() - last_odometry.topRightCorner<3, 1>()).norm();
-  }
-  last_odometry = odometry;
-  have_last = true;
+  return params.lidar_only ? add_lidar_only(scan_index, odometry) : add_with_odometry(scan_index, odometry);
+}
 
-  if (!keyframes.empty() && !params.lidar_only) {
+/// The odometry standard deviations of a step over `travelled_m` (at least 0.1 m).
+Eigen::Matrix<double, 6, 1> Mapper::Impl::step_sigma(double travelled_m) const {
+  const double travelled = std::max(travelled_m, 0.1);
+  Eigen::Matrix<double, 6, 1> sigma;
+  sigma << Eigen::Vector3d::Constant(params.odometry_sigma_m_per_m * travelled),
+      Eigen::Vector3d::Constant(params.odometry_sigma_rad_per_m * travelled);
+  return sigma;
+}
+
+/// A keyframe every keyframe_distance_m of odometry's path (or keyframe_rotation_rad of turn),
+/// its step from the previous keyframe registered from odometry's guess; the scans between are
+/// buffered for its local map (max_scans_per_local_map).
+ScanReport Mapper::Impl::add_with_odometry(std::size_t scan_index, const Eigen::Matrix4d& odometry) {
+  ScanReport report;
+  if (motion.have_last) {
+    motion.path_m += (odometry.topRightCorner<3, 1>() - motion.last_odometry.topRightCorner<3, 1>()).norm();
+  }
+  motion.last_odometry = odometry;
+  motion.have_last = true;
+
+  if (!keyframes.empty()) {
     const Keyframe& last = keyframes.back();
-    const Eigen::Matrix4d motion = inverse_rigid(last.odometry) * odometry;
-    const bool moved = path_m - last.path_m >= params.keyframe_distance_m;
-    const bool turned = rotation_angle(motion) >= params.keyframe_rotation_rad;
-    if (!moved && !turned) return report;
+    const bool moved = motion.path_m - last.path_m >= params.keyframe_distance_m;
+    const bool turned = rotation_angle(inverse_rigid(last.odometry) * odometry) >= params.keyframe_rotation_rad;
+    if (!moved && !turned) {
+      report.pose = last.estimate * inverse_rigid(last.odometry_level) * odometry;
+      return report;
+    }
   }
 
   Keyframe keyframe;
   keyframe.scan_index = scan_index;
   keyframe.odometry = odometry;
-  keyframe.path_m = path_m;
+  keyframe.path_m = motion.path_m;
   split_leveling(odometry, keyframe.odometry_level, keyframe.level_sensor);
-  if (params.lidar_only && !keyframes.empty()) {
-    // Constant velocity: the previous step repeated from the previous estimate (leveled frames).
-    keyframe.odometry_level = keyframes.back().estimate * velocity;
-    keyframe.odometry = keyframe.odometry_level * keyframe.level_sensor;
-    pending.back().odometry = keyframe.odometry;  // the scan (the only one pending) in its own frame
-  }
   build_local_map(keyframe);
   pending.clear();
-
-  report.keyframe = true;
-  report.index = static_cast<std::ptrdiff_t>(keyframes.size());
   if (keyframes.empty()) {
     keyframe.estimate = keyframe.odometry_level;
-  } else {
-    const Keyframe& previous = keyframes.back();
-    // Odometry's motion between the leveled frames: the initial guess of the registration.
-    const Eigen::Matrix4d guess =
-        params.lidar_only ? velocity
-                          : Eigen::Matrix4d(inverse_rigid(previous.odometry_level) * keyframe.odometry_level);
-    Eigen::Matrix4d step = guess;
-    const double travelled = std::max(keyframe.path_m - previous.path_m, 0.1);
-    Eigen::Matrix<double, 6, 1> sigma;
-    sigma << Eigen::Vector3d::Constant(params.odometry_sigma_m_per_m * travelled),
-        Eigen::Vector3d::Constant(params.odometry_sigma_rad_per_m * travelled);
-    if (params.use_registration) step = registered_step(keyframe, previous, guess, report, sigma);
-    if (params.lidar_only) {
-      velocity = step;
-      keyframe.path_m = previous.path_m + step.topRightCorner<3, 1>().norm();
-      path_m = keyframe.path_m;
-    }
-    keyframe.estimate = previous.estimate * step;
-    edges.push_back({keyframes.size() - 1, keyframes.size(), step, sigma, false});
+    append_keyframe(std::move(keyframe), Eigen::Matrix4d::Identity(), step_sigma(0.0), report);
+    return report;
   }
-  if (!params.keep_local_maps && !keyframes.empty()) keyframes.back().map = ElevationMap();
+  const Keyframe& previous = keyframes.back();
+  // Odometry's motion between the leveled frames: the initial guess of the registration.
+  const Eigen::Matrix4d guess = inverse_rigid(previous.odometry_level) * keyframe.odometry_level;
+  Eigen::Matrix<double, 6, 1> sigma = step_sigma(keyframe.path_m - previous.path_m);
+  const Eigen::Matrix4d step =
+      params.use_registration ? registered_step(keyframe, previous, guess, report, sigma) : guess;
+  keyframe.estimate = previous.estimate * step;
+  append_keyframe(std::move(keyframe), step, sigma, report);
+  return report;
+}
+
+/// LiDAR-only: every scan registered to the newest keyframe from the constant-velocity prediction;
+/// a keyframe once the estimates travelled keyframe_distance_m (or turned keyframe_rotation_rad)
+/// since the newest one.
+ScanReport Mapper::Impl::add_lidar_only(std::size_t scan_index, const Eigen::Matrix4d& attitude) {
+  ScanReport report;
+  Keyframe scan;  // a keyframe if it is far enough from the newest one
+  scan.scan_index = scan_index;
+  split_leveling(attitude, scan.odometry_level, scan.level_sensor);
+  if (!keyframes.empty()) scan.odometry_level = motion.last_estimate * motion.velocity;  // the prediction
+  scan.odometry = scan.odometry_level * scan.level_sensor;
+  pending.back().odometry = scan.odometry;  // the scan (the only one pending) in its own frame
+  build_local_map(scan);
+  pending.clear();
+  if (keyframes.empty()) {
+    scan.estimate = motion.last_estimate = scan.odometry_level;
+    append_keyframe(std::move(scan), Eigen::Matrix4d::Identity(), step_sigma(0.0), report);
+    return report;
+  }
+  const Keyframe& previous = keyframes.back();
+  const Eigen::Matrix4d guess = inverse_rigid(previous.estimate) * scan.odometry_level;
+  Eigen::Matrix<double, 6, 1> sigma = step_sigma(guess.topRightCorner<3, 1>().norm());
+  const Eigen::Matrix4d step = registered_step(scan, previous, guess, report, sigma);
+  scan.estimate = previous.estimate * step;
+  motion.velocity = inverse_rigid(motion.last_estimate) * scan.estimate;
+  motion.have_velocity = motion.have_velocity || report.registered;
+  motion.last_estimate = scan.estimate;
+  motion.path_m += motion.velocity.topRightCorner<3, 1>().norm();
+  scan.path_m = motion.path_m;
+  report.pose = scan.estimate * scan.level_sensor;
+  const bool moved = motion.path_m - previous.path_m >= params.keyframe_distance_m;
+  const bool turned = rotation_angle(step) >= params.keyframe_rotation_rad;
+  if (moved || turned) append_keyframe(std::move(scan), step, sigma, report);
+  return report;
+}
+
+/// Adds `keyframe` (its estimate set) with the step from the previous keyframe (none for the
+/// first), fuses it into the global map and looks for loops.
+void Mapper::Impl::append_keyframe(Keyframe keyframe, const Eigen::Matrix4d& step,
+                                   const Eigen::Matrix<double, 6, 1>& sigma, ScanReport& report) {
+  report.keyframe = true;
+  report.index = static_cast<std::ptrdiff_t>(keyframes.size());
+  report.pose = keyframe.estimate * keyframe.level_sensor;
+  if (!keyframes.empty()) {
+    edges.push_back({keyframes.size() - 1, keyframes.size(), step, sigma, false});
+    if (!params.keep_local_maps) keyframes.back().map = ElevationMap();
+  }
   keyframes.push_back(std::move(keyframe));
   timings.keyframes = keyframes.size();
 
@@ -546,7 +603,6 @@ ScanReport Mapper::Impl::add_checked(const PointsView<Scalar>& points, const Eig
     }
     timings.loop_closing_ms += ms_since(start);
   }
-  return report;
 }
 
 /// The step L_{k-1} <- L_k from the previous keyframe: registered from `guess` when the result
@@ -558,8 +614,8 @@ Eigen::Matrix4d Mapper::Impl::registered_step(const Keyframe& keyframe, const Ke
   Eigen::Matrix4d step = guess;
   const auto start = Clock::now();
   RegistrationParams registration = params.registration;
-  // LiDAR-only, first step: no velocity yet, so the search covers a keyframe's travel.
-  const bool first_blind_step = params.lidar_only && keyframes.size() == 1;
+  // LiDAR-only without a velocity yet: the search covers a keyframe's travel.
+  const bool first_blind_step = params.lidar_only && !motion.have_velocity;
   if (first_blind_step) registration.search.window_m += params.keyframe_distance_m;
   if (!params.lidar_only && registration.correlative_search) {
     // Odometry is usually close: the ICP from it alone first (the search can only blur a good

@@ -71,12 +71,15 @@ class MapperParams:
     lidar_only : bool
         LiDAR-only mode (no odometry): the translation and yaw of the poses given to ``add_scan``
         are ignored (their roll and pitch still level the local maps: pass identity for a level
-        sensor, or an IMU's attitude); every scan is a keyframe (feed scans about
-        ``keyframe_distance`` apart); each step's initial guess repeats the previous accepted step
-        (constant velocity from the Mapper's own estimates; the first step is searched within
-        ``keyframe_distance`` + the registration's search window). A trusted step is accepted
-        whatever its correction of the prediction (``max_correction`` bounds odometry's only);
-        untrusted steps keep the prediction. Needs ``use_registration``.
+        sensor, or an IMU's attitude). Every scan is registered to the newest keyframe from a
+        constant-velocity prediction (the previous scan's motion repeated, from the Mapper's own
+        estimates; until a first registration succeeds, searched within ``keyframe_distance`` +
+        the registration's search window) and becomes a keyframe once the estimates travelled
+        ``keyframe_distance`` (or turned ``keyframe_rotation``): feed every scan of a sequence. A
+        trusted registration is accepted whatever its correction of the prediction
+        (``max_correction`` bounds odometry's only); an untrusted one keeps the prediction. Each
+        scan costs a local map and a registration; local maps are single scans. Needs
+        ``use_registration``.
     registration : RegistrationParams
         The class-weighted ICP ([TC] Table 2 weights by default). With odometry a step is first
         registered from odometry's guess without the correlative search, and again with it only
@@ -225,7 +228,9 @@ class Mapper:
 
     def add_scan(self, points, pose) -> ScanReport:
         """Feeds one scan: ``points`` (N, 3) float32/float64 in the sensor frame, ``pose`` its (4, 4)
-        odometry world <- sensor. Returns what happened (keyframe, registration, loops closed).
+        odometry world <- sensor. Returns what happened (keyframe, registration, loops closed) and
+        ``.pose``, the scan's estimated (4, 4) world <- sensor at that time (its keyframe's estimate
+        moved by odometry since; LiDAR-only: its own registration).
 
         Points outside ``min_range`` .. ``max_range`` are left out here (counted in
         :attr:`points_out_of_range`) before the scan reaches the C++ mapper."""

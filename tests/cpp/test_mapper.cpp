@@ -109,6 +109,32 @@ std::vector<Eigen::Matrix4d> square_loop(double step, int laps_extra_steps) {
   return poses;
 }
 
+/// Ground-truth poses `step` apart along the square loop's first side, around its first corner
+/// on a 5 m radius (as a vehicle turns: 0.1 rad per 0.5 m) and up its second side; the sensor
+/// 1.8 m up with a little roll and pitch.
+std::vector<Eigen::Matrix4d> rounded_corner_path(double step) {
+  const double radius = 5.0, straight = 35.0, arc = radius * M_PI / 2;
+  std::vector<Eigen::Matrix4d> poses;
+  for (double s = 0.0; s <= 2 * straight + arc; s += step) {
+    Eigen::Matrix4d pose;
+    if (s < straight) {
+      pose = pose_xyyaw(s, 0, 1.8, 0);
+    } else if (s < straight + arc) {
+      const double angle = (s - straight) / radius;
+      pose = pose_xyyaw(straight + radius * std::sin(angle), radius - radius * std::cos(angle), 1.8, angle);
+    } else {
+      pose = pose_xyyaw(40, radius + s - straight - arc, 1.8, M_PI / 2);
+    }
+    const auto k = static_cast<double>(poses.size());
+    pose.topLeftCorner<3, 3>() =
+        pose.topLeftCorner<3, 3>() *
+        Eigen::AngleAxisd(0.02 * std::sin(0.3 * k), Eigen::Vector3d::UnitY()).toRotationMatrix() *
+        Eigen::AngleAxisd(0.02 * std::cos(0.2 * k), Eigen::Vector3d::UnitX()).toRotationMatrix();
+    poses.push_back(pose);
+  }
+  return poses;
+}
+
 /// Odometry: the true steps, each turned by `yaw_per_step` and scaled by (1 + scale_error).
 std::vector<Eigen::Matrix4d> drifting_odometry(const std::vector<Eigen::Matrix4d>& truth, double yaw_per_step,
                                                double scale_error) {
@@ -275,6 +301,8 @@ TEST(Mapper, KeyframesEveryKeyframeDistanceOfTravel) {
         mapper.add_scan(PointsView<float>(scan.data()->data(), scan.size()), pose_xyyaw(0.5 * k, 0, 0, 0));
     if (k % 6 == 0) expected.push_back(static_cast<std::size_t>(k));
     EXPECT_EQ(r.keyframe, k % 6 == 0) << k;
+    // Without registration the estimate is odometry: every scan's pose is its own odometry.
+    EXPECT_LT((r.pose - pose_xyyaw(0.5 * k, 0, 0, 0)).norm(), 1e-12) << k;
   }
   EXPECT_EQ(mapper.keyframe_scan_indices(), expected);
   // Turning in place also makes keyframes.
@@ -307,6 +335,51 @@ TEST(Mapper, ChainingByRegistrationBeatsDriftingOdometry) {
   const MapperTimings& t = mapper.timings();
   EXPECT_EQ(t.keyframes, indices.size());
   EXPECT_EQ(t.scans, truth.size());
+}
+
+TEST(Mapper, LidarOnlyRegistersEveryScanAndMakesKeyframesByItsOwnTravel) {
+  // Every scan, 0.5 m apart, of a drive round a corner, with no odometry: only an IMU's attitude
+  // (the true roll and pitch, no yaw, no position).
+  const auto world = world_cloud(2);
+  const auto truth = rounded_corner_path(0.5);
+  MapperParams params;
+  params.lidar_only = true;
+  params.loop_closing = false;
+  Mapper mapper(params);
+  std::vector<Eigen::Matrix4d> estimates, poses;  // ScanReport::pose, and it aligned with the truth
+  std::vector<std::size_t> keyframe_reports;
+  for (const Eigen::Matrix4d& pose : truth) {
+    const auto scan = scan_of(world, pose, 20.0);
+    Eigen::Matrix4d attitude = Eigen::Matrix4d::Identity();
+    const double yaw = std::atan2(pose(1, 0), pose(0, 0));
+    attitude.topLeftCorner<3, 3>() = pose_xyyaw(0, 0, 0, -yaw).topLeftCorner<3, 3>() * pose.topLeftCorner<3, 3>();
+    const ScanReport r = mapper.add_scan(PointsView<float>(scan.data()->data(), scan.size()), attitude);
+    if (r.keyframe) keyframe_reports.push_back(estimates.size());
+    estimates.push_back(r.pose);
+    poses.push_back(truth.front() * estimates.front().inverse() * r.pose);  // the estimates start at the identity
+  }
+  const MapperTimings& t = mapper.timings();
+  EXPECT_EQ(t.registered_steps + t.untrusted_steps, truth.size() - 1);  // every scan after the first
+  const double error = position_rmse(poses, truth);
+  std::cout << "scans " << truth.size() << ", keyframes " << mapper.num_keyframes() << ", untrusted "
+            << t.untrusted_steps << ": per-scan position RMSE " << error << " m\n";
+  EXPECT_LT(error, 0.1);  // measured: 0.018 m over the 78 m
+  // Keyframes, naively from the per-scan estimates: once they travelled 3 m (keyframe_distance_m)
+  // or turned 0.5 rad (keyframe_rotation_rad) since the newest keyframe.
+  std::vector<std::size_t> expected{0};
+  const auto yaw_of = [](const Eigen::Matrix4d& p) { return std::atan2(p(1, 0), p(0, 0)); };
+  double path = 0.0, keyframe_path = 0.0;
+  for (std::size_t k = 1; k < estimates.size(); ++k) {
+    path += (estimates[k].topRightCorner<3, 1>() - estimates[k - 1].topRightCorner<3, 1>()).norm();
+    const double turn = std::remainder(yaw_of(estimates[k]) - yaw_of(estimates[expected.back()]), 2 * M_PI);
+    if (path - keyframe_path >= 3.0 || std::abs(turn) >= 0.5) expected.push_back(k), keyframe_path = path;
+  }
+  EXPECT_EQ(mapper.keyframe_scan_indices(), expected);
+  EXPECT_EQ(keyframe_reports, expected);
+  const auto keyframe_poses = mapper.keyframe_poses();
+  for (std::size_t k = 0; k < expected.size(); ++k) {
+    EXPECT_LT((keyframe_poses[k] - estimates[expected[k]]).norm(), 1e-12) << k;
+  }
 }
 
 TEST(Mapper, LocalMapsOnSeveralThreadsGiveTheOneThreadPosesAndGlobalMap) {

@@ -65,16 +65,17 @@ struct MapperParams {
 
   /// false: chain local maps by odometry alone (no scan matching): a baseline.
   bool use_registration = true;
-  /// LiDAR-only mode (no odometry; issue 38): the translation and yaw of the poses given to
-  /// add_scan are ignored (their roll and pitch still level the local maps: pass identity for a
-  /// level sensor, or an IMU's attitude), every scan is a keyframe (feed scans about
-  /// keyframe_distance_m apart), and each step's initial guess is the previous accepted step
-  /// repeated (constant velocity, from the Mapper's own estimates; none before the first step,
-  /// which is searched within keyframe_distance_m + the registration's search window). A trusted
-  /// step is accepted whatever its correction of the prediction (max_correction_m and
-  /// max_correction_rad bound odometry's corrections only); an untrusted step keeps the
-  /// prediction. Needs use_registration. keyframe_odometry() then returns
-  /// the predictions.
+  /// LiDAR-only mode (no odometry): the translation and yaw of the poses given to add_scan are
+  /// ignored (their roll and pitch still level the local maps: pass identity for a level sensor,
+  /// or an IMU's attitude). Every scan is registered to the newest keyframe from a constant-velocity
+  /// prediction (the previous scan's motion repeated, from the Mapper's own estimates; none before
+  /// the first registered scan, which is searched within keyframe_distance_m + the registration's
+  /// search window), and becomes a keyframe once the estimates travelled keyframe_distance_m (or
+  /// turned keyframe_rotation_rad) since the newest one: feed every scan of a sequence. A trusted
+  /// registration is accepted whatever its correction of the prediction (max_correction_m and
+  /// max_correction_rad bound odometry's corrections only); an untrusted one keeps the
+  /// prediction. Each scan costs a local map and a registration. Local maps are single scans.
+  /// Needs use_registration. keyframe_odometry() then returns the predictions.
   bool lidar_only = false;
   RegistrationParams registration;
   /// Local maps live in leveled frames (odometry's roll and pitch, as from an IMU), so the motion
@@ -140,6 +141,10 @@ struct ScanReport {
   bool registered = false;          ///< the step was scan-matched (false: odometry was used)
   RegistrationResult registration;  ///< of the step to the previous keyframe (when tried)
   std::size_t loops_closed = 0;     ///< loop edges added by this keyframe
+  /// The scan's estimated world <- sensor pose when it was added: its keyframe's estimate moved by
+  /// odometry since that keyframe (LiDAR-only: its own registration). Loop closing may correct the
+  /// keyframes later; this is the pose a robot would act on at the time.
+  Eigen::Matrix4d pose = Eigen::Matrix4d::Identity();
 };
 
 /// A loop edge between two keyframes.
@@ -159,7 +164,9 @@ struct MapperTimings {
   double loop_closing_ms = 0.0;  ///< candidate search, loop registrations, pose graph
   std::size_t scans = 0;
   std::size_t keyframes = 0;
-  std::size_t registered_steps = 0;  ///< steps whose registration was accepted
+  /// Steps whose registration was accepted (a step: a keyframe to the previous one; LiDAR-only,
+  /// every scan after the first to the newest keyframe).
+  std::size_t registered_steps = 0;
   /// Steps whose registration was not trusted (RegistrationResult::trusted false): odometry (in
   /// LiDAR-only mode the constant-velocity prediction) was used instead.
   std::size_t untrusted_steps = 0;
@@ -205,7 +212,8 @@ class Mapper {
 
   /// Feeds one scan (points in the sensor frame) with its odometry pose (world <- sensor, rigid).
   /// Builds a keyframe when the robot moved keyframe_distance_m (or turned keyframe_rotation_rad)
-  /// since the last one; the first scan is always a keyframe. Throws std::invalid_argument for a
+  /// since the last one (LiDAR-only: by the Mapper's own estimates); the first scan is always a
+  /// keyframe. ScanReport::pose is the scan's estimated pose. Throws std::invalid_argument for a
   /// non-finite or non-rigid pose and for NaN/Inf points.
   ScanReport add_scan(const PointsView<float>& points, const Eigen::Matrix4d& odometry_pose);
   ScanReport add_scan(const PointsView<double>& points, const Eigen::Matrix4d& odometry_pose);

@@ -1868,6 +1868,11 @@ class ScanReport:
     def loops_closed(self) -> int:
         ...
     @property
+    def pose(self) -> typing.Annotated[numpy.typing.NDArray[numpy.float64], "[4, 4]"]:
+        """
+        (4, 4) the scan's estimated world <- sensor when it was added (loop closing may correct the keyframes later)
+        """
+    @property
     def registered(self) -> bool:
         ...
     @property
