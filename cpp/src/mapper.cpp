@@ -377,10 +377,14 @@ void Mapper::Impl::build_local_map(Keyframe& keyframe) {
   classify_terrain_layers(keyframe.map, terrain);
   keyframe.points = points_of_map(keyframe.map);
   if (params.registration.use_classes) {
-    // Classes of weight 0 (unknown, ground) never pair: keep only the cells that can.
+    // Classes of weight 0 (unknown, ground) never pair: keep only the cells that can (ground too
+    // when it registers as planes, ground_weight).
+    const bool ground_planes = params.registration.ground_weight > 0.0;
     ClassifiedPoints kept;
     for (std::size_t i = 0; i < keyframe.points.size(); ++i) {
-      if (params.registration.class_weights[keyframe.points.classes[i]] > 0.0) {
+      const std::uint8_t c = keyframe.points.classes[i];
+      if (params.registration.class_weights[c] > 0.0 ||
+          (ground_planes && c == static_cast<std::uint8_t>(TerrainClass::kGround))) {
         kept.points.push_back(keyframe.points.points[i]);
         kept.classes.push_back(keyframe.points.classes[i]);
       }
@@ -579,7 +583,6 @@ void Mapper::Impl::append_keyframe(Keyframe keyframe, const Eigen::Matrix4d& ste
                                    const Eigen::Matrix<double, 6, 1>& sigma, ScanReport& report) {
   report.keyframe = true;
   report.index = static_cast<std::ptrdiff_t>(keyframes.size());
-  report.pose = keyframe.estimate * keyframe.level_sensor;
   if (!keyframes.empty()) {
     edges.push_back({keyframes.size() - 1, keyframes.size(), step, sigma, false});
     if (!params.keep_local_maps) keyframes.back().map = ElevationMap();
@@ -603,6 +606,8 @@ void Mapper::Impl::append_keyframe(Keyframe keyframe, const Eigen::Matrix4d& ste
     }
     timings.loop_closing_ms += ms_since(start);
   }
+  // After any optimisation above: the scans until the next keyframe are posed from this estimate too.
+  report.pose = keyframes.back().estimate * keyframes.back().level_sensor;
 }
 
 /// The step L_{k-1} <- L_k from the previous keyframe: registered from `guess` when the result

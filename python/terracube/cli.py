@@ -1000,8 +1000,23 @@ def map_command(
         help="Directory of scans (any readable format, sorted by name) or one glob pattern.",
         show_default=False,
     ),
-    poses: Path = typer.Option(
-        ..., "--poses", "-p", help="Odometry poses: KITTI (12 numbers a line) or TUM.", show_default=False
+    poses: Path | None = typer.Option(
+        None,
+        "--poses",
+        "-p",
+        help="Odometry poses: KITTI (12 numbers a line) or TUM. Needed unless --lidar-only.",
+        show_default=False,
+    ),
+    lidar_only: bool | None = typer.Option(
+        None,
+        "--lidar-only/--with-odometry",
+        help=_help(
+            "Without odometry: every scan is registered to the newest keyframe from the previous scan's "
+            "motion; --poses, if given, only levels the scans (roll and pitch, e.g. an IMU's).",
+            "mapper",
+            "lidar_only",
+        ),
+        show_default=False,
     ),
     pose_format: str = typer.Option(
         "auto", "--pose-format", help="kitti, tum or auto (by the column count)."
@@ -1078,24 +1093,31 @@ def map_command(
         resolution=resolution,
         loop_closing=loop_closing,
         use_registration=registration,
+        lidar_only=lidar_only,
     )
     files = _scan_files(scans, limit)
-    if not poses.is_file():
-        raise _fail(f"{poses}: no such pose file")
+    if poses is None and not cfg.mapper.lidar_only:
+        raise _fail("give the odometry as --poses FILE, or map without it: --lidar-only")
+    _existing_file(poses, "--poses")
     _existing_file(calib, "--calib")
     _existing_file(times, "--times")
     _existing_file(ground_truth, "--ground-truth")
     _writable_folder(output_dir)
     with _exit_on_bad_input():
-        if pose_format == "auto":
-            pose_format = detect_pose_format(poses)
-        if calib is None and pose_format == "kitti" and (poses.parent / "calib.txt").is_file():
-            calib = poses.parent / "calib.txt"
+        reference = poses if poses is not None else ground_truth  # their format; calib.txt, times.txt beside
+        if pose_format == "auto" and reference is not None:
+            pose_format = detect_pose_format(reference)
+        beside = reference.parent if reference is not None else None
+        if calib is None and pose_format == "kitti" and beside and (beside / "calib.txt").is_file():
+            calib = beside / "calib.txt"
         calibration = read_kitti_calibration(calib) if calib is not None else None
-        stamps, odometry = read_pose_file(poses, pose_format, calibration)
+        if poses is not None:
+            stamps, odometry = read_pose_file(poses, pose_format, calibration)
+        else:  # LiDAR-only and level: the scans' own order
+            stamps, odometry = np.arange(len(files), dtype=np.float64), np.tile(np.eye(4), (len(files), 1, 1))
         indices = match_scans_to_poses(files, len(odometry))
-        if times is None and pose_format == "kitti" and (poses.parent / "times.txt").is_file():
-            times = poses.parent / "times.txt"
+        if times is None and pose_format == "kitti" and beside and (beside / "times.txt").is_file():
+            times = beside / "times.txt"
         if times is not None:
             from .poses import read_times
 
@@ -1106,9 +1128,9 @@ def map_command(
             truth = read_pose_file(ground_truth, pose_format, calibration)[1]
     if calibration is not None:
         typer.echo(f"calibration: {calib} (camera poses -> Velodyne)")
-    elif pose_format == "kitti":
+    elif pose_format == "kitti" and reference is not None:
         typer.secho(
-            f"warning: no calib.txt beside {poses} and no --calib: the KITTI poses are used as they are "
+            f"warning: no calib.txt beside {reference} and no --calib: the KITTI poses are used as they are "
             "(KITTI's are the left camera's, not the LiDAR's: the map is skewed and an ATE against "
             "camera poses measures nothing); give --calib calib.txt",
             fg=typer.colors.YELLOW,
@@ -1167,13 +1189,34 @@ def stream_params(values: dict[str, Any]):
     return params
 
 
+def stream_lidar_only_poses(scans, values: dict[str, Any]):
+    """``scans`` posed by a LiDAR-only mapper (:class:`terracube.stream.LidarOnlyPoses`) with the
+    mapper, terrain and registration sections of --config / --preset and the frame's range limits
+    (``terracube stream``'s options over them)."""
+    from .pipeline import mapper_params
+    from .stream import LidarOnlyPoses
+
+    cfg = command_config("stream", {name: values.get(name) for name in STREAM_CONFIG_OPTIONS})
+    return LidarOnlyPoses(scans, mapper_params(cfg), keep=cfg.frame.in_range)
+
+
 @app.command("stream")
 def stream_command(
     scans: Path = typer.Argument(
         ..., help="Directory of scans (sorted by name) or one glob pattern.", show_default=False
     ),
-    poses: Path = typer.Option(
-        ..., "--poses", "-p", help="Odometry poses: KITTI (12 numbers a line) or TUM.", show_default=False
+    poses: Path | None = typer.Option(
+        None,
+        "--poses",
+        "-p",
+        help="Odometry poses: KITTI (12 numbers a line) or TUM. Needed unless --lidar-only.",
+        show_default=False,
+    ),
+    lidar_only: bool = typer.Option(
+        False,
+        "--lidar-only",
+        help="Without odometry: each scan posed by a LiDAR-only mapper (every scan registered to its "
+        "newest keyframe); --poses, if given, only levels the scans (roll and pitch, e.g. an IMU's).",
     ),
     pose_format: str = typer.Option(
         "auto", "--pose-format", help="kitti, tum or auto (by the column count)."
@@ -1213,32 +1256,35 @@ def stream_command(
     from .stream import run_stream
 
     files = _scan_files(scans, limit)
-    if not poses.is_file():
-        raise _fail(f"{poses}: no such pose file")
+    if poses is None and not lidar_only:
+        raise _fail("give the odometry as --poses FILE, or stream without it: --lidar-only")
+    _existing_file(poses, "--poses")
     _existing_file(calib, "--calib")
     _writable_folder(output_dir)
     with _exit_on_bad_input():
-        if pose_format == "auto":
-            pose_format = detect_pose_format(poses)
-        if calib is None and pose_format == "kitti" and (poses.parent / "calib.txt").is_file():
-            calib = poses.parent / "calib.txt"
-        calibration = read_kitti_calibration(calib) if calib is not None else None
-        stamps, odometry = read_pose_file(poses, pose_format, calibration)
+        if poses is None:  # LiDAR-only and level: the scans' own order
+            stamps, odometry = np.arange(len(files), dtype=np.float64), np.tile(np.eye(4), (len(files), 1, 1))
+        else:
+            if pose_format == "auto":
+                pose_format = detect_pose_format(poses)
+            if calib is None and pose_format == "kitti" and (poses.parent / "calib.txt").is_file():
+                calib = poses.parent / "calib.txt"
+            calibration = read_kitti_calibration(calib) if calib is not None else None
+            stamps, odometry = read_pose_file(poses, pose_format, calibration)
         indices = match_scans_to_poses(files, len(odometry))
-        params = stream_params(
-            dict(
-                config=config,
-                preset=preset,
-                min_range=min_range,
-                max_range=max_range,
-                edge=edge,
-                sigma=sigma,
-                robot_height=robot_height,
-                collapse_method=collapse_method,
-                length=length,
-                resolution=resolution,
-            )
+        options = dict(
+            config=config,
+            preset=preset,
+            min_range=min_range,
+            max_range=max_range,
+            edge=edge,
+            sigma=sigma,
+            robot_height=robot_height,
+            collapse_method=collapse_method,
+            length=length,
+            resolution=resolution,
         )
+        params = stream_params(options)
     sequence = tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="streaming")
     beams = params.collapse.method == "shadow_aware"  # the empty pixels of organised scans help it
     used_beams = []
@@ -1253,9 +1299,12 @@ def stream_command(
                 points, no_returns = _read_scan(path), None
             yield str(path), points, odometry[k], float(stamps[k]), no_returns
 
+    posed = stream_lidar_only_poses(scans_of_files(), options) if lidar_only else scans_of_files()
     with _exit_on_bad_input("stream"):
-        report = run_stream(scans_of_files(), output_dir, params, every=every, animation=animation, png=png)
+        report = run_stream(posed, output_dir, params, every=every, animation=animation, png=png)
     _echo_report(report)
+    if lidar_only:
+        typer.echo(posed.summary())
     if sum(used_beams):
         typer.echo(f"{sum(used_beams):,} beams without a return (from the ring field) showed free space")
 

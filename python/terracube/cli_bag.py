@@ -161,13 +161,34 @@ def _mapper_params(config):
     return mapper_params(config)
 
 
+def _check_pose_source(bag_options: BagOptions, lidar_only: bool) -> None:
+    """Exit 2 unless the bag options name one pose source (or, LiDAR-only, at most one)."""
+    from .cli import _fail
+
+    if bag_options.odom is not None and bag_options.tf is not None:
+        raise _fail("give one pose source: --odom TOPIC or --tf BASE_FRAME, not both")
+    if bag_options.odom is None and bag_options.tf is None and not lidar_only:
+        raise _fail(
+            "a bag needs one pose source: --odom TOPIC (Odometry or PoseStamped) or --tf BASE_FRAME, "
+            "or none with --lidar-only"
+        )
+
+
+def _pose_topic(bag_options: BagOptions) -> str | None:
+    """read_bag's pose source: the --odom topic, /tf for --tf, or none (LiDAR-only)."""
+    if bag_options.odom is not None:
+        return bag_options.odom
+    return "/tf" if bag_options.tf is not None else None
+
+
 def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
-    """``terracube map BAG``: the mapper over every cloud of the topic, posed by --odom or --tf."""
+    """``terracube map BAG``: the mapper over every cloud of the topic, posed by --odom or --tf, or
+    with --lidar-only by its own registrations."""
     from .bag import occupancy_from_classes, read_bag
     from .cli import _exit_on_bad_input, _fail
     from .config import ConfigError, load_config
     from .mapping import Mapper
-    from .pipeline import scan_trajectory
+    from .pipeline import mapper_steps_line, scan_trajectory
     from .poses import write_kitti_poses, write_tum_poses
 
     for option, flag in (
@@ -178,8 +199,6 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     ):
         if values.get(option) is not None:
             raise _fail(f"{flag} is for a folder of scans; a bag takes its poses from --odom or --tf")
-    if (bag_options.odom is None) == (bag_options.tf is None):
-        raise _fail("a bag needs one pose source: --odom TOPIC (Odometry or PoseStamped) or --tf BASE_FRAME")
     try:
         cfg = load_config(values.get("config"), preset=values.get("preset"))
     except ConfigError as error:
@@ -192,25 +211,28 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
             resolution=values.get("resolution"),
             loop_closing=values.get("loop_closing"),
             use_registration=values.get("registration"),
+            lidar_only=values.get("lidar_only"),
         )
+    _check_pose_source(bag_options, cfg.mapper.lidar_only)
     output_dir = bag_options.out or values["output_dir"]
     with _exit_on_bad_input():  # the bag's errors name it
         topic = _points_topic(bag, bag_options.points)
-        clouds = read_bag(bag, topic, bag_options.odom or "/tf", base_frame=bag_options.tf)
+        clouds = read_bag(bag, topic, _pose_topic(bag_options), base_frame=bag_options.tf)
         mapper = Mapper(_mapper_params(cfg))
     limit = values.get("limit")
     total = len(clouds) if limit is None else min(len(clouds), max(limit, 0))
     stamps: list[float] = []
-    odometry: list[np.ndarray] = []  # the bag's pose of each cloud
+    odometry: list[np.ndarray] = []  # the bag's pose of each cloud (LiDAR-only: the mapper's)
     start = time.perf_counter()
     with _exit_on_bad_input():  # the bag's errors name it
         for stamp, points, pose in _progress(clouds, total, "mapping"):
             if len(stamps) >= total:
                 break
             keep = cfg.frame.in_range(points)  # the frame's range limits, as for a folder of scans
-            mapper.add_scan(points if keep.all() else np.ascontiguousarray(points[keep]), pose)
+            pose = np.eye(4) if pose is None else np.asarray(pose, dtype=np.float64)  # None: LiDAR-only
+            step = mapper.add_scan(points if keep.all() else np.ascontiguousarray(points[keep]), pose)
             stamps.append(stamp)
-            odometry.append(np.asarray(pose, dtype=np.float64))
+            odometry.append(step.pose if cfg.mapper.lidar_only else pose)
         if not stamps:
             raise ValueError(f"no cloud on {topic}")
         if mapper.pending_loops:
@@ -219,11 +241,13 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     seconds = time.perf_counter() - start
     output_dir.mkdir(parents=True, exist_ok=True)
     written = [dem.save(output_dir / "global_map.npz")]
-    # Every cloud's pose (the keyframes' estimates moved by the bag's odometry since), with the bag's
-    # stamps, and the keyframes alone, as `terracube map` writes them for a folder of scans.
+    # Every cloud's pose (the keyframes' estimates moved by the bag's odometry since, LiDAR-only by
+    # the mapper's own estimates), with the bag's stamps, and the keyframes alone, as `terracube map`
+    # writes them for a folder of scans.
     keyframes = mapper.keyframe_poses()
     key_scans = np.asarray(mapper.keyframe_scan_indices())
-    trajectory = scan_trajectory(keyframes, mapper.keyframe_odometry(), key_scans, np.asarray(odometry))
+    odometry_array = np.asarray(odometry)
+    trajectory = scan_trajectory(keyframes, odometry_array[key_scans], key_scans, odometry_array)
     stamp_array = np.asarray(stamps)
     for name, poses, times in (
         ("trajectory", trajectory, stamp_array),
@@ -262,6 +286,8 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
         f"{int(g.size[0])} x {int(g.size[1])} cells at {g.resolution} m, "
         f"{int(np.isfinite(dem['max']).sum())} with data"
     )
+    if cfg.mapper.lidar_only:
+        typer.echo(mapper_steps_line(mapper, 0, cfg.mapper))
     dropped = sum(clouds.no_returns)
     if dropped:
         typer.echo(f"{dropped:,} no-returns dropped")
@@ -271,25 +297,30 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
 
 def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     """``terracube stream BAG``: the local map over every cloud of the topic, posed by --odom or
-    --tf; with --out, the local map as a GridMap and its traversability as an OccupancyGrid every
-    --every clouds (every cloud when 0), in the poses' frame, stamped like the cloud."""
+    --tf (or with --lidar-only by a LiDAR-only mapper); with --out, the local map as a GridMap and
+    its traversability as an OccupancyGrid every --every clouds (every cloud when 0), in the poses'
+    frame, stamped like the cloud."""
     from .bag import occupancy_from_traversability, read_bag
-    from .cli import _echo_report, _exit_on_bad_input, _fail, _writable_folder, stream_params
+    from .cli import (
+        _echo_report,
+        _exit_on_bad_input,
+        _fail,
+        _writable_folder,
+        stream_lidar_only_poses,
+        stream_params,
+    )
     from .stream import run_stream
 
     for option, flag in (("poses", "--poses"), ("calib", "--calib")):
         if values.get(option) is not None:
             raise _fail(f"{flag} is for a folder of scans; a bag takes its poses from --odom or --tf")
-    if (bag_options.odom is None) == (bag_options.tf is None):
-        raise _fail("a bag needs one pose source: --odom TOPIC (Odometry or PoseStamped) or --tf BASE_FRAME")
+    _check_pose_source(bag_options, values.get("lidar_only", False))
     output_dir = _writable_folder(bag_options.out or values["output_dir"])
     params = stream_params(values)
     beams = params.collapse.method == "shadow_aware"  # the empty pixels of organised clouds help it
     with _exit_on_bad_input():  # the bag's errors name it
         topic = _points_topic(bag, bag_options.points)
-        clouds = read_bag(
-            bag, topic, bag_options.odom or "/tf", base_frame=bag_options.tf, keep_invalid=beams
-        )
+        clouds = read_bag(bag, topic, _pose_topic(bag_options), base_frame=bag_options.tf, keep_invalid=beams)
     limit = values.get("limit")
     total = len(clouds) if limit is None else min(len(clouds), max(limit, 0))
     writer = _output_bag(output_dir, f"{bag.stem}_stream", bag_options.storage) if bag_options.out else None
@@ -311,10 +342,12 @@ def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
             used_beams.append(0 if no_returns is None else len(no_returns))
             yield f"{bag.stem}_{index:04d}", points, cloud.pose, cloud.stamp, no_returns
 
+    lidar_only = values.get("lidar_only", False)
+    posed = stream_lidar_only_poses(scans(), values) if lidar_only else scans()
     try:
         with _exit_on_bad_input("stream"):
             report = run_stream(
-                _progress(scans(), total, "streaming"),
+                _progress(posed, total, "streaming"),
                 output_dir,
                 params,
                 every=values.get("every", 0),
@@ -327,6 +360,8 @@ def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
             writer.abort()
         raise
     _echo_report(report)
+    if lidar_only:
+        typer.echo(posed.summary())
     dropped = sum(clouds.no_returns)
     if sum(used_beams):
         typer.echo(f"{sum(used_beams):,} beams without a return (from the ring field) showed free space")
@@ -451,8 +486,6 @@ def _with_bag_input(callback, posed=None):
             ]
             if given:
                 raise _fail(f"{' '.join(given)}: only for a bag input (.bag, .mcap or a ROS 2 bag folder)")
-            if needs_poses and values.get("poses") is None:
-                raise _fail("--poses is required for a folder of scans")
             return callback(**values)
         if needs_poses:
             return posed(source, values, bag_options)
@@ -461,7 +494,11 @@ def _with_bag_input(callback, posed=None):
     input_help = (
         "\n\nA ROS bag (.bag, .mcap or a ROS 2 bag folder) as input: --points TOPIC picks the "
         "PointCloud2 topic"
-        + (", --odom TOPIC or --tf BASE_FRAME the poses" if needs_poses else ", every cloud is processed")
+        + (
+            ", --odom TOPIC or --tf BASE_FRAME the poses (neither with --lidar-only)"
+            if needs_poses
+            else ", every cloud is processed"
+        )
         + "; --out DIR writes the files and the results as a bag there."
     )
     command.__doc__ = inspect.cleandoc(callback.__doc__ or "") + input_help

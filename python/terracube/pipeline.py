@@ -1098,6 +1098,22 @@ def scan_trajectory(
     return corrections[owner] @ odometry
 
 
+def mapper_steps_line(mapper, odometry_steps: int, params) -> str:
+    """The summary line of how the mapper's steps were made."""
+    if params.lidar_only:
+        t = mapper.timings
+        return (
+            f"LiDAR-only: {t.registered_steps} of {t.registered_steps + t.untrusted_steps} scans registered "
+            f"to the newest keyframe, {t.untrusted_steps} untrusted kept the constant-velocity prediction"
+        )
+    if not params.use_registration:
+        return "odometry only: no step was scan-matched (--odometry-only)"
+    return (
+        f"odometry fallbacks: {odometry_steps} of {max(len(mapper) - 1, 0)} keyframe steps kept the "
+        "odometry (registration failed or its correction was refused)"
+    )
+
+
 def build_global_map(
     scans: Iterable[tuple[str, np.ndarray, int]],
     odometry: np.ndarray,
@@ -1117,7 +1133,8 @@ def build_global_map(
         frame and the row of ``odometry`` taken when it was recorded. Read lazily, so a generator
         that reads files keeps one scan in memory.
     odometry : (P, 4, 4) array
-        Odometry poses world <- sensor [m].
+        Odometry poses world <- sensor [m]. With the mapper section's ``lidar_only`` only their roll
+        and pitch are used (identities for a level sensor): the motion comes from the scans.
     stamps : (P,) array
         Their times [s], for the TUM trajectories.
     output_dir
@@ -1141,6 +1158,7 @@ def build_global_map(
     config = config or default_config()
     mapper = Mapper(mapper_params(config))
     indices: list[int] = []
+    estimates: list[np.ndarray] = []  # every scan's pose as the mapper reported it
     odometry_steps = 0  # keyframe steps that kept odometry because registration failed or was refused
     left_out = 0
     start = time.perf_counter()
@@ -1157,6 +1175,7 @@ def build_global_map(
         if step.keyframe and step.index > 0 and config.mapper.use_registration and not step.registered:
             odometry_steps += 1
         indices.append(index)
+        estimates.append(step.pose)
     if mapper.pending_loops:
         mapper.optimize()
     seconds = time.perf_counter() - start
@@ -1168,10 +1187,13 @@ def build_global_map(
     report = StageReport("global map", len(indices))
     report.outputs.append(dem.save(output_dir / "global_map.npz"))
     keyframes = mapper.keyframe_poses()
-    key_scans = [indices[k] for k in mapper.keyframe_scan_indices()]
-    trajectory = scan_trajectory(
-        keyframes, mapper.keyframe_odometry(), np.asarray(mapper.keyframe_scan_indices()), odometry[indices]
-    )
+    key_positions = np.asarray(mapper.keyframe_scan_indices())
+    key_scans = [indices[k] for k in key_positions]
+    # Every scan moved with its keyframe's final estimate: from odometry since the keyframe, or
+    # LiDAR-only from the scan's own registration (the poses the mapper reported, which carry the
+    # keyframe's estimate of their time).
+    moved = np.asarray(estimates) if config.mapper.lidar_only else odometry[indices]
+    trajectory = scan_trajectory(keyframes, moved[key_positions], key_positions, moved)
     stamps = np.asarray(stamps, dtype=np.float64)
     written = {
         "trajectory_kitti.txt": lambda p: write_kitti_poses(p, trajectory),
@@ -1210,10 +1232,7 @@ def build_global_map(
         f"{int(np.isfinite(dem['max']).sum())} with data, "
         f"{mapper.global_memory_bytes / 2**20:.1f} MiB of tiles",
         f"ground reference: {_mapper_reference(mapper.params.terrain, config)}",
-        f"odometry fallbacks: {odometry_steps} of {max(len(mapper) - 1, 0)} keyframe steps kept the "
-        "odometry (registration failed or its correction was refused)"
-        if config.mapper.use_registration
-        else "odometry only: no step was scan-matched (--odometry-only)",
+        mapper_steps_line(mapper, odometry_steps, config.mapper),
     ]
     left_out += mapper.points_out_of_range
     if left_out:
@@ -1227,10 +1246,10 @@ def build_global_map(
 
         truth = np.asarray(ground_truth)[indices]
         estimate = absolute_trajectory_error(trajectory, truth, "first_pose").translation
-        odom = absolute_trajectory_error(odometry[indices], truth, "first_pose").translation
-        report.lines.append(
-            f"ATE over {len(indices)} scans (first pose aligned): mapper RMSE {estimate.rmse:.3f} m, "
-            f"odometry RMSE {odom.rmse:.3f} m"
-        )
+        line = f"ATE over {len(indices)} scans (first pose aligned): mapper RMSE {estimate.rmse:.3f} m"
+        if not config.mapper.lidar_only:
+            odom = absolute_trajectory_error(odometry[indices], truth, "first_pose").translation
+            line += f", odometry RMSE {odom.rmse:.3f} m"
+        report.lines.append(line)
     report.lines += [f"written: {path}" for path in report.outputs]
     return report

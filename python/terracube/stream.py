@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -9,9 +10,10 @@ from pathlib import Path
 import numpy as np
 
 from .local_map import LocalMap, LocalMapParams
+from .mapping import Mapper, MapperParams
 from .pipeline import StageReport
 
-__all__ = ["run_stream"]
+__all__ = ["run_stream", "LidarOnlyPoses"]
 
 ANIMATION_SUFFIXES = (".gif", ".mp4")
 
@@ -72,6 +74,58 @@ def _write_animation(frames: list[tuple[str, np.ndarray, np.ndarray]], path: Pat
     finally:
         plt.close(fig)
     return path
+
+
+class LidarOnlyPoses:
+    """Poses for a scan sequence without odometry: a LiDAR-only :class:`terracube.Mapper` (loop closing
+    off) registers every scan to its newest keyframe, and each scan gets its estimate at that time.
+    The registration takes the ground as planes (``RegistrationParams.ground_weight`` 1 where
+    ``params`` leaves it 0): the paper's ICP leaves the ground out, and with it the height, which
+    drifts (0.9 m over 30 m of simulated level road, 0.07 m with the planes) and would tilt the local
+    map. Without an attitude the motion is taken as level: the height of a ramp is not followed.
+
+    Iterating over it yields the scans of ``scans`` (tuples whose second and third items are the
+    points and a pose, as :func:`run_stream` takes them) with the pose replaced by the estimate; a
+    given pose only levels the scan (its roll and pitch, e.g. an IMU's; None for a level sensor).
+    ``keep(points)``, if given, masks the points the mapper uses (range limits).
+    """
+
+    def __init__(
+        self, scans: Iterable[tuple], params: MapperParams | None = None, keep: Callable | None = None
+    ):
+        params = params or MapperParams()
+        registration = params.registration
+        if registration.ground_weight == 0:
+            registration = dataclasses.replace(registration, ground_weight=1.0)
+        params = dataclasses.replace(params, lidar_only=True, loop_closing=False, registration=registration)
+        self.mapper = Mapper(params)
+        self.scans = scans
+        self.keep = keep
+        self.seconds = 0.0
+
+    def __iter__(self):
+        for name, points, attitude, *rest in self.scans:
+            start = time.perf_counter()
+            used = points
+            if self.keep is not None:
+                mask = self.keep(points)
+                used = points if mask.all() else np.ascontiguousarray(np.asarray(points)[mask])
+            try:
+                report = self.mapper.add_scan(used, np.eye(4) if attitude is None else attitude)
+            except (ValueError, TypeError) as error:
+                raise ValueError(f"{name}: {error}") from error
+            self.seconds += time.perf_counter() - start
+            yield (name, points, report.pose, *rest)
+
+    def summary(self) -> str:
+        """One line: how many scans were registered, and the time per scan."""
+        t = self.mapper.timings
+        scans = max(t.scans, 1)
+        return (
+            f"LiDAR-only poses: {t.registered_steps} of {t.registered_steps + t.untrusted_steps} scans "
+            f"registered to the newest keyframe ({len(self.mapper)} keyframes), {t.untrusted_steps} "
+            f"untrusted kept the constant-velocity prediction; {1000 * self.seconds / scans:.1f} ms per scan"
+        )
 
 
 def run_stream(

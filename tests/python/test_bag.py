@@ -869,9 +869,39 @@ def test_stream_on_a_kitti_bag_gives_the_local_map_of_the_loose_files_and_publis
     with AnyReader([tmp_path / "every" / "odometry_stream"]) as reader:
         assert {c.topic: c.msgcount for c in reader.connections}["/terracube/grid_map"] == FRAMES // 2
     result = cli("stream", kitti_bags["odometry"], "--points", "/velodyne_points", "-o", tmp_path / "x")
-    assert result.exit_code == 2 and "--odom TOPIC" in result.output
+    assert result.exit_code == 2 and "--odom TOPIC" in result.output and "--lidar-only" in result.output
     result = cli("stream", kitti_bags["odometry"], "--odom", "/odom", "--poses", tum, "-o", tmp_path / "x")
     assert result.exit_code == 2 and "--poses is for a folder of scans" in result.output
+
+
+def test_lidar_only_map_and_stream_of_a_bag_equal_those_of_the_loose_files(cli, kitti_bags, tmp_path):
+    """Without a pose source (--lidar-only) a bag's clouds are posed by the mapper's registrations,
+    as the loose files are."""
+    velodyne = kitti_bags["root"] / "kitti_seq00" / "velodyne"
+    bag = kitti_bags["odometry"]
+    for command, options, result_file in (
+        ("map", ["--keyframe-distance", "0.5", "--no-png"], "global_map.npz"),
+        ("stream", ["--length", "12", "--resolution", "0.2", "--no-png"], "local_map.npz"),
+    ):
+        loose = cli(command, velodyne, "--lidar-only", "--limit", FRAMES, "-o", tmp_path / command, *options)
+        assert loose.exit_code == 0, loose.output
+        result = cli(
+            command, bag, "--points", "/velodyne_points", "--lidar-only", "-o", tmp_path / "b", *options
+        )
+        assert result.exit_code == 0, result.output
+        assert f"{FRAMES - 1} of {FRAMES - 1} scans registered" in result.output
+        expected = tc.ElevationMap.load(tmp_path / command / result_file)
+        got = tc.ElevationMap.load(tmp_path / "b" / result_file)
+        np.testing.assert_allclose(got.geometry.origin, expected.geometry.origin, atol=1e-9)
+        for layer in set(expected.layers) - {"time"}:  # the bag's stamps, the files' indices
+            np.testing.assert_allclose(got[layer], expected[layer], atol=1e-5, equal_nan=True, err_msg=layer)
+    trajectory = np.loadtxt(tmp_path / "b" / "trajectory_kitti.txt").reshape(-1, 3, 4)
+    np.testing.assert_allclose(
+        trajectory, np.loadtxt(tmp_path / "map" / "trajectory_kitti.txt").reshape(-1, 3, 4)
+    )
+    assert np.linalg.norm(trajectory[-1, :, 3]) > 1.0  # the car moved 1.7 m (the scans say 1.4 m)
+    result = cli("stream", bag, "--odom", "/odom", "--tf", "base_link", "-o", tmp_path / "x")
+    assert result.exit_code == 2 and "not both" in result.output
 
 
 def test_classify_on_every_cloud_of_a_bag_writes_files_and_a_bag(cli, bags, tmp_path):

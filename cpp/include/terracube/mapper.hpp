@@ -75,6 +75,8 @@ struct MapperParams {
   /// registration is accepted whatever its correction of the prediction (max_correction_m and
   /// max_correction_rad bound odometry's corrections only); an untrusted one keeps the
   /// prediction. Each scan costs a local map and a registration. Local maps are single scans.
+  /// Without an attitude the motion is level (a ramp's height is not followed), and the paper's
+  /// ICP, without the ground, leaves the height loose: registration.ground_weight > 0 holds it.
   /// Needs use_registration. keyframe_odometry() then returns the predictions.
   bool lidar_only = false;
   RegistrationParams registration;
@@ -141,9 +143,10 @@ struct ScanReport {
   bool registered = false;          ///< the step was scan-matched (false: odometry was used)
   RegistrationResult registration;  ///< of the step to the previous keyframe (when tried)
   std::size_t loops_closed = 0;     ///< loop edges added by this keyframe
-  /// The scan's estimated world <- sensor pose when it was added: its keyframe's estimate moved by
-  /// odometry since that keyframe (LiDAR-only: its own registration). Loop closing may correct the
-  /// keyframes later; this is the pose a robot would act on at the time.
+  /// The scan's estimated world <- sensor pose when it was added: its keyframe's estimate (after
+  /// any loop closing of this call) moved by odometry since that keyframe (LiDAR-only: its own
+  /// registration). Later loop closing may correct the keyframes; this is the pose a robot would
+  /// act on at the time.
   Eigen::Matrix4d pose = Eigen::Matrix4d::Identity();
 };
 
