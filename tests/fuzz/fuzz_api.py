@@ -229,9 +229,12 @@ def _parameter_case(tc, rng: np.random.Generator, points: np.ndarray) -> None:
     elif which == 5:
         tc.fit_fuzzy_elevation_map(points, perturb(tc.FuzzyParams(), rng))
     elif which == 6:
-        mapper = tc.Mapper(perturb(tc.MapperParams(), rng))
+        params = perturb(tc.MapperParams(lidar_only=bool(rng.random() < 0.5)), rng)
+        mapper = tc.Mapper(params)
         for _ in range(3):
-            mapper.add_scan(points, pose(rng))
+            report = mapper.add_scan(points if rng.random() < 0.7 else cloud(rng), pose(rng))
+            if not np.isfinite(report.pose).all():
+                raise AssertionError(f"a scan's pose is not finite: {report.pose}")
         mapper.global_map()
     elif which == 7:
         collapse, elevation = perturb(tc.CollapseParams(), rng), perturb(tc.ElevationParams(), rng)
