@@ -78,10 +78,10 @@ class MapperParams:
         ``keyframe_distance`` (or turned ``keyframe_rotation``): feed every scan of a sequence. A
         trusted registration is accepted whatever its correction of the prediction
         (``max_correction`` bounds odometry's only); an untrusted one keeps the prediction. Each
-        scan costs a local map and a registration; local maps are single scans. Without an
-        attitude the motion is level (a ramp's height is not followed), and the paper's ICP,
-        without the ground, leaves the height loose: ``registration.ground_weight > 0`` holds it.
-        Needs ``use_registration``.
+        scan costs a local map and a registration; local maps are single scans. The paper's ICP
+        leaves the ground out, and with it the height: each step's height is the median offset of
+        the ground cells the scan's and the newest keyframe's maps share. Without an attitude the
+        motion is level: a ramp's height is not followed. Needs ``use_registration``.
     registration : RegistrationParams
         The class-weighted ICP ([TC] Table 2 weights by default). With odometry a step is first
         registered from odometry's guess without the correlative search, and again with it only

@@ -79,10 +79,8 @@ def _write_animation(frames: list[tuple[str, np.ndarray, np.ndarray]], path: Pat
 class LidarOnlyPoses:
     """Poses for a scan sequence without odometry: a LiDAR-only :class:`terracube.Mapper` (loop closing
     off) registers every scan to its newest keyframe, and each scan gets its estimate at that time.
-    The registration takes the ground as planes (``RegistrationParams.ground_weight`` 1 where
-    ``params`` leaves it 0): the paper's ICP leaves the ground out, and with it the height, which
-    drifts (0.9 m over 30 m of simulated level road, 0.07 m with the planes) and would tilt the local
-    map. Without an attitude the motion is taken as level: the height of a ramp is not followed.
+    Without an attitude the motion is taken as level: a ramp's height is not followed (see
+    ``MapperParams.lidar_only``).
 
     Iterating over it yields the scans of ``scans`` (tuples whose second and third items are the
     points and a pose, as :func:`run_stream` takes them) with the pose replaced by the estimate; a
@@ -93,11 +91,7 @@ class LidarOnlyPoses:
     def __init__(
         self, scans: Iterable[tuple], params: MapperParams | None = None, keep: Callable | None = None
     ):
-        params = params or MapperParams()
-        registration = params.registration
-        if registration.ground_weight == 0:
-            registration = dataclasses.replace(registration, ground_weight=1.0)
-        params = dataclasses.replace(params, lidar_only=True, loop_closing=False, registration=registration)
+        params = dataclasses.replace(params or MapperParams(), lidar_only=True, loop_closing=False)
         self.mapper = Mapper(params)
         self.scans = scans
         self.keep = keep

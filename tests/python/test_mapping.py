@@ -466,7 +466,7 @@ def test_map_and_stream_commands_without_odometry_follow_a_simulated_drive(loop_
     reported = np.array([mapper.add_scan(points, np.eye(4)).pose for points in scans[:count]])
     np.testing.assert_allclose(trajectory, reported[:, :3], atol=1e-5)
     error = tc.absolute_trajectory_error(reported, truth, "first_pose").translation.rmse
-    assert error < 1.0, error  # measured: 0.42 m over the 30 m
+    assert error < 0.5, error  # measured: 0.16 m over the 30 m
     assert f"mapper RMSE {error:.3f} m" in result.output
 
     maps = {}
@@ -490,24 +490,37 @@ def test_map_and_stream_commands_without_odometry_follow_a_simulated_drive(loop_
     here = lidar["elevation"][i[inside], j[inside]]
     both = np.isfinite(there)
     close = np.abs(here[both] - there[both]) < 0.1
-    # Measured: 80 % of the cells known in both, 97.5 % of those within 0.1 m.
+    # Measured: 79 % of the cells known in both, 98 % of those within 0.1 m.
     assert both.sum() > 0.7 * len(i) and close.mean() > 0.9, (both.sum() / len(i), close.mean())
 
 
-def test_ground_planes_hold_the_lidar_only_height_on_level_road(loop_sequence):
-    """The paper's ICP leaves the ground out, so LiDAR-only steps leave the height loose; with
-    ``registration.ground_weight`` the keyframes keep their ground cells and the planes hold it."""
+def test_lidar_only_holds_the_height_on_level_road_by_the_shared_ground(loop_sequence):
+    """The paper's ICP leaves the ground out, which leaves the height of LiDAR-only steps loose
+    (measured: 0.89 m of drift over these 30 m); each step's height is taken from the ground cells
+    the two local maps share."""
     sequence, scans = loop_sequence
     first, count = 35, 20  # 30 m of level road
     truth = sequence.poses[first : first + count]
-    errors = {}
+    mapper = Mapper(MapperParams(lidar_only=True, loop_closing=False))
+    heights = [mapper.add_scan(points, np.eye(4)).pose[2, 3] for points in scans[first : first + count]]
+    error = np.max(np.abs(np.asarray(heights) - (truth[:, 2, 3] - truth[0, 2, 3])))
+    assert error < 0.05, error  # measured: 0.001 m
+
+
+def test_ground_planes_take_part_in_the_mappers_steps(loop_sequence):
+    """``registration.ground_weight`` > 0: the keyframes keep their ground cells, and the steps pair
+    them with the previous keyframe's ground planes."""
+    sequence, scans = loop_sequence
+    pairs = {}
     for weight in (0.0, 1.0):
-        params = MapperParams(lidar_only=True, loop_closing=False)
+        params = MapperParams(loop_closing=False)
         params = dataclasses.replace(
             params, registration=dataclasses.replace(params.registration, ground_weight=weight)
         )
         mapper = Mapper(params)
-        heights = [mapper.add_scan(points, np.eye(4)).pose[2, 3] for points in scans[first : first + count]]
-        errors[weight] = np.max(np.abs(np.asarray(heights) - (truth[:, 2, 3] - truth[0, 2, 3])))
-    # Measured: 0.89 m without the planes, 0.07 m with them.
-    assert errors[1.0] < 0.2 < errors[0.0], errors
+        reports = [
+            mapper.add_scan(points, pose)
+            for points, pose in zip(scans[:3], sequence.odometry[:3], strict=True)
+        ]
+        pairs[weight] = reports[-1].registration.correspondences_per_class[int(tc.TerrainClass.GROUND)]
+    assert pairs[0.0] == 0 and pairs[1.0] > 100, pairs

@@ -75,8 +75,9 @@ struct MapperParams {
   /// registration is accepted whatever its correction of the prediction (max_correction_m and
   /// max_correction_rad bound odometry's corrections only); an untrusted one keeps the
   /// prediction. Each scan costs a local map and a registration. Local maps are single scans.
-  /// Without an attitude the motion is level (a ramp's height is not followed), and the paper's
-  /// ICP, without the ground, leaves the height loose: registration.ground_weight > 0 holds it.
+  /// The paper's ICP leaves the ground out, and with it the height: each step's height is the
+  /// median offset of the ground cells the scan's and the newest keyframe's maps share. Without an
+  /// attitude the motion is level: a ramp's height is not followed.
   /// Needs use_registration. keyframe_odometry() then returns the predictions.
   bool lidar_only = false;
   RegistrationParams registration;
