@@ -8,13 +8,17 @@ What is measured
   classes, weighted ICP, fusion -- on every scan, the worst case) and the paper's ~3 m keyframes.
   Scans per second = scans / wall time of the add_scan calls (scans already in memory).
   Baseline side by side: PCL's ICP (``pcl::IterativeClosestPoint``, SVD) on the same consecutive
-  local-map point sets, odometry as the guess, against the mapper's own registration step.
+  local-map point sets, odometry as the guess, against the mapper's own registration step. Then
+  without odometry: the distance the six frames span by the LiDAR-only Mapper and by KISS-ICP.
 - A synthetic loop (``terracube.simulation``): an HDL-64-like rotating LiDAR (64 channels,
   2048 steps, ~KITTI-size scans) driving one lap of the loop scene (tunnel, bridge, ramp, trees,
   buildings), a scan every metre, odometry with drift (yaw bias and random walk, 1 % scale error).
   Scans are cast before timing. Three runs: odometry chaining only, chaining by weighted ICP, and
   chaining plus loop closing (Ceres). Reported: scans per second, the time split, and the keyframe
   ATE (first pose aligned) and RPE against the ground truth.
+- The same scans without odometry: the LiDAR-only Mapper (every scan registered to its newest
+  keyframe; the pose it reports for each scan) beside KISS-ICP (``pip install kiss-icp``; skipped
+  when absent), a LiDAR odometry: time per scan, ATE and RPE of every scan's pose.
 
 Targets (reported, not asserted): at least 20 scans per second on one core for KITTI-size scans.
 
@@ -115,7 +119,24 @@ def kitti_part(args, rows) -> list[float]:
             f"  registration step (median of {len(ours)}): weighted ICP {o:.1f} ms, PCL ICP {p:.1f} ms "
             f"-> PCL / terracube = {p / o:.1f}x"
         )
+    kitti_lidar_only(args, frames, truth)
     return rates
+
+
+def kitti_lidar_only(args, frames: list[np.ndarray], truth: np.ndarray) -> None:
+    """The distance frames 0-5 span without odometry: the LiDAR-only Mapper against KISS-ICP and the
+    ground truth (KITTI's scans and truth disagree by about 0.17 m a frame: bench_icp.py --scan-floor)."""
+    from bench_icp import kiss_icp_steps
+
+    mapper = Mapper(MapperParams(lidar_only=True, loop_closing=False, min_range=3.0))
+    poses = [mapper.add_scan(points, np.eye(4)).pose for points in frames]
+    ours = np.linalg.norm((np.linalg.inv(poses[0]) @ poses[-1])[:3, 3])
+    line = f"  LiDAR-only, frames 0-5 span: mapper {ours:.3f} m"
+    kiss = kiss_icp_steps(args.data_dir)
+    if kiss is not None:
+        line += f", KISS-ICP {np.linalg.norm(kiss['KITTI 0->5'][:3, 3]):.3f} m"
+    true = np.linalg.norm((np.linalg.inv(truth[0]) @ truth[-1])[:3, 3])
+    print(line + f", ground truth {true:.3f} m")
 
 
 def simulated_loop() -> sim.SyntheticSequence:

@@ -610,6 +610,13 @@ _INPUT = typer.Argument(
     show_default=False,
 )
 _OUTPUT_DIR = typer.Option(Path("terracube_out"), "--output-dir", "-o", help="Where to write.")
+_POSES = typer.Option(
+    None,
+    "--poses",
+    "-p",
+    help="Odometry poses: KITTI (12 numbers a line) or TUM. Needed unless --lidar-only.",
+    show_default=False,
+)
 
 _STAGE_HELP = {
     "collapse": """Remove overhangs (canopy, ceilings, bridge decks) from one scan with collapsible cubes.
@@ -1000,13 +1007,7 @@ def map_command(
         help="Directory of scans (any readable format, sorted by name) or one glob pattern.",
         show_default=False,
     ),
-    poses: Path | None = typer.Option(
-        None,
-        "--poses",
-        "-p",
-        help="Odometry poses: KITTI (12 numbers a line) or TUM. Needed unless --lidar-only.",
-        show_default=False,
-    ),
+    poses: Path | None = _POSES,
     lidar_only: bool | None = typer.Option(
         None,
         "--lidar-only/--with-odometry",
@@ -1205,13 +1206,7 @@ def stream_command(
     scans: Path = typer.Argument(
         ..., help="Directory of scans (sorted by name) or one glob pattern.", show_default=False
     ),
-    poses: Path | None = typer.Option(
-        None,
-        "--poses",
-        "-p",
-        help="Odometry poses: KITTI (12 numbers a line) or TUM. Needed unless --lidar-only.",
-        show_default=False,
-    ),
+    poses: Path | None = _POSES,
     lidar_only: bool = typer.Option(
         False,
         "--lidar-only",

@@ -452,13 +452,6 @@ def _with_bag_input(callback, posed=None):
     names = list(signature.parameters)
     input_name = names[0]  # every wrapped command takes its scan(s) as the first argument
     parameters = list(signature.parameters.values())
-    if needs_poses:  # a bag carries its own poses: --poses becomes optional
-        parameters = [
-            p.replace(default=typer.Option(None, "--poses", "-p", help=p.default.help, show_default=False))
-            if p.name == "poses"
-            else p
-            for p in parameters
-        ]
     taken = {"odom", "tf"} if needs_poses else set()
     for name, (option, annotation) in _BAG_PARAMETERS.items():
         if name in ("odom", "tf") and not needs_poses:

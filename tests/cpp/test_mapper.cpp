@@ -88,6 +88,15 @@ std::vector<Eigen::Vector3f> scan_of(const std::vector<Eigen::Vector3d>& world, 
   return scan;
 }
 
+/// `pose` with a little roll and pitch, varying with the scan number k.
+Eigen::Matrix4d wobbled(Eigen::Matrix4d pose, double k) {
+  pose.topLeftCorner<3, 3>() =
+      pose.topLeftCorner<3, 3>() *
+      Eigen::AngleAxisd(0.02 * std::sin(0.3 * k), Eigen::Vector3d::UnitY()).toRotationMatrix() *
+      Eigen::AngleAxisd(0.02 * std::cos(0.2 * k), Eigen::Vector3d::UnitX()).toRotationMatrix();
+  return pose;
+}
+
 /// Ground-truth poses around the square loop (0,0) -> (40,0) -> (40,40) -> (0,40), `step` apart,
 /// the sensor 1.8 m up with a little roll and pitch.
 std::vector<Eigen::Matrix4d> square_loop(double step, int laps_extra_steps) {
@@ -99,12 +108,7 @@ std::vector<Eigen::Matrix4d> square_loop(double step, int laps_extra_steps) {
     const double corners[4][3] = {{0, 0, 0}, {40, 0, M_PI / 2}, {40, 40, M_PI}, {0, 40, -M_PI / 2}};
     const double x = corners[side][0] + s * std::cos(corners[side][2]);
     const double y = corners[side][1] + s * std::sin(corners[side][2]);
-    Eigen::Matrix4d pose = pose_xyyaw(x, y, 1.8, corners[side][2]);
-    pose.topLeftCorner<3, 3>() =
-        pose.topLeftCorner<3, 3>() *
-        Eigen::AngleAxisd(0.02 * std::sin(0.3 * k), Eigen::Vector3d::UnitY()).toRotationMatrix() *
-        Eigen::AngleAxisd(0.02 * std::cos(0.2 * k), Eigen::Vector3d::UnitX()).toRotationMatrix();
-    poses.push_back(pose);
+    poses.push_back(wobbled(pose_xyyaw(x, y, 1.8, corners[side][2]), k));
   }
   return poses;
 }
@@ -125,12 +129,7 @@ std::vector<Eigen::Matrix4d> rounded_corner_path(double step) {
     } else {
       pose = pose_xyyaw(40, radius + s - straight - arc, 1.8, M_PI / 2);
     }
-    const auto k = static_cast<double>(poses.size());
-    pose.topLeftCorner<3, 3>() =
-        pose.topLeftCorner<3, 3>() *
-        Eigen::AngleAxisd(0.02 * std::sin(0.3 * k), Eigen::Vector3d::UnitY()).toRotationMatrix() *
-        Eigen::AngleAxisd(0.02 * std::cos(0.2 * k), Eigen::Vector3d::UnitX()).toRotationMatrix();
-    poses.push_back(pose);
+    poses.push_back(wobbled(pose, static_cast<double>(poses.size())));
   }
   return poses;
 }
