@@ -304,6 +304,9 @@ COMMAND_OPTIONS = {
         "--std-dev",
     ],
     "fem": [*_MAP_OPTIONS, "--edge", "--sigma", "--crop", "--rules", "--membership"],
+    # Sequences without odometry (--lidar-only), over a folder holding the scan twice.
+    "map": ["--min-range", "--max-range", "--keyframe-distance", "--resolution", "--limit"],
+    "stream": ["--min-range", "--max-range", "--edge", "--sigma", "--length", "--resolution", "--every"],
 }
 COMMAND_VALUES = [
     "nan",
@@ -328,8 +331,8 @@ class CommandFailed(Exception):
 
 
 def _command_case(rng: np.random.Generator) -> None:
-    """A command line (collapse, dem, classify, fem) with one or two options set to hostile text:
-    it must exit 0 or 2 (an ``error:`` line), never 1 with a traceback."""
+    """A command line (collapse, dem, classify, fem; map and stream without odometry) with one or two
+    options set to hostile text: it must exit 0 or 2 (an ``error:`` line), never 1 with a traceback."""
     import tempfile
     from pathlib import Path
 
@@ -342,8 +345,21 @@ def _command_case(rng: np.random.Generator) -> None:
         ground = np.random.default_rng(0)
         points = np.c_[ground.uniform(-20.0, 20.0, (3000, 2)), ground.normal(0.0, 0.2, 3000)]
         _scan_file.append(write_kitti_bin(folder / "scan.bin", points.astype(np.float32)))
+        sequence = Path(tempfile.mkdtemp(prefix="terracube-fuzz-sequence-"))
+        for k in range(2):
+            write_kitti_bin(sequence / f"{k:06d}.bin", points.astype(np.float32))
+        _scan_file.append(sequence)
     command = str(rng.choice(list(COMMAND_OPTIONS)))
     args = [command, str(_scan_file[0]), "-o", str(_scan_file[0].parent / "out"), "--no-png"]
+    if command in ("map", "stream"):
+        args = [
+            command,
+            str(_scan_file[1]),
+            "--lidar-only",
+            "-o",
+            str(_scan_file[0].parent / "out"),
+            "--no-png",
+        ]
     args += ["--epochs", "1"] if command == "fem" else []
     numbers = COMMAND_VALUES[:11]
     for option in rng.choice(COMMAND_OPTIONS[command], int(rng.integers(1, 3)), replace=False):
@@ -358,7 +374,7 @@ def _command_case(rng: np.random.Generator) -> None:
             args += [option, str(rng.choice(COMMAND_VALUES))]
     result = CliRunner().invoke(app, args)
     if result.exit_code not in (0, 2) or not isinstance(result.exception, (SystemExit, type(None))):
-        raise CommandFailed(f"{' '.join(args[4:])}: exit {result.exit_code}, {result.exception!r}")
+        raise CommandFailed(f"{' '.join(args[:1] + args[4:])}: exit {result.exit_code}, {result.exception!r}")
 
 
 def run_case(seed: int) -> None:
