@@ -54,6 +54,7 @@ void bind_mapper(py::module_& m) {
       .def_readwrite("lidar_only", &MapperParams::lidar_only)
       .def_readwrite("registration", &MapperParams::registration)
       .def_readwrite("yaw_only_registration", &MapperParams::yaw_only_registration)
+      .def_readwrite("ground_step_height", &MapperParams::ground_step_height)
       .def_readwrite("max_correction_m", &MapperParams::max_correction_m)
       .def_readwrite("max_odometry_step_m", &MapperParams::max_odometry_step_m)
       .def_readwrite("max_correction_rad", &MapperParams::max_correction_rad)

@@ -140,11 +140,12 @@ void split_leveling(const Eigen::Matrix4d& world_sensor, Eigen::Matrix4d& world_
   world_level.topRightCorner<3, 1>() = world_sensor.topRightCorner<3, 1>();
 }
 
-/// LiDAR-only: the height correction of `step` (L_previous <- L_scan) from the ground the two
-/// local maps share. The paper's ICP leaves the ground out, which leaves the height loose (it
-/// drifted 0.9 m over 30 m of simulated level road): the median, over the scan's ground cells that
-/// land on a ground cell of the previous map, of the previous mean elevation minus the moved one.
-/// 0 with fewer than 100 such cells.
+/// The height correction of a registered step (L_previous <- L_scan) from the ground the two local
+/// maps share (not in [TC]). Its ICP leaves the ground out, which leaves the height loose (without
+/// odometry it drifted 0.9 m over 30 m of simulated level road; with exact odometry the steps
+/// still moved the height by up to 1.2 m): the median, over the scan's ground cells that land on a
+/// ground cell of the previous map, of the previous mean elevation minus the moved one. 0 with
+/// fewer than 100 such cells.
 double shared_ground_offset(const ElevationMap& scan, const ElevationMap& previous, const Eigen::Matrix4d& step) {
   constexpr float kGroundValue = 1.0F;  // TerrainClass::kGround in the "class" layer
   if (!scan.exists("class") || !previous.exists("class")) return 0.0;
@@ -566,8 +567,12 @@ ScanReport Mapper::Impl::add_with_odometry(std::size_t scan_index, const Eigen::
   // Odometry's motion between the leveled frames: the initial guess of the registration.
   const Eigen::Matrix4d guess = inverse_rigid(previous.odometry_level) * keyframe.odometry_level;
   Eigen::Matrix<double, 6, 1> sigma = step_sigma(keyframe.path_m - previous.path_m);
-  const Eigen::Matrix4d step =
-      params.use_registration ? registered_step(keyframe, previous, guess, report, sigma) : guess;
+  Eigen::Matrix4d step = guess;
+  if (params.use_registration) {
+    step = registered_step(keyframe, previous, guess, report, sigma);
+    if (report.registered && params.ground_step_height)
+      step(2, 3) += shared_ground_offset(keyframe.map, previous.map, step);
+  }
   keyframe.estimate = previous.estimate * step;
   append_keyframe(std::move(keyframe), step, sigma, report);
   return report;
@@ -595,7 +600,7 @@ ScanReport Mapper::Impl::add_lidar_only(std::size_t scan_index, const Eigen::Mat
   const Eigen::Matrix4d guess = inverse_rigid(previous.estimate) * scan.odometry_level;
   Eigen::Matrix<double, 6, 1> sigma = step_sigma(guess.topRightCorner<3, 1>().norm());
   Eigen::Matrix4d step = registered_step(scan, previous, guess, report, sigma);
-  step(2, 3) += shared_ground_offset(scan.map, previous.map, step);
+  if (report.registered && params.ground_step_height) step(2, 3) += shared_ground_offset(scan.map, previous.map, step);
   scan.estimate = previous.estimate * step;
   motion.velocity = inverse_rigid(motion.last_estimate) * scan.estimate;
   motion.have_velocity = motion.have_velocity || report.registered;

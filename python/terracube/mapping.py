@@ -78,10 +78,9 @@ class MapperParams:
         ``keyframe_distance`` (or turned ``keyframe_rotation``): feed every scan of a sequence. A
         trusted registration is accepted whatever its correction of the prediction
         (``max_correction`` bounds odometry's only); an untrusted one keeps the prediction. Each
-        scan costs a local map and a registration; local maps are single scans. The paper's ICP
-        leaves the ground out, and with it the height: each step's height is the median offset of
-        the ground cells the scan's and the newest keyframe's maps share. Without an attitude the
-        motion is level: a ramp's height is not followed. Needs ``use_registration``.
+        scan costs a local map and a registration; local maps are single scans. The height comes
+        from the ground (``ground_step_height``). Without an attitude the motion is level: a
+        ramp's height is not followed. Needs ``use_registration``.
     registration : RegistrationParams
         The class-weighted ICP ([TC] Table 2 weights by default). With odometry a step is first
         registered from odometry's guess without the correlative search, and again with it only
@@ -90,6 +89,10 @@ class MapperParams:
         Keep only the translation and yaw of each registration: local maps are leveled by odometry's
         roll and pitch, so their relative rotation is a yaw (the ground-free ICP leaves roll and pitch
         weakly constrained). False: the full 6-DOF result, as the paper.
+    ground_step_height : bool
+        A registered step's height from the ground the two local maps share (the median offset of
+        their common ground cells; not in [TC]): the ICP leaves the ground out, so only the objects
+        hold the height, loosely. False: the ICP's height, as the paper.
     max_correction, max_correction_rot : float
         A step registration that moves odometry's guess further [m], [rad], or whose result is not
         ``trusted`` (counted in ``timings.untrusted_steps``), is rejected (odometry is used for
@@ -145,6 +148,7 @@ class MapperParams:
     lidar_only: bool = False
     registration: RegistrationParams = field(default_factory=RegistrationParams)
     yaw_only_registration: bool = True
+    ground_step_height: bool = True
     max_correction: float = 1.5
     max_correction_rot: float = 0.15
     registration_sigma: float = 0.05
@@ -189,6 +193,7 @@ class MapperParams:
         params.lidar_only = bool(self.lidar_only)
         params.registration = self.registration.to_core()
         params.yaw_only_registration = bool(self.yaw_only_registration)
+        params.ground_step_height = bool(self.ground_step_height)
         params.max_correction_m = float(self.max_correction)
         params.max_correction_rad = float(self.max_correction_rot)
         params.registration_sigma_m = float(self.registration_sigma)

@@ -1680,6 +1680,7 @@ class PoseGraphResult:
         (K, 4, 4) optimised poses
         """
 class MapperParams:
+    ground_step_height: bool
     keep_local_maps: bool
     lidar_only: bool
     loop_closing: bool
