@@ -253,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
     require((args.data_dir / "kitti_seq00").is_dir(), f"no KITTI frames under {args.data_dir}")
     print_header(
         "terracube Mapper benchmark",
-        ["  pipeline: leveling, layers, classes, weighted ICP, fusion (+ loops), 0.2 m cells, 40 m maps"],
+        ["  pipeline: leveling, layers, classes, weighted ICP, fusion (+ loops), 0.1 m cells, 40 m maps"],
         "PCL ICP time / terracube weighted ICP time on the same local maps",
         args,
         "fewer repeats, shorter synthetic run",
