@@ -140,44 +140,13 @@ void split_leveling(const Eigen::Matrix4d& world_sensor, Eigen::Matrix4d& world_
   world_level.topRightCorner<3, 1>() = world_sensor.topRightCorner<3, 1>();
 }
 
-/// The height correction of a registered step (L_previous <- L_scan) from the ground the two local
-/// maps share (not in [TC]). Its ICP leaves the ground out, which leaves the height loose (without
-/// odometry it drifted 0.9 m over 30 m of simulated level road; with exact odometry the steps
-/// still moved the height by up to 1.2 m): the median, over the scan's ground cells that land on a
-/// ground cell of the previous map, of the previous mean elevation minus the moved one. 0 with
-/// fewer than 100 such cells.
-double shared_ground_offset(const ElevationMap& scan, const ElevationMap& previous, const Eigen::Matrix4d& step) {
-  constexpr float kGroundValue = 1.0F;  // TerrainClass::kGround in the "class" layer
-  if (!scan.exists("class") || !previous.exists("class")) return 0.0;
-  const Layer& scan_class = scan.get("class");
-  const Layer& scan_mean = scan.get("mean");
-  const Layer& previous_class = previous.get("class");
-  const Layer& previous_mean = previous.get("mean");
-  const Eigen::Matrix3d rotation = step.topLeftCorner<3, 3>();
-  const Eigen::Vector3d translation = step.topRightCorner<3, 1>();
-  std::vector<double> offsets;
-  for (Eigen::Index i = 0; i < scan_class.rows(); ++i) {
-    for (Eigen::Index j = 0; j < scan_class.cols(); ++j) {
-      if (scan_class(i, j) != kGroundValue) continue;
-      const Eigen::Vector2d c = scan.geometry().position_of(CellIndex(static_cast<int>(i), static_cast<int>(j)));
-      const Eigen::Vector3d moved = rotation * Eigen::Vector3d(c.x(), c.y(), scan_mean(i, j)) + translation;
-      const std::optional<CellIndex> there = previous.geometry().index_of(moved.head<2>());
-      if (!there || previous_class((*there)(0), (*there)(1)) != kGroundValue) continue;
-      offsets.push_back(previous_mean((*there)(0), (*there)(1)) - moved.z());
-    }
-  }
-  if (offsets.size() < 100) return 0.0;
-  const auto middle = offsets.begin() + static_cast<std::ptrdiff_t>(offsets.size() / 2);
-  std::nth_element(offsets.begin(), middle, offsets.end());
-  return *middle;
-}
-
 /// One cell of a local map, kept for fusion and rebuilds.
 struct CellSample {
   float x, y;  // cell centre in the keyframe's leveled frame [m]
   float z_min, z_max, z_mean, z_std;
   std::uint32_t count;
   std::uint8_t discontinuous;
+  std::uint8_t ground;  // classified ground ([TC] Table 1)
 };
 
 struct Keyframe {
@@ -193,6 +162,36 @@ struct Keyframe {
   ClassifiedPoints points;  // its cells as ICP points
   std::vector<CellSample> cells;
 };
+
+/// The height correction of a registered motion `relative` (L_fixed <- L_moved) from the ground
+/// the two keyframes' local maps share (not in [TC]). The ICP leaves the ground out, which leaves
+/// the height loose (without odometry it drifted 0.9 m over 30 m of simulated level road; with
+/// exact odometry the steps still moved the height by up to 1.2 m): the median, over the moved
+/// keyframe's ground cells that land on a ground cell of the fixed one, of the fixed mean
+/// elevation minus the moved one. 0 with fewer than 100 such cells.
+double shared_ground_offset(const Keyframe& moved, const Keyframe& fixed, const Eigen::Matrix4d& relative) {
+  const MapGeometry& g = fixed.geometry;
+  std::vector<float> ground(static_cast<std::size_t>(g.size.x()) * static_cast<std::size_t>(g.size.y()), kNaN);
+  for (const CellSample& cell : fixed.cells) {
+    const std::optional<CellIndex> at = g.index_of(Eigen::Vector2d(cell.x, cell.y));
+    if (cell.ground != 0 && at) ground[static_cast<std::size_t>((*at)(0)) * g.size.y() + (*at)(1)] = cell.z_mean;
+  }
+  const Eigen::Matrix3d rotation = relative.topLeftCorner<3, 3>();
+  const Eigen::Vector3d translation = relative.topRightCorner<3, 1>();
+  std::vector<double> offsets;
+  for (const CellSample& cell : moved.cells) {
+    if (cell.ground == 0) continue;
+    const Eigen::Vector3d p = rotation * Eigen::Vector3d(cell.x, cell.y, cell.z_mean) + translation;
+    const std::optional<CellIndex> at = g.index_of(p.head<2>());
+    if (!at) continue;
+    const float there = ground[static_cast<std::size_t>((*at)(0)) * g.size.y() + (*at)(1)];
+    if (!std::isnan(there)) offsets.push_back(static_cast<double>(there) - p.z());
+  }
+  if (offsets.size() < 100) return 0.0;
+  const auto middle = offsets.begin() + static_cast<std::ptrdiff_t>(offsets.size() / 2);
+  std::nth_element(offsets.begin(), middle, offsets.end());
+  return *middle;
+}
 
 struct BufferedScan {
   std::vector<float> xyz;  // x, y, z, x, y, z, ... in the sensor frame
@@ -433,6 +432,8 @@ void Mapper::Impl::build_local_map(Keyframe& keyframe) {
   const Layer& mean = keyframe.map.get("mean");
   const Layer& std_dev = keyframe.map.get("std_dev");
   const Layer& discontinuity = keyframe.map.get("discontinuity");
+  const Layer& classes = keyframe.map.get("class");
+  constexpr float kGroundValue = 1.0F;  // TerrainClass::kGround in the "class" layer
   keyframe.cells.clear();
   for (Eigen::Index i = 0; i < count.rows(); ++i) {
     for (Eigen::Index j = 0; j < count.cols(); ++j) {
@@ -440,7 +441,8 @@ void Mapper::Impl::build_local_map(Keyframe& keyframe) {
       const Eigen::Vector2d c = g.position_of(CellIndex(static_cast<int>(i), static_cast<int>(j)));
       keyframe.cells.push_back({static_cast<float>(c.x()), static_cast<float>(c.y()), min(i, j), max(i, j), mean(i, j),
                                 std_dev(i, j), static_cast<std::uint32_t>(count(i, j)),
-                                static_cast<std::uint8_t>(discontinuity(i, j) > 0.5f)});
+                                static_cast<std::uint8_t>(discontinuity(i, j) > 0.5f),
+                                static_cast<std::uint8_t>(classes(i, j) == kGroundValue)});
     }
   }
 }
@@ -570,8 +572,7 @@ ScanReport Mapper::Impl::add_with_odometry(std::size_t scan_index, const Eigen::
   Eigen::Matrix4d step = guess;
   if (params.use_registration) {
     step = registered_step(keyframe, previous, guess, report, sigma);
-    if (report.registered && params.ground_step_height)
-      step(2, 3) += shared_ground_offset(keyframe.map, previous.map, step);
+    if (report.registered && params.ground_step_height) step(2, 3) += shared_ground_offset(keyframe, previous, step);
   }
   keyframe.estimate = previous.estimate * step;
   append_keyframe(std::move(keyframe), step, sigma, report);
@@ -600,7 +601,7 @@ ScanReport Mapper::Impl::add_lidar_only(std::size_t scan_index, const Eigen::Mat
   const Eigen::Matrix4d guess = inverse_rigid(previous.estimate) * scan.odometry_level;
   Eigen::Matrix<double, 6, 1> sigma = step_sigma(guess.topRightCorner<3, 1>().norm());
   Eigen::Matrix4d step = registered_step(scan, previous, guess, report, sigma);
-  if (report.registered && params.ground_step_height) step(2, 3) += shared_ground_offset(scan.map, previous.map, step);
+  if (report.registered && params.ground_step_height) step(2, 3) += shared_ground_offset(scan, previous, step);
   scan.estimate = previous.estimate * step;
   motion.velocity = inverse_rigid(motion.last_estimate) * scan.estimate;
   motion.have_velocity = motion.have_velocity || report.registered;
@@ -757,7 +758,8 @@ std::size_t Mapper::Impl::close_loops(std::size_t k) {
     Eigen::Matrix<double, 6, 1> sigma;
     sigma << Eigen::Vector3d::Constant(params.registration_sigma_m),
         Eigen::Vector3d::Constant(params.registration_sigma_rad);
-    const Eigen::Matrix4d relative = params.yaw_only_registration ? yaw_only(r.transform) : r.transform;
+    Eigen::Matrix4d relative = params.yaw_only_registration ? yaw_only(r.transform) : r.transform;
+    if (params.ground_step_height) relative(2, 3) += shared_ground_offset(current, other, relative);
     edges.push_back({j, k, relative, sigma, true});
     loops.push_back({j, k, relative, r.rmse_m, overlap});
     ++closed;

@@ -90,9 +90,9 @@ class MapperParams:
         roll and pitch, so their relative rotation is a yaw (the ground-free ICP leaves roll and pitch
         weakly constrained). False: the full 6-DOF result, as the paper.
     ground_step_height : bool
-        A registered step's height from the ground the two local maps share (the median offset of
-        their common ground cells; not in [TC]): the ICP leaves the ground out, so only the objects
-        hold the height, loosely. False: the ICP's height, as the paper.
+        A registered step's or loop edge's height from the ground the two local maps share (the
+        median offset of their common ground cells; not in [TC]): the ICP leaves the ground out, so
+        only the objects hold the height, loosely. False: the ICP's height, as the paper.
     max_correction, max_correction_rot : float
         A step registration that moves odometry's guess further [m], [rad], or whose result is not
         ``trusted`` (counted in ``timings.untrusted_steps``), is rejected (odometry is used for

@@ -85,10 +85,10 @@ struct MapperParams {
   /// (the ground takes no part in it, which leaves roll and pitch weakly constrained; their noise
   /// would tilt the fused global map). false: the full 6-DOF result, as the paper.
   bool yaw_only_registration = true;
-  /// A registered step's height from the ground the two local maps share (the median offset of
-  /// their common ground cells; not in [TC]): the ICP leaves the ground out, so only the objects
-  /// hold the height, loosely (on the simulated loop the steps moved it by up to 1.2 m although
-  /// odometry's was right to 0.02 m). false: the ICP's height, as the paper.
+  /// A registered step's or loop edge's height from the ground the two local maps share (the
+  /// median offset of their common ground cells; not in [TC]): the ICP leaves the ground out, so
+  /// only the objects hold the height, loosely (on the simulated loop the steps moved it by up to
+  /// 1.2 m although odometry's was right to 0.02 m). false: the ICP's height, as the paper.
   bool ground_step_height = true;
   /// With odometry, a step is first registered from odometry's guess without the correlative
   /// search (it can only blur a good guess), and again with it (registration.correlative_search)
