@@ -381,6 +381,32 @@ TEST(Mapper, LidarOnlyRegistersEveryScanAndMakesKeyframesByItsOwnTravel) {
   }
 }
 
+TEST(Mapper, StepsTakeTheirHeightFromTheSharedGround) {
+  // LiDAR-only round the corner: the ICP leaves the ground out, so only the posts, walls and crowns
+  // hold the height; with ground_step_height the ground the maps share does.
+  const auto world = world_cloud(2);
+  const auto truth = rounded_corner_path(0.5);
+  double worst[2] = {0.0, 0.0};
+  for (const bool ground : {false, true}) {
+    MapperParams params;
+    params.lidar_only = true;
+    params.loop_closing = false;
+    params.ground_step_height = ground;
+    Mapper mapper(params);
+    for (const Eigen::Matrix4d& pose : truth) {
+      const auto scan = scan_of(world, pose, 20.0);
+      Eigen::Matrix4d attitude = Eigen::Matrix4d::Identity();
+      const double yaw = std::atan2(pose(1, 0), pose(0, 0));
+      attitude.topLeftCorner<3, 3>() = pose_xyyaw(0, 0, 0, -yaw).topLeftCorner<3, 3>() * pose.topLeftCorner<3, 3>();
+      const ScanReport r = mapper.add_scan(PointsView<float>(scan.data()->data(), scan.size()), attitude);
+      worst[ground] = std::max(worst[ground], std::abs(r.pose(2, 3) - (pose(2, 3) - truth.front()(2, 3))));
+    }
+  }
+  std::cout << "worst height error: ICP " << worst[0] << " m, shared ground " << worst[1] << " m\n";
+  EXPECT_LT(worst[1], 0.05);
+  EXPECT_LT(worst[1], 0.5 * worst[0]);
+}
+
 TEST(Mapper, LocalMapsOnSeveralThreadsGiveTheOneThreadPosesAndGlobalMap) {
   // Five scans a local map (about 70,000 points: enough for two threads), registration on.
   const auto world = world_cloud(3);
