@@ -130,7 +130,8 @@ void bind_icp(py::module_& m) {
       .def_readonly("inlier_share_per_class", &RegistrationResult::inlier_share_per_class,
                     "(6,) per source class: share of its points with a partner")
       .def_readonly("held", &RegistrationResult::held,
-                    "(6,) how firmly each motion is held, per unit of pair weight, ascending (0 none, 1 every pair)")
+                    "(6,) how firmly each motion is held, per unit of the class pairs' weight, ascending (0 none, 1 "
+                    "every pair)")
       .def_readonly("held_directions", &RegistrationResult::held_directions,
                     "(6, 6) unit eigenvectors of held as columns (rotation x rms radius, translation)")
       .def_readonly("trusted", &RegistrationResult::trusted, "every trust threshold of RegistrationParams met")

@@ -443,13 +443,12 @@ def pcl_gicp(source, target, initial=None, params: PclIcpParams | None = None, *
 
 def constrained_directions(result: RegistrationResult) -> list[tuple[str, float, np.ndarray]]:
     """How firmly the scene holds each motion, weakest first, from a result registered with
-    ``structure_radius > 0``.
+    ``structure_radius > 0``: ``result.held`` with the unknown each direction is mostly along.
 
-    The constraint matrix is taken per unit of correspondence weight W, rotations scaled by the
-    pairs' rms distance r from their centroid, both read off the normal matrix H (without ground
-    planes its translation block is W I and the trace of its rotation block 2 W r^2; here W is a
-    third of the translation block's trace), so that an eigenvalue of 1 along a translation means
-    every pair holds it fully and 0 that none does.
+    The constraint matrix is taken per unit of the class pairs' weight W, rotations scaled by
+    their rms distance r from their centroid (ground planes, which hold only height, roll and
+    pitch, are not counted), so that an eigenvalue of 1 along a translation means every pair holds
+    it fully and 0 that none does.
 
     Returns
     -------
@@ -464,14 +463,10 @@ def constrained_directions(result: RegistrationResult) -> list[tuple[str, float,
         If the result carries no constraint matrix (``structure_radius`` was 0, or there were no
         correspondences).
     """
-    matrix = np.asarray(result.constraint_matrix)
-    normal = np.asarray(result.normal_matrix)
-    weight = float(np.trace(normal[3:, 3:])) / 3.0
-    if not np.any(matrix) or not weight > 0.0:
+    vectors = np.asarray(result.held_directions)
+    if not np.any(result.constraint_matrix) or not np.any(vectors):
         raise ValueError("the result has no constraint matrix: register with structure_radius > 0")
-    radius = np.sqrt(np.trace(normal[:3, :3]) / (2.0 * weight))
-    scale = np.diag(1.0 / np.array([radius] * 3 + [1.0] * 3))
-    values, vectors = np.linalg.eigh(scale @ matrix @ scale / weight)
+    values = np.asarray(result.held)
     return [
         (UNKNOWNS[int(np.argmax(np.abs(vectors[:, k])))], float(values[k]), vectors[:, k]) for k in range(6)
     ]

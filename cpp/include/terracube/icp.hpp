@@ -264,9 +264,11 @@ struct RegistrationResult {
   /// min_correspondence_distance_m (0 without points).
   std::array<double, kNumTerrainClasses> inlier_share_per_class{};
   /// How firmly the scene holds each motion: the eigenvalues (ascending) of constraint_matrix per
-  /// unit of pair weight W (a third of the trace of normal_matrix's translation block), rotations
-  /// scaled by the pairs' rms radius r (trace of its rotation block = 2 W r^2): 1 along a
-  /// translation means every pair holds it fully, 0 that none does. Zero without the analysis.
+  /// unit of the class pairs' weight W (without ground planes, a third of the trace of
+  /// normal_matrix's translation block; the planes, which hold only height, roll and pitch, are
+  /// not counted), rotations scaled by those pairs' rms radius r (trace of their rotation block =
+  /// 2 W r^2): 1 along a translation means every pair holds it fully, 0 that none does. Zero
+  /// without the analysis.
   Eigen::Matrix<double, 6, 1> held = Eigen::Matrix<double, 6, 1>::Zero();
   /// Unit eigenvectors of `held` as columns, in the scaled unknowns (rotation x r, translation).
   Eigen::Matrix<double, 6, 6> held_directions = Eigen::Matrix<double, 6, 6>::Zero();

@@ -705,9 +705,10 @@ StopReason stop_reason(const RegistrationResult& result, const Pass& pass, const
 }
 
 /// The ICP iterations of [TC] section 2.2 from `start`: fills `result` (all but the verdict),
-/// with the constraint analysis at the final estimate.
-void iterate(Registration& registration, const Eigen::Matrix4d& start, const RegistrationParams& params,
-             RegistrationResult& result) {
+/// with the constraint analysis at the final estimate. Returns the final class pairs' weight and
+/// rms radius (ground planes not counted), the verdict's units.
+detail::PairWeight iterate(Registration& registration, const Eigen::Matrix4d& start, const RegistrationParams& params,
+                           RegistrationResult& result) {
   // The distance limit of iteration k (from 0).
   const auto limit_of = [&](int iteration) {
     return std::max(params.min_correspondence_distance_m,
@@ -734,6 +735,7 @@ void iterate(Registration& registration, const Eigen::Matrix4d& start, const Reg
     result.converged = reason == StopReason::kConverged || reason == StopReason::kErrorBelowThreshold;
     result.passes = passes + extrapolation.passes;
     result.extrapolations = extrapolation.jumps;
+    return detail::PairWeight{pass.class_weight_sum, pass.class_radius};
   };
   for (int iteration = 0;; ++iteration) {
     // `pass` holds the correspondences at `transform` within `distance`.
@@ -806,8 +808,9 @@ RegistrationResult register_checked(const ClassifiedPoints& source, const Classi
   // The verdict's inliers: partners within min_correspondence_distance_m at the final estimate,
   // whatever distance limit the ICP stopped at.
   std::array<std::size_t, kNumTerrainClasses> inliers{};
+  detail::PairWeight pairs;
   if (registration.has_common_class()) {
-    iterate(registration, start, params, result);
+    pairs = iterate(registration, start, params, result);
     const double inlier_distance = params.min_correspondence_distance_m;
     inliers = result.correspondence_distance_m == inlier_distance
                   ? result.correspondences_per_class
@@ -828,7 +831,7 @@ RegistrationResult register_checked(const ClassifiedPoints& source, const Classi
     result.reason = source_empty || target_empty ? StopReason::kTooFewCorrespondences : StopReason::kNoCommonClass;
     result.rmse_m = std::numeric_limits<double>::quiet_NaN();
   }
-  detail::judge_registration(result, source_per_class, inliers, params);
+  detail::judge_registration(result, source_per_class, inliers, params, pairs);
   return result;
 }
 

@@ -136,7 +136,7 @@ void check_trust_params(const RegistrationParams& p) {
 void judge_registration(RegistrationResult& result,
                         const std::array<std::size_t, kNumTerrainClasses>& source_points_per_class,
                         const std::array<std::size_t, kNumTerrainClasses>& inliers_per_class,
-                        const RegistrationParams& params) {
+                        const RegistrationParams& params, const PairWeight& pairs) {
   // Overlap and inlier shares, by source class.
   for (std::size_t c = 0; c < kNumTerrainClasses; ++c) {
     const std::size_t points = source_points_per_class[c];
@@ -144,13 +144,14 @@ void judge_registration(RegistrationResult& result,
     result.inlier_share_per_class[c] = points > 0 ? static_cast<double>(pairs) / static_cast<double>(points) : 0.0;
   }
   result.overlap = object_overlap(inliers_per_class, source_points_per_class, params.use_classes);
-  // How firmly each motion is held: constraint_matrix per unit of pair weight, rotations scaled
-  // by the pairs' rms radius (the normalisation of terracube.constrained_directions).
+  // How firmly each motion is held: constraint_matrix per unit of the class pairs' weight,
+  // rotations scaled by their rms radius (the normalisation of terracube.constrained_directions).
+  // Ground planes hold only height, roll and pitch: counting their weight too would make every
+  // other motion look weakly held wherever ground fills the maps.
   const bool analysed = params.structure_radius_m > 0.0 && result.constraint_matrix.any();
-  const double weight = result.normal_matrix.bottomRightCorner<3, 3>().trace() / 3.0;
+  const double weight = pairs.weight;
   if (analysed && weight > 0.0) {
-    const double radius =
-        std::sqrt(std::max(result.normal_matrix.topLeftCorner<3, 3>().trace() / (2.0 * weight), 1e-12));
+    const double radius = std::max(pairs.radius, 1e-6);
     Eigen::Matrix<double, 6, 1> scale;
     scale << Eigen::Vector3d::Constant(1.0 / radius), Eigen::Vector3d::Ones();
     const Eigen::Matrix<double, 6, 6> normalised =

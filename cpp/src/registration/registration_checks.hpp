@@ -23,14 +23,20 @@ void check_trust_params(const RegistrationParams& params);
 double object_overlap(const std::array<std::size_t, kNumTerrainClasses>& inliers_per_class,
                       const std::array<std::size_t, kNumTerrainClasses>& source_points_per_class, bool use_classes);
 
+/// The class pairs' total weight and rms radius about their centroid at the final estimate (the
+/// ground planes of RegistrationParams::ground_weight not counted).
+struct PairWeight {
+  double weight = 0.0, radius = 0.0;
+};
+
 /// Fills result.overlap, inlier_share_per_class, held, held_directions, trusted and verdict from
-/// the rest of the result. `source_points_per_class`: the source points of each class that take
-/// part (a class of weight 0 takes none; without classes every point counts under its class);
-/// `inliers_per_class`: those with a partner within min_correspondence_distance_m at the result.
+/// the rest of the result and the class pairs' weight (the units of `held`). `source_points_per_class`: the source
+/// points of each class that take part (a class of weight 0 takes none; without classes every point counts under its
+/// class); `inliers_per_class`: those with a partner within min_correspondence_distance_m at the result.
 /// result.chance_overlap must be set.
 void judge_registration(RegistrationResult& result,
                         const std::array<std::size_t, kNumTerrainClasses>& source_points_per_class,
                         const std::array<std::size_t, kNumTerrainClasses>& inliers_per_class,
-                        const RegistrationParams& params);
+                        const RegistrationParams& params, const PairWeight& pairs);
 
 }  // namespace terracube::detail

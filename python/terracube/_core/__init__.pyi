@@ -1133,7 +1133,7 @@ class RegistrationResult:
     @property
     def held(self) -> typing.Annotated[numpy.typing.NDArray[numpy.float64], "[6, 1]"]:
         """
-        (6,) how firmly each motion is held, per unit of pair weight, ascending (0 none, 1 every pair)
+        (6,) how firmly each motion is held, per unit of the class pairs' weight, ascending (0 none, 1 every pair)
         """
     @property
     def held_directions(self) -> typing.Annotated[numpy.typing.NDArray[numpy.float64], "[6, 6]"]:
