@@ -134,6 +134,14 @@ std::vector<Eigen::Matrix4d> rounded_corner_path(double step) {
   return poses;
 }
 
+/// What an IMU gives of `pose` (world <- sensor): its roll and pitch, no yaw and no position.
+Eigen::Matrix4d attitude_of(const Eigen::Matrix4d& pose) {
+  Eigen::Matrix4d attitude = Eigen::Matrix4d::Identity();
+  const double yaw = std::atan2(pose(1, 0), pose(0, 0));
+  attitude.topLeftCorner<3, 3>() = pose_xyyaw(0, 0, 0, -yaw).topLeftCorner<3, 3>() * pose.topLeftCorner<3, 3>();
+  return attitude;
+}
+
 /// Odometry: the true steps, each turned by `yaw_per_step` and scaled by (1 + scale_error).
 std::vector<Eigen::Matrix4d> drifting_odometry(const std::vector<Eigen::Matrix4d>& truth, double yaw_per_step,
                                                double scale_error) {
@@ -349,10 +357,7 @@ TEST(Mapper, LidarOnlyRegistersEveryScanAndMakesKeyframesByItsOwnTravel) {
   std::vector<std::size_t> keyframe_reports;
   for (const Eigen::Matrix4d& pose : truth) {
     const auto scan = scan_of(world, pose, 20.0);
-    Eigen::Matrix4d attitude = Eigen::Matrix4d::Identity();
-    const double yaw = std::atan2(pose(1, 0), pose(0, 0));
-    attitude.topLeftCorner<3, 3>() = pose_xyyaw(0, 0, 0, -yaw).topLeftCorner<3, 3>() * pose.topLeftCorner<3, 3>();
-    const ScanReport r = mapper.add_scan(PointsView<float>(scan.data()->data(), scan.size()), attitude);
+    const ScanReport r = mapper.add_scan(PointsView<float>(scan.data()->data(), scan.size()), attitude_of(pose));
     if (r.keyframe) keyframe_reports.push_back(estimates.size());
     estimates.push_back(r.pose);
     poses.push_back(truth.front() * estimates.front().inverse() * r.pose);  // the estimates start at the identity
@@ -395,10 +400,7 @@ TEST(Mapper, StepsTakeTheirHeightFromTheSharedGround) {
     Mapper mapper(params);
     for (const Eigen::Matrix4d& pose : truth) {
       const auto scan = scan_of(world, pose, 20.0);
-      Eigen::Matrix4d attitude = Eigen::Matrix4d::Identity();
-      const double yaw = std::atan2(pose(1, 0), pose(0, 0));
-      attitude.topLeftCorner<3, 3>() = pose_xyyaw(0, 0, 0, -yaw).topLeftCorner<3, 3>() * pose.topLeftCorner<3, 3>();
-      const ScanReport r = mapper.add_scan(PointsView<float>(scan.data()->data(), scan.size()), attitude);
+      const ScanReport r = mapper.add_scan(PointsView<float>(scan.data()->data(), scan.size()), attitude_of(pose));
       worst[ground] = std::max(worst[ground], std::abs(r.pose(2, 3) - (pose(2, 3) - truth.front()(2, 3))));
     }
   }
