@@ -40,6 +40,7 @@ __all__ = [
     "occupancy_from_classes",
     "occupancy_from_traversability",
     "read_bag",
+    "with_attitude",
 ]
 
 PathLike = str | os.PathLike
@@ -52,8 +53,11 @@ POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+IMU = "sensor_msgs/msg/Imu"
 POSE_TYPES = (ODOMETRY, POSE_STAMPED, POSE_WITH_COVARIANCE_STAMPED, TRANSFORM_STAMPED)
 TF_TOPIC, TF_STATIC_TOPIC = "/tf", "/tf_static"
+#: Default half-width [s] of the window of IMU messages averaged for each cloud's attitude.
+IMU_WINDOW_S = 0.1
 
 # sensor_msgs/PointField datatypes -> numpy type codes (byte order added per cloud).
 _POINT_FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -466,13 +470,125 @@ class _TfTree:
         return np.linalg.solve(common_target, common_source)
 
 
+def attitude_of_up(up) -> tuple[float, float]:
+    """(roll, pitch) [rad] of a frame in which ``up`` (3,) points against gravity: the attitude
+    whose ``leveling_transform(roll, pitch)`` = Ry(pitch) Rx(roll) turns ``up`` onto +z."""
+    x, y, z = (float(v) for v in up)
+    return math.atan2(y, z), math.atan2(-x, math.hypot(y, z))
+
+
+def with_attitude(pose, roll: float, pitch: float) -> np.ndarray:
+    """``pose`` (4x4) with its roll and pitch replaced: rotation Rz(yaw) Ry(pitch) Rx(roll), where
+    yaw is the pose's heading (Z-Y-X angles), translation kept. For a wheeled robot's planar
+    odometry and an IMU's attitude."""
+    from .collapse import leveling_transform
+
+    pose = np.asarray(pose, dtype=np.float64)
+    yaw = math.atan2(pose[1, 0], pose[0, 0])
+    turn = np.eye(4)
+    turn[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
+    out = turn @ leveling_transform(roll, pitch)
+    out[:3, 3] = pose[:3, 3]
+    return out
+
+
+class _ImuUp:
+    """The up direction over time in the frame of a ``sensor_msgs/Imu`` topic, a unit vector per
+    message: from the orientation when the messages carry one (REP 145: the IMU frame's rotation in
+    a frame whose z points up; ``orientation_covariance[0] == -1`` when there is none), else from the
+    linear acceleration (at rest an accelerometer reads +g along up; a robot accelerating by
+    1 m/s^2 tilts it by about 6 degrees). Matched to clouds by header stamps, or by the bag's
+    record times when the headers are on another clock (drivers often stamp their IMU with the
+    sensor's uptime)."""
+
+    def __init__(self, source: str, topic: str, messages, window_ns: int):
+        self.name = f"{source}: the IMU topic {topic}"
+        self.window_ns = window_ns
+        stamps, records, ups = [], [], []
+        self.frame, self.kind = None, None
+        for record_ns, msg in messages:
+            if self.kind is None:
+                q = msg.orientation
+                norm = math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w)
+                has_orientation = msg.orientation_covariance[0] != -1.0 and abs(norm - 1.0) < 0.01
+                self.kind = "orientation" if has_orientation else "acceleration"
+                self.frame = msg.header.frame_id.lstrip("/")
+            up = self._up(msg)
+            if up is not None:
+                stamps.append(_stamp_ns(msg.header))
+                records.append(record_ns)
+                ups.append(up)
+        if not ups:
+            raise ValueError(
+                f"{self.name} holds no usable message (an orientation, or a linear acceleration that is "
+                "finite and not zero)"
+            )
+        self.stamps = np.asarray(stamps, dtype=np.int64)
+        self.records = np.asarray(records, dtype=np.int64)
+        self.up = np.asarray(ups, dtype=np.float64)
+        self.clock: str | None = None  # "header" or "record", chosen at the first cloud
+
+    def _up(self, msg):
+        if self.kind == "orientation":
+            q = msg.orientation
+            quaternion = np.array([q.x, q.y, q.z, q.w])
+            norm = np.linalg.norm(quaternion)
+            if not (msg.orientation_covariance[0] != -1.0 and abs(norm - 1.0) < 0.01):
+                return None
+            from .poses import matrix_from_quaternion
+
+            return matrix_from_quaternion(quaternion / norm)[2]  # R^T e_z: the world's up in the IMU frame
+        a = msg.linear_acceleration
+        if msg.linear_acceleration_covariance[0] == -1.0:
+            return None
+        vector = np.array([a.x, a.y, a.z], dtype=np.float64)
+        norm = float(np.linalg.norm(vector))
+        return vector / norm if math.isfinite(norm) and norm > 0.0 else None
+
+    def _span(self, times) -> str:
+        return f"[{_seconds(int(times.min()))}, {_seconds(int(times.max()))}] s"
+
+    def at(self, stamp_ns: int, record_ns: int) -> np.ndarray:
+        """The mean up direction of the messages within the window of the cloud's time."""
+        if self.clock is None:
+            covers = {
+                name: times.min() - self.window_ns <= t <= times.max() + self.window_ns
+                for name, times, t in (("header", self.stamps, stamp_ns), ("record", self.records, record_ns))
+            }
+            self.clock = "header" if covers["header"] else "record" if covers["record"] else None
+            if self.clock is None:
+                raise ValueError(
+                    f"{self.name} does not cover the cloud at {_seconds(stamp_ns)} s (recorded at "
+                    f"{_seconds(record_ns)} s): its stamps span {self._span(self.stamps)}, its record "
+                    f"times {self._span(self.records)}"
+                )
+        times, t = (self.stamps, stamp_ns) if self.clock == "header" else (self.records, record_ns)
+        near = np.abs(times - t) <= self.window_ns
+        if not near.any():
+            raise ValueError(
+                f"{self.name} has no message within {self.window_ns * 1e-9:g} s of the cloud at "
+                f"{_seconds(t)} s ({'stamps' if self.clock == 'header' else 'record times'} span "
+                f"{self._span(times)}); widen the IMU window"
+            )
+        mean = self.up[near].mean(axis=0)
+        norm = float(np.linalg.norm(mean))
+        if not norm > 0.5:  # unit vectors more than ~120 degrees apart on average
+            raise ValueError(
+                f"{self.name}: the up directions of its {int(near.sum())} messages within "
+                f"{self.window_ns * 1e-9:g} s of the cloud disagree (mean length {norm:.2f} of 1)"
+            )
+        return mean / norm
+
+
 # ------------------------------------------------------------------------------------------ read_bag
 
 
 @dataclass
 class BagCloud:
     """One decoded cloud: stamp [s], frame, points (N, 3), pose (4x4 or None), other fields, the
-    count of invalid points dropped, and the stamp [ns]."""
+    count of invalid points dropped, the stamp [ns] and, read with an IMU topic, the attitude
+    (roll, pitch) [rad] of the cloud's frame ([CBC] section IV-B: ``leveling_transform(roll,
+    pitch)`` levels the points)."""
 
     stamp: float
     frame_id: str
@@ -481,12 +597,17 @@ class BagCloud:
     fields: dict[str, np.ndarray] = field(default_factory=dict)
     no_returns: int = 0
     stamp_ns: int = 0  #: the stamp in whole nanoseconds (a float of seconds keeps ~0.2 us)
+    attitude: tuple[float, float] | None = None  #: (roll, pitch) [rad] from the IMU, or None
 
     def __repr__(self) -> str:
+        attitude = ""
+        if self.attitude is not None:
+            roll, pitch = (math.degrees(angle) for angle in self.attitude)
+            attitude = f", attitude=({roll:.2f}, {pitch:.2f}) deg"
         return (
             f"BagCloud(stamp={_seconds(self.stamp_ns)} s, frame_id={self.frame_id!r}, "
             f"{len(self.points)} points, pose={'yes' if self.pose is not None else 'None'}, "
-            f"fields={sorted(self.fields)}, no_returns={self.no_returns})"
+            f"fields={sorted(self.fields)}, no_returns={self.no_returns}{attitude})"
         )
 
 
@@ -507,6 +628,8 @@ class BagClouds:
         base_frame: str | None = None,
         fixed_frame: str | None = None,
         keep_invalid: bool = False,
+        imu: str | None = None,
+        imu_window: float = IMU_WINDOW_S,
     ):
         self.path = Path(path)
         self.points_topic = points
@@ -514,6 +637,15 @@ class BagClouds:
         self.base_frame = base_frame.lstrip("/") if base_frame else None
         self.fixed_frame = fixed_frame.lstrip("/") if fixed_frame else None
         self.keep_invalid = keep_invalid
+        self.imu = imu
+        if not (math.isfinite(imu_window) and imu_window > 0.0):
+            raise ValueError(f"imu_window must be a positive number of seconds, got {imu_window!r}")
+        self.imu_window = imu_window
+        #: How the IMU's messages were matched to the clouds: "header" stamps, or "record" times when
+        #: the headers are on another clock; None before the first cloud or without an IMU.
+        self.imu_clock: str | None = None
+        #: "orientation" or "acceleration": what the IMU's attitude came from (None before reading).
+        self.imu_source: str | None = None
         self.no_returns: list[int] = []
         #: The frame the poses map points into (the odometry's frame, the TF fixed frame or
         #: ``base_frame``), known once a cloud with a pose was read; None before or without poses.
@@ -524,6 +656,8 @@ class BagClouds:
             self.count = bag.topic(points, (POINTCLOUD2,), "point-cloud topic").count
             if poses is not None and poses not in ("tf", TF_TOPIC):
                 bag.topic(poses, POSE_TYPES, "pose topic")
+            if imu is not None:
+                bag.topic(imu, (IMU,), "IMU topic")
 
     def __len__(self) -> int:
         return self.count
@@ -543,6 +677,15 @@ class BagClouds:
         self.no_returns = []
         with _Bag(self.path) as bag:
             tree, series = self._pose_sources(bag)
+            imu = None
+            if self.imu is not None:
+                imu = _ImuUp(
+                    str(self.path),
+                    self.imu,
+                    ((record, msg) for _, _, record, msg in bag.messages([self.imu])),
+                    round(self.imu_window * 1e9),
+                )
+                self.imu_source = imu.kind
             for _, _, log_time, msg in bag.messages([self.points_topic]):
                 stamp_ns = _stamp_ns(msg.header) or log_time
                 frame = msg.header.frame_id.lstrip("/")
@@ -553,13 +696,31 @@ class BagClouds:
                         f"{self.path}: {self.points_topic} at {_seconds(stamp_ns)} s: {error}"
                     ) from None
                 pose = self._pose(tree, series, frame, stamp_ns)
+                attitude = None if imu is None else self._attitude(tree, imu, frame, stamp_ns, log_time)
                 self.no_returns.append(no_returns)
-                yield BagCloud(stamp_ns * 1e-9, frame, xyz, pose, fields, no_returns, stamp_ns)
+                yield BagCloud(stamp_ns * 1e-9, frame, xyz, pose, fields, no_returns, stamp_ns, attitude)
+
+    def _attitude(self, tree, imu: _ImuUp, frame: str, stamp_ns: int, record_ns: int) -> tuple[float, float]:
+        """The cloud frame's (roll, pitch): the IMU's up direction turned into the cloud's frame by
+        the TF tree (the mount, usually on /tf_static)."""
+        where = f"{self.path}: cloud at {_seconds(stamp_ns)} s in frame {frame!r}"
+        try:
+            up = imu.at(stamp_ns, record_ns)
+            self.imu_clock = imu.clock
+            if imu.frame and imu.frame != frame:
+                try:
+                    up = tree.lookup(frame, imu.frame, stamp_ns)[:3, :3] @ up
+                except ValueError as error:
+                    message = str(error).removeprefix(f"{self.path}: ")
+                    raise ValueError(f"no transform from the IMU frame {imu.frame!r}: {message}") from None
+        except ValueError as error:
+            raise ValueError(f"{where}: {error}") from None
+        return attitude_of_up(up)
 
     def _pose_sources(self, bag: _Bag) -> tuple[_TfTree | None, tuple | None]:
         tree = None
         names = {t.name for t in bag.topics()}
-        if self.poses is not None or self.base_frame is not None:
+        if self.poses is not None or self.base_frame is not None or self.imu is not None:
             tree = _TfTree(str(self.path))
             topics = [t for t in (TF_TOPIC, TF_STATIC_TOPIC) if t in names]
             for topic in topics:
@@ -622,6 +783,8 @@ def read_bag(
     base_frame: str | None = None,
     fixed_frame: str | None = None,
     keep_invalid: bool = False,
+    imu: str | None = None,
+    imu_window: float = IMU_WINDOW_S,
 ) -> BagClouds:
     """The ``sensor_msgs/PointCloud2`` clouds of one topic of a bag, as ``(stamp, points, pose)``.
 
@@ -650,6 +813,13 @@ def read_bag(
         raise ValueError (naming the span, or the frame and the known frames).
     keep_invalid : bool
         Keep points at (0, 0, 0) or with NaN (organised clouds keep their height x width order).
+    imu : str, optional
+        A ``sensor_msgs/Imu`` topic: each cloud's ``attitude`` (roll, pitch) [rad] of its frame, the
+        leveling of [CBC] section IV-B, from the mean up direction of the IMU messages within
+        ``imu_window`` seconds of the cloud (their orientations, or else their accelerations: right
+        when the robot does not accelerate hard), turned into the cloud's frame through the TF tree.
+        Matched by header stamps, or by the bag's record times when the IMU's headers are on
+        another clock (``imu_clock`` says which).
 
     Returns
     -------
@@ -660,7 +830,14 @@ def read_bag(
         fixed (world) frame, or into ``base_frame`` without a pose source.
     """
     return BagClouds(
-        path, points, poses, base_frame=base_frame, fixed_frame=fixed_frame, keep_invalid=keep_invalid
+        path,
+        points,
+        poses,
+        base_frame=base_frame,
+        fixed_frame=fixed_frame,
+        keep_invalid=keep_invalid,
+        imu=imu,
+        imu_window=imu_window,
     )
 
 

@@ -36,8 +36,9 @@ app = typer.Typer(
     help="Navigable 2.5D elevation maps from ground-robot 3D LiDAR scans.\n\n"
     "Stages: collapse (overhang removal), dem (elevation map), classify (terrain classes), "
     "fem (fuzzy elevation map), register (ICP between two scans), map (global elevation map and "
-    "trajectory from a scan sequence with odometry), view (pictures, 3D); batch runs a stage over "
-    "many scans in parallel; config prints every parameter as YAML.",
+    "trajectory from a scan sequence, with odometry or LiDAR-only), stream (a robot-centric local "
+    "map fused scan after scan), view (pictures, 3D); batch runs a stage over many scans in "
+    "parallel; config prints every parameter as YAML; bag-info lists a ROS bag's topics.",
     no_args_is_help=True,
     add_completion=False,
     rich_markup_mode=None,  # help texts say "[m]" and "[config collapse.edge ...]": no markup

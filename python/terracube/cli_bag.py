@@ -2,9 +2,10 @@
 ``stream``, ``collapse``, ``dem``, ``classify`` and ``fem``.
 
 :func:`register` adds the ``bag-info`` command and gives each of those six commands the options
-``--points TOPIC`` (the PointCloud2 topic; optional when the bag has one), ``--out DIR`` (write the
-usual files there, and the results as a bag beside them), ``--bag-storage`` and, for ``map`` and
-``stream``, ``--odom TOPIC`` or ``--tf BASE_FRAME`` (where the poses come from). The commands' own
+``--points TOPIC`` (the PointCloud2 topic; optional when the bag has one), ``--imu TOPIC`` (each
+cloud leveled by the IMU's roll and pitch, [CBC] section IV-B), ``--out DIR`` (write the usual files
+there, and the results as a bag beside them), ``--bag-storage`` and, for ``map`` and ``stream``,
+``--odom TOPIC`` or ``--tf BASE_FRAME`` (where the poses come from). The commands' own
 code is left as it is: a wrapper takes the bag options off each callback. Given a bag, ``map``
 runs :func:`map_bag` and ``stream`` :func:`stream_bag`; a per-scan stage runs
 :func:`terracube.pipeline.run_stage` with the command's options once per cloud, named
@@ -37,6 +38,7 @@ class BagOptions:
     tf: str | None = None
     out: Path | None = None
     storage: str = "mcap"
+    imu: str | None = None
 
 
 def is_bag(path: Path) -> bool:
@@ -63,6 +65,36 @@ def _output_bag(directory: Path, stem: str, storage: str):
 
     name = f"{stem}.bag" if storage == "ros1" else stem
     return MapBagWriter(Path(directory) / name, storage, overwrite=True)
+
+
+def _imu_line(clouds) -> str | None:
+    """What leveled the clouds of a bag read with an IMU topic, once they were read."""
+    if clouds.imu is None or clouds.imu_clock is None:
+        return None
+    clock = (
+        "by header stamps"
+        if clouds.imu_clock == "header"
+        else "by the bag's record times (its header stamps are on another clock)"
+    )
+    return (
+        f"IMU {clouds.imu}: each cloud leveled by the roll and pitch of its {clouds.imu_source} "
+        f"within {clouds.imu_window:g} s, matched {clock}"
+    )
+
+
+def _leveled_pose(cloud) -> np.ndarray | None:
+    """A cloud's pose with the IMU's roll and pitch (its heading and position kept), or without a
+    pose the IMU's leveling alone; the pose as read without an IMU."""
+    if cloud.attitude is None:
+        return cloud.pose
+    from .bag import with_attitude
+    from .collapse import leveling_transform
+
+    return (
+        leveling_transform(*cloud.attitude)
+        if cloud.pose is None
+        else with_attitude(cloud.pose, *cloud.attitude)
+    )
 
 
 def _progress(iterable, total: int, what: str):
@@ -111,6 +143,7 @@ def run_stage_on_bag(stage: str, values: dict, bag: Path, bag_options: BagOption
         STAGE_OPTIONS,
         _echo_report,
         _exit_on_bad_input,
+        _fail,
         _writable_folder,
         command_config,
         stage_output_options,
@@ -122,9 +155,11 @@ def run_stage_on_bag(stage: str, values: dict, bag: Path, bag_options: BagOption
     outputs = stage_output_options(stage, options)
     output_dir = _writable_folder(Path(bag_options.out or values.get("output_dir") or "."))
     beams = config.collapse.method == "shadow_aware"
+    if bag_options.imu is not None and (values.get("roll") is not None or values.get("pitch") is not None):
+        raise _fail("give the attitude once: --imu TOPIC or --roll/--pitch, not both")
     with _exit_on_bad_input():  # the bag's errors name it
         topic = _points_topic(bag, bag_options.points)
-        clouds = read_bag(bag, topic, keep_invalid=beams)
+        clouds = read_bag(bag, topic, keep_invalid=beams, imu=bag_options.imu)
     writer = _output_bag(output_dir, f"{bag.stem}_{stage}", bag_options.storage) if bag_options.out else None
     try:
         with _exit_on_bad_input():  # the bag's errors name it
@@ -133,7 +168,13 @@ def run_stage_on_bag(stage: str, values: dict, bag: Path, bag_options: BagOption
                 points, no_returns = returns_and_empty_beams(cloud) if beams else (cloud.points, None)
                 with _exit_on_bad_input(name):
                     report = run_stage(
-                        stage, points, name, output_dir, config, no_returns=no_returns, **outputs
+                        stage,
+                        points,
+                        name,
+                        output_dir,
+                        _leveled_config(config, cloud),
+                        no_returns=no_returns,
+                        **outputs,
                     )
                 _echo_report(report)
                 dropped = cloud.no_returns + len(cloud.points) - len(points)
@@ -145,8 +186,18 @@ def run_stage_on_bag(stage: str, values: dict, bag: Path, bag_options: BagOption
         if writer is not None:
             writer.abort()
         raise
+    if _imu_line(clouds):
+        typer.echo(_imu_line(clouds))
     if writer is not None:
         typer.echo(f"bag: {writer.close()} ({', '.join(f'{k} x{v}' for k, v in writer.counts.items())})")
+
+
+def _leveled_config(config, cloud):
+    """``config`` with the frame's roll and pitch of the cloud's IMU attitude, if it has one."""
+    if cloud.attitude is None:
+        return config
+    roll, pitch = (float(np.degrees(angle)) for angle in cloud.attitude)
+    return config.replace("frame", roll_deg=roll, pitch_deg=pitch)
 
 
 # ------------------------------------------------------------------------------------------ map
@@ -217,7 +268,9 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     output_dir = bag_options.out or values["output_dir"]
     with _exit_on_bad_input():  # the bag's errors name it
         topic = _points_topic(bag, bag_options.points)
-        clouds = read_bag(bag, topic, _pose_topic(bag_options), base_frame=bag_options.tf)
+        clouds = read_bag(
+            bag, topic, _pose_topic(bag_options), base_frame=bag_options.tf, imu=bag_options.imu
+        )
         mapper = Mapper(_mapper_params(cfg))
     limit = values.get("limit")
     total = len(clouds) if limit is None else min(len(clouds), max(limit, 0))
@@ -225,9 +278,10 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     odometry: list[np.ndarray] = []  # the bag's pose of each cloud (LiDAR-only: the mapper's)
     start = time.perf_counter()
     with _exit_on_bad_input():  # the bag's errors name it
-        for stamp, points, pose in _progress(clouds, total, "mapping"):
+        for cloud in _progress(clouds.clouds(), total, "mapping"):
             if len(stamps) >= total:
                 break
+            stamp, points, pose = cloud.stamp, cloud.points, _leveled_pose(cloud)
             keep = cfg.frame.in_range(points)  # the frame's range limits, as for a folder of scans
             pose = np.eye(4) if pose is None else np.asarray(pose, dtype=np.float64)  # None: LiDAR-only
             step = mapper.add_scan(points if keep.all() else np.ascontiguousarray(points[keep]), pose)
@@ -288,6 +342,8 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     )
     if cfg.mapper.lidar_only:
         typer.echo(mapper_steps_line(mapper, 0, cfg.mapper))
+    if _imu_line(clouds):
+        typer.echo(_imu_line(clouds))
     dropped = sum(clouds.no_returns)
     if dropped:
         typer.echo(f"{dropped:,} no-returns dropped")
@@ -320,7 +376,14 @@ def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     beams = params.collapse.method == "shadow_aware"  # the empty pixels of organised clouds help it
     with _exit_on_bad_input():  # the bag's errors name it
         topic = _points_topic(bag, bag_options.points)
-        clouds = read_bag(bag, topic, _pose_topic(bag_options), base_frame=bag_options.tf, keep_invalid=beams)
+        clouds = read_bag(
+            bag,
+            topic,
+            _pose_topic(bag_options),
+            base_frame=bag_options.tf,
+            keep_invalid=beams,
+            imu=bag_options.imu,
+        )
     limit = values.get("limit")
     total = len(clouds) if limit is None else min(len(clouds), max(limit, 0))
     writer = _output_bag(output_dir, f"{bag.stem}_stream", bag_options.storage) if bag_options.out else None
@@ -340,7 +403,7 @@ def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
                 return
             points, no_returns = returns_and_empty_beams(cloud) if beams else (cloud.points, None)
             used_beams.append(0 if no_returns is None else len(no_returns))
-            yield f"{bag.stem}_{index:04d}", points, cloud.pose, cloud.stamp, no_returns
+            yield f"{bag.stem}_{index:04d}", points, _leveled_pose(cloud), cloud.stamp, no_returns
 
     lidar_only = values.get("lidar_only", False)
     posed = stream_lidar_only_poses(scans(), values) if lidar_only else scans()
@@ -362,6 +425,8 @@ def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     _echo_report(report)
     if lidar_only:
         typer.echo(posed.summary())
+    if _imu_line(clouds):
+        typer.echo(_imu_line(clouds))
     dropped = sum(clouds.no_returns)
     if sum(used_beams):
         typer.echo(f"{sum(used_beams):,} beams without a return (from the ring field) showed free space")
@@ -422,6 +487,14 @@ _TF = typer.Option(
     metavar="BASE_FRAME",
     show_default=False,
 )
+_IMU = typer.Option(
+    None,
+    "--imu",
+    help="Bag input: level each cloud by the roll and pitch of this sensor_msgs/Imu topic (its "
+    "orientation, or else its gravity, within 0.1 s; the mount from /tf_static). With --odom or "
+    "--tf it replaces their roll and pitch; without, it levels the LiDAR-only mapper's scans.",
+    show_default=False,
+)
 _OUT = typer.Option(
     None,
     "--out",
@@ -435,6 +508,7 @@ _BAG_PARAMETERS = {
     "points": (_POINTS, str | None),
     "odom": (_ODOM, str | None),
     "tf": (_TF, str | None),
+    "imu": (_IMU, str | None),
     "out": (_OUT, Path | None),
     "bag_storage": (_STORAGE, str),
 }
@@ -468,13 +542,18 @@ def _with_bag_input(callback, posed=None):
         if storage not in BAG_STORAGES:
             raise _fail(f"--bag-storage must be one of {', '.join(BAG_STORAGES)}, got {storage!r}")
         bag_options = BagOptions(
-            bag_values["points"], bag_values["odom"], bag_values["tf"], bag_values["out"], storage
+            bag_values["points"],
+            bag_values["odom"],
+            bag_values["tf"],
+            bag_values["out"],
+            storage,
+            bag_values["imu"],
         )
         source = Path(values[input_name])
         if not is_bag(source):
             given = [
                 f"--{n.replace('_', '-')}"
-                for n in ("points", "odom", "tf", "out")
+                for n in ("points", "odom", "tf", "imu", "out")
                 if bag_values[n] is not None
             ]
             if given:
@@ -486,7 +565,7 @@ def _with_bag_input(callback, posed=None):
 
     input_help = (
         "\n\nA ROS bag (.bag, .mcap or a ROS 2 bag folder) as input: --points TOPIC picks the "
-        "PointCloud2 topic"
+        "PointCloud2 topic, --imu TOPIC levels each cloud"
         + (
             ", --odom TOPIC or --tf BASE_FRAME the poses (neither with --lidar-only)"
             if needs_poses

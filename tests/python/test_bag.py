@@ -1023,3 +1023,307 @@ def test_a_per_scan_stage_on_an_organised_bag_uses_its_beams_without_a_return(cl
     paper = cli("collapse", path, "-o", tmp_path / "p", *common)
     assert paper.exit_code == 0 and "85,356 no-returns dropped" in paper.output
     assert "beams without a return" not in paper.output
+
+
+# ------------------------------------------------------------------------------ IMU leveling
+
+IMU_UPTIME_NS = 500 * 10**9  # an IMU stamped by its own uptime: another clock than the clouds'
+
+
+def rotation(axis: str, degrees: float) -> np.ndarray:
+    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+    return {
+        "x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
+        "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
+        "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]),
+    }[axis]
+
+
+TILT = rotation("x", 7.0) @ rotation("y", -5.0)  # lidar <- velodyne: a sensor mounted askew
+LIDAR_IMU = rotation("z", 90.0) @ rotation("x", 180.0)  # lidar <- imu: upside down, turned
+
+
+def tilted_truth(root: Path) -> np.ndarray:
+    """World <- lidar rotations of the tilted sensor (KITTI's Velodyne rotations times TILT^T)."""
+    return np.array([pose[:3, :3] @ TILT.T for pose in kitti_velodyne_poses(root)[:FRAMES]])
+
+
+def roll_pitch_zyx(r: np.ndarray) -> tuple[float, float]:
+    """Roll and pitch of R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    return math.atan2(r[2, 1], r[2, 2]), -math.asin(r[2, 0])
+
+
+def imu_message(store, stamp_ns: int, world_imu: np.ndarray, with_orientation: bool):
+    """A sensor_msgs/Imu at rest: gravity read along the IMU's up; with_orientation also gives the
+    orientation and then a misleading acceleration (the reader must prefer the orientation)."""
+    from terracube.poses import quaternion_from_matrix
+
+    types = store.types
+    up = world_imu.T @ np.array([0.0, 0.0, 1.0])
+    vector = types["geometry_msgs/msg/Vector3"]
+    accel = np.array([9.81, 0.0, 0.0]) if with_orientation else 9.81 * up
+    q = quaternion_from_matrix(world_imu) if with_orientation else np.zeros(4)
+    covariance = np.zeros(9)
+    orientation_covariance = covariance.copy()
+    orientation_covariance[0] = 0.0 if with_orientation else -1.0  # REP 145: -1 is "no orientation"
+    return types["sensor_msgs/msg/Imu"](
+        header=header(store, stamp_ns, "imu"),
+        orientation=types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+        orientation_covariance=orientation_covariance,
+        angular_velocity=vector(x=0.0, y=0.0, z=0.0),
+        angular_velocity_covariance=covariance,
+        linear_acceleration=vector(x=accel[0], y=accel[1], z=accel[2]),
+        linear_acceleration_covariance=covariance,
+    )
+
+
+def write_imu_bag(root: Path, path: Path, with_orientation: bool) -> list[np.ndarray]:
+    """ROS 2 bag: KITTI clouds seen by the tilted 'lidar', an IMU in frame 'imu' at 100 Hz holding
+    each cloud's attitude for +-50 ms round its stamp (stamped by its uptime when it reports only
+    accelerations), the mount lidar -> imu on /tf_static, and planar odometry world -> base_link
+    (the lidar's true position and heading, no roll or pitch; base_link = lidar). Returns the
+    clouds' (N, 4) rows."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    store = typestore()
+    truth = tilted_truth(root)
+    mount = np.eye(4)
+    mount[:3, :3], mount[:3, 3] = LIDAR_IMU, [0.05, 0.0, -0.1]
+    rows = []
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        clouds = writer.add_connection("/lidar_points", "sensor_msgs/msg/PointCloud2", typestore=store)
+        imu = writer.add_connection("/imu", "sensor_msgs/msg/Imu", typestore=store)
+        static = writer.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=store)
+        odom = writer.add_connection("/odom2d", "nav_msgs/msg/Odometry", typestore=store)
+        tf = store.types["tf2_msgs/msg/TFMessage"](
+            transforms=[
+                transform_message(store, "lidar", "imu", mount, T0_NS),
+                transform_message(store, "base_link", "lidar", np.eye(4), T0_NS),
+            ]
+        )
+        writer.write(static, T0_NS - 10**9, store.serialize_cdr(tf, "tf2_msgs/msg/TFMessage"))
+        for frame, pose in enumerate(kitti_velodyne_poses(root)[:FRAMES]):
+            planar = np.eye(4)
+            yaw = math.atan2(truth[frame][1, 0], truth[frame][0, 0])
+            planar[:3, :3], planar[:3, 3] = rotation("z", math.degrees(yaw)), pose[:3, 3]
+            msg = odometry_message(store, planar, stamp_of(frame))
+            writer.write(odom, stamp_of(frame), store.serialize_cdr(msg, "nav_msgs/msg/Odometry"))
+        for k in range(-30, 10 * FRAMES + 20):  # every 10 ms from 0.3 s before the first cloud
+            record = T0_NS + k * 10_000_000
+            frame = min(max(round(k / 10), 0), FRAMES - 1)  # the cloud nearest in time
+            stamp = record if with_orientation else record - T0_NS + IMU_UPTIME_NS
+            msg = imu_message(store, stamp, truth[frame] @ LIDAR_IMU, with_orientation)
+            writer.write(imu, record, store.serialize_cdr(msg, "sensor_msgs/msg/Imu"))
+        for frame in range(FRAMES):
+            xyzi = np.fromfile(root / "kitti_seq00" / "velodyne" / f"{frame:06d}.bin", np.float32).reshape(
+                -1, 4
+            )
+            xyzi[:, :3] = (xyzi[:, :3].astype(np.float64) @ TILT.T).astype(np.float32)
+            records = xyzi.view(np.dtype([(n, "<f4") for n in ("x", "y", "z", "intensity")])).reshape(-1)
+            fields = [("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("intensity", 12, 7)]
+            msg = cloud_message(store, records, fields, stamp_ns=stamp_of(frame), frame="lidar")
+            writer.write(clouds, stamp_of(frame), store.serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
+            rows.append(xyzi)
+    return rows
+
+
+@pytest.fixture(scope="module")
+def imu_bags(shared_data, tmp_path_factory) -> dict:
+    root = shared_data.root
+    if not (root / "kitti_seq00" / "velodyne" / "000002.bin").is_file():
+        pytest.skip("KITTI frames not found")
+    folder = tmp_path_factory.mktemp("imu_bags")
+    rows = write_imu_bag(root, folder / "accelerations", with_orientation=False)
+    write_imu_bag(root, folder / "orientations", with_orientation=True)
+    velodyne = folder / "tilted"
+    velodyne.mkdir()
+    for frame, xyzi in enumerate(rows):
+        xyzi.tofile(velodyne / f"{frame:06d}.bin")
+    return {
+        "accelerations": folder / "accelerations",
+        "orientations": folder / "orientations",
+        "tilted": velodyne,
+        "truth": tilted_truth(root),
+        "root": root,
+    }
+
+
+def test_imu_attitude_of_each_cloud_is_its_true_roll_and_pitch(imu_bags):
+    """From the accelerations (IMU on its uptime clock: matched by record times) and from the
+    orientations (accelerations misleading), turned into the cloud's frame by the mount."""
+    expected = [roll_pitch_zyx(r) for r in imu_bags["truth"]]
+    for name, clock, source in (
+        ("accelerations", "record", "acceleration"),
+        ("orientations", "header", "orientation"),
+    ):
+        clouds = read_bag(imu_bags[name], "/lidar_points", imu="/imu", imu_window=0.04)
+        got = [cloud.attitude for cloud in clouds.clouds()]
+        np.testing.assert_allclose(got, expected, atol=1e-9, err_msg=name)
+        assert (clouds.imu_clock, clouds.imu_source) == (clock, source)
+        # The attitude levels the tilted cloud: leveled, its rotation from the world is a heading.
+        for (roll, pitch), world_lidar in zip(got, imu_bags["truth"], strict=True):
+            heading = tc.leveling_transform(roll, pitch)[:3, :3] @ world_lidar.T
+            np.testing.assert_allclose(heading[2], [0.0, 0.0, 1.0], atol=1e-9)
+    assert min(abs(a) for angles in expected for a in angles) > math.radians(3.0)  # a real tilt
+    # with_attitude: the pose's position and heading, the given roll and pitch.
+    from terracube.bag import with_attitude
+
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = (
+        rotation("z", 130.0) @ rotation("y", 20.0) @ rotation("x", -9.0),
+        [1.0, 2.0, 3.0],
+    )
+    leveled = with_attitude(pose, 0.1, -0.2)
+    np.testing.assert_allclose(roll_pitch_zyx(leveled[:3, :3]), (0.1, -0.2), atol=1e-12)
+    np.testing.assert_allclose(leveled[:3, 3], [1.0, 2.0, 3.0])
+    assert math.isclose(math.atan2(leveled[1, 0], leveled[0, 0]), math.radians(130.0), abs_tol=1e-12)
+    with pytest.raises(ValueError, match="imu_window must be a positive"):
+        read_bag(imu_bags["accelerations"], "/lidar_points", imu="/imu", imu_window=0.0)
+    with pytest.raises(ValueError, match="IMU topic '/lidar_points' holds sensor_msgs/msg/PointCloud2"):
+        read_bag(imu_bags["accelerations"], "/lidar_points", imu="/lidar_points")
+
+
+def test_imu_window_averages_the_up_directions_near_each_cloud(imu_bags):
+    """The default window (+-0.1 s) takes the neighbouring clouds' attitudes too: the attitude is
+    the mean of the unit up vectors of the messages within it, written plainly here."""
+    truth = imu_bags["truth"]
+    clouds = read_bag(imu_bags["accelerations"], "/lidar_points", imu="/imu")
+    for frame, cloud in enumerate(clouds.clouds()):
+        ups = []
+        for k in range(-30, 10 * FRAMES + 20):
+            if abs(k * 10_000_000 - (stamp_of(frame) - T0_NS)) <= 100_000_000:
+                nearest = min(max(round(k / 10), 0), FRAMES - 1)
+                ups.append(truth[nearest].T @ [0.0, 0.0, 1.0])
+        up = np.mean(ups, axis=0)
+        assert len(ups) == 21
+        np.testing.assert_allclose(
+            cloud.attitude,
+            (math.atan2(up[1], up[2]), math.atan2(-up[0], math.hypot(up[1], up[2]))),
+            atol=1e-9,
+        )
+
+
+def test_the_ouster_imu_on_another_clock_is_matched_by_record_times(bags):
+    """The real OS1 recording stamps its IMU by the sensor's uptime (1622 s) and its clouds by
+    another clock: matched by record times, its gravity (no orientation) turned by /tf_static
+    (os1_lidar is os1_sensor turned half round, os1_imu is not turned)."""
+    from terracube.bag import _Bag
+
+    path = bags / "ouster_os1_pointcloudset_ros1.mcap"
+    clouds = read_bag(path, OUSTER_TOPIC, imu="/os1_cloud_node/imu")
+    got = [(cloud.attitude, cloud.frame_id) for cloud in clouds.clouds()]
+    assert (clouds.imu_clock, clouds.imu_source) == ("record", "acceleration")
+    with _Bag(path) as bag:
+        imu = [(record, m.linear_acceleration) for _, _, record, m in bag.messages(["/os1_cloud_node/imu"])]
+        cloud_records = [record for _, _, record, _ in bag.messages([OUSTER_TOPIC])]
+    for (attitude, frame), record in zip(got, cloud_records, strict=True):
+        near = [np.array([a.x, a.y, a.z]) for t, a in imu if abs(t - record) <= 100_000_000]
+        up = np.mean([v / np.linalg.norm(v) for v in near], axis=0)
+        up = np.array([-up[0], -up[1], up[2]])  # into os1_lidar: half a turn about z
+        assert frame == "os1_lidar" and len(near) >= 5
+        np.testing.assert_allclose(
+            attitude, (math.atan2(up[1], up[2]), math.atan2(-up[0], math.hypot(up[1], up[2]))), atol=1e-9
+        )
+        assert math.degrees(math.hypot(*attitude)) > 4.0  # the recording's sensor leans by ~5 degrees
+
+
+def test_dem_map_and_stream_of_a_bag_are_leveled_by_its_imu(cli, imu_bags, tmp_path):
+    """A per-scan stage with --imu equals the loose files with --roll/--pitch of the IMU's
+    attitude; map and stream --lidar-only with --imu equal the loose files leveled by a pose
+    file of those attitudes."""
+    from terracube.poses import write_tum_poses
+
+    bag, tilted = imu_bags["accelerations"], imu_bags["tilted"]
+    attitudes = [c.attitude for c in read_bag(bag, "/lidar_points", imu="/imu").clouds()]
+    result = cli("dem", bag, "--imu", "/imu", "--no-png", "-o", tmp_path / "bag")
+    assert result.exit_code == 0, result.output
+    assert "IMU /imu: each cloud leveled" in result.output and "record times" in result.output
+    for frame, (roll, pitch) in enumerate(attitudes):
+        loose = cli(
+            "dem", tilted / f"{frame:06d}.bin", "--roll", math.degrees(roll), "--pitch", math.degrees(pitch),
+            "--no-png", "-o", tmp_path / "loose",
+        )  # fmt: skip
+        assert loose.exit_code == 0, loose.output
+        expected = tc.ElevationMap.load(tmp_path / "loose" / f"{frame:06d}_dem.npz")
+        got = tc.ElevationMap.load(tmp_path / "bag" / f"accelerations_{frame:04d}_dem.npz")
+        np.testing.assert_allclose(got.geometry.origin, expected.geometry.origin, atol=1e-9)
+        for layer in expected.layers:
+            np.testing.assert_allclose(got[layer], expected[layer], atol=1e-5, equal_nan=True, err_msg=layer)
+    # map and stream, LiDAR-only: the IMU's attitudes as the poses' rotations.
+    levels = [tc.leveling_transform(*attitude) for attitude in attitudes]
+    tum = tmp_path / "attitudes_tum.txt"
+    write_tum_poses(tum, [stamp_of(f) * 1e-9 for f in range(FRAMES)], levels)
+    for command, options, result_file in (
+        ("map", ["--keyframe-distance", "0.5", "--no-png"], "global_map.npz"),
+        ("stream", ["--length", "12", "--resolution", "0.2", "--no-png"], "local_map.npz"),
+    ):
+        loose = cli(command, tilted, "--lidar-only", "--poses", tum, "-o", tmp_path / f"l{command}", *options)
+        assert loose.exit_code == 0, loose.output
+        result = cli(command, bag, "--lidar-only", "--imu", "/imu", "-o", tmp_path / f"b{command}", *options)
+        assert result.exit_code == 0, result.output
+        assert "IMU /imu: each cloud leveled" in result.output
+        expected = tc.ElevationMap.load(tmp_path / f"l{command}" / result_file)
+        got = tc.ElevationMap.load(tmp_path / f"b{command}" / result_file)
+        np.testing.assert_allclose(got.geometry.origin, expected.geometry.origin, atol=1e-9)
+        for layer in set(expected.layers) - {"time"}:
+            np.testing.assert_allclose(got[layer], expected[layer], atol=1e-5, equal_nan=True, err_msg=layer)
+    # The map's trajectory keeps the IMU's roll and pitch (the true ones to the window's mean).
+    trajectory = np.loadtxt(tmp_path / "bmap" / "trajectory_kitti.txt").reshape(-1, 3, 4)
+    for pose, world_lidar in zip(trajectory, imu_bags["truth"], strict=True):
+        np.testing.assert_allclose(
+            roll_pitch_zyx(pose[:, :3]), roll_pitch_zyx(world_lidar), atol=math.radians(0.05)
+        )
+    # Planar odometry (a wheeled robot's) with the IMU: the odometry's position and heading, the
+    # IMU's roll and pitch: the true poses.
+    truth_poses = kitti_velodyne_poses(imu_bags["root"])[:FRAMES]
+    for imu_options, tilt in (([], 0.0), (["--imu", "/imu"], 1.0)):
+        out = tmp_path / f"odom{len(imu_options)}"
+        result = cli("map", bag, "--odom", "/odom2d", *imu_options, "--odometry-only", "--no-png", "-o", out)
+        assert result.exit_code == 0, result.output
+        trajectory = np.loadtxt(out / "trajectory_kitti.txt").reshape(-1, 3, 4)
+        np.testing.assert_allclose(trajectory[:, :, 3], truth_poses[:, :3, 3], atol=1e-6)
+        for pose, world_lidar in zip(trajectory, imu_bags["truth"], strict=True):
+            expected = np.multiply(roll_pitch_zyx(world_lidar), tilt)  # without the IMU: level
+            np.testing.assert_allclose(roll_pitch_zyx(pose[:, :3]), expected, atol=math.radians(0.05))
+            heading = math.atan2(pose[1, 0], pose[0, 0]) - math.atan2(world_lidar[1, 0], world_lidar[0, 0])
+            assert abs(math.remainder(heading, 2 * math.pi)) < 1e-6
+    refused = cli("dem", bag, "--imu", "/imu", "--roll", "3", "-o", tmp_path / "x")
+    assert refused.exit_code == 2 and "--imu TOPIC or --roll/--pitch" in refused.output
+    refused = cli("dem", tilted / "000000.bin", "--imu", "/imu", "-o", tmp_path / "x")
+    assert refused.exit_code == 2 and "--imu: only for a bag input" in refused.output
+
+
+def test_an_unusable_imu_topic_stops_with_the_reason(imu_bags, tmp_path):
+    """Accelerations that are zero or NaN, up directions that contradict each other, and an IMU
+    frame the TF tree does not know: each a ValueError naming the topic and the problem."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    store = typestore()
+    level = np.eye(3)
+    cases = {
+        "zero": [0.0 * level] * 4,
+        "flipped": [level, rotation("x", 180.0)] * 2,  # up and down in turn: no attitude
+        "unknown_frame": [level] * 4,
+    }
+    for name, attitudes in cases.items():
+        path = tmp_path / name
+        with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+            clouds = writer.add_connection("/points", "sensor_msgs/msg/PointCloud2", typestore=store)
+            imu = writer.add_connection("/imu", "sensor_msgs/msg/Imu", typestore=store)
+            for k, attitude in enumerate(attitudes):
+                msg = imu_message(store, T0_NS + k * 10_000_000, attitude, with_orientation=False)
+                if name == "zero":
+                    msg.linear_acceleration.z = 0.0 if k % 2 else float("nan")
+                writer.write(imu, T0_NS + k * 10_000_000, store.serialize_cdr(msg, "sensor_msgs/msg/Imu"))
+            records = np.zeros(3, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+            msg = cloud_message(
+                store, records, [("x", 0, 7), ("y", 4, 7), ("z", 8, 7)], stamp_ns=T0_NS, frame="lidar"
+            )
+            writer.write(clouds, T0_NS, store.serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
+        expected = {
+            "zero": "the IMU topic /imu holds no usable message",
+            "flipped": "up directions of its 4 messages within 0.1 s of the cloud disagree",
+            "unknown_frame": "no transform from the IMU frame 'imu': frame 'lidar' is not in the TF tree",
+        }[name]
+        with pytest.raises(ValueError, match=re.escape(expected)):
+            list(read_bag(path, "/points", imu="/imu").clouds())
