@@ -239,7 +239,7 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     from .cli import _exit_on_bad_input, _fail
     from .config import ConfigError, load_config
     from .mapping import Mapper
-    from .pipeline import mapper_steps_line, scan_trajectory
+    from .pipeline import local_map_reach_warning, mapper_steps_line, median_horizontal_range, scan_trajectory
     from .poses import write_kitti_poses, write_tum_poses
 
     for option, flag in (
@@ -276,6 +276,7 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     total = len(clouds) if limit is None else min(len(clouds), max(limit, 0))
     stamps: list[float] = []
     odometry: list[np.ndarray] = []  # the bag's pose of each cloud (LiDAR-only: the mapper's)
+    reaches: list[float] = []  # each cloud's median horizontal range
     start = time.perf_counter()
     with _exit_on_bad_input():  # the bag's errors name it
         for cloud in _progress(clouds.clouds(), total, "mapping"):
@@ -283,6 +284,7 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
                 break
             stamp, points, pose = cloud.stamp, cloud.points, _leveled_pose(cloud)
             keep = cfg.frame.in_range(points)  # the frame's range limits, as for a folder of scans
+            reaches.append(median_horizontal_range(points[keep]))
             pose = np.eye(4) if pose is None else np.asarray(pose, dtype=np.float64)  # None: LiDAR-only
             step = mapper.add_scan(points if keep.all() else np.ascontiguousarray(points[keep]), pose)
             stamps.append(stamp)
@@ -342,6 +344,8 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     )
     if cfg.mapper.lidar_only:
         typer.echo(mapper_steps_line(mapper, 0, cfg.mapper))
+    if local_map_reach_warning(reaches, cfg.mapper):
+        typer.echo(local_map_reach_warning(reaches, cfg.mapper))
     if _imu_line(clouds):
         typer.echo(_imu_line(clouds))
     dropped = sum(clouds.no_returns)

@@ -1114,6 +1114,31 @@ def mapper_steps_line(mapper, odometry_steps: int, params) -> str:
     )
 
 
+def median_horizontal_range(points: np.ndarray) -> float:
+    """The median horizontal distance [m] of a scan's points from its sensor (every 16th point; NaN
+    for an empty scan): how far the returns typically lie, against the mapper's local map."""
+    sample = np.asarray(points)[::16, :2].astype(np.float64)
+    return float(np.median(np.hypot(sample[:, 0], sample[:, 1]))) if len(sample) else math.nan
+
+
+def local_map_reach_warning(median_ranges, params) -> str | None:
+    """A warning when the typical return lies beyond the mapper's local map, the square of side
+    ``local_map_size`` round each keyframe's sensor that registration matches: a long-range sensor
+    (a truck's forward-looking LiDAR sees nothing within 13 m) then has too little of each scan in
+    it. Suggests a side of twice the median range at cells of at most 600 a side."""
+    ranges = [r for r in median_ranges if math.isfinite(r)]
+    if not ranges or np.median(ranges) <= params.local_map_size / 2:
+        return None
+    reach = float(np.median(ranges))
+    size = 10.0 * math.ceil(reach / 5.0)  # twice the reach, in whole tens of metres
+    resolution = max(params.resolution, math.ceil(size / 600.0 / 0.05) * 0.05)
+    return (
+        f"warning: the median return lies {reach:.0f} m from the sensor, beyond the mapper's local map "
+        f"(+-{params.local_map_size / 2:g} m), the area registration matches; for a long-range sensor "
+        f"set mapper.local_map_size {size:g} and mapper.resolution {resolution:g} (--config)"
+    )
+
+
 def build_global_map(
     scans: Iterable[tuple[str, np.ndarray, int]],
     odometry: np.ndarray,
@@ -1161,11 +1186,13 @@ def build_global_map(
     estimates: list[np.ndarray] = []  # every scan's pose as the mapper reported it
     odometry_steps = 0  # keyframe steps that kept odometry because registration failed or was refused
     left_out = 0
+    reaches: list[float] = []  # each scan's median horizontal range
     start = time.perf_counter()
     for name, points, index in scans:
         points = np.asarray(points)
         keep = config.frame.in_range(points)
         left_out += int(len(keep) - np.count_nonzero(keep))
+        reaches.append(median_horizontal_range(points[keep]))
         try:
             step = mapper.add_scan(
                 points if keep.all() else np.ascontiguousarray(points[keep]), odometry[index]
@@ -1234,6 +1261,8 @@ def build_global_map(
         f"ground reference: {_mapper_reference(mapper.params.terrain, config)}",
         mapper_steps_line(mapper, odometry_steps, config.mapper),
     ]
+    reach = local_map_reach_warning(reaches, config.mapper)
+    report.lines += [reach] if reach else []
     left_out += mapper.points_out_of_range
     if left_out:
         frame, params = config.frame, mapper.params

@@ -1327,3 +1327,36 @@ def test_an_unusable_imu_topic_stops_with_the_reason(imu_bags, tmp_path):
         }[name]
         with pytest.raises(ValueError, match=re.escape(expected)):
             list(read_bag(path, "/points", imu="/imu").clouds())
+
+
+def test_a_long_range_forward_sensor_is_told_to_widen_the_local_map_and_then_registers(cli, bags, tmp_path):
+    """The Luminar truck recording sees nothing within 13 m of the sensor and most returns beyond
+    50 m: the default 40 m local map holds too little of each scan for registration. The map
+    command says so, for a bag and for loose files, and the settings it suggests register every
+    cloud at a steady speed (10 Hz clouds of a truck on a highway; the bag has no odometry)."""
+    bag = bags / "luminar_embag.bag"
+    loose = tmp_path / "clouds"
+    loose.mkdir()
+    for index, cloud in enumerate(read_bag(bag, LUMINAR_TOPIC).clouds()):
+        np.save(loose / f"{index:04d}.npy", cloud.points)
+    pattern = (
+        r"warning: the median return lies (\d+) m .* "
+        r"set mapper\.local_map_size (\S+) and mapper\.resolution (\S+)"
+    )
+    suggested = set()
+    for source in (bag, loose):
+        result = cli("map", source, "--lidar-only", "--no-png", "-o", tmp_path / "default")
+        assert result.exit_code == 0, result.output
+        found = re.search(pattern, result.output)
+        assert found and 40 < int(found[1]) < 70, result.output
+        suggested.add(found.groups())
+    ((reach, size, resolution),) = suggested
+    config = tmp_path / "long_range.yaml"
+    config.write_text(f"mapper:\n  local_map_size: {size}\n  resolution: {resolution}\n")
+    result = cli("map", bag, "--lidar-only", "-c", config, "--no-png", "-o", tmp_path / "long")
+    assert result.exit_code == 0, result.output
+    assert "4 of 4 scans registered" in result.output and "warning" not in result.output
+    positions = np.loadtxt(tmp_path / "long" / "trajectory_kitti.txt").reshape(-1, 3, 4)[:, :, 3]
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    assert 2.0 < np.median(steps) < 2.8  # 72-100 km/h
+    np.testing.assert_allclose(steps, np.median(steps), rtol=0.02)
