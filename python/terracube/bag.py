@@ -247,6 +247,10 @@ def _cloud_dtype(msg) -> np.dtype:
     for point_field in msg.fields:
         if point_field.name in names or point_field.count == 0:
             continue
+        if point_field.name in ("x", "y", "z") and point_field.count != 1:
+            raise ValueError(
+                f"field {point_field.name!r} holds {point_field.count} values a point; a coordinate holds one"
+            )
         code = _POINT_FIELD_TYPES.get(int(point_field.datatype))
         if code is None:
             raise ValueError(
@@ -353,7 +357,7 @@ class _PoseSeries:
         quaternions = np.asarray(quaternions, dtype=np.float64)[order][first]
         norms = np.linalg.norm(quaternions, axis=1, keepdims=True)
         if not np.all(norms > 0):
-            raise ValueError(f"{name}: a pose has a zero quaternion")
+            raise ValueError(f"{name}: a pose has a zero or non-finite quaternion")
         self.quaternions = quaternions / norms
 
     def at(self, stamp_ns: int) -> np.ndarray:
@@ -396,7 +400,12 @@ class _TfTree:
             child = transform.child_frame_id.lstrip("/")
             translation, quaternion = _transform_parts(transform.transform)
             if static:
-                self._static[child] = (parent, _matrix(translation, quaternion))
+                try:
+                    self._static[child] = (parent, _matrix(translation, quaternion))
+                except ValueError as error:
+                    raise ValueError(
+                        f"{self.source}: the /tf_static transform {parent} -> {child}: {error}"
+                    ) from None
             else:
                 samples = self._samples.setdefault(child, (parent, []))[1]
                 samples.append((_stamp_ns(transform.header), translation, quaternion))
@@ -749,7 +758,10 @@ class BagClouds:
                 self.pose_frame = self.pose_frame or message.header.frame_id.lstrip("/")
             if not stamps:
                 raise ValueError(f"{self.path}: the pose topic {self.poses!r} holds no message")
-            series = (_PoseSeries(f"the poses of {self.poses}", stamps, translations, quaternions), child)
+            try:
+                series = (_PoseSeries(f"the poses of {self.poses}", stamps, translations, quaternions), child)
+            except ValueError as error:
+                raise ValueError(f"{self.path}: {error}") from None
         return tree, series
 
     def _pose(self, tree, series, frame: str, stamp_ns: int) -> np.ndarray | None:

@@ -7,8 +7,9 @@ crash or a hang. A case is drawn from its seed alone: a cloud (empty, one point,
 or 1e-300 wide, NaN/Inf rows, float32 extremes, Fortran order), a pose (shifted, turned,
 non-rigid, NaN) and either extreme arguments of one function, the defaults of a parameter struct
 with a few fields set to 0, -1, NaN, +-inf, 1e300, 2^31 ..., maps, local maps, fuzzy maps and files
-used with such values, or a command line (collapse, dem, classify, fem) with such options, which
-must exit 0 or 2 (``CommandFailed``).
+used with such values, a command line (collapse, dem, classify, fem) with such options, which
+must exit 0 or 2 (``CommandFailed``), or a small ROS 2 bag of hostile PointCloud2 layouts, IMU
+messages, odometry and mounts, read by ``read_bag`` or a command.
 Cases run in the reader fuzzer's worker (a subprocess under a memory limit and an alarm,
 restarted after a crash), which calls ``answer_case``; a failure replays with ``run_case(seed)``.
 
@@ -377,6 +378,170 @@ def _command_case(rng: np.random.Generator) -> None:
         raise CommandFailed(f"{' '.join(args[:1] + args[4:])}: exit {result.exit_code}, {result.exception!r}")
 
 
+def _hostile_cloud_message(types, rng: np.random.Generator, stamp_ns: int):
+    """A PointCloud2 whose layout or values may be hostile: fields of any type at any offset (or
+    missing), point and row steps that do not fit them, data shorter or longer than the points,
+    either byte order, coordinates NaN, huge or at 0."""
+    count = int(rng.choice([0, 1, 5, 200]))
+    height = int(rng.choice([1, 1, 2, max(count, 1)]))
+    width = count // height if rng.random() < 0.8 else int(rng.choice([0, 3, 2**31 - 1]))
+    datatype = [int(rng.choice([7, 7, 8, 1, 2, 4, 5, 6, 0, 9])) for _ in range(3)]
+    offsets = (
+        [0, 4, 8] if rng.random() < 0.6 else [int(rng.choice([0, 2, 4, 8, 12, 40, 2**20])) for _ in range(3)]
+    )
+    names = ["x", "y", "z"] if rng.random() < 0.9 else list(rng.choice(["x", "y", "z", "w"], 3))
+    point_step = int(rng.choice([12, 16, 32, 0, 1, 2**20])) if rng.random() < 0.5 else 16
+    row_step = width * point_step if rng.random() < 0.8 else int(rng.choice([0, 1, 2**31]))
+    row_step = min(row_step, 2**32 - 1)  # a uint32 in the message
+    size = height * width * point_step if rng.random() < 0.7 else int(rng.choice([0, 7, 4096]))
+    size = min(size, 1 << 16)
+    values = rng.choice([0.0, math.nan, math.inf, 1e30, 1.5, -3.0], size // 4 + 1).astype("<f4")
+    data = values.view(np.uint8)[:size] if rng.random() < 0.7 else rng.integers(0, 256, size, dtype=np.uint8)
+    header = types["std_msgs/msg/Header"](
+        stamp=types["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9),
+        frame_id=str(rng.choice(["lidar", "", "/lidar", "imu"])),
+    )
+    fields = [
+        types["sensor_msgs/msg/PointField"](
+            name=n, offset=o, datatype=d, count=int(rng.choice([1, 1, 1, 0, 3]))
+        )
+        for n, o, d in zip(names, offsets, datatype, strict=True)
+    ]
+    return types["sensor_msgs/msg/PointCloud2"](
+        header=header,
+        height=height,
+        width=width,
+        fields=fields,
+        is_bigendian=bool(rng.random() < 0.2),
+        point_step=point_step,
+        row_step=row_step,
+        data=np.ascontiguousarray(data, dtype=np.uint8),
+        is_dense=False,
+    )
+
+
+def _hostile_imu_message(types, rng: np.random.Generator, stamp_ns: int):
+    """A sensor_msgs/Imu with hostile orientation, accelerations and covariances, or a plain one."""
+    pick = lambda: float(rng.choice([0.0, 9.81, -9.81, 0.3, math.nan, math.inf, 1e300]))  # noqa: E731
+    vector = types["geometry_msgs/msg/Vector3"]
+    covariance = np.zeros(9)
+    covariance[0] = float(rng.choice([0.0, -1.0, math.nan]))
+    return types["sensor_msgs/msg/Imu"](
+        header=types["std_msgs/msg/Header"](
+            stamp=types["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9),
+            frame_id=str(rng.choice(["imu", "lidar", "", "nowhere"])),
+        ),
+        orientation=types["geometry_msgs/msg/Quaternion"](x=pick(), y=pick(), z=pick(), w=pick()),
+        orientation_covariance=covariance,
+        angular_velocity=vector(x=0.0, y=0.0, z=0.0),
+        angular_velocity_covariance=covariance,
+        linear_acceleration=vector(x=pick(), y=pick(), z=pick()),
+        linear_acceleration_covariance=covariance,
+    )
+
+
+def _bag_case(rng: np.random.Generator) -> None:
+    """A small ROS 2 bag of hostile clouds, IMU messages, odometry and mounts: read_bag (with the
+    IMU, the odometry) gives clouds or a refusal, and dem, map or stream on it exits 0 or 2."""
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    if "tf2_msgs/msg/TFMessage" not in store.types:
+        store.register(
+            get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage")
+        )
+    types = store.types
+    t0 = int(rng.choice([1_600_000_000 * 10**9, 0, 5 * 10**9]))
+    folder = Path(tempfile.mkdtemp(prefix="terracube-fuzz-bag-"))
+    try:
+        path = folder / "bag"
+        with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+            clouds = writer.add_connection("/points", "sensor_msgs/msg/PointCloud2", typestore=store)
+            imu = writer.add_connection("/imu", "sensor_msgs/msg/Imu", typestore=store)
+            odom = writer.add_connection("/odom", "geometry_msgs/msg/PoseStamped", typestore=store)
+            static = writer.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=store)
+            mount = (
+                rng.choice([0.0, 1.0, math.nan], 4) if rng.random() < 0.3 else np.array([0.0, 0.0, 0.0, 1.0])
+            )
+            transform = types["geometry_msgs/msg/TransformStamped"](
+                header=types["std_msgs/msg/Header"](
+                    stamp=types["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="lidar"
+                ),
+                child_frame_id=str(rng.choice(["imu", "lidar", "base"])),
+                transform=types["geometry_msgs/msg/Transform"](
+                    translation=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.1),
+                    rotation=types["geometry_msgs/msg/Quaternion"](*map(float, mount)),
+                ),
+            )
+            message = types["tf2_msgs/msg/TFMessage"](transforms=[transform])
+            writer.write(static, max(t0 - 1, 0), store.serialize_cdr(message, "tf2_msgs/msg/TFMessage"))
+            for k in range(int(rng.integers(0, 12))):
+                stamp = t0 + int(rng.choice([k * 50_000_000, 0, 10**15]))
+                msg = _hostile_imu_message(types, rng, stamp)
+                writer.write(imu, stamp, store.serialize_cdr(msg, "sensor_msgs/msg/Imu"))
+            for k in range(int(rng.integers(0, 4))):
+                stamp = t0 + k * 100_000_000
+                q = (
+                    rng.choice([0.0, 1.0, math.nan], 4)
+                    if rng.random() < 0.3
+                    else np.array([0.0, 0.0, 0.0, 1.0])
+                )
+                msg = types["geometry_msgs/msg/PoseStamped"](
+                    header=types["std_msgs/msg/Header"](
+                        stamp=types["builtin_interfaces/msg/Time"](sec=stamp // 10**9, nanosec=stamp % 10**9),
+                        frame_id="world",
+                    ),
+                    pose=types["geometry_msgs/msg/Pose"](
+                        position=types["geometry_msgs/msg/Point"](
+                            x=float(k), y=float(rng.choice([0.0, math.nan])), z=0.0
+                        ),
+                        orientation=types["geometry_msgs/msg/Quaternion"](*map(float, q)),
+                    ),
+                )
+                writer.write(odom, stamp, store.serialize_cdr(msg, "geometry_msgs/msg/PoseStamped"))
+            for k in range(int(rng.integers(1, 4))):
+                stamp = t0 + k * 100_000_000
+                msg = _hostile_cloud_message(types, rng, stamp)
+                writer.write(clouds, stamp, store.serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
+        if rng.random() < 0.5:
+            from terracube.bag import read_bag
+
+            poses = str(rng.choice(["/odom", "none"]))
+            read = read_bag(
+                path,
+                "/points",
+                None if poses == "none" else poses,
+                imu=None if rng.random() < 0.3 else "/imu",
+                imu_window=float(rng.choice([0.1, 1e-9, 1e9])),
+                keep_invalid=bool(rng.random() < 0.5),
+            )
+            for cloud in read.clouds():
+                assert cloud.points.ndim == 2 and cloud.points.shape[1] == 3
+                assert cloud.attitude is None or all(math.isfinite(a) for a in cloud.attitude)
+            return
+        from terracube.cli import app
+        from typer.testing import CliRunner
+
+        command = str(rng.choice(["dem", "map", "stream", "collapse"]))
+        args = [command, str(path), "--points", "/points", "-o", str(folder / "out"), "--no-png"]
+        if rng.random() < 0.7:
+            args += ["--imu", "/imu"]
+        if command in ("map", "stream"):
+            args += ["--odom", "/odom"] if rng.random() < 0.4 else ["--lidar-only"]
+        result = CliRunner().invoke(app, args)
+        if result.exit_code not in (0, 2) or not isinstance(result.exception, (SystemExit, type(None))):
+            raise CommandFailed(
+                f"{' '.join(args[:1] + args[3:])}: exit {result.exit_code}, {result.exception!r}"
+            )
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 def run_case(seed: int) -> None:
     """The case of `seed`: raises whatever terracube raises."""
     import terracube as tc
@@ -388,10 +553,12 @@ def run_case(seed: int) -> None:
         _function_case(tc, rng, points)
     elif family < 0.7:
         _parameter_case(tc, rng, points)
-    elif family < 0.85:
+    elif family < 0.82:
         _object_case(tc, rng, points)
-    else:
+    elif family < 0.92:
         _command_case(rng)
+    else:
+        _bag_case(rng)
 
 
 REFUSALS = (ValueError, TypeError, KeyError, IndexError)  # what a call may answer bad arguments with
