@@ -198,6 +198,13 @@ void bind_collapse(py::module_& m) {
       py::arg("reason"));
   m.def("sigma_from_robot_height", &sigma_from_robot_height, py::arg("robot_height"), py::arg("edge"));
   m.def("leveling_transform", &leveling_transform, py::arg("roll"), py::arg("pitch"));
+  m.def(
+      "attitude_from_gravity",
+      [](const Eigen::Vector3d& up) {
+        const Attitude attitude = attitude_from_gravity(up);
+        return py::make_tuple(attitude.roll_rad, attitude.pitch_rad);
+      },
+      py::arg("up"));
 }
 
 }  // namespace terracube::python

@@ -472,6 +472,15 @@ Eigen::Matrix4d leveling_transform(double roll_rad, double pitch_rad) {
   return transform;
 }
 
+Attitude attitude_from_gravity(const Eigen::Vector3d& up) {
+  if (!up.allFinite() || !(up.norm() > 0.0)) {
+    throw std::invalid_argument("attitude_from_gravity: the up direction must be finite and not zero");
+  }
+  // Rx(roll) turns up into the x-z plane, then Ry(pitch) onto +z.
+  const double roll = std::atan2(up.y(), up.z());
+  return {roll, std::atan2(-up.x(), std::hypot(up.y(), up.z()))};
+}
+
 CollapseResult collapse_overhangs(const PointsView<float>& points, const CollapseParams& params,
                                   const PointsView<double>& no_return_directions) {
   return collapse_impl(points, params, no_return_directions);

@@ -479,13 +479,6 @@ class _TfTree:
         return np.linalg.solve(common_target, common_source)
 
 
-def attitude_of_up(up) -> tuple[float, float]:
-    """(roll, pitch) [rad] of a frame in which ``up`` (3,) points against gravity: the attitude
-    whose ``leveling_transform(roll, pitch)`` = Ry(pitch) Rx(roll) turns ``up`` onto +z."""
-    x, y, z = (float(v) for v in up)
-    return math.atan2(y, z), math.atan2(-x, math.hypot(y, z))
-
-
 def with_attitude(pose, roll: float, pitch: float) -> np.ndarray:
     """``pose`` (4x4) with its roll and pitch replaced: rotation Rz(yaw) Ry(pitch) Rx(roll), where
     yaw is the pose's heading (Z-Y-X angles), translation kept. For a wheeled robot's planar
@@ -724,7 +717,9 @@ class BagClouds:
                     raise ValueError(f"no transform from the IMU frame {imu.frame!r}: {message}") from None
         except ValueError as error:
             raise ValueError(f"{where}: {error}") from None
-        return attitude_of_up(up)
+        from .collapse import attitude_from_gravity
+
+        return attitude_from_gravity(up)
 
     def _pose_sources(self, bag: _Bag) -> tuple[_TfTree | None, tuple | None]:
         tree = None

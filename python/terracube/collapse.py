@@ -21,6 +21,7 @@ __all__ = [
     "point_reasons",
     "octomap_column_overhangs",
     "sigma_from_robot_height",
+    "attitude_from_gravity",
     "leveling_transform",
 ]
 
@@ -573,6 +574,27 @@ def octomap_column_overhangs(
 def sigma_from_robot_height(robot_height: float, edge: float) -> int:
     """σ = ceil(robot_height / edge) [cubes], at least 1."""
     return _core.sigma_from_robot_height(float(robot_height), float(edge))
+
+
+def attitude_from_gravity(up) -> tuple[float, float]:
+    """A sensor's (roll, pitch) [rad] from the direction of gravity's reaction in its frame.
+
+    Parameters
+    ----------
+    up : (3,) array_like
+        An accelerometer's reading at rest (+g along up) or the world's up in the sensor frame;
+        only the direction counts.
+
+    Returns
+    -------
+    (roll, pitch) : tuple of float
+        The attitude whose :func:`leveling_transform` turns ``up`` onto +z ([CBC] section IV-B).
+        Raises ValueError when ``up`` is zero or not finite.
+    """
+    vector = np.asarray(up, dtype=np.float64)
+    if vector.shape != (3,):
+        raise ValueError(f"up must be a (3,) vector, got shape {vector.shape}")
+    return _core.attitude_from_gravity(vector)
 
 
 def leveling_transform(roll: float, pitch: float) -> np.ndarray:

@@ -2,6 +2,8 @@
 #include <terracube/collapse.hpp>
 #include <terracube/cube_grid.hpp>
 
+#include <Eigen/Geometry>
+
 #include <cmath>
 
 namespace terracube {
@@ -87,6 +89,25 @@ TEST(CubeGrid, LevelingTransformIsRyPitchTimesRxRoll) {
   EXPECT_TRUE((level.topRightCorner<3, 1>().isZero(0.0)));
   EXPECT_TRUE(level.row(3).isApprox(Eigen::RowVector4d(0, 0, 0, 1)));
   EXPECT_THROW(leveling_transform(NAN, 0.0), std::invalid_argument);
+}
+
+TEST(CubeGrid, AttitudeFromGravityIsTheLevelingThatTurnsUpOntoZ) {
+  // An accelerometer at rest on a sensor with attitude (roll, pitch, any yaw) reads g R^T e_z.
+  for (const double roll : {0.0, 0.3, -1.2, 2.5}) {
+    for (const double pitch : {0.0, -0.4, 1.1}) {
+      const Eigen::Matrix3d world_sensor = Eigen::AngleAxisd(0.7, Eigen::Vector3d::UnitZ()).toRotationMatrix() *
+                                           leveling_transform(roll, pitch).topLeftCorner<3, 3>();
+      const Eigen::Vector3d reading = 9.81 * world_sensor.transpose() * Eigen::Vector3d::UnitZ();
+      const Attitude attitude = attitude_from_gravity(reading);
+      EXPECT_NEAR(attitude.roll_rad, roll, 1e-12);
+      EXPECT_NEAR(attitude.pitch_rad, pitch, 1e-12);
+      const Eigen::Vector3d leveled =
+          leveling_transform(attitude.roll_rad, attitude.pitch_rad).topLeftCorner<3, 3>() * reading;
+      EXPECT_TRUE(leveled.isApprox(9.81 * Eigen::Vector3d::UnitZ(), 1e-12));
+    }
+  }
+  EXPECT_THROW(attitude_from_gravity(Eigen::Vector3d::Zero()), std::invalid_argument);
+  EXPECT_THROW(attitude_from_gravity(Eigen::Vector3d(0.0, NAN, 9.8)), std::invalid_argument);
 }
 
 }  // namespace

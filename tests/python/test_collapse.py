@@ -454,6 +454,26 @@ def test_leveling_transform_is_ry_pitch_times_rx_roll():
         np.testing.assert_allclose(tc.leveling_transform(roll, pitch), expected, atol=1e-15)
 
 
+def test_attitude_from_gravity_levels_an_accelerometer_reading():
+    """A reading at rest is g along the sensor frame's up: the attitude found levels it onto +z
+    and is the one the sensor was given (any heading, any length of the reading)."""
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        roll, pitch, yaw = rng.uniform(-1.4, 1.4, 3)
+        turn = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+        world_sensor = turn @ tc.leveling_transform(roll, pitch)[:3, :3]
+        reading = rng.uniform(0.5, 20.0) * world_sensor.T @ [0.0, 0.0, 1.0]
+        got = tc.attitude_from_gravity(reading)
+        np.testing.assert_allclose(got, (roll, pitch), atol=1e-12)
+        leveled = tc.leveling_transform(*got)[:3, :3] @ reading
+        np.testing.assert_allclose(leveled / np.linalg.norm(leveled), [0.0, 0.0, 1.0], atol=1e-12)
+    for bad in ([0.0, 0.0, 0.0], [np.nan, 0.0, 9.8], [np.inf, 0.0, 9.8]):
+        with pytest.raises(ValueError, match="finite and not zero"):
+            tc.attitude_from_gravity(bad)
+    with pytest.raises(ValueError, match=r"\(3,\) vector"):
+        tc.attitude_from_gravity([0.0, 9.8])
+
+
 def test_rigid_transform_with_translation_gives_the_untransformed_mask():
     cloud = make_scene(11)
     transform = np.eye(4)

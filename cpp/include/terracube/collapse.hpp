@@ -63,6 +63,16 @@ int sigma_from_robot_height(double robot_height_m, double edge_m);
 /// R = Ry(pitch) * Rx(roll), i.e. the sensor-to-gravity-aligned rotation with yaw = 0.
 Eigen::Matrix4d leveling_transform(double roll_rad, double pitch_rad);
 
+/// A sensor's attitude from the direction of gravity's reaction in its frame: an accelerometer at
+/// rest (it reads +g along up), or the world's up turned into the sensor frame. The (roll, pitch)
+/// [rad] whose leveling_transform() turns `up` onto +z ([CBC] section IV-B's IMU attitude). Only
+/// the direction counts. Throws std::invalid_argument when `up` is zero or not finite.
+struct Attitude {
+  double roll_rad = 0.0;
+  double pitch_rad = 0.0;
+};
+Attitude attitude_from_gravity(const Eigen::Vector3d& up);
+
 /// Result of collapse_overhangs.
 struct CollapseResult {
   CubeGrid grid;
