@@ -14,6 +14,7 @@
 #include <string>
 #include <unordered_map>
 
+#include "number_text.hpp"
 #include "parallel.hpp"
 #include "terracube/collapse.hpp"
 #include "terracube/pose_graph.hpp"
@@ -30,35 +31,28 @@ double ms_since(Clock::time_point start) {
 constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
 constexpr double kInfinity = std::numeric_limits<double>::infinity();
 
-void check_positive(double value, const char* name) {
-  if (!(value > 0.0) || !std::isfinite(value)) {
-    throw std::invalid_argument(std::string("MapperParams.") + name + " must be a finite value > 0, got " +
-                                std::to_string(value));
-  }
-}
-
 }  // namespace
 
 void check_mapper_params(const MapperParams& p) {
-  check_positive(p.keyframe_distance_m, "keyframe_distance_m");
-  check_positive(p.keyframe_rotation_rad, "keyframe_rotation_rad");
-  check_positive(p.resolution_m, "resolution_m");
-  check_positive(p.local_map_size_m, "local_map_size_m");
-  check_positive(p.discontinuity_m, "discontinuity_m");
-  check_positive(p.max_correction_m, "max_correction_m");
-  check_positive(p.max_odometry_step_m, "max_odometry_step_m");
-  check_positive(p.max_correction_rad, "max_correction_rad");
-  check_positive(p.registration_sigma_m, "registration_sigma_m");
-  check_positive(p.registration_sigma_rad, "registration_sigma_rad");
-  check_positive(p.odometry_sigma_m_per_m, "odometry_sigma_m_per_m");
-  check_positive(p.odometry_sigma_rad_per_m, "odometry_sigma_rad_per_m");
-  check_positive(p.loop_search_radius_m, "loop_search_radius_m");
-  check_positive(p.loop_max_rmse_m, "loop_max_rmse_m");
+  detail::check_positive(p.keyframe_distance_m, "MapperParams.keyframe_distance_m");
+  detail::check_positive(p.keyframe_rotation_rad, "MapperParams.keyframe_rotation_rad");
+  detail::check_positive(p.resolution_m, "MapperParams.resolution_m");
+  detail::check_positive(p.local_map_size_m, "MapperParams.local_map_size_m");
+  detail::check_positive(p.discontinuity_m, "MapperParams.discontinuity_m");
+  detail::check_positive(p.max_correction_m, "MapperParams.max_correction_m");
+  detail::check_positive(p.max_odometry_step_m, "MapperParams.max_odometry_step_m");
+  detail::check_positive(p.max_correction_rad, "MapperParams.max_correction_rad");
+  detail::check_positive(p.registration_sigma_m, "MapperParams.registration_sigma_m");
+  detail::check_positive(p.registration_sigma_rad, "MapperParams.registration_sigma_rad");
+  detail::check_positive(p.odometry_sigma_m_per_m, "MapperParams.odometry_sigma_m_per_m");
+  detail::check_positive(p.odometry_sigma_rad_per_m, "MapperParams.odometry_sigma_rad_per_m");
+  detail::check_positive(p.loop_search_radius_m, "MapperParams.loop_search_radius_m");
+  detail::check_positive(p.loop_max_rmse_m, "MapperParams.loop_max_rmse_m");
   if (!(p.loop_min_inlier_ratio >= 0.0 && p.loop_min_inlier_ratio <= 1.0)) {
     throw std::invalid_argument("MapperParams.loop_min_inlier_ratio must lie in [0, 1]");
   }
-  check_positive(p.loop_search_window_m, "loop_search_window_m");
-  check_positive(p.overlap_block_m, "overlap_block_m");
+  detail::check_positive(p.loop_search_window_m, "MapperParams.loop_search_window_m");
+  detail::check_positive(p.overlap_block_m, "MapperParams.overlap_block_m");
   if (p.max_scans_per_local_map < 1) throw std::invalid_argument("MapperParams.max_scans_per_local_map must be >= 1");
   detail::check_num_threads(p.num_threads, "MapperParams");
   if (!(p.loop_yaw_search_rad >= 0.0) || !std::isfinite(p.loop_yaw_search_rad)) {
@@ -234,7 +228,7 @@ struct TiledElevationMap::Impl {
 };
 
 TiledElevationMap::TiledElevationMap(double resolution_m) : resolution_m_(resolution_m), impl_(new Impl) {
-  check_positive(resolution_m, "resolution_m");
+  detail::check_positive(resolution_m, "TiledElevationMap resolution_m");
 }
 TiledElevationMap::~TiledElevationMap() = default;
 TiledElevationMap::TiledElevationMap(TiledElevationMap&&) noexcept = default;
