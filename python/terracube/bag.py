@@ -570,7 +570,7 @@ class _ImuUp:
             raise ValueError(
                 f"{self.name} has no message within {self.window_ns * 1e-9:g} s of the cloud at "
                 f"{_seconds(t)} s ({'stamps' if self.clock == 'header' else 'record times'} span "
-                f"{self._span(times)}); widen the IMU window"
+                f"{self._span(times)}; read_bag's imu_window widens the window)"
             )
         mean = self.up[near].mean(axis=0)
         norm = float(np.linalg.norm(mean))

@@ -76,8 +76,9 @@ def _imu_line(clouds) -> str | None:
         if clouds.imu_clock == "header"
         else "by the bag's record times (its header stamps are on another clock)"
     )
+    source = "orientations" if clouds.imu_source == "orientation" else "accelerations (gravity)"
     return (
-        f"IMU {clouds.imu}: each cloud leveled by the roll and pitch of its {clouds.imu_source} "
+        f"IMU {clouds.imu}: each cloud leveled by the roll and pitch from its {source} "
         f"within {clouds.imu_window:g} s, matched {clock}"
     )
 

@@ -1294,36 +1294,46 @@ def test_dem_map_and_stream_of_a_bag_are_leveled_by_its_imu(cli, imu_bags, tmp_p
 
 
 def test_an_unusable_imu_topic_stops_with_the_reason(imu_bags, tmp_path):
-    """Accelerations that are zero or NaN, up directions that contradict each other, and an IMU
-    frame the TF tree does not know: each a ValueError naming the topic and the problem."""
+    """Accelerations that are zero or NaN, up directions that contradict each other, an IMU frame
+    the TF tree does not know, an IMU whose stamps and record times both lie elsewhere, and one
+    that stops before a cloud: each a ValueError naming the topic and the problem."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     store = typestore()
     level = np.eye(3)
-    cases = {
-        "zero": [0.0 * level] * 4,
-        "flipped": [level, rotation("x", 180.0)] * 2,  # up and down in turn: no attitude
-        "unknown_frame": [level] * 4,
+    cases = {  # name: IMU attitudes every 10 ms from the offset, clouds at these offsets [s]
+        "zero": ([0.0 * level] * 4, 0, [0]),
+        "flipped": ([level, rotation("x", 180.0)] * 2, 0, [0]),  # up and down in turn: no attitude
+        "unknown_frame": ([level] * 4, 0, [0]),
+        "elsewhere": ([level] * 4, 100, [0]),
+        "stopped": ([level] * 4, 0, [0, 1]),
     }
-    for name, attitudes in cases.items():
+    for name, (attitudes, offset, cloud_offsets) in cases.items():
         path = tmp_path / name
         with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
             clouds = writer.add_connection("/points", "sensor_msgs/msg/PointCloud2", typestore=store)
             imu = writer.add_connection("/imu", "sensor_msgs/msg/Imu", typestore=store)
             for k, attitude in enumerate(attitudes):
-                msg = imu_message(store, T0_NS + k * 10_000_000, attitude, with_orientation=False)
+                stamp = T0_NS + offset * 10**9 + k * 10_000_000
+                msg = imu_message(store, stamp, attitude, with_orientation=False)
                 if name == "zero":
                     msg.linear_acceleration.z = 0.0 if k % 2 else float("nan")
-                writer.write(imu, T0_NS + k * 10_000_000, store.serialize_cdr(msg, "sensor_msgs/msg/Imu"))
+                if name != "unknown_frame":
+                    msg.header.frame_id = "lidar"
+                writer.write(imu, stamp, store.serialize_cdr(msg, "sensor_msgs/msg/Imu"))
             records = np.zeros(3, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
-            msg = cloud_message(
-                store, records, [("x", 0, 7), ("y", 4, 7), ("z", 8, 7)], stamp_ns=T0_NS, frame="lidar"
-            )
-            writer.write(clouds, T0_NS, store.serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
+            for cloud_offset in cloud_offsets:
+                stamp = T0_NS + cloud_offset * 10**9
+                msg = cloud_message(
+                    store, records, [("x", 0, 7), ("y", 4, 7), ("z", 8, 7)], stamp_ns=stamp, frame="lidar"
+                )
+                writer.write(clouds, stamp, store.serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
         expected = {
             "zero": "the IMU topic /imu holds no usable message",
             "flipped": "up directions of its 4 messages within 0.1 s of the cloud disagree",
             "unknown_frame": "no transform from the IMU frame 'imu': frame 'lidar' is not in the TF tree",
+            "elsewhere": "the IMU topic /imu does not cover the cloud at 1600000000.000000000 s",
+            "stopped": "/imu has no message within 0.1 s of the cloud at 1600000001.000000000 s",
         }[name]
         with pytest.raises(ValueError, match=re.escape(expected)):
             list(read_bag(path, "/points", imu="/imu").clouds())
