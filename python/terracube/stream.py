@@ -11,7 +11,7 @@ import numpy as np
 
 from .local_map import LocalMap, LocalMapParams
 from .mapping import Mapper, MapperParams
-from .pipeline import StageReport
+from .pipeline import StageReport, local_map_reach_warning, median_horizontal_range
 
 __all__ = ["run_stream", "LidarOnlyPoses"]
 
@@ -96,6 +96,7 @@ class LidarOnlyPoses:
         self.scans = scans
         self.keep = keep
         self.seconds = 0.0
+        self.reaches: list[float] = []  # each scan's median horizontal range
 
     def __iter__(self):
         for name, points, attitude, *rest in self.scans:
@@ -104,6 +105,7 @@ class LidarOnlyPoses:
             if self.keep is not None:
                 mask = self.keep(points)
                 used = points if mask.all() else np.ascontiguousarray(np.asarray(points)[mask])
+            self.reaches.append(median_horizontal_range(used))
             try:
                 report = self.mapper.add_scan(used, np.eye(4) if attitude is None else attitude)
             except (ValueError, TypeError) as error:
@@ -112,14 +114,17 @@ class LidarOnlyPoses:
             yield (name, points, report.pose, *rest)
 
     def summary(self) -> str:
-        """One line: how many scans were registered, and the time per scan."""
+        """One line: how many scans were registered, and the time per scan; a second line warns when
+        the typical return lies beyond the mapper's local map (a long-range sensor)."""
         t = self.mapper.timings
         scans = max(t.scans, 1)
-        return (
+        line = (
             f"LiDAR-only poses: {t.registered_steps} of {t.registered_steps + t.untrusted_steps} scans "
             f"registered to the newest keyframe ({len(self.mapper)} keyframes), {t.untrusted_steps} "
             f"untrusted kept the constant-velocity prediction; {1000 * self.seconds / scans:.1f} ms per scan"
         )
+        warning = local_map_reach_warning(self.reaches, self.mapper.params)
+        return line if warning is None else f"{line}\n{warning}"
 
 
 def run_stream(

@@ -1361,6 +1361,10 @@ def test_a_long_range_forward_sensor_is_told_to_widen_the_local_map_and_then_reg
         assert found and 40 < int(found[1]) < 70, result.output
         suggested.add(found.groups())
     ((reach, size, resolution),) = suggested
+    # The LiDAR-only poses of stream come from the same mapper: the same warning.
+    result = cli("stream", bag, "--lidar-only", "--no-png", "-o", tmp_path / "stream")
+    assert result.exit_code == 0, result.output
+    assert re.search(pattern, result.output).groups() == (reach, size, resolution), result.output
     config = tmp_path / "long_range.yaml"
     config.write_text(f"mapper:\n  local_map_size: {size}\n  resolution: {resolution}\n")
     result = cli("map", bag, "--lidar-only", "-c", config, "--no-png", "-o", tmp_path / "long")
