@@ -13,7 +13,6 @@
 #include <vector>
 
 #include "cloud_frame.hpp"
-#include "height_gap.hpp"
 #include "number_text.hpp"
 #include "parallel.hpp"
 
@@ -289,7 +288,7 @@ void write_cells(const Workspace& cells, std::size_t begin, std::size_t end, dou
                  const BuiltLayers& layers) {
   constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
   const auto [count, min, max, mean, std_dev, discontinuity] = layers;
-  std::vector<double> buffer;  // lowest_gap's
+  std::vector<double> buffer;  // lowest_height_gap's
   for (std::size_t cell = begin; cell < end; ++cell) {
     const double* z = cells.heights.data() + cells.start[cell];
     const std::uint32_t n = cells.start[cell + 1] - cells.start[cell];
@@ -316,8 +315,7 @@ void write_cells(const Workspace& cells, std::size_t begin, std::size_t end, dou
     std_dev[cell] = static_cast<float>(std::sqrt(variance));
     bool gap = false;
     if (std::isgreater(highest - lowest, discontinuity_m)) {
-      const auto height = [z](std::size_t k) { return z[k]; };
-      gap = detail::lowest_gap(n, lowest, highest, discontinuity_m, height, buffer).has_value();
+      gap = lowest_height_gap(z, n, discontinuity_m, buffer).has_value();
     }
     discontinuity[cell] = gap ? 1.0F : 0.0F;
   }
@@ -502,6 +500,44 @@ OverhangFreeMap build_overhang_free_map(const PointsView<float>& points, const C
 OverhangFreeMap build_overhang_free_map(const PointsView<double>& points, const CollapseParams& collapse,
                                         const ElevationParams& elevation, const PointsView<double>& no_returns) {
   return overhang_free_impl(points, collapse, elevation, no_returns);
+}
+
+std::optional<HeightGap> lowest_height_gap(const double* heights, std::size_t n, double threshold,
+                                           std::vector<double>& buffer) {
+  detail::check_positive(threshold, "lowest_height_gap: threshold_m");
+  if (n == 0) return std::nullopt;
+  double lowest = heights[0], highest = heights[0];
+  for (std::size_t k = 0; k < n; ++k) {
+    if (!std::isfinite(heights[k])) throw std::invalid_argument("lowest_height_gap: the heights must be finite");
+    lowest = std::min(lowest, heights[k]);
+    highest = std::max(highest, heights[k]);
+  }
+  const double per_metre = 2.0 / threshold;
+  const double last = (highest - lowest) * per_metre;  // the highest bucket (NaN or inf: sort)
+  if (!(last < 2.0 * static_cast<double>(n))) {
+    buffer.resize(n);
+    for (std::size_t k = 0; k < n; ++k) buffer[k] = heights[k];
+    std::sort(buffer.begin(), buffer.end());
+    for (std::size_t k = 1; k < n; ++k) {
+      if (buffer[k] - buffer[k - 1] > threshold) return HeightGap{buffer[k - 1], buffer[k]};
+    }
+    return std::nullopt;
+  }
+  const auto buckets = static_cast<std::size_t>(last) + 1;
+  buffer.assign(2 * buckets, std::numeric_limits<double>::quiet_NaN());  // lowest, highest per bucket
+  for (std::size_t k = 0; k < n; ++k) {
+    const double z = heights[k];
+    double* bucket = &buffer[2 * static_cast<std::size_t>((z - lowest) * per_metre)];
+    bucket[0] = std::isnan(bucket[0]) ? z : std::min(bucket[0], z);
+    bucket[1] = std::isnan(bucket[1]) ? z : std::max(bucket[1], z);
+  }
+  double below = buffer[1];  // the highest height of the last non-empty bucket (bucket 0 holds `lowest`)
+  for (std::size_t b = 1; b < buckets; ++b) {
+    if (std::isnan(buffer[2 * b])) continue;
+    if (buffer[2 * b] - below > threshold) return HeightGap{below, buffer[2 * b]};
+    below = buffer[2 * b + 1];
+  }
+  return std::nullopt;
 }
 
 }  // namespace terracube

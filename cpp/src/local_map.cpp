@@ -12,7 +12,6 @@
 #include <vector>
 
 #include "cloud_frame.hpp"
-#include "height_gap.hpp"
 #include "number_text.hpp"
 #include "parallel.hpp"
 
@@ -264,8 +263,8 @@ struct Workspace {
   // Counting sort of the kept points by cell: cell c holds kept[start[c], start[c + 1]), in point order.
   std::vector<std::uint32_t> start, fill;
   std::vector<KeptPoint> kept;
-  std::vector<double> gap_buffer;    // measure_cell's
-  std::vector<double> overhang_min;  // per cell: this scan's lowest overhang point above it, or +inf
+  std::array<std::vector<double>, 2> gap_scratch;  // measure_cell's
+  std::vector<double> overhang_min;                // per cell: this scan's lowest overhang point above it, or +inf
   std::vector<std::size_t> row_offset, column;
   // for_each_seen_through's row: per stored column, the cells' y and their azimuth and elevation bins.
   std::vector<double> cell_y;
@@ -284,19 +283,22 @@ struct Workspace {
 /// heights hold a gap over `threshold` is discontinuous: its measurement is the points below the
 /// lowest gap (the ground under whatever [CBC]'s cubes kept above it, e.g. where a cell straddles
 /// two cube columns) and the lowest point above the gap is an overhang (into `overhang_min`).
-ScanCell measure_cell(const KeptPoint* begin, const KeptPoint* end, double threshold, std::vector<double>& buffer,
-                      double& overhang_min) {
+/// `scratch` holds the heights lowest_height_gap searches, then its work memory.
+ScanCell measure_cell(const KeptPoint* begin, const KeptPoint* end, double threshold,
+                      std::array<std::vector<double>, 2>& scratch, double& overhang_min) {
   ScanCell c;
   for (const KeptPoint* p = begin; p != end; ++p) c.add(p->z, p->variance);
   if (c.count < 2 || c.highest - c.lowest <= threshold) return c;  // no gap can be wider than the span
-  const auto height = [begin](std::size_t k) { return begin[k].z; };
-  const auto gap = detail::lowest_gap(c.count, c.lowest, c.highest, threshold, height, buffer);
+  std::vector<double>& heights = scratch[0];
+  heights.resize(c.count);
+  for (std::size_t k = 0; k < c.count; ++k) heights[k] = begin[k].z;
+  const auto gap = lowest_height_gap(heights.data(), c.count, threshold, scratch[1]);
   if (!gap) return c;
-  overhang_min = std::min(overhang_min, gap->above);
+  overhang_min = std::min(overhang_min, gap->above_m);
   c = ScanCell();
   c.gap = true;
   for (const KeptPoint* p = begin; p != end; ++p) {
-    if (p->z <= gap->below) c.add(p->z, p->variance);
+    if (p->z <= gap->below_m) c.add(p->z, p->variance);
   }
   return c;
 }
@@ -771,7 +773,7 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
   for (std::size_t cell = 0; cell < cells; ++cell) {
     const KeptPoint* begin = w.kept.data() + w.start[cell];
     const KeptPoint* end = w.kept.data() + w.start[cell + 1];
-    const ScanCell c = measure_cell(begin, end, params_.discontinuity_m, w.gap_buffer, w.overhang_min[cell]);
+    const ScanCell c = measure_cell(begin, end, params_.discontinuity_m, w.gap_scratch, w.overhang_min[cell]);
     if (w.overhang_min[cell] < kInf) layer[kOverhangMin][cell] = static_cast<float>(w.overhang_min[cell]);
     if (c.count == 0) continue;
     ++report.num_fused_cells;

@@ -526,6 +526,46 @@ TEST(BuildElevationMapEdgeCases, DiscontinuityOfManyElevationsWithGapsAtTheThres
   }
 }
 
+TEST(BuildElevationMapEdgeCases, LowestHeightGapIsTheSortedScansFirstGap) {
+  // The pair itself (not only whether there is one), against sorting and scanning: random sets of
+  // runs, gaps at the threshold and one ulp either side, an outlier now and then (the sorted path).
+  std::mt19937 random(11);
+  std::uniform_real_distribution<double> unit(0.0, 1.0);
+  std::vector<double> scratch;
+  for (int trial = 0; trial < 2000; ++trial) {
+    const double threshold = trial % 2 == 0 ? 0.5 : 0.3;
+    std::vector<double> heights;
+    double z = -3.0 + 6.0 * unit(random);
+    const int count = 1 + static_cast<int>(40 * unit(random));
+    for (int k = 0; k < count; ++k) {
+      heights.push_back(z);
+      const double choice = unit(random);
+      z += choice < 0.1    ? threshold
+           : choice < 0.2  ? std::nextafter(threshold, 1.0)
+           : choice < 0.25 ? threshold * (1.0 + unit(random))
+                           : threshold * 0.7 * unit(random);
+    }
+    if (trial % 37 == 0) heights.push_back(1e5);
+    std::shuffle(heights.begin(), heights.end(), random);
+    std::vector<double> sorted = heights;
+    std::sort(sorted.begin(), sorted.end());
+    std::optional<HeightGap> expected;
+    for (std::size_t k = 1; k < sorted.size() && !expected; ++k) {
+      if (sorted[k] - sorted[k - 1] > threshold) expected = HeightGap{sorted[k - 1], sorted[k]};
+    }
+    const std::optional<HeightGap> got = lowest_height_gap(heights.data(), heights.size(), threshold, scratch);
+    ASSERT_EQ(got.has_value(), expected.has_value()) << "trial " << trial;
+    if (got) {
+      EXPECT_EQ(got->below_m, expected->below_m);
+      EXPECT_EQ(got->above_m, expected->above_m);
+    }
+  }
+  const double bad[] = {0.0, std::nan(""), 2.0};
+  EXPECT_THROW(lowest_height_gap(bad, 3, 0.5, scratch), std::invalid_argument);
+  EXPECT_THROW(lowest_height_gap(bad, 1, 0.0, scratch), std::invalid_argument);
+  EXPECT_FALSE(lowest_height_gap(bad, 0, 0.5, scratch).has_value());
+}
+
 TEST(BuildElevationMapEdgeCases, WideCellFilterAtTheThresholdAgreesWithHandComputedFlags) {
   // One cell per case (threshold 1 m, all values exact in binary). Only cells whose range exceeds
   // the threshold are sorted; the rest are 0 without looking for gaps.

@@ -153,4 +153,21 @@ OverhangFreeMap build_overhang_free_map(const PointsView<double>& points, const 
 /// have data; 0 where no neighbour has data, NaN where the cell has none.
 Layer step_layer(const Layer& height);
 
+/// Two heights that are neighbours in sorted order: the one under a gap and the one over it [m].
+struct HeightGap {
+  double below_m = 0.0, above_m = 0.0;
+};
+
+/// [TC] section 3.2's discontinuity of one cell: the lowest gap of more than `threshold_m` between
+/// neighbouring heights (in sorted order) among heights[0, n), all finite; nullopt when there is
+/// none (the "discontinuity" layer is 1 where a cell has one). O(n) without sorting: each height
+/// goes into the bucket floor((z - lowest) * 2 / threshold), which never decreases as z grows, and
+/// two heights of one bucket lie at most threshold / 2 and a few ulps apart; so sorted neighbours
+/// either share a bucket (no gap) or are the highest of one non-empty bucket and the lowest of the
+/// next, compared with the same subtraction as a sorted scan: the sorted scan's answer. Heights
+/// needing more than two buckets each (an outlier far off) are sorted instead. `scratch` is work
+/// memory, reused between calls. Throws std::invalid_argument unless threshold_m > 0.
+std::optional<HeightGap> lowest_height_gap(const double* heights, std::size_t n, double threshold_m,
+                                           std::vector<double>& scratch);
+
 }  // namespace terracube
