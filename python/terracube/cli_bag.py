@@ -285,9 +285,9 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
                 break
             stamp, points, pose = cloud.stamp, cloud.points, _leveled_pose(cloud)
             keep = cfg.frame.in_range(points)  # the frame's range limits, as for a folder of scans
-            reaches.append(median_horizontal_range(points[keep]))
             pose = np.eye(4) if pose is None else np.asarray(pose, dtype=np.float64)  # None: LiDAR-only
             step = mapper.add_scan(points if keep.all() else np.ascontiguousarray(points[keep]), pose)
+            reaches.append(median_horizontal_range(points[keep]))
             stamps.append(stamp)
             odometry.append(step.pose if cfg.mapper.lidar_only else pose)
         if not stamps:

@@ -1192,13 +1192,13 @@ def build_global_map(
         points = np.asarray(points)
         keep = config.frame.in_range(points)
         left_out += int(len(keep) - np.count_nonzero(keep))
-        reaches.append(median_horizontal_range(points[keep]))
         try:
             step = mapper.add_scan(
                 points if keep.all() else np.ascontiguousarray(points[keep]), odometry[index]
             )
         except (ValueError, TypeError) as error:
             raise ValueError(f"{name}: {error}") from error
+        reaches.append(median_horizontal_range(points[keep]))
         if step.keyframe and step.index > 0 and config.mapper.use_registration and not step.registered:
             odometry_steps += 1
         indices.append(index)

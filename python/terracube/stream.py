@@ -105,11 +105,11 @@ class LidarOnlyPoses:
             if self.keep is not None:
                 mask = self.keep(points)
                 used = points if mask.all() else np.ascontiguousarray(np.asarray(points)[mask])
-            self.reaches.append(median_horizontal_range(used))
             try:
                 report = self.mapper.add_scan(used, np.eye(4) if attitude is None else attitude)
             except (ValueError, TypeError) as error:
                 raise ValueError(f"{name}: {error}") from error
+            self.reaches.append(median_horizontal_range(used))
             self.seconds += time.perf_counter() - start
             yield (name, points, report.pose, *rest)
 
