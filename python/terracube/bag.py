@@ -510,10 +510,7 @@ class _ImuUp:
         self.frame, self.kind = None, None
         for record_ns, msg in messages:
             if self.kind is None:
-                q = msg.orientation
-                norm = math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w)
-                has_orientation = msg.orientation_covariance[0] != -1.0 and abs(norm - 1.0) < 0.01
-                self.kind = "orientation" if has_orientation else "acceleration"
+                self.kind = "orientation" if self._orientation(msg) is not None else "acceleration"
                 self.frame = msg.header.frame_id.lstrip("/")
             up = self._up(msg)
             if up is not None:
@@ -530,16 +527,24 @@ class _ImuUp:
         self.up = np.asarray(ups, dtype=np.float64)
         self.clock: str | None = None  # "header" or "record", chosen at the first cloud
 
+    @staticmethod
+    def _orientation(msg):
+        """The message's unit quaternion (x, y, z, w), or None when it carries no orientation."""
+        q = msg.orientation
+        quaternion = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+        norm = np.linalg.norm(quaternion)
+        if msg.orientation_covariance[0] == -1.0 or not abs(norm - 1.0) < 0.01:
+            return None
+        return quaternion / norm
+
     def _up(self, msg):
         if self.kind == "orientation":
-            q = msg.orientation
-            quaternion = np.array([q.x, q.y, q.z, q.w])
-            norm = np.linalg.norm(quaternion)
-            if not (msg.orientation_covariance[0] != -1.0 and abs(norm - 1.0) < 0.01):
+            quaternion = self._orientation(msg)
+            if quaternion is None:
                 return None
             from .poses import matrix_from_quaternion
 
-            return matrix_from_quaternion(quaternion / norm)[2]  # R^T e_z: the world's up in the IMU frame
+            return matrix_from_quaternion(quaternion)[2]  # R^T e_z: the world's up in the IMU frame
         a = msg.linear_acceleration
         if msg.linear_acceleration_covariance[0] == -1.0:
             return None
