@@ -158,6 +158,12 @@ def run_stage_on_bag(stage: str, values: dict, bag: Path, bag_options: BagOption
     beams = config.collapse.method == "shadow_aware"
     if bag_options.imu is not None and (values.get("roll") is not None or values.get("pitch") is not None):
         raise _fail("give the attitude once: --imu TOPIC or --roll/--pitch, not both")
+    if bag_options.imu is not None and (config.frame.roll_deg != 0.0 or config.frame.pitch_deg != 0.0):
+        raise _fail(
+            f"the configuration levels by roll_deg {config.frame.roll_deg:g}, pitch_deg "
+            f"{config.frame.pitch_deg:g} ('frame' section) and --imu levels each cloud by its IMU: "
+            "give the attitude once"
+        )
     with _exit_on_bad_input():  # the bag's errors name it
         topic = _points_topic(bag, bag_options.points)
         clouds = read_bag(bag, topic, keep_invalid=beams, imu=bag_options.imu)

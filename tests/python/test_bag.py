@@ -1289,6 +1289,10 @@ def test_dem_map_and_stream_of_a_bag_are_leveled_by_its_imu(cli, imu_bags, tmp_p
             assert abs(math.remainder(heading, 2 * math.pi)) < 1e-6
     refused = cli("dem", bag, "--imu", "/imu", "--roll", "3", "-o", tmp_path / "x")
     assert refused.exit_code == 2 and "--imu TOPIC or --roll/--pitch" in refused.output
+    config = tmp_path / "tilted.yaml"
+    config.write_text("frame:\n  pitch_deg: 2.5\n")
+    refused = cli("dem", bag, "--imu", "/imu", "--config", config, "-o", tmp_path / "x")
+    assert refused.exit_code == 2 and "pitch_deg 2.5 ('frame' section)" in refused.output
     refused = cli("dem", tilted / "000000.bin", "--imu", "/imu", "-o", tmp_path / "x")
     assert refused.exit_code == 2 and "--imu: only for a bag input" in refused.output
 
