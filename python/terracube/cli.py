@@ -148,6 +148,15 @@ def _existing_file(path: Path | None, option: str) -> None:
         raise _fail(f"{option} {_short_path(path)}: no such file")
 
 
+def _echo_odometry(odometry, reference: Path | None) -> None:
+    """Print the calibration and timestamps a sequence's odometry used, and its warnings."""
+    for text, warning in odometry.notes(reference):
+        if warning:
+            typer.secho(text, fg=typer.colors.YELLOW, err=True)
+        else:
+            typer.echo(text)
+
+
 def _read_scan(path: Path) -> np.ndarray:
     """The points of one scan; a missing or unreadable file exits with code 2."""
     with _exit_on_bad_input():
@@ -1084,7 +1093,7 @@ def map_command(
     """
     from tqdm import tqdm
 
-    from .mapping import detect_pose_format, match_scans_to_poses, read_kitti_calibration, read_pose_file
+    from .mapping import match_scans_to_poses, read_odometry
     from .pipeline import build_global_map
 
     cfg = command_config(
@@ -1100,52 +1109,28 @@ def map_command(
     files = _scan_files(scans, limit)
     if poses is None and not cfg.mapper.lidar_only:
         raise _fail("give the odometry as --poses FILE, or map without it: --lidar-only")
-    _existing_file(poses, "--poses")
-    _existing_file(calib, "--calib")
-    _existing_file(times, "--times")
-    _existing_file(ground_truth, "--ground-truth")
+    for path, option in (
+        (poses, "--poses"),
+        (calib, "--calib"),
+        (times, "--times"),
+        (ground_truth, "--ground-truth"),
+    ):
+        _existing_file(path, option)
     _writable_folder(output_dir)
-    with _exit_on_bad_input():
-        reference = poses if poses is not None else ground_truth  # their format; calib.txt, times.txt beside
-        if pose_format == "auto" and reference is not None:
-            pose_format = detect_pose_format(reference)
-        beside = reference.parent if reference is not None else None
-        if calib is None and pose_format == "kitti" and beside and (beside / "calib.txt").is_file():
-            calib = beside / "calib.txt"
-        calibration = read_kitti_calibration(calib) if calib is not None else None
-        if poses is not None:
-            stamps, odometry = read_pose_file(poses, pose_format, calibration)
-        else:  # LiDAR-only and level: the scans' own order
-            stamps, odometry = np.arange(len(files), dtype=np.float64), np.tile(np.eye(4), (len(files), 1, 1))
-        indices = match_scans_to_poses(files, len(odometry))
-        if times is None and pose_format == "kitti" and beside and (beside / "times.txt").is_file():
-            times = beside / "times.txt"
-        if times is not None:
-            from .poses import read_times
-
-            stamps = read_times(times, len(odometry))
+    with _exit_on_bad_input():  # the ground truth's format and calib.txt count when there are no poses
+        odometry = read_odometry(poses, len(files), pose_format, calib, times, reference=ground_truth)
+        indices = match_scans_to_poses(files, len(odometry.poses))
     truth = None
     if ground_truth is not None:
         with _exit_on_bad_input(str(ground_truth)):
-            truth = read_pose_file(ground_truth, pose_format, calibration)[1]
-    if calibration is not None:
-        typer.echo(f"calibration: {calib} (camera poses -> Velodyne)")
-    elif pose_format == "kitti" and reference is not None:
-        typer.secho(
-            f"warning: no calib.txt beside {reference} and no --calib: the KITTI poses are used as they are "
-            "(KITTI's are the left camera's, not the LiDAR's: the map is skewed and an ATE against "
-            "camera poses measures nothing); give --calib calib.txt",
-            fg=typer.colors.YELLOW,
-            err=True,
-        )
-    if pose_format == "kitti":
-        typer.echo(f"timestamps: {times}" if times is not None else "timestamps: none (the pose index)")
+            truth = odometry.read_like(ground_truth)
+    _echo_odometry(odometry, poses or ground_truth)
     sequence = tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="mapping")
     with _exit_on_bad_input("global map"):
         report = build_global_map(
             ((str(path), _read_scan(path), index) for path, index in sequence),
-            odometry,
-            stamps,
+            odometry.poses,
+            odometry.stamps,
             output_dir,
             cfg,
             png=png,
@@ -1220,6 +1205,13 @@ def stream_command(
     calib: Path | None = typer.Option(
         None, "--calib", help="KITTI calib.txt (default: calib.txt beside KITTI --poses).", show_default=False
     ),
+    times: Path | None = typer.Option(
+        None,
+        "--times",
+        help="KITTI times.txt: the time [s] of each pose, for the map's time layer (default: times.txt "
+        "beside KITTI --poses, if present; else the pose index).",
+        show_default=False,
+    ),
     output_dir: Path = _OUTPUT_DIR,
     length: float = typer.Option(20.0, "--length", help="Side of the square local map [m]."),
     resolution: float = typer.Option(0.1, "--resolution", help="Cell size [m]."),
@@ -1247,27 +1239,19 @@ def stream_command(
     """
     from tqdm import tqdm
 
-    from .mapping import detect_pose_format, match_scans_to_poses, read_kitti_calibration, read_pose_file
+    from .mapping import match_scans_to_poses, read_odometry
     from .pipeline import read_returns_and_beams
     from .stream import run_stream
 
     files = _scan_files(scans, limit)
     if poses is None and not lidar_only:
         raise _fail("give the odometry as --poses FILE, or stream without it: --lidar-only")
-    _existing_file(poses, "--poses")
-    _existing_file(calib, "--calib")
+    for path, option in ((poses, "--poses"), (calib, "--calib"), (times, "--times")):
+        _existing_file(path, option)
     _writable_folder(output_dir)
     with _exit_on_bad_input():
-        if poses is None:  # LiDAR-only and level: the scans' own order
-            stamps, odometry = np.arange(len(files), dtype=np.float64), np.tile(np.eye(4), (len(files), 1, 1))
-        else:
-            if pose_format == "auto":
-                pose_format = detect_pose_format(poses)
-            if calib is None and pose_format == "kitti" and (poses.parent / "calib.txt").is_file():
-                calib = poses.parent / "calib.txt"
-            calibration = read_kitti_calibration(calib) if calib is not None else None
-            stamps, odometry = read_pose_file(poses, pose_format, calibration)
-        indices = match_scans_to_poses(files, len(odometry))
+        odometry = read_odometry(poses, len(files), pose_format, calib, times)
+        indices = match_scans_to_poses(files, len(odometry.poses))
         options = dict(
             config=config,
             preset=preset,
@@ -1281,6 +1265,7 @@ def stream_command(
             resolution=resolution,
         )
         params = stream_params(options)
+    _echo_odometry(odometry, poses)
     sequence = tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="streaming")
     beams = params.collapse.method == "shadow_aware"  # the empty pixels of organised scans help it
     used_beams = []
@@ -1293,7 +1278,7 @@ def stream_command(
                 used_beams.append(0 if no_returns is None else len(no_returns))
             else:
                 points, no_returns = _read_scan(path), None
-            yield str(path), points, odometry[k], float(stamps[k]), no_returns
+            yield str(path), points, odometry.poses[k], float(odometry.stamps[k]), no_returns
 
     posed = stream_lidar_only_poses(scans_of_files(), options) if lidar_only else scans_of_files()
     with _exit_on_bad_input("stream"):

@@ -378,7 +378,7 @@ def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     )
     from .stream import run_stream
 
-    for option, flag in (("poses", "--poses"), ("calib", "--calib")):
+    for option, flag in (("poses", "--poses"), ("calib", "--calib"), ("times", "--times")):
         if values.get(option) is not None:
             raise _fail(f"{flag} is for a folder of scans; a bag takes its poses from --odom or --tf")
     _check_pose_source(bag_options, values.get("lidar_only", False))

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -344,8 +345,6 @@ def run_mapper(
 
 def read_kitti_calibration(path) -> np.ndarray:
     """The 4x4 ``Tr`` (Velodyne -> left camera) of a KITTI ``calib.txt``."""
-    from pathlib import Path
-
     path = Path(path)
     for number, line in enumerate(path.read_text().splitlines(), start=1):
         key, _, values = line.partition(":")
@@ -362,8 +361,6 @@ def read_kitti_calibration(path) -> np.ndarray:
 
 def detect_pose_format(path) -> str:
     """``kitti`` or ``tum`` by the count of numbers on the first pose line (12 or 8)."""
-    from pathlib import Path
-
     path = Path(path)
     with path.open("r", encoding="utf-8") as file:
         first = next((ln for ln in file if ln.strip() and not ln.lstrip().startswith("#")), "")
@@ -384,8 +381,6 @@ def read_pose_file(path, pose_format: str = "auto", calibration=None) -> tuple[n
     ``calibration`` (the 4x4 ``Tr`` of :func:`read_kitti_calibration`) they become the Velodyne's,
     ``inv(Tr) @ P @ Tr``.
     """
-    from pathlib import Path
-
     from .poses import read_kitti_poses, read_tum_poses
 
     path = Path(path)
@@ -404,6 +399,75 @@ def read_pose_file(path, pose_format: str = "auto", calibration=None) -> tuple[n
         tr = np.asarray(calibration, dtype=np.float64)
         poses = np.linalg.inv(tr) @ poses @ tr
     return stamps, poses
+
+
+@dataclass
+class Odometry:
+    """A scan sequence's odometry as :func:`read_odometry` found it."""
+
+    stamps: np.ndarray  #: (K,) times [s] (TUM's, or times.txt's), else the pose index
+    poses: np.ndarray  #: (K, 4, 4) world <- sensor (the identity without a pose file)
+    pose_format: str | None  #: "kitti" or "tum"; None without a pose file or a reference
+    calibration: np.ndarray | None  #: KITTI's Tr (Velodyne -> camera) the poses were turned by
+    calib: Path | None  #: the calib.txt read, given or found beside KITTI poses
+    times: Path | None  #: the times.txt read, given or found beside KITTI poses
+
+    def read_like(self, path) -> np.ndarray:
+        """(K, 4, 4) poses of another file in the same format and frame (a ground truth)."""
+        return read_pose_file(path, self.pose_format or "auto", self.calibration)[1]
+
+    def notes(self, reference) -> list[tuple[str, bool]]:
+        """What a user should know, as (text, is_warning): the calibration and the timestamps used,
+        or that KITTI poses are used without a calibration (camera poses: a skewed map)."""
+        notes = []
+        if self.calib is not None:
+            notes.append((f"calibration: {self.calib} (camera poses -> Velodyne)", False))
+        elif self.pose_format == "kitti":
+            notes.append(
+                (
+                    f"warning: no calib.txt beside {reference} and no --calib: the KITTI poses are used "
+                    "as they are (KITTI's are the left camera's, not the LiDAR's: the map is skewed and "
+                    "an ATE against camera poses measures nothing); give --calib calib.txt",
+                    True,
+                )
+            )
+        if self.pose_format == "kitti":
+            notes.append(
+                (f"timestamps: {self.times}" if self.times else "timestamps: none (the pose index)", False)
+            )
+        return notes
+
+
+def read_odometry(
+    poses, num_scans: int, pose_format: str = "auto", calib=None, times=None, reference=None
+) -> Odometry:
+    """The odometry of ``num_scans`` scans from a pose file (KITTI or TUM, see
+    :func:`read_pose_file`), or the identity for each scan without one (LiDAR-only, level).
+
+    KITTI poses take ``calib`` (default: ``calib.txt`` beside them) to become the Velodyne's and
+    ``times`` (default: ``times.txt`` beside them) for their times. ``reference`` stands in for a
+    missing pose file when telling the format and finding those files (a ground truth to be read
+    by :meth:`Odometry.read_like`)."""
+    from .poses import read_times
+
+    source = Path(poses) if poses is not None else (Path(reference) if reference is not None else None)
+    if source is not None and pose_format == "auto":
+        pose_format = detect_pose_format(source)
+    calib = None if calib is None else Path(calib)
+    times = None if times is None else Path(times)
+    if source is not None and pose_format == "kitti":  # KITTI's files beside its poses
+        if calib is None and (source.parent / "calib.txt").is_file():
+            calib = source.parent / "calib.txt"
+        if times is None and (source.parent / "times.txt").is_file():
+            times = source.parent / "times.txt"
+    calibration = read_kitti_calibration(calib) if calib is not None else None
+    if poses is not None:
+        stamps, matrices = read_pose_file(poses, pose_format, calibration)
+    else:
+        stamps, matrices = np.arange(num_scans, dtype=np.float64), np.tile(np.eye(4), (num_scans, 1, 1))
+    if times is not None:
+        stamps = read_times(times, len(matrices))
+    return Odometry(stamps, matrices, None if source is None else pose_format, calibration, calib, times)
 
 
 def match_scans_to_poses(scans: list, num_poses: int) -> list[int]:

@@ -184,7 +184,12 @@ def test_stream_command_on_kitti_frames_writes_the_map_pictures_and_an_animation
     )
     for name in ("local_map.npz", "local_elevation.png", "local_traversability.png"):
         assert (out / name).is_file(), name
+    # KITTI's calib.txt and times.txt beside its poses: Velodyne poses, and times in seconds.
+    assert f"calibration: {kitti / 'calib.txt'}" in result.output
+    assert f"timestamps: {kitti / 'times.txt'}" in result.output
     saved = terracube.ElevationMap.load(out / "local_map.npz")
+    times = np.loadtxt(kitti / "times.txt")[:6]
+    assert np.nanmax(saved["time"]) == pytest.approx(times[-1] - times[0], abs=1e-6)
     assert {"elevation", "variance", "clearance", "traversability"} <= set(saved.layers)
     assert np.isfinite(saved["elevation"]).sum() > 3000
     traversability = saved["traversability"][np.isfinite(saved["traversability"])]
@@ -199,6 +204,25 @@ def test_stream_command_on_kitti_frames_writes_the_map_pictures_and_an_animation
     assert not (out / "local_elevation_000003.png").exists()
     result = CliRunner().invoke(app, [*args, "--resolution", "-1"])
     assert result.exit_code != 0 and "resolution" in result.output
+    alone = tmp_path / "poses.txt"  # KITTI's camera poses without their calib.txt: said, not silent
+    alone.write_text((kitti / "poses.txt").read_text())
+    result = CliRunner().invoke(
+        app,
+        [
+            "stream",
+            str(kitti / "velodyne"),
+            "--poses",
+            str(alone),
+            "--limit",
+            "1",
+            "--no-png",
+            "-o",
+            str(out),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    assert "the KITTI poses are used as they are" in result.output
+    assert "timestamps: none (the pose index)" in result.output
 
 
 def test_stream_command_takes_the_overhang_rule(shared_data, tmp_path):

@@ -133,6 +133,38 @@ def kitti_world_velo(root) -> np.ndarray:
     return read_pose_file(folder / "poses.txt", "kitti", read_kitti_calibration(folder / "calib.txt"))[1]
 
 
+def test_read_odometry_finds_kittis_calibration_and_times_beside_the_poses(shared_data, tmp_path):
+    from terracube.mapping import read_odometry
+
+    folder = shared_data.root / "kitti_seq00"
+    odometry = read_odometry(folder / "poses.txt", 6)
+    assert (odometry.pose_format, odometry.calib, odometry.times) == (
+        "kitti",
+        folder / "calib.txt",
+        folder / "times.txt",
+    )
+    # inv(Tr) P Tr written out from the files' numbers.
+    numbers = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)
+    camera = np.concatenate([numbers, np.tile([[[0.0, 0.0, 0.0, 1.0]]], (len(numbers), 1, 1))], axis=1)
+    line = next(ln for ln in (folder / "calib.txt").read_text().splitlines() if ln.startswith("Tr:"))
+    tr = np.vstack([np.array(line.split()[1:], dtype=float).reshape(3, 4), [0.0, 0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(odometry.poses, np.linalg.inv(tr) @ camera @ tr, atol=1e-9)
+    np.testing.assert_array_equal(odometry.stamps, np.loadtxt(folder / "times.txt")[: len(camera)])
+    # Without poses: level identities; a ground truth's folder still gives calib.txt and times.txt.
+    lidar_only = read_odometry(None, 3, reference=folder / "poses.txt")
+    np.testing.assert_array_equal(lidar_only.poses, np.tile(np.eye(4), (3, 1, 1)))
+    np.testing.assert_array_equal(lidar_only.stamps, np.loadtxt(folder / "times.txt")[:3])
+    np.testing.assert_array_equal(read_odometry(None, 3).stamps, [0.0, 1.0, 2.0])
+    np.testing.assert_allclose(lidar_only.read_like(folder / "poses.txt"), odometry.poses, atol=1e-12)
+    # Camera poses alone are said to be used as they are.
+    alone = tmp_path / "poses.txt"
+    alone.write_text((folder / "poses.txt").read_text())
+    bare = read_odometry(alone, 6)
+    np.testing.assert_allclose(bare.poses, camera, atol=1e-12)
+    assert bare.calib is None and bare.times is None
+    assert [warning for _, warning in bare.notes(alone)] == [True, False]
+
+
 def test_kitti_frames_chain_closer_to_the_ground_truth_than_perturbed_odometry(shared_data):
     truth = kitti_world_velo(shared_data.root)[:6]
     # Odometry: every step turned by 2 degrees and stretched by 25 % (wheel slip on a poor surface).
