@@ -1,4 +1,4 @@
-// Numpy (N, 3) arrays to terracube::PointsView without copies.
+// Numpy (N, 3) arrays (or wider rows, x, y, z first) to terracube::PointsView without copies.
 #pragma once
 
 #include <pybind11/numpy.h>
@@ -20,12 +20,22 @@ inline std::string shape_string(const py::array& array) {
   return text + ")";
 }
 
+/// The widest rows taken, x, y, z first (intensity, ring, time, colour, normals ...): wider arrays
+/// are more likely a transposed cloud, (3, N), than points.
+constexpr py::ssize_t kMaxPointColumns = 16;
+
 /// Calls f(PointsView<float>) or f(PointsView<double>) on an (N, 3) float32/float64 array of
-/// any strides, without copying. Raises ValueError for a wrong shape, TypeError for a wrong dtype.
+/// any strides, or the x, y, z of wider rows (up to kMaxPointColumns columns, x, y, z first),
+/// without copying. Raises ValueError for a wrong shape, TypeError for a wrong dtype.
 template <typename F>
 auto with_points(const py::array& array, const char* name, F&& f) {
-  if (array.ndim() != 2 || array.shape(1) != 3) {
-    throw py::value_error(std::string(name) + " must be an (N, 3) array of x, y, z, got shape " + shape_string(array));
+  if (array.ndim() != 2 || array.shape(1) < 3 || array.shape(1) > kMaxPointColumns) {
+    const bool transposed = array.ndim() == 2 && array.shape(0) >= 3 && array.shape(0) <= kMaxPointColumns &&
+                            array.shape(1) > kMaxPointColumns;
+    throw py::value_error(std::string(name) + " must be an (N, 3) array of x, y, z (or rows of up to " +
+                          std::to_string(kMaxPointColumns) + " values, x, y, z first), got shape " +
+                          shape_string(array) +
+                          (transposed ? ": a cloud stored by columns? pass its transpose, .T" : ""));
   }
   const auto view = [&](auto scalar) {
     using Scalar = decltype(scalar);
@@ -33,7 +43,7 @@ auto with_points(const py::array& array, const char* name, F&& f) {
     if (array.strides(0) % item != 0 || array.strides(1) % item != 0) {
       // Misaligned strides (rare: a view into a packed structured array) take one copy.
       const auto copy = py::array_t<Scalar, py::array::c_style | py::array::forcecast>::ensure(array);
-      return f(PointsView<Scalar>(copy.data(), static_cast<std::size_t>(copy.shape(0))));
+      return f(PointsView<Scalar>(copy.data(), static_cast<std::size_t>(copy.shape(0)), copy.shape(1), 1));
     }
     return f(PointsView<Scalar>(static_cast<const Scalar*>(array.data()), static_cast<std::size_t>(array.shape(0)),
                                 array.strides(0) / item, array.strides(1) / item));

@@ -331,7 +331,8 @@ def collapse_overhangs(
     Parameters
     ----------
     points : (N, 3) float32 or float64 array
-        x, y, z [m]; any strides, not copied. Other sequences are converted to float64.
+        x, y, z [m]; any strides, not copied. Wider rows (up to 16 values, x, y, z first: KITTI's
+        x, y, z, intensity) are read in place. Other sequences are converted to float64.
     edge, sigma, transform, crop, drop_non_finite, storage, num_threads, method, sensor_origin
         See :class:`CollapseParams`; ``params`` overrides them all when given. ``method="paper"``
         (the default) reproduces the paper; ``method="shadow_aware"`` is recommended for mapping.
@@ -380,7 +381,7 @@ def point_reasons(
 
     Parameters
     ----------
-    points : (N, 3) float32 or float64 array
+    points : (N, 3) or wider float32 or float64 array
         The points of that call.
     result : CollapseResult
         Its result (``method="shadow_aware"``).

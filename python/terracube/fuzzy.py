@@ -251,8 +251,8 @@ def fit_fuzzy_elevation_map(
 
     Parameters
     ----------
-    points : (N, 3) float32 or float64 array
-        x, y, z [m], in the frame of the map (apply any leveling transform first).
+    points : (N, 3) or wider float32 or float64 array
+        x, y, z [m] in the first three columns, in the frame of the map (apply any leveling transform first).
     params : FuzzyParams, optional
         Or its fields as keyword arguments.
     use : (N,) bool (or whole numbers 0 and 1), optional

@@ -223,8 +223,6 @@ class LocalMap:
         anything changes. Releases the GIL.
         """
         points = _as_points(points)
-        if points.ndim == 2 and points.shape[1] > 3:
-            points = points[:, :3]  # a strided view: x, y, z of wider rows (intensity, ...)
         beams = None if no_returns is None else _as_directions(no_returns)
         return self._core.update(points, _as_pose(pose), float(stamp), beams)
 

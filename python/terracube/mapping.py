@@ -235,10 +235,11 @@ class Mapper:
         self.points_out_of_range = 0
 
     def add_scan(self, points, pose) -> ScanReport:
-        """Feeds one scan: ``points`` (N, 3) float32/float64 in the sensor frame, ``pose`` its (4, 4)
-        odometry world <- sensor. Returns what happened (keyframe, registration, loops closed) and
-        ``.pose``, the scan's estimated (4, 4) world <- sensor at that time (its keyframe's estimate
-        moved by odometry since; LiDAR-only: its own registration).
+        """Feeds one scan: ``points`` (N, 3) or wider float32/float64 (x, y, z first) in the sensor
+        frame, ``pose`` its (4, 4) odometry world <- sensor. Returns what happened (keyframe,
+        registration, loops closed) and ``.pose``, the scan's estimated (4, 4) world <- sensor at
+        that time (its keyframe's estimate moved by odometry since; LiDAR-only: its own
+        registration).
 
         Points outside ``min_range`` .. ``max_range`` are left out here (counted in
         :attr:`points_out_of_range`) before the scan reaches the C++ mapper."""

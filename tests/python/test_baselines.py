@@ -254,7 +254,7 @@ def test_point_based_rejects_bad_parameters_and_input():
     with pytest.raises(TypeError, match="float32 or float64"):
         tc.point_based_overhangs(np.zeros((3, 3), dtype=np.float16), 0.5, 2)
     with pytest.raises(ValueError, match=r"\(N, 3\)"):
-        tc.point_based_overhangs(np.zeros((3, 4)), 0.5, 2)
+        tc.point_based_overhangs(np.zeros((3, 2)), 0.5, 2)
     with pytest.raises(ValueError, match="rigid"):
         tc.point_based_overhangs(cloud, 0.5, 2, transform=np.diag([2.0, 2.0, 2.0, 1.0]))
     dropped = tc.point_based_overhangs(

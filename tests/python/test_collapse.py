@@ -716,10 +716,42 @@ def test_all_rows_cropped_or_dropped_gives_an_empty_grid():
     assert not result.overhang.any() and len(result.occupied_cubes) == 0
 
 
-@pytest.mark.parametrize("shape", [(5, 2), (5, 4), (3,), (2, 3, 3), (0,)])
+@pytest.mark.parametrize("shape", [(5, 2), (5, 17), (3,), (2, 3, 3), (0,)])
 def test_wrong_shape_raises_value_error_naming_the_expected_shape(shape):
     with pytest.raises(ValueError, match=r"\(N, 3\)"):
         tc.collapse_overhangs(np.zeros(shape, dtype=np.float64))
+
+
+def test_a_cloud_stored_by_columns_is_refused_with_the_hint_to_transpose_it():
+    with pytest.raises(
+        ValueError, match=r"got shape \(4, 100\): a cloud stored by columns\? pass its transpose"
+    ):
+        tc.collapse_overhangs(np.zeros((4, 100), dtype=np.float32))
+
+
+def test_wider_rows_give_what_their_x_y_z_give_everywhere(shared_data):
+    """KITTI's (N, 4) rows (x, y, z, intensity), read in place, give every entry point the result
+    of a separate (N, 3) copy of their x, y, z."""
+    rows = shared_data.kitti_xyzi(0)
+    xyz = np.ascontiguousarray(rows[:, :3])
+    assert rows.shape[1] == 4 and rows.flags.c_contiguous
+    np.testing.assert_array_equal(tc.collapse_overhangs(rows).overhang, tc.collapse_overhangs(xyz).overhang)
+    np.testing.assert_array_equal(
+        tc.collapse_overhangs(rows, 0.5, 4, method="shadow_aware").overhang,
+        tc.collapse_overhangs(xyz, 0.5, 4, method="shadow_aware").overhang,
+    )
+    for build in (tc.build_elevation_map, lambda points: tc.dem_without_overhangs(points)[0]):
+        wide, plain = build(rows), build(xyz)
+        for layer in plain.layers:
+            np.testing.assert_array_equal(wide[layer], plain[layer], err_msg=layer)
+    local = [tc.LocalMap(length=10.0, resolution=0.2) for _ in range(2)]
+    for local_map, points in zip(local, (rows, xyz), strict=True):
+        local_map.update(points, np.eye(4))
+    np.testing.assert_array_equal(local[0]["elevation"], local[1]["elevation"])
+    mappers = [tc.Mapper(), tc.Mapper()]
+    for mapper, points in zip(mappers, (rows, xyz), strict=True):
+        mapper.add_scan(points, np.eye(4))
+    np.testing.assert_array_equal(mappers[0].global_map()["max"], mappers[1].global_map()["max"])
 
 
 @pytest.mark.parametrize("dtype", [np.int64, np.int32, np.float16, np.complex128, np.uint8])
