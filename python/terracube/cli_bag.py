@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import functools
 import inspect
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -210,15 +209,6 @@ def _leveled_config(config, cloud):
 # ------------------------------------------------------------------------------------------ map
 
 
-def _mapper_params(config):
-    """The mapper's parameters of a configuration, as ``terracube map`` makes them."""
-    try:  # where the CLI's helpers move once the command line is a layer over terracube.pipeline
-        from .pipeline import mapper_params
-    except ImportError:
-        from .cli import _mapper_params as mapper_params
-    return mapper_params(config)
-
-
 def _check_pose_source(bag_options: BagOptions, lidar_only: bool) -> None:
     """Exit 2 unless the bag options name one pose source (or, LiDAR-only, at most one)."""
     from .cli import _fail
@@ -243,11 +233,9 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     """``terracube map BAG``: the mapper over every cloud of the topic, posed by --odom or --tf, or
     with --lidar-only by its own registrations."""
     from .bag import occupancy_from_classes, read_bag
-    from .cli import _exit_on_bad_input, _fail
+    from .cli import _echo_report, _exit_on_bad_input, _fail
     from .config import ConfigError, load_config
-    from .mapping import Mapper
-    from .pipeline import local_map_reach_warning, mapper_steps_line, median_horizontal_range, scan_trajectory
-    from .poses import write_kitti_poses, write_tum_poses
+    from .pipeline import map_scans, write_global_map
 
     for option, flag in (
         ("poses", "--poses"),
@@ -278,88 +266,37 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
         clouds = read_bag(
             bag, topic, _pose_topic(bag_options), base_frame=bag_options.tf, imu=bag_options.imu
         )
-        mapper = Mapper(_mapper_params(cfg))
     limit = values.get("limit")
     total = len(clouds) if limit is None else min(len(clouds), max(limit, 0))
-    stamps: list[float] = []
-    odometry: list[np.ndarray] = []  # the bag's pose of each cloud (LiDAR-only: the mapper's)
-    reaches: list[float] = []  # each cloud's median horizontal range
-    start = time.perf_counter()
-    with _exit_on_bad_input():  # the bag's errors name it
-        for cloud in _progress(clouds.clouds(), total, "mapping"):
-            if len(stamps) >= total:
-                break
-            stamp, points, pose = cloud.stamp, cloud.points, _leveled_pose(cloud)
-            keep = cfg.frame.in_range(points)  # the frame's range limits, as for a folder of scans
-            pose = np.eye(4) if pose is None else np.asarray(pose, dtype=np.float64)  # None: LiDAR-only
-            step = mapper.add_scan(points if keep.all() else np.ascontiguousarray(points[keep]), pose)
-            reaches.append(median_horizontal_range(points[keep]))
-            stamps.append(stamp)
-            odometry.append(step.pose if cfg.mapper.lidar_only else pose)
-        if not stamps:
-            raise ValueError(f"no cloud on {topic}")
-        if mapper.pending_loops:
-            mapper.optimize()
-        dem = mapper.global_map()
-    seconds = time.perf_counter() - start
-    output_dir.mkdir(parents=True, exist_ok=True)
-    written = [dem.save(output_dir / "global_map.npz")]
-    # Every cloud's pose (the keyframes' estimates moved by the bag's odometry since, LiDAR-only by
-    # the mapper's own estimates), with the bag's stamps, and the keyframes alone, as `terracube map`
-    # writes them for a folder of scans.
-    keyframes = mapper.keyframe_poses()
-    key_scans = np.asarray(mapper.keyframe_scan_indices())
-    odometry_array = np.asarray(odometry)
-    trajectory = scan_trajectory(keyframes, odometry_array[key_scans], key_scans, odometry_array)
-    stamp_array = np.asarray(stamps)
-    for name, poses, times in (
-        ("trajectory", trajectory, stamp_array),
-        ("keyframes", keyframes, stamp_array[key_scans]),
-    ):
-        write_kitti_poses(output_dir / f"{name}_kitti.txt", poses)
-        write_tum_poses(output_dir / f"{name}_tum.txt", times, poses)
-        written += [output_dir / f"{name}_kitti.txt", output_dir / f"{name}_tum.txt"]
-    if values.get("png", True) and dem.geometry.num_cells > 0:
-        from .viz import plot_layer, plot_terrain_classes
 
-        path_xy = trajectory[:, :2, 3]
-        written.append(
-            plot_layer(
-                dem, "max", output_dir / "global_max.png", title="highest elevation [m]", trajectory=path_xy
-            )
-        )
-        classes = np.nan_to_num(dem["class"], nan=0).astype(np.uint8)
-        written.append(
-            plot_terrain_classes(
-                dem, classes, output_dir / "global_classes.png", title="terrain classes", trajectory=path_xy
-            )
+    def posed_clouds():
+        """Each cloud's name, points, pose (LiDAR-only: the identity, or its IMU's leveling), stamp."""
+        for index, cloud in enumerate(_progress(clouds.clouds(), total, "mapping")):
+            if index >= total:
+                break
+            pose = _leveled_pose(cloud)
+            yield f"{bag.stem} cloud {index}", cloud.points, np.eye(4) if pose is None else pose, cloud.stamp
+
+    with _exit_on_bad_input():  # the bag's errors name it
+        if total == 0:
+            raise ValueError(f"no cloud on {topic}")
+        run = map_scans(posed_clouds(), cfg)
+        report = write_global_map(
+            run, output_dir, cfg, png=values.get("png", True), what=f"clouds of {topic}"
         )
     if bag_options.out is not None:
-        frame = clouds.pose_frame or "map"
-        with _output_bag(output_dir, "global_map", bag_options.storage) as writer:
-            writer.write_grid_map(dem, stamp=stamps[-1], frame_id=frame)
+        dem, stamp, frame = run.global_map, float(run.stamps[-1]), clouds.pose_frame or "map"
+        with _output_bag(Path(output_dir), "global_map", bag_options.storage) as writer:
+            writer.write_grid_map(dem, stamp=stamp, frame_id=frame)
             writer.write_occupancy_grid(
-                dem, occupancy_from_classes(dem["class"]), stamp=stamps[-1], frame_id=frame
+                dem, occupancy_from_classes(dem["class"]), stamp=stamp, frame_id=frame
             )
-        written.append(writer.path)
-    g = dem.geometry
-    typer.echo(
-        f"{len(stamps)} clouds of {topic}, {len(mapper)} keyframes, "
-        f"{len(mapper.loop_closures)} loop closures in {seconds:.2f} s; global map "
-        f"{int(g.size[0])} x {int(g.size[1])} cells at {g.resolution} m, "
-        f"{int(np.isfinite(dem['max']).sum())} with data"
-    )
-    if cfg.mapper.lidar_only:
-        typer.echo(mapper_steps_line(mapper, 0, cfg.mapper))
-    if local_map_reach_warning(reaches, cfg.mapper):
-        typer.echo(local_map_reach_warning(reaches, cfg.mapper))
-    if _imu_line(clouds):
-        typer.echo(_imu_line(clouds))
+        report.outputs.append(writer.path)
+    report.lines += [_imu_line(clouds)] if _imu_line(clouds) else []
     dropped = sum(clouds.no_returns)
-    if dropped:
-        typer.echo(f"{dropped:,} no-returns dropped")
-    for path in written:
-        typer.echo(f"written: {path}")
+    report.lines += [f"{dropped:,} no-returns dropped"] if dropped else []
+    report.lines += [f"written: {path}" for path in report.outputs]
+    _echo_report(report)
 
 
 def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:

@@ -30,6 +30,7 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -41,6 +42,7 @@ __all__ = [
     "ScanOutput",
     "StageReport",
     "auto_extent",
+    "MapperRun",
     "build_global_map",
     "collapse_params",
     "elevation_params",
@@ -49,6 +51,7 @@ __all__ = [
     "fill_note",
     "ground_reference_given",
     "leveled_points",
+    "map_scans",
     "mapper_params",
     "point_classes",
     "range_note",
@@ -62,6 +65,7 @@ __all__ = [
     "run_stage",
     "scan_trajectory",
     "terrain_params",
+    "write_global_map",
 ]
 
 #: Formats of the classified clouds the stages write.
@@ -1139,101 +1143,96 @@ def local_map_reach_warning(median_ranges, params) -> str | None:
     )
 
 
-def build_global_map(
-    scans: Iterable[tuple[str, np.ndarray, int]],
-    odometry: np.ndarray,
-    stamps: np.ndarray,
-    output_dir: str | Path,
-    config=None,
-    *,
-    png: bool = True,
-    ground_truth: np.ndarray | None = None,
-) -> StageReport:
-    """Chain a scan sequence into a global elevation map with :class:`terracube.Mapper` and write it.
+@dataclass
+class MapperRun:
+    """A scan sequence fed to a :class:`terracube.Mapper` by :func:`map_scans`."""
 
-    Parameters
-    ----------
-    scans
-        ``(name, points, pose index)`` per scan, in order: (N, 3) or wider points [m] in the sensor
-        frame and the row of ``odometry`` taken when it was recorded. Read lazily, so a generator
-        that reads files keeps one scan in memory.
-    odometry : (P, 4, 4) array
-        Odometry poses world <- sensor [m]. With the mapper section's ``lidar_only`` only their roll
-        and pitch are used (identities for a level sensor): the motion comes from the scans.
-    stamps : (P,) array
-        Their times [s], for the TUM trajectories.
-    output_dir
-        Writes ``global_map.npz``, ``trajectory_kitti.txt`` and ``trajectory_tum.txt`` (every scan's
-        pose, :func:`scan_trajectory`), ``keyframes_kitti.txt`` and ``keyframes_tum.txt`` and, with
-        ``png``, ``global_max.png`` and ``global_classes.png`` with the trajectory drawn on them.
-    config
-        A :class:`terracube.config.Config`: the mapper, terrain and registration sections.
-    ground_truth : (P, 4, 4) array, optional
-        True poses: the report adds the ATE of the estimate and of the odometry (first pose aligned).
+    mapper: Any
+    poses: np.ndarray  #: (S, 4, 4) the pose given with each scan: odometry, or LiDAR-only a leveling
+    stamps: np.ndarray  #: (S,) the scans' times [s]
+    estimates: np.ndarray  #: (S, 4, 4) each scan's pose as the mapper reported it
+    seconds: float  #: the mapper's time, reading the scans included
+    odometry_steps: int  #: keyframe steps that kept odometry: registration failed or was refused
+    left_out: int  #: points outside the frame's range limits
+    reaches: list[float]  #: each scan's median horizontal range [m]
 
-    Returns
-    -------
-    StageReport
-        Summary lines (scans, keyframes, loops, time per step, the map) and the written files.
-    """
+    @functools.cached_property
+    def global_map(self):
+        """The mapper's global elevation map (:meth:`terracube.Mapper.global_map`, built once)."""
+        return self.mapper.global_map()
+
+    def trajectory(self) -> np.ndarray:
+        """(S, 4, 4) every scan's pose: its keyframe's final estimate moved by the odometry since
+        (LiDAR-only: by the scan's own registration, the pose the mapper reported at its time)."""
+        moved = self.estimates if self.mapper.params.lidar_only else self.poses
+        key_scans = np.asarray(self.mapper.keyframe_scan_indices())
+        return scan_trajectory(self.mapper.keyframe_poses(), moved[key_scans], key_scans, moved)
+
+
+def map_scans(scans: Iterable[tuple[str, np.ndarray, np.ndarray, float]], config=None) -> MapperRun:
+    """Feed ``(name, points, pose, stamp)`` per scan, in order, to a :class:`terracube.Mapper` with
+    ``config``'s mapper, terrain and registration sections, leaving out the points beyond the
+    frame's range limits, then close the loops still pending. ``points``: (N, 3) or wider [m] in
+    the sensor frame; ``pose``: its (4, 4) odometry world <- sensor (LiDAR-only: its leveling).
+    Read lazily: a generator that reads files keeps one scan in memory. ValueError naming the scan."""
     from .config import default_config
     from .mapping import Mapper
-    from .poses import write_kitti_poses, write_tum_poses
 
     config = config or default_config()
     mapper = Mapper(mapper_params(config))
-    indices: list[int] = []
-    estimates: list[np.ndarray] = []  # every scan's pose as the mapper reported it
-    odometry_steps = 0  # keyframe steps that kept odometry because registration failed or was refused
-    left_out = 0
-    reaches: list[float] = []  # each scan's median horizontal range
+    poses, stamps, estimates, reaches = [], [], [], []
+    odometry_steps = left_out = 0
     start = time.perf_counter()
-    for name, points, index in scans:
+    for name, points, pose, stamp in scans:
         points = np.asarray(points)
         keep = config.frame.in_range(points)
         left_out += int(len(keep) - np.count_nonzero(keep))
         try:
-            step = mapper.add_scan(
-                points if keep.all() else np.ascontiguousarray(points[keep]), odometry[index]
-            )
+            step = mapper.add_scan(points if keep.all() else np.ascontiguousarray(points[keep]), pose)
         except (ValueError, TypeError) as error:
             raise ValueError(f"{name}: {error}") from error
         reaches.append(median_horizontal_range(points[keep]))
         if step.keyframe and step.index > 0 and config.mapper.use_registration and not step.registered:
             odometry_steps += 1
-        indices.append(index)
+        poses.append(np.asarray(pose, dtype=np.float64))
+        stamps.append(float(stamp))
         estimates.append(step.pose)
+    if not poses:
+        raise ValueError("no scan to map")
     if mapper.pending_loops:
         mapper.optimize()
     seconds = time.perf_counter() - start
-    if not indices:
-        raise ValueError("no scan to map")
-    dem = mapper.global_map()
-    output_dir = Path(output_dir)
-    output_dir.mkdir(parents=True, exist_ok=True)
-    report = StageReport("global map", len(indices))
-    report.outputs.append(dem.save(output_dir / "global_map.npz"))
-    keyframes = mapper.keyframe_poses()
-    key_positions = np.asarray(mapper.keyframe_scan_indices())
-    key_scans = [indices[k] for k in key_positions]
-    # Every scan moved with its keyframe's final estimate: from odometry since the keyframe, or
-    # LiDAR-only from the scan's own registration (the poses the mapper reported, which carry the
-    # keyframe's estimate of their time).
-    moved = np.asarray(estimates) if config.mapper.lidar_only else odometry[indices]
-    trajectory = scan_trajectory(keyframes, moved[key_positions], key_positions, moved)
-    stamps = np.asarray(stamps, dtype=np.float64)
-    written = {
-        "trajectory_kitti.txt": lambda p: write_kitti_poses(p, trajectory),
-        "trajectory_tum.txt": lambda p: write_tum_poses(p, stamps[indices], trajectory),
-        "keyframes_kitti.txt": lambda p: write_kitti_poses(p, keyframes),
-        "keyframes_tum.txt": lambda p: write_tum_poses(p, stamps[key_scans], keyframes),
-    }
-    from .io import atomic_path
+    return MapperRun(
+        mapper,
+        np.asarray(poses),
+        np.asarray(stamps),
+        np.asarray(estimates),
+        seconds,
+        odometry_steps,
+        left_out,
+        reaches,
+    )
 
-    for file_name, write in written.items():
-        with atomic_path(output_dir / file_name) as temporary:
-            write(temporary)
-        report.outputs.append(output_dir / file_name)
+
+def write_global_map(
+    run: MapperRun, output_dir: str | Path, config=None, *, png: bool = True, what: str = "scans"
+) -> StageReport:
+    """Write a :func:`map_scans` run: ``global_map.npz``, ``trajectory_kitti.txt`` and
+    ``trajectory_tum.txt`` (every scan's pose, :meth:`MapperRun.trajectory`, with its time),
+    ``keyframes_kitti.txt`` and ``keyframes_tum.txt`` and, with ``png``, ``global_max.png`` and
+    ``global_classes.png`` with the trajectory drawn on them. Returns a :class:`StageReport` whose
+    lines sum the run up (``what`` names its scans: "scans", "clouds of /points")."""
+    from .config import default_config
+
+    config = config or default_config()
+    mapper, output_dir, dem = run.mapper, Path(output_dir), run.global_map
+    output_dir.mkdir(parents=True, exist_ok=True)
+    report = StageReport("global map", len(run.poses))
+    report.outputs.append(dem.save(output_dir / "global_map.npz"))
+    trajectory, keyframes = run.trajectory(), mapper.keyframe_poses()
+    key_stamps = run.stamps[np.asarray(mapper.keyframe_scan_indices(), dtype=np.int64)]
+    report.outputs += _write_poses(output_dir / "trajectory", run.stamps, trajectory)
+    report.outputs += _write_poses(output_dir / "keyframes", key_stamps, keyframes)
     if png and dem.geometry.num_cells > 0:
         from .viz import plot_layer, plot_terrain_classes
 
@@ -1247,11 +1246,31 @@ def build_global_map(
                 dem, classes, output_dir / "global_classes.png", title="terrain classes", trajectory=path_xy
             ),
         )
-    t = mapper.timings
-    g = dem.geometry
-    report.lines += [
-        f"{len(indices)} scans, {len(mapper)} keyframes, {len(mapper.loop_closures)} loop closures "
-        f"in {seconds:.2f} s ({len(indices) / seconds:.1f} scans/s incl. reading)",
+    report.lines += _mapping_lines(run, dem, config, what)
+    return report
+
+
+def _write_poses(stem: Path, stamps: np.ndarray, poses: np.ndarray) -> list[Path]:
+    """STEM_kitti.txt and STEM_tum.txt of (S, 4, 4) poses at their (S,) times, each atomically."""
+    from .io import atomic_path
+    from .poses import write_kitti_poses, write_tum_poses
+
+    kitti, tum = stem.with_name(f"{stem.name}_kitti.txt"), stem.with_name(f"{stem.name}_tum.txt")
+    with atomic_path(kitti) as temporary:
+        write_kitti_poses(temporary, poses)
+    with atomic_path(tum) as temporary:
+        write_tum_poses(temporary, stamps, poses)
+    return [kitti, tum]
+
+
+def _mapping_lines(run: MapperRun, dem, config, what: str) -> list[str]:
+    """The summary of a mapper run: scans, keyframes and loops, time per step, the map, the ground
+    reference, how the steps were made, and the warnings (local map reach, range filter)."""
+    mapper, t, g = run.mapper, run.mapper.timings, dem.geometry
+    scans = len(run.poses)
+    lines = [
+        f"{scans} {what}, {len(mapper)} keyframes, {len(mapper.loop_closures)} loop closures "
+        f"in {run.seconds:.2f} s ({scans / run.seconds:.1f} scans/s incl. reading)",
         f"time [ms]: map building {t.map_building_ms:.0f}, classification {t.classification_ms:.0f}, "
         f"registration {t.registration_ms:.0f}, fusion {t.fusion_ms:.0f}, "
         f"loop closing {t.loop_closing_ms:.0f}",
@@ -1259,25 +1278,76 @@ def build_global_map(
         f"{int(np.isfinite(dem['max']).sum())} with data, "
         f"{mapper.global_memory_bytes / 2**20:.1f} MiB of tiles",
         f"ground reference: {_mapper_reference(mapper.params.terrain, config)}",
-        mapper_steps_line(mapper, odometry_steps, config.mapper),
+        mapper_steps_line(mapper, run.odometry_steps, config.mapper),
     ]
-    reach = local_map_reach_warning(reaches, config.mapper)
-    report.lines += [reach] if reach else []
-    left_out += mapper.points_out_of_range
+    reach = local_map_reach_warning(run.reaches, config.mapper)
+    lines += [reach] if reach else []
+    left_out = run.left_out + mapper.points_out_of_range
     if left_out:
         frame, params = config.frame, mapper.params
         limits = [f"nearer than {max(frame.min_range, params.min_range):g} m"]
         farthest = [r for r in (frame.max_range, params.max_range) if r is not None]
         limits += [f"beyond {min(farthest):g} m"] if farthest else []
-        report.lines.append(f"range filter: {left_out:,} points left out ({' or '.join(limits)})")
+        lines.append(f"range filter: {left_out:,} points left out ({' or '.join(limits)})")
+    return lines
+
+
+def build_global_map(
+    scans: Iterable[tuple[str, np.ndarray, int]],
+    odometry: np.ndarray,
+    stamps: np.ndarray,
+    output_dir: str | Path,
+    config=None,
+    *,
+    png: bool = True,
+    ground_truth: np.ndarray | None = None,
+) -> StageReport:
+    """Chain a scan sequence into a global elevation map with :class:`terracube.Mapper` and write it
+    (:func:`map_scans`, then :func:`write_global_map`).
+
+    Parameters
+    ----------
+    scans
+        ``(name, points, pose index)`` per scan, in order: (N, 3) or wider points [m] in the sensor
+        frame and the row of ``odometry`` taken when it was recorded. Read lazily.
+    odometry : (P, 4, 4) array
+        Odometry poses world <- sensor [m]. With the mapper section's ``lidar_only`` only their roll
+        and pitch are used (identities for a level sensor): the motion comes from the scans.
+    stamps : (P,) array
+        Their times [s], for the TUM trajectories.
+    output_dir
+        Where :func:`write_global_map` writes.
+    config
+        A :class:`terracube.config.Config`: the frame's range limits and the mapper, terrain and
+        registration sections.
+    ground_truth : (P, 4, 4) array, optional
+        True poses: the report adds the ATE of the estimate and of the odometry (first pose aligned).
+
+    Returns
+    -------
+    StageReport
+        Summary lines (scans, keyframes, loops, time per step, the map) and the written files.
+    """
+    from .config import default_config
+
+    config = config or default_config()
+    indices: list[int] = []
+
+    def posed():
+        for name, points, index in scans:
+            indices.append(index)
+            yield name, points, odometry[index], float(stamps[index])
+
+    run = map_scans(posed(), config)
+    report = write_global_map(run, output_dir, config, png=png)
     if ground_truth is not None:
         from .evaluation import absolute_trajectory_error
 
         truth = np.asarray(ground_truth)[indices]
-        estimate = absolute_trajectory_error(trajectory, truth, "first_pose").translation
+        estimate = absolute_trajectory_error(run.trajectory(), truth, "first_pose").translation
         line = f"ATE over {len(indices)} scans (first pose aligned): mapper RMSE {estimate.rmse:.3f} m"
         if not config.mapper.lidar_only:
-            odom = absolute_trajectory_error(odometry[indices], truth, "first_pose").translation
+            odom = absolute_trajectory_error(run.poses, truth, "first_pose").translation
             line += f", odometry RMSE {odom.rmse:.3f} m"
         report.lines.append(line)
     report.lines += [f"written: {path}" for path in report.outputs]

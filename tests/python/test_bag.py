@@ -798,6 +798,12 @@ def test_map_on_a_kitti_bag_gives_the_map_of_the_loose_files_and_pose_file(cli, 
         )
         assert result.exit_code == 0, result.output
         assert f"{FRAMES} clouds of /velodyne_points, {FRAMES} keyframes" in result.output
+        # The same summary as the files' (pipeline.write_global_map): the map, its ground, the steps.
+        for start in ("global map: ", "ground reference: ", "odometry fallbacks: "):
+            lines = [
+                [ln for ln in run.output.splitlines() if ln.startswith(start)] for run in (loose, result)
+            ]
+            assert len(lines[0]) == 1 and lines[0] == lines[1], start
         got = tc.ElevationMap.load(tmp_path / name / "global_map.npz")
         assert got.layers == expected.layers
         np.testing.assert_allclose(got.geometry.origin, expected.geometry.origin, atol=1e-9)
