@@ -148,9 +148,9 @@ def _existing_file(path: Path | None, option: str) -> None:
         raise _fail(f"{option} {_short_path(path)}: no such file")
 
 
-def _echo_odometry(odometry, reference: Path | None) -> None:
+def _echo_odometry(odometry) -> None:
     """Print the calibration and timestamps a sequence's odometry used, and its warnings."""
-    for text, warning in odometry.notes(reference):
+    for text, warning in odometry.notes():
         if warning:
             typer.secho(text, fg=typer.colors.YELLOW, err=True)
         else:
@@ -1124,7 +1124,7 @@ def map_command(
     if ground_truth is not None:
         with _exit_on_bad_input(str(ground_truth)):
             truth = odometry.read_like(ground_truth)
-    _echo_odometry(odometry, poses or ground_truth)
+    _echo_odometry(odometry)
     sequence = tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="mapping")
     with _exit_on_bad_input("global map"):
         report = build_global_map(
@@ -1265,7 +1265,7 @@ def stream_command(
             resolution=resolution,
         )
         params = stream_params(options)
-    _echo_odometry(odometry, poses)
+    _echo_odometry(odometry)
     sequence = tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="streaming")
     beams = params.collapse.method == "shadow_aware"  # the empty pixels of organised scans help it
     used_beams = []

@@ -412,12 +412,13 @@ class Odometry:
     calibration: np.ndarray | None  #: KITTI's Tr (Velodyne -> camera) the poses were turned by
     calib: Path | None  #: the calib.txt read, given or found beside KITTI poses
     times: Path | None  #: the times.txt read, given or found beside KITTI poses
+    source: Path | None = None  #: the pose file, or the reference standing in for it
 
     def read_like(self, path) -> np.ndarray:
         """(K, 4, 4) poses of another file in the same format and frame (a ground truth)."""
         return read_pose_file(path, self.pose_format or "auto", self.calibration)[1]
 
-    def notes(self, reference) -> list[tuple[str, bool]]:
+    def notes(self) -> list[tuple[str, bool]]:
         """What a user should know, as (text, is_warning): the calibration and the timestamps used,
         or that KITTI poses are used without a calibration (camera poses: a skewed map)."""
         notes = []
@@ -426,7 +427,7 @@ class Odometry:
         elif self.pose_format == "kitti":
             notes.append(
                 (
-                    f"warning: no calib.txt beside {reference} and no --calib: the KITTI poses are used "
+                    f"warning: no calib.txt beside {self.source} and no --calib: the KITTI poses are used "
                     "as they are (KITTI's are the left camera's, not the LiDAR's: the map is skewed and "
                     "an ATE against camera poses measures nothing); give --calib calib.txt",
                     True,
@@ -468,7 +469,8 @@ def read_odometry(
         stamps, matrices = np.arange(num_scans, dtype=np.float64), np.tile(np.eye(4), (num_scans, 1, 1))
     if times is not None:
         stamps = read_times(times, len(matrices))
-    return Odometry(stamps, matrices, None if source is None else pose_format, calibration, calib, times)
+    known_format = None if source is None else pose_format
+    return Odometry(stamps, matrices, known_format, calibration, calib, times, source)
 
 
 def match_scans_to_poses(scans: list, num_poses: int) -> list[int]:

@@ -162,7 +162,7 @@ def test_read_odometry_finds_kittis_calibration_and_times_beside_the_poses(share
     bare = read_odometry(alone, 6)
     np.testing.assert_allclose(bare.poses, camera, atol=1e-12)
     assert bare.calib is None and bare.times is None
-    assert [warning for _, warning in bare.notes(alone)] == [True, False]
+    assert [warning for _, warning in bare.notes()] == [True, False] and str(alone) in bare.notes()[0][0]
 
 
 def test_kitti_frames_chain_closer_to_the_ground_truth_than_perturbed_odometry(shared_data):
