@@ -36,13 +36,13 @@ import numpy as np
 
 __all__ = [
     "CLOUD_FORMATS",
+    "MapperRun",
     "REGISTRATION_METHODS",
     "SCAN_SUFFIXES",
     "STAGES",
     "ScanOutput",
     "StageReport",
     "auto_extent",
-    "MapperRun",
     "build_global_map",
     "collapse_params",
     "elevation_params",
