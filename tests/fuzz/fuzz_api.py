@@ -32,7 +32,8 @@ INTEGERS = [0, -1, 1, 2, 7, 10**9, 2**31, 2**63 - 1]
 
 
 def cloud(rng: np.random.Generator) -> np.ndarray:
-    """An (N, 3) cloud of one of fourteen hostile kinds."""
+    """An (N, 3) cloud of one of fourteen hostile kinds; sometimes with wider rows, transposed or in
+    Fortran order."""
     n = int(rng.choice([0, 1, 2, 3, 5, 50, 1000, 20000]))
     kind = int(rng.integers(0, 14))
     normal = rng.normal(0.0, 10.0, (n, 3))
@@ -65,7 +66,13 @@ def cloud(rng: np.random.Generator) -> np.ndarray:
         points[:, 2] = rng.choice([0.0, 5.0, 1e9], n)  # layers far apart
     else:
         points = normal
-    return np.asfortranarray(points) if rng.random() < 0.2 else points
+    layout = rng.random()
+    if layout < 0.1:  # wider rows, x, y, z first (intensity, ring, time ...), read in place
+        extra = rng.normal(0.0, 1.0, (n, int(rng.integers(1, 15)))).astype(points.dtype)
+        return np.concatenate([points, extra], axis=1)
+    if layout < 0.13:
+        return np.ascontiguousarray(points.T)  # a cloud stored by columns: refused unless tiny
+    return np.asfortranarray(points) if layout < 0.33 else points
 
 
 def pose(rng: np.random.Generator) -> np.ndarray:

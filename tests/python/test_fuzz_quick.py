@@ -40,3 +40,35 @@ def test_120_seeded_api_calls_give_a_result_or_a_named_refusal(tmp_path):
 def test_an_api_case_is_drawn_from_its_seed_alone():
     first, again = (fuzz_api.cloud(np.random.default_rng(11)) for _ in range(2))
     np.testing.assert_array_equal(first, again)
+
+
+def test_hostile_clouds_read_as_wider_rows_give_what_their_x_y_z_give():
+    """The fuzzer's hostile clouds (NaN rows, 1e300 spreads, float32 extremes, Fortran order) with
+    extra columns: collapse_overhangs and build_elevation_map answer as for an (N, 3) copy of their
+    x, y, z, or refuse it with the same error."""
+    import terracube as tc
+
+    def outcome(call, points):
+        try:
+            return call(points)
+        except (ValueError, TypeError) as error:
+            return type(error).__name__, str(error).split(" got shape")[0]
+
+    checked = 0
+    for seed in range(400):
+        rng = np.random.default_rng(seed)
+        rows = fuzz_api.cloud(rng)
+        if rows.ndim != 2 or not 3 < rows.shape[1] <= 16 or rows.shape[0] > 5000:
+            continue
+        xyz = np.ascontiguousarray(rows[:, :3])
+        for call in (
+            lambda p: tc.collapse_overhangs(p, drop_non_finite=True).overhang,
+            lambda p: tc.build_elevation_map(p, 0.5, drop_non_finite=True)["max"],
+        ):
+            wide, plain = outcome(call, rows), outcome(call, xyz)
+            if isinstance(plain, tuple):
+                assert wide == plain, seed
+            else:
+                np.testing.assert_array_equal(wide, plain, err_msg=str(seed))
+        checked += 1
+    assert checked >= 15
