@@ -332,18 +332,6 @@ def _matrix(translation, quaternion) -> np.ndarray:
     return pose
 
 
-def _slerp(q0: np.ndarray, q1: np.ndarray, alpha: float) -> np.ndarray:
-    """Spherical linear interpolation of unit quaternions (x, y, z, w), the shorter way round."""
-    dot = float(q0 @ q1)
-    if dot < 0.0:
-        q1, dot = -q1, -dot
-    if dot > 0.9995:  # nearly parallel: normalised linear interpolation is exact to 1e-7
-        q = q0 + alpha * (q1 - q0)
-        return q / np.linalg.norm(q)
-    theta = math.acos(dot)
-    return (math.sin((1.0 - alpha) * theta) * q0 + math.sin(alpha * theta) * q1) / math.sin(theta)
-
-
 class _PoseSeries:
     """Timed rigid transforms of one frame, interpolated linearly (translation) and by SLERP."""
 
@@ -370,9 +358,11 @@ class _PoseSeries:
         i = int(np.searchsorted(stamps, stamp_ns, side="right")) - 1
         if stamps[i] == stamp_ns:
             return _matrix(self.translations[i], self.quaternions[i])
+        from .poses import slerp
+
         alpha = (stamp_ns - stamps[i]) / (stamps[i + 1] - stamps[i])
         translation = (1.0 - alpha) * self.translations[i] + alpha * self.translations[i + 1]
-        return _matrix(translation, _slerp(self.quaternions[i], self.quaternions[i + 1], alpha))
+        return _matrix(translation, slerp(self.quaternions[i], self.quaternions[i + 1], alpha))
 
 
 def _transform_parts(transform):

@@ -1093,7 +1093,7 @@ def map_command(
     """
     from tqdm import tqdm
 
-    from .mapping import match_scans_to_poses, read_odometry
+    from .mapping import read_odometry
     from .pipeline import build_global_map
 
     cfg = command_config(
@@ -1117,18 +1117,18 @@ def map_command(
     ):
         _existing_file(path, option)
     _writable_folder(output_dir)
+    total = len(_scan_files(scans, None))
     with _exit_on_bad_input():  # the ground truth's format and calib.txt count when there are no poses
-        odometry = read_odometry(poses, len(files), pose_format, calib, times, reference=ground_truth)
-        indices = match_scans_to_poses(files, len(odometry.poses))
+        odometry = read_odometry(poses, files, pose_format, calib, times, reference=ground_truth, total=total)
     truth = None
     if ground_truth is not None:
         with _exit_on_bad_input(str(ground_truth)):
             truth = odometry.read_like(ground_truth)
     _echo_odometry(odometry)
-    sequence = tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="mapping")
+    sequence = tqdm(list(enumerate(files)), unit="scan", desc="mapping")
     with _exit_on_bad_input("global map"):
         report = build_global_map(
-            ((str(path), _read_scan(path), index) for path, index in sequence),
+            ((str(path), _read_scan(path), k) for k, path in sequence),
             odometry.poses,
             odometry.stamps,
             output_dir,
@@ -1239,7 +1239,7 @@ def stream_command(
     """
     from tqdm import tqdm
 
-    from .mapping import match_scans_to_poses, read_odometry
+    from .mapping import read_odometry
     from .pipeline import read_returns_and_beams
     from .stream import run_stream
 
@@ -1249,9 +1249,9 @@ def stream_command(
     for path, option in ((poses, "--poses"), (calib, "--calib"), (times, "--times")):
         _existing_file(path, option)
     _writable_folder(output_dir)
+    total = len(_scan_files(scans, None))
     with _exit_on_bad_input():
-        odometry = read_odometry(poses, len(files), pose_format, calib, times)
-        indices = match_scans_to_poses(files, len(odometry.poses))
+        odometry = read_odometry(poses, files, pose_format, calib, times, total=total)
         options = dict(
             config=config,
             preset=preset,
@@ -1266,12 +1266,12 @@ def stream_command(
         )
         params = stream_params(options)
     _echo_odometry(odometry)
-    sequence = tqdm(list(zip(files, indices, strict=True)), unit="scan", desc="streaming")
+    sequence = tqdm(list(enumerate(files)), unit="scan", desc="streaming")
     beams = params.collapse.method == "shadow_aware"  # the empty pixels of organised scans help it
     used_beams = []
 
     def scans_of_files():
-        for path, k in sequence:
+        for k, path in sequence:
             if beams:
                 with _exit_on_bad_input():
                     points, no_returns = read_returns_and_beams(path)

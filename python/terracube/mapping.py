@@ -11,6 +11,7 @@ pose graph is optimised with Ceres; the global map is then rebuilt from the corr
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -404,19 +405,27 @@ def read_pose_file(path, pose_format: str = "auto", calibration=None) -> tuple[n
 
 @dataclass
 class Odometry:
-    """A scan sequence's odometry as :func:`read_odometry` found it."""
+    """The odometry of each scan of a sequence, as :func:`read_odometry` matched it."""
 
-    stamps: np.ndarray  #: (K,) times [s] (TUM's, or times.txt's), else the pose index
-    poses: np.ndarray  #: (K, 4, 4) world <- sensor (the identity without a pose file)
+    stamps: np.ndarray  #: (S,) each scan's time [s] (TUM's, times.txt's or its name's), else its index
+    poses: np.ndarray  #: (S, 4, 4) each scan's world <- sensor (the identity without a pose file)
     pose_format: str | None  #: "kitti" or "tum"; None without a pose file or a reference
     calibration: np.ndarray | None  #: KITTI's Tr (Velodyne -> camera) the poses were turned by
     calib: Path | None  #: the calib.txt read, given or found beside KITTI poses
     times: Path | None  #: the times.txt read, given or found beside KITTI poses
     source: Path | None = None  #: the pose file, or the reference standing in for it
+    indices: np.ndarray | None = None  #: each scan's row of a pose file; None when matched by time
+    by_time: bool = False  #: poses interpolated at the times the scans' names give
 
     def read_like(self, path) -> np.ndarray:
-        """(K, 4, 4) poses of another file in the same format and frame (a ground truth)."""
-        return read_pose_file(path, self.pose_format or "auto", self.calibration)[1]
+        """(S, 4, 4) poses of each scan from another file in the same format and frame (a ground
+        truth), matched as the odometry was: by row, or interpolated at the scans' times."""
+        stamps, poses = read_pose_file(path, self.pose_format or "auto", self.calibration)
+        if self.by_time:
+            from .poses import interpolate_poses
+
+            return interpolate_poses(stamps, poses, self.stamps, what=str(path))
+        return poses[_rows(self.indices, len(poses), path)]
 
     def notes(self) -> list[tuple[str, bool]]:
         """What a user should know, as (text, is_warning): the calibration and the timestamps used,
@@ -437,20 +446,53 @@ class Odometry:
             notes.append(
                 (f"timestamps: {self.times}" if self.times else "timestamps: none (the pose index)", False)
             )
+        if self.by_time:
+            notes.append(
+                (f"poses: interpolated at the times the {len(self.poses)} scans are named by", False)
+            )
         return notes
 
 
-def read_odometry(
-    poses, num_scans: int, pose_format: str = "auto", calib=None, times=None, reference=None
-) -> Odometry:
-    """The odometry of ``num_scans`` scans from a pose file (KITTI or TUM, see
-    :func:`read_pose_file`), or the identity for each scan without one (LiDAR-only, level).
+def _rows(indices: np.ndarray, count: int, path, names=None) -> np.ndarray:
+    """``indices`` when each is a row of a file of ``count`` poses; else ValueError naming a scan."""
+    beyond = np.flatnonzero(indices >= count)
+    if beyond.size:
+        first = int(beyond[0])
+        scan = (
+            f"{names[first]}: no pose for it" if names else f"no pose for the scan numbered {indices[first]}"
+        )
+        raise ValueError(f"{scan} (row {indices[first]}; {path} has {count} poses)")
+    return indices
 
+
+def scan_time(name: str) -> float | None:
+    """A scan's time [s] from its file name, as ROS's bag_to_pcd writes them (``1622812345.123456789.pcd``),
+    or None: whole numbers (``000123.bin``) are indices, other names no time."""
+    stem = Path(name).stem
+    if stem.isdigit():
+        return None
+    try:
+        time = float(stem)
+    except ValueError:
+        return None
+    return time if math.isfinite(time) else None
+
+
+def read_odometry(
+    poses, scans: list, pose_format: str = "auto", calib=None, times=None, reference=None, total=None
+) -> Odometry:
+    """The odometry of each scan file of ``scans`` from a pose file (KITTI or TUM, see
+    :func:`read_pose_file`), or the identity for each without one (LiDAR-only, level).
+
+    A scan takes the pose of the row its name numbers (KITTI's ``000123.bin``); with TUM poses, the
+    pose interpolated at the time its name gives (``1622812345.123456789.pcd``, odometry at any rate;
+    linear in translation, SLERP in rotation); otherwise the scans in sorted order take one pose
+    each, and there must be as many poses as scans (``total``: how many there are before a limit).
     KITTI poses take ``calib`` (default: ``calib.txt`` beside them) to become the Velodyne's and
     ``times`` (default: ``times.txt`` beside them) for their times. ``reference`` stands in for a
     missing pose file when telling the format and finding those files (a ground truth to be read
-    by :meth:`Odometry.read_like`)."""
-    from .poses import read_times
+    by :meth:`Odometry.read_like`). ValueError naming the file and the scan that cannot be matched."""
+    from .poses import interpolate_poses, read_times
 
     source = Path(poses) if poses is not None else (Path(reference) if reference is not None else None)
     if source is not None and pose_format == "auto":
@@ -463,22 +505,39 @@ def read_odometry(
         if times is None and (source.parent / "times.txt").is_file():
             times = source.parent / "times.txt"
     calibration = read_kitti_calibration(calib) if calib is not None else None
+    names = [Path(scan).name for scan in scans]
+    stems = [Path(scan).stem for scan in scans]
     if poses is not None:
         stamps, matrices = read_pose_file(poses, pose_format, calibration)
+    names_times = [scan_time(name) for name in names]
+    by_time = source is not None and pose_format == "tum" and all(t is not None for t in names_times)
+    known = dict(pose_format=None if source is None else pose_format, calibration=calibration, calib=calib)
+    if by_time:
+        scan_times = np.asarray(names_times, dtype=np.float64)
+        matrices = (
+            np.tile(np.eye(4), (len(names), 1, 1))
+            if poses is None
+            else interpolate_poses(stamps, matrices, scan_times, what=str(poses))
+        )
+        return Odometry(scan_times, matrices, **known, times=times, source=source, by_time=True)
+    if all(stem.isdigit() for stem in stems):
+        indices = np.asarray([int(stem) for stem in stems], dtype=np.int64)
     else:
-        stamps, matrices = np.arange(num_scans, dtype=np.float64), np.tile(np.eye(4), (num_scans, 1, 1))
+        indices = np.arange(len(names))
+        if poses is not None and (total or len(names)) != len(matrices):
+            raise ValueError(
+                f"{total or len(names)} scans and {len(matrices)} poses in {poses}: scans named neither by "
+                "their row (000123.bin) nor by their time with TUM poses (1622812345.123456789.pcd) "
+                "take one pose each, in order"
+            )
+    if poses is not None:
+        matrices = matrices[_rows(indices, len(matrices), poses, [str(scan) for scan in scans])]
+    else:
+        matrices = np.tile(np.eye(4), (len(names), 1, 1))
+    per_scan = indices.astype(np.float64)
     if times is not None:
-        stamps = read_times(times, len(matrices))
-    known_format = None if source is None else pose_format
-    return Odometry(stamps, matrices, known_format, calibration, calib, times, source)
-
-
-def match_scans_to_poses(scans: list, num_poses: int) -> list[int]:
-    """Pose index of each scan file: its number when every stem is numeric (KITTI's 000123.bin),
-    otherwise its position in sorted order. Raises ValueError naming a scan without a pose."""
-    stems = [s.stem for s in scans]
-    indices = [int(s) for s in stems] if all(s.isdigit() for s in stems) else list(range(len(scans)))
-    for scan, index in zip(scans, indices, strict=True):
-        if index >= num_poses:
-            raise ValueError(f"{scan}: no pose for it (pose index {index}, the pose file has {num_poses})")
-    return indices
+        all_times = read_times(times, int(indices.max()) + 1 if len(indices) else 0)
+        per_scan = all_times[indices]
+    elif poses is not None:
+        per_scan = stamps[indices]
+    return Odometry(per_scan, matrices, **known, times=times, source=source, indices=indices)

@@ -119,6 +119,44 @@ def quaternion_from_matrix(rotation) -> np.ndarray:
     return -q if q[3] < 0.0 else q
 
 
+def slerp(q0: np.ndarray, q1: np.ndarray, alpha: float) -> np.ndarray:
+    """Spherical linear interpolation of unit quaternions (x, y, z, w), the shorter way round."""
+    dot = float(q0 @ q1)
+    if dot < 0.0:
+        q1, dot = -q1, -dot
+    if dot > 0.9995:  # nearly parallel: normalised linear interpolation is exact to 1e-7
+        q = q0 + alpha * (q1 - q0)
+        return q / np.linalg.norm(q)
+    theta = math.acos(dot)
+    return (math.sin((1.0 - alpha) * theta) * q0 + math.sin(alpha * theta) * q1) / math.sin(theta)
+
+
+def interpolate_poses(stamps, poses, times, what: str = "the poses") -> np.ndarray:
+    """(M, 4, 4) poses at ``times`` [s] from (K,) ``stamps`` [s] and their (K, 4, 4) ``poses``:
+    linear in translation, SLERP in rotation between the two stamps around each time. ValueError
+    naming ``what`` for stamps that do not increase or a time outside their span."""
+    stamps = np.asarray(stamps, dtype=np.float64)
+    poses = np.asarray(poses, dtype=np.float64)
+    if len(stamps) == 0 or np.any(np.diff(stamps) <= 0.0):
+        raise ValueError(f"{what}: times must increase to be interpolated")
+    out = np.empty((len(times), 4, 4))
+    for k, time in enumerate(np.asarray(times, dtype=np.float64)):
+        if not stamps[0] <= time <= stamps[-1]:
+            raise ValueError(
+                f"time {time:.9f} s is outside the span of {what}: [{stamps[0]:.9f}, {stamps[-1]:.9f}] s"
+            )
+        i = min(int(np.searchsorted(stamps, time, side="right")) - 1, len(stamps) - 2)
+        if len(stamps) == 1 or time == stamps[i]:
+            out[k] = poses[i]
+            continue
+        alpha = (time - stamps[i]) / (stamps[i + 1] - stamps[i])
+        q0, q1 = (quaternion_from_matrix(poses[j, :3, :3]) for j in (i, i + 1))
+        out[k] = np.eye(4)
+        out[k, :3, :3] = matrix_from_quaternion(slerp(q0, q1, alpha))
+        out[k, :3, 3] = (1.0 - alpha) * poses[i, :3, 3] + alpha * poses[i + 1, :3, 3]
+    return out
+
+
 def read_tum_poses(path: str | PathLike) -> tuple[np.ndarray, np.ndarray]:
     """Reads a TUM trajectory: ((K,) timestamps [s], (K, 4, 4) poses). ``#`` lines and blank lines
     are skipped; quaternions are normalised.

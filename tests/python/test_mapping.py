@@ -137,7 +137,8 @@ def test_read_odometry_finds_kittis_calibration_and_times_beside_the_poses(share
     from terracube.mapping import read_odometry
 
     folder = shared_data.root / "kitti_seq00"
-    odometry = read_odometry(folder / "poses.txt", 6)
+    scans = [f"{k:06d}.bin" for k in (0, 2, 5)]  # rows 0, 2 and 5 of the pose file
+    odometry = read_odometry(folder / "poses.txt", scans)
     assert (odometry.pose_format, odometry.calib, odometry.times) == (
         "kitti",
         folder / "calib.txt",
@@ -148,21 +149,58 @@ def test_read_odometry_finds_kittis_calibration_and_times_beside_the_poses(share
     camera = np.concatenate([numbers, np.tile([[[0.0, 0.0, 0.0, 1.0]]], (len(numbers), 1, 1))], axis=1)
     line = next(ln for ln in (folder / "calib.txt").read_text().splitlines() if ln.startswith("Tr:"))
     tr = np.vstack([np.array(line.split()[1:], dtype=float).reshape(3, 4), [0.0, 0.0, 0.0, 1.0]])
-    np.testing.assert_allclose(odometry.poses, np.linalg.inv(tr) @ camera @ tr, atol=1e-9)
-    np.testing.assert_array_equal(odometry.stamps, np.loadtxt(folder / "times.txt")[: len(camera)])
-    # Without poses: level identities; a ground truth's folder still gives calib.txt and times.txt.
-    lidar_only = read_odometry(None, 3, reference=folder / "poses.txt")
+    velodyne = np.linalg.inv(tr) @ camera @ tr
+    np.testing.assert_allclose(odometry.poses, velodyne[[0, 2, 5]], atol=1e-9)
+    np.testing.assert_array_equal(odometry.stamps, np.loadtxt(folder / "times.txt")[[0, 2, 5]])
+    # Without poses: level identities; a ground truth's folder still gives calib.txt and times.txt,
+    # and the scans' numbers pick its rows.
+    lidar_only = read_odometry(None, scans, reference=folder / "poses.txt")
     np.testing.assert_array_equal(lidar_only.poses, np.tile(np.eye(4), (3, 1, 1)))
-    np.testing.assert_array_equal(lidar_only.stamps, np.loadtxt(folder / "times.txt")[:3])
-    np.testing.assert_array_equal(read_odometry(None, 3).stamps, [0.0, 1.0, 2.0])
-    np.testing.assert_allclose(lidar_only.read_like(folder / "poses.txt"), odometry.poses, atol=1e-12)
+    np.testing.assert_array_equal(lidar_only.stamps, np.loadtxt(folder / "times.txt")[[0, 2, 5]])
+    np.testing.assert_array_equal(read_odometry(None, scans).stamps, [0.0, 2.0, 5.0])
+    np.testing.assert_allclose(lidar_only.read_like(folder / "poses.txt"), velodyne[[0, 2, 5]], atol=1e-12)
     # Camera poses alone are said to be used as they are.
     alone = tmp_path / "poses.txt"
     alone.write_text((folder / "poses.txt").read_text())
-    bare = read_odometry(alone, 6)
-    np.testing.assert_allclose(bare.poses, camera, atol=1e-12)
+    bare = read_odometry(alone, scans)
+    np.testing.assert_allclose(bare.poses, camera[[0, 2, 5]], atol=1e-12)
     assert bare.calib is None and bare.times is None
     assert [warning for _, warning in bare.notes()] == [True, False] and str(alone) in bare.notes()[0][0]
+
+
+def test_scans_named_by_their_time_take_the_odometry_at_that_time(tmp_path):
+    """ROS's bag_to_pcd names a cloud by its stamp: with TUM odometry at another rate, each scan
+    takes the pose interpolated at its time (translation linear, rotation by SLERP: here a yaw
+    growing linearly); otherwise names that are not rows need one pose per scan, in order."""
+    from terracube.mapping import read_odometry
+    from terracube.poses import write_tum_poses
+
+    def drive(t):  # 2 m/s along x, turning at 0.3 rad/s, 1.5 m up
+        pose = np.eye(4)
+        yaw = 0.3 * (t - 100.0)
+        pose[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+        pose[:3, 3] = [2.0 * (t - 100.0), 0.0, 1.5]
+        return pose
+
+    odometry_times = 100.0 + 0.04 * np.arange(60)  # 25 Hz odometry over 2.36 s
+    tum = tmp_path / "odometry.txt"
+    write_tum_poses(tum, odometry_times, np.stack([drive(t) for t in odometry_times]))
+    scan_times = [100.013, 100.5, 101.277, 102.3]  # a 10 Hz LiDAR's stamps, off the odometry's
+    scans = [f"{t:.9f}.pcd" for t in scan_times]
+    odometry = read_odometry(tum, scans)
+    assert odometry.by_time and np.allclose(odometry.stamps, scan_times)
+    # SLERP's short steps are normalised linear blends: exact to 1e-7.
+    np.testing.assert_allclose(odometry.poses, np.stack([drive(t) for t in scan_times]), atol=1e-7)
+    assert "interpolated at the times" in odometry.notes()[-1][0]
+    np.testing.assert_allclose(odometry.read_like(tum), odometry.poses, atol=1e-12)  # a ground truth too
+    with pytest.raises(ValueError, match=r"time 102.400000000 s is outside the span of .*odometry.txt"):
+        read_odometry(tum, [*scans, "102.4.pcd"])
+    # Names that are neither rows nor times: one pose per scan, in order, or a clear refusal.
+    named = [f"scan_{k}.pcd" for k in range(4)]
+    with pytest.raises(ValueError, match="4 scans and 60 poses in .*odometry.txt"):
+        read_odometry(tum, named)
+    first = read_odometry(tum, named[:2], total=60)  # the first two of 60 scans (--limit 2)
+    np.testing.assert_allclose(first.poses, np.stack([drive(t) for t in odometry_times[:2]]), atol=1e-12)
 
 
 def test_kitti_frames_chain_closer_to_the_ground_truth_than_perturbed_odometry(shared_data):
@@ -649,3 +687,21 @@ def test_ground_planes_leave_the_verdict_to_the_objects():
         held[weight] = min(r.registration.held[0] for r in reports[1:])
     # Measured: the weakest motion held by 26 % of the pairs without the planes, 32 % with them.
     assert held[1.0] > 0.8 * held[0.0], held
+
+
+def test_lidar_only_commands_take_scans_numbered_from_anywhere(shared_data, tmp_path):
+    """KITTI frames 100-102 without a pose file: each scan is its own (level) start, whatever its
+    number (this failed with "no pose for it (pose index 100, the pose file has 3)")."""
+    from terracube.cli import app
+    from typer.testing import CliRunner
+
+    folder = tmp_path / "velodyne"
+    folder.mkdir()
+    for k in range(3):
+        (folder / f"{100 + k:06d}.bin").write_bytes(shared_data.kitti_xyzi(k).tobytes())
+    for command in ("map", "stream"):
+        result = CliRunner().invoke(
+            app, [command, str(folder), "--lidar-only", "--no-png", "-o", str(tmp_path / command)]
+        )
+        assert result.exit_code == 0, result.output
+        assert "2 of 2 scans registered" in result.output
