@@ -416,11 +416,14 @@ class Odometry:
     source: Path | None = None  #: the pose file, or the reference standing in for it
     indices: np.ndarray | None = None  #: each scan's row of a pose file; None when matched by time
     by_time: bool = False  #: poses interpolated at the times the scans' names give
+    in_order_of: int | None = None  #: matched in order: how many scans (and so poses) there are
 
     def read_like(self, path) -> np.ndarray:
         """(S, 4, 4) poses of each scan from another file in the same format and frame (a ground
         truth), matched as the odometry was: by row, or interpolated at the scans' times."""
         stamps, poses = read_pose_file(path, self.pose_format or "auto", self.calibration)
+        if self.in_order_of is not None and len(poses) != self.in_order_of:
+            raise ValueError(f"{self.in_order_of} scans and {len(poses)} poses in {path}: {_IN_ORDER}")
         if self.by_time:
             from .poses import interpolate_poses
 
@@ -453,6 +456,13 @@ class Odometry:
         return notes
 
 
+#: Why scans matched in order need one pose each.
+_IN_ORDER = (
+    "scans named neither by their row (000123.bin) nor by their time with TUM poses "
+    "(1622812345.123456789.pcd) take one pose each, in order"
+)
+
+
 def _rows(indices: np.ndarray, count: int, path, names=None) -> np.ndarray:
     """``indices`` when each is a row of a file of ``count`` poses; else ValueError naming a scan."""
     beyond = np.flatnonzero(indices >= count)
@@ -463,6 +473,11 @@ def _rows(indices: np.ndarray, count: int, path, names=None) -> np.ndarray:
         )
         raise ValueError(f"{scan} (row {indices[first]}; {path} has {count} poses)")
     return indices
+
+
+def _beside(path: Path, name: str) -> Path | None:
+    """The file ``name`` in ``path``'s folder, if there is one."""
+    return path.parent / name if (path.parent / name).is_file() else None
 
 
 def scan_time(name: str) -> float | None:
@@ -497,47 +512,39 @@ def read_odometry(
     source = Path(poses) if poses is not None else (Path(reference) if reference is not None else None)
     if source is not None and pose_format == "auto":
         pose_format = detect_pose_format(source)
-    calib = None if calib is None else Path(calib)
-    times = None if times is None else Path(times)
+    calib, times = (None if path is None else Path(path) for path in (calib, times))
     if source is not None and pose_format == "kitti":  # KITTI's files beside its poses
-        if calib is None and (source.parent / "calib.txt").is_file():
-            calib = source.parent / "calib.txt"
-        if times is None and (source.parent / "times.txt").is_file():
-            times = source.parent / "times.txt"
+        calib, times = (
+            given or _beside(source, name) for given, name in ((calib, "calib.txt"), (times, "times.txt"))
+        )
     calibration = read_kitti_calibration(calib) if calib is not None else None
-    names = [Path(scan).name for scan in scans]
     stems = [Path(scan).stem for scan in scans]
     if poses is not None:
         stamps, matrices = read_pose_file(poses, pose_format, calibration)
-    names_times = [scan_time(name) for name in names]
+    names_times = [scan_time(scan) for scan in scans]
     by_time = source is not None and pose_format == "tum" and all(t is not None for t in names_times)
     known = dict(pose_format=None if source is None else pose_format, calibration=calibration, calib=calib)
     if by_time:
         scan_times = np.asarray(names_times, dtype=np.float64)
         matrices = (
-            np.tile(np.eye(4), (len(names), 1, 1))
+            np.tile(np.eye(4), (len(scans), 1, 1))
             if poses is None
             else interpolate_poses(stamps, matrices, scan_times, what=str(poses))
         )
         return Odometry(scan_times, matrices, **known, times=times, source=source, by_time=True)
-    if all(stem.isdigit() for stem in stems):
-        indices = np.asarray([int(stem) for stem in stems], dtype=np.int64)
+    numbered = all(stem.isdigit() for stem in stems)
+    in_order_of = None if numbered else (total or len(scans))
+    indices = np.asarray([int(stem) for stem in stems], dtype=np.int64) if numbered else np.arange(len(scans))
+    if poses is None:
+        matrices = np.tile(np.eye(4), (len(scans), 1, 1))
     else:
-        indices = np.arange(len(names))
-        if poses is not None and (total or len(names)) != len(matrices):
-            raise ValueError(
-                f"{total or len(names)} scans and {len(matrices)} poses in {poses}: scans named neither by "
-                "their row (000123.bin) nor by their time with TUM poses (1622812345.123456789.pcd) "
-                "take one pose each, in order"
-            )
-    if poses is not None:
+        if in_order_of is not None and in_order_of != len(matrices):
+            raise ValueError(f"{in_order_of} scans and {len(matrices)} poses in {poses}: {_IN_ORDER}")
         matrices = matrices[_rows(indices, len(matrices), poses, [str(scan) for scan in scans])]
-    else:
-        matrices = np.tile(np.eye(4), (len(names), 1, 1))
-    per_scan = indices.astype(np.float64)
     if times is not None:
-        all_times = read_times(times, int(indices.max()) + 1 if len(indices) else 0)
-        per_scan = all_times[indices]
-    elif poses is not None:
-        per_scan = stamps[indices]
-    return Odometry(per_scan, matrices, **known, times=times, source=source, indices=indices)
+        per_scan = read_times(times, int(indices.max()) + 1 if len(indices) else 0)[indices]
+    else:
+        per_scan = stamps[indices] if poses is not None else indices.astype(np.float64)
+    return Odometry(
+        per_scan, matrices, **known, times=times, source=source, indices=indices, in_order_of=in_order_of
+    )

@@ -199,6 +199,8 @@ def test_scans_named_by_their_time_take_the_odometry_at_that_time(tmp_path):
     named = [f"scan_{k}.pcd" for k in range(4)]
     with pytest.raises(ValueError, match="4 scans and 60 poses in .*odometry.txt"):
         read_odometry(tum, named)
+    with pytest.raises(ValueError, match="4 scans and 60 poses in .*odometry.txt"):
+        read_odometry(None, named, reference=tum).read_like(tum)  # LiDAR-only, a ground truth
     first = read_odometry(tum, named[:2], total=60)  # the first two of 60 scans (--limit 2)
     np.testing.assert_allclose(first.poses, np.stack([drive(t) for t in odometry_times[:2]]), atol=1e-12)
 
