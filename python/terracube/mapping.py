@@ -512,11 +512,11 @@ def read_odometry(
     source = Path(poses) if poses is not None else (Path(reference) if reference is not None else None)
     if source is not None and pose_format == "auto":
         pose_format = detect_pose_format(source)
-    calib, times = (None if path is None else Path(path) for path in (calib, times))
+    calib = Path(calib) if calib is not None else None
+    times = Path(times) if times is not None else None
     if source is not None and pose_format == "kitti":  # KITTI's files beside its poses
-        calib, times = (
-            given or _beside(source, name) for given, name in ((calib, "calib.txt"), (times, "times.txt"))
-        )
+        calib = calib or _beside(source, "calib.txt")
+        times = times or _beside(source, "times.txt")
     calibration = read_kitti_calibration(calib) if calib is not None else None
     stems = [Path(scan).stem for scan in scans]
     if poses is not None:
