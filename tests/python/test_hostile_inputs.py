@@ -93,6 +93,22 @@ def test_a_laz_layer_size_past_the_end_is_refused_before_lazrs_allocates_it(tmp_
         read_points(path)
 
 
+def test_a_laz_whose_version_byte_hides_its_point_count_still_has_its_chunk_table_checked(tmp_path):
+    # fuzz finding (seed 9100000, case 1333387066): a LAS 1.4 header whose version read 0.4 has a
+    # 32-bit point count of 0 (its 300 points are in the 64-bit field laspy reads anyway), which
+    # skipped the chunk table's check; lazrs then reserved 4.4 GB for 290 M chunks (an abort under
+    # a memory limit)
+    path, _ = _layered_laz(tmp_path, 300)
+    data = bytearray(path.read_bytes())
+    data[24] = 0  # version 1.4 -> 0.4
+    data[_chunk_table(data) + 4 : _chunk_table(data) + 8] = struct.pack("<I", 290_321_167)
+    path.write_bytes(bytes(data))
+    with pytest.raises(
+        ValueError, match=r"layered.laz: corrupt LAZ chunk table: 290321167 chunks for 300 points"
+    ):
+        read_points(path)
+
+
 def test_a_laz_chunk_point_count_that_disagrees_with_the_header_is_refused(tmp_path):
     path, sizes = _layered_laz(tmp_path, 300)
     data = bytearray(path.read_bytes())
