@@ -313,12 +313,13 @@ def _check_las_layout(path: Path) -> None:
         head = stream.read(375)
         if len(head) < 227 or head[:4] != b"LASF":
             return  # laspy names the problem
+        version = (head[24], head[25])
         header_size, point_offset, vlr_count = struct.unpack_from("<HII", head, 94)
         point_format, record_length, count = struct.unpack_from("<BHI", head, 104)
-        # The LAS 1.4 fields wherever the header is long enough to hold them, whatever its version
-        # says: laspy reads them then (a 1.4 file whose version byte was changed to 0.4 kept its
-        # 64-bit point count, and a check of the 32-bit one, 0, let a corrupt chunk table through).
-        if header_size >= 375 and len(head) >= 255:
+        # The LAS 1.4 fields when the version or the header's size says they are there: laspy reads
+        # them for a 1.4 header whose version byte reads 0.4 (its 64-bit point count, when the
+        # 32-bit one, 0, let a corrupt chunk table through), and the larger count is checked.
+        if (version >= (1, 4) or header_size >= 375) and len(head) >= 255:
             evlr_start, evlr_count, count64 = struct.unpack_from("<QIQ", head, 235)
             count = max(count, count64)
         else:
