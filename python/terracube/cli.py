@@ -624,7 +624,9 @@ _POSES = typer.Option(
     None,
     "--poses",
     "-p",
-    help="Odometry poses: KITTI (12 numbers a line) or TUM. Needed unless --lidar-only.",
+    help="Odometry poses: KITTI (12 numbers a line) or TUM. Scan 000123.bin takes row 123; with TUM, a "
+    "scan named by its time (1622812345.123456789.pcd) the pose interpolated at it; other names one pose "
+    "each, in order. Needed unless --lidar-only.",
     show_default=False,
 )
 
