@@ -125,8 +125,9 @@ def _writable_folder(folder: Path, option: str = "--output-dir") -> Path:
     return folder
 
 
-def _scan_files(scans: Path, limit: int | None) -> list[Path]:
-    """The scan files of a folder (sorted) or a glob, at most ``limit``; exits when there are none."""
+def _scan_files(scans: Path, limit: int | None) -> tuple[list[Path], int]:
+    """The scan files of a folder (sorted) or a glob, at most ``limit``, and how many there are in
+    all (read_odometry matches scans to poses by their count); exits when there are none."""
     from .pipeline import SCAN_SUFFIXES, expand_inputs
 
     if scans.is_dir():
@@ -134,12 +135,11 @@ def _scan_files(scans: Path, limit: int | None) -> list[Path]:
     else:
         with _exit_on_bad_input():
             files = expand_inputs([str(scans)])
-    files = [f for f in files if f.suffix.lower() in SCAN_SUFFIXES][
-        : None if limit is None else max(limit, 0)
-    ]
+    every = [f for f in files if f.suffix.lower() in SCAN_SUFFIXES]
+    files = every[: None if limit is None else max(limit, 0)]
     if not files:
         raise _fail(f"{scans}: no scans found")
-    return files
+    return files, len(every)
 
 
 def _existing_file(path: Path | None, option: str) -> None:
@@ -1108,7 +1108,7 @@ def map_command(
         use_registration=registration,
         lidar_only=lidar_only,
     )
-    files = _scan_files(scans, limit)
+    files, total = _scan_files(scans, limit)
     if poses is None and not cfg.mapper.lidar_only:
         raise _fail("give the odometry as --poses FILE, or map without it: --lidar-only")
     for path, option in (
@@ -1119,7 +1119,6 @@ def map_command(
     ):
         _existing_file(path, option)
     _writable_folder(output_dir)
-    total = len(_scan_files(scans, None))
     with _exit_on_bad_input():  # the ground truth's format and calib.txt count when there are no poses
         odometry = read_odometry(poses, files, pose_format, calib, times, reference=ground_truth, total=total)
     truth = None
@@ -1245,13 +1244,12 @@ def stream_command(
     from .pipeline import read_returns_and_beams
     from .stream import run_stream
 
-    files = _scan_files(scans, limit)
+    files, total = _scan_files(scans, limit)
     if poses is None and not lidar_only:
         raise _fail("give the odometry as --poses FILE, or stream without it: --lidar-only")
     for path, option in ((poses, "--poses"), (calib, "--calib"), (times, "--times")):
         _existing_file(path, option)
     _writable_folder(output_dir)
-    total = len(_scan_files(scans, None))
     with _exit_on_bad_input():
         odometry = read_odometry(poses, files, pose_format, calib, times, total=total)
         options = dict(
