@@ -98,6 +98,7 @@ void bind_collapse(py::module_& m) {
       .value("removed_above_kept", CubeReason::kRemovedAboveKept)
       .value("removed_free_below", CubeReason::kRemovedFreeBelow)
       .value("thin", CubeReason::kThin)
+      .value("removed_rim", CubeReason::kRemovedRim)
       .value("not_used", CubeReason::kNotUsed);
 
   py::class_<ShadowAwareParams>(m, "ShadowAwareParams")
@@ -111,6 +112,7 @@ void bind_collapse(py::module_& m) {
       .def_readwrite("free_margin_m", &ShadowAwareParams::free_margin_m)
       .def_readwrite("min_bottom_neighbours", &ShadowAwareParams::min_bottom_neighbours)
       .def_readwrite("bottom_window", &ShadowAwareParams::bottom_window)
+      .def_readwrite("remove_rims", &ShadowAwareParams::remove_rims)
       .def_readwrite("azimuth_bins", &ShadowAwareParams::azimuth_bins)
       .def_readwrite("no_return_range_m", &ShadowAwareParams::no_return_range_m);
 

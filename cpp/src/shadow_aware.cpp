@@ -425,15 +425,27 @@ void order_by_column(std::int64_t num_columns, Workspace& w) {
   }
 }
 
-/// Step 4: judges the chains of every column bottom-up.
+bool is_removal(CubeReason reason) {
+  return reason == CubeReason::kRemovedAboveKept || reason == CubeReason::kRemovedFreeBelow ||
+         reason == CubeReason::kRemovedRim;
+}
+
+/// A chain of a column: its positions [first, last] in Workspace::by_column.
+struct Chain {
+  std::int64_t ix, iy;
+  std::size_t first, last;
+};
+
+/// Step 4: judges the chains of every column bottom-up; step 5: the rims.
 class ColumnJudge {
  public:
   ColumnJudge(const CubeGrid& grid, const Workspace& w, int sigma, const ShadowAwareParams& params,
               const FreeSpaceFloor& floor)
       : grid_(grid), w_(w), sigma_(sigma), params_(params), floor_(floor) {}
 
-  /// The reasons of the cubes of column (ix, iy) (at their positions in L).
-  void judge(std::int64_t ix, std::int64_t iy, std::vector<CubeReason>& reasons) const {
+  /// The reasons of the cubes of column (ix, iy) (at their positions in L); its thin chains are
+  /// appended to `thin`.
+  void judge(std::int64_t ix, std::int64_t iy, std::vector<CubeReason>& reasons, std::vector<Chain>& thin) const {
     const std::int64_t column = ix + iy * grid_.ixmax;
     const auto [begin, end] = range(column);
     if (begin == end) return;  // most columns are empty
@@ -441,8 +453,7 @@ class ColumnJudge {
     bool kept_below = false;
     double free_floor = std::numeric_limits<double>::quiet_NaN();  // F, computed when first needed
     for (std::size_t first = begin; first < end;) {
-      std::size_t last = first;
-      while (last + 1 < end && layer_at(last + 1) - layer_at(last) - 1 < sigma_) ++last;
+      const std::size_t last = chain_end(first, end);
       const std::int64_t bottom = layer_at(first), top = layer_at(last);
       CubeReason reason;
       if (ground == kNone) {
@@ -455,25 +466,99 @@ class ColumnJudge {
         reason = CubeReason::kRemovedAboveKept;  // [CBC] Algorithm 1's case: observed support below
       } else if (!bottom_is_wide(ix, iy, bottom)) {
         reason = CubeReason::kThin;
+        thin.push_back({ix, iy, first, last});
       } else {
         if (std::isnan(free_floor)) free_floor = floor_.floor_of(ix, iy);
-        const bool free_below = free_floor < bottom_face(grid_, bottom) - params_.free_margin_m;
-        reason = free_below ? CubeReason::kRemovedFreeBelow : CubeReason::kShadowed;
+        reason = free_below(free_floor, bottom) ? CubeReason::kRemovedFreeBelow : CubeReason::kShadowed;
       }
       kept_below = kept_below || !(reason == CubeReason::kBelowGround || reason == CubeReason::kRemovedAboveKept ||
                                    reason == CubeReason::kRemovedFreeBelow);
-      for (std::size_t i = first; i <= last; ++i) reasons[static_cast<std::size_t>(w_.by_column[i])] = reason;
+      for (std::size_t i = first; i <= last; ++i) reasons[position(i)] = reason;
       first = last + 1;
     }
   }
 
+  /// Step 5 (remove_rims): the thin chains `thin` that lie at the rim of a removed chain, judged
+  /// as wide ones, with a work list: a chain that goes puts the thin chains of the columns around it
+  /// back on the list. Removals only add removed cubes, so the result is the same in any order.
+  void remove_rims(std::vector<Chain> thin, std::vector<CubeReason>& reasons) const {
+    while (!thin.empty()) {
+      const Chain chain = thin.back();
+      thin.pop_back();
+      if (reasons[position(chain.first)] != CubeReason::kThin ||
+          !at_rim(chain.ix, chain.iy, layer_at(chain.first), reasons))
+        continue;
+      const bool removed = free_below(floor_.floor_of(chain.ix, chain.iy), layer_at(chain.first));
+      for (std::size_t i = chain.first; i <= chain.last; ++i) {
+        reasons[position(i)] = removed ? CubeReason::kRemovedRim : CubeReason::kShadowed;
+      }
+      if (removed) thin_chains_around(chain.ix, chain.iy, reasons, thin);
+    }
+  }
+
  private:
+  /// Whether a ray crossed the column, whose free-space floor is F, under the bottom face of `bottom`.
+  bool free_below(double free_floor, std::int64_t bottom) const {
+    return free_floor < bottom_face(grid_, bottom) - params_.free_margin_m;
+  }
+
+  /// Whether, among the 8 columns around (ix, iy), one holds a removed cube within one layer of
+  /// `bottom` and no more hold a supported one there than a removed one.
+  bool at_rim(std::int64_t ix, std::int64_t iy, std::int64_t bottom, const std::vector<CubeReason>& reasons) const {
+    int removed = 0, grounded = 0;
+    for_each_column_around(ix, iy, [&](std::size_t begin, std::size_t end, std::int64_t, std::int64_t) {
+      bool removed_here = false, grounded_here = false;
+      for (std::size_t i = begin; i < end && layer_at(i) <= bottom + 1; ++i) {
+        if (layer_at(i) < bottom - 1) continue;
+        removed_here = removed_here || is_removal(reasons[position(i)]);
+        grounded_here = grounded_here || reasons[position(i)] == CubeReason::kSupported;
+      }
+      removed += removed_here ? 1 : 0;
+      grounded += grounded_here ? 1 : 0;
+    });
+    return removed > 0 && removed >= grounded;
+  }
+
+  /// Appends the thin chains of the 8 columns around (ix, iy) to `thin`.
+  void thin_chains_around(std::int64_t ix, std::int64_t iy, const std::vector<CubeReason>& reasons,
+                          std::vector<Chain>& thin) const {
+    for_each_column_around(ix, iy, [&](std::size_t begin, std::size_t end, std::int64_t x, std::int64_t y) {
+      for (std::size_t first = begin; first < end;) {
+        const std::size_t last = chain_end(first, end);
+        if (reasons[position(first)] == CubeReason::kThin) thin.push_back({x, y, first, last});
+        first = last + 1;
+      }
+    });
+  }
+
   std::pair<std::size_t, std::size_t> range(std::int64_t column) const {
     return {static_cast<std::size_t>(w_.start[static_cast<std::size_t>(column)]),
             static_cast<std::size_t>(w_.start[static_cast<std::size_t>(column) + 1])};
   }
 
-  std::int64_t layer_at(std::size_t i) const { return w_.layer_of[static_cast<std::size_t>(w_.by_column[i])]; }
+  /// The position in L of position i of Workspace::by_column.
+  std::size_t position(std::size_t i) const { return static_cast<std::size_t>(w_.by_column[i]); }
+
+  std::int64_t layer_at(std::size_t i) const { return w_.layer_of[position(i)]; }
+
+  /// The last position of the chain that starts at position `first` of a column ending at `end`.
+  std::size_t chain_end(std::size_t first, std::size_t end) const {
+    std::size_t last = first;
+    while (last + 1 < end && layer_at(last + 1) - layer_at(last) - 1 < sigma_) ++last;
+    return last;
+  }
+
+  /// Calls f(begin, end, x, y) for each of the (up to 8) columns (x, y) around (ix, iy) in the grid.
+  template <typename F>
+  void for_each_column_around(std::int64_t ix, std::int64_t iy, F&& f) const {
+    for (std::int64_t y = std::max<std::int64_t>(0, iy - 1); y <= std::min(grid_.iymax - 1, iy + 1); ++y) {
+      for (std::int64_t x = std::max<std::int64_t>(0, ix - 1); x <= std::min(grid_.ixmax - 1, ix + 1); ++x) {
+        if (x == ix && y == iy) continue;
+        const auto [begin, end] = range(x + y * grid_.ixmax);
+        f(begin, end, x, y);
+      }
+    }
+  }
 
   /// Whether the bottom of a floating chain of column (ix, iy) is wide, as a crown's or a ceiling's
   /// underside is and a trunk's or a pole's is not: `min_bottom_neighbours` of the 8 columns around
@@ -519,10 +604,6 @@ class ColumnJudge {
   const FreeSpaceFloor& floor_;
 };
 
-bool is_removal(CubeReason reason) {
-  return reason == CubeReason::kRemovedAboveKept || reason == CubeReason::kRemovedFreeBelow;
-}
-
 }  // namespace
 
 const char* cube_reason_name(CubeReason reason) {
@@ -541,6 +622,8 @@ const char* cube_reason_name(CubeReason reason) {
       return "removed_free_below";
     case CubeReason::kThin:
       return "thin";
+    case CubeReason::kRemovedRim:
+      return "removed_rim";
     case CubeReason::kNotUsed:
       return "not_used";
   }
@@ -643,9 +726,11 @@ ShadowAwareDecision shadow_aware_collapse(const CubeGrid& grid, const std::vecto
   order_by_column(num_columns, w);
   decision.reasons.assign(sorted_occupied.size(), CubeReason::kSupported);
   const ColumnJudge judge(grid, w, sigma, params, floor);
+  std::vector<Chain> thin;
   for (std::int64_t iy = 0; iy < grid.iymax; ++iy) {
-    for (std::int64_t ix = 0; ix < grid.ixmax; ++ix) judge.judge(ix, iy, decision.reasons);
+    for (std::int64_t ix = 0; ix < grid.ixmax; ++ix) judge.judge(ix, iy, decision.reasons, thin);
   }
+  if (params.remove_rims) judge.remove_rims(std::move(thin), decision.reasons);
   for (std::size_t position = 0; position < sorted_occupied.size(); ++position) {
     if (is_removal(decision.reasons[position])) decision.removed_cubes.push_back(sorted_occupied[position]);
   }

@@ -29,9 +29,9 @@ CubeGrid = _core.CubeGrid
 CollapseResult = _core.CollapseResult
 #: Why the shadow-aware rule kept or removed a cube: ``CollapseResult.cube_reasons`` holds these
 #: values (uint8), one per cube of ``occupied_cubes``. supported (0), below_ground (1),
-#: no_ground_estimate (2), shadowed (3) and thin (6) are kept; removed_above_kept (4) and
-#: removed_free_below (5) are removed. See ``terracube/shadow_aware.hpp``. :func:`point_reasons`
-#: gives them per point, and not_used (255) for a point that took no part.
+#: no_ground_estimate (2), shadowed (3) and thin (6) are kept; removed_above_kept (4),
+#: removed_free_below (5) and removed_rim (7) are removed. See ``terracube/shadow_aware.hpp``.
+#: :func:`point_reasons` gives them per point, and not_used (255) for a point that took no part.
 CubeReason = _core.CubeReason
 
 #: ``method`` of :func:`collapse_overhangs`: "paper" is [CBC] Algorithm 1 bit for bit (the default);
@@ -208,6 +208,12 @@ class CollapseParams:
         shadow_aware: half-width in columns of the square whose floating chains can make a bottom
         wide (1: the 8 neighbours only, 2: 24 columns, which finds the sparse scan rings under a
         ceiling), 1..8.
+    remove_rims : bool
+        shadow_aware: a thin chain is the rim of an overhang (a crown's edge, a deck's border, a
+        scan ring under a ceiling) when one of the 8 columns around it holds a removed cube within
+        one layer of its bottom and no more of them hold a grounded (supported) cube there than a
+        removed one (a pole's top beside a sign has its own grounded column beside it); a rim goes
+        (``removed_rim``) when a ray crossed the column under it. False: thin chains stay.
     azimuth_bins : int
         shadow_aware: azimuth sectors of the free-space floor around the sensor, >= 1.
     no_return_range : float
@@ -232,6 +238,7 @@ class CollapseParams:
     free_margin: float = 0.25
     min_bottom_neighbours: int = 4
     bottom_window: int = 2
+    remove_rims: bool = True
     azimuth_bins: int = 512
     no_return_range: float = 30.0
 
@@ -268,6 +275,7 @@ class CollapseParams:
         core.hidden_ground_margin_m = float(self.hidden_ground_margin)
         core.free_margin_m = float(self.free_margin)
         core.no_return_range_m = float(self.no_return_range)
+        core.remove_rims = bool(self.remove_rims)
         for name in ("ground_support", "min_bottom_neighbours", "bottom_window", "azimuth_bins"):
             value = getattr(self, name)
             if isinstance(value, bool) or int(value) != value:

@@ -115,6 +115,7 @@ REASON_COLORS = {
     "thin": "#17becf",
     "removed_above_kept": "#ff7f0e",
     "removed_free_below": "#d62728",
+    "removed_rim": "#e377c2",
 }
 
 

@@ -132,8 +132,11 @@ TEST(ShadowAware, ACrownOverACurbGoesWhileTheTrunkAndCurbStay) {
   EXPECT_EQ(reason_at(result, {7.75, -1.25, 1.6}), CubeReason::kRemovedFreeBelow);
   EXPECT_EQ(reason_at(result, {9.0, 0.0, 3.2}), CubeReason::kSupported);  // the trunk's column
   EXPECT_EQ(reason_at(result, {5.0, 0.0, -1.4}), CubeReason::kSupported);
+  // Counted over its 8 neighbours alone the corner is thin; it is the rim of the removed crown.
   CollapseParams narrow = shadow_aware_params();
   narrow.shadow_aware.bottom_window = 1;
+  EXPECT_EQ(reason_at(collapse_overhangs(points, narrow), {7.75, -1.25, 1.6}), CubeReason::kRemovedRim);
+  narrow.shadow_aware.remove_rims = false;
   EXPECT_EQ(reason_at(collapse_overhangs(points, narrow), {7.75, -1.25, 1.6}), CubeReason::kThin);
   CollapseParams paper = shadow_aware_params();
   paper.method = CollapseMethod::kPaper;
@@ -154,6 +157,7 @@ TEST(ShadowAware, SparseScanRingsUnderACeilingGo) {
   }
   CollapseParams narrow = shadow_aware_params();
   narrow.shadow_aware.bottom_window = 1;
+  narrow.shadow_aware.remove_rims = false;
   EXPECT_EQ(reason_at(collapse_overhangs(points, narrow), {11.0, 0.0, 2.3}), CubeReason::kThin);
 }
 
@@ -162,16 +166,36 @@ TEST(ShadowAware, APoleBesideAFloatingSignStaysWhileTheSignGoes) {
   add_grid(points, 1, 7.5, -4, 4, -1.7);  // no ground seen next to the pole (a car hides it)
   add_grid(points, 10, 14, -4, 4, -1.7);
   for (double z = -1.7; z < 1.05; z += 0.1) points.emplace_back(8.0, 0.0, z);  // the pole's column
-  points.emplace_back(8.3, 0.0, 1.0);                                          // its top in the next column
+  points.emplace_back(8.3, 0.0, 1.0);                                          // the sign's arm beside its top
   for (const double x : {8.5, 9.0}) {
     for (const double y : {0.5, 1.0, 1.5}) points.emplace_back(x, y, 1.0);  // the sign, floating
   }
   const CollapseResult result = collapse_overhangs(points, shadow_aware_params());
   EXPECT_EQ(reason_at(result, {8.0, 0.0, 1.0}), CubeReason::kSupported);
-  // Its 8 neighbours: the pole (grounded) and two sign cubes; the 4 floating sign cubes of its
-  // 5 x 5 square do not count beside a grounded chain.
-  EXPECT_EQ(reason_at(result, {8.3, 0.0, 1.0}), CubeReason::kThin);
   EXPECT_EQ(reason_at(result, {9.0, 1.0, 1.0}), CubeReason::kRemovedFreeBelow);  // 5 of 8 beside it
+  // The arm's 8 neighbours: the pole (grounded) and two sign cubes; the 4 floating sign cubes of
+  // its 5 x 5 square do not count beside a grounded chain: thin. Two removed columns beside it
+  // against one grounded make it the sign's rim.
+  EXPECT_EQ(reason_at(result, {8.3, 0.0, 1.0}), CubeReason::kRemovedRim);
+  CollapseParams no_rims = shadow_aware_params();
+  no_rims.shadow_aware.remove_rims = false;
+  EXPECT_EQ(reason_at(collapse_overhangs(points, no_rims), {8.3, 0.0, 1.0}), CubeReason::kThin);
+}
+
+TEST(ShadowAware, ACrownsRimBesideItsTrunkGoesThatOfAWiderPostStays) {
+  Points points;
+  add_grid(points, 1, 5, -5, 5, -1.7);
+  add_grid(points, 14, 20, -5, 5, -1.7);       // ground beyond, lit under the crown
+  add_face_x(points, 5.0, -5, 5, -1.7, -1.4);  // 0.3 m curb
+  add_grid(points, 5, 5.5, -5, 5, -1.4);
+  add_face_x(points, 9.0, -0.2, 0.2, -1.4, 1.5, 0.1);  // trunk
+  add_grid(points, 7.5, 9.25, 1.0, 2.0, 1.6);          // crown
+  const Eigen::Vector3d rim(9.5, 0.5, 1.6);            // beside the trunk's top and the crown's corner
+  points.push_back(rim);
+  EXPECT_EQ(reason_at(collapse_overhangs(points, shadow_aware_params()), rim), CubeReason::kRemovedRim);
+  // A second post column beside it: two grounded columns against one removed.
+  add_face_x(points, 9.5, -0.2, 0.2, -1.4, 1.5, 0.1);
+  EXPECT_EQ(reason_at(collapse_overhangs(points, shadow_aware_params()), rim), CubeReason::kThin);
 }
 
 /// A crown 11-14 m out behind a 1.2 m hedge: nothing the sensor saw lies beyond the hedge under it.

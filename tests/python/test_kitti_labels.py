@@ -100,16 +100,28 @@ def canopy_of(xyz: np.ndarray, labels: np.ndarray) -> np.ndarray:
     return canopy
 
 
-@pytest.mark.parametrize(("sigma", "recall_floor"), [(4, 0.44), (5, 0.26)])
+def height_above_ground(xyz: np.ndarray, labels: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """The height of `rows` above the median z of the 8 nearest ground-labelled points in x, y."""
+    spatial = pytest.importorskip("scipy.spatial")
+    ground = np.isin(labels, GROUND_LABELS)
+    _, index = spatial.cKDTree(xyz[ground, :2]).query(xyz[rows, :2], k=8)
+    return xyz[rows, 2] - np.median(xyz[ground, 2][index], axis=1)
+
+
+@pytest.mark.parametrize(("sigma", "recall_floor", "structure_ceiling"), [(4, 0.46, 0.006), (5, 0.28, 0.005)])
 def test_shadow_aware_removes_canopy_without_crop_and_no_road_sidewalk_parking_car_or_pole(
-    shared_data, sigma, recall_floor
+    shared_data, sigma, recall_floor, structure_ceiling
 ):
     """Frames 0-2, E = 0.5 m, no crop (multipath below the road decides nothing). Measured with the
-    defaults: canopy recall 0.451 at σ 4 and 0.269 at σ 5 (the paper's rule with the crop: 0.12
-    and 0.06); road, sidewalk, parking, car and pole: 0; building + fence + trunk removed 0.48 % and
-    0.20 %. The issue's 0.5 recall is not reached (docs/performance.md says why)."""
+    defaults: canopy recall 0.467 at σ 4 and 0.284 at σ 5 (the paper's rule with the crop: 0.12
+    and 0.06); road, sidewalk, parking, car and pole: 0; building + fence + trunk removed 0.59 % and
+    0.23 %. The issue's 0.5 recall is not reached (docs/performance.md says why). Of the structure,
+    the rims (remove_rims) add only points labelled trunk that lie more than 2.5 m above the
+    labelled ground (branches over free space: 67 at σ 4, the lowest 2.7 m up), no building or
+    fence point; without them 0.48 % and 0.20 %."""
     canopy_total = canopy_removed = paper_removed = structure_total = structure_removed = 0
     never = dict.fromkeys(SHADOW_AWARE_NEVER, 0)
+    without_rims = tc.CollapseParams(edge=EDGE, sigma=sigma, method="shadow_aware", remove_rims=False)
     for frame in FRAMES:
         xyz = shared_data.kitti_xyzi(frame)[:, :3]
         labels = shared_data.kitti_labels(frame)
@@ -124,6 +136,9 @@ def test_shadow_aware_removes_canopy_without_crop_and_no_road_sidewalk_parking_c
         structure = np.isin(labels, STRUCTURE)
         structure_total += int(structure.sum())
         structure_removed += int((removed & structure).sum())
+        by_rims = removed & ~tc.collapse_overhangs(xyz, params=without_rims).overhang
+        assert not (by_rims & np.isin(labels, (BUILDING, FENCE))).any()
+        assert (height_above_ground(xyz.astype(np.float64), labels, by_rims & (labels == TRUNK)) > 2.5).all()
     recall = canopy_removed / canopy_total
     print(
         f"σ {sigma}: canopy recall {recall:.3f} (paper + crop {paper_removed / canopy_total:.3f}), "
@@ -133,4 +148,4 @@ def test_shadow_aware_removes_canopy_without_crop_and_no_road_sidewalk_parking_c
     assert recall >= recall_floor
     assert canopy_removed >= 3 * paper_removed
     assert never == dict.fromkeys(SHADOW_AWARE_NEVER, 0)
-    assert structure_removed <= 0.005 * structure_total
+    assert structure_removed <= structure_ceiling * structure_total

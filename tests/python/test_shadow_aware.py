@@ -16,8 +16,8 @@ import terracube as tc
 from terracube.collapse import CubeReason
 from terracube.io import load_sample_scan
 
-SUPPORTED, BELOW_GROUND, NO_GROUND, SHADOWED, ABOVE_KEPT, FREE_BELOW, THIN = range(7)
-REMOVED = (ABOVE_KEPT, FREE_BELOW)
+SUPPORTED, BELOW_GROUND, NO_GROUND, SHADOWED, ABOVE_KEPT, FREE_BELOW, THIN, RIM = range(8)
+REMOVED = (ABOVE_KEPT, FREE_BELOW, RIM)
 
 
 def pseudo_angle(dx: float, dy: float) -> float:
@@ -41,6 +41,7 @@ def naive_shadow_aware(
     hidden=2.0,
     no_returns=(),
     no_return_range=30.0,
+    rims=True,
 ) -> list[int]:
     """The reason of every cube of `occupied` (sorted cube indices I of `grid`), computed plainly
     from the leveled `points` that took part and the leveled directions of the beams without a
@@ -198,6 +199,32 @@ def naive_shadow_aware(
             kept_below = kept_below or reason in (SUPPORTED, SHADOWED, THIN, NO_GROUND)
             for layer in chain:
                 reason_of[(ix, iy, layer)] = reason
+
+    # 5. rims: a thin chain with, among the 8 columns around, a removed cube within one layer of its
+    # bottom, and no more columns with a supported one there than with a removed one
+    def reasons_near(key, bottom):
+        return [reason_of[(*key, layer)] for layer in layers.get(key, []) if abs(layer - bottom) <= 1]
+
+    changed = rims
+    while changed:
+        changed = False
+        for (ix, iy), chains in chains_by_column.items():
+            for chain in chains:
+                if reason_of[(ix, iy, chain[0])] != THIN:
+                    continue
+                around = [
+                    reasons_near((ix + dx, iy + dy), chain[0])
+                    for dx in (-1, 0, 1)
+                    for dy in (-1, 0, 1)
+                    if dx or dy
+                ]
+                removed = sum(any(r in REMOVED for r in near) for near in around)
+                grounded = sum(SUPPORTED in near for near in around)
+                if removed and removed >= grounded:
+                    reason = RIM if free_floor(ix, iy) < bottom_face(chain[0]) - margin else SHADOWED
+                    for layer in chain:
+                        reason_of[(ix, iy, layer)] = reason
+                    changed = True
     out = []
     for cube in occupied:
         column = int(cube) % columns
@@ -298,6 +325,31 @@ def test_crown_over_a_curb_goes_while_its_trunk_stays():
     assert (crown_reasons == FREE_BELOW).mean() > 0.7
     assert np.isin(reasons_of_points(result, np.vstack([curb, trunk, ground])), (SUPPORTED,)).all()
     assert not tc.collapse_overhangs(points, 0.5, 4).overhang.any()
+
+
+def test_a_crowns_rim_beside_its_trunk_goes_the_top_of_a_post_beside_an_arm_stays():
+    """σ = 4; a curb at x = 5 hides the ground behind it, rays to the far ground pass under what
+    floats. A crown (x 7.5-9, y 1-2, 3.3 m up) is wide and goes. One crown cube at its corner, at
+    (9.5, 0.5), beside the trunk (x 9, y 0): two columns around it within one layer of it (the
+    trunk's top and the crown), too few for a wide bottom, and the trunk is grounded: thin. With
+    remove_rims it has a removed cube beside it and no more grounded columns than removed ones: the
+    crown's rim, removed. Beside a post two columns wide (x 9-9.5, a sign's post under its arm) the
+    same cube has more grounded columns around it than removed ones, and stays."""
+    ground = np.vstack([ground_patch(1, 5, -5, 5), ground_patch(14, 20, -5, 5)])
+    curb = np.vstack([vertical_face(5.0, -5, 5, -1.7, -1.4), slab(5, 5.5, -5, 5, -1.4)])
+    trunk = vertical_face(9.0, -0.2, 0.2, -1.4, 1.5, step=0.1)
+    crown = slab(7.5, 9.25, 1.0, 2.0, 1.6)
+    rim = np.array([[9.5, 0.5, 1.6]])
+    for posts, rim_reason in (([trunk], RIM), ([trunk, vertical_face(9.5, -0.2, 0.2, -1.4, 1.5, 0.1)], THIN)):
+        points = np.vstack([ground, curb, *posts, crown, rim])
+        for rims, expected in ((True, rim_reason), (False, THIN)):
+            params = tc.CollapseParams(edge=0.5, sigma=4, method="shadow_aware", remove_rims=rims)
+            result = tc.collapse_overhangs(points, params=params)
+            check_against_naive(result, points, 4, rims=rims)
+            assert (reasons_of_points(result, crown) == FREE_BELOW).all()
+            assert (reasons_of_points(result, np.vstack(posts)) == SUPPORTED).all()
+            assert reasons_of_points(result, rim)[0] == expected, (len(posts), rims)
+            assert result.overhang[-1] == (expected == RIM)
 
 
 def test_tunnel_ceiling_over_a_lit_floor_goes_and_its_walls_stay():
@@ -636,7 +688,7 @@ def test_bad_parameters_raise_value_errors_naming_them(field, value, message):
 
 
 def test_reason_names_are_documented():
-    assert [CubeReason(i).name for i in range(7)] == [
+    assert [CubeReason(i).name for i in range(8)] == [
         "supported",
         "below_ground",
         "no_ground_estimate",
@@ -644,6 +696,7 @@ def test_reason_names_are_documented():
         "removed_above_kept",
         "removed_free_below",
         "thin",
+        "removed_rim",
     ]
     assert tc._core.cube_reason_name(5) == "removed_free_below"
 

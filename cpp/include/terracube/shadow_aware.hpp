@@ -28,7 +28,8 @@ enum class CubeReason : std::uint8_t {
   kShadowed = 3,          ///< kept: its chain floats σ or more above G but no ray shows the space under it empty
   kRemovedAboveKept = 4,  ///< removed: a kept chain (not below G) lies under it, σ or more empty cubes down
   kRemovedFreeBelow = 5,  ///< removed: its chain floats σ or more above G and a ray crossed the column below it
-  kThin = 6,              ///< kept: it floats, no kept chain below, its bottom is thin (a trunk or pole)
+  kThin = 6,              ///< kept: it floats, no kept chain below, its bottom is thin (a trunk or pole), no rim
+  kRemovedRim = 7,        ///< removed: a thin chain at the rim of a removed one (remove_rims), a ray under it
   kNotUsed = 255,         ///< point_reasons() only: the row took no part (NaN/Inf dropped, outside the crop)
 };
 
@@ -67,6 +68,13 @@ struct ShadowAwareParams {
   /// Half-width [columns] of the square whose floating chains can make a bottom wide (1: the 8
   /// neighbours only; 2: 24 columns, which finds the sparse scan rings under a ceiling), 1..8.
   int bottom_window = 2;
+  /// A thin chain is the rim of an overhang (a crown's edge, a deck's border, a scan ring under a
+  /// ceiling: too few columns around its bottom) when, among the 8 columns around it, one holds a
+  /// removed cube within one layer of its bottom and no more hold a grounded (supported) cube there
+  /// than a removed one (a pole's or a trunk's top beside a sign or a crown has its own grounded
+  /// column beside it). A rim is judged as a wide chain: removed (kRemovedRim) when a ray crossed
+  /// the column under it, else shadowed. Rims pass the removal on along themselves.
+  bool remove_rims = true;
   /// Azimuth sectors of the free-space floor around the sensor (pseudo-angle bins), >= 1. Each
   /// should hold a few azimuth steps of the sensor (KITTI's HDL-64: about 2000 per turn).
   int azimuth_bins = 512;
@@ -110,7 +118,9 @@ using NextPoints = std::function<std::size_t(CubePoint* out, std::size_t capacit
 ///  4. each column's chains are judged bottom-up as CubeReason says: a floating chain (bottom σ or
 ///     more empty cubes above G) is removed over a kept chain (as in [CBC] Algorithm 1), or, when
 ///     its bottom is wide (min_bottom_neighbours), when F is below its bottom face by
-///     free_margin_m; it is kept otherwise (a wall or trunk whose foot is hidden).
+///     free_margin_m; it is kept otherwise (a wall or trunk whose foot is hidden);
+///  5. with remove_rims, a thin chain beside removed cubes at its bottom's height is judged again as
+///     a wide one, until no more change (the result does not depend on the order).
 /// `no_returns`: the directions of the scan's beams that returned nothing (the empty pixels of an
 /// organised scan; any length but zero), which `leveling` (CollapseParams::transform's rotation)
 /// turns into the grid's frame. A beam level with or above the horizon there crossed free space

@@ -183,6 +183,8 @@ class CubeReason:
     
       thin
     
+      removed_rim
+    
       not_used
     """
     __members__: typing.ClassVar[dict[str, CubeReason]]
@@ -191,6 +193,7 @@ class CubeReason:
     not_used: typing.ClassVar[CubeReason]
     removed_above_kept: typing.ClassVar[CubeReason]
     removed_free_below: typing.ClassVar[CubeReason]
+    removed_rim: typing.ClassVar[CubeReason]
     shadowed: typing.ClassVar[CubeReason]
     supported: typing.ClassVar[CubeReason]
     thin: typing.ClassVar[CubeReason]
@@ -229,6 +232,7 @@ class CubeReason:
     def value(self) -> int:
         ...
 class ShadowAwareParams:
+    remove_rims: bool
     def __init__(self) -> None:
         ...
     def check(self) -> None:
