@@ -156,8 +156,7 @@ TEST(ShadowAware, SparseScanRingsUnderACeilingGo) {
     EXPECT_EQ(reason_at(result, {x, 0.0, 2.3}), CubeReason::kRemovedFreeBelow) << x;
   }
   CollapseParams narrow = shadow_aware_params();
-  narrow.shadow_aware.bottom_window = 1;
-  narrow.shadow_aware.remove_rims = false;
+  narrow.shadow_aware.bottom_window = 1;  // every ring thin, none removed: no rim either
   EXPECT_EQ(reason_at(collapse_overhangs(points, narrow), {11.0, 0.0, 2.3}), CubeReason::kThin);
 }
 
