@@ -145,8 +145,8 @@ def interpolate_poses(stamps, poses, times, what: str = "the poses") -> np.ndarr
             raise ValueError(
                 f"time {time:.9f} s is outside the span of {what}: [{stamps[0]:.9f}, {stamps[-1]:.9f}] s"
             )
-        i = min(int(np.searchsorted(stamps, time, side="right")) - 1, len(stamps) - 2)
-        if len(stamps) == 1 or time == stamps[i]:
+        i = int(np.searchsorted(stamps, time, side="right")) - 1  # stamps[i] <= time
+        if time == stamps[i]:  # also the last stamp: no pose after it to interpolate towards
             out[k] = poses[i]
             continue
         alpha = (time - stamps[i]) / (stamps[i + 1] - stamps[i])
