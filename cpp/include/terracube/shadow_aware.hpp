@@ -70,10 +70,12 @@ struct ShadowAwareParams {
   int bottom_window = 2;
   /// A thin chain is the rim of an overhang (a crown's edge, a deck's border, a scan ring under a
   /// ceiling: too few columns around its bottom) when, among the 8 columns around it, one holds a
-  /// removed cube within one layer of its bottom and no more hold a grounded (supported) cube there
-  /// than a removed one (a pole's or a trunk's top beside a sign or a crown has its own grounded
-  /// column beside it). A rim is judged as a wide chain: removed (kRemovedRim) when a ray crossed
-  /// the column under it, else shadowed. Rims pass the removal on along themselves.
+  /// cube of a removed wide chain or rim (kRemovedFreeBelow, kRemovedRim) within one layer of its
+  /// bottom and no more hold a grounded (supported) cube there than such a removed one (a pole's or
+  /// a trunk's top beside a sign or a crown has its own grounded column beside it). A cube removed
+  /// above a kept chain (kRemovedAboveKept) was never judged wide (a trunk's top over a bush) and
+  /// makes no rim. A rim is judged as a wide chain: removed (kRemovedRim) when a ray crossed the
+  /// column under it, else shadowed. Rims pass the removal on along themselves.
   bool remove_rims = true;
   /// Azimuth sectors of the free-space floor around the sensor (pseudo-angle bins), >= 1. Each
   /// should hold a few azimuth steps of the sensor (KITTI's HDL-64: about 2000 per turn).
@@ -119,8 +121,9 @@ using NextPoints = std::function<std::size_t(CubePoint* out, std::size_t capacit
 ///     more empty cubes above G) is removed over a kept chain (as in [CBC] Algorithm 1), or, when
 ///     its bottom is wide (min_bottom_neighbours), when F is below its bottom face by
 ///     free_margin_m; it is kept otherwise (a wall or trunk whose foot is hidden);
-///  5. with remove_rims, a thin chain beside removed cubes at its bottom's height is judged again as
-///     a wide one, until no more change (the result does not depend on the order).
+///  5. with remove_rims, a thin chain beside cubes of removed wide chains or rims at its bottom's
+///     height is judged again as a wide one, until no more change (the result does not depend on
+///     the order).
 /// `no_returns`: the directions of the scan's beams that returned nothing (the empty pixels of an
 /// organised scan; any length but zero), which `leveling` (CollapseParams::transform's rotation)
 /// turns into the grid's frame. A beam level with or above the horizon there crossed free space
