@@ -63,10 +63,13 @@ for line in open(sys.argv[1]):
     for name, value in json.loads(text).items():
         runs[name][side].append(value)
 base, new = sys.argv[2], "working tree" if sys.argv[3] == "-" else sys.argv[3]
-print(f"median per side of {len(next(iter(runs.values()))['base'])} alternating processes; base {base}, new {new}")
+rounds = max(len(sides["base"]) for sides in runs.values())
+print(f"median per side of {rounds} alternating processes; base {base}, new {new}")
 width = max(len(name) for name in runs)
 print(f"{'':<{width}} {'base':>9} {'new':>9} {'new/base':>9}")
-for name, sides in runs.items():
-    b, n = statistics.median(sides["base"]), statistics.median(sides["new"])
-    print(f"{name:<{width}} {b:9.3f} {n:9.3f} {n / b:9.3f}")
+for name, sides in runs.items():  # a field one side does not print shows "-"
+    b, n = (statistics.median(sides[s]) if sides[s] else None for s in ("base", "new"))
+    text = [f"{v:9.3f}" if v is not None else f"{'-':>9}" for v in (b, n)]
+    ratio = f"{n / b:9.3f}" if b and n is not None else f"{'-':>9}"
+    print(f"{name:<{width}} {text[0]} {text[1]} {ratio}")
 EOF
