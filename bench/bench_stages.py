@@ -34,40 +34,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import terracube as tc
+from _common import default_data_dir, load_xyzi_bin, median_ms
+from terracube.mapping import read_kitti_calibration, read_pose_file
 
 RESOLUTION = 0.1
 SENSOR_HEIGHT = 1.73
 ORIGIN, SIZE = (-20.0, -10.0), (400, 200)
 FRAMES = range(6)
-
-
-def median_ms(call, repeat: int) -> float:
-    call()  # warm-up
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        call()
-        times.append(time.perf_counter() - start)
-    return 1e3 * statistics.median(times)
-
-
-def velodyne_poses(folder: Path) -> list[np.ndarray]:
-    """KITTI's camera poses as Velodyne poses, inv(Tr) P Tr."""
-    calib = {}
-    for line in (folder / "calib.txt").read_text().splitlines():
-        key, _, values = line.partition(":")
-        calib[key.strip()] = np.array(values.split(), dtype=float)
-    tr = np.vstack([calib["Tr"].reshape(3, 4), [0, 0, 0, 1]])
-    poses = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)
-    return [np.linalg.inv(tr) @ np.vstack([p, [0, 0, 0, 1]]) @ tr for p in poses]
 
 
 def classified_map(points: np.ndarray):
@@ -78,10 +57,11 @@ def classified_map(points: np.ndarray):
 
 def measure(data_dir: Path, repeat: int) -> dict[str, float]:
     folder = data_dir / "kitti_seq00"
-    scans = [
-        np.fromfile(folder / "velodyne" / f"{k:06d}.bin", np.float32).reshape(-1, 4)[:, :3] for k in FRAMES
+    scans = [load_xyzi_bin(folder / "velodyne" / f"{k:06d}.bin") for k in FRAMES]
+    # KITTI's camera poses as Velodyne poses, inv(Tr) P Tr.
+    poses = read_pose_file(folder / "poses.txt", "kitti", read_kitti_calibration(folder / "calib.txt"))[1][
+        : len(scans)
     ]
-    poses = velodyne_poses(folder)[: len(scans)]
     maps = [classified_map(scan) for scan in scans]
     truths = [np.linalg.inv(poses[k + 1]) @ poses[k] for k in range(len(scans) - 1)]
 
@@ -121,11 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--data-dir",
         type=Path,
-        default=Path(
-            os.environ.get(
-                "TERRACUBE_DATA_DIR", Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
-            )
-        ),
+        default=default_data_dir(),
         help="the shared data folder (default $TERRACUBE_DATA_DIR, else ../shared/data)",
     )
     args = parser.parse_args(argv)
