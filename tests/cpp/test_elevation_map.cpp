@@ -661,10 +661,15 @@ TEST(BuildElevationMapEdgeCases, MapsBuiltAfterDroppedMapsShowNoTraceOfThem) {
   geometry.resolution_m = 0.25;
   geometry.origin_m = Eigen::Vector2d(-6.0, -6.0);
   geometry.size = CellIndex(48, 40);
-  drop_poisoned_map(geometry, 12, kPoison);
+  const std::vector<const float*> dropped = drop_poisoned_map(geometry, 12, kPoison);
+  // Buffers of the same size from the allocator in between: had the dropped layers gone back to
+  // it, these would likely take them, and the map would not.
+  std::vector<std::vector<float>> others(12, std::vector<float>(geometry.num_cells()));
   const ElevationMap map = build_elevation_map(PointsView<double>(points), params);
   for (const std::string& name : map.layers()) {
     EXPECT_EQ((map.get(name).array() == kPoison).count(), 0) << name;
+    // This thread kept the dropped map's buffers: the new map's layers are them, no fresh memory.
+    EXPECT_NE(std::find(dropped.begin(), dropped.end(), map.get(name).data()), dropped.end()) << name;
   }
   expect_matches_naive(map, points, params.discontinuity_m);
 
@@ -679,6 +684,20 @@ TEST(BuildElevationMapEdgeCases, MapsBuiltAfterDroppedMapsShowNoTraceOfThem) {
   for (const std::string& name : again.map.layers()) {
     expect_same_layer(again.map.get(name), fresh->map.get(name), name);
   }
+}
+
+TEST(BuildElevationMapEdgeCases, AMapDroppedAtThreadExitAfterTheKeptLayersOfItsThreadFreesItsLayers) {
+  // `held` is made before the thread keeps any layer, so it is destroyed after the kept layers
+  // are: its layers are then freed (ASan and LSan watch), not kept by a destroyed keeper.
+  MapGeometry geometry;
+  geometry.size = CellIndex(30, 20);
+  std::thread([&] {
+    thread_local std::optional<ElevationMap> held;
+    held.emplace(geometry);
+    held->add("height", 1.0F);
+    ElevationMap(geometry).add("dropped", 2.0F);  // dropped now: its layer is kept until thread exit
+  }).join();
+  SUCCEED();
 }
 
 TEST(BuildElevationMapEdgeCases, ConcurrentCallsOnTwoThreadsGiveTheSerialResults) {

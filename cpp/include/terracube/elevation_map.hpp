@@ -52,6 +52,9 @@ class ElevationMap {
   ElevationMap(ElevationMap&&) = default;
   ElevationMap& operator=(const ElevationMap&) = default;
   ElevationMap& operator=(ElevationMap&&) = default;
+  /// Keeps the layers' buffers for the next maps this thread makes (at most 32 MB a thread): a new
+  /// map's layers are then no fresh memory, whose first touch can cost more than building the map.
+  ~ElevationMap();
 
   const MapGeometry& geometry() const { return geometry_; }
   /// Moves the map to `geometry` without touching its layers' values (as grid_map's
