@@ -178,6 +178,14 @@ void expect_grid_matches_brute_force(const std::vector<Eigen::Vector3d>& points,
       EXPECT_EQ((points[static_cast<std::size_t>(got)] - queries[q]).squaredNorm(), best) << what << " query " << q;
       EXPECT_EQ(grid.point(static_cast<std::size_t>(got)), points[static_cast<std::size_t>(got)]);
     }
+    // any_within(): whether nearest() finds one, also at the nearest point's own distance and just below it.
+    EXPECT_EQ(grid.any_within(queries[q], limit * limit), brute >= 0) << what << " query " << q << " limit " << limit;
+    if (brute >= 0) {
+      EXPECT_TRUE(grid.any_within(queries[q], best)) << what << " query " << q;
+      if (best > 0.0) {
+        EXPECT_FALSE(grid.any_within(queries[q], std::nextafter(best, 0.0))) << what << " query " << q;
+      }
+    }
     // within(): exactly the points within the limit.
     std::vector<std::uint32_t> expected, found_within;
     for (std::size_t k = 0; k < points.size(); ++k) {

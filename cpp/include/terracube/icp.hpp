@@ -356,6 +356,9 @@ class NearestNeighborGrid {
   /// Appends to `out` the constructor indices of the points within `radius` (3D) of `query`, in
   /// no particular order.
   void within(const Eigen::Vector3d& query, double radius, std::vector<std::uint32_t>& out) const;
+  /// Whether a point's squared distance to `query` is at most `max_squared_distance`: exactly when
+  /// nearest() finds one, with no nearest sought (a search stops at the first).
+  bool any_within(const Eigen::Vector3d& query, double max_squared_distance) const;
   std::size_t size() const { return points_.size(); }
   /// The constructor's point `index`.
   const Eigen::Vector3d& point(std::size_t index) const { return points_[position_[index]]; }
@@ -366,6 +369,10 @@ class NearestNeighborGrid {
   /// kKeep (+ 1 with kBound) smallest squared distances, found[] the indices of the first kKeep.
   template <int kKeep, bool kBound>
   void search(const Eigen::Vector3d& query, double max_squared_distance, std::ptrdiff_t* found, double* best) const;
+  /// Calls visit(k) for the position k in points_ of every point of the buckets that can hold a
+  /// point within `radius` of `query` (and a few more), until visit returns true; returns whether it did.
+  template <typename Visit>
+  bool visit_near(const Eigen::Vector3d& query, double radius, const Visit& visit) const;
 
   double bucket_size_m_ = 1.0;
   double inverse_bucket_size_ = 1.0;

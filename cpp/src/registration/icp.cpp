@@ -268,6 +268,28 @@ class Registration {
     return result;
   }
 
+  /// Per class, the active source points that have a target point of their class within
+  /// `distance` of them moved by `transform`: pass(transform, distance).per_class of the classes,
+  /// without the moments and the certificates (the verdict's chance overlaps). Ground cells are
+  /// not counted; from the target's side (Pairing::kTargetToSource) it is that pass's count.
+  std::array<std::size_t, kNumTerrainClasses> partners_within(const Eigen::Matrix4d& transform, double distance) {
+    if (from_target_) return pass(transform, distance).per_class;
+    Motion motion{};
+    for (int i = 0; i < 3; ++i) {
+      for (int j = 0; j < 3; ++j) motion.r[3 * i + j] = transform(i, j);
+      motion.t[i] = transform(i, 3);
+    }
+    const double max_squared = distance * distance;
+    std::array<std::size_t, kNumTerrainClasses> count{};
+    for (std::size_t c = 0; c < kNumTerrainClasses; ++c) {
+      const NearestNeighborGrid& grid = grids_[class_grid_[c]];
+      for (std::size_t slot = class_begin_[c]; slot < class_begin_[c + 1]; ++slot) {
+        count[c] += grid.any_within(move(motion, slot), max_squared) ? 1 : 0;
+      }
+    }
+    return count;
+  }
+
   /// The moments of class c's correspondences when each moved source point looks for its partner
   /// (every stride-th point of the class when stride > 1): from its certificate where that still
   /// holds, else searched again. Relative to motion.o.
@@ -823,7 +845,7 @@ RegistrationResult register_checked(const ClassifiedPoints& source, const Classi
       Eigen::Matrix4d moved = result.transform;
       moved(0, 3) += dx;
       moved(1, 3) += dy;
-      chance = std::min(chance, detail::object_overlap(registration.pass(moved, inlier_distance).per_class,
+      chance = std::min(chance, detail::object_overlap(registration.partners_within(moved, inlier_distance),
                                                        source_per_class, params.use_classes));
     }
     result.chance_overlap = chance;

@@ -201,9 +201,10 @@ std::ptrdiff_t NearestNeighborGrid::nearest_two(const Eigen::Vector3d& query, do
   return found[0];
 }
 
-void NearestNeighborGrid::within(const Eigen::Vector3d& query, double radius, std::vector<std::uint32_t>& out) const {
-  if (points_.empty() || !(radius >= 0.0)) return;
-  // The buckets that can hold a point within the radius (with slack; the distance decides).
+template <typename Visit>
+bool NearestNeighborGrid::visit_near(const Eigen::Vector3d& query, double radius, const Visit& visit) const {
+  if (points_.empty() || !(radius >= 0.0)) return false;
+  // The buckets that can hold a point within the radius (with slack; the caller's distance decides).
   const double reach = radius * inverse_bucket_size_ + kBucketSlack;
   const double u = (query.x() - origin_.x()) * inverse_bucket_size_;
   const double v = (query.y() - origin_.y()) * inverse_bucket_size_;
@@ -212,18 +213,34 @@ void NearestNeighborGrid::within(const Eigen::Vector3d& query, double radius, st
   };
   if (u + reach < 0.0 || v + reach < 0.0 || u - reach >= static_cast<double>(columns_) ||
       v - reach >= static_cast<double>(rows_)) {
-    return;
+    return false;
   }
   const std::int64_t first_column = clamp_to(u - reach, columns_), last_column = clamp_to(u + reach, columns_);
   const std::int64_t first_row = clamp_to(v - reach, rows_), last_row = clamp_to(v + reach, rows_);
-  const double squared = radius * radius;
   for (std::int64_t row = first_row; row <= last_row; ++row) {
     const auto base = static_cast<std::size_t>(row * columns_);
     const std::uint32_t end = start_[base + static_cast<std::size_t>(last_column) + 1];
     for (std::uint32_t k = start_[base + static_cast<std::size_t>(first_column)]; k < end; ++k) {
-      if ((points_[k] - query).squaredNorm() <= squared) out.push_back(original_[k]);
+      if (visit(k)) return true;
     }
   }
+  return false;
+}
+
+void NearestNeighborGrid::within(const Eigen::Vector3d& query, double radius, std::vector<std::uint32_t>& out) const {
+  const double squared = radius * radius;
+  visit_near(query, radius, [&](std::uint32_t k) {
+    if ((points_[k] - query).squaredNorm() <= squared) out.push_back(original_[k]);
+    return false;
+  });
+}
+
+bool NearestNeighborGrid::any_within(const Eigen::Vector3d& query, double max_squared_distance) const {
+  // The squared distance as search() computes it, so that the answer is nearest()'s.
+  return visit_near(query, std::sqrt(std::max(max_squared_distance, 0.0)), [&](std::uint32_t k) {
+    const double dx = points_[k].x() - query.x(), dy = points_[k].y() - query.y(), dz = points_[k].z() - query.z();
+    return dx * dx + dy * dy + dz * dz <= max_squared_distance;
+  });
 }
 
 template <int kKeep, bool kBound>
