@@ -48,6 +48,7 @@ void bind_mapper(py::module_& m) {
       .def_readwrite("num_threads", &MapperParams::num_threads)
       .def_readwrite("keep_local_maps", &MapperParams::keep_local_maps)
       .def_readwrite("min_range_m", &MapperParams::min_range_m)
+      .def_readwrite("max_range_m", &MapperParams::max_range_m)
       .def_readwrite("discontinuity_m", &MapperParams::discontinuity_m)
       .def_readwrite("terrain", &MapperParams::terrain)
       .def_readwrite("use_registration", &MapperParams::use_registration)
@@ -82,6 +83,7 @@ void bind_mapper(py::module_& m) {
       .def_readonly("registered", &ScanReport::registered)
       .def_readonly("registration", &ScanReport::registration)
       .def_readonly("loops_closed", &ScanReport::loops_closed)
+      .def_readonly("num_out_of_range", &ScanReport::num_out_of_range)
       .def_readonly("pose", &ScanReport::pose,
                     "(4, 4) the scan's estimated world <- sensor when it was added (loop closing may correct "
                     "the keyframes later)")
@@ -128,6 +130,7 @@ void bind_mapper(py::module_& m) {
           py::arg("points"), py::arg("pose"))
       .def_property_readonly("num_keyframes", &Mapper::num_keyframes)
       .def_property_readonly("pending_loops", &Mapper::pending_loops)
+      .def_property_readonly("points_out_of_range", &Mapper::points_out_of_range)
       .def("keyframe_poses", [](const Mapper& mapper) { return pose_array(mapper.keyframe_poses()); })
       .def("keyframe_odometry", [](const Mapper& mapper) { return pose_array(mapper.keyframe_odometry()); })
       .def("keyframe_scan_indices", &Mapper::keyframe_scan_indices)

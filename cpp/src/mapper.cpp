@@ -62,6 +62,10 @@ void check_mapper_params(const MapperParams& p) {
   if (!(p.min_range_m >= 0.0) || !std::isfinite(p.min_range_m)) {
     throw std::invalid_argument("MapperParams.min_range_m must be finite and >= 0");
   }
+  if (!(p.max_range_m > p.min_range_m)) {
+    throw std::invalid_argument("MapperParams.max_range_m must exceed min_range_m (+inf: no limit), got " +
+                                detail::number_text(p.max_range_m));
+  }
   if (!(p.loop_min_travel_m >= 0.0) || !std::isfinite(p.loop_min_travel_m)) {
     throw std::invalid_argument("MapperParams.loop_min_travel_m must be finite and >= 0");
   }
@@ -340,10 +344,12 @@ struct Mapper::Impl {
     Eigen::Matrix4d velocity = Eigen::Matrix4d::Identity();
     bool have_velocity = false;
   } motion;
-  /// Scans since the previous keyframe (the newest last), points beyond min_range in the sensor frame.
+  /// Scans since the previous keyframe (the newest last), their points within the range limits in
+  /// the sensor frame.
   std::deque<BufferedScan> pending;
-  std::size_t pending_loops = 0;  // loop edges added since the last optimisation
-  std::size_t optimized_at = 0;   // keyframe count at the last optimisation
+  std::size_t points_out_of_range = 0;  // of the scans added
+  std::size_t pending_loops = 0;        // loop edges added since the last optimisation
+  std::size_t optimized_at = 0;         // keyframe count at the last optimisation
 
   explicit Impl(const MapperParams& p) : params(p), global(p.resolution_m) {}
 
@@ -360,7 +366,7 @@ struct Mapper::Impl {
   Eigen::Matrix4d registered_step(const Keyframe& keyframe, const Keyframe& previous, const Eigen::Matrix4d& guess,
                                   ScanReport& report, Eigen::Matrix<double, 6, 1>& sigma);
   template <typename Scalar>
-  void buffer_scan(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry);
+  std::size_t buffer_scan(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry);
   void fuse(const Keyframe& keyframe);
   void rebuild();
   std::size_t close_loops(std::size_t k);
@@ -485,36 +491,48 @@ ScanReport Mapper::Impl::add(const PointsView<Scalar>& points, const Eigen::Matr
   } rollback{*this, scans, keyframes.size(), edges.size(), motion};
   ScanReport report = add_checked(points, odometry);
   rollback.done = true;
+  points_out_of_range += report.num_out_of_range;
   return report;
 }
 
+/// Keeps the scan's points within the range limits (as float x, y, z) for its local map; returns
+/// how many it left out. Throws on NaN/Inf points before anything changes.
 template <typename Scalar>
-void Mapper::Impl::buffer_scan(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry) {
+std::size_t Mapper::Impl::buffer_scan(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry) {
   BufferedScan scan;
   scan.odometry = odometry;
-  scan.xyz.reserve(3 * points.size);
-  const double min_squared = params.min_range_m * params.min_range_m;
+  scan.xyz.resize(3 * points.size);
+  const double nearest = params.min_range_m * params.min_range_m;
+  const double farthest = params.max_range_m * params.max_range_m;  // +inf without a limit
+  std::size_t kept = 0;
   for (std::size_t i = 0; i < points.size; ++i) {
     const Eigen::Vector3d p = points.point(i);
     if (!p.allFinite()) {
       throw std::invalid_argument("scan point " + std::to_string(i) + " is NaN or Inf (of " +
                                   std::to_string(points.size) + " points)");
     }
-    if (p.squaredNorm() < min_squared) continue;
-    scan.xyz.insert(scan.xyz.end(), {static_cast<float>(p.x()), static_cast<float>(p.y()), static_cast<float>(p.z())});
+    const double squared = p.squaredNorm();
+    if (!(squared >= nearest && squared <= farthest)) continue;
+    for (int axis = 0; axis < 3; ++axis) scan.xyz[3 * kept + axis] = static_cast<float>(p[axis]);
+    ++kept;
   }
+  scan.xyz.resize(3 * kept);
   while (!pending.empty() && pending.size() >= static_cast<std::size_t>(params.max_scans_per_local_map)) {
     pending.pop_front();
   }
   pending.push_back(std::move(scan));
+  return points.size - kept;
 }
 
 template <typename Scalar>
 ScanReport Mapper::Impl::add_checked(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry) {
-  buffer_scan(points, odometry);  // throws on NaN/Inf before anything changes
+  const std::size_t out_of_range = buffer_scan(points, odometry);  // throws on NaN/Inf before anything changes
   const std::size_t scan_index = scans++;
   timings.scans = scans;
-  return params.lidar_only ? add_lidar_only(scan_index, odometry) : add_with_odometry(scan_index, odometry);
+  ScanReport report =
+      params.lidar_only ? add_lidar_only(scan_index, odometry) : add_with_odometry(scan_index, odometry);
+  report.num_out_of_range = out_of_range;
+  return report;
 }
 
 /// The odometry standard deviations of a step over `travelled_m` (at least 0.1 m).
@@ -805,6 +823,7 @@ ScanReport Mapper::add_scan(const PointsView<double>& points, const Eigen::Matri
 }
 std::size_t Mapper::num_keyframes() const { return impl_->keyframes.size(); }
 std::size_t Mapper::pending_loops() const { return impl_->pending_loops; }
+std::size_t Mapper::points_out_of_range() const { return impl_->points_out_of_range; }
 
 std::vector<Eigen::Matrix4d> Mapper::keyframe_poses() const {
   std::vector<Eigen::Matrix4d> poses;

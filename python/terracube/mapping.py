@@ -182,13 +182,7 @@ class MapperParams:
         params.num_threads = _num_threads(self.num_threads)
         params.keep_local_maps = bool(self.keep_local_maps)
         params.min_range_m = float(self.min_range)
-        if self.max_range is not None and not (
-            np.isfinite(float(self.max_range)) and float(self.max_range) > float(self.min_range)
-        ):
-            raise ValueError(
-                f"max_range must be a distance [m] beyond min_range ({self.min_range:g} m) or None, "
-                f"got {self.max_range!r}"
-            )
+        params.max_range_m = math.inf if self.max_range is None else float(self.max_range)
         params.discontinuity_m = float(self.discontinuity)
         params.terrain = self.terrain.to_core()
         params.use_registration = bool(self.use_registration)
@@ -232,31 +226,20 @@ class Mapper:
     def __init__(self, params: MapperParams | None = None, **kwargs):
         self.params = params or MapperParams(**kwargs)
         self._core = _core.Mapper(self.params.to_core())
-        #: Points of the scans so far left out by ``min_range`` and ``max_range``.
-        self.points_out_of_range = 0
 
     def add_scan(self, points, pose) -> ScanReport:
         """Feeds one scan: ``points`` (N, 3) or wider float32/float64 (x, y, z first) in the sensor
         frame, ``pose`` its (4, 4) odometry world <- sensor. Returns what happened (keyframe,
         registration, loops closed) and ``.pose``, the scan's estimated (4, 4) world <- sensor at
         that time (its keyframe's estimate moved by odometry since; LiDAR-only: its own
-        registration).
-
-        Points outside ``min_range`` .. ``max_range`` are left out here (counted in
-        :attr:`points_out_of_range`) before the scan reaches the C++ mapper."""
-        xyz = np.asarray(points)
-        if xyz.ndim == 2 and xyz.shape[1] >= 3 and xyz.dtype in (np.float32, np.float64):
-            squared = np.einsum("ij,ij->i", xyz[:, :3], xyz[:, :3], dtype=np.float64)
-            nearest = float(self.params.min_range)  # x * x: inf for 1e300, where ** 2 raises
-            keep = squared >= nearest * nearest
-            if self.params.max_range is not None:
-                farthest = float(self.params.max_range)
-                keep &= squared <= farthest * farthest
-            keep |= ~np.isfinite(squared)  # NaN and infinite points: the C++ mapper names the problem
-            if not keep.all():
-                self.points_out_of_range += int(len(keep) - np.count_nonzero(keep))
-                points = np.ascontiguousarray(xyz[keep])
+        registration) and ``.num_out_of_range``, the points left out by ``min_range`` and
+        ``max_range`` (summed in :attr:`points_out_of_range`)."""
         return self._core.add_scan(points, np.asarray(pose, dtype=np.float64))
+
+    @property
+    def points_out_of_range(self) -> int:
+        """Points of the scans so far left out by ``min_range`` and ``max_range``."""
+        return int(self._core.points_out_of_range)
 
     def __len__(self) -> int:
         return int(self._core.num_keyframes)

@@ -6,6 +6,7 @@
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <map>
 #include <random>
 #include <string>
@@ -249,6 +250,40 @@ TEST(Mapper, OneScanOnAGridAlignedPoseEqualsTheElevationMapOfTheWorldPoints) {
     }
   }
   EXPECT_GT(cells, 5000u);
+}
+
+TEST(Mapper, PointsOutsideTheRangeLimitsTakeNoPartAndAreCounted) {
+  const auto world = world_cloud(2);
+  const Eigen::Matrix4d pose = pose_xyyaw(10.0, 0.0, 1.8, 0.0);
+  const auto scan = scan_of(world, pose, 15.0);
+  MapperParams params;
+  params.min_range_m = 2.0;
+  params.max_range_m = 9.0;
+  params.loop_closing = false;
+  Mapper mapper(params);
+  // Reference: the points within [2, 9] m of the sensor, picked plainly, fed without limits.
+  std::vector<Eigen::Vector3f> within;
+  for (const auto& p : scan) {
+    const double range = p.cast<double>().norm();
+    if (range >= 2.0 && range <= 9.0) within.push_back(p);
+  }
+  const std::size_t left_out = scan.size() - within.size();
+  ASSERT_GT(left_out, 100u);
+  ASSERT_GT(within.size(), 1000u);
+  MapperParams unlimited = params;
+  unlimited.min_range_m = 0.0;
+  unlimited.max_range_m = std::numeric_limits<double>::infinity();
+  Mapper reference(unlimited);
+  for (int k = 0; k < 2; ++k) {  // the count adds up over the scans
+    const ScanReport report = mapper.add_scan(PointsView<float>(scan.data()->data(), scan.size()), pose);
+    EXPECT_EQ(report.num_out_of_range, left_out);
+    EXPECT_EQ(reference.add_scan(PointsView<float>(within.data()->data(), within.size()), pose).num_out_of_range, 0u);
+  }
+  EXPECT_EQ(mapper.points_out_of_range(), 2 * left_out);
+  EXPECT_EQ(reference.points_out_of_range(), 0u);
+  EXPECT_EQ(mapper.global_map(false).get("count"), reference.global_map(false).get("count"));
+  const Layer max = mapper.global_map(false).get("max"), expected = reference.global_map(false).get("max");
+  EXPECT_TRUE((max.array() == expected.array() || (max.array().isNaN() && expected.array().isNaN())).all());
 }
 
 TEST(Mapper, AccumulatedLocalMapsHoldTheScansSinceThePreviousKeyframe) {
@@ -594,6 +629,11 @@ TEST(Mapper, BadInputIsRejected) {
   bad = MapperParams{};
   bad.loop_min_overlap = 1.5;
   EXPECT_THROW(Mapper{bad}, std::invalid_argument);
+  for (const double max_range : {0.5, 0.1, double(NAN)}) {  // at or below min_range_m (0.5), or NaN
+    bad = MapperParams{};
+    bad.max_range_m = max_range;
+    EXPECT_THROW(Mapper{bad}, std::invalid_argument) << max_range;
+  }
 
   Mapper mapper;
   const std::vector<Eigen::Vector3f> scan = {{1, 2, 3}};

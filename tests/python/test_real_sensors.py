@@ -70,13 +70,15 @@ def test_the_mapper_api_takes_a_max_range_and_counts_what_it_left_out():
 
     points = np.vstack([_ground_scene(), np.zeros((7, 3)), [[90.0, 0.0, -1.5], [0.0, 95.0, -1.5]]])
     mapper = Mapper(MapperParams(max_range=60.0))
-    mapper.add_scan(points, np.eye(4))
-    assert mapper.points_out_of_range == 9
+    assert mapper.add_scan(points, np.eye(4)).num_out_of_range == 9
     reference = Mapper(MapperParams())
     reference.add_scan(_ground_scene(), np.eye(4))
     np.testing.assert_array_equal(mapper.global_map()["count"], reference.global_map()["count"])
-    with pytest.raises(ValueError, match="max_range must be a distance"):
-        Mapper(MapperParams(min_range=1.0, max_range=0.5))
+    assert mapper.add_scan(points[::-1].astype(np.float32), np.eye(4)).num_out_of_range == 9
+    assert mapper.points_out_of_range == 18
+    for max_range in (0.5, 1.0, float("nan")):
+        with pytest.raises(ValueError, match="max_range_m must exceed min_range_m"):
+            Mapper(MapperParams(min_range=1.0, max_range=max_range))
     # A huge range limit leaves everything out (OverflowError from ``1e300 ** 2`` before).
     everything_out = Mapper(MapperParams(min_range=1e300))
     everything_out.add_scan(points, np.eye(4))

@@ -9,6 +9,7 @@
 #include <Eigen/Core>
 #include <cstddef>
 #include <cstdint>
+#include <limits>
 #include <memory>
 #include <optional>
 #include <vector>
@@ -48,8 +49,11 @@ struct MapperParams {
   /// Keep every keyframe's local map (all layers) for local_map(k). Off, only the newest is kept and
   /// a keyframe holds its cells (about 28 bytes each) and the cells its class weights can pair.
   bool keep_local_maps = false;
-  /// Points closer to the sensor than this take no part (the robot itself) [m]. >= 0.
+  /// Points nearer the sensor than min_range_m (the robot itself) or farther than max_range_m take
+  /// no part (counted in ScanReport::num_out_of_range) [m]. 0 <= min_range_m < max_range_m (+inf:
+  /// no limit).
   double min_range_m = 0.5;
+  double max_range_m = std::numeric_limits<double>::infinity();
   /// Discontinuity threshold of the elevations within a cell [m] (the paper: 1 m).
   double discontinuity_m = 1.0;
   /// [TC] Table 1 thresholds. The default measures heights from the local ground (lowest elevations around
@@ -143,11 +147,12 @@ void check_mapper_params(const MapperParams& params);
 
 /// What happened to one scan given to Mapper::add_scan.
 struct ScanReport {
-  bool keyframe = false;            ///< a local map was built from this scan
-  std::ptrdiff_t index = -1;        ///< its keyframe index, or -1
-  bool registered = false;          ///< the step was scan-matched (false: odometry was used)
-  RegistrationResult registration;  ///< of the step to the previous keyframe (when tried)
-  std::size_t loops_closed = 0;     ///< loop edges added by this keyframe
+  bool keyframe = false;             ///< a local map was built from this scan
+  std::ptrdiff_t index = -1;         ///< its keyframe index, or -1
+  bool registered = false;           ///< the step was scan-matched (false: odometry was used)
+  RegistrationResult registration;   ///< of the step to the previous keyframe (when tried)
+  std::size_t loops_closed = 0;      ///< loop edges added by this keyframe
+  std::size_t num_out_of_range = 0;  ///< points left out by min_range_m and max_range_m
   /// The scan's estimated world <- sensor pose when it was added: its keyframe's estimate (after
   /// any loop closing of this call) moved by odometry since that keyframe (LiDAR-only: its own
   /// registration). Later loop closing may correct the keyframes; this is the pose a robot would
@@ -227,6 +232,8 @@ class Mapper {
   ScanReport add_scan(const PointsView<double>& points, const Eigen::Matrix4d& odometry_pose);
 
   std::size_t num_keyframes() const;
+  /// Points of the scans added so far left out by min_range_m and max_range_m.
+  std::size_t points_out_of_range() const;
   /// Loop edges added since the last pose-graph optimisation (see optimize_interval_keyframes).
   std::size_t pending_loops() const;
   /// Estimated world <- sensor pose of every keyframe (after loop closing when it happened).
