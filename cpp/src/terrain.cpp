@@ -41,19 +41,22 @@ namespace {
 /// the line, in O(1) per value whatever r (van Herk 1992; Gil and Werman 1993): cut the line,
 /// padded with r infinities each side, into blocks of w = 2r + 1; a window then spans the tail of
 /// one block and the head of the next, so its minimum is min(suffix minimum at its first value,
-/// prefix minimum at its last).
-void running_min(const float* in, float* out, Eigen::Index n, Eigen::Index stride, Eigen::Index r) {
+/// prefix minimum at its last). `line`, `prefix` and `suffix` are scratch of n + 2r values.
+void running_min(const float* in, float* out, Eigen::Index n, Eigen::Index stride, Eigen::Index r,
+                 std::vector<float>& line, std::vector<float>& prefix, std::vector<float>& suffix) {
   constexpr float kInf = std::numeric_limits<float>::infinity();
   const Eigen::Index padded = n + 2 * r;
   const Eigen::Index w = 2 * r + 1;
-  std::vector<float> prefix(static_cast<std::size_t>(padded));
-  std::vector<float> suffix(static_cast<std::size_t>(padded));
-  const auto value = [&](Eigen::Index k) { return k < r || k >= r + n ? kInf : in[(k - r) * stride]; };
-  for (Eigen::Index k = 0; k < padded; ++k) {
-    prefix[k] = k % w == 0 ? value(k) : std::min(prefix[k - 1], value(k));
-  }
-  for (Eigen::Index k = padded - 1; k >= 0; --k) {
-    suffix[k] = k % w == w - 1 || k == padded - 1 ? value(k) : std::min(suffix[k + 1], value(k));
+  line.assign(static_cast<std::size_t>(padded), kInf);
+  prefix.resize(static_cast<std::size_t>(padded));
+  suffix.resize(static_cast<std::size_t>(padded));
+  for (Eigen::Index k = 0; k < n; ++k) line[r + k] = in[k * stride];
+  for (Eigen::Index first = 0; first < padded; first += w) {
+    const Eigen::Index last = std::min(first + w, padded) - 1;
+    prefix[first] = line[first];
+    for (Eigen::Index k = first + 1; k <= last; ++k) prefix[k] = std::min(prefix[k - 1], line[k]);
+    suffix[last] = line[last];
+    for (Eigen::Index k = last - 1; k >= first; --k) suffix[k] = std::min(suffix[k + 1], line[k]);
   }
   for (Eigen::Index j = 0; j < n; ++j) out[j * stride] = std::min(suffix[j], prefix[j + w - 1]);
 }
@@ -68,8 +71,13 @@ void window_min(const Layer& layer, int radius, Layer& out) {
   const Eigen::Index r = std::min<Eigen::Index>(radius, std::max(nx, ny));
   const Layer values = layer.array().isNaN().select(kInf, layer.array());
   Layer along_y(nx, ny);
-  for (Eigen::Index i = 0; i < nx; ++i) running_min(values.data() + i * ny, along_y.data() + i * ny, ny, 1, r);
-  for (Eigen::Index j = 0; j < ny; ++j) running_min(along_y.data() + j, out.data() + j, nx, ny, r);
+  std::vector<float> line, prefix, suffix;
+  for (Eigen::Index i = 0; i < nx; ++i) {
+    running_min(values.data() + i * ny, along_y.data() + i * ny, ny, 1, r, line, prefix, suffix);
+  }
+  for (Eigen::Index j = 0; j < ny; ++j) {
+    running_min(along_y.data() + j, out.data() + j, nx, ny, r, line, prefix, suffix);
+  }
   out = (out.array() == kInf).select(std::numeric_limits<float>::quiet_NaN(), out.array());
 }
 
