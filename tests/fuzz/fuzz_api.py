@@ -238,6 +238,8 @@ def _parameter_case(tc, rng: np.random.Generator, points: np.ndarray) -> None:
         tc.fit_fuzzy_elevation_map(points, perturb(tc.FuzzyParams(), rng))
     elif which == 6:
         params = perturb(tc.MapperParams(lidar_only=bool(rng.random() < 0.5)), rng)
+        if rng.random() < 0.3:  # None by default, which perturb leaves alone
+            params = dataclasses.replace(params, max_range=float(rng.choice(FLOATS)))
         mapper = tc.Mapper(params)
         for _ in range(3):
             report = mapper.add_scan(points if rng.random() < 0.7 else cloud(rng), pose(rng))
