@@ -83,14 +83,16 @@ void bind_mapper(py::module_& m) {
       .def_readonly("registered", &ScanReport::registered)
       .def_readonly("registration", &ScanReport::registration)
       .def_readonly("loops_closed", &ScanReport::loops_closed)
-      .def_readonly("num_out_of_range", &ScanReport::num_out_of_range)
+      .def_readonly("num_out_of_range", &ScanReport::num_out_of_range,
+                    "points of the scan left out by min_range and max_range")
       .def_readonly("pose", &ScanReport::pose,
                     "(4, 4) the scan's estimated world <- sensor when it was added (loop closing may correct "
                     "the keyframes later)")
       .def("__repr__", [](const ScanReport& r) {
         return "ScanReport(keyframe=" + std::string(r.keyframe ? "True" : "False") +
                ", index=" + std::to_string(r.index) + ", registered=" + (r.registered ? "True" : "False") +
-               ", loops_closed=" + std::to_string(r.loops_closed) + ")";
+               ", loops_closed=" + std::to_string(r.loops_closed) +
+               ", num_out_of_range=" + std::to_string(r.num_out_of_range) + ")";
       });
 
   py::class_<LoopClosure>(m, "LoopClosure")

@@ -1880,7 +1880,9 @@ class ScanReport:
         ...
     @property
     def num_out_of_range(self) -> int:
-        ...
+        """
+        points of the scan left out by min_range and max_range
+        """
     @property
     def pose(self) -> typing.Annotated[numpy.typing.NDArray[numpy.float64], "[4, 4]"]:
         """
