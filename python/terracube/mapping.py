@@ -60,8 +60,8 @@ class MapperParams:
     min_range : float
         Points nearer the sensor take no part (the robot itself) [m].
     max_range : float or None
-        Points farther from the sensor take no part [m] (None: no limit); :attr:`Mapper.points_out_of_range`
-        counts the points either limit left out.
+        Points farther from the sensor take no part [m] (None or inf: no limit);
+        :attr:`Mapper.points_out_of_range` counts the points either limit left out.
     discontinuity : float
         Gap between sorted elevations that flags a cell discontinuous [m] (the paper: 1 m).
     terrain : TerrainParams
