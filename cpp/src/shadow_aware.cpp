@@ -430,6 +430,13 @@ bool is_removal(CubeReason reason) {
          reason == CubeReason::kRemovedRim;
 }
 
+/// Whether a removed cube makes the thin chains beside it rims (step 5): a wide chain's removal
+/// and a rim's do; the removal above a kept chain ([CBC]'s case) does not, since its bottom was
+/// never judged wide (a trunk's top over a bush would carry it up the trunk).
+bool passes_removal_on(CubeReason reason) {
+  return reason == CubeReason::kRemovedFreeBelow || reason == CubeReason::kRemovedRim;
+}
+
 /// A chain of a column: its positions [first, last] in Workspace::by_column.
 struct Chain {
   std::int64_t ix, iy;
@@ -462,11 +469,11 @@ class ColumnJudge {
         reason = CubeReason::kBelowGround;
       } else if (bottom - ground - 1 < sigma_) {
         reason = CubeReason::kSupported;
-      } else if (!bottom_is_wide(ix, iy, bottom)) {
-        reason = CubeReason::kThin;  // a trunk's or a pole's top, also over a kept car or bush
-        thin.push_back({ix, iy, first, last});
       } else if (kept_below) {
         reason = CubeReason::kRemovedAboveKept;  // [CBC] Algorithm 1's case: observed support below
+      } else if (!bottom_is_wide(ix, iy, bottom)) {
+        reason = CubeReason::kThin;
+        thin.push_back({ix, iy, first, last});
       } else {
         if (std::isnan(free_floor)) free_floor = floor_.floor_of(ix, iy);
         reason = free_below(free_floor, bottom) ? CubeReason::kRemovedFreeBelow : CubeReason::kShadowed;
@@ -503,14 +510,14 @@ class ColumnJudge {
   }
 
   /// Whether, among the 8 columns around (ix, iy), one holds a cube within one layer of `bottom`
-  /// that was removed, and no more hold a supported one there than such a removed one.
+  /// that passes its removal on, and no more hold a supported one there than such a removed one.
   bool at_rim(std::int64_t ix, std::int64_t iy, std::int64_t bottom, const std::vector<CubeReason>& reasons) const {
     int removed = 0, grounded = 0;
     for_each_column_around(ix, iy, [&](std::size_t begin, std::size_t end, std::int64_t, std::int64_t) {
       bool removed_here = false, grounded_here = false;
       for (std::size_t i = begin; i < end && layer_at(i) <= bottom + 1; ++i) {
         if (layer_at(i) < bottom - 1) continue;
-        removed_here = removed_here || is_removal(reasons[position(i)]);
+        removed_here = removed_here || passes_removal_on(reasons[position(i)]);
         grounded_here = grounded_here || reasons[position(i)] == CubeReason::kSupported;
       }
       removed += removed_here ? 1 : 0;

@@ -211,8 +211,8 @@ class CollapseParams:
     remove_rims : bool
         shadow_aware: a thin chain is the rim of an overhang (a crown's edge, a deck's border, a
         scan ring under a ceiling) when one of the 8 columns around it holds a cube of a removed
-        wide chain or rim (``removed_above_kept``, ``removed_free_below``, ``removed_rim``) within
-        one layer of its bottom and no more of them hold a grounded
+        wide chain or rim (``removed_free_below``, ``removed_rim``; not ``removed_above_kept``, which
+        was never judged wide) within one layer of its bottom and no more of them hold a grounded
         (supported) cube there than such a removed one (a pole's top beside a sign has its own
         grounded column beside it); a rim goes (``removed_rim``) when a ray crossed the column under
         it. False: thin chains stay.

@@ -26,9 +26,9 @@ enum class CubeReason : std::uint8_t {
   kBelowGround = 1,       ///< kept: its whole chain lies below G (multipath, reflections); never ground
   kNoGroundEstimate = 2,  ///< kept: no reliable ground within ground_radius_m of the column
   kShadowed = 3,          ///< kept: its chain floats σ or more above G but no ray shows the space under it empty
-  kRemovedAboveKept = 4,  ///< removed: its bottom is wide and a kept chain (not below G) lies σ or more cubes under it
+  kRemovedAboveKept = 4,  ///< removed: a kept chain (not below G) lies under it, σ or more empty cubes down
   kRemovedFreeBelow = 5,  ///< removed: its chain floats σ or more above G and a ray crossed the column below it
-  kThin = 6,              ///< kept: it floats and its bottom is thin (a trunk's or pole's top, also over a car), no rim
+  kThin = 6,              ///< kept: it floats, no kept chain below, its bottom is thin (a trunk or pole), no rim
   kRemovedRim = 7,        ///< removed: a thin chain at the rim of a removed one (remove_rims), a ray under it
   kNotUsed = 255,         ///< point_reasons() only: the row took no part (NaN/Inf dropped, outside the crop)
 };
@@ -70,11 +70,12 @@ struct ShadowAwareParams {
   int bottom_window = 2;
   /// A thin chain is the rim of an overhang (a crown's edge, a deck's border, a scan ring under a
   /// ceiling: too few columns around its bottom) when, among the 8 columns around it, one holds a
-  /// cube of a removed wide chain or rim (kRemovedAboveKept, kRemovedFreeBelow, kRemovedRim) within
-  /// one layer of its bottom and no more hold a grounded (supported) cube there than such a removed
-  /// one (a pole's or a trunk's top beside a sign or a crown has its own grounded column beside it).
-  /// A rim is judged as a wide chain: removed (kRemovedRim) when a ray crossed the column under it,
-  /// else shadowed. Rims pass the removal on along themselves.
+  /// cube of a removed wide chain or rim (kRemovedFreeBelow, kRemovedRim) within one layer of its
+  /// bottom and no more hold a grounded (supported) cube there than such a removed one (a pole's or
+  /// a trunk's top beside a sign or a crown has its own grounded column beside it). A cube removed
+  /// above a kept chain (kRemovedAboveKept) was never judged wide (a trunk's top over a bush) and
+  /// makes no rim. A rim is judged as a wide chain: removed (kRemovedRim) when a ray crossed the
+  /// column under it, else shadowed. Rims pass the removal on along themselves.
   bool remove_rims = true;
   /// Azimuth sectors of the free-space floor around the sensor (pseudo-angle bins), >= 1. Each
   /// should hold a few azimuth steps of the sensor (KITTI's HDL-64: about 2000 per turn).
@@ -117,10 +118,9 @@ using NextPoints = std::function<std::size_t(CubePoint* out, std::size_t capacit
 ///     a reliable lowest cube with F below its bottom face is no ground (the underside of a crown
 ///     seen over a curb), and G(column) is step 2 again without those;
 ///  4. each column's chains are judged bottom-up as CubeReason says: a floating chain (bottom σ or
-///     more empty cubes above G) whose bottom is thin (min_bottom_neighbours) is kept (a wall or
-///     trunk whose foot is hidden, also behind a car or bush that stays); one whose bottom is wide
-///     is removed over a kept chain (as in [CBC] Algorithm 1) or when F is below its bottom face by
-///     free_margin_m, and kept otherwise;
+///     more empty cubes above G) is removed over a kept chain (as in [CBC] Algorithm 1), or, when
+///     its bottom is wide (min_bottom_neighbours), when F is below its bottom face by
+///     free_margin_m; it is kept otherwise (a wall or trunk whose foot is hidden);
 ///  5. with remove_rims, a thin chain beside cubes of removed wide chains or rims at its bottom's
 ///     height is judged again as a wide one, until no more change (the result does not depend on
 ///     the order).
