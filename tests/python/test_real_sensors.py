@@ -70,7 +70,9 @@ def test_the_mapper_api_takes_a_max_range_and_counts_what_it_left_out():
 
     points = np.vstack([_ground_scene(), np.zeros((7, 3)), [[90.0, 0.0, -1.5], [0.0, 95.0, -1.5]]])
     mapper = Mapper(MapperParams(max_range=60.0))
-    assert mapper.add_scan(points, np.eye(4)).num_out_of_range == 9
+    report = mapper.add_scan(points, np.eye(4))
+    assert report.num_out_of_range == 9
+    assert repr(report).endswith(", num_out_of_range=9)")
     reference = Mapper(MapperParams())
     reference.add_scan(_ground_scene(), np.eye(4))
     np.testing.assert_array_equal(mapper.global_map()["count"], reference.global_map()["count"])
