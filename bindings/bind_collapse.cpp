@@ -23,6 +23,60 @@ const char* storage_name(CubeStorage storage) {
   }
 }
 
+py::tuple grid_state(const CubeGrid& grid) {
+  return py::make_tuple(grid.min_corner, grid.edge_m, grid.ixmax, grid.iymax, grid.izmax);
+}
+
+CubeGrid grid_from_state(const py::tuple& state) {
+  const py::tuple items = state_items(state, 5, "CubeGrid");
+  CubeGrid grid;
+  grid.min_corner = items[0].cast<Eigen::Vector3d>();
+  grid.edge_m = items[1].cast<double>();
+  grid.ixmax = items[2].cast<std::int64_t>();
+  grid.iymax = items[3].cast<std::int64_t>();
+  grid.izmax = items[4].cast<std::int64_t>();
+  return grid;
+}
+
+/// A result's pickled state: its grid, its arrays (copies) and its counts.
+py::tuple result_state(const CollapseResult& r) {
+  std::vector<std::uint8_t> reasons(r.cube_reasons.size());
+  std::transform(r.cube_reasons.begin(), r.cube_reasons.end(), reasons.begin(),
+                 [](CubeReason reason) { return static_cast<std::uint8_t>(reason); });
+  return py::make_tuple(grid_state(r.grid), copy_of(r.overhang), copy_of(r.occupied_cubes), copy_of(r.removed_cubes),
+                        copy_of(reasons), r.num_points, r.num_used, r.num_cropped, r.num_dropped_non_finite,
+                        r.num_overhang, static_cast<int>(r.storage_used));
+}
+
+/// The result of a pickled state; ValueError when its parts do not belong together.
+CollapseResult result_from_state(const py::tuple& state) {
+  const py::tuple items = state_items(state, 11, "CollapseResult");
+  CollapseResult r;
+  r.grid = grid_from_state(items[0].cast<py::tuple>());
+  r.overhang = vector_of<std::uint8_t>(items[1], "CollapseResult overhang");
+  r.occupied_cubes = vector_of<std::int64_t>(items[2], "CollapseResult occupied_cubes");
+  r.removed_cubes = vector_of<std::int64_t>(items[3], "CollapseResult removed_cubes");
+  for (const std::uint8_t reason : vector_of<std::uint8_t>(items[4], "CollapseResult cube_reasons")) {
+    if (reason > static_cast<std::uint8_t>(CubeReason::kRemovedRim)) {
+      throw py::value_error("CollapseResult: the pickled state holds an unknown cube reason " + std::to_string(reason));
+    }
+    r.cube_reasons.push_back(static_cast<CubeReason>(reason));
+  }
+  r.num_points = items[5].cast<std::size_t>();
+  r.num_used = items[6].cast<std::size_t>();
+  r.num_cropped = items[7].cast<std::size_t>();
+  r.num_dropped_non_finite = items[8].cast<std::size_t>();
+  r.num_overhang = items[9].cast<std::size_t>();
+  const int storage = items[10].cast<int>();
+  if (r.overhang.size() != r.num_points ||
+      (!r.cube_reasons.empty() && r.cube_reasons.size() != r.occupied_cubes.size()) || storage < 0 ||
+      storage > static_cast<int>(CubeStorage::kSparse)) {
+    throw py::value_error("CollapseResult: the pickled state's parts do not belong together");
+  }
+  r.storage_used = static_cast<CubeStorage>(storage);
+  return r;
+}
+
 }  // namespace
 
 void bind_collapse(py::module_& m) {
@@ -67,6 +121,7 @@ void bind_collapse(py::module_& m) {
             return out;
           },
           py::arg("index"), "(K,) int64 cube indices I -> (K, 3) float64 cube centres [m]")
+      .def(py::pickle(&grid_state, &grid_from_state))
       .def("__repr__", [](const CubeGrid& grid) {
         std::ostringstream text;
         text << "CubeGrid(edge=" << grid.edge_m << ", ixmax=" << grid.ixmax << ", iymax=" << grid.iymax
@@ -131,7 +186,8 @@ void bind_collapse(py::module_& m) {
       .def_readwrite("method", &CollapseParams::method)
       .def_readwrite("shadow_aware", &CollapseParams::shadow_aware);
 
-  py::class_<CollapseResult>(m, "CollapseResult", "Result of collapse_overhangs; arrays are views into it.")
+  py::class_<CollapseResult>(
+      m, "CollapseResult", "Result of collapse_overhangs; arrays are views into it. Pickles whole (its arrays copied).")
       .def_readonly("grid", &CollapseResult::grid)
       .def_property_readonly(
           "overhang",
@@ -161,6 +217,7 @@ void bind_collapse(py::module_& m) {
       .def_readonly("num_overhang", &CollapseResult::num_overhang)
       .def_property_readonly("storage_used",
                              [](const CollapseResult& result) { return storage_name(result.storage_used); })
+      .def(py::pickle(&result_state, &result_from_state))
       .def("__repr__", [](const CollapseResult& result) {
         std::ostringstream text;
         text << "CollapseResult(points=" << result.num_points << ", overhang=" << result.num_overhang

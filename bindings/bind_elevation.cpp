@@ -4,6 +4,7 @@
 #include <terracube/elevation_map.hpp>
 #include <terracube/terrain.hpp>
 
+#include <algorithm>
 #include <memory>
 #include <sstream>
 
@@ -34,19 +35,49 @@ std::vector<std::uint8_t> selection(
   return flags;
 }
 
+MapGeometry make_geometry(double resolution, const Eigen::Vector2d& origin, const Eigen::Vector2i& size) {
+  MapGeometry g;
+  g.resolution_m = resolution;
+  g.origin_m = origin;
+  g.size = size.array();
+  return g;
+}
+
+/// A map's pickled state: its geometry and its layers in order, each a (nx, ny) float32 copy.
+py::tuple map_state(const ElevationMap& map) {
+  py::list layers;
+  for (const std::string& name : map.layers()) {
+    const Layer& layer = map.get(name);
+    py::array_t<float> copy({layer.rows(), layer.cols()});
+    std::copy_n(layer.data(), layer.size(), copy.mutable_data());
+    layers.append(py::make_tuple(name, copy));
+  }
+  return py::make_tuple(map.geometry(), layers);
+}
+
+/// The map of a pickled state; ValueError when a layer does not fit its geometry.
+ElevationMap map_from_state(const py::tuple& state) {
+  const py::tuple items = state_items(state, 2, "ElevationMap");
+  ElevationMap map(items[0].cast<MapGeometry>());
+  for (const py::handle layer : items[1].cast<py::list>()) {
+    const auto entry = layer.cast<py::tuple>();
+    const auto name = entry[0].cast<std::string>();
+    const auto data = py::array_t<float, py::array::c_style | py::array::forcecast>::ensure(entry[1]);
+    if (!data || data.ndim() != 2 || data.shape(0) != map.geometry().size.x() ||
+        data.shape(1) != map.geometry().size.y()) {
+      throw py::value_error("ElevationMap: the pickled layer " + name + " does not have the map's (nx, ny) shape");
+    }
+    map.add(name, Eigen::Map<const Layer>(data.data(), data.shape(0), data.shape(1)));
+  }
+  return map;
+}
+
 }  // namespace
 
 void bind_elevation(py::module_& m) {
   py::class_<MapGeometry>(m, "MapGeometry",
                           "Cell (i, j) is centred on origin + (i + 0.5, j + 0.5) * resolution; i along x, j along y.")
-      .def(py::init([](double resolution, const Eigen::Vector2d& origin, const Eigen::Vector2i& size) {
-             MapGeometry g;
-             g.resolution_m = resolution;
-             g.origin_m = origin;
-             g.size = size.array();
-             return g;
-           }),
-           py::arg("resolution"), py::arg("origin"), py::arg("size"))
+      .def(py::init(&make_geometry), py::arg("resolution"), py::arg("origin"), py::arg("size"))
       .def_readonly("resolution", &MapGeometry::resolution_m, "cell edge [m]")
       .def_readonly("origin", &MapGeometry::origin_m, "(2,) lower-left corner of cell (0, 0) [m]")
       .def_property_readonly(
@@ -64,6 +95,15 @@ void bind_elevation(py::module_& m) {
             return std::make_pair(index->x(), index->y());
           },
           py::arg("x"), py::arg("y"), "cell (i, j) holding (x, y), or None outside the map")
+      .def(py::pickle(
+          [](const MapGeometry& g) {
+            return py::make_tuple(g.resolution_m, g.origin_m, Eigen::Vector2i(g.size.matrix()));
+          },
+          [](const py::tuple& state) {
+            const py::tuple items = state_items(state, 3, "MapGeometry");
+            return make_geometry(items[0].cast<double>(), items[1].cast<Eigen::Vector2d>(),
+                                 items[2].cast<Eigen::Vector2i>());
+          }))
       .def("__repr__", [](const MapGeometry& g) {
         std::ostringstream text;
         text << "MapGeometry(resolution=" << g.resolution_m << ", origin=[" << g.origin_m.transpose() << "], size=["
@@ -87,7 +127,8 @@ void bind_elevation(py::module_& m) {
           },
           py::arg("name"), py::arg("data"))
       .def("add_constant", py::overload_cast<const std::string&, float>(&ElevationMap::add), py::arg("name"),
-           py::arg("value"));
+           py::arg("value"))
+      .def(py::pickle(&map_state, &map_from_state));
 
   py::class_<ElevationParams>(m, "ElevationParams")
       .def(py::init<>())
@@ -140,7 +181,12 @@ void bind_elevation(py::module_& m) {
 
   py::class_<OverhangFreeMap>(m, "OverhangFreeMap")
       .def_readonly("map", &OverhangFreeMap::map)
-      .def_readonly("collapse", &OverhangFreeMap::collapse);
+      .def_readonly("collapse", &OverhangFreeMap::collapse)
+      .def(py::pickle([](const OverhangFreeMap& r) { return py::make_tuple(r.map, r.collapse); },
+                      [](const py::tuple& state) {
+                        const py::tuple items = state_items(state, 2, "OverhangFreeMap");
+                        return OverhangFreeMap{items[0].cast<ElevationMap>(), items[1].cast<CollapseResult>()};
+                      }));
   m.def(
       "build_overhang_free_map",
       [](const py::array& points, const CollapseParams& collapse, const ElevationParams& elevation,

@@ -5,6 +5,7 @@
 
 #include <sstream>
 #include <string>
+#include <type_traits>
 #include <utility>
 #include <vector>
 
@@ -44,6 +45,54 @@ ClassifiedPoints classified(const py::array& points, const std::optional<py::arr
 
 std::vector<Eigen::Vector3d> plain_points(const py::array& points, const char* name) {
   return classified(points, std::nullopt, name).points;
+}
+
+/// Calls f(name, field) for every field of a RegistrationResult: one list for its pickled state
+/// (a dict by field name) both ways.
+template <typename Result, typename F>
+void for_each_field(Result& r, F&& f) {
+  f("transform", r.transform);
+  f("icp_start", r.icp_start);
+  f("converged", r.converged);
+  f("reason", r.reason);
+  f("iterations", r.iterations);
+  f("passes", r.passes);
+  f("extrapolations", r.extrapolations);
+  f("rmse", r.rmse_m);
+  f("correspondence_distance", r.correspondence_distance_m);
+  f("num_correspondences", r.num_correspondences);
+  f("correspondences_per_class", r.correspondences_per_class);
+  f("normal_matrix", r.normal_matrix);
+  f("eigenvalues", r.eigenvalues);
+  f("constraint_matrix", r.constraint_matrix);
+  f("constraint_eigenvalues", r.constraint_eigenvalues);
+  f("constraint_eigenvectors", r.constraint_eigenvectors);
+  f("overlap", r.overlap);
+  f("chance_overlap", r.chance_overlap);
+  f("inlier_share_per_class", r.inlier_share_per_class);
+  f("held", r.held);
+  f("held_directions", r.held_directions);
+  f("trusted", r.trusted);
+  f("verdict", r.verdict);
+}
+
+py::dict registration_state(const RegistrationResult& r) {
+  py::dict state;
+  for_each_field(r, [&](const char* name, const auto& field) { state[name] = field; });
+  return state;
+}
+
+RegistrationResult registration_from_state(const py::dict& state) {
+  RegistrationResult r;
+  std::size_t fields = 0;
+  for_each_field(r, [&](const char* name, auto& field) {
+    if (!state.contains(name))
+      throw py::value_error(std::string("RegistrationResult: the pickled state has no ") + name);
+    field = state[name].cast<std::decay_t<decltype(field)>>();
+    ++fields;
+  });
+  if (state.size() != fields) throw py::value_error("RegistrationResult: the pickled state has unknown fields");
+  return r;
 }
 
 }  // namespace
@@ -136,6 +185,7 @@ void bind_icp(py::module_& m) {
                     "(6, 6) unit eigenvectors of held as columns (rotation x rms radius, translation)")
       .def_readonly("trusted", &RegistrationResult::trusted, "every trust threshold of RegistrationParams met")
       .def_readonly("verdict", &RegistrationResult::verdict, "why the result is (not) trusted, in plain words")
+      .def(py::pickle(&registration_state, &registration_from_state))
       .def("__repr__", [](const RegistrationResult& r) {
         std::ostringstream text;
         text << "RegistrationResult(reason=" << to_string(r.reason) << ", iterations=" << r.iterations

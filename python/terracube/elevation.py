@@ -43,6 +43,8 @@ class ElevationMap:
 
     Cell (i, j) covers x in [origin_x + i*res, origin_x + (i+1)*res) and likewise j along y; its
     centre is ``geometry.position_of(i, j)``. ``map["mean"]`` is a writeable view (no copy).
+    Maps pickle with their geometry and layers (a worker process returns them whole) and
+    ``copy.deepcopy`` gives a map that owns its layers.
     """
 
     def __init__(self, core: _core.ElevationMap):
