@@ -23,6 +23,13 @@ const char* storage_name(CubeStorage storage) {
   }
 }
 
+/// A read-only uint8 view of cube reasons that keeps `owner` alive.
+py::array reasons_view(const std::vector<CubeReason>& reasons, const py::object& owner) {
+  static_assert(sizeof(CubeReason) == 1);
+  return read_only(py::array_t<std::uint8_t>({static_cast<py::ssize_t>(reasons.size())}, {py::ssize_t{1}},
+                                             reinterpret_cast<const std::uint8_t*>(reasons.data()), owner));
+}
+
 py::tuple grid_state(const CubeGrid& grid) {
   return py::make_tuple(grid.min_corner, grid.edge_m, grid.ixmax, grid.iymax, grid.izmax);
 }
@@ -38,14 +45,13 @@ CubeGrid grid_from_state(const py::tuple& state) {
   return grid;
 }
 
-/// A result's pickled state: its grid, its arrays (copies) and its counts.
-py::tuple result_state(const CollapseResult& r) {
-  std::vector<std::uint8_t> reasons(r.cube_reasons.size());
-  std::transform(r.cube_reasons.begin(), r.cube_reasons.end(), reasons.begin(),
-                 [](CubeReason reason) { return static_cast<std::uint8_t>(reason); });
-  return py::make_tuple(grid_state(r.grid), copy_of(r.overhang), copy_of(r.occupied_cubes), copy_of(r.removed_cubes),
-                        copy_of(reasons), r.num_points, r.num_used, r.num_cropped, r.num_dropped_non_finite,
-                        r.num_overhang, static_cast<int>(r.storage_used));
+/// A result's pickled state: its grid, read-only views of its arrays (pickle copies them into its
+/// bytes) and its counts.
+py::tuple result_state(const py::object& self) {
+  const auto& r = self.cast<const CollapseResult&>();
+  return py::make_tuple(grid_state(r.grid), view_of(r.overhang, self), view_of(r.occupied_cubes, self),
+                        view_of(r.removed_cubes, self), reasons_view(r.cube_reasons, self), r.num_points, r.num_used,
+                        r.num_cropped, r.num_dropped_non_finite, r.num_overhang, static_cast<int>(r.storage_used));
 }
 
 /// The result of a pickled state; ValueError when its parts do not belong together.
@@ -203,12 +209,7 @@ void bind_collapse(py::module_& m) {
           "(R,) int64: R, indices I of collapsed cubes, sorted")
       .def_property_readonly(
           "cube_reasons",
-          [](const py::object& self) {
-            const auto& reasons = self.cast<const CollapseResult&>().cube_reasons;
-            static_assert(sizeof(CubeReason) == 1);
-            return read_only(py::array_t<std::uint8_t>({static_cast<py::ssize_t>(reasons.size())}, {py::ssize_t{1}},
-                                                       reinterpret_cast<const std::uint8_t*>(reasons.data()), self));
-          },
+          [](const py::object& self) { return reasons_view(self.cast<const CollapseResult&>().cube_reasons, self); },
           "(K,) uint8: CubeReason per cube of occupied_cubes (method shadow_aware; empty for paper)")
       .def_readonly("num_points", &CollapseResult::num_points)
       .def_readonly("num_used", &CollapseResult::num_used)

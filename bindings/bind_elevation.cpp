@@ -4,7 +4,6 @@
 #include <terracube/elevation_map.hpp>
 #include <terracube/terrain.hpp>
 
-#include <algorithm>
 #include <memory>
 #include <sstream>
 
@@ -43,15 +42,12 @@ MapGeometry make_geometry(double resolution, const Eigen::Vector2d& origin, cons
   return g;
 }
 
-/// A map's pickled state: its geometry and its layers in order, each a (nx, ny) float32 copy.
-py::tuple map_state(const ElevationMap& map) {
+/// A map's pickled state: its geometry and its layers in order, each a read-only (nx, ny) view
+/// (pickle copies them into its bytes: no copy of the map besides).
+py::tuple map_state(const py::object& self) {
+  const auto& map = self.cast<const ElevationMap&>();
   py::list layers;
-  for (const std::string& name : map.layers()) {
-    const Layer& layer = map.get(name);
-    py::array_t<float> copy({layer.rows(), layer.cols()});
-    std::copy_n(layer.data(), layer.size(), copy.mutable_data());
-    layers.append(py::make_tuple(name, copy));
-  }
+  for (const std::string& name : map.layers()) layers.append(py::make_tuple(name, read_only(layer_view(self, name))));
   return py::make_tuple(map.geometry(), layers);
 }
 

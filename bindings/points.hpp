@@ -90,12 +90,6 @@ inline py::array bool_view_of(const std::vector<std::uint8_t>& data, const py::o
   return writeable ? array : read_only(array);
 }
 
-/// A numpy array owning a copy of `data`: the state a pickled result carries.
-template <typename T>
-py::array_t<T> copy_of(const std::vector<T>& data) {
-  return py::array_t<T>(static_cast<py::ssize_t>(data.size()), data.data());
-}
-
 /// The values of the 1-D array `item` of a pickled state; ValueError naming `what` otherwise.
 template <typename T>
 std::vector<T> vector_of(const py::handle& item, const char* what) {
