@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <sstream>
 
+#include "pickle.hpp"
 #include "points.hpp"
 
 namespace terracube::python {

@@ -7,6 +7,7 @@
 #include <memory>
 #include <sstream>
 
+#include "pickle.hpp"
 #include "points.hpp"
 
 namespace terracube::python {

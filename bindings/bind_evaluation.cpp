@@ -9,6 +9,7 @@
 #include <string>
 #include <vector>
 
+#include "pickle.hpp"
 #include "points.hpp"
 
 namespace terracube::python {
@@ -83,6 +84,14 @@ void bind_evaluation(py::module_& m) {
       .def_readonly("median", &ErrorStatistics::median)
       .def_readonly("max", &ErrorStatistics::max)
       .def_readonly("count", &ErrorStatistics::count)
+      .def(pickle_by_fields<ErrorStatistics>("ErrorStatistics",
+                                             [](auto& r, auto&& f) {
+                                               f("rmse", r.rmse);
+                                               f("mean", r.mean);
+                                               f("median", r.median);
+                                               f("max", r.max);
+                                               f("count", r.count);
+                                             }))
       .def("__repr__", [](const ErrorStatistics& s) {
         return "ErrorStatistics(" + statistics_text(s, "") + ", count=" + std::to_string(s.count) + ")";
       });
@@ -97,6 +106,14 @@ void bind_evaluation(py::module_& m) {
           "(K,) [deg]")
       .def_readonly("translation", &AbsoluteTrajectoryError::translation, "statistics [m]")
       .def_readonly("rotation", &AbsoluteTrajectoryError::rotation, "statistics [deg]")
+      .def(pickle_by_fields<AbsoluteTrajectoryError>("AbsoluteTrajectoryError",
+                                                     [](auto& r, auto&& f) {
+                                                       f("alignment", r.alignment);
+                                                       f("translation_errors", r.translation_errors_m);
+                                                       f("rotation_errors", r.rotation_errors_deg);
+                                                       f("translation", r.translation);
+                                                       f("rotation", r.rotation);
+                                                     }))
       .def("__repr__", [](const AbsoluteTrajectoryError& r) {
         return "AbsoluteTrajectoryError(poses=" + std::to_string(r.translation.count) +
                ", translation: " + statistics_text(r.translation, " m") +
@@ -113,13 +130,27 @@ void bind_evaluation(py::module_& m) {
       .def_readonly("last_frame", &PoseSegmentError::last_frame)
       .def_readonly("length", &PoseSegmentError::length_m)
       .def_readonly("translation_percent", &PoseSegmentError::translation_percent)
-      .def_readonly("rotation_deg_per_100m", &PoseSegmentError::rotation_deg_per_100m);
+      .def_readonly("rotation_deg_per_100m", &PoseSegmentError::rotation_deg_per_100m)
+      .def(pickle_by_fields<PoseSegmentError>("PoseSegmentError", [](auto& r, auto&& f) {
+        f("first_frame", r.first_frame);
+        f("last_frame", r.last_frame);
+        f("length", r.length_m);
+        f("translation_percent", r.translation_percent);
+        f("rotation_deg_per_100m", r.rotation_deg_per_100m);
+      }));
 
   py::class_<SegmentLengthError>(m, "SegmentLengthError")
       .def_readonly("length", &SegmentLengthError::length_m)
       .def_readonly("num_segments", &SegmentLengthError::num_segments)
       .def_readonly("translation_percent", &SegmentLengthError::translation_percent)
       .def_readonly("rotation_deg_per_100m", &SegmentLengthError::rotation_deg_per_100m)
+      .def(pickle_by_fields<SegmentLengthError>("SegmentLengthError",
+                                                [](auto& r, auto&& f) {
+                                                  f("length", r.length_m);
+                                                  f("num_segments", r.num_segments);
+                                                  f("translation_percent", r.translation_percent);
+                                                  f("rotation_deg_per_100m", r.rotation_deg_per_100m);
+                                                }))
       .def("__repr__", [](const SegmentLengthError& e) {
         std::ostringstream text;
         text << "SegmentLengthError(length=" << e.length_m << " m, segments=" << e.num_segments
@@ -134,6 +165,14 @@ void bind_evaluation(py::module_& m) {
       .def_readonly("rotation_deg_per_100m", &RelativePoseError::rotation_deg_per_100m)
       .def_readonly("per_length", &RelativePoseError::per_length)
       .def_readonly("segments", &RelativePoseError::segments)
+      .def(pickle_by_fields<RelativePoseError>("RelativePoseError",
+                                               [](auto& r, auto&& f) {
+                                                 f("num_segments", r.num_segments);
+                                                 f("translation_percent", r.translation_percent);
+                                                 f("rotation_deg_per_100m", r.rotation_deg_per_100m);
+                                                 f("per_length", r.per_length);
+                                                 f("segments", r.segments);
+                                               }))
       .def("__repr__", [](const RelativePoseError& r) {
         std::ostringstream text;
         text << "RelativePoseError(segments=" << r.num_segments << ", translation=" << r.translation_percent
@@ -146,7 +185,14 @@ void bind_evaluation(py::module_& m) {
       .def_readonly("j", &RegionPairError::j)
       .def_readonly("map_distance", &RegionPairError::map_distance_m)
       .def_readonly("dsm_distance", &RegionPairError::dsm_distance_m)
-      .def_readonly("error", &RegionPairError::error_m);
+      .def_readonly("error", &RegionPairError::error_m)
+      .def(pickle_by_fields<RegionPairError>("RegionPairError", [](auto& r, auto&& f) {
+        f("i", r.i);
+        f("j", r.j);
+        f("map_distance", r.map_distance_m);
+        f("dsm_distance", r.dsm_distance_m);
+        f("error", r.error_m);
+      }));
 
   py::class_<RegionTripleError>(m, "RegionTripleError")
       .def_readonly("i", &RegionTripleError::i)
@@ -154,7 +200,15 @@ void bind_evaluation(py::module_& m) {
       .def_readonly("k", &RegionTripleError::k)
       .def_readonly("map_angle", &RegionTripleError::map_angle_deg)
       .def_readonly("dsm_angle", &RegionTripleError::dsm_angle_deg)
-      .def_readonly("error", &RegionTripleError::error_deg);
+      .def_readonly("error", &RegionTripleError::error_deg)
+      .def(pickle_by_fields<RegionTripleError>("RegionTripleError", [](auto& r, auto&& f) {
+        f("i", r.i);
+        f("j", r.j);
+        f("k", r.k);
+        f("map_angle", r.map_angle_deg);
+        f("dsm_angle", r.dsm_angle_deg);
+        f("error", r.error_deg);
+      }));
 
   py::class_<RegionLayoutComparison>(m, "RegionLayoutComparison")
       .def_readonly("pairs", &RegionLayoutComparison::pairs)
@@ -163,6 +217,15 @@ void bind_evaluation(py::module_& m) {
       .def_readonly("max_distance_error", &RegionLayoutComparison::max_distance_error_m)
       .def_readonly("mean_angle_error", &RegionLayoutComparison::mean_angle_error_deg)
       .def_readonly("max_angle_error", &RegionLayoutComparison::max_angle_error_deg)
+      .def(pickle_by_fields<RegionLayoutComparison>("RegionLayoutComparison",
+                                                    [](auto& r, auto&& f) {
+                                                      f("pairs", r.pairs);
+                                                      f("triples", r.triples);
+                                                      f("mean_distance_error", r.mean_distance_error_m);
+                                                      f("max_distance_error", r.max_distance_error_m);
+                                                      f("mean_angle_error", r.mean_angle_error_deg);
+                                                      f("max_angle_error", r.max_angle_error_deg);
+                                                    }))
       .def("__repr__", [](const RegionLayoutComparison& c) {
         std::ostringstream text;
         text << "RegionLayoutComparison(pairs=" << c.pairs.size() << ", mean distance error=" << c.mean_distance_error_m

@@ -5,10 +5,10 @@
 
 #include <sstream>
 #include <string>
-#include <type_traits>
 #include <utility>
 #include <vector>
 
+#include "pickle.hpp"
 #include "points.hpp"
 
 #ifdef TERRACUBE_HAVE_PCL
@@ -47,10 +47,8 @@ std::vector<Eigen::Vector3d> plain_points(const py::array& points, const char* n
   return classified(points, std::nullopt, name).points;
 }
 
-/// Calls f(name, field) for every field of a RegistrationResult: one list for its pickled state
-/// (a dict by field name) both ways.
-template <typename Result, typename F>
-void for_each_field(Result& r, F&& f) {
+/// The fields of a RegistrationResult by their Python names (its pickled state).
+constexpr auto kRegistrationFields = [](auto& r, auto&& f) {
   f("transform", r.transform);
   f("icp_start", r.icp_start);
   f("converged", r.converged);
@@ -74,26 +72,7 @@ void for_each_field(Result& r, F&& f) {
   f("held_directions", r.held_directions);
   f("trusted", r.trusted);
   f("verdict", r.verdict);
-}
-
-py::dict registration_state(const RegistrationResult& r) {
-  py::dict state;
-  for_each_field(r, [&](const char* name, const auto& field) { state[name] = field; });
-  return state;
-}
-
-RegistrationResult registration_from_state(const py::dict& state) {
-  RegistrationResult r;
-  std::size_t fields = 0;
-  for_each_field(r, [&](const char* name, auto& field) {
-    if (!state.contains(name))
-      throw py::value_error(std::string("RegistrationResult: the pickled state has no ") + name);
-    field = state[name].cast<std::decay_t<decltype(field)>>();
-    ++fields;
-  });
-  if (state.size() != fields) throw py::value_error("RegistrationResult: the pickled state has unknown fields");
-  return r;
-}
+};
 
 }  // namespace
 
@@ -185,7 +164,7 @@ void bind_icp(py::module_& m) {
                     "(6, 6) unit eigenvectors of held as columns (rotation x rms radius, translation)")
       .def_readonly("trusted", &RegistrationResult::trusted, "every trust threshold of RegistrationParams met")
       .def_readonly("verdict", &RegistrationResult::verdict, "why the result is (not) trusted, in plain words")
-      .def(py::pickle(&registration_state, &registration_from_state))
+      .def(pickle_by_fields<RegistrationResult>("RegistrationResult", kRegistrationFields))
       .def("__repr__", [](const RegistrationResult& r) {
         std::ostringstream text;
         text << "RegistrationResult(reason=" << to_string(r.reason) << ", iterations=" << r.iterations
@@ -218,6 +197,12 @@ void bind_icp(py::module_& m) {
       .def_readonly("transform", &CorrelativeSearchResult::transform, "(4, 4) the best hypothesis, source -> target")
       .def_readonly("score", &CorrelativeSearchResult::score, "source points on occupied target cells")
       .def_readonly("points", &CorrelativeSearchResult::points, "source points that took part (non-ground)")
+      .def(pickle_by_fields<CorrelativeSearchResult>("CorrelativeSearchResult",
+                                                     [](auto& r, auto&& f) {
+                                                       f("transform", r.transform);
+                                                       f("score", r.score);
+                                                       f("points", r.points);
+                                                     }))
       .def("__repr__", [](const CorrelativeSearchResult& r) {
         return "CorrelativeSearchResult(score=" + std::to_string(r.score) + ", points=" + std::to_string(r.points) +
                ")";
@@ -268,6 +253,13 @@ void bind_icp(py::module_& m) {
       .def_readonly("converged", &PclIcpResult::converged)
       .def_readonly("fitness", &PclIcpResult::fitness_m2, "mean squared pair distance [m^2]")
       .def_readonly("iterations", &PclIcpResult::iterations)
+      .def(pickle_by_fields<PclIcpResult>("PclIcpResult",
+                                          [](auto& r, auto&& f) {
+                                            f("transform", r.transform);
+                                            f("converged", r.converged);
+                                            f("fitness", r.fitness_m2);
+                                            f("iterations", r.iterations);
+                                          }))
       .def("__repr__", [](const PclIcpResult& r) {
         std::ostringstream text;
         text << "PclIcpResult(converged=" << (r.converged ? "True" : "False") << ", iterations=" << r.iterations

@@ -5,6 +5,7 @@
 
 #include <sstream>
 
+#include "pickle.hpp"
 #include "points.hpp"
 
 namespace terracube::python {
@@ -67,6 +68,18 @@ void bind_local_map(py::module_& m) {
       .def_readonly("num_replaced_cells", &LocalMapUpdate::num_replaced_cells)
       .def_readonly("num_cleared_cells", &LocalMapUpdate::num_cleared_cells)
       .def_readonly("map_reset", &LocalMapUpdate::map_reset)
+      .def(pickle_by_fields<LocalMapUpdate>("LocalMapUpdate",
+                                            [](auto& r, auto&& f) {
+                                              f("num_points", r.num_points);
+                                              f("num_in_map", r.num_in_map);
+                                              f("num_overhang", r.num_overhang);
+                                              f("num_dropped_non_finite", r.num_dropped_non_finite);
+                                              f("num_out_of_range", r.num_out_of_range);
+                                              f("num_fused_cells", r.num_fused_cells);
+                                              f("num_replaced_cells", r.num_replaced_cells);
+                                              f("num_cleared_cells", r.num_cleared_cells);
+                                              f("map_reset", r.map_reset);
+                                            }))
       .def("__repr__", [](const LocalMapUpdate& u) {
         std::ostringstream text;
         text << "LocalMapUpdate(num_points=" << u.num_points << ", num_in_map=" << u.num_in_map

@@ -3,6 +3,7 @@
 #include <pybind11/stl.h>
 #include <terracube/mapper.hpp>
 
+#include "pickle.hpp"
 #include "points.hpp"
 
 namespace terracube::python {
@@ -88,6 +89,16 @@ void bind_mapper(py::module_& m) {
       .def_readonly("pose", &ScanReport::pose,
                     "(4, 4) the scan's estimated world <- sensor when it was added (loop closing may correct "
                     "the keyframes later)")
+      .def(pickle_by_fields<ScanReport>("ScanReport",
+                                        [](auto& r, auto&& f) {
+                                          f("keyframe", r.keyframe);
+                                          f("index", r.index);
+                                          f("registered", r.registered);
+                                          f("registration", r.registration);
+                                          f("loops_closed", r.loops_closed);
+                                          f("num_out_of_range", r.num_out_of_range);
+                                          f("pose", r.pose);
+                                        }))
       .def("__repr__", [](const ScanReport& r) {
         return "ScanReport(keyframe=" + std::string(r.keyframe ? "True" : "False") +
                ", index=" + std::to_string(r.index) + ", registered=" + (r.registered ? "True" : "False") +
@@ -101,6 +112,14 @@ void bind_mapper(py::module_& m) {
       .def_readonly("relative", &LoopClosure::relative, "(4, 4) L_target <- L_source")
       .def_readonly("rmse", &LoopClosure::rmse_m)
       .def_readonly("overlap", &LoopClosure::overlap)
+      .def(pickle_by_fields<LoopClosure>("LoopClosure",
+                                         [](auto& r, auto&& f) {
+                                           f("source", r.to);
+                                           f("target", r.from);
+                                           f("relative", r.relative);
+                                           f("rmse", r.rmse_m);
+                                           f("overlap", r.overlap);
+                                         }))
       .def("__repr__", [](const LoopClosure& l) {
         return "LoopClosure(target=" + std::to_string(l.from) + ", source=" + std::to_string(l.to) +
                ", rmse=" + std::to_string(l.rmse_m) + ", overlap=" + std::to_string(l.overlap) + ")";
@@ -116,7 +135,18 @@ void bind_mapper(py::module_& m) {
       .def_readonly("keyframes", &MapperTimings::keyframes)
       .def_readonly("registered_steps", &MapperTimings::registered_steps, "steps whose registration was accepted")
       .def_readonly("untrusted_steps", &MapperTimings::untrusted_steps,
-                    "steps whose registration was not trusted (odometry or the prediction was used)");
+                    "steps whose registration was not trusted (odometry or the prediction was used)")
+      .def(pickle_by_fields<MapperTimings>("MapperTimings", [](auto& r, auto&& f) {
+        f("map_building_ms", r.map_building_ms);
+        f("classification_ms", r.classification_ms);
+        f("registration_ms", r.registration_ms);
+        f("fusion_ms", r.fusion_ms);
+        f("loop_closing_ms", r.loop_closing_ms);
+        f("scans", r.scans);
+        f("keyframes", r.keyframes);
+        f("registered_steps", r.registered_steps);
+        f("untrusted_steps", r.untrusted_steps);
+      }));
 
   py::class_<Mapper>(m, "Mapper")
       .def(py::init<const MapperParams&>(), py::arg("params"))

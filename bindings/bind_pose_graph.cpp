@@ -8,6 +8,8 @@
 #include <sstream>
 #include <vector>
 
+#include "pickle.hpp"
+
 namespace py = pybind11;
 
 namespace terracube::python {
@@ -47,6 +49,15 @@ void bind_pose_graph(py::module_& m) {
       .def_readonly("iterations", &PoseGraphResult::iterations)
       .def_readonly("converged", &PoseGraphResult::converged)
       .def_readonly("message", &PoseGraphResult::message)
+      .def(pickle_by_fields<PoseGraphResult>("PoseGraphResult",
+                                             [](auto& r, auto&& f) {
+                                               f("poses", r.poses);
+                                               f("initial_cost", r.initial_cost);
+                                               f("final_cost", r.final_cost);
+                                               f("iterations", r.iterations);
+                                               f("converged", r.converged);
+                                               f("message", r.message);
+                                             }))
       .def("__repr__", [](const PoseGraphResult& r) {
         std::ostringstream text;
         text << "PoseGraphResult(poses=" << r.poses.size() << ", converged=" << (r.converged ? "True" : "False")

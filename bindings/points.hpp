@@ -90,21 +90,4 @@ inline py::array bool_view_of(const std::vector<std::uint8_t>& data, const py::o
   return writeable ? array : read_only(array);
 }
 
-/// The values of the 1-D array `item` of a pickled state; ValueError naming `what` otherwise.
-template <typename T>
-std::vector<T> vector_of(const py::handle& item, const char* what) {
-  const auto array = py::array_t<T, py::array::c_style | py::array::forcecast>::ensure(item);
-  if (!array || array.ndim() != 1) throw py::value_error(std::string(what) + " must be a 1-D array");
-  return std::vector<T>(array.data(), array.data() + array.size());
-}
-
-/// The items of a pickled state, checked for their number; ValueError naming the class otherwise.
-inline py::tuple state_items(const py::tuple& state, std::size_t count, const char* type) {
-  if (state.size() != count) {
-    throw py::value_error(std::string(type) + ": a pickled state has " + std::to_string(count) + " items, got " +
-                          std::to_string(state.size()));
-  }
-  return state;
-}
-
 }  // namespace terracube::python

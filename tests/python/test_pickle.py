@@ -112,6 +112,98 @@ def test_a_registration_result_round_trips_with_every_field():
     assert result.verdict and np.any(result.held != 0.0) and result.num_correspondences > 0
 
 
+def same_value(a, b) -> bool:
+    """Equal, NaN equal to NaN, arrays element by element, bound result objects field by field."""
+    if isinstance(a, (list, tuple)) and not isinstance(a, str):
+        return isinstance(b, (list, tuple)) and len(a) == len(b) and all(map(same_value, a, b))
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return np.array_equal(np.asarray(a), np.asarray(b), equal_nan=True)
+    if (
+        type(a).__module__ == "terracube._core"
+        and hasattr(a, "__getstate__")
+        and not hasattr(a, "__members__")
+    ):
+        return type(b) is type(a) and all(same_value(getattr(a, n), getattr(b, n)) for n in public_fields(a))
+    return a == b or (isinstance(a, float) and a != a and b != b)
+
+
+def public_fields(obj) -> list[str]:
+    return [n for n in dir(obj) if not n.startswith("_") and not callable(getattr(obj, n))]
+
+
+def trajectory(count: int, drift: float) -> np.ndarray:
+    """A curved drive, 1 m a pose; `drift` bends it a little more every pose."""
+    poses = np.tile(np.eye(4), (count, 1, 1))
+    yaw = (0.02 + drift) * np.arange(count)
+    poses[:, 0, 0], poses[:, 0, 1] = np.cos(yaw), -np.sin(yaw)
+    poses[:, 1, 0], poses[:, 1, 1] = np.sin(yaw), np.cos(yaw)
+    poses[:, 0, 3], poses[:, 1, 3] = np.cumsum(np.cos(yaw)), np.cumsum(np.sin(yaw))
+    return poses
+
+
+def result_objects() -> dict[str, object]:
+    """One real result of every other kind the API returns, with fields away from their defaults."""
+    truth, estimate = trajectory(40, 0.0), trajectory(40, 0.001)
+    points = scene()
+    obstacles = np.full(len(points), int(tc.TerrainClass.OBSTACLE), np.uint8)
+    local = tc.LocalMap(length=10.0)
+    mapper = tc.Mapper(tc.MapperParams(lidar_only=True))
+    mapper.add_scan(points, np.eye(4))
+    results = {
+        "AbsoluteTrajectoryError": tc.absolute_trajectory_error(estimate, truth),
+        "RelativePoseError": tc.relative_pose_error(estimate, truth, lengths=[5.0, 10.0], step_frames=3),
+        "RegionLayoutComparison": tc.compare_region_layouts(
+            np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 8.0], [0.0, 9.0]]),
+            np.array([[0.1, 0.0], [10.0, 0.2], [9.8, 8.0], [0.0, 9.1]]),
+        ),
+        "PoseGraphResult": tc.optimize_pose_graph(
+            estimate[:5],
+            [tc.PoseGraphEdge(k, k + 1, np.linalg.inv(truth[k]) @ truth[k + 1]) for k in range(4)],
+        ),
+        "LocalMapUpdate": local.update(points, np.eye(4)),
+        "ScanReport": mapper.add_scan(points, np.eye(4)),
+        "MapperTimings": mapper.timings,
+        "CorrelativeSearchResult": tc._core.correlative_search(
+            points,
+            obstacles,
+            points + np.float32(0.2),
+            obstacles,
+            np.eye(4),
+            tc._core.CorrelativeSearchParams(),
+        ),
+    }
+    if tc.has_pcl():
+        results["PclIcpResult"] = tc.pcl_icp(points[::10], points[::10] + np.float32(0.05))
+    return results
+
+
+@pytest.mark.parametrize("name", sorted(result_objects()))
+def test_every_result_round_trips_field_by_field(name):
+    result = result_objects()[name]
+    assert type(result).__name__ == name
+    back = pickle.loads(pickle.dumps(result))
+    fields = public_fields(result)
+    assert fields and same_value(result, back), name
+    assert any(  # a result worth the test: some field holds more than a default
+        isinstance(getattr(result, f), (list, np.ndarray))
+        and len(getattr(result, f))
+        or getattr(result, f) not in (0, 0.0, False, "", None)
+        for f in fields
+    ), name
+
+
+def test_a_loop_closure_state_maps_onto_its_fields():
+    """Loop closures come from long drives; their state is checked against its own fields."""
+    relative = np.eye(4)
+    relative[:3, 3] = [1.0, 2.0, 3.0]
+    state = {"source": 7, "target": 2, "relative": relative, "rmse": 0.05, "overlap": 0.8}
+    loop = tc.LoopClosure.__new__(tc.LoopClosure)
+    loop.__setstate__(state)
+    assert (loop.source, loop.target, loop.rmse, loop.overlap) == (7, 2, 0.05, 0.8)
+    np.testing.assert_array_equal(loop.relative, relative)
+    assert same_value(pickle.loads(pickle.dumps(loop)), loop)
+
+
 def build_in_worker(seed: int) -> tuple[tc.ElevationMap, tc.CollapseResult]:
     return tc.dem_without_overhangs(scene(seed))
 
