@@ -40,12 +40,13 @@ void bind_fuzzy(py::module_& m) {
   using RowsXY = Eigen::Ref<const Eigen::Matrix<double, Eigen::Dynamic, 2, Eigen::RowMajor>>;
   py::class_<FuzzyElevationMap>(m, "FuzzyElevationMap")
       .def(py::init([](const FuzzyParams& params, Eigen::VectorXd centers_x, Eigen::VectorXd centers_y,
-                       Eigen::MatrixXd consequents, Eigen::MatrixXd rule_support) {
+                       Eigen::MatrixXd consequents, Eigen::MatrixXd rule_support, std::vector<double> rmse_history,
+                       std::size_t num_training_points) {
              return FuzzyElevationMap(params, std::move(centers_x), std::move(centers_y), std::move(consequents),
-                                      std::move(rule_support));
+                                      std::move(rule_support), std::move(rmse_history), num_training_points);
            }),
            py::arg("params"), py::arg("centers_x"), py::arg("centers_y"), py::arg("consequents"),
-           py::arg("rule_support"))
+           py::arg("rule_support"), py::arg("rmse_history") = std::vector<double>{}, py::arg("num_training_points") = 0)
       .def_property_readonly("params", &FuzzyElevationMap::params)
       .def_property_readonly(
           "extent",

@@ -399,12 +399,15 @@ void FuzzyElevationMap::set_gaussian_sigma() {
 }
 
 FuzzyElevationMap::FuzzyElevationMap(const FuzzyParams& params, Eigen::VectorXd centers_x, Eigen::VectorXd centers_y,
-                                     Eigen::MatrixXd consequents, Eigen::MatrixXd rule_support)
+                                     Eigen::MatrixXd consequents, Eigen::MatrixXd rule_support,
+                                     std::vector<double> rmse_history, std::size_t num_training_points)
     : params_(params),
       centers_x_(std::move(centers_x)),
       centers_y_(std::move(centers_y)),
       consequents_(std::move(consequents)),
-      rule_support_(std::move(rule_support)) {
+      rule_support_(std::move(rule_support)),
+      rmse_history_(std::move(rmse_history)),
+      num_training_points_(num_training_points) {
   if (!params_.extent) throw std::invalid_argument("a fuzzy elevation map from parameters needs params.extent");
   params_.rules_x = static_cast<int>(centers_x_.size());
   params_.rules_y = static_cast<int>(centers_y_.size());

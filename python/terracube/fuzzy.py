@@ -140,6 +140,11 @@ class FuzzyElevationMap:
     def __init__(self, core: _core.FuzzyElevationMap):
         self._core = core
 
+    def __reduce__(self):
+        """Pickles as its parts and training record (worker processes, copy.deepcopy)."""
+        parts = (self.params, self.centers_x, self.centers_y, self.consequents, self.rule_support)
+        return _restored, (*parts, self.rmse_history, self.num_training_points)
+
     @classmethod
     def fit(cls, points, params: FuzzyParams | None = None, *, use=None, **kwargs) -> FuzzyElevationMap:
         """Same as :func:`fit_fuzzy_elevation_map`."""
@@ -242,6 +247,20 @@ class FuzzyElevationMap:
             f"{self.num_parameters} parameters, extent=({e[0, 0]:.2f}, {e[0, 1]:.2f})..({e[1, 0]:.2f}, "
             f"{e[1, 1]:.2f}), {self.num_training_points} points{fit})"
         )
+
+
+def _restored(params, centers_x, centers_y, consequents, rule_support, rmse_history, num_training_points):
+    """The map of a pickled state (FuzzyElevationMap.__reduce__)."""
+    core = _core.FuzzyElevationMap(
+        params.to_core(),
+        centers_x,
+        centers_y,
+        consequents,
+        rule_support,
+        list(rmse_history),
+        num_training_points,
+    )
+    return FuzzyElevationMap(core)
 
 
 def fit_fuzzy_elevation_map(

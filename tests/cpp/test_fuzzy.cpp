@@ -226,6 +226,31 @@ TEST(FitFuzzyElevationMap, IsDeterministicAndFloatAgreesWithDouble) {
   EXPECT_NEAR(c.rmse_history().back(), a.rmse_history().back(), 1e-4);
 }
 
+TEST(FitFuzzyElevationMap, AFittedMapRebuiltFromItsPartsIsTheSame) {
+  const std::vector<Eigen::Vector3d> points = test::random_scene(5, 4000, 20.0);
+  for (const MembershipFamily membership : {MembershipFamily::kTriangularPartition, MembershipFamily::kGaussian}) {
+    FuzzyParams params;
+    params.rules_x = 7;
+    params.rules_y = 5;
+    params.epochs = 3;
+    params.membership = membership;
+    const FuzzyElevationMap fitted = fit_fuzzy_elevation_map(PointsView<double>(points), params);
+    FuzzyParams parts = fitted.params();
+    parts.extent = fitted.extent();  // derived from the points when fitting
+    const FuzzyElevationMap rebuilt(parts, fitted.centers_x(), fitted.centers_y(), fitted.consequents(),
+                                    fitted.rule_support(), fitted.rmse_history(), fitted.num_training_points());
+    EXPECT_EQ(rebuilt.rmse_history(), fitted.rmse_history());
+    EXPECT_EQ(rebuilt.num_training_points(), fitted.num_training_points());
+    EXPECT_EQ(rebuilt.gaussian_sigma_m(), fitted.gaussian_sigma_m());
+    for (double x = -1.0; x <= 21.0; x += 0.37) {
+      for (double y = -1.0; y <= 21.0; y += 0.41) {
+        EXPECT_EQ(rebuilt.evaluate(x, y), fitted.evaluate(x, y));
+        EXPECT_EQ(rebuilt.confidence(x, y), fitted.confidence(x, y));
+      }
+    }
+  }
+}
+
 TEST(FitFuzzyElevationMap, UseFlagsAndExtentSelectTheTrainingPoints) {
   const FuzzyElevationMap truth = known_surface(MembershipFamily::kTriangularPartition);
   std::vector<Eigen::Vector3d> points = sample(truth, 1000, 8);

@@ -1,6 +1,6 @@
-"""Maps, overhang masks and registration results survive pickling: what multiprocessing, Dask and
-joblib do to a result a worker returns, and what copy.deepcopy does. Each round trip is compared
-field by field with the object it came from."""
+"""Maps, overhang masks, fuzzy surfaces and every result object survive pickling: what
+multiprocessing, Dask and joblib do to a result a worker returns, and what copy.deepcopy does.
+Each round trip is compared field by field with the object it came from."""
 
 from __future__ import annotations
 
@@ -190,6 +190,20 @@ def test_every_result_round_trips_field_by_field(name):
         or getattr(result, f) not in (0, 0.0, False, "", None)
         for f in fields
     ), name
+
+
+@pytest.mark.parametrize("membership", ["triangular", "gaussian"])
+def test_a_fuzzy_elevation_map_round_trips_with_its_training_record(membership):
+    fitted = tc.fit_fuzzy_elevation_map(scene(), membership=membership, epochs=3)
+    back = pickle.loads(pickle.dumps(fitted))
+    assert back.params == fitted.params
+    for name in ("centers_x", "centers_y", "consequents", "rule_support", "rmse_history"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(fitted, name), err_msg=name)
+    assert back.num_training_points == fitted.num_training_points == len(scene())
+    xy = np.random.default_rng(3).random((500, 2)) * 24.0 - 2.0  # inside and beyond the extent
+    np.testing.assert_array_equal(back.evaluate(xy), fitted.evaluate(xy))
+    np.testing.assert_array_equal(back.confidence(xy), fitted.confidence(xy))
+    assert repr(copy.deepcopy(fitted)) == repr(fitted)
 
 
 def test_a_loop_closure_state_maps_onto_its_fields():

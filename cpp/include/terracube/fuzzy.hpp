@@ -114,9 +114,12 @@ class FuzzyElevationMap {
   FuzzyElevationMap() = default;
   /// A surface from explicit parameters: strictly increasing centres inside `params.extent`
   /// (required), consequents as a (rules_x, rules_y) matrix; `rule_support` (optional, same shape)
-  /// is the confidence of each rule [points]. Throws std::invalid_argument on inconsistent sizes.
+  /// is the confidence of each rule [points]; `rmse_history` and `num_training_points` (optional)
+  /// the training record of a fitted map whose parts these are (a map read back, e.g. unpickled).
+  /// Throws std::invalid_argument on inconsistent sizes.
   FuzzyElevationMap(const FuzzyParams& params, Eigen::VectorXd centers_x, Eigen::VectorXd centers_y,
-                    Eigen::MatrixXd consequents, Eigen::MatrixXd rule_support = {});
+                    Eigen::MatrixXd consequents, Eigen::MatrixXd rule_support = {},
+                    std::vector<double> rmse_history = {}, std::size_t num_training_points = 0);
 
   const FuzzyParams& params() const { return params_; }
   const Extent2d& extent() const { return extent_; }
