@@ -157,6 +157,24 @@ def _echo_odometry(odometry) -> None:
             typer.echo(text)
 
 
+#: How far from the Velodyne the KITTI car's own returns (its bonnet and mirrors) reach [m].
+KITTI_CAR_REACH_M = 2.8
+
+
+def _warn_of_the_kitti_car(files: list[Path], min_range: float, configured: bool) -> None:
+    """A warning when KITTI ``.bin`` scans are mapped with the default range limits: the car's own
+    returns then map as steps along its path (``--preset kitti`` leaves them out)."""
+    if configured or min_range >= KITTI_CAR_REACH_M or any(f.suffix.lower() != ".bin" for f in files):
+        return
+    typer.secho(
+        f"warning: KITTI .bin scans with min_range {min_range:g} m: the car's own returns (up to "
+        f"{KITTI_CAR_REACH_M:g} m from the sensor) map as steps along its path; --preset kitti (or "
+        "--min-range 3) leaves them out",
+        fg=typer.colors.YELLOW,
+        err=True,
+    )
+
+
 def _read_scan(path: Path) -> np.ndarray:
     """The points of one scan; a missing or unreadable file exits with code 2."""
     with _exit_on_bad_input():
@@ -1126,6 +1144,9 @@ def map_command(
         with _exit_on_bad_input(str(ground_truth)):
             truth = odometry.read_like(ground_truth)
     _echo_odometry(odometry)
+    _warn_of_the_kitti_car(
+        files, cfg.frame.min_range, configured=any(v is not None for v in (config, preset, min_range))
+    )
     sequence = tqdm(list(enumerate(files)), unit="scan", desc="mapping")
     with _exit_on_bad_input("global map"):
         report = build_global_map(
@@ -1266,6 +1287,9 @@ def stream_command(
         )
         params = stream_params(options)
     _echo_odometry(odometry)
+    _warn_of_the_kitti_car(
+        files, params.min_range, configured=any(v is not None for v in (config, preset, min_range))
+    )
     sequence = tqdm(list(enumerate(files)), unit="scan", desc="streaming")
     beams = params.collapse.method == "shadow_aware"  # the empty pixels of organised scans help it
     used_beams = []

@@ -191,5 +191,29 @@ def test_map_writes_every_scan_pose_with_the_kitti_times_and_evo_reads_them(tmp_
     assert "timestamps: none (the pose index)" in done.stdout
 
 
+def test_the_kitti_car_maps_as_steps_on_its_path_unless_its_returns_are_left_out(tmp_path, shared_data):
+    """KITTI's own returns (bonnet, mirrors: up to 2.8 m from the Velodyne) pass the default range
+    limits and land ahead of the car in every scan: `map` warns of them, and --preset kitti (its
+    min_range 3 m) leaves no step on the path."""
+    kitti = shared_data.path("kitti_seq00/poses.txt").parent
+    steps = {}
+    for name, extra in (("default", []), ("preset", ["--preset", "kitti"])):
+        out = tmp_path / name
+        done = _terracube(
+            "map", str(kitti / "velodyne"), "-p", str(kitti / "poses.txt"), "--odometry-only", "--no-png",
+            "-o", str(out), *extra,
+        )  # fmt: skip
+        assert done.returncode == 0, done.stderr
+        assert ("warning: KITTI .bin scans with min_range 0.1 m" in done.stderr) == (name == "default"), name
+        path = np.loadtxt(out / "trajectory_kitti.txt").reshape(-1, 3, 4)[:, :2, 3]  # x, y of each scan
+        elevation = tc.ElevationMap.load(out / "global_map.npz")
+        x, y = np.meshgrid(*elevation.cell_centers(), indexing="ij")
+        ahead = (x > path[0, 0] - 1.0) & (x < path[-1, 0] + 3.0)  # the car drives along +x here
+        on_path = ahead & (np.abs(y - np.interp(x, path[:, 0], path[:, 1])) < 1.2)  # the car and its mirrors
+        road = np.nanmedian(elevation["min"][on_path])
+        steps[name] = int(np.count_nonzero(elevation["max"][on_path] > road + 0.5))
+    assert steps["default"] >= 3 and steps["preset"] == 0, steps
+
+
 def _evo_path() -> str:
     return os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])

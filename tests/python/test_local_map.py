@@ -187,6 +187,11 @@ def test_stream_command_on_kitti_frames_writes_the_map_pictures_and_an_animation
     # KITTI's calib.txt and times.txt beside its poses: Velodyne poses, and times in seconds.
     assert f"calibration: {kitti / 'calib.txt'}" in result.output
     assert f"timestamps: {kitti / 'times.txt'}" in result.output
+    # KITTI .bin scans at the default range limits: the car's own returns are named, with the preset
+    assert (
+        "warning: KITTI .bin scans with min_range 0.1 m" in result.output
+        and "--preset kitti" in result.output
+    )
     saved = terracube.ElevationMap.load(out / "local_map.npz")
     times = np.loadtxt(kitti / "times.txt")[:6]
     assert np.nanmax(saved["time"]) == pytest.approx(times[-1] - times[0], abs=1e-6)
@@ -202,6 +207,10 @@ def test_stream_command_on_kitti_frames_writes_the_map_pictures_and_an_animation
     assert result.exit_code == 0, result.output
     assert movie.stat().st_size > 1000
     assert not (out / "local_elevation_000003.png").exists()
+    result = CliRunner().invoke(
+        app, [*args, "--length", "10", "--no-png", "--limit", "2", "--preset", "kitti"]
+    )
+    assert result.exit_code == 0 and "KITTI .bin scans" not in result.output, result.output
     result = CliRunner().invoke(app, [*args, "--resolution", "-1"])
     assert result.exit_code != 0 and "resolution" in result.output
     alone = tmp_path / "poses.txt"  # KITTI's camera poses without their calib.txt: said, not silent
