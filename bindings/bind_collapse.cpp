@@ -31,26 +31,11 @@ py::array reasons_view(const std::vector<CubeReason>& reasons, const py::object&
                                              reinterpret_cast<const std::uint8_t*>(reasons.data()), owner));
 }
 
-py::tuple grid_state(const CubeGrid& grid) {
-  return py::make_tuple(grid.min_corner, grid.edge_m, grid.ixmax, grid.iymax, grid.izmax);
-}
-
-CubeGrid grid_from_state(const py::tuple& state) {
-  const py::tuple items = state_items(state, 5, "CubeGrid");
-  CubeGrid grid;
-  grid.min_corner = items[0].cast<Eigen::Vector3d>();
-  grid.edge_m = items[1].cast<double>();
-  grid.ixmax = items[2].cast<std::int64_t>();
-  grid.iymax = items[3].cast<std::int64_t>();
-  grid.izmax = items[4].cast<std::int64_t>();
-  return grid;
-}
-
 /// A result's pickled state: its grid, read-only views of its arrays (pickle copies them into its
 /// bytes) and its counts.
 py::tuple result_state(const py::object& self) {
   const auto& r = self.cast<const CollapseResult&>();
-  return py::make_tuple(grid_state(r.grid), view_of(r.overhang, self), view_of(r.occupied_cubes, self),
+  return py::make_tuple(r.grid, view_of(r.overhang, self), view_of(r.occupied_cubes, self),
                         view_of(r.removed_cubes, self), reasons_view(r.cube_reasons, self), r.num_points, r.num_used,
                         r.num_cropped, r.num_dropped_non_finite, r.num_overhang, static_cast<int>(r.storage_used));
 }
@@ -59,7 +44,7 @@ py::tuple result_state(const py::object& self) {
 CollapseResult result_from_state(const py::tuple& state) {
   const py::tuple items = state_items(state, 11, "CollapseResult");
   CollapseResult r;
-  r.grid = grid_from_state(items[0].cast<py::tuple>());
+  r.grid = items[0].cast<CubeGrid>();
   r.overhang = vector_of<std::uint8_t>(items[1], "CollapseResult overhang");
   r.occupied_cubes = vector_of<std::int64_t>(items[2], "CollapseResult occupied_cubes");
   r.removed_cubes = vector_of<std::int64_t>(items[3], "CollapseResult removed_cubes");
@@ -128,7 +113,14 @@ void bind_collapse(py::module_& m) {
             return out;
           },
           py::arg("index"), "(K,) int64 cube indices I -> (K, 3) float64 cube centres [m]")
-      .def(py::pickle(&grid_state, &grid_from_state))
+      .def(pickle_by_fields<CubeGrid>("CubeGrid",
+                                      [](auto& grid, auto&& f) {
+                                        f("min_corner", grid.min_corner);
+                                        f("edge", grid.edge_m);
+                                        f("ixmax", grid.ixmax);
+                                        f("iymax", grid.iymax);
+                                        f("izmax", grid.izmax);
+                                      }))
       .def("__repr__", [](const CubeGrid& grid) {
         std::ostringstream text;
         text << "CubeGrid(edge=" << grid.edge_m << ", ixmax=" << grid.ixmax << ", iymax=" << grid.iymax

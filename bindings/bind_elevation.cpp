@@ -92,15 +92,12 @@ void bind_elevation(py::module_& m) {
             return std::make_pair(index->x(), index->y());
           },
           py::arg("x"), py::arg("y"), "cell (i, j) holding (x, y), or None outside the map")
-      .def(py::pickle(
-          [](const MapGeometry& g) {
-            return py::make_tuple(g.resolution_m, g.origin_m, Eigen::Vector2i(g.size.matrix()));
-          },
-          [](const py::tuple& state) {
-            const py::tuple items = state_items(state, 3, "MapGeometry");
-            return make_geometry(items[0].cast<double>(), items[1].cast<Eigen::Vector2d>(),
-                                 items[2].cast<Eigen::Vector2i>());
-          }))
+      .def(pickle_by_fields<MapGeometry>("MapGeometry",
+                                         [](auto& g, auto&& f) {
+                                           f("resolution", g.resolution_m);
+                                           f("origin", g.origin_m);
+                                           f("size", g.size);
+                                         }))
       .def("__repr__", [](const MapGeometry& g) {
         std::ostringstream text;
         text << "MapGeometry(resolution=" << g.resolution_m << ", origin=[" << g.origin_m.transpose() << "], size=["

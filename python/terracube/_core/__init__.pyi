@@ -12,13 +12,13 @@ class CubeGrid:
     """
     CBC grid geometry ([CBC] eqs. (1)-(9)); cube (0,0,0) is centred on min_corner.
     """
-    def __getstate__(self) -> tuple:
+    def __getstate__(self) -> dict:
         ...
     def __init__(self) -> None:
         ...
     def __repr__(self) -> str:
         ...
-    def __setstate__(self, arg0: tuple) -> None:
+    def __setstate__(self, arg0: dict) -> None:
         ...
     def centers(self, index: typing.Annotated[numpy.typing.ArrayLike, numpy.int64]) -> numpy.typing.NDArray[numpy.float64]:
         """
@@ -427,13 +427,13 @@ class MapGeometry:
     """
     Cell (i, j) is centred on origin + (i + 0.5, j + 0.5) * resolution; i along x, j along y.
     """
-    def __getstate__(self) -> tuple[float, typing.Annotated[numpy.typing.NDArray[numpy.float64], "[2, 1]"], typing.Annotated[numpy.typing.NDArray[numpy.int32], "[2, 1]"]]:
+    def __getstate__(self) -> dict:
         ...
     def __init__(self, resolution: typing.SupportsFloat | typing.SupportsIndex, origin: typing.Annotated[numpy.typing.ArrayLike, numpy.float64, "[2, 1]"], size: typing.Annotated[numpy.typing.ArrayLike, numpy.int32, "[2, 1]"]) -> None:
         ...
     def __repr__(self) -> str:
         ...
-    def __setstate__(self, arg0: tuple) -> None:
+    def __setstate__(self, arg0: dict) -> None:
         ...
     def index_of(self, x: typing.SupportsFloat | typing.SupportsIndex, y: typing.SupportsFloat | typing.SupportsIndex) -> tuple[int, int] | None:
         """
