@@ -324,16 +324,18 @@ detail::NonFiniteRows bin_rows(const Cloud& cloud, const MapGeometry& geometry, 
     const auto [begin, end] = detail::part_range(cloud.size(), part, parts);
     std::uint32_t* cell = out.cell.data();
     double* height = out.height.data();
-    Eigen::Vector3d p;
-    for (std::size_t row = begin; row < end; ++row) {
-      cell[row] = kOutside;
-      if (use != nullptr && use[row] == 0) continue;
-      const int status = cloud.map(row, p);
-      if (status == 1) non_finite[static_cast<std::size_t>(part)].add(row);
-      if (status != 0) continue;
-      cell[row] = cell_of(p);
-      height[row] = p.z();
-    }
+    cloud.with_fixed_layout([&, begin = begin, end = end](const auto& rows) {
+      Eigen::Vector3d p;
+      for (std::size_t row = begin; row < end; ++row) {
+        cell[row] = kOutside;
+        if (use != nullptr && use[row] == 0) continue;
+        const int status = rows.map(row, p);
+        if (status == 1) non_finite[static_cast<std::size_t>(part)].add(row);
+        if (status != 0) continue;
+        cell[row] = cell_of(p);
+        height[row] = p.z();
+      }
+    });
   });
   detail::NonFiniteRows all;
   for (const detail::NonFiniteRows& rows : non_finite) all.merge(rows);

@@ -355,23 +355,25 @@ detail::NonFiniteRows level_scan(const PointsView<Scalar>& points, const Eigen::
   const Eigen::Vector3d sensor = pose.block<3, 1>(0, 3);
   const double nearest = params.min_range_m * params.min_range_m;
   const double farthest = params.max_range_m * params.max_range_m;  // +inf without a limit
-  detail::visit_leveled(points, pose, area, [&](const auto& cloud) {
-    Eigen::Vector3d p;
-    for (std::size_t row = 0; row < cloud.size(); ++row) {
-      const int status = cloud.map(row, p);
-      if (status == 1) {
-        non_finite.add(row);
-        continue;
+  detail::visit_leveled(points, pose, area, [&](const auto& leveled) {
+    leveled.with_fixed_layout([&](const auto& cloud) {  // KITTI's and numpy's rows at fixed offsets
+      Eigen::Vector3d p;
+      for (std::size_t row = 0; row < cloud.size(); ++row) {
+        const int status = cloud.map(row, p);
+        if (status == 1) {
+          non_finite.add(row);
+          continue;
+        }
+        const Eigen::Vector3d v = p - sensor;  // the range is the sensor frame's: the pose is rigid
+        const double range_squared = v.squaredNorm();
+        if (!(range_squared >= nearest && range_squared <= farthest)) {
+          ++out_of_range;
+          continue;
+        }
+        if (clearing) w.visibility.add(v);
+        if (status == 0) w.points.push_back(p);
       }
-      const Eigen::Vector3d v = p - sensor;  // the range is the sensor frame's: the pose is rigid
-      const double range_squared = v.squaredNorm();
-      if (!(range_squared >= nearest && range_squared <= farthest)) {
-        ++out_of_range;
-        continue;
-      }
-      if (clearing) w.visibility.add(v);
-      if (status == 0) w.points.push_back(p);
-    }
+    });
   });
   if (clearing) {
     w.visibility.bin_pending();
