@@ -9,8 +9,10 @@
 #   bash bench/ab_python.sh bfb696c - bench/bench_threads.py --json
 #
 # Environment: ROUNDS (default 3), PYTHON (default: the python on PATH, with numpy and the package's
-# Python dependencies installed). Each side's extension is built in a temporary folder (Release, no
-# tests, benchmarks or PCL), about a minute per side on 2 cores.
+# Python dependencies installed), BASE_ENV / NEW_ENV (variables for that side's processes, e.g.
+# BASE_ENV=TERRACUBE_DISABLE_AVX2=1 runs 80f10ff without its AVX2 kernels). Each side's extension
+# is built in a temporary folder (Release, no tests, benchmarks or PCL), about a minute per side on
+# 2 cores.
 set -euo pipefail
 
 repo=$(git -C "$(dirname "$0")/.." rev-parse --show-toplevel)
@@ -51,11 +53,13 @@ fi
 # The script and its helpers come from the working tree, for both sides.
 for round in $(seq "$rounds"); do
   for side in base new; do
-    echo "$side $(PYTHONPATH="$work/${side}_python" "$python" "$@" | tail -n 1)" >>"$work/results"
+    side_env=$([ "$side" = base ] && echo "${BASE_ENV:-}" || echo "${NEW_ENV:-}")
+    # shellcheck disable=SC2086  # the side's variables, word-split on purpose
+    echo "$side $(env $side_env PYTHONPATH="$work/${side}_python" "$python" "$@" | tail -n 1)" >>"$work/results"
   done
 done
 "$python" - "$work/results" "$base" "$new" <<'EOF'
-import collections, json, statistics, sys
+import collections, json, os, statistics, sys
 
 runs = collections.defaultdict(lambda: collections.defaultdict(list))
 for line in open(sys.argv[1]):
@@ -63,6 +67,9 @@ for line in open(sys.argv[1]):
     for name, value in json.loads(text).items():
         runs[name][side].append(value)
 base, new = sys.argv[2], "working tree" if sys.argv[3] == "-" else sys.argv[3]
+for name, variables in (("base", "BASE_ENV"), ("new", "NEW_ENV")):
+    if os.environ.get(variables):
+        print(f"{name} ran with {os.environ[variables]}")
 rounds = max(len(sides["base"]) for sides in runs.values())
 print(f"median per side of {rounds} alternating processes; base {base}, new {new}")
 width = max(len(name) for name in runs)
