@@ -28,10 +28,12 @@ Reproduce
     python bench/bench_local_map.py             # a few seconds
     python bench/bench_local_map.py --quick     # every 4th point, 3 repeats
     python bench/bench_local_map.py --markdown  # also print a Markdown table
+    bash bench/ab_python.sh BASE - bench/bench_local_map.py --json   # two builds, alternating
 """
 
 from __future__ import annotations
 
+import json
 import sys
 
 import numpy as np
@@ -58,6 +60,9 @@ def main(argv: list[str] | None = None) -> int:
         argv,
         repeat_unit="method",
         quick_help=f"every {QUICK_STRIDE}th point, 3 repeats",
+        add_arguments=lambda parser: parser.add_argument(
+            "--json", action="store_true", help="also print the medians [ms] as one JSON object, last"
+        ),
     )
     folder = args.data_dir / "kitti_seq00" / "velodyne"
     paths = [folder / name for name in FRAMES]
@@ -136,6 +141,8 @@ def main(argv: list[str] | None = None) -> int:
         print(markdown_rule(2))
         for name, ms in times.items():
             print(markdown_row([name, f"{ms:.2f}", f"{ms / base:.2f}×"]))
+    if args.json:
+        print(json.dumps(times))
     return 0
 
 
