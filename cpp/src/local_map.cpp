@@ -482,8 +482,8 @@ void column_spans(const VisibilityImage& image, int n, double x, const double* y
 /// returns at least `beyond` further away horizontally, between its lowest fused point (or `depth`
 /// below its height, if lower) and `margin` below its height: where the points it holds would
 /// have stopped them. (Rays under a car's body or a table, below everything the cell holds, say
-/// nothing about it.) Row by row, in storage order: column_spans, then the bins of the cells that
-/// span some.
+/// nothing about it.) Cells this scan measures are left out: the fusion updates them. Row by row,
+/// in storage order: column_spans, then the bins of the cells that span some.
 template <typename Clear>
 void for_each_seen_through(Workspace& w, const float* elevation, const float* lowest, int n, double res,
                            const Eigen::Vector2d& origin, const Eigen::Vector3d& sensor, const Clearing& c,
@@ -501,7 +501,9 @@ void for_each_seen_through(Workspace& w, const float* elevation, const float* lo
     column_spans(w.visibility, n, x, w.cell_y.data(), elevation + row, lowest + row, c, w.azimuth.data(),
                  w.bottom.data(), w.top.data(), w.beyond_squared.data());
     for (std::size_t s = 0; s < size; ++s) {
-      if (w.top[s] >= 0 && w.visibility.seen_beyond(w.azimuth[s], w.bottom[s], w.top[s], w.beyond_squared[s])) {
+      const bool measured = w.start[row + s + 1] > w.start[row + s];  // fused, or replaced by the gate
+      if (w.top[s] >= 0 && !measured &&
+          w.visibility.seen_beyond(w.azimuth[s], w.bottom[s], w.top[s], w.beyond_squared[s])) {
         clear(row + s);
       }
     }
@@ -763,7 +765,6 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
     const Clearing distances{params_.clearing_margin_m, params_.clearing_depth_m,
                              std::max(params_.clearing_beyond_m, res), sensor.z()};
     for_each_seen_through(w, layer[kElevation], layer[kMin], n, res, origin, sensor, distances, [&](std::size_t cell) {
-      if (w.start[cell + 1] > w.start[cell]) return;  // measured again: fused, or replaced by the gate
       clear_cell(layer, {reference_, sum_, sum_squares_}, cell);
       ++report.num_cleared_cells;
     });
