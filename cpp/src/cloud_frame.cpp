@@ -15,17 +15,24 @@ void throw_non_finite_rows(const NonFiniteRows& rows, std::size_t num_rows) {
                               "); clean the cloud or set drop_non_finite=True to drop them");
 }
 
-void check_rigid_transform(const Eigen::Matrix4d& transform, const char* what) {
-  if (!transform.allFinite()) {
-    throw std::invalid_argument(std::string(what) + " contains NaN or Inf");
-  }
+void check_rigid_transform(const Eigen::Matrix4d& transform, const std::string& what) {
+  if (!transform.allFinite()) throw std::invalid_argument(what + " contains NaN or Inf");
   const Eigen::Matrix3d rotation = transform.topLeftCorner<3, 3>();
-  const bool last_row_ok = transform.row(3).isApprox(Eigen::RowVector4d(0, 0, 0, 1), 1e-9);
-  const bool orthonormal = (rotation.transpose() * rotation).isIdentity(1e-6);
-  if (!last_row_ok || !orthonormal || rotation.determinant() < 0.0) {
-    throw std::invalid_argument(std::string(what) +
-                                " must be a rigid 4x4 transform (proper rotation, last row 0 0 0 1)");
+  const double deviation = (rotation.transpose() * rotation - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff();
+  const double last_row = (transform.row(3) - Eigen::RowVector4d(0, 0, 0, 1)).cwiseAbs().maxCoeff();
+  std::string problem;
+  if (last_row > 1e-9) {
+    problem = "its last row is not 0 0 0 1";
+  } else if (deviation > kRigidTolerance) {
+    problem = "|R^T R - I| reaches " + number_text(deviation) + ", over " + number_text(kRigidTolerance) +
+              "; replace R by its nearest rotation (U V^T of its SVD)";
+  } else if (rotation.determinant() < 0.0) {
+    problem = "its 3x3 block is a reflection (negative determinant)";
+  } else {
+    return;
   }
+  throw std::invalid_argument(what +
+                              " must be a rigid 4x4 transform (a proper rotation R, last row 0 0 0 1): " + problem);
 }
 
 void check_crop(const std::optional<CropBox>& crop) {

@@ -1,5 +1,6 @@
 // Private helpers shared by collapse_overhangs, the elevation map and the baselines: leveling,
-// crop, finiteness checks and the bounding box that defines the CBC grid ([CBC] eqs. (1)-(9)).
+// crop, finiteness checks, the rigid-transform check of every pose input and the bounding box
+// that defines the CBC grid ([CBC] eqs. (1)-(9)).
 // Not installed.
 #pragma once
 
@@ -17,8 +18,14 @@
 
 namespace terracube::detail {
 
-/// Throws std::invalid_argument unless `transform` is finite and rigid (a proper rotation).
-void check_rigid_transform(const Eigen::Matrix4d& transform, const char* what);
+/// Largest entry of R^T R - I accepted in a rigid transform's rotation R: poses written with six
+/// significant digits (KITTI's, most text files) pass as they are.
+constexpr double kRigidTolerance = 1e-5;
+
+/// Throws std::invalid_argument naming `what` and the problem unless `transform` is finite and
+/// rigid: last row 0 0 0 1, R^T R within kRigidTolerance of I, det R > 0. Every pose, guess and
+/// transform the core takes passes this one check.
+void check_rigid_transform(const Eigen::Matrix4d& transform, const std::string& what);
 
 /// Throws std::invalid_argument unless the crop box (if any) is finite with min <= max.
 void check_crop(const std::optional<CropBox>& crop);

@@ -9,6 +9,7 @@
 #include <stdexcept>
 #include <string>
 
+#include "cloud_frame.hpp"
 #include "number_text.hpp"
 
 namespace terracube {
@@ -18,19 +19,6 @@ namespace {
 constexpr double kRadToDeg = 57.295779513082320876798;
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
-/// Rigid within text-file precision: pose files hold 6-7 significant digits, so R^T R departs
-/// from I by ~1e-6; 1e-5 still rejects anything that is not a rotation.
-void check_pose(const Eigen::Matrix4d& pose, const char* what, std::size_t index) {
-  const auto where = [&] { return std::string(what) + " pose " + std::to_string(index); };
-  if (!pose.allFinite()) throw std::invalid_argument(where() + " contains NaN or Inf");
-  const Eigen::Matrix3d rotation = pose.topLeftCorner<3, 3>();
-  const double orthonormality = (rotation.transpose() * rotation - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff();
-  const double last_row = (pose.row(3) - Eigen::RowVector4d(0, 0, 0, 1)).cwiseAbs().maxCoeff();
-  if (orthonormality > 1e-5 || last_row > 1e-9 || rotation.determinant() < 0.0) {
-    throw std::invalid_argument(where() + " is not a rigid 4x4 transform (proper rotation, last row 0 0 0 1)");
-  }
-}
-
 void check_trajectories(const std::vector<Eigen::Matrix4d>& estimate,
                         const std::vector<Eigen::Matrix4d>& ground_truth) {
   if (estimate.empty() || ground_truth.empty()) throw std::invalid_argument("trajectories must not be empty");
@@ -39,8 +27,8 @@ void check_trajectories(const std::vector<Eigen::Matrix4d>& estimate,
                                 std::to_string(ground_truth.size()));
   }
   for (std::size_t k = 0; k < estimate.size(); ++k) {
-    check_pose(estimate[k], "estimate", k);
-    check_pose(ground_truth[k], "ground truth", k);
+    detail::check_rigid_transform(estimate[k], "estimate pose " + std::to_string(k));
+    detail::check_rigid_transform(ground_truth[k], "ground truth pose " + std::to_string(k));
   }
 }
 

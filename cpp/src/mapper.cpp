@@ -14,6 +14,7 @@
 #include <string>
 #include <unordered_map>
 
+#include "cloud_frame.hpp"
 #include "number_text.hpp"
 #include "parallel.hpp"
 #include "terracube/collapse.hpp"
@@ -94,16 +95,6 @@ void check_mapper_params(const MapperParams& p) {
 }
 
 namespace {
-
-void check_pose(const Eigen::Matrix4d& pose) {
-  if (!pose.allFinite()) throw std::invalid_argument("odometry pose contains NaN or Inf");
-  const Eigen::Matrix3d r = pose.topLeftCorner<3, 3>();
-  if ((r * r.transpose() - Eigen::Matrix3d::Identity()).norm() > 1e-6 || std::abs(r.determinant() - 1.0) > 1e-6 ||
-      (pose.row(3) - Eigen::RowVector4d(0, 0, 0, 1)).norm() > 1e-9) {
-    throw std::invalid_argument(
-        "odometry pose is not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)");
-  }
-}
 
 Eigen::Matrix4d inverse_rigid(const Eigen::Matrix4d& t) {
   Eigen::Matrix4d inv = Eigen::Matrix4d::Identity();
@@ -468,7 +459,7 @@ void Mapper::Impl::rebuild() {
 
 template <typename Scalar>
 ScanReport Mapper::Impl::add(const PointsView<Scalar>& points, const Eigen::Matrix4d& odometry) {
-  check_pose(odometry);
+  detail::check_rigid_transform(odometry, "odometry pose");
   if (motion.have_last) {
     const double step = (odometry.topRightCorner<3, 1>() - motion.last_odometry.topRightCorner<3, 1>()).norm();
     if (!(step <= params.max_odometry_step_m)) {

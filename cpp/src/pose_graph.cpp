@@ -15,6 +15,7 @@
 #include <stdexcept>
 #include <string>
 
+#include "cloud_frame.hpp"
 #include "terracube/icp.hpp"
 
 namespace terracube {
@@ -22,17 +23,6 @@ namespace terracube {
 namespace {
 
 using Matrix6d = Eigen::Matrix<double, 6, 6>;
-
-void check_rigid(const Eigen::Matrix4d& pose, const std::string& what) {
-  if (!pose.allFinite()) throw std::invalid_argument(what + " contains NaN or Inf");
-  const Eigen::Matrix3d rotation = pose.topLeftCorner<3, 3>();
-  const double orthonormality = (rotation.transpose() * rotation - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff();
-  const double last_row = (pose.row(3) - Eigen::RowVector4d(0, 0, 0, 1)).cwiseAbs().maxCoeff();
-  // 1e-5 admits poses read from text files (6-7 significant digits) and rejects anything else.
-  if (orthonormality > 1e-5 || last_row > 1e-9 || rotation.determinant() < 0.0) {
-    throw std::invalid_argument(what + " is not a rigid 4x4 transform (proper rotation, last row 0 0 0 1)");
-  }
-}
 
 void check_params(const PoseGraphParams& p, std::size_t num_poses) {
   if (p.max_iterations < 1 || p.max_iterations > kMaxIterationsLimit) {
@@ -141,7 +131,7 @@ std::vector<Matrix6d> checked_information_roots(const std::vector<PoseGraphEdge>
                                   std::to_string(num_poses) + " poses");
     }
     if (edge.from == edge.to) throw std::invalid_argument("edge " + std::to_string(e) + " joins a pose to itself");
-    check_rigid(edge.measurement, "edge " + std::to_string(e) + " measurement");
+    detail::check_rigid_transform(edge.measurement, "edge " + std::to_string(e) + " measurement");
     roots.push_back(information_root(edge.information, e));
   }
   return roots;
@@ -169,7 +159,8 @@ PoseGraphResult optimize_pose_graph(const std::vector<Eigen::Matrix4d>& initial_
                                     const std::vector<PoseGraphEdge>& edges, const PoseGraphParams& params) {
   if (initial_poses.empty()) throw std::invalid_argument("the pose graph has no poses");
   check_params(params, initial_poses.size());
-  for (std::size_t k = 0; k < initial_poses.size(); ++k) check_rigid(initial_poses[k], "pose " + std::to_string(k));
+  for (std::size_t k = 0; k < initial_poses.size(); ++k)
+    detail::check_rigid_transform(initial_poses[k], "pose " + std::to_string(k));
   const std::vector<Matrix6d> roots = checked_information_roots(edges, initial_poses.size());
 
   PoseGraphResult result;

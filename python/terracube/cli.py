@@ -751,7 +751,8 @@ def _pose_xy_yaw(x: float, y: float, yaw_deg: float) -> np.ndarray:
 
 def parse_initial(text: str | None) -> np.ndarray:
     """A (4, 4) guess from ``--initial``: a text file of 4 rows of 4 numbers (or 3 x 4, KITTI style), a
-    JSON file with a ``transform`` entry, or ``x,y,yaw`` [m, m, deg]. ValueError naming the problem."""
+    JSON file with a ``transform`` entry, or ``x,y,yaw`` [m, m, deg]. ValueError naming the problem.
+    A file's rotation rounded to fewer than six digits is replaced by the nearest rotation."""
     if text is None:
         return np.eye(4)
     path = Path(text)
@@ -769,7 +770,9 @@ def parse_initial(text: str | None) -> np.ndarray:
             matrix = np.vstack([matrix, [0.0, 0.0, 0.0, 1.0]])
         if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
             raise ValueError(f"{path}: expected a finite 4x4 (or 3x4) transform, got shape {matrix.shape}")
-        return matrix
+        from .poses import rigid_from_file
+
+        return rigid_from_file(matrix, str(path))
     parts = [p for p in re.split(r"[,\s]+", text.strip()) if p]
     try:
         values = [float(p) for p in parts]
@@ -1444,7 +1447,16 @@ from .cli_bag import register as _register_bag_commands  # noqa: E402 - after ev
 _register_bag_commands(app)  # bag-info, and ROS bags as the input of map, collapse, dem, classify, fem
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:  # pragma: no cover
+    """Python warnings (e.g. a pose file's rounding, float32 precision) as one line, like the
+    commands' own warnings."""
+    typer.secho(f"warning: {message}", fg=typer.colors.YELLOW, err=True)
+
+
 def main() -> None:  # pragma: no cover
+    import warnings
+
+    warnings.showwarning = _show_warning
     try:
         app()
     except OSError as error:  # a file operation no command anticipated: still an error line

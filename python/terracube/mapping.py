@@ -329,7 +329,8 @@ def run_mapper(
 
 
 def read_kitti_calibration(path) -> np.ndarray:
-    """The 4x4 ``Tr`` (Velodyne -> left camera) of a KITTI ``calib.txt``."""
+    """The 4x4 ``Tr`` (Velodyne -> left camera) of a KITTI ``calib.txt`` (a rotation rounded to fewer
+    than six digits replaced by the nearest rotation, see :mod:`terracube.poses`)."""
     path = Path(path)
     for number, line in enumerate(path.read_text().splitlines(), start=1):
         key, _, values = line.partition(":")
@@ -340,7 +341,11 @@ def read_kitti_calibration(path) -> np.ndarray:
                 raise ValueError(f"{path}, line {number}: Tr must be 12 numbers") from None
             if numbers.shape != (12,) or not np.isfinite(numbers).all():
                 raise ValueError(f"{path}, line {number}: Tr must be 12 finite numbers, got {numbers.size}")
-            return np.vstack([numbers.reshape(3, 4), [0.0, 0.0, 0.0, 1.0]])
+            from .poses import rigid_from_file
+
+            return rigid_from_file(
+                np.vstack([numbers.reshape(3, 4), [0.0, 0.0, 0.0, 1.0]]), f"{path}, line {number}"
+            )
     raise ValueError(f"{path}: no 'Tr:' line (the Velodyne-to-camera calibration)")
 
 

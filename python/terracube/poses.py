@@ -4,18 +4,25 @@ KITTI: one pose per line, the 12 numbers of the 3x4 row-major matrix ``[R | t]``
 ``0 0 0 1`` is implied). TUM: ``timestamp tx ty tz qx qy qz qw`` per line, ``#`` starts a
 comment line. Poses are (K, 4, 4) float64 arrays of rigid sensor-to-world transforms. Malformed
 lines raise ``ValueError`` naming the file and the line number.
+
+The core takes a rotation R as one when no entry of R^T R - I exceeds :data:`RIGID_TOLERANCE`
+(1e-5: six significant digits). Files round further (``%.4f``, ``%.3f``): their rotations, up to
+1e-3 off, are replaced by the nearest rotation (:func:`nearest_rigid`), with a warning.
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 from os import PathLike
 from pathlib import Path
 
 import numpy as np
 
 __all__ = [
+    "RIGID_TOLERANCE",
     "matrix_from_quaternion",
+    "nearest_rigid",
     "quaternion_from_matrix",
     "read_kitti_poses",
     "read_times",
@@ -24,8 +31,12 @@ __all__ = [
     "write_tum_poses",
 ]
 
-#: Largest |R^T R - I| entry accepted from a file (files hold 6-7 significant digits).
-_ORTHONORMALITY_TOLERANCE = 1e-4
+#: Largest |R^T R - I| entry the core accepts in a rigid transform (cloud_frame.cpp's
+#: check_rigid_transform): poses written with six significant digits pass as they are.
+RIGID_TOLERANCE = 1e-5
+#: Largest |R^T R - I| entry read from a file (rounded to 3 decimals); beyond RIGID_TOLERANCE the
+#: nearest rotation replaces it.
+_FILE_TOLERANCE = 1e-3
 
 
 def _numbers(path: Path, number: int, line: str, expected: int, what: str) -> list[float]:
@@ -44,12 +55,58 @@ def _numbers(path: Path, number: int, line: str, expected: int, what: str) -> li
     return values
 
 
-def _check_rotation(path: Path, number: int, rotation: np.ndarray) -> None:
-    deviation = np.abs(rotation.T @ rotation - np.eye(3)).max()
-    if deviation > _ORTHONORMALITY_TOLERANCE or np.linalg.det(rotation) < 0.0:
+def _deviation(rotation: np.ndarray) -> float:
+    return float(np.abs(rotation.T @ rotation - np.eye(3)).max())
+
+
+def nearest_rigid(transform) -> np.ndarray:
+    """The (4, 4) rigid transform nearest to ``transform`` (4 x 4 or 3 x 4): its rotation block
+    replaced by the rotation nearest in the Frobenius norm (U V^T of its SVD), the translation kept.
+    ValueError for a block that is not finite or is a reflection (negative determinant)."""
+    matrix = np.asarray(transform, dtype=np.float64)
+    if matrix.shape not in ((4, 4), (3, 4)) or not np.isfinite(matrix).all():
+        raise ValueError(f"a transform must be a finite 4x4 or 3x4 array, got shape {matrix.shape}")
+    u, _, vt = np.linalg.svd(matrix[:3, :3])
+    if np.linalg.det(u @ vt) < 0.0:
+        raise ValueError("the 3x3 block is a reflection (negative determinant), not a rotation")
+    rigid = np.eye(4)
+    rigid[:3, :3] = u @ vt
+    rigid[:3, 3] = matrix[:3, 3]
+    return rigid
+
+
+def _rigid_from_file(transform: np.ndarray, where: str) -> tuple[np.ndarray, float]:
+    """(transform with a rotation the core accepts, the deviation it had): the nearest rotation
+    when it deviates by over RIGID_TOLERANCE; ValueError naming ``where`` beyond _FILE_TOLERANCE."""
+    deviation = _deviation(transform[:3, :3])
+    if deviation > _FILE_TOLERANCE or np.linalg.det(transform[:3, :3]) < 0.0:
         raise ValueError(
-            f"{path}, line {number}: the 3x3 block is not a rotation (|R^T R - I| = {deviation:.3g})"
+            f"{where}: the 3x3 block is not a rotation "
+            f"(|R^T R - I| = {deviation:.3g}, over {_FILE_TOLERANCE:g})"
         )
+    if deviation <= RIGID_TOLERANCE:
+        return transform, deviation
+    return nearest_rigid(transform), deviation
+
+
+def rigid_from_file(transform, where: str) -> np.ndarray:
+    """A 4 x 4 transform read from a file, made rigid for the core: rotations off by up to 1e-3 per
+    entry of R^T R - I (coarse rounding) are replaced by the nearest rotation, with a warning naming
+    ``where``; further off, or a reflection, ValueError."""
+    rigid, deviation = _rigid_from_file(np.asarray(transform, dtype=np.float64), where)
+    if deviation > RIGID_TOLERANCE:
+        _warn_rounding(where, 1, deviation)
+    return rigid
+
+
+def _warn_rounding(where: str, count: int, deviation: float) -> None:
+    rotations = "its rotation" if count == 1 else f"{count} rotations"
+    warnings.warn(
+        f"{where}: {rotations} rounded beyond six digits (|R^T R - I| up to {deviation:.2g}): the nearest "
+        "rotations are used",
+        UserWarning,
+        stacklevel=3,
+    )
 
 
 def read_kitti_poses(path: str | PathLike) -> np.ndarray:
@@ -58,10 +115,11 @@ def read_kitti_poses(path: str | PathLike) -> np.ndarray:
     Raises
     ------
     ValueError
-        A line without exactly 12 finite numbers, a 3x3 block that is not a rotation, or no pose.
+        A line without exactly 12 finite numbers, a 3x3 block that is not a rotation (see the
+        module's note on rounding), or no pose.
     """
     path = Path(path)
-    poses = []
+    poses, rounded = [], []
     with path.open("r", encoding="utf-8") as file:
         for number, line in enumerate(file, start=1):
             if not line.strip():
@@ -69,10 +127,14 @@ def read_kitti_poses(path: str | PathLike) -> np.ndarray:
             values = _numbers(path, number, line, 12, "a 3x4 row-major pose")
             pose = np.eye(4)
             pose[:3, :] = np.reshape(values, (3, 4))
-            _check_rotation(path, number, pose[:3, :3])
+            pose, deviation = _rigid_from_file(pose, f"{path}, line {number}")
+            if deviation > RIGID_TOLERANCE:
+                rounded.append(deviation)
             poses.append(pose)
     if not poses:
         raise ValueError(f"{path} holds no poses")
+    if rounded:
+        _warn_rounding(str(path), len(rounded), max(rounded))
     return np.stack(poses)
 
 

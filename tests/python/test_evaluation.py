@@ -8,6 +8,7 @@ here after the KITTI devkit, and numpy's own parsing of the KITTI ground-truth f
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -367,6 +368,67 @@ def test_kitti_reader_names_the_file_and_line_of_a_malformed_pose(tmp_path, text
     with pytest.raises(ValueError, match=message) as error:
         pf.read_kitti_poses(path)
     assert "bad_poses.txt" in str(error.value)
+
+
+def _yawed(yaw_deg: float, decimals: int) -> np.ndarray:
+    """A pose turned by yaw_deg about z, rounded to `decimals` as a pose file would hold it."""
+    return np.round(pose(1.5, -2.0, 0.25, yaw_deg=yaw_deg), decimals)
+
+
+def _rigid_calls():
+    """Every way a pose reaches the core: (name, call(pose))."""
+    import terracube as tc
+
+    points = np.random.default_rng(3).uniform(-5.0, 5.0, (400, 3))
+    truth = np.stack([np.eye(4), pose(1.0, 0.0, 0.0)])
+    cloud_map = tc.build_elevation_map(points, 0.5, origin=(-6, -6), size=(24, 24))
+    tc.classify_terrain(cloud_map, sensor_height=0.0)
+    return {
+        "LocalMap.update": lambda t: tc.LocalMap(length=10.0, resolution=0.5).update(points, t),
+        "Mapper.add_scan": lambda t: tc.Mapper(tc.MapperParams()).add_scan(points, t),
+        "collapse transform": lambda t: tc.collapse_overhangs(points, 0.5, 2, transform=t),
+        "register_maps initial": lambda t: tc.register_maps(cloud_map, cloud_map, initial=t),
+        "trajectory error": lambda t: ev.absolute_trajectory_error(np.stack([np.eye(4), t]), truth),
+    }
+
+
+@pytest.mark.parametrize("name", sorted(_rigid_calls()))
+def test_every_pose_input_takes_six_digit_rotations_and_names_a_larger_error(name):
+    # Independent reference: the rounding error of each pose, computed here. Six decimals (KITTI's
+    # files) leave |R^T R - I| < 1e-6 and pass everywhere; four leave ~1e-4, over the one tolerance.
+    call = _rigid_calls()[name]
+    six, four = _yawed(37.0, 6), _yawed(37.0, 4)
+    deviation = np.abs(four[:3, :3].T @ four[:3, :3] - np.eye(3)).max()
+    assert np.abs(six[:3, :3].T @ six[:3, :3] - np.eye(3)).max() < 1e-6 < pf.RIGID_TOLERANCE < deviation
+    call(six)
+    with pytest.raises(ValueError, match=r"rigid 4x4 transform .*\|R\^T R - I\| reaches .*nearest rotation"):
+        call(four)
+
+
+def test_kitti_reader_replaces_coarsely_rounded_rotations_by_the_nearest_with_a_warning(tmp_path):
+    exact = np.stack([pose(0, 0, 0, yaw_deg=37.0), pose(3, 1, 0, yaw_deg=-120.0, roll_deg=2.0)])
+    path = tmp_path / "poses.txt"
+    for decimals, warns in ((9, False), (4, True), (3, True)):
+        rows = np.round(exact[:, :3, :].reshape(-1, 12), decimals)
+        path.write_text("\n".join(" ".join(f"{v:.{decimals}f}" for v in row) for row in rows) + "\n")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            read = pf.read_kitti_poses(path)
+        assert bool(caught) == warns
+        # The rotations the core gets are rotations, within the file's rounding of the true ones.
+        for got, want in zip(read, exact, strict=True):
+            np.testing.assert_allclose(got[:3, :3].T @ got[:3, :3], np.eye(3), atol=1e-12 if warns else 1e-8)
+            np.testing.assert_allclose(got, want, atol=2 * 10.0**-decimals)
+        if warns:
+            assert "poses.txt: 2 rotations rounded beyond six digits" in str(caught[0].message)
+    path.write_text("0.99 0 0 0 0 1 0 0 0 0 1 0\n")  # 2e-2 off: not a rounding
+    with pytest.raises(
+        ValueError, match=r"line 1: the 3x3 block is not a rotation \(\|R\^T R - I\| = 0.0199"
+    ):
+        pf.read_kitti_poses(path)
+    np.testing.assert_allclose(pf.nearest_rigid(np.diag([1.0, 1.001, 0.999, 1.0])), np.eye(4), atol=1e-15)
+    with pytest.raises(ValueError, match="reflection"):
+        pf.nearest_rigid(np.diag([1.0, 1.0, -1.0, 1.0]))
 
 
 @pytest.mark.parametrize(

@@ -227,10 +227,6 @@ struct Scan {
 Scan cast_scan(const Scene& scene, const Eigen::Matrix4d& world_T_sensor, const SensorModel& model,
                std::uint64_t seed = 0);
 
-/// Throws std::invalid_argument unless `pose` is finite and rigid (orthonormal rotation with
-/// det +1 within 1e-6, last row 0 0 0 1); `name` starts the message.
-void check_rigid(const Eigen::Matrix4d& pose, const std::string& name);
-
 // ---------------------------------------------------------------------------------------------
 // Road and loop scene
 

@@ -8,6 +8,7 @@
 #include <stdexcept>
 #include <utility>
 
+#include "cloud_frame.hpp"
 #include "simulation_support.hpp"
 
 namespace terracube::simulation {
@@ -628,23 +629,10 @@ std::vector<Eigen::Vector3d> sensor_rays(const SensorModel& model) {
   return rays;
 }
 
-void check_rigid(const Eigen::Matrix4d& pose, const std::string& name) {
-  if (!pose.allFinite()) fail(name + " must be finite (it holds NaN or Inf)");
-  const Eigen::Matrix3d r = pose.topLeftCorner<3, 3>();
-  const double orthogonality = (r.transpose() * r - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff();
-  if (orthogonality > 1e-6 || std::abs(r.determinant() - 1.0) > 1e-6 || pose(3, 0) != 0.0 || pose(3, 1) != 0.0 ||
-      pose(3, 2) != 0.0 || pose(3, 3) != 1.0) {
-    std::ostringstream text;
-    text << name << " must be a rigid transform (orthonormal rotation, det +1, last row 0 0 0 1); |R^T R - I| = "
-         << orthogonality << ", det R = " << r.determinant();
-    fail(text.str());
-  }
-}
-
 Scan cast_scan(const Scene& scene, const Eigen::Matrix4d& world_T_sensor, const SensorModel& model,
                std::uint64_t seed) {
   validate(model);
-  check_rigid(world_T_sensor, "world_T_sensor");
+  detail::check_rigid_transform(world_T_sensor, "world_T_sensor");
   double min_range = 0.0, max_range = 0.0, sigma = 0.0;
   std::visit(
       [&](const auto& m) {

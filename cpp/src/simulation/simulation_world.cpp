@@ -5,6 +5,7 @@
 #include <memory>
 #include <utility>
 
+#include "cloud_frame.hpp"
 #include "simulation_support.hpp"
 #include "terracube/simulation.hpp"
 
@@ -381,7 +382,7 @@ SyntheticSequence::SyntheticSequence(std::shared_ptr<const SyntheticWorld> world
   if (!world_) fail("a sequence needs a world");
   validate(sensor_);
   if (trajectory_.poses.size() != trajectory_.odometry.size()) fail("poses and odometry differ in length");
-  for (const Eigen::Matrix4d& pose : trajectory_.poses) check_rigid(pose, "pose");
+  for (const Eigen::Matrix4d& pose : trajectory_.poses) detail::check_rigid_transform(pose, "pose");
 }
 
 Scan SyntheticSequence::scan(std::size_t k) const {
