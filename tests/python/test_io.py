@@ -307,6 +307,69 @@ def test_a_truncated_las_or_laz_names_the_file_and_the_problem(tmp_path, shared_
         read_points(path)
 
 
+# ------------------------------------------------------------------------------------------ text files
+
+ROWS = np.array([[1.5, -2.0, 3.25, 7.0], [4.0, 5.5, -6.0, 8.0], [0.0, 0.125, 9.0, 9.0]])
+
+
+@pytest.mark.parametrize(
+    "header, order",
+    [
+        ("# intensity x y z", [3, 0, 1, 2]),
+        ("# X Y Z Intensity", [0, 1, 2, 3]),
+        ("# z, intensity, y, x", [2, 3, 1, 0]),
+        ("y x intensity z", [1, 0, 3, 2]),
+    ],
+)
+def test_a_text_header_gives_x_y_z_by_name_in_any_order_and_case(tmp_path, header, order):
+    path = tmp_path / "named.txt"
+    body = "\n".join(" ".join(f"{v:g}" for v in row) for row in ROWS[:, order])
+    path.write_text(f"{header}\n{body}\n")
+    cloud = read_cloud(path)
+    np.testing.assert_array_equal(cloud["xyz"], ROWS[:, :3])
+    intensity = next(name for name in cloud if name.lower() == "intensity")
+    np.testing.assert_array_equal(cloud[intensity], ROWS[:, 3])
+
+
+@pytest.mark.parametrize(
+    "name, text",
+    [
+        ("polar.txt", "# range azimuth elevation intensity\n1 2 3 4\n"),
+        ("two_axes.csv", "x,y,intensity\n1,2,3\n"),
+        ("twice.txt", "# x x y z\n1 2 3 4\n"),
+        ("counts.txt", "# x y z intensity\n1 2 3\n"),
+    ],
+)
+def test_a_text_header_without_x_y_z_or_unlike_the_rows_is_an_error_naming_the_file(tmp_path, name, text):
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(ValueError, match=name.replace(".", r"\.") + ": .*header"):
+        read_cloud(path)
+
+
+@pytest.mark.parametrize("suffix", [".txt", ".xyz", ".csv", ".asc"])
+@pytest.mark.parametrize("separator", [",", ", ", " ", "\t"])
+def test_text_reads_whitespace_or_comma_separated_rows_for_every_text_suffix(tmp_path, suffix, separator):
+    path = tmp_path / f"rows{suffix}"
+    path.write_text("".join(separator.join(f"{v:g}" for v in row) + "\n" for row in ROWS))
+    np.testing.assert_array_equal(read_points(path), ROWS[:, :3])
+
+
+@pytest.mark.parametrize("header", ["x,y,z,intensity", "# x,y,z,intensity", "X Y Z intensity"])
+def test_a_first_line_of_column_names_is_the_header_with_or_without_hash(tmp_path, header):
+    path = tmp_path / "points.csv"
+    path.write_text(header + "\n" + "".join(",".join(f"{v:g}" for v in row) + "\n" for row in ROWS))
+    cloud = read_cloud(path)
+    np.testing.assert_array_equal(cloud["xyz"], ROWS[:, :3])
+    np.testing.assert_array_equal(cloud["intensity"], ROWS[:, 3])
+
+
+def test_a_comment_line_that_names_no_columns_is_skipped(tmp_path):
+    path = tmp_path / "commented.txt"
+    path.write_text("# scanner export\n" + "".join(" ".join(map(str, r)) + "\n" for r in ROWS))
+    np.testing.assert_array_equal(read_points(path), ROWS[:, :3])
+
+
 @pytest.mark.parametrize(
     "name, content",
     [
