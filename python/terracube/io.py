@@ -200,11 +200,29 @@ def read_cloud(path: PathLike) -> dict[str, np.ndarray]:
 # --------------------------------------------------------------------------------------------- readers
 
 
+_KITTI_LAYOUT = "KITTI .bin layout (float32 rows x, y, z, intensity)"
+#: A .bin coordinate beyond this [m] is no LiDAR return (UTM northings stay under 1e7 m): it is the
+#: bytes of another layout (float64 rows read as float32 give values up to 1e38 at random).
+_KITTI_MAX_COORDINATE_M = 1e8
+#: The share of points beyond that which marks a file as another layout rather than a few strays.
+_KITTI_MAX_STRAY_SHARE = 0.01
+
+
 def _read_bin(path: Path) -> dict[str, np.ndarray]:
     size = path.stat().st_size
     if size % 16 != 0:  # np.fromfile would drop the trailing bytes silently
-        raise _FormatError(f"{size} bytes is not a whole number of 16-byte float32 (x, y, z, i) rows")
+        raise _FormatError(f"{size} bytes is not a whole number of 16-byte rows of the {_KITTI_LAYOUT}")
+    with path.open("rb") as stream:
+        if stream.read(6) == b"\x93NUMPY":
+            raise _FormatError(f"a NumPy .npy array (rename it to .npy), not the {_KITTI_LAYOUT}")
     rows = np.fromfile(path, dtype="<f4").reshape(-1, 4)
+    with np.errstate(invalid="ignore"):
+        strays = np.count_nonzero(np.any(np.abs(rows[:, :3]) > _KITTI_MAX_COORDINATE_M, axis=1))
+    if strays > _KITTI_MAX_STRAY_SHARE * len(rows):
+        raise _FormatError(
+            f"{strays} of {len(rows)} points have coordinates beyond {_KITTI_MAX_COORDINATE_M:g} m: not "
+            f"the {_KITTI_LAYOUT}; float64 rows, or another format renamed to .bin?"
+        )
     fields = {"xyz": rows[:, :3], "intensity": rows[:, 3]}
     label_path = path.with_suffix(".label")
     if label_path.is_file():  # a SemanticKITTI label file beside the scan: uint32, class in the low 16 bits
@@ -550,7 +568,12 @@ def _pcd_header(data: bytes):
         offset = end + 1
         if line and not line.startswith("#"):
             if line.split()[0].upper() not in _PCD_HEADER_KEYS:
-                raise _FormatError(f"not a PCD file: unexpected header line {line[:60]!r}")
+                excerpt = line[:60]
+                if not (excerpt.isascii() and excerpt.replace("\t", " ").isprintable()):
+                    raise _FormatError(
+                        "not a PCD file: binary data where the header (VERSION, FIELDS, ...) belongs"
+                    )
+                raise _FormatError(f"not a PCD file: unexpected header line {excerpt!r}")
             lines.append(line)
     try:
         metadata = MetaData.parse_header(lines)

@@ -6,6 +6,8 @@ reads like its numpy twin; truncated and non-point files give a ValueError namin
 
 from __future__ import annotations
 
+import io
+import re
 from pathlib import Path
 
 import numpy as np
@@ -368,6 +370,57 @@ def test_a_comment_line_that_names_no_columns_is_skipped(tmp_path):
     path = tmp_path / "commented.txt"
     path.write_text("# scanner export\n" + "".join(" ".join(map(str, r)) + "\n" for r in ROWS))
     np.testing.assert_array_equal(read_points(path), ROWS[:, :3])
+
+
+# ------------------------------------------------------------------------------- files of another layout
+
+KITTI_LAYOUT = r"KITTI \.bin layout \(float32 rows x, y, z, intensity\)"
+
+
+def _xyzi(rows: int = 256) -> np.ndarray:
+    rng = np.random.default_rng(5)
+    return np.c_[rng.uniform(-40, 40, (rows, 3)), rng.uniform(0, 1, rows)]
+
+
+def _npy_bytes(array: np.ndarray) -> bytes:
+    stream = io.BytesIO()
+    np.save(stream, array)
+    return stream.getvalue()
+
+
+@pytest.mark.parametrize(
+    "data, detail",
+    [
+        (_npy_bytes(_xyzi().astype(np.float32)), "a NumPy .npy array"),
+        (_xyzi().astype("<f8").tobytes(), "coordinates beyond"),
+        (_xyzi().astype("<f8").tobytes()[8:-8], "coordinates beyond"),
+    ],
+    ids=["npy renamed", "float64 rows", "float64 rows, shifted"],
+)
+def test_a_bin_of_another_layout_names_the_file_and_the_kitti_layout(tmp_path, data, detail):
+    assert len(data) % 16 == 0  # each passes the size check
+    path = tmp_path / "scan.bin"
+    path.write_bytes(data)
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}: .*{detail}.*{KITTI_LAYOUT}"):
+        read_points(path)
+
+
+def test_a_bin_with_a_few_stray_coordinates_still_reads(tmp_path):
+    rows = _xyzi(1000).astype(np.float32)
+    rows[:2, :3] = [[1e30, 0, 0], [np.inf, np.nan, 0]]  # under 1 % of the coordinates
+    path = write_kitti_bin(tmp_path / "stray.bin", rows[:, :3])
+    np.testing.assert_array_equal(read_points(path), rows[:, :3])
+
+
+def test_a_binary_file_named_pcd_shows_no_raw_bytes(tmp_path, shared_data):
+    path = tmp_path / "kitti.pcd"
+    path.write_bytes(shared_data.path("kitti_seq00/velodyne/000000.bin").read_bytes())
+    with pytest.raises(ValueError) as caught:
+        read_cloud(path)
+    message = str(caught.value)
+    assert message.startswith(f"{path}: not a PCD file")
+    detail = message[len(str(path)) :]
+    assert detail.isascii() and detail.isprintable() and len(detail) <= 120, detail
 
 
 @pytest.mark.parametrize(
