@@ -12,7 +12,9 @@ suffix                  read                                  write (``write_cla
                         (+ a SemanticKITTI ``.label`` beside)  SemanticKITTI-style ``.label`` file
 ``.npy``                (N, >=3) array                        (N, 4) x, y, z, label
 ``.npz``                key ``xyz`` or ``points``             ``xyz`` + ``overhang`` or ``label``
-``.txt`` ``.xyz`` ...   whitespace/comma separated text       ``# x y z <label>`` header, one row each
+``.txt`` ``.xyz`` ...   whitespace/comma separated text,      ``# x y z <label>`` header, one row each
+                        columns named by a first line
+                        (``# x y z ...`` or ``x,y,z,...``)
 ======================  ====================================  =========================================
 
 ROS bags (ROS 1 ``.bag``, ROS 2 folders, ``.mcap``) are read by :func:`read_bag` and listed by
@@ -123,7 +125,8 @@ def read_points(path: PathLike) -> np.ndarray:
     Supported: PCD (``.pcd``; ascii, binary and binary_compressed), PLY (``.ply``), LAS/LAZ (``.las``,
     ``.laz``; scaled coordinates as float64), KITTI-style ``.bin`` (float32 rows of x, y, z, intensity),
     ``.npy`` ((N, >=3)), ``.npz`` (key ``xyz`` or ``points``, else the first array) and whitespace- or
-    comma-separated text (``.txt``, ``.xyz``, ``.csv``, ``.asc``; the first three columns). Every point
+    comma-separated text (``.txt``, ``.xyz``, ``.csv``, ``.asc``; the columns a first line of names such
+    as ``# x y z ...`` or ``intensity,x,y,z`` calls x, y and z, else the first three). Every point
     of the file is returned, in file order, including invalid returns a sensor may store as (0, 0, 0)
     or NaN (organised PCD clouds). Raises ``ValueError`` naming the file for a malformed, truncated or
     unknown file and ``FileNotFoundError`` for a missing one.
@@ -138,8 +141,8 @@ def read_cloud(path: PathLike) -> dict[str, np.ndarray]:
     PCD fields (``intensity``, ``ring``, ``label``, ...; a field with COUNT > 1 is (N, COUNT)), PLY
     vertex properties, LAS dimensions (``intensity``, ``classification``, ``return_number``, extra
     bytes ...), the ``.bin`` ``intensity``, the other arrays of an ``.npz`` of length N, the named
-    columns of a text file whose first line is a ``# x y z ...`` header, and the columns after the
-    third of an ``.npy`` as ``"extra"`` ((N, k - 3)).
+    columns of a text file whose first line names them (``# x y z ...`` or ``x,y,z,...``), and the
+    columns after the third of an ``.npy`` as ``"extra"`` ((N, k - 3)).
 
     ``"label"`` is added when the file holds a per-point label, the first of the fields ``label``,
     ``overhang`` and ``classification``, except that a LAS file written from an overhang mask gives its
@@ -197,11 +200,29 @@ def read_cloud(path: PathLike) -> dict[str, np.ndarray]:
 # --------------------------------------------------------------------------------------------- readers
 
 
+_KITTI_LAYOUT = "KITTI .bin layout (float32 rows x, y, z, intensity)"
+#: A .bin coordinate beyond this [m] is no LiDAR return (UTM northings stay under 1e7 m): it is the
+#: bytes of another layout (float64 rows read as float32 give values up to 1e38 at random).
+_KITTI_MAX_COORDINATE_M = 1e8
+#: The share of points beyond that which marks a file as another layout rather than a few strays.
+_KITTI_MAX_STRAY_SHARE = 0.01
+
+
 def _read_bin(path: Path) -> dict[str, np.ndarray]:
     size = path.stat().st_size
     if size % 16 != 0:  # np.fromfile would drop the trailing bytes silently
-        raise _FormatError(f"{size} bytes is not a whole number of 16-byte float32 (x, y, z, i) rows")
+        raise _FormatError(f"{size} bytes is not a whole number of 16-byte rows of the {_KITTI_LAYOUT}")
+    with path.open("rb") as stream:
+        if stream.read(6) == b"\x93NUMPY":
+            raise _FormatError(f"a NumPy .npy array (rename it to .npy), not the {_KITTI_LAYOUT}")
     rows = np.fromfile(path, dtype="<f4").reshape(-1, 4)
+    with np.errstate(invalid="ignore"):
+        strays = np.count_nonzero(np.any(np.abs(rows[:, :3]) > _KITTI_MAX_COORDINATE_M, axis=1))
+    if strays > _KITTI_MAX_STRAY_SHARE * len(rows):
+        raise _FormatError(
+            f"{strays} of {len(rows)} points have coordinates beyond {_KITTI_MAX_COORDINATE_M:g} m: not "
+            f"the {_KITTI_LAYOUT}; float64 rows, or another format renamed to .bin?"
+        )
     fields = {"xyz": rows[:, :3], "intensity": rows[:, 3]}
     label_path = path.with_suffix(".label")
     if label_path.is_file():  # a SemanticKITTI label file beside the scan: uint32, class in the low 16 bits
@@ -251,32 +272,68 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
 
 
 def _read_text(path: Path) -> dict[str, np.ndarray]:
-    delimiter = "," if path.suffix.lower() == ".csv" else None
+    """Rows of numbers split by whitespace or commas (whichever the first row uses). A first line
+    of column names (with or without a leading ``#``; a ``#`` line counts when it names x, y or z
+    or as many columns as the rows hold, other ``#`` lines are comments) gives x, y, z by name and
+    the other columns as fields; without one the first three columns are x, y, z."""
+    header, first_row = None, None
     with open(path, encoding="utf-8", errors="replace") as stream:
-        first = stream.readline()
-    names = first.lstrip("#").replace(",", " ").split() if first.startswith("#") else []
+        for number, line in enumerate(stream):
+            text = line.strip()
+            if number == 0 and (text.startswith("#") or (text and not _has_number(text))):
+                header = text
+            elif text and not text.startswith("#"):
+                first_row = text
+                break
+    delimiter = "," if first_row is not None and "," in first_row else None
+    names = re.split(r"[\s,]+", header.lstrip("#").strip()) if header else []
+    skip = 1 if header and not header.startswith("#") else 0
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
-        table = np.loadtxt(path, delimiter=delimiter, ndmin=2)
-    if table.size == 0:
-        if names[:3] != ["x", "y", "z"]:
+        table = np.loadtxt(path, delimiter=delimiter, skiprows=skip, ndmin=2)
+    lower = [name.lower() for name in names]
+    named = header is not None and (
+        not header.startswith("#") or bool({"x", "y", "z"} & set(lower)) or len(names) == table.shape[1]
+    )
+    if not named:
+        if table.size == 0:
             raise _FormatError("no points and no '# x y z ...' header")
+        _check_points(table)
+        return {"xyz": table[:, :3]}
+    if any(lower.count(axis) != 1 for axis in "xyz"):
+        raise _FormatError(
+            f"the header {header[:80]!r} must name each of the columns x, y and z once "
+            "(in any order, with other columns beside them)"
+        )
+    if table.size == 0:
         table = np.zeros((0, len(names)))
+    if table.shape[1] != len(names):
+        raise _FormatError(
+            f"the header {header[:80]!r} names {len(names)} columns, the rows hold {table.shape[1]}"
+        )
     _check_points(table)
-    fields = {"xyz": table[:, :3]}
-    if names[:3] == ["x", "y", "z"] and len(names) == table.shape[1]:
-        for column, name in enumerate(names[3:], start=3):
-            values = table[:, column]
-            if name in ("label", "overhang", "classification"):
-                if (
-                    np.any(values != np.round(values))
-                    or values.min(initial=0) < 0
-                    or values.max(initial=0) > 255
-                ):
-                    raise _FormatError(f"column {name!r} holds values that are not labels 0..255")
-                values = values.astype(np.uint8)
-            fields[name] = values
+    fields = {"xyz": table[:, [lower.index(axis) for axis in "xyz"]]}
+    for column, name in enumerate(names):
+        if lower[column] in ("x", "y", "z"):
+            continue
+        values = table[:, column]
+        if name in ("label", "overhang", "classification"):
+            if np.any(values != np.round(values)) or values.min(initial=0) < 0 or values.max(initial=0) > 255:
+                raise _FormatError(f"column {name!r} holds values that are not labels 0..255")
+            values = values.astype(np.uint8)
+        fields[name] = values
     return fields
+
+
+def _has_number(line: str) -> bool:
+    """Whether any comma- or whitespace-separated word of ``line`` reads as a number."""
+    for word in re.split(r"[\s,]+", line):
+        try:
+            float(word)
+        except ValueError:
+            continue
+        return True
+    return False
 
 
 def _read_ply(path: Path) -> dict[str, np.ndarray]:
@@ -511,7 +568,12 @@ def _pcd_header(data: bytes):
         offset = end + 1
         if line and not line.startswith("#"):
             if line.split()[0].upper() not in _PCD_HEADER_KEYS:
-                raise _FormatError(f"not a PCD file: unexpected header line {line[:60]!r}")
+                excerpt = line[:60]
+                if not (excerpt.isascii() and excerpt.replace("\t", " ").isprintable()):
+                    raise _FormatError(
+                        "not a PCD file: binary data where the header (VERSION, FIELDS, ...) belongs"
+                    )
+                raise _FormatError(f"not a PCD file: unexpected header line {excerpt!r}")
             lines.append(line)
     try:
         metadata = MetaData.parse_header(lines)

@@ -82,31 +82,37 @@ _PLOT_LOCK = threading.Lock()
 # ------------------------------------------------------------------------------------------ inputs
 
 
+def _read_scan_fields(path: str | Path) -> dict[str, np.ndarray]:
+    """:func:`terracube.io.read_cloud` of a scan file; ValueError naming it when it holds no points
+    (every reader of a scan goes through here, so every command refuses such a file alike)."""
+    from .io import read_cloud
+
+    fields = read_cloud(path)
+    if len(fields["xyz"]) == 0:
+        raise ValueError(f"{path}: the file holds no points")
+    return fields
+
+
 def read_scan(path: str | Path) -> np.ndarray:
-    """The (N, 3) or wider array of points [m] of one scan file (any format of :mod:`terracube.io`).
+    """The (N, 3) array of points [m] of one scan file (any format of :mod:`terracube.io`).
 
-    Raises FileNotFoundError for a missing file and ValueError naming the file for a malformed one.
+    Raises FileNotFoundError for a missing file and ValueError naming the file for a malformed one
+    or one that holds no points.
     """
-    from .io import read_points
-
-    return read_points(path)
+    return _read_scan_fields(path)["xyz"]
 
 
 def read_scan_and_beams(path: str | Path, origin=None) -> tuple[np.ndarray, np.ndarray | None]:
     """The points of one scan file (as :func:`read_scan`) and the directions of its beams that
     returned nothing, seen from ``origin`` (the file's origin when None; :func:`empty_beams`), for
     ``method="shadow_aware"``; None when the file does not lay the scan out."""
-    from .io import read_cloud
-
-    fields = read_cloud(path)
+    fields = _read_scan_fields(path)
     return fields["xyz"], empty_beams(fields["xyz"], fields.get("ring"), origin)
 
 
 def read_returns_and_beams(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """:func:`returns_and_beams` of one scan file."""
-    from .io import read_cloud
-
-    fields = read_cloud(path)
+    """:func:`returns_and_beams` of one scan file (ValueError as :func:`read_scan`)."""
+    fields = _read_scan_fields(path)
     return returns_and_beams(fields["xyz"], fields.get("ring"))
 
 

@@ -7,6 +7,7 @@ and problem while the others finish; the command exits 1. Local clusters are sma
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -20,6 +21,7 @@ from terracube.batch import FileRecord, expand_inputs, format_summary, run_batch
 from terracube.cli import app
 from terracube.config import default_config
 from terracube.io import read_cloud, write_classified, write_pcd
+from terracube.pipeline import read_returns_and_beams, read_scan, read_scan_and_beams
 from typer.testing import CliRunner
 
 
@@ -82,6 +84,33 @@ def test_run_batch_processes_the_good_files_and_reports_the_corrupt_one(tmp_path
         assert [Path(p).name for p in record.outputs] == [f"{name}_dem.npz"]
         assert record.seconds > 0
     _check_dem_outputs(out, scans)
+
+
+@pytest.mark.parametrize("reader", [read_scan, read_scan_and_beams, read_returns_and_beams])
+@pytest.mark.parametrize("name", ["e.bin", "e.npy", "e.txt"])
+def test_every_scan_reader_refuses_a_file_without_points_naming_it(tmp_path, reader, name):
+    path = tmp_path / name
+    write_classified(path, np.zeros((0, 3), np.float32), np.zeros(0, bool))
+    assert len(read_cloud(path)["xyz"]) == 0  # the file reader itself reads an empty cloud
+    with pytest.raises(ValueError, match=f"^{re.escape(str(path))}: the file holds no points$"):
+        reader(path)
+
+
+def test_run_batch_counts_a_scan_without_points_as_failed(tmp_path, scan_folder):
+    folder, _ = scan_folder
+    (folder / "e.bin").write_bytes(b"")
+    records = run_batch(
+        "collapse",
+        [folder / "e.bin", folder / "scan_a.npy"],
+        tmp_path / "out",
+        options={"png": False},
+        workers=1,
+        processes=False,
+        progress=False,
+    )
+    empty, good = records
+    assert empty.status == "failed" and empty.outputs == [] and good.ok, good.error
+    assert empty.error == f"{folder / 'e.bin'}: the file holds no points"
 
 
 def test_a_glob_and_files_are_expanded_in_order_without_duplicates(scan_folder):

@@ -33,6 +33,7 @@ def workspace(tmp_path):
     rng = np.random.default_rng(8)
     np.save(tmp_path / "scan.npy", rng.uniform(0, 5, (2000, 3)).astype(np.float32))
     np.save(tmp_path / "empty.npy", np.zeros((0, 3), np.float32))
+    (tmp_path / "e.bin").write_bytes(b"")
     (tmp_path / "afile").write_text("not a folder")
     (tmp_path / "scans").mkdir()
     np.save(tmp_path / "scans" / "000000.npy", rng.uniform(0, 5, (2000, 3)).astype(np.float32))
@@ -54,7 +55,16 @@ CASES = {  # id: (command line, the error line holds)
     ),
     "output name too long": (f"dem scan.npy -o out/{LONG}", "file name too long"),
     "input name too long": (f"dem {LONG}.npy", "file name too long"),
-    "empty scan, one prefix": ("dem empty.npy -o out", "error: empty: no point falls inside the map"),
+    "empty scan, one prefix": ("dem empty.npy -o out", "error: empty.npy: the file holds no points"),
+    **{
+        f"0-byte scan, {command}": (f"{command} e.bin -o out", "error: e.bin: the file holds no points")
+        for command in ("collapse", "dem", "classify", "fem", "view")
+    },
+    "0-byte scan, register": ("register e.bin scan.npy", "error: e.bin: the file holds no points"),
+    "0-byte scan, shadow-aware collapse": (
+        "collapse e.bin --method shadow_aware -o out",
+        "error: e.bin: the file holds no points",
+    ),
     "missing --calib": (
         "map scans -p poses.txt --calib no.txt -o out",
         "error: --calib no.txt: no such file",

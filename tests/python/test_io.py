@@ -6,6 +6,8 @@ reads like its numpy twin; truncated and non-point files give a ValueError namin
 
 from __future__ import annotations
 
+import io
+import re
 from pathlib import Path
 
 import numpy as np
@@ -305,6 +307,120 @@ def test_a_truncated_las_or_laz_names_the_file_and_the_problem(tmp_path, shared_
     path.write_bytes(data[: int(len(data) * keep)])
     with pytest.raises(ValueError, match=r"cut\.la[sz]: .*(truncated|not a valid LAS)"):
         read_points(path)
+
+
+# ------------------------------------------------------------------------------------------ text files
+
+ROWS = np.array([[1.5, -2.0, 3.25, 7.0], [4.0, 5.5, -6.0, 8.0], [0.0, 0.125, 9.0, 9.0]])
+
+
+@pytest.mark.parametrize(
+    "header, order",
+    [
+        ("# intensity x y z", [3, 0, 1, 2]),
+        ("# X Y Z Intensity", [0, 1, 2, 3]),
+        ("# z, intensity, y, x", [2, 3, 1, 0]),
+        ("y x intensity z", [1, 0, 3, 2]),
+    ],
+)
+def test_a_text_header_gives_x_y_z_by_name_in_any_order_and_case(tmp_path, header, order):
+    path = tmp_path / "named.txt"
+    body = "\n".join(" ".join(f"{v:g}" for v in row) for row in ROWS[:, order])
+    path.write_text(f"{header}\n{body}\n")
+    cloud = read_cloud(path)
+    np.testing.assert_array_equal(cloud["xyz"], ROWS[:, :3])
+    intensity = next(name for name in cloud if name.lower() == "intensity")
+    np.testing.assert_array_equal(cloud[intensity], ROWS[:, 3])
+
+
+@pytest.mark.parametrize(
+    "name, text",
+    [
+        ("polar.txt", "# range azimuth elevation intensity\n1 2 3 4\n"),
+        ("two_axes.csv", "x,y,intensity\n1,2,3\n"),
+        ("twice.txt", "# x x y z\n1 2 3 4\n"),
+        ("counts.txt", "# x y z intensity\n1 2 3\n"),
+    ],
+)
+def test_a_text_header_without_x_y_z_or_unlike_the_rows_is_an_error_naming_the_file(tmp_path, name, text):
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(ValueError, match=name.replace(".", r"\.") + ": .*header"):
+        read_cloud(path)
+
+
+@pytest.mark.parametrize("suffix", [".txt", ".xyz", ".csv", ".asc"])
+@pytest.mark.parametrize("separator", [",", ", ", " ", "\t"])
+def test_text_reads_whitespace_or_comma_separated_rows_for_every_text_suffix(tmp_path, suffix, separator):
+    path = tmp_path / f"rows{suffix}"
+    path.write_text("".join(separator.join(f"{v:g}" for v in row) + "\n" for row in ROWS))
+    np.testing.assert_array_equal(read_points(path), ROWS[:, :3])
+
+
+@pytest.mark.parametrize("header", ["x,y,z,intensity", "# x,y,z,intensity", "X Y Z intensity"])
+def test_a_first_line_of_column_names_is_the_header_with_or_without_hash(tmp_path, header):
+    path = tmp_path / "points.csv"
+    path.write_text(header + "\n" + "".join(",".join(f"{v:g}" for v in row) + "\n" for row in ROWS))
+    cloud = read_cloud(path)
+    np.testing.assert_array_equal(cloud["xyz"], ROWS[:, :3])
+    np.testing.assert_array_equal(cloud["intensity"], ROWS[:, 3])
+
+
+def test_a_comment_line_that_names_no_columns_is_skipped(tmp_path):
+    path = tmp_path / "commented.txt"
+    path.write_text("# scanner export\n" + "".join(" ".join(map(str, r)) + "\n" for r in ROWS))
+    np.testing.assert_array_equal(read_points(path), ROWS[:, :3])
+
+
+# ------------------------------------------------------------------------------- files of another layout
+
+KITTI_LAYOUT = r"KITTI \.bin layout \(float32 rows x, y, z, intensity\)"
+
+
+def _xyzi(rows: int = 256) -> np.ndarray:
+    rng = np.random.default_rng(5)
+    return np.c_[rng.uniform(-40, 40, (rows, 3)), rng.uniform(0, 1, rows)]
+
+
+def _npy_bytes(array: np.ndarray) -> bytes:
+    stream = io.BytesIO()
+    np.save(stream, array)
+    return stream.getvalue()
+
+
+@pytest.mark.parametrize(
+    "data, detail",
+    [
+        (_npy_bytes(_xyzi().astype(np.float32)), "a NumPy .npy array"),
+        (_xyzi().astype("<f8").tobytes(), "coordinates beyond"),
+        (_xyzi().astype("<f8").tobytes()[8:-8], "coordinates beyond"),
+    ],
+    ids=["npy renamed", "float64 rows", "float64 rows, shifted"],
+)
+def test_a_bin_of_another_layout_names_the_file_and_the_kitti_layout(tmp_path, data, detail):
+    assert len(data) % 16 == 0  # each passes the size check
+    path = tmp_path / "scan.bin"
+    path.write_bytes(data)
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}: .*{detail}.*{KITTI_LAYOUT}"):
+        read_points(path)
+
+
+def test_a_bin_with_a_few_stray_coordinates_still_reads(tmp_path):
+    rows = _xyzi(1000).astype(np.float32)
+    rows[:2, :3] = [[1e30, 0, 0], [np.inf, np.nan, 0]]  # under 1 % of the coordinates
+    path = write_kitti_bin(tmp_path / "stray.bin", rows[:, :3])
+    np.testing.assert_array_equal(read_points(path), rows[:, :3])
+
+
+def test_a_binary_file_named_pcd_shows_no_raw_bytes(tmp_path, shared_data):
+    path = tmp_path / "kitti.pcd"
+    path.write_bytes(shared_data.path("kitti_seq00/velodyne/000000.bin").read_bytes())
+    with pytest.raises(ValueError) as caught:
+        read_cloud(path)
+    message = str(caught.value)
+    assert message.startswith(f"{path}: not a PCD file")
+    detail = message[len(str(path)) :]
+    assert detail.isascii() and detail.isprintable() and len(detail) <= 120, detail
 
 
 @pytest.mark.parametrize(
