@@ -1112,7 +1112,9 @@ def map_command(
     global_classes.png (the trajectory drawn over them), the pose of every scan as
     trajectory_kitti.txt and trajectory_tum.txt (times from times.txt; evo reads both) and the
     keyframes' as keyframes_kitti.txt and keyframes_tum.txt (Velodyne frame when a calibration was
-    used; without one KITTI's camera poses are used as they are, with a warning).
+    used; without one KITTI's camera poses are used as they are, with a warning). Exits with code 2,
+    writing no map, when no point falls in the map; a scan spanning over 10 km (coordinates in
+    millimetres, say) is named then, and warned of otherwise.
     """
     from tqdm import tqdm
 
@@ -1260,7 +1262,9 @@ def stream_command(
     Writes local_map.npz (elevation, variance, clearance, traversability, ... in map order),
     local_elevation.png and local_traversability.png, plus a PNG every --every scans or --animation.
     --config and --preset give the range limits (frame section: --preset kitti leaves KITTI's car
-    out) and the overhang removal (collapse section); each scan's pose levels it.
+    out) and the overhang removal (collapse section); each scan's pose levels it. Exits with code 2,
+    writing no map, when no point of any scan falls in the map; warns when the map knows no cell at
+    the end, or when a scan spans over 10 km (coordinates in millimetres, say).
     """
     from tqdm import tqdm
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -45,11 +46,56 @@ _STORAGE = {
 }
 
 
-def _as_points(points) -> np.ndarray:
-    """Numpy arrays pass through untouched (float32/float64 of any strides); sequences become float64."""
+#: A float32 cloud is flagged when the float32 step at its largest |coordinate| exceeds this share
+#: of the length the call resolves (cell or cube edge) ...
+FLOAT32_STEP_SHARE = 0.1
+#: ... or, for a call without such a length, this step [m].
+FLOAT32_STEP_M = 0.01
+
+
+def _as_points(points, length: float | None = None, length_name: str = "") -> np.ndarray:
+    """Numpy arrays pass through untouched (float32/float64 of any strides); sequences become float64.
+
+    A float32 array warns (:func:`float32_step_warning`) when its coordinates are too large for
+    float32 to hold them to a tenth of ``length`` [m], the cell or cube edge named ``length_name``."""
     if isinstance(points, np.ndarray):
+        message = float32_step_warning(points, length, length_name)
+        if message is not None:
+            warnings.warn(message, UserWarning, stacklevel=3)
         return points
     return np.asarray(points, dtype=np.float64)
+
+
+def float32_step_warning(
+    points: np.ndarray, length: float | None = None, length_name: str = ""
+) -> str | None:
+    """Why a float32 cloud is too coarse for a call resolving ``length`` [m] (named ``length_name``),
+    or None: float32 steps by 0.5 m at 4,500,000 m (a UTM northing), so its points pile into every
+    fifth 0.1 m row. Flagged when the step at the largest finite |x|, |y| or |z| exceeds
+    :data:`FLOAT32_STEP_SHARE` of ``length``, or :data:`FLOAT32_STEP_M` without one. One pass of
+    max and min over the x, y, z columns, no copy."""
+    if points.dtype != np.float32 or points.ndim != 2 or points.shape[1] < 3 or points.shape[0] == 0:
+        return None
+    xyz = points[:, :3]
+    largest = max(float(np.fmax.reduce(xyz, axis=None)), -float(np.fmin.reduce(xyz, axis=None)))
+    if not np.isfinite(largest):  # NaN everywhere, or Inf rows: the call reports those
+        return None
+    step = float(np.spacing(np.float32(largest)))
+    try:
+        length = None if length is None else float(length)
+    except (TypeError, ValueError):  # a bad length is the parameters' check to report
+        length = None
+    if length is not None and length > 0:
+        allowed, what = FLOAT32_STEP_SHARE * length, f"a tenth of the {length_name} {length:g} m"
+    else:
+        allowed, what = FLOAT32_STEP_M, f"{FLOAT32_STEP_M * 100:g} cm"
+    if step <= allowed:
+        return None
+    return (
+        f"float32 points reach |coordinate| {largest:,.0f} m, where float32 steps by {step:g} m, more "
+        f"than {what}: the points are rounded to that step; pass float64 points, or subtract an offset "
+        "(e.g. the first point) so the coordinates stay small"
+    )
 
 
 def _as_transform(transform) -> np.ndarray:
@@ -381,7 +427,7 @@ def collapse_overhangs(
             sensor_origin=sensor_origin,
         )
     beams = None if no_returns is None else _as_directions(no_returns)
-    return _core.collapse_overhangs(_as_points(points), params.to_core(), beams)
+    return _core.collapse_overhangs(_as_points(points, params.edge, "cube edge"), params.to_core(), beams)
 
 
 def point_reasons(
@@ -413,7 +459,7 @@ def point_reasons(
     """
     if params is None:
         params = CollapseParams(transform=transform, crop=crop, method="shadow_aware")
-    return _core.point_reasons(_as_points(points), params.to_core(), result)
+    return _core.point_reasons(_as_points(points, params.edge, "cube edge"), params.to_core(), result)
 
 
 def _as_directions(directions) -> np.ndarray:
@@ -550,7 +596,7 @@ def point_based_overhangs(
     """
     if params is None:
         params = PointBasedParams(edge, sigma, variance_threshold, **kwargs)
-    return _core.point_based_overhangs(_as_points(points), params.to_core())
+    return _core.point_based_overhangs(_as_points(points, params.edge, "cube edge"), params.to_core())
 
 
 def octomap_column_overhangs(
@@ -579,7 +625,7 @@ def octomap_column_overhangs(
     """
     if params is None:
         params = CollapseParams(edge, sigma, **kwargs)
-    return _core.octomap_column_overhangs(_as_points(points), params.to_core())
+    return _core.octomap_column_overhangs(_as_points(points, params.edge, "cube edge"), params.to_core())
 
 
 def sigma_from_robot_height(robot_height: float, edge: float) -> int:

@@ -277,9 +277,15 @@ def build_elevation_map(
     if out is not None:
         if not isinstance(out, ElevationMap):
             raise TypeError(f"out must be an ElevationMap, not {type(out).__name__}")
-        _core.build_elevation_map_into(out._core, _as_points(points), params.to_core(), use_flags)
+        _core.build_elevation_map_into(
+            out._core, _as_points(points, params.resolution, "resolution"), params.to_core(), use_flags
+        )
         return out
-    return ElevationMap(_core.build_elevation_map(_as_points(points), params.to_core(), use_flags))
+    return ElevationMap(
+        _core.build_elevation_map(
+            _as_points(points, params.resolution, "resolution"), params.to_core(), use_flags
+        )
+    )
 
 
 def dem_without_overhangs(
@@ -324,7 +330,10 @@ def dem_without_overhangs(
     collapse = collapse or CollapseParams(edge, sigma)
     elevation = elevation or ElevationParams(resolution)
     beams = None if no_returns is None else _as_directions(no_returns)
-    result = _core.build_overhang_free_map(_as_points(points), collapse.to_core(), elevation.to_core(), beams)
+    finest = min((collapse.edge, "cube edge"), (elevation.resolution, "resolution"))
+    result = _core.build_overhang_free_map(
+        _as_points(points, *finest), collapse.to_core(), elevation.to_core(), beams
+    )
     return ElevationMap(result.map), result.collapse
 
 

@@ -222,7 +222,7 @@ class LocalMap:
         ``collapse.drop_non_finite``), a zero or non-finite beam or an infinite stamp, before
         anything changes. Releases the GIL.
         """
-        points = _as_points(points)
+        points = _as_points(points, self.resolution, "resolution")
         beams = None if no_returns is None else _as_directions(no_returns)
         return self._core.update(points, _as_pose(pose), float(stamp), beams)
 

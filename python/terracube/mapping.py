@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from . import _core
-from .collapse import _checked, _num_threads
+from .collapse import _as_points, _checked, _num_threads
 from .elevation import ElevationMap, TerrainParams
 from .registration import RegistrationParams
 
@@ -234,6 +234,7 @@ class Mapper:
         that time (its keyframe's estimate moved by odometry since; LiDAR-only: its own
         registration) and ``.num_out_of_range``, the points left out by ``min_range`` and
         ``max_range`` (summed in :attr:`points_out_of_range`)."""
+        points = _as_points(points, self.params.resolution, "resolution")
         return self._core.add_scan(points, np.asarray(pose, dtype=np.float64))
 
     @property

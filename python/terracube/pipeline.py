@@ -63,6 +63,8 @@ __all__ = [
     "registration_record",
     "returns_and_beams",
     "run_stage",
+    "scan_span",
+    "scan_span_warning",
     "scan_trajectory",
     "terrain_params",
     "write_global_map",
@@ -307,6 +309,50 @@ def range_note(points: np.ndarray, keep: np.ndarray, frame) -> str | None:
     if far:
         parts.append(f"{far:,} beyond {frame.max_range:g} m")
     return f"  range filter: {dropped:,} of {len(keep):,} points left out ({', '.join(parts)})"
+
+
+#: A single scan in metres spans at most a few kilometres (a ground robot's LiDAR a few hundred
+#: metres, an airborne tile a few km): wider, its coordinates are taken to be in another unit.
+IMPLAUSIBLE_SCAN_SPAN_M = 10_000.0
+#: :func:`scan_span` measures the 1st..99th percentile of the coordinates (a few stray far returns
+#: do not count) over at most this many points of the scan.
+_SPAN_SAMPLE = 20_000
+
+
+def scan_span(points: np.ndarray) -> float:
+    """The largest extent [m] along x, y or z of a scan's finite points, from the 1st to the 99th
+    percentile (of every k-th point, at most :data:`_SPAN_SAMPLE`); 0 without a finite point."""
+    xyz = np.asarray(points)[:: max(1, len(points) // _SPAN_SAMPLE), :3].astype(np.float64)
+    xyz = xyz[np.isfinite(xyz).all(axis=1)]
+    if len(xyz) == 0:
+        return 0.0
+    low, high = np.percentile(xyz, [1.0, 99.0], axis=0)
+    return float(np.max(high - low))
+
+
+def _span_text(span: float) -> str:
+    return f"{span / 1000:,.0f} km"
+
+
+def scan_span_warning(spans: Iterable[float], what: str = "scans") -> str | None:
+    """A warning when a scan spans more than :data:`IMPLAUSIBLE_SCAN_SPAN_M` (:func:`scan_span`):
+    its coordinates are most likely millimetres (1000 times a scan in metres), and every length of
+    the settings (cells, cube edge, ranges, the local map) is then 1000 times too small. ``spans``:
+    each scan's span [m]; ``what`` names them when there are several."""
+    spans = [s for s in spans if math.isfinite(s)]
+    wide = [s for s in spans if s > IMPLAUSIBLE_SCAN_SPAN_M]
+    if not wide:
+        return None
+    where = (
+        f"the scan spans {_span_text(wide[0])}"
+        if len(spans) == 1
+        else f"{len(wide)} of {len(spans)} {what} span over {_span_text(IMPLAUSIBLE_SCAN_SPAN_M)} "
+        f"(the widest {_span_text(max(wide))})"
+    )
+    return (
+        f"warning: {where}, more than a LiDAR scan in metres: are the coordinates in millimetres? "
+        "terracube expects metres (divide millimetres by 1000)"
+    )
 
 
 #: Below this many points per cell with data the cells are finer than the point spacing.
@@ -958,8 +1004,14 @@ def run_stage(
     keep = config.frame.in_range(points)
     scan = ScanOutput(points, keep, None if source is None else Path(source), no_returns)
     kept = points if keep.all() else np.ascontiguousarray(points[keep])
-    report = _RUNNERS[stage](kept, name, output_dir, config, scan=scan, **options)
-    for note in (range_note(points, keep, config.frame), unit_note(scan, config)):
+    span = scan_span_warning([scan_span(kept)])
+    try:
+        report = _RUNNERS[stage](kept, name, output_dir, config, scan=scan, **options)
+    except ValueError as error:  # a map of millions of cells, say: the unit is the likely cause
+        if span is None:
+            raise
+        raise ValueError(f"{error}; {span.removeprefix('warning: ')}") from error
+    for note in (range_note(points, keep, config.frame), unit_note(scan, config), span and f"  {span}"):
         if note is not None:
             report.lines.insert(1, note)
     return report
@@ -1161,6 +1213,7 @@ class MapperRun:
     odometry_steps: int  #: keyframe steps that kept odometry: registration failed or was refused
     left_out: int  #: points outside the frame's range limits
     reaches: list[float]  #: each scan's median horizontal range [m]
+    spans: list[float] = field(default_factory=list)  #: each scan's :func:`scan_span` [m]
 
     @functools.cached_property
     def global_map(self):
@@ -1186,7 +1239,7 @@ def map_scans(scans: Iterable[tuple[str, np.ndarray, np.ndarray, float]], config
 
     config = config or default_config()
     mapper = Mapper(mapper_params(config))
-    poses, stamps, estimates, reaches = [], [], [], []
+    poses, stamps, estimates, reaches, spans = [], [], [], [], []
     odometry_steps = left_out = 0
     start = time.perf_counter()
     for name, points, pose, stamp in scans:
@@ -1198,6 +1251,7 @@ def map_scans(scans: Iterable[tuple[str, np.ndarray, np.ndarray, float]], config
         except (ValueError, TypeError) as error:
             raise ValueError(f"{name}: {error}") from error
         reaches.append(median_horizontal_range(points[keep]))
+        spans.append(scan_span(points[keep]))
         if step.keyframe and step.index > 0 and config.mapper.use_registration and not step.registered:
             odometry_steps += 1
         poses.append(np.asarray(pose, dtype=np.float64))
@@ -1217,6 +1271,7 @@ def map_scans(scans: Iterable[tuple[str, np.ndarray, np.ndarray, float]], config
         odometry_steps,
         left_out,
         reaches,
+        spans,
     )
 
 
@@ -1232,6 +1287,8 @@ def write_global_map(
 
     config = config or default_config()
     mapper, output_dir, dem = run.mapper, Path(output_dir), run.global_map
+    if dem.geometry.num_cells == 0 or not np.isfinite(dem["max"]).any():  # nothing worth writing
+        raise ValueError(_empty_global_map_message(run, what))
     output_dir.mkdir(parents=True, exist_ok=True)
     report = StageReport("global map", len(run.poses))
     report.outputs.append(dem.save(output_dir / "global_map.npz"))
@@ -1254,6 +1311,20 @@ def write_global_map(
         )
     report.lines += _mapping_lines(run, dem, config, what)
     return report
+
+
+def _empty_global_map_message(run: MapperRun, what: str) -> str:
+    """Why a mapper run left the global map empty, for the error that stops it being written."""
+    params = run.mapper.params
+    span = scan_span_warning(run.spans, what)
+    farthest = "" if params.max_range is None else f" and nearer than {params.max_range:g} m"
+    cause = (
+        span.removeprefix("warning: ")
+        if span is not None
+        else f"the mapper keeps the returns within +-{params.local_map_size / 2:g} m of each keyframe's "
+        f"sensor, from {params.min_range:g} m{farthest} (mapper.local_map_size, min_range, max_range)"
+    )
+    return f"no point of the {len(run.poses)} {what} fell in the global map: {cause}"
 
 
 def _write_poses(stem: Path, stamps: np.ndarray, poses: np.ndarray) -> list[Path]:
@@ -1286,8 +1357,10 @@ def _mapping_lines(run: MapperRun, dem, config, what: str) -> list[str]:
         f"ground reference: {_mapper_reference(mapper.params.terrain, config)}",
         mapper_steps_line(mapper, run.odometry_steps, config.mapper),
     ]
-    reach = local_map_reach_warning(run.reaches, config.mapper)
-    lines += [reach] if reach else []
+    span = scan_span_warning(run.spans, what)
+    # Scans in millimetres reach 1000 times too far: the unit, not the local map, is to change.
+    reach = None if span else local_map_reach_warning(run.reaches, config.mapper)
+    lines += [warning for warning in (span, reach) if warning]
     left_out = run.left_out + mapper.points_out_of_range
     if left_out:
         frame, params = config.frame, mapper.params

@@ -11,7 +11,13 @@ import numpy as np
 
 from .local_map import LocalMap, LocalMapParams
 from .mapping import Mapper, MapperParams
-from .pipeline import StageReport, local_map_reach_warning, median_horizontal_range
+from .pipeline import (
+    StageReport,
+    local_map_reach_warning,
+    median_horizontal_range,
+    scan_span,
+    scan_span_warning,
+)
 
 __all__ = ["run_stream", "LidarOnlyPoses"]
 
@@ -162,7 +168,12 @@ def run_stream(
     Returns
     -------
     StageReport
-        Summary lines (scans, time per update, cells known, cleared) and the written files.
+        Summary lines (scans, time per update, cells known, cleared) and the written files, with a
+        warning when the final map knows no cell (the robot left every mapped cell behind) or a scan
+        spans more than a scan in metres could (:func:`terracube.pipeline.scan_span_warning`).
+
+    Raises ValueError, before anything is written, when no scan put a point into the map (scans in
+    millimetres, the range limits or a map too small for the scans).
     """
     if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 0:
         raise ValueError(f"every must be a whole number of scans >= 0, got {every!r}")
@@ -174,7 +185,8 @@ def run_stream(
     report = StageReport("stream", 0)
     frames: list[tuple[str, np.ndarray, np.ndarray]] = []
     pictures: list[Path] = []  # one every `every` scans
-    seconds, count, cleared, replaced, out_of_range = 0.0, 0, 0, 0, 0
+    seconds, count, cleared, replaced, out_of_range, fused = 0.0, 0, 0, 0, 0, 0
+    spans: list[float] = []
     for name, points, pose, stamp, *beams in scans:
         start = time.perf_counter()
         try:
@@ -187,6 +199,8 @@ def run_stream(
         cleared += int(update.num_cleared_cells)
         out_of_range += int(update.num_out_of_range)
         replaced += int(update.num_replaced_cells)
+        fused += int(update.num_fused_cells)
+        spans.append(scan_span(points))
         frame_due = count % (every or 1) == 0
         if on_update is not None and frame_due:
             on_update(local_map, name, stamp)
@@ -200,6 +214,16 @@ def run_stream(
             pictures.append(_frame_png(local_map, path, f"{Path(name).stem}: elevation"))
     if count == 0:
         raise ValueError("no scan to fuse")
+    span = scan_span_warning(spans)
+    if fused == 0:
+        p = local_map.params
+        cause = (
+            span.removeprefix("warning: ")
+            if span is not None
+            else f"the map keeps the returns within +-{p.length / 2:g} m of the sensor and "
+            f"{p.min_range:g}..{p.max_range:g} m from it (--length, --min-range, --max-range)"
+        )
+        raise ValueError(f"no point of the {count} scans fell in the local map: {cause}")
     final = local_map.to_elevation_map()
     report.add("map", final.save(output_dir / "local_map.npz"))
     if png:
@@ -234,6 +258,14 @@ def run_stream(
         f"{1e3 * seconds / count:.1f} ms per update, {known:,} cells known at the end, "
         f"{cleared:,} cells cleared as seen through, {replaced:,} replaced by the gate",
     )
+    if known == 0:  # every fused cell was cleared or scrolled out: an empty map is written
+        report.lines.insert(
+            1,
+            f"  warning: the local map knows no cell at the end: the {fused:,} cells the scans filled were "
+            "cleared or left behind; local_map.npz holds no elevation",
+        )
+    if span is not None:
+        report.lines.insert(1, f"  {span}")
     if out_of_range:
         params = local_map.params
         report.lines.insert(

@@ -509,3 +509,92 @@ def test_sensor_origin_reaches_the_shadow_aware_rule(runner, tmp_path):
     args = ["collapse", str(path), "-o", str(tmp_path / "low"), *common, "--sensor-origin", "0", "0", "-50"]
     result = runner.invoke(app, args)
     assert result.exit_code == 2 and "sensor" in result.output
+
+
+# ------------------------------------------------------------------------------------------ units
+
+
+def _ground_ring(scale: float = 1.0) -> np.ndarray:
+    """A sensor's ground returns within 8 m (float64), times ``scale`` (1000: in millimetres)."""
+    rng = np.random.default_rng(7)
+    xy = rng.uniform(-8.0, 8.0, (3000, 2))
+    return np.c_[xy, np.full(len(xy), -1.7) + rng.normal(0.0, 0.01, len(xy))] * scale
+
+
+def _sequence(tmp_path, scale: float) -> tuple:
+    """Two scans 1 m apart as 000000.npy, 000001.npy and their KITTI poses.txt (identity rotations)."""
+    folder = tmp_path / f"scans_{scale:g}"
+    folder.mkdir()
+    for k in range(2):
+        np.save(folder / f"{k:06d}.npy", _ground_ring(scale))
+    poses = tmp_path / f"poses_{scale:g}.txt"
+    poses.write_text("".join(f"1 0 0 0 0 1 0 {k} 0 0 1 0\n" for k in range(2)))
+    return folder, poses
+
+
+def test_a_scan_in_millimetres_is_flagged_by_collapse_and_named_by_the_dem_error(runner, tmp_path):
+    path = tmp_path / "mm.npy"
+    np.save(path, _ground_ring(1000.0))
+    collapse = runner.invoke(app, ["collapse", str(path), "-o", str(tmp_path / "c"), "--no-png"])
+    assert collapse.exit_code == 0, collapse.output
+    assert "warning: the scan spans 16 km" in collapse.output
+    assert "are the coordinates in millimetres? terracube expects metres" in collapse.output
+    dem = runner.invoke(app, ["dem", str(path), "-o", str(tmp_path / "d"), "--no-png"])
+    assert dem.exit_code == 2
+    assert "over max_cells" in dem.output and "are the coordinates in millimetres?" in dem.output
+
+
+def test_a_scan_in_metres_is_not_flagged_as_millimetres(runner, tmp_path):
+    path = tmp_path / "m.npy"
+    np.save(path, _ground_ring())
+    result = runner.invoke(app, ["dem", str(path), "-o", str(tmp_path / "d"), "--no-png"])
+    assert result.exit_code == 0, result.output
+    assert "millimetres" not in result.output
+
+
+@pytest.mark.parametrize("command", ["stream", "map"])
+def test_scans_in_millimetres_stop_stream_and_map_before_an_empty_map_is_written(runner, tmp_path, command):
+    folder, poses = _sequence(tmp_path, 1000.0)
+    out = tmp_path / "out"
+    options = ["--odometry-only", "--no-loop-closing"] if command == "map" else []
+    result = runner.invoke(
+        app, [command, str(folder), "--poses", str(poses), "-o", str(out), "--no-png", *options]
+    )
+    assert result.exit_code == 2, result.output
+    assert "no point of the 2 scans fell in the" in result.output
+    assert "2 of 2 scans span over 10 km (the widest 16 km)" in result.output
+    assert "are the coordinates in millimetres?" in result.output
+    assert not list(out.glob("*.npz"))
+
+
+@pytest.mark.parametrize("command", ["stream", "map"])
+def test_scans_in_metres_stream_and_map_without_a_unit_warning(runner, tmp_path, command):
+    folder, poses = _sequence(tmp_path, 1.0)
+    out = tmp_path / "out"
+    options = ["--odometry-only", "--no-loop-closing"] if command == "map" else []
+    result = runner.invoke(
+        app, [command, str(folder), "--poses", str(poses), "-o", str(out), "--no-png", *options]
+    )
+    assert result.exit_code == 0, result.output
+    assert "millimetres" not in result.output and "knows no cell" not in result.output
+    assert len(list(out.glob("*.npz"))) == 1
+
+
+def test_a_stream_that_ends_with_no_known_cell_warns(tmp_path):
+    from terracube.stream import run_stream
+
+    far = np.eye(4)
+    far[0, 3] = 1000.0  # the map follows the sensor 1 km away: every filled cell is left behind
+    scans = [("near", _ground_ring(), np.eye(4), 0.0), ("far", np.empty((0, 3)), far, 1.0)]
+    report = run_stream(scans, tmp_path, tc.LocalMapParams(), png=False)
+    assert "warning: the local map knows no cell at the end" in "\n".join(report.lines)
+    assert not np.isfinite(tc.ElevationMap.load(tmp_path / "local_map.npz")["elevation"]).any()
+
+
+def test_a_few_far_returns_do_not_make_a_scan_in_metres_look_like_millimetres():
+    from terracube.pipeline import scan_span, scan_span_warning
+
+    points = np.vstack([_ground_ring(), np.full((20, 3), 1e6)])  # 20 of 3020 returns at 1000 km
+    assert scan_span(points) < 20.0
+    assert scan_span_warning([scan_span(points)]) is None
+    assert scan_span(np.full((3, 3), np.nan)) == 0.0

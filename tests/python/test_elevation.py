@@ -1033,3 +1033,58 @@ def test_a_forked_child_of_a_process_that_used_threads_still_builds_instead_of_h
         pytest.fail("the forked child hung in its first threaded call")
     assert child.exitcode == 0
     assert queue.get(timeout=5) == expected
+
+
+# --------------------------------------------------------------------------------------------
+# float32 clouds at large coordinates.
+# --------------------------------------------------------------------------------------------
+
+
+def _utm_grid(dtype) -> np.ndarray:
+    """A 2 m square of points 0.1 m apart at UTM-like (500000, 4500000), where float32 steps by 0.5 m
+    along y: as float32 its 20 rows collapse onto 4."""
+    i, j = np.meshgrid(np.arange(20), np.arange(20), indexing="ij")
+    xy = np.column_stack([i.ravel() * 0.1 + 0.05, j.ravel() * 0.1 + 0.05]) + [500000.0, 4500000.0]
+    return np.column_stack([xy, np.zeros(len(xy))]).astype(dtype)
+
+
+FLOAT32_CALLS = {
+    "build_elevation_map": lambda points: tc.build_elevation_map(points, 0.1),
+    "dem_without_overhangs": lambda points: tc.dem_without_overhangs(points),
+    "collapse_overhangs": lambda points: tc.collapse_overhangs(points),
+    "LocalMap.update": lambda points: tc.LocalMap(20.0, 0.1).update(points, np.eye(4)),
+    "Mapper.add_scan": lambda points: tc.Mapper().add_scan(points, np.eye(4)),
+}
+
+
+@pytest.mark.parametrize("call", FLOAT32_CALLS.values(), ids=FLOAT32_CALLS.keys())
+def test_float32_points_at_utm_coordinates_warn_with_the_float32_step(call):
+    with pytest.warns(UserWarning, match=r"4,500,002 m, where float32 steps by 0.5 m.*pass float64 points"):
+        call(_utm_grid(np.float32))
+
+
+@pytest.mark.parametrize("call", FLOAT32_CALLS.values(), ids=FLOAT32_CALLS.keys())
+def test_float64_or_small_float32_points_do_not_warn(call, recwarn):
+    call(_utm_grid(np.float64))
+    call(np.ascontiguousarray(_utm_grid(np.float32)[:, :3] - np.float32([500000.0, 4500000.0, 0.0])))
+    assert not [w for w in recwarn if "float32" in str(w.message)]
+
+
+def test_float32_rows_collapse_at_utm_coordinates_as_the_warning_says():
+    with pytest.warns(UserWarning, match="float32"):
+        coarse = tc.build_elevation_map(_utm_grid(np.float32), 0.1)
+    fine = tc.build_elevation_map(_utm_grid(np.float64), 0.1)
+    assert int(np.count_nonzero(fine["count"])) == 400
+    assert int(np.count_nonzero(coarse["count"])) < 400
+
+
+def test_float32_step_without_a_length_is_held_to_one_centimetre():
+    from terracube.collapse import float32_step_warning
+
+    at_100_km = np.full((1, 3), 100_000.0, dtype=np.float32)  # float32 steps by 7.8 mm
+    at_200_km = np.full((1, 3), 200_000.0, dtype=np.float32)  # by 15.6 mm
+    assert float32_step_warning(at_100_km) is None
+    assert "more than 1 cm" in float32_step_warning(at_200_km)
+    assert float32_step_warning(at_200_km, 0.5, "cube edge") is None  # 15.6 mm < 50 mm
+    assert float32_step_warning(np.full((1, 3), np.nan, dtype=np.float32)) is None
+    assert float32_step_warning(np.empty((0, 3), dtype=np.float32)) is None
