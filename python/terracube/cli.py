@@ -30,7 +30,14 @@ from typing import Any
 import numpy as np
 import typer
 
-from .pipeline import CLOUD_FORMATS, REGISTRATION_METHODS, STAGE_OUTPUT_OPTIONS, STAGES, read_scan
+from .pipeline import (
+    CLOUD_FORMATS,
+    ESTIMATED_GROUND_WINDOW_M,
+    REGISTRATION_METHODS,
+    STAGE_OUTPUT_OPTIONS,
+    STAGES,
+    read_scan,
+)
 
 app = typer.Typer(
     help="Navigable 2.5D elevation maps from ground-robot 3D LiDAR scans.\n\n"
@@ -348,7 +355,11 @@ OPTIONS: dict[str, Option] = {
         float | None,
         "--sensor-height",
         help=_help(
-            "Sensor height above the ground [m]: the ground is z = -height.", "terrain", "sensor_height"
+            "Sensor height above the ground [m]: the ground is z = -height. Left at 0 with the reference "
+            "at sensor_height (the defaults), the ground is estimated instead: the lowest point within "
+            f"{ESTIMATED_GROUND_WINDOW_M:g} m of each cell (local_ground).",
+            "terrain",
+            "sensor_height",
         ),
         sets=[("terrain", "sensor_height")],
     ),
@@ -356,7 +367,10 @@ OPTIONS: dict[str, Option] = {
         str | None,
         "--reference",
         help=_help(
-            "Ground reference: sensor_height or local_ground (lowest point nearby).", "terrain", "reference"
+            "Ground reference: sensor_height or local_ground (lowest point nearby); see --sensor-height "
+            "for what the defaults do.",
+            "terrain",
+            "reference",
         ),
         sets=[("terrain", "reference")],
     ),

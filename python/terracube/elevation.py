@@ -69,6 +69,18 @@ class ElevationMap:
     def __contains__(self, name: str) -> bool:
         return self._core.exists(name)
 
+    def __iter__(self):
+        """The layer names, in the order they were added (``for name in m``, ``dict(m.items())``)."""
+        return iter(self.layers)
+
+    def __len__(self) -> int:
+        """How many layers the map holds."""
+        return len(self.layers)
+
+    def items(self):
+        """(name, layer view) pairs of every layer."""
+        return [(name, self[name]) for name in self.layers]
+
     def __getitem__(self, name: str) -> np.ndarray:
         if not self._core.exists(name):
             raise KeyError(f"no layer {name!r}; layers: {', '.join(self.layers)}")

@@ -195,6 +195,20 @@ class LocalMap:
     def __contains__(self, name: str) -> bool:
         return name in self._core.layers
 
+    def __iter__(self):
+        """The layer names (``for name in m``), as :attr:`layers`."""
+        return iter(self.layers)
+
+    def __len__(self) -> int:
+        """How many layers the map holds."""
+        return len(self.layers)
+
+    def __reduce__(self):
+        raise TypeError(
+            "a LocalMap holds a robot's live state (a circular buffer and its fused sums) and does not "
+            "pickle; pickle m.to_elevation_map(), its layers in map order, instead"
+        )
+
     def __getitem__(self, name: str) -> np.ndarray:
         if name not in self:
             raise KeyError(f"no layer {name!r}; layers: {', '.join(self.layers)}")

@@ -242,6 +242,12 @@ class Mapper:
         """Points of the scans so far left out by ``min_range`` and ``max_range``."""
         return int(self._core.points_out_of_range)
 
+    def __reduce__(self):
+        raise TypeError(
+            "a Mapper holds a live session (keyframes, pose graph) and does not pickle; pickle what it "
+            "made instead: mapper.global_map(), mapper.keyframe_poses()"
+        )
+
     def __len__(self) -> int:
         return int(self._core.num_keyframes)
 

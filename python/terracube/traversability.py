@@ -5,6 +5,7 @@ global map."""
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 from . import _core
@@ -80,7 +81,8 @@ def add_traversability_layers(
     the DEM of :func:`~terracube.build_elevation_map`; "elevation" for a LocalMap's copy) and, when
     the map has one, its ``clearance`` layer (free height above each cell; without it nothing
     overhangs). A ``step`` layer already there is replaced (the step to the 8 neighbours of
-    :func:`~terracube.dem_without_overhangs` becomes the window's). ``kwargs`` are
+    :func:`~terracube.dem_without_overhangs` becomes the window's), with a warning unless the map
+    holds these layers already (a refresh). ``kwargs`` are
     :class:`TraversabilityParams` fields. Returns the map.
 
     >>> m = tc.build_elevation_map(points, 0.1)
@@ -98,6 +100,13 @@ def add_traversability_layers(
         raise TypeError("give either params or TraversabilityParams fields, not both")
     if layer not in elevation_map:
         raise KeyError(f"no layer {layer!r} to take heights from; layers: {', '.join(elevation_map.layers)}")
+    if "step" in elevation_map and "traversability" not in elevation_map:  # not a refresh of its own
+        warnings.warn(
+            "add_traversability_layers replaces the map's 'step' layer (dem_without_overhangs' step to "
+            "the 8 neighbours) by the window's max - min; copy it first to keep it",
+            UserWarning,
+            stacklevel=2,
+        )
     _core.add_traversability_layers(
         elevation_map._core, params.to_core(), layer, (0, 0), _num_threads(num_threads)
     )

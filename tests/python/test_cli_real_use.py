@@ -101,6 +101,10 @@ def test_the_rendered_help_of_every_command_keeps_units_defaults_and_extras():
         rendered["classify"]
     )
     assert "--origin X Y" in _flat(rendered["dem"]) and "--origin -20 -20" in _flat(rendered["dem"])
+    # the defaults estimate the ground (pipeline.terrain_params): the help says so, not "z = 0"
+    assert "the ground is estimated instead: the lowest point within 0.5 m of each cell" in _flat(
+        rendered["classify"]
+    )
 
 
 def test_version_and_a_preset_on_the_bundled_ouster_scan_with_the_origin_as_its_help_writes_it(

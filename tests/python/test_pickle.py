@@ -261,3 +261,22 @@ def test_bad_pickled_states_are_refused_by_name():
     fresh = tc.RegistrationResult.__new__(tc.RegistrationResult)
     with pytest.raises(ValueError, match="has no verdict"):
         fresh.__setstate__(state)
+
+
+def test_a_live_local_map_or_mapper_refuses_to_pickle_and_names_what_does():
+    local_map = tc.LocalMap(length=4.0, resolution=0.5)
+    local_map.update(scene(), np.eye(4))
+    with pytest.raises(TypeError, match=r"LocalMap .*does not pickle; pickle m.to_elevation_map\(\)"):
+        pickle.dumps(local_map)
+    assert_same_map(local_map.to_elevation_map(), pickle.loads(pickle.dumps(local_map.to_elevation_map())))
+    with pytest.raises(TypeError, match=r"Mapper .*does not pickle; .*mapper.global_map\(\)"):
+        pickle.dumps(tc.Mapper(tc.MapperParams()))
+
+
+def test_maps_iterate_over_their_layer_names_like_a_mapping():
+    elevation = tc.build_elevation_map(scene(), 0.5)
+    assert list(elevation) == elevation.layers and len(elevation) == len(elevation.layers) == 6
+    assert dict(elevation.items()).keys() == set(elevation.layers)
+    np.testing.assert_array_equal(dict(elevation.items())["max"], elevation["max"])
+    local_map = tc.LocalMap(length=4.0, resolution=0.5)
+    assert list(local_map) == local_map.layers and len(local_map) == len(local_map.layers)

@@ -107,3 +107,16 @@ def test_a_local_map_of_kitti_is_open_on_the_road_and_blocked_at_cars_and_walls(
     assert len(ground) > 4000 and len(obstacles) > 400
     assert np.mean(ground > 0.5) > 0.9  # measured 0.93
     assert np.mean(obstacles == 0.0) > 0.9  # measured 0.96
+
+
+def test_replacing_the_dems_own_step_layer_warns_once_and_refreshing_does_not(recwarn):
+    points = np.random.default_rng(2).uniform(0, 4, (2000, 3))
+    dem, _ = tc.dem_without_overhangs(points, edge=0.5, sigma=2, resolution=0.2)
+    neighbours_step = dem["step"].copy()
+    with pytest.warns(UserWarning, match="replaces the map's 'step' layer"):
+        tc.add_traversability_layers(dem)
+    assert not np.array_equal(dem["step"], neighbours_step, equal_nan=True)  # the window's now
+    recwarn.clear()
+    tc.add_traversability_layers(dem, max_step=0.1)  # a refresh of its own layers
+    tc.add_traversability_layers(tc.build_elevation_map(points, 0.2))  # no step layer to replace
+    assert not [w for w in recwarn if "step" in str(w.message)]
