@@ -576,7 +576,8 @@ def test_every_layer_the_library_writes_has_its_own_colour_bar_label():
     points = np.c_[np.random.default_rng(0).uniform(-5, 5, (2000, 2)), np.zeros(2000)]
     dem, _ = tc.dem_without_overhangs(points, resolution=0.5)
     tc.fit_fuzzy_elevation_map(points, tc.FuzzyParams(epochs=1)).to_layer(dem)
-    tc.add_traversability_layers(dem)
+    with pytest.warns(UserWarning, match="replaces the map's 'step' layer"):
+        tc.add_traversability_layers(dem)
     local = tc.LocalMap(length=4.0)
     local.update(points, np.eye(4))
     written = set(dem.layers) | set(local.to_elevation_map().layers)
