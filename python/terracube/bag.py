@@ -951,12 +951,29 @@ def _time(typestore, stamp: float):
     )
 
 
+def _ros1_lz4_frame(data: bytes) -> bytes:
+    """An lz4 frame as ROS 1's roslz4 writes and reads it: independent 256 KiB blocks, a content
+    checksum, no content size. roslz4 refuses rosbags' default frame (linked 64 KiB blocks, a
+    content size) as "malformed data", and bz2, which it reads, takes minutes on large NaN grids."""
+    import lz4.frame
+
+    return lz4.frame.compress(
+        data,
+        block_size=lz4.frame.BLOCKSIZE_MAX256KB,
+        block_linked=False,
+        content_checksum=True,
+        store_size=False,
+    )
+
+
 class MapBagWriter:
     """Writes terracube results into a new ROS bag; use as a context manager.
 
     ``storage`` is ``"mcap"`` (a ROS 2 bag folder with mcap storage, the default for any path but
     ``*.bag``), ``"sqlite3"`` (a ROS 2 bag folder) or ``"ros1"`` (a ROS 1 bag file, the default for
-    ``*.bag``). The bag is built under a temporary name in the same folder and renamed to ``path``
+    ``*.bag``). Every bag is compressed the storage's standard way, so the NaN of a sparse grid costs
+    little: zstd chunks for mcap, zstd per message for sqlite3 (rosbag2's message mode), lz4 chunks
+    for ROS 1. The bag is built under a temporary name in the same folder and renamed to ``path``
     when the ``with`` block ends without an exception (or on :meth:`close`); otherwise it is
     removed. An existing ``path`` raises FileExistsError unless ``overwrite``.
     """
@@ -984,11 +1001,17 @@ class MapBagWriter:
                 from rosbags.rosbag1 import Writer
 
                 self._writer = Writer(staged)
+                self._writer.set_compression(Writer.CompressionFormat.LZ4)
+                self._writer.compressor = _ros1_lz4_frame
             else:
-                from rosbags.rosbag2 import StoragePlugin, Writer
+                from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 
                 plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
                 self._writer = Writer(staged, version=9, storage_plugin=plugin)
+                # mcap compresses its chunks itself; sqlite3 has no storage-side compression, so
+                # rosbag2 compresses each message (compression_mode: message in metadata.yaml).
+                mode = CompressionMode.STORAGE if storage == "mcap" else CompressionMode.MESSAGE
+                self._writer.set_compression(mode, CompressionFormat.ZSTD)
             self._writer.open()
         except BaseException:
             shutil.rmtree(self._temporary, ignore_errors=True)

@@ -10,12 +10,13 @@ address.
 Example
 -------
 >>> from terracube.batch import run_batch, format_summary
->>> records = run_batch("dem", ["scans/"], "out", workers=2)
+>>> records = run_batch("dem", ["scans/"], "out", workers=2)  # in a script: under if __name__ == "__main__":
 >>> print(format_summary(records))
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import multiprocessing
 import multiprocessing.connection
@@ -132,41 +133,58 @@ def _dask_available() -> bool:
     return True
 
 
-def _dask_jobs(submit_args, scheduler, workers, processes, timeout) -> Iterator[tuple[int, Any]]:
-    """Yield (index, record, or the task's exception or failure text) as the Dask tasks finish.
+def _dask_jobs(submit_args, scheduler, workers, processes, timeout) -> Iterator[tuple[int, Any, float]]:
+    """Yield (index, record, or the task's exception or failure text, seconds since the task was
+    submitted) as the Dask tasks finish. Dask's own log lines below ERROR (a nanny restarting a
+    worker after a timeout ...) are kept off the console while it runs.
 
     At most one task per worker thread is submitted at a time, so a task's clock starts when it
     starts. A task past ``timeout`` is reported and its worker restarted (a thread cannot be
     stopped: then that worker thread is given up, and the files left fail once none is left)."""
     try:
-        from dask.distributed import Client, LocalCluster, wait
+        import dask.distributed  # noqa: F401
+        from distributed.utils import silence_logging_cmgr
     except ImportError as error:
         raise ImportError("batch on Dask needs the batch extra: pip install 'terracube[batch]'") from error
+    with silence_logging_cmgr(logging.ERROR):  # this process's Dask log handlers, restored on exit
+        yield from _dask_tasks(submit_args, scheduler, workers, processes, timeout)
+
+
+def _dask_tasks(submit_args, scheduler, workers, processes, timeout) -> Iterator[tuple[int, Any, float]]:
+    """:func:`_dask_jobs` once Dask is imported and its logs quieted."""
+    from dask.distributed import Client, LocalCluster, wait
+
     slots = initial_slots = 0
     if scheduler is not None:
         client, cluster = Client(scheduler), None
     else:  # worker processes talk over TCP on the loopback interface only
         where = {"host": "127.0.0.1"} if processes else {}
         cluster = LocalCluster(
-            n_workers=workers, threads_per_worker=1, processes=processes, dashboard_address=None, **where
+            n_workers=workers,
+            threads_per_worker=1,
+            processes=processes,
+            dashboard_address=None,
+            silence_logs=logging.ERROR,  # the same in the workers and their nannies
+            **where,
         )
         client = Client(cluster)
     try:
         slots = initial_slots = max(sum(client.nthreads().values()), 1)
         pending = list(enumerate(submit_args))[::-1]
-        running: dict[Any, tuple[int, float]] = {}
+        running: dict[Any, tuple[int, float, float]] = {}
         while pending or running:
             while pending and len(running) < slots:
                 index, args = pending.pop()
                 future = client.submit(
                     process_file, *args, key=f"terracube-{args[0]}-{index}-{args[-1]}", pure=False
                 )
-                running[future] = (index, time.monotonic() + timeout if timeout else math.inf)
+                start = time.monotonic()
+                running[future] = (index, start + timeout if timeout else math.inf, start)
             if not running:  # every worker thread is stuck on a file that timed out
                 for index, _ in pending[::-1]:
-                    yield index, "not run: every worker was stuck on a file that timed out"
+                    yield index, "not run: every worker was stuck on a file that timed out", 0.0
                 return
-            first = min(deadline for _, deadline in running.values())
+            first = min(deadline for _, deadline, _ in running.values())
             try:
                 done, _ = wait(
                     list(running),
@@ -176,10 +194,11 @@ def _dask_jobs(submit_args, scheduler, workers, processes, timeout) -> Iterator[
             except TimeoutError:
                 done = set()
             for future in done:
-                index, _ = running.pop(future)
-                yield index, future.result() if future.status == "finished" else future.exception()
+                index, _, start = running.pop(future)
+                outcome = future.result() if future.status == "finished" else future.exception()
+                yield index, outcome, time.monotonic() - start
             now = time.monotonic()
-            for future, (index, deadline) in list(running.items()):
+            for future, (index, deadline, start) in list(running.items()):
                 if now < deadline:
                     continue
                 del running[future]
@@ -192,7 +211,7 @@ def _dask_jobs(submit_args, scheduler, workers, processes, timeout) -> Iterator[
                     stopped = True
                 except Exception:  # noqa: BLE001 - any failure to restart: give that thread up
                     slots, stopped = slots - 1, False
-                yield index, _timed_out(timeout, stopped)
+                yield index, _timed_out(timeout, stopped), now - start
     finally:
         client.close()
         if cluster is not None:
@@ -238,6 +257,7 @@ class _Slot:
         self.connection = None
         self.index: int | None = None
         self.deadline = math.inf
+        self.clock = 0.0  # when the task's clock (the one its timeout counts on) started
         self.ready = False  # a worker process has imported terracube
 
     def start(self, index: int, args: tuple, timeout: float | None) -> None:
@@ -260,7 +280,8 @@ class _Slot:
         # a new worker's clock starts when it has imported terracube (then _READY resets it), but
         # a worker that never gets there is stopped too
         startup = 0.0 if self.ready else _STARTUP_S
-        self.deadline = time.monotonic() + timeout + startup if timeout else math.inf
+        self.clock = time.monotonic()
+        self.deadline = self.clock + timeout + startup if timeout else math.inf
 
     def waitables(self) -> list:
         return [self.connection] + ([self.process.sentinel] if self.process is not None else [])
@@ -273,7 +294,8 @@ class _Slot:
                 if not (isinstance(message, str) and message == _READY):
                     return message
                 self.ready = True
-                self.deadline = time.monotonic() + timeout if timeout else math.inf
+                self.clock = time.monotonic()
+                self.deadline = self.clock + timeout if timeout else math.inf
                 return None
             except EOFError:
                 pass
@@ -309,8 +331,9 @@ class _Slot:
         self.process, self.connection, self.ready = None, None, False
 
 
-def _pool_jobs(submit_args, workers, processes, timeout) -> Iterator[tuple[int, Any]]:
-    """Yield (index, record or failure text) as the local workers finish their files."""
+def _pool_jobs(submit_args, workers, processes, timeout) -> Iterator[tuple[int, Any, float]]:
+    """Yield (index, record or failure text, seconds on the file's clock) as the local workers
+    finish their files."""
     workers = max(min(workers or os.cpu_count() or 1, len(submit_args)), 1)
     slots = [_Slot(processes) for _ in range(workers)]
     pending = list(enumerate(submit_args))[::-1]
@@ -329,7 +352,7 @@ def _pool_jobs(submit_args, workers, processes, timeout) -> Iterator[tuple[int, 
                 outcome = slot.outcome(timeout)
                 if outcome is not None:
                     index, slot.index = slot.index, None
-                    yield index, outcome
+                    yield index, outcome, time.monotonic() - slot.clock
     finally:
         for slot in slots:
             slot.close()
@@ -362,7 +385,8 @@ def run_batch(
     config
         A :class:`terracube.config.Config`; the defaults when None.
     options
-        The stage's output options (see :func:`terracube.pipeline.run_stage`).
+        The stage's output options (see :func:`terracube.pipeline.run_stage`). Like ``terracube
+        batch``, no pictures unless ``{"png": True}`` (they take most of the time).
     scheduler
         Address of a running Dask scheduler (needs the ``batch`` extra); None runs on this machine.
     workers, processes
@@ -382,7 +406,18 @@ def run_batch(
     -------
     list of FileRecord
         One per scan, in input order; failed files have ``status == "failed"`` and ``error``.
+
+    Notes
+    -----
+    Worker processes are spawned: each imports the calling script again, so a script must call
+    ``run_batch`` under ``if __name__ == "__main__":`` (a call while a worker imports it raises
+    RuntimeError saying so).
     """
+    if getattr(multiprocessing.current_process(), "_inheriting", False):
+        raise RuntimeError(
+            "run_batch was called while a spawned worker process imported the calling script: "
+            'put the call under `if __name__ == "__main__":`'
+        )
     if stage not in STAGES:
         raise ValueError(f"unknown stage {stage!r}: batch runs {', '.join(STAGES)}")
     if workers is not None and workers < 1:
@@ -393,6 +428,7 @@ def run_batch(
         raise ValueError(f"timeout must be a number of seconds >= 0 (0: no limit), got {timeout}")
     if backend == "pool" and scheduler is not None:
         raise ValueError("a Dask scheduler needs the dask backend")
+    options = {"png": False, **(options or {})}
     files = expand_inputs(inputs)
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
@@ -412,13 +448,15 @@ def run_batch(
 
     records: dict[int, FileRecord] = {}
     with tqdm(total=len(files), desc=stage, unit="scan", disable=not progress) as bar:
-        for index, outcome in jobs:
+        for index, outcome, seconds in jobs:
             path = files[index]
             if isinstance(outcome, FileRecord):
                 outcome.path = str(path)
                 records[index] = outcome
             else:  # no record: timed out, its worker died (text), or Dask's exception for the task
-                records[index] = FileRecord(str(path), stage, "failed", error=f"{path}: {_cause(outcome)}")
+                records[index] = FileRecord(
+                    str(path), stage, "failed", seconds=seconds, error=f"{path}: {_cause(outcome)}"
+                )
             bar.set_postfix(failed=sum(not r.ok for r in records.values()), refresh=False)
             bar.update(1)
     return [records[index] for index in range(len(files))]

@@ -66,6 +66,23 @@ def _output_bag(directory: Path, stem: str, storage: str):
     return MapBagWriter(Path(directory) / name, storage, overwrite=True)
 
 
+def _bag_size(path: Path) -> str:
+    """A written bag's size on disk (a ROS 1 file, or a ROS 2 folder's files together)."""
+    size = (
+        path.stat().st_size
+        if path.is_file()
+        else sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+    )
+    return f"{size / 2**20:.1f} MiB" if size >= 2**20 else f"{size / 2**10:.1f} KiB"
+
+
+def _closed_bag_line(writer) -> str:
+    """Close the output bag and say what it holds and how big it is."""
+    path = writer.close()
+    counts = ", ".join(f"{topic} x{count}" for topic, count in writer.counts.items())
+    return f"bag: {path} ({counts}; {_bag_size(path)})"
+
+
 def _imu_line(clouds) -> str | None:
     """What leveled the clouds of a bag read with an IMU topic, once they were read."""
     if clouds.imu is None or clouds.imu_clock is None:
@@ -195,7 +212,7 @@ def run_stage_on_bag(stage: str, values: dict, bag: Path, bag_options: BagOption
     if _imu_line(clouds):
         typer.echo(_imu_line(clouds))
     if writer is not None:
-        typer.echo(f"bag: {writer.close()} ({', '.join(f'{k} x{v}' for k, v in writer.counts.items())})")
+        typer.echo(_closed_bag_line(writer))
 
 
 def _leveled_config(config, cloud):
@@ -295,7 +312,11 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     report.lines += [_imu_line(clouds)] if _imu_line(clouds) else []
     dropped = sum(clouds.no_returns)
     report.lines += [f"{dropped:,} no-returns dropped"] if dropped else []
-    report.lines += [f"written: {path}" for path in report.outputs]
+    report.lines += [
+        f"written: {path}"
+        + (f" ({_bag_size(path)})" if bag_options.out is not None and path == writer.path else "")
+        for path in report.outputs
+    ]
     _echo_report(report)
 
 
@@ -381,7 +402,7 @@ def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     elif dropped:
         typer.echo(f"{dropped:,} no-returns dropped")
     if writer is not None:
-        typer.echo(f"bag: {writer.close()} ({', '.join(f'{k} x{v}' for k, v in writer.counts.items())})")
+        typer.echo(_closed_bag_line(writer))
 
 
 def returns_and_empty_beams(cloud) -> tuple[np.ndarray, np.ndarray | None]:

@@ -741,6 +741,50 @@ def test_a_failed_write_leaves_nothing_behind(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["maps"]
 
 
+def sparse_map() -> tc.ElevationMap:
+    """A 400 x 300 map at 0.1 m with data in 0.5 % of its cells (like a long-range scan's DEM)."""
+    elevation_map = tc.ElevationMap.empty(0.1, (0.0, 0.0), (400, 300))
+    heights = np.full((400, 300), np.nan, np.float32)
+    rng = np.random.default_rng(7)
+    cells = rng.choice(heights.size, 600, replace=False)
+    heights.flat[cells] = rng.uniform(-2.0, 5.0, 600)
+    elevation_map["max"] = heights
+    return elevation_map
+
+
+@pytest.mark.parametrize(("storage", "name"), [("mcap", "maps"), ("sqlite3", "maps"), ("ros1", "maps.bag")])
+def test_written_bags_are_compressed_so_a_sparse_grid_map_is_small_and_reads_back_unchanged(
+    tmp_path, storage, name
+):
+    from rosbags.highlevel import AnyReader
+
+    elevation_map = sparse_map()
+    with MapBagWriter(tmp_path / name, storage) as writer:
+        writer.write_grid_map(elevation_map, stamp=3.5, layers=["max"])
+    path = tmp_path / name
+    files = [path] if path.is_file() else [f for f in path.iterdir() if f.suffix in (".mcap", ".db3")]
+    raw_bytes = 4 * 400 * 300
+    assert sum(f.stat().st_size for f in files) < raw_bytes / 10  # uncompressed it is > raw_bytes
+    if storage == "mcap":  # zstd chunks, read back by the mcap package as well
+        from mcap.reader import make_reader
+
+        with files[0].open("rb") as stream:
+            reader = make_reader(stream)
+            assert {c.compression for c in reader.get_summary().chunk_indexes} == {"zstd"}
+            assert len([m for _, _, m in reader.iter_messages()]) == 1
+    elif storage == "sqlite3":  # rosbag2's message compression, declared in metadata.yaml
+        metadata = (path / "metadata.yaml").read_text()
+        assert "compression_format: zstd" in metadata and "compression_mode: message" in metadata
+    else:  # ROS 1 chunks, as `rosbag record --lz4` writes them
+        assert b"compression=lz4" in path.read_bytes()
+    with AnyReader([path]) as reader:
+        [(connection, time, raw)] = list(reader.messages())
+        grid = reader.deserialize(raw, connection.msgtype)
+    assert time == 3_500_000_000 and grid.layers == ["max"]
+    np.testing.assert_array_equal(grid.data[0].data, grid_map_layer_data(elevation_map["max"]))
+    np.testing.assert_array_equal(layer_from_grid_map_data(grid.data[0].data, 400, 300), elevation_map["max"])
+
+
 # ------------------------------------------------------------------------------ the command line
 
 

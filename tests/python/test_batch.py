@@ -322,6 +322,7 @@ def test_a_hanging_file_times_out_and_the_others_finish(tmp_path, scan_folder, s
         "(its worker was stopped; raise --timeout for bigger scans)"
     )
     assert "timed out after 8 s" in format_summary(records)
+    assert 8.0 <= records[1].seconds < 60  # the time it took until the timeout, not 0.00
 
 
 def test_a_worker_killed_by_a_signal_is_reported_with_the_signal(tmp_path, scan_folder, sabotaged_workers):
@@ -337,7 +338,7 @@ def test_a_worker_killed_by_a_signal_is_reported_with_the_signal(tmp_path, scan_
 
 @pytest.mark.parametrize("backend", ["pool", "dask"])
 def test_a_hanging_file_on_a_thread_worker_times_out_and_the_summary_says_so(
-    tmp_path, scan_folder, monkeypatch, backend
+    tmp_path, scan_folder, monkeypatch, capfd, backend
 ):
     if backend == "dask":
         pytest.importorskip("dask.distributed")
@@ -368,6 +369,34 @@ def test_a_hanging_file_on_a_thread_worker_times_out_and_the_summary_says_so(
         "timed out after 8 s (its worker thread, which cannot be stopped, was given up; raise --timeout for "
         "bigger scans)"
     )
+    assert 8.0 <= records[1].seconds < 60  # the time it took until the timeout, not 0.00
+    assert " - WARNING - " not in capfd.readouterr().err  # Dask's own log lines stay off the console
+
+
+def test_run_batch_draws_no_pictures_unless_asked_like_the_command(tmp_path, scan_folder):
+    folder, _ = scan_folder
+    inputs = [folder / "scan_a.npy"]
+    [plain] = run_batch("dem", inputs, tmp_path / "plain", workers=1, processes=False, progress=False)
+    assert [Path(p).name for p in plain.outputs] == ["scan_a_dem.npz"]
+    pytest.importorskip("matplotlib")
+    [drawn] = run_batch(
+        "dem", inputs, tmp_path / "drawn", options={"png": True}, workers=1, processes=False, progress=False
+    )
+    assert any(p.endswith(".png") for p in drawn.outputs)
+
+
+def test_run_batch_in_a_script_without_a_main_guard_fails_with_one_clear_error(tmp_path, scan_folder):
+    folder, _ = scan_folder
+    script = tmp_path / "no_guard.py"
+    script.write_text(
+        "import terracube.batch\n"
+        f"terracube.batch.run_batch('dem', [{str(folder / 'scan_a.npy')!r}], {str(tmp_path / 'out')!r},"
+        " workers=1, backend='pool', progress=False)\n"
+    )
+    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert result.stderr.count("Traceback") == 1, result.stderr
+    assert 'put the call under `if __name__ == "__main__":`' in result.stderr
+    assert "bootstrapping phase" not in result.stderr  # multiprocessing's own error
 
 
 def test_a_negative_timeout_is_refused(tmp_path, scan_folder):
