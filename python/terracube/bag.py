@@ -19,6 +19,7 @@ import math
 import os
 import shutil
 import tempfile
+import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +35,7 @@ __all__ = [
     "GRID_MAP_MSGS_ROS2",
     "MapBagWriter",
     "bag_info",
+    "cloud_topic",
     "decode_pointcloud2",
     "grid_map_layer_data",
     "layer_from_grid_map_data",
@@ -727,6 +729,14 @@ class BagClouds:
             for topic, _, _, message in bag.messages(topics):
                 tree.add(message, static=topic == TF_STATIC_TOPIC)
             tree.finish()
+            if self.poses in ("tf", TF_TOPIC) and TF_TOPIC not in names:
+                warnings.warn(
+                    f"{self.path}: poses from /tf, but the bag has no /tf topic"
+                    + (" (only /tf_static)" if TF_STATIC_TOPIC in names else "")
+                    + ": every cloud gets the same, static pose",
+                    UserWarning,
+                    stacklevel=4,
+                )
         series = None
         if self.poses is not None and self.poses not in ("tf", TF_TOPIC):
             stamps, translations, quaternions = [], [], []
@@ -777,9 +787,20 @@ class BagClouds:
             raise ValueError(f"{where}: {message}") from None
 
 
+def cloud_topic(path: PathLike, topic: str | None = None, hint: str = "pass points=TOPIC") -> str:
+    """``topic``, or the bag's only ``sensor_msgs/PointCloud2`` topic; ValueError listing the bag's
+    PointCloud2 topics (after ``hint``) when it has none or several."""
+    if topic is not None:
+        return topic
+    clouds = [t.name for t in bag_info(path) if t.msgtype == POINTCLOUD2]
+    if len(clouds) != 1:
+        raise ValueError(f"{path}: {hint}; the bag's PointCloud2 topics: {', '.join(clouds) or 'none'}")
+    return clouds[0]
+
+
 def read_bag(
     path: PathLike,
-    points: str,
+    points: str | None = None,
     poses: str | None = None,
     *,
     base_frame: str | None = None,
@@ -795,9 +816,10 @@ def read_bag(
     path : str or Path
         A ROS 1 ``.bag``, a ROS 2 bag folder (sqlite3 or mcap storage), or an ``.mcap`` file (ROS 2 or
         ros1 profile).
-    points : str
-        The PointCloud2 topic. Points are decoded as :func:`decode_pointcloud2` does; invalid points
-        are dropped and counted in the result's ``no_returns``.
+    points : str, optional
+        The PointCloud2 topic (default: the bag's only one, see :func:`cloud_topic`). Points are
+        decoded as :func:`decode_pointcloud2` does; invalid points are dropped and counted in the
+        result's ``no_returns``.
     poses : str, optional
         Where each cloud's pose comes from:
 
@@ -833,7 +855,7 @@ def read_bag(
     """
     return BagClouds(
         path,
-        points,
+        cloud_topic(path, points),
         poses,
         base_frame=base_frame,
         fixed_frame=fixed_frame,

@@ -48,15 +48,9 @@ def is_bag(path: Path) -> bool:
 
 def _points_topic(bag: Path, topic: str | None) -> str:
     """``topic``, or the bag's only PointCloud2 topic."""
-    from .bag import POINTCLOUD2, bag_info
+    from .bag import cloud_topic
 
-    if topic is not None:
-        return topic
-    clouds = [t.name for t in bag_info(bag) if t.msgtype == POINTCLOUD2]
-    if len(clouds) != 1:
-        found = ", ".join(clouds) or "none"
-        raise ValueError(f"{bag}: pass --points TOPIC; the bag's PointCloud2 topics: {found}")
-    return clouds[0]
+    return cloud_topic(bag, topic, hint="pass --points TOPIC")
 
 
 def _output_bag(directory: Path, stem: str, storage: str):

@@ -117,6 +117,23 @@ def test_bag_info_lists_topics_types_and_counts_of_every_storage(bags):
     assert len(ouster) == 10
 
 
+def test_read_bag_takes_the_only_cloud_topic_by_default_and_lists_them_otherwise(bags, tmp_path):
+    default = list(read_bag(bags / "luminar_embag.bag").clouds())
+    named = list(read_bag(bags / "luminar_embag.bag", LUMINAR_TOPIC).clouds())
+    assert [c.stamp for c in default] == [c.stamp for c in named] and len(default) == 5
+    for got, want in zip(default, named, strict=True):
+        np.testing.assert_array_equal(got.points, want.points)
+    path = tmp_path / "two_clouds.mcap"  # a bag of two PointCloud2 topics: the choice is the user's
+    points = np.random.default_rng(0).uniform(-5, 5, (50, 3)).astype(np.float32)
+    with MapBagWriter(path, "mcap") as writer:
+        for topic in ("/a/points", "/b/points"):
+            writer.write_cloud(points, stamp=1.0, frame_id="lidar", topic=topic)
+    with pytest.raises(
+        ValueError, match=r"pass points=TOPIC; the bag's PointCloud2 topics: /a/points, /b/points"
+    ):
+        read_bag(path)
+
+
 def test_luminar_clouds_are_identical_in_ros1_sqlite3_and_mcap_bags(bags):
     runs = {}
     for name in ("luminar_embag.bag", "luminar_embag_ros2_db3", "luminar_embag_ros2_mcap"):
@@ -194,6 +211,11 @@ def test_ouster_static_transform_to_the_sensor_frame_comes_from_tf_static(bags):
         match=r"frame 'base_link' is not in the TF tree; known frames: os1_imu, os1_lidar, os1_sensor",
     ):
         next(iter(read_bag(path, OUSTER_TOPIC, base_frame="base_link")))
+    # Poses from /tf in a bag with only /tf_static: every cloud the same pose, which is said.
+    with pytest.warns(UserWarning, match=r"no /tf topic \(only /tf_static\): every cloud gets the same"):
+        tf_poses = [pose for _, _, pose in read_bag(path, OUSTER_TOPIC, "/tf", base_frame="os1_sensor")]
+    for pose in tf_poses:
+        np.testing.assert_allclose(pose, expected, atol=1e-12)
 
 
 # ------------------------------------------------------------------------------ decoding layouts
@@ -1036,12 +1058,21 @@ def test_stream_shadow_aware_on_an_organised_bag_uses_its_beams_without_a_return
     np.testing.assert_allclose(np.linalg.norm(beams, axis=1), 1.0)
     assert returns_and_empty_beams(next(read_bag(path, OUSTER_TOPIC).clouds()))[1] is None  # no empty pixel
     options = ["--tf", "os1_sensor", "--length", "20", "--resolution", "0.2", "--no-png"]
-    result = cli(
-        "stream", path, "--points", OUSTER_TOPIC, "--method", "shadow_aware", "-o", tmp_path / "s", *options
-    )
+    with pytest.warns(UserWarning, match="no /tf topic"):  # the recording's sensor stands still
+        result = cli(
+            "stream",
+            path,
+            "--points",
+            OUSTER_TOPIC,
+            "--method",
+            "shadow_aware",
+            "-o",
+            tmp_path / "s",
+            *options,
+        )
+        paper = cli("stream", path, "--points", OUSTER_TOPIC, "-o", tmp_path / "p", *options)
     assert result.exit_code == 0, result.output
     assert f"{85356 + 85263:,} beams without a return" in result.output
-    paper = cli("stream", path, "--points", OUSTER_TOPIC, "-o", tmp_path / "p", *options)
     assert paper.exit_code == 0 and "170,619 no-returns dropped" in paper.output
     for name in ("s", "p"):
         assert tc.ElevationMap.load(tmp_path / name / "local_map.npz")["count"].sum() > 0
