@@ -51,6 +51,7 @@ __all__ = [
     "write_classified",
     "write_pcd",
     "write_kitti_bin",
+    "organised_shape",
     "TERRAIN_LAS_CLASSES",
     "sample_scan_path",
     "load_sample_scan",
@@ -675,6 +676,23 @@ def _read_pcd(path: Path) -> dict[str, np.ndarray]:
         fields["xyz"] = fields["xyz"].astype(np.float64)
     fields.update(columns)
     return fields
+
+
+def organised_shape(path: PathLike) -> tuple[int, int] | None:
+    """(HEIGHT, WIDTH) of an organised PCD file (HEIGHT > 1 and WIDTH x HEIGHT = POINTS: a row per
+    beam, a column per firing, as Ouster and Velodyne drivers write a scan), from its header; None
+    for any other file. ``read_cloud(path)["xyz"].reshape(HEIGHT, WIDTH, 3)`` is then its image."""
+    path = Path(path)
+    if path.suffix.lower() != ".pcd" or not path.is_file():
+        return None
+    with path.open("rb") as stream:
+        head = stream.read(_PCD_MAX_HEADER + 1)
+    try:
+        metadata, _ = _pcd_header(head)
+    except _FormatError:
+        return None
+    height, width = int(metadata.height), int(metadata.width)
+    return (height, width) if height > 1 and height * width == int(metadata.points) else None
 
 
 # --------------------------------------------------------------------------------------------- writers
