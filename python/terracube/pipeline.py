@@ -594,8 +594,19 @@ class ScanOutput:
     def write(self, path: Path, kept_labels: np.ndarray, **kwargs) -> Path:
         from .io import write_classified
 
-        source = self.source if path.suffix.lower() in (".las", ".laz") else None
-        return write_classified(path, self.points, self.labels(kept_labels), source=source, **kwargs)
+        if path.suffix.lower() in (".las", ".laz"):
+            return write_classified(path, self.points, self.labels(kept_labels), source=self.source, **kwargs)
+        fields = dict(self.source_fields)
+        # read_cloud's "label" naming another field's values is no field of the file: not written twice
+        if "label" in fields and any(
+            name in fields and np.array_equal(fields[name], fields["label"])
+            for name in ("overhang", "terracube_class", "classification")
+        ):
+            del fields["label"]
+        image_shape = self.image_shape if fields else None
+        return write_classified(
+            path, self.points, self.labels(kept_labels), fields=fields, image_shape=image_shape, **kwargs
+        )
 
 
 def _elapsed_ms(start: float) -> float:
