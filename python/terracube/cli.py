@@ -1332,7 +1332,18 @@ def stream_command(
     if lidar_only:
         typer.echo(posed.summary())
     if sum(used_beams):
-        typer.echo(f"{sum(used_beams):,} beams without a return (from the ring field) showed free space")
+        typer.echo(f"{sum(used_beams):,} beams without a return showed free space")
+    elif beams and files:
+        typer.echo(f"note: shadow_aware took no empty pixels as free space: {_no_beams_reason(files[0])}")
+
+
+def _no_beams_reason(path: Path) -> str:
+    """Why a scan file gives no beams without a return (:func:`terracube.pipeline.no_beams_reason`)."""
+    from .io import organised_shape, read_cloud
+    from .pipeline import no_beams_reason
+
+    fields = read_cloud(path)
+    return no_beams_reason(fields["xyz"], fields.get("ring"), organised_shape(path)) or "none were found"
 
 
 # ------------------------------------------------------------------------------------------ config, batch

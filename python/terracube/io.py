@@ -51,6 +51,7 @@ __all__ = [
     "write_classified",
     "write_pcd",
     "write_kitti_bin",
+    "organised_shape",
     "TERRAIN_LAS_CLASSES",
     "sample_scan_path",
     "load_sample_scan",
@@ -677,16 +678,39 @@ def _read_pcd(path: Path) -> dict[str, np.ndarray]:
     return fields
 
 
+def organised_shape(path: PathLike) -> tuple[int, int] | None:
+    """(HEIGHT, WIDTH) of an organised PCD file (HEIGHT > 1 and WIDTH x HEIGHT = POINTS: a row per
+    beam, a column per firing, as Ouster and Velodyne drivers write a scan), from its header; None
+    for any other file. ``read_cloud(path)["xyz"].reshape(HEIGHT, WIDTH, 3)`` is then its image."""
+    path = Path(path)
+    if path.suffix.lower() != ".pcd" or not path.is_file():
+        return None
+    with path.open("rb") as stream:
+        head = stream.read(_PCD_MAX_HEADER + 1)
+    try:
+        metadata, _ = _pcd_header(head)
+    except _FormatError:
+        return None
+    height, width = int(metadata.height), int(metadata.width)
+    return (height, width) if height > 1 and height * width == int(metadata.points) else None
+
+
 # --------------------------------------------------------------------------------------------- writers
 
 
-def write_pcd(path: PathLike, fields: dict[str, np.ndarray], encoding: str = "binary") -> Path:
+def write_pcd(
+    path: PathLike,
+    fields: dict[str, np.ndarray],
+    encoding: str = "binary",
+    image_shape: tuple[int, int] | None = None,
+) -> Path:
     """Write a PCD v0.7 file of named per-point fields (each (N,) or (N, COUNT), numeric), with pypcd4.
 
     ``fields`` must hold ``x``, ``y`` and ``z``, or ``xyz`` ((N, 3)), which is split into them.
     ``encoding`` is ``ascii``, ``binary`` or ``binary_compressed`` (LZF, as PCL writes it; data LZF
     cannot shrink is stored as ``binary``, as pypcd4 does). Booleans are stored as U1. The cloud is
-    unorganised (WIDTH = N, HEIGHT = 1).
+    unorganised (WIDTH = N, HEIGHT = 1) unless ``image_shape`` (HEIGHT, WIDTH) lays the N rows out
+    as an image (:func:`organised_shape` reads it back).
     """
     from pypcd4 import Encoding, PointCloud
     from pypcd4.pypcd4 import MetaData
@@ -704,6 +728,9 @@ def write_pcd(path: PathLike, fields: dict[str, np.ndarray], encoding: str = "bi
     if not {"x", "y", "z"} <= set(columns):
         raise ValueError(f"{path}: a PCD needs x, y and z fields")
     n = len(columns["x"])
+    height, width = (1, n) if image_shape is None else (int(image_shape[0]), int(image_shape[1]))
+    if height * width != n or height < 1:
+        raise ValueError(f"{path}: an image of {height} x {width} cannot hold {n} points")
     types, counts = [], []
     for name, value in columns.items():
         if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
@@ -721,8 +748,8 @@ def write_pcd(path: PathLike, fields: dict[str, np.ndarray], encoding: str = "bi
         type=tuple(types),
         count=tuple(counts),
         points=n,
-        width=n,
-        height=1,
+        width=width,
+        height=height,
         data=Encoding(encoding),
     )
     rows = np.empty(n, dtype=metadata.build_dtype())
@@ -803,8 +830,15 @@ def write_classified(
     las_classes: dict[int, int] | None = None,
     source: PathLike | None = None,
     as_classification: bool = False,
+    fields: dict[str, np.ndarray] | None = None,
+    image_shape: tuple[int, int] | None = None,
 ) -> Path:
     """Write points with one label each: a bool overhang mask or uint8 classes (0..255).
+
+    ``fields``: other per-point fields to carry (a :func:`read_cloud` dict; ``xyz`` and a field of
+    the label's name are left out), kept by every format but LAS/LAZ and ``.npy``: PCD all of them,
+    PLY and text the (N,) ones, ``.npz`` all, ``.bin`` its ``intensity``. ``image_shape``: (HEIGHT,
+    WIDTH) of an organised PCD output (the points in image order; :func:`write_pcd`).
 
     A LAS/LAZ output with a LAS/LAZ ``source`` (the file ``points`` were read from, same points in
     the same order) is that file with the labels added (:func:`_write_las_from_source`): every
@@ -815,9 +849,10 @@ def write_classified(
 
     The format follows the suffix; ``read_cloud`` gives the same labels back (``"label"``, uint8):
 
-    - ``.ply``: binary; float x y z (float64 if the points are), a uchar property ``overhang`` (mask)
-      or ``label`` (classes), and an RGB colour (mask: retained grey, overhang red).
-    - ``.pcd``: binary PCD v0.7; fields x y z (F4 or F8) and ``overhang`` (U1, mask) or ``label`` (U1).
+    - ``.ply``: binary; float x y z (float64 if the points are), the ``fields``, a uchar property
+      ``overhang`` (mask) or ``label`` (classes), and an RGB colour (mask: retained grey, overhang red).
+    - ``.pcd``: binary PCD v0.7; fields x y z (F4 or F8), the ``fields`` and ``overhang`` (U1, mask)
+      or ``label`` (U1).
     - ``.las`` / ``.laz``: LAS 1.4, point format 6, coordinates at 0.1 mm (coarser only when the
       extent exceeds the int32 range). Classes go into ``classification`` as they are (ASPRS codes
       where the labels are). A mask writes ``classification`` 1 (``RETAINED_LAS_CLASS``, ASPRS
@@ -825,12 +860,12 @@ def write_classified(
       overhang points, plus a uint8 extra dimension ``overhang`` that the reader prefers. With
       ``las_classes`` (label -> LAS code, e.g. :data:`TERRAIN_LAS_CLASSES`) classes are written as
       those codes, and the labels themselves in a uint8 extra dimension ``label``.
-    - ``.bin``: KITTI float32 rows x, y, z, 0 (coordinates as float32) and, beside it, a
+    - ``.bin``: KITTI float32 rows x, y, z, intensity (0 without one) and, beside it, a
       SemanticKITTI-style ``.label`` file of uint32 labels (the overhang mask as 0/1).
-    - ``.npz``: ``xyz`` and ``overhang`` (bool, mask) or ``label`` (uint8).
+    - ``.npz``: ``xyz``, the ``fields`` and ``overhang`` (bool, mask) or ``label`` (uint8).
     - ``.npy``: an (N, 4) array x, y, z, label in the points' float dtype.
-    - ``.txt`` / ``.xyz``: a ``# x y z overhang`` (or ``label``) header line, then ``x y z label``
-      rows (coordinates at 0.1 mm).
+    - ``.txt`` / ``.xyz``: a ``# x y z ... overhang`` (or ``label``) header line naming the columns,
+      then rows x y z (at 0.1 mm), the ``fields`` (9 significant digits) and the label.
     """
     path = Path(path)
     points = np.asarray(points)
@@ -853,12 +888,14 @@ def write_classified(
     suffix = path.suffix.lower()
     if suffix not in WRITE_SUFFIXES:
         raise ValueError(f"{path}: unknown output format {suffix!r} (use {', '.join(WRITE_SUFFIXES)})")
+    extra = _carried_fields(path, fields, name, len(xyz))
     if suffix == ".pcd":
-        return write_pcd(path, {"xyz": xyz, name: label_u8}, encoding="binary")
+        return write_pcd(path, {"xyz": xyz, **extra, name: label_u8}, "binary", image_shape)
     if suffix == ".bin":  # the labels first: a scan under its final name always has its labels beside it
         with atomic_path(path.with_suffix(".label")) as temporary:
             label_u8.astype("<u4").tofile(temporary)
-        return write_kitti_bin(path, xyz)
+        intensity = extra.get("intensity")
+        return write_kitti_bin(path, xyz, None if intensity is None or intensity.ndim != 1 else intensity)
     if suffix in (".las", ".laz"):
         _check_las(path, xyz, label_u8, is_mask, las_classes)
         if source is not None and Path(source).suffix.lower() in (".las", ".laz"):
@@ -868,8 +905,32 @@ def write_classified(
                 )
             return path
     with atomic_path(path) as temporary:
-        _write_classified(temporary, suffix, xyz, labels, label_u8, is_mask, las_classes)
+        _write_classified(temporary, suffix, xyz, labels, label_u8, is_mask, las_classes, extra)
     return path
+
+
+def _carried_fields(
+    path: Path, fields: dict[str, np.ndarray] | None, label_name: str, n: int
+) -> dict[str, np.ndarray]:
+    """The numeric (N,) and (N, k) ``fields`` to write beside the points and their label."""
+    carried = {}
+    for name, value in (fields or {}).items():
+        value = np.asarray(value)
+        if name in ("xyz", "x", "y", "z", label_name) or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
+            continue
+        if value.dtype == bool:
+            value = value.astype(np.uint8)
+        if value.dtype.kind not in "fiu" or value.ndim not in (1, 2) or len(value) != n:
+            continue
+        carried[name] = value
+    return carried
+
+
+# Text columns that read back exactly: integers whole, float32 in 9 significant digits, float64 in 17.
+_TEXT_FORMATS = {**{f"{k}{n}": "%d" for k in "iu" for n in (1, 2, 4, 8)}, "f4": "%.9g"}
+
+# The numeric dtypes a PLY property can hold; 64-bit integers go as float64 (exact below 2**53).
+_PLY_KINDS = {"i1", "u1", "i2", "u2", "i4", "u4", "f4", "f8"}
 
 
 def _write_classified(
@@ -880,18 +941,23 @@ def _write_classified(
     label_u8: np.ndarray,
     is_mask: bool,
     las_classes: dict[int, int] | None,
+    extra: dict[str, np.ndarray],
 ) -> None:
     name = "overhang" if is_mask else "label"
+    # PLY properties and text columns: the (N,) fields, but an earlier output's colour, made anew here
+    columns = {k: v for k, v in extra.items() if v.ndim == 1 and k not in ("red", "green", "blue")}
     if suffix == ".ply":
         from plyfile import PlyData, PlyElement
 
         kind = "f8" if xyz.dtype == np.float64 else "f4"
+        kinds = {k: v.dtype.str[1:] if v.dtype.str[1:] in _PLY_KINDS else "f8" for k, v in columns.items()}
         vertex = np.empty(
             len(xyz),
             dtype=[
                 ("x", kind),
                 ("y", kind),
                 ("z", kind),
+                *kinds.items(),
                 (name, "u1"),
                 ("red", "u1"),
                 ("green", "u1"),
@@ -899,6 +965,8 @@ def _write_classified(
             ],
         )
         vertex["x"], vertex["y"], vertex["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+        for key, value in columns.items():
+            vertex[key] = value
         vertex[name] = label_u8
         colours = _label_colours(label_u8, is_mask)
         vertex["red"], vertex["green"], vertex["blue"] = colours[:, 0], colours[:, 1], colours[:, 2]
@@ -906,13 +974,23 @@ def _write_classified(
     elif suffix in (".las", ".laz"):
         _write_las(path, xyz, label_u8, is_mask, las_classes)
     elif suffix == ".npz":
-        np.savez_compressed(path, xyz=xyz, **{name: labels.astype(bool) if is_mask else label_u8})
+        np.savez_compressed(path, xyz=xyz, **extra, **{name: labels.astype(bool) if is_mask else label_u8})
     elif suffix == ".npy":
         np.save(path, np.column_stack([xyz, label_u8.astype(xyz.dtype)]))
     else:
+        table = (
+            np.column_stack([xyz, *columns.values(), label_u8])
+            if columns
+            else np.column_stack([xyz, label_u8])
+        )
+        formats = (
+            ["%.4f"] * 3
+            + [_TEXT_FORMATS.get(v.dtype.kind + str(v.dtype.itemsize), "%.17g") for v in columns.values()]
+            + ["%d"]
+        )
         with open(path, "w", encoding="ascii") as stream:
-            stream.write(f"# x y z {name}\n")
-            np.savetxt(stream, np.column_stack([xyz, label_u8]), fmt=["%.4f", "%.4f", "%.4f", "%d"])
+            stream.write(f"# x y z {''.join(k + ' ' for k in columns)}{name}\n")
+            np.savetxt(stream, table, fmt=formats)
 
 
 def _check_las(

@@ -47,6 +47,7 @@ __all__ = [
     "collapse_params",
     "elevation_params",
     "empty_beams",
+    "no_beams_reason",
     "expand_inputs",
     "fill_note",
     "ground_reference_given",
@@ -106,26 +107,34 @@ def read_scan(path: str | Path) -> np.ndarray:
 
 def read_scan_and_beams(path: str | Path, origin=None) -> tuple[np.ndarray, np.ndarray | None]:
     """The points of one scan file (as :func:`read_scan`) and the directions of its beams that
-    returned nothing, seen from ``origin`` (the file's origin when None; :func:`empty_beams`), for
-    ``method="shadow_aware"``; None when the file does not lay the scan out."""
+    returned nothing, seen from ``origin`` (the file's origin when None; :func:`empty_beams` of its
+    image layout and ``ring`` field), for ``method="shadow_aware"``; None when the file does not lay
+    the scan out (:func:`no_beams_reason` says why)."""
+    from .io import organised_shape
+
     fields = _read_scan_fields(path)
-    return fields["xyz"], empty_beams(fields["xyz"], fields.get("ring"), origin)
+    return fields["xyz"], empty_beams(fields["xyz"], fields.get("ring"), origin, organised_shape(path))
 
 
 def read_returns_and_beams(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     """:func:`returns_and_beams` of one scan file (ValueError as :func:`read_scan`)."""
+    from .io import organised_shape
+
     fields = _read_scan_fields(path)
-    return returns_and_beams(fields["xyz"], fields.get("ring"))
+    return returns_and_beams(fields["xyz"], fields.get("ring"), organised_shape(path))
 
 
-def returns_and_beams(xyz: np.ndarray, ring: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+def returns_and_beams(
+    xyz: np.ndarray, ring: np.ndarray | None, image_shape: tuple[int, int] | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
     """The returns of a scan (its rows without NaN/Inf or (0, 0, 0) no-returns) and the directions
-    of its beams that returned nothing (:func:`empty_beams`, None when ``ring`` does not lay the
-    scan out): what ``LocalMap.update`` takes as ``points`` and ``no_returns``."""
+    of its beams that returned nothing (:func:`empty_beams`, None when neither ``image_shape`` nor
+    ``ring`` lays the scan out): what ``LocalMap.update`` takes as ``points`` and ``no_returns``."""
     from .collapse import is_return
 
     returns = is_return(xyz)
-    return (xyz if returns.all() else np.ascontiguousarray(xyz[returns])), empty_beams(xyz, ring)
+    beams = empty_beams(xyz, ring, image_shape=image_shape)
+    return (xyz if returns.all() else np.ascontiguousarray(xyz[returns])), beams
 
 
 def read_stage_input(path: str | Path, config) -> tuple[np.ndarray, np.ndarray | None]:
@@ -141,20 +150,54 @@ def read_stage_input(path: str | Path, config) -> tuple[np.ndarray, np.ndarray |
     return read_scan_and_beams(path, origin)
 
 
-def empty_beams(xyz: np.ndarray, ring: np.ndarray | None, origin=None) -> np.ndarray | None:
-    """The directions of the empty pixels (NaN or (0, 0, 0)) of an organised scan, seen from
-    ``origin`` (the points' origin when None), from :func:`terracube.no_return_directions`, when an
-    integer ``ring`` field lays the rows out (as many pixels per beam, as Ouster drivers write
-    them); None otherwise (no ring field, a driver that drops the empty pixels, or none empty)."""
-    from .collapse import is_return, no_return_directions
+def _is_image_shape(image_shape, count: int) -> bool:
+    return image_shape is not None and image_shape[0] > 1 and image_shape[0] * image_shape[1] == count
 
-    if ring is None or ring.ndim != 1 or not np.issubdtype(ring.dtype, np.integer) or len(ring) != len(xyz):
+
+def no_beams_reason(
+    xyz: np.ndarray, ring: np.ndarray | None, image_shape: tuple[int, int] | None = None
+) -> str | None:
+    """Why :func:`empty_beams` finds no beams without a return in a scan (a phrase), or None when it
+    finds some."""
+    from .collapse import is_return
+
+    if not _is_image_shape(image_shape, len(xyz)):
+        layout = "the cloud is not organised (no HEIGHT > 1 with WIDTH x HEIGHT = its points)"
+        if ring is None:
+            return f"{layout} and has no ring field"
+        if ring.ndim != 1 or not np.issubdtype(ring.dtype, np.integer) or len(ring) != len(xyz):
+            return f"{layout} and its ring field is not one integer per point"
+        _, counts = np.unique(ring, return_counts=True)
+        if not (counts == counts[0]).all():
+            return (
+                f"{layout} and its ring field gives the beams unequal pixel counts "
+                f"({counts.min():,}..{counts.max():,}: a driver that drops or mislabels the empty pixels)"
+            )
+    returned = np.count_nonzero(is_return(xyz))
+    if returned == len(xyz):
+        return "every pixel of the scan holds a return"
+    if returned == 0:
+        return "the scan holds no return to measure its beams by"
+    return None
+
+
+def empty_beams(
+    xyz: np.ndarray, ring: np.ndarray | None, origin=None, image_shape: tuple[int, int] | None = None
+) -> np.ndarray | None:
+    """The directions of the empty pixels (NaN or (0, 0, 0)) of an organised scan, seen from
+    ``origin`` (the points' origin when None), from :func:`terracube.no_return_directions`.
+
+    The scan's layout comes from ``image_shape`` (HEIGHT, WIDTH) when HEIGHT > 1 and it holds every
+    point (an organised PCD's header, :func:`terracube.io.organised_shape`; the rows are then the
+    image row-major), else from an integer ``ring`` field with as many pixels per beam (as Ouster
+    drivers write them). None when neither lays the scan out or none is empty
+    (:func:`no_beams_reason` says which)."""
+    from .collapse import no_return_directions
+
+    if no_beams_reason(xyz, ring, image_shape) is not None:
         return None
-    if not 0 < np.count_nonzero(is_return(xyz)) < len(xyz):
-        return None
-    _, counts = np.unique(ring, return_counts=True)
-    if not (counts == counts[0]).all():
-        return None
+    if _is_image_shape(image_shape, len(xyz)):
+        return no_return_directions(np.asarray(xyz).reshape(*image_shape, 3), origin=origin)
     return no_return_directions(xyz, ring=ring, origin=origin)
 
 
@@ -514,6 +557,31 @@ class ScanOutput:
 
         return read_crs(self.source) if self.source is not None else None
 
+    @functools.cached_property
+    def source_fields(self) -> dict[str, np.ndarray]:
+        """The source file's per-point fields (:func:`terracube.io.read_cloud`), read once, with
+        ``xyz``; empty without a source or when it holds other points than ``points``."""
+        from .io import read_cloud
+
+        if self.source is None:
+            return {}
+        fields = read_cloud(self.source)
+        return fields if len(fields["xyz"]) == len(self.points) else {}
+
+    @functools.cached_property
+    def image_shape(self) -> tuple[int, int] | None:
+        """(HEIGHT, WIDTH) of an organised PCD source (:func:`terracube.io.organised_shape`), or None."""
+        from .io import organised_shape
+
+        return None if self.source is None else organised_shape(self.source)
+
+    def no_beams_reason(self) -> str:
+        """Why the scan has no beams without a return (``no_returns`` is None)."""
+        if not self.source_fields:
+            return "none were given with the points"
+        fields = self.source_fields
+        return no_beams_reason(fields["xyz"], fields.get("ring"), self.image_shape) or "none were given"
+
     def labels(self, kept_labels: np.ndarray) -> np.ndarray:
         """(N,) labels of every input point from those of the kept ones (0 / False elsewhere)."""
         kept_labels = np.asarray(kept_labels)
@@ -526,8 +594,19 @@ class ScanOutput:
     def write(self, path: Path, kept_labels: np.ndarray, **kwargs) -> Path:
         from .io import write_classified
 
-        source = self.source if path.suffix.lower() in (".las", ".laz") else None
-        return write_classified(path, self.points, self.labels(kept_labels), source=source, **kwargs)
+        if path.suffix.lower() in (".las", ".laz"):
+            return write_classified(path, self.points, self.labels(kept_labels), source=self.source, **kwargs)
+        fields = dict(self.source_fields)
+        # read_cloud's "label" naming another field's values is no field of the file: not written twice
+        if "label" in fields and any(
+            name in fields and np.array_equal(fields[name], fields["label"])
+            for name in ("overhang", "terracube_class", "classification")
+        ):
+            del fields["label"]
+        image_shape = self.image_shape if fields else None
+        return write_classified(
+            path, self.points, self.labels(kept_labels), fields=fields, image_shape=image_shape, **kwargs
+        )
 
 
 def _elapsed_ms(start: float) -> float:
@@ -745,8 +824,14 @@ def classified_map(points, name, config, remove_overhangs: bool, no_returns=None
 
 
 def _add_beams_note(report: StageReport, collapse, scan: ScanOutput) -> None:
-    if scan.no_returns is not None and collapse.method == "shadow_aware":
+    if collapse.method != "shadow_aware":
+        return
+    if scan.no_returns is not None:
         report.lines.append(f"  {len(scan.no_returns):,} beams without a return showed free space")
+    else:
+        report.lines.append(
+            f"  note: shadow_aware took no empty pixels as free space: {scan.no_beams_reason()}"
+        )
 
 
 def _add_notes(report: StageReport, elevation_map, scan: ScanOutput) -> None:

@@ -221,3 +221,73 @@ def test_the_kitti_car_maps_as_steps_on_its_path_unless_its_returns_are_left_out
 
 def _evo_path() -> str:
     return os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])
+
+
+def test_collapse_clouds_carry_the_inputs_fields_and_an_organised_pcd_its_image_layout(tmp_path):
+    """-f pcd/ply/txt/npz/bin write the input's intensity and ring beside the overhang field, in
+    input order, and a PCD from an organised PCD keeps HEIGHT x WIDTH (so shadow_aware can read it
+    again); a .bin keeps the real intensity, not 0."""
+    from plyfile import PlyData
+    from terracube.cli import app
+    from terracube.io import read_cloud, write_pcd
+    from typer.testing import CliRunner
+
+    rng = np.random.default_rng(7)
+    height, width = 8, 500
+    azimuth = np.linspace(0, 2 * np.pi, width, endpoint=False)
+    elevation = np.radians(np.linspace(-15, 5, height))[:, None]
+    ranges = rng.uniform(4.0, 20.0, (height, width))
+    xyz = np.stack(
+        [ranges * np.cos(elevation) * np.cos(azimuth), ranges * np.cos(elevation) * np.sin(azimuth),
+         ranges * np.sin(elevation)], axis=-1,
+    ).reshape(-1, 3).astype(np.float32)  # fmt: skip
+    xyz[rng.random(len(xyz)) < 0.1] = 0.0  # empty pixels
+    intensity = rng.integers(0, 256, len(xyz)).astype(np.uint8)
+    ring = np.repeat(np.arange(height, dtype=np.uint16), width)
+    write_pcd(tmp_path / "scan.pcd", {"xyz": xyz, "intensity": intensity, "ring": ring})
+    data = (tmp_path / "scan.pcd").read_bytes()  # organised, as a driver writes it
+    data = data.replace(
+        f"WIDTH {len(xyz)}\nHEIGHT 1\n".encode(), f"WIDTH {width}\nHEIGHT {height}\n".encode()
+    )
+    (tmp_path / "scan.pcd").write_bytes(data)
+    runner = CliRunner()
+    for fmt in ("pcd", "ply", "txt", "npz"):
+        out = tmp_path / fmt
+        args = ["collapse", str(tmp_path / "scan.pcd"), "-o", str(out), "-f", fmt, "--no-png", "-e", "0.5"]
+        result = runner.invoke(app, args)
+        assert result.exit_code == 0, result.output
+        written = out / f"scan_classified.{fmt}"
+        if fmt == "ply":  # independent of terracube's reader
+            vertex = PlyData.read(str(written))["vertex"].data
+            np.testing.assert_array_equal(vertex["intensity"], intensity)
+            np.testing.assert_array_equal(vertex["ring"], ring)
+        back = read_cloud(written)
+        np.testing.assert_array_equal(back["intensity"], intensity)
+        np.testing.assert_array_equal(back["ring"], ring)
+        assert "overhang" in back and len(back["overhang"]) == len(xyz)
+    header = (tmp_path / "pcd" / "scan_classified.pcd").read_bytes().split(b"DATA")[0].decode()
+    assert "FIELDS x y z intensity ring overhang\n" in header
+    assert f"WIDTH {width}\nHEIGHT {height}\n" in header
+
+    # A KITTI .bin keeps its intensity column (float32 rows x, y, z, intensity).
+    rows = np.column_stack([xyz[xyz.any(axis=1)], rng.uniform(0, 1, np.count_nonzero(xyz.any(axis=1)))])
+    rows.astype("<f4").tofile(tmp_path / "scan.bin")
+    result = runner.invoke(
+        app, ["collapse", str(tmp_path / "scan.bin"), "-o", str(tmp_path / "bin"), "-f", "bin", "--no-png"]
+    )
+    assert result.exit_code == 0, result.output
+    written = np.fromfile(tmp_path / "bin" / "scan_classified.bin", dtype="<f4").reshape(-1, 4)
+    np.testing.assert_array_equal(written, rows.astype("<f4"))
+
+
+def test_collapse_of_the_real_kitti_scan_to_bin_keeps_its_intensities(shared_data, tmp_path):
+    from terracube.cli import app
+    from typer.testing import CliRunner
+
+    path = shared_data.path("kitti_seq00/velodyne/000000.bin")
+    args = ["collapse", str(path), "--preset", "kitti", "-f", "bin", "-o", str(tmp_path), "--no-png"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    written = np.fromfile(tmp_path / "000000_classified.bin", dtype="<f4").reshape(-1, 4)
+    np.testing.assert_array_equal(written, shared_data.kitti_xyzi(0))
+    assert np.count_nonzero(written[:, 3]) > 0.9 * len(written)

@@ -1194,3 +1194,80 @@ def test_stream_on_a_folder_of_organised_files_uses_their_beams(tmp_path):
     crowns = [np.count_nonzero(m["elevation"] > 1.0) for m in (written, alone.to_elevation_map())]
     print("cells over 1 m with / without the beams:", crowns)
     assert crowns[0] < 0.5 * crowns[1]  # the beams keep crowns behind the hedges out of the map
+
+
+def _organised_pcd(path, xyz, ring, height, width):
+    """A PCD of ``xyz`` and ``ring`` whose header says HEIGHT x WIDTH (written unorganised, then the
+    header's two lines changed, as an Ouster driver's organised file reads)."""
+    from terracube.io import write_pcd
+
+    write_pcd(path, {"xyz": xyz, "ring": ring})
+    data = path.read_bytes()
+    old = f"WIDTH {len(xyz)}\nHEIGHT 1\n".encode()
+    assert data.count(old) == 1
+    path.write_bytes(data.replace(old, f"WIDTH {width}\nHEIGHT {height}\n".encode()))
+
+
+def test_an_organised_pcd_gives_its_empty_pixels_by_its_image_layout_though_its_ring_field_is_zero_there(
+    tmp_path,
+):
+    """An Ouster organised PCD writes ring 0 in its empty pixels, so its rings count unequally: the
+    HEIGHT x WIDTH layout of its header lays the image out instead (the CLI used no beams, silently)."""
+    from terracube.cli import app
+    from typer.testing import CliRunner
+
+    image, _ = hedge_scene_image()
+    xyz = image.reshape(-1, 3).astype(np.float32)
+    returned = (xyz != 0).any(axis=1)
+    ring = np.where(returned, np.repeat(np.arange(32, dtype=np.uint16), 1800), 0).astype(np.uint16)
+    _organised_pcd(tmp_path / "organised.pcd", xyz, ring, 32, 1800)
+    runner = CliRunner()
+    common = ["-f", "npz", "--no-png", "-e", "0.5", "-s", "4", "--method", "shadow_aware"]
+    result = runner.invoke(app, ["collapse", str(tmp_path / "organised.pcd"), "-o", str(tmp_path), *common])
+    assert result.exit_code == 0, result.output
+    beams = tc.no_return_directions(image)
+    assert f"{len(beams):,} beams without a return showed free space" in result.output
+    params = tc.CollapseParams(edge=0.5, sigma=4, method="shadow_aware")
+    expected = tc.collapse_overhangs(xyz[returned], params=params, no_returns=beams).overhang
+    saved = np.load(tmp_path / "organised_classified.npz")["overhang"]
+    np.testing.assert_array_equal(saved[returned], expected)
+
+    # The same rows unorganised (HEIGHT 1): the ring field cannot lay them out, and the note says why.
+    _organised_pcd(tmp_path / "flat.pcd", xyz, ring, 1, len(xyz))
+    result = runner.invoke(app, ["collapse", str(tmp_path / "flat.pcd"), "-o", str(tmp_path), *common])
+    assert result.exit_code == 0, result.output
+    assert "beams without a return" not in result.output
+    counts = np.bincount(ring)
+    assert (
+        "note: shadow_aware took no empty pixels as free space: the cloud is not organised "
+        f"(no HEIGHT > 1 with WIDTH x HEIGHT = its points) and its ring field gives the beams unequal "
+        f"pixel counts ({counts.min():,}..{counts.max():,}" in result.output
+    )
+    np.save(tmp_path / "returns.npy", xyz[returned])
+    result = runner.invoke(
+        app, ["dem", str(tmp_path / "returns.npy"), "-o", str(tmp_path), "--no-png", *common[3:]]
+    )
+    assert result.exit_code == 0, result.output
+    assert (
+        "free space: the cloud is not organised (no HEIGHT > 1 with WIDTH x HEIGHT = its points) "
+        "and has no ring field" in result.output
+    )
+    paper = runner.invoke(
+        app, ["collapse", str(tmp_path / "flat.pcd"), "-o", str(tmp_path / "p"), *common[:-2]]
+    )
+    assert paper.exit_code == 0 and "shadow_aware" not in paper.output
+
+
+def test_the_real_organised_ouster_pcd_gives_the_empty_pixels_of_its_128_x_1875_image(shared_data):
+    from terracube.config import default_config
+    from terracube.io import organised_shape, read_cloud
+    from terracube.pipeline import read_stage_input
+
+    path = shared_data.path("ouster128/ouster128_000000.pcd")
+    assert organised_shape(path) == (128, 1875)  # the header's HEIGHT, WIDTH
+    xyz = read_cloud(path)["xyz"]
+    config = default_config().replace("collapse", method="shadow_aware")
+    points, beams = read_stage_input(path, config)
+    expected = tc.no_return_directions(xyz.reshape(128, 1875, 3))
+    assert len(expected) == np.count_nonzero(~(xyz != 0).any(axis=1)) == 34102
+    np.testing.assert_allclose(beams, expected, atol=1e-12)
