@@ -52,7 +52,7 @@ FLOAT32_STEP_SHARE = 0.1
 #: ... or, for a call without such a length, this step [m].
 FLOAT32_STEP_M = 0.01
 #: Rows float32_step_warning reads at most (evenly spaced).
-FLOAT32_SAMPLE_ROWS = 4096
+FLOAT32_SAMPLE_ROWS = 1024
 
 
 def _as_points(points, length: float | None = None, length_name: str = "") -> np.ndarray:
