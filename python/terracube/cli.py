@@ -21,6 +21,7 @@ import json
 import math
 import os
 import re
+import weakref
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -30,7 +31,14 @@ from typing import Any
 import numpy as np
 import typer
 
-from .pipeline import CLOUD_FORMATS, REGISTRATION_METHODS, STAGE_OUTPUT_OPTIONS, STAGES, read_scan
+from .pipeline import (
+    CLOUD_FORMATS,
+    REGISTRATION_METHODS,
+    SCAN_SUFFIXES,
+    STAGE_OUTPUT_OPTIONS,
+    STAGES,
+    read_scan,
+)
 
 app = typer.Typer(
     help="Navigable 2.5D elevation maps from ground-robot 3D LiDAR scans.\n\n"
@@ -71,8 +79,26 @@ def _main(
 # ------------------------------------------------------------------------------------------ errors
 
 
+#: The progress bars shown now (:func:`progress_bar`): an error closes them so that its line starts
+#: on a line of its own instead of being glued onto a bar's.
+_PROGRESS_BARS: weakref.WeakSet = weakref.WeakSet()
+
+
+def progress_bar(iterable, what: str, unit: str = "scan", **kwargs):
+    """A tqdm bar over ``iterable`` that :func:`_fail` closes before printing its error."""
+    from tqdm import tqdm
+
+    bar = tqdm(iterable, unit=unit, desc=what, **kwargs)
+    _PROGRESS_BARS.add(bar)
+    return bar
+
+
 def _fail(message: str) -> typer.Exit:
-    """Print a red error message; the caller raises the returned Exit (code 2)."""
+    """Print a red error message (closing the progress bars first); the caller raises the returned
+    Exit (code 2)."""
+    for bar in list(_PROGRESS_BARS):
+        bar.close()
+    _PROGRESS_BARS.clear()
     typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
     return typer.Exit(2)
 
@@ -127,19 +153,46 @@ def _writable_folder(folder: Path, option: str = "--output-dir") -> Path:
 
 def _scan_files(scans: Path, limit: int | None) -> tuple[list[Path], int]:
     """The scan files of a folder (sorted) or a glob, at most ``limit``, and how many there are in
-    all (read_odometry matches scans to poses by their count); exits when there are none."""
-    from .pipeline import SCAN_SUFFIXES, expand_inputs
+    all (read_odometry matches scans to poses by their count); exits when there are none.
+
+    A folder holding files of several scan suffixes (KITTI's ``*.bin`` beside its ``calib.txt``)
+    gives the files of the most common one, with a note naming what was left out; a glob pattern
+    gives every scan it matches."""
+    from .pipeline import expand_inputs
 
     if scans.is_dir():
         files = sorted(p for p in scans.iterdir() if p.is_file() and not p.name.startswith("."))
+        every = _scans_of_one_suffix(scans, files)
     else:
         with _exit_on_bad_input():
             files = expand_inputs([str(scans)])
-    every = [f for f in files if f.suffix.lower() in SCAN_SUFFIXES]
+        every = [f for f in files if f.suffix.lower() in SCAN_SUFFIXES]
     files = every[: None if limit is None else max(limit, 0)]
     if not files:
         raise _fail(f"{scans}: no scans found")
     return files, len(every)
+
+
+def _scans_of_one_suffix(folder: Path, files: list[Path]) -> list[Path]:
+    """The files of ``folder`` with its most common scan suffix (the first of SCAN_SUFFIXES on a
+    tie); prints a note when other files are left out."""
+    counts: dict[str, int] = {}
+    for path in files:
+        suffix = path.suffix.lower()
+        if suffix in SCAN_SUFFIXES:
+            counts[suffix] = counts.get(suffix, 0) + 1
+    if not counts:
+        return []
+    chosen = max(counts, key=lambda suffix: (counts[suffix], -SCAN_SUFFIXES.index(suffix)))
+    scans = [p for p in files if p.suffix.lower() == chosen]
+    others = [p for p in files if p.suffix.lower() != chosen]
+    if others:
+        suffixes = sorted({p.suffix.lower() or "no suffix" for p in others})
+        typer.echo(
+            f"{_short_path(folder)}: {len(scans)} {chosen} scans; {len(others)} other "
+            f"file{'s' if len(others) != 1 else ''} left out ({', '.join(suffixes)})"
+        )
+    return scans
 
 
 def _existing_file(path: Path | None, option: str) -> None:
@@ -1116,8 +1169,6 @@ def map_command(
     writing no map, when no point falls in the map; a scan spanning over 10 km (coordinates in
     millimetres, say) is named then, and warned of otherwise.
     """
-    from tqdm import tqdm
-
     from .mapping import read_odometry
     from .pipeline import build_global_map
 
@@ -1152,7 +1203,7 @@ def map_command(
     _warn_of_the_kitti_car(
         files, cfg.frame.min_range, configured=any(v is not None for v in (config, preset, min_range))
     )
-    sequence = tqdm(list(enumerate(files)), unit="scan", desc="mapping")
+    sequence = progress_bar(list(enumerate(files)), "mapping")
     with _exit_on_bad_input("global map"):
         report = build_global_map(
             ((str(path), _read_scan(path), k) for k, path in sequence),
@@ -1266,8 +1317,6 @@ def stream_command(
     writing no map, when no point of any scan falls in the map; warns when the map knows no cell at
     the end, or when a scan spans over 10 km (coordinates in millimetres, say).
     """
-    from tqdm import tqdm
-
     from .mapping import read_odometry
     from .pipeline import read_returns_and_beams
     from .stream import run_stream
@@ -1297,7 +1346,7 @@ def stream_command(
     _warn_of_the_kitti_car(
         files, params.min_range, configured=any(v is not None for v in (config, preset, min_range))
     )
-    sequence = tqdm(list(enumerate(files)), unit="scan", desc="streaming")
+    sequence = progress_bar(list(enumerate(files)), "streaming")
     beams = params.collapse.method == "shadow_aware"  # the empty pixels of organised scans help it
     used_beams = []
 

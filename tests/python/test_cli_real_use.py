@@ -217,3 +217,50 @@ def test_the_kitti_car_maps_as_steps_on_its_path_unless_its_returns_are_left_out
 
 def _evo_path() -> str:
     return os.pathsep.join([str(Path(sys.executable).parent), os.environ.get("PATH", "")])
+
+
+@pytest.fixture
+def kitti_beside_its_text_files(tmp_path, shared_data) -> Path:
+    """KITTI's velodyne scans in one folder with the sequence's README.txt and calib.txt."""
+    kitti = shared_data.path("kitti_seq00/poses.txt").parent
+    folder = tmp_path / "mixseq"
+    folder.mkdir()
+    for path in [*sorted((kitti / "velodyne").glob("*.bin")), kitti / "README.txt", kitti / "calib.txt"]:
+        shutil.copy(path, folder / path.name)
+    return folder
+
+
+@pytest.mark.parametrize("command", ["map", "stream"])
+def test_a_folder_of_scans_and_text_files_maps_its_most_common_suffix_and_names_what_it_left_out(
+    tmp_path, kitti_beside_its_text_files, command
+):
+    out = tmp_path / "out"
+    done = _terracube(
+        command,
+        str(kitti_beside_its_text_files),
+        "--lidar-only",
+        "--preset",
+        "kitti",
+        "--no-png",
+        "-o",
+        str(out),
+    )
+    assert done.returncode == 0, done.stderr
+    assert f"{kitti_beside_its_text_files}: 6 .bin scans; 2 other files left out (.txt)" in done.stdout
+    assert any(out.iterdir())
+
+
+def test_a_glob_keeps_every_file_it_matches_and_the_error_starts_its_own_line(
+    tmp_path, kitti_beside_its_text_files, shared_data
+):
+    pattern = str(kitti_beside_its_text_files / "*")
+    done = _terracube(
+        "map", pattern, "--lidar-only", "--preset", "kitti", "--no-png", "-o", str(tmp_path / "a")
+    )
+    assert done.returncode == 2
+    readme = kitti_beside_its_text_files / "README.txt"
+    assert f"\nerror: {readme}: cannot read as .txt" in done.stderr, done.stderr  # not glued onto the bar
+    poses = shared_data.path("kitti_seq00/poses.txt")
+    done = _terracube("map", pattern, "-p", str(poses), "--no-png", "-o", str(tmp_path / "b"))
+    assert done.returncode == 2
+    assert f"error: 8 scans (6 .bin, 2 .txt) and 6 poses in {poses}" in done.stderr
