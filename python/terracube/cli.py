@@ -167,7 +167,7 @@ def _scan_files(scans: Path, limit: int | None) -> tuple[list[Path], int]:
         with _exit_on_bad_input():
             files = expand_inputs([str(scans)])
         every = [f for f in files if f.suffix.lower() in SCAN_SUFFIXES]
-    files = every[: None if limit is None else max(limit, 0)]
+    files = every[:limit]
     if not files:
         raise _fail(f"{scans}: no scans found")
     return files, len(every)
@@ -664,7 +664,30 @@ def command_config(command: str, options: dict[str, Any]):
 
             sigma = sigma_from_robot_height(options["robot_height"], config.collapse.edge)
             config = config.replace("collapse", sigma=sigma)
+    _check_terrain_heights(config, options)
     return config
+
+
+def _check_terrain_heights(config, options: dict[str, Any]) -> None:
+    """Exit 2 naming --high-height and --ground-height as the user typed them when the high-cell
+    threshold lies below the low-cell one (the core's message names its own fields)."""
+    high, ground = options.get("high_height"), options.get("ground_height")
+    if high is None and ground is None:
+        return
+    terrain = config["terrain"]
+    if not terrain.robot_height < terrain.ground_height:
+        return
+
+    def named(option: str, given: float | None, key: str) -> str:
+        if given is not None:
+            return f"{option} {given:g}"
+        return f"{option} {getattr(terrain, key):g} (terrain.{key} of the configuration)"
+
+    raise _fail(
+        f"{named('--high-height', high, 'robot_height')} is below "
+        f"{named('--ground-height', ground, 'ground_height')}: cells above --high-height are high and "
+        "cells below --ground-height low, so --high-height must be at least --ground-height"
+    )
 
 
 def stage_output_options(stage: str, options: dict[str, Any]) -> dict[str, Any]:
@@ -699,6 +722,18 @@ _POSES = typer.Option(
     "scan named by its time (1622812345.123456789.pcd) the pose interpolated at it; other names one pose "
     "each, in order. Needed unless --lidar-only.",
     show_default=False,
+)
+
+
+def _scan_limit(value: int | None) -> int | None:
+    """--limit is a count of scans: exit 2 naming it when below 1 (0 would read no scan at all)."""
+    if value is not None and value < 1:
+        raise _fail(f"--limit {value}: give how many scans to use, at least 1")
+    return value
+
+
+_LIMIT = typer.Option(
+    None, "--limit", help="Use the first N scans only.", show_default=False, callback=_scan_limit
 )
 
 _STAGE_HELP = {
@@ -1148,7 +1183,7 @@ def map_command(
         help="Scan-match every step, or chain by odometry alone [config mapper.use_registration].",
         show_default=False,
     ),
-    limit: int | None = typer.Option(None, "--limit", help="Use the first N scans only.", show_default=False),
+    limit: int | None = _LIMIT,
     ground_truth: Path | None = typer.Option(
         None,
         "--ground-truth",
@@ -1297,7 +1332,7 @@ def stream_command(
     animation: Path | None = typer.Option(
         None, "--animation", help="Write a .gif (or .mp4 with ffmpeg) of the elevation.", show_default=False
     ),
-    limit: int | None = typer.Option(None, "--limit", help="Use the first N scans only.", show_default=False),
+    limit: int | None = _LIMIT,
     config: Path | None = OPTIONS["config"].info,
     preset: str | None = OPTIONS["preset"].info,
     min_range: float | None = OPTIONS["min_range"].info,
