@@ -975,7 +975,8 @@ def register(
         typer.echo(f"  written: {output}")
     if not record["trusted"]:
         # Issue 38: an answer the verdict does not trust is a failure for scripts (exit code 1).
-        typer.secho(f"registration not trusted: {record['verdict']}", fg=typer.colors.RED, err=True)
+        why = record["verdict"].removeprefix("not trusted: ")  # the core's verdict starts with it
+        typer.secho(f"registration not trusted: {why}", fg=typer.colors.RED, err=True)
         raise typer.Exit(1)
 
 

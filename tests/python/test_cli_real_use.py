@@ -264,3 +264,14 @@ def test_a_glob_keeps_every_file_it_matches_and_the_error_starts_its_own_line(
     done = _terracube("map", pattern, "-p", str(poses), "--no-png", "-o", str(tmp_path / "b"))
     assert done.returncode == 2
     assert f"error: 8 scans (6 .bin, 2 .txt) and 6 poses in {poses}" in done.stderr
+
+
+def test_an_untrusted_registration_of_unrelated_scans_says_not_trusted_once(shared_data):
+    done = _terracube(
+        "register",
+        str(shared_data.path("ouster128/ouster128_000000.pcd")),
+        str(shared_data.path("kitti_seq00/velodyne/000000.bin")),
+    )
+    assert done.returncode == 1, done.stderr
+    line = done.stderr.strip().splitlines()[-1]
+    assert line.startswith("registration not trusted: only ") and line.count("not trusted") == 1, line
