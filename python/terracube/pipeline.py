@@ -380,6 +380,22 @@ def _scan_length_unit(scan: ScanOutput) -> tuple[str, float | None] | None:
     return None if unit is None or unit[1] == 1.0 else unit
 
 
+#: Short symbols of the units of length other than the metre that LAS files' CRSs name.
+_UNIT_SYMBOLS = {"foot": "ft", "US survey foot": "ftUS"}
+
+
+def length_text(value: float, unit: tuple[str, float | None] | None = None, spec: str = "g") -> str:
+    """``value`` formatted by ``spec`` with the unit of length it is in: ``unit`` as
+    :func:`_scan_length_unit` gives it, None for metres ("0.5 m"); a foot CRS gives "0.5 ft" or
+    "0.5 ftUS", another unit (or a geographic CRS's degrees) "0.5 (file units, NAME)"."""
+    number = format(value, spec)
+    if unit is None:
+        return f"{number} m"
+    name = unit[0]
+    symbol = _UNIT_SYMBOLS.get(name)
+    return f"{number} {symbol}" if symbol is not None else f"{number} (file units, {name})"
+
+
 def unit_note(scan: ScanOutput, config) -> str | None:
     """A warning line when the CRS of the scan's LAS/LAZ source does not measure in metres: terracube
     takes the coordinates as they are, so every length of the settings acts in the file's unit (a
@@ -514,6 +530,15 @@ class ScanOutput:
 
         return read_crs(self.source) if self.source is not None else None
 
+    @functools.cached_property
+    def length_unit(self) -> tuple[str, float | None] | None:
+        """The unit of length of the source's CRS when it is not the metre (:func:`_scan_length_unit`)."""
+        return _scan_length_unit(self)
+
+    def length(self, value: float, spec: str = "g") -> str:
+        """``value`` with the unit of length of the scan's coordinates (:func:`length_text`)."""
+        return length_text(value, self.length_unit, spec)
+
     def labels(self, kept_labels: np.ndarray) -> np.ndarray:
         """(N,) labels of every input point from those of the kept ones (0 / False elsewhere)."""
         kept_labels = np.asarray(kept_labels)
@@ -585,8 +610,9 @@ def _run_collapse(
     report = StageReport(name, int(result.num_points))
     report.lines.append(
         f"{name}: {result.num_overhang:,} of {result.num_points:,} points are overhang "
-        f"(edge {params.edge} m, sigma {params.sigma} cubes; {len(result.occupied_cubes):,} occupied cubes, "
-        f"{len(result.removed_cubes):,} collapsed; grid {grid.ixmax}x{grid.iymax}x{grid.izmax}; "
+        f"(edge {scan.length(params.edge)}, sigma {params.sigma} cubes; "
+        f"{len(result.occupied_cubes):,} occupied cubes, {len(result.removed_cubes):,} collapsed; "
+        f"grid {grid.ixmax}x{grid.iymax}x{grid.izmax}; "
         f"{elapsed_ms:.1f} ms)"
     )
     if result.num_cropped:
@@ -602,7 +628,7 @@ def _run_collapse(
         leveled, _ = leveled_points(points, config)
         title = (
             f"{name}: {result.num_overhang:,} of {result.num_points:,} points are overhang "
-            f"(collapsible cubes, E = {params.edge} m, sigma = {params.sigma})"
+            f"(collapsible cubes, E = {scan.length(params.edge)}, sigma = {params.sigma})"
         )
         path = output_dir / f"{name}_overhangs.png"
         report.add("picture", *_pictures(lambda: plot_overhangs(leveled, result.overhang, path, title=title)))
@@ -654,9 +680,10 @@ def _run_dem(
     emptied = int(np.count_nonzero(np.isfinite(before) & np.isnan(after)))
     report = StageReport(name, int(result.num_points))
     report.lines.append(
-        f"{name}: DEM {g.size[0]} x {g.size[1]} cells at {g.resolution:g} m, "
+        f"{name}: DEM {g.size[0]} x {g.size[1]} cells at {scan.length(g.resolution)}, "
         f"{int(np.count_nonzero(np.isfinite(before))):,} with data; {result.num_overhang:,} of "
-        f"{result.num_points:,} points are overhang (edge {collapse.edge} m, sigma {collapse.sigma}); "
+        f"{result.num_points:,} points are overhang (edge {scan.length(collapse.edge)}, sigma "
+        f"{collapse.sigma}); "
         f"{lower:,} cells lower, {emptied:,} emptied; raw DEM {raw_ms:.1f} ms, DEM without overhangs "
         f"{clean_ms:.1f} ms"
     )
@@ -675,7 +702,7 @@ def _run_dem(
                 clean,
                 output_dir / f"{name}_dem_comparison.png",
                 title=f"{name}: highest elevation before and after overhang removal "
-                f"(E = {collapse.edge} m, σ = {collapse.sigma})",
+                f"(E = {scan.length(collapse.edge)}, σ = {collapse.sigma})",
             ),
             lambda: plot_layer(
                 clean,
@@ -700,12 +727,15 @@ def _run_dem(
     return report
 
 
-def map_of_scan(points, name, config, remove_overhangs: bool, elevation=None, no_returns=None):
+def map_of_scan(
+    points, name, config, remove_overhangs: bool, elevation=None, no_returns=None, length=length_text
+):
     """The elevation map of one scan (raw, or without overhangs), a description of it, and the
     :class:`terracube.CollapseResult` (None for the raw map). ``elevation``: the map's
     :class:`terracube.ElevationParams` (default :func:`elevation_params`, with the automatic window
     from the points); ``no_returns``: the scan's beams without a return, for the shadow-aware
-    removal. ValueError when no point is in the map."""
+    removal; ``length`` formats a length for the description (:meth:`ScanOutput.length`: the
+    file's unit). ValueError when no point is in the map."""
     from . import build_elevation_map, dem_without_overhangs
 
     elevation = elevation_params(config, points) if elevation is None else elevation
@@ -715,7 +745,7 @@ def map_of_scan(points, name, config, remove_overhangs: bool, elevation=None, no
             points, collapse=collapse, elevation=elevation, no_returns=no_returns
         )
         source = (
-            f"DEM without overhangs (edge {collapse.edge} m, sigma {collapse.sigma}; "
+            f"DEM without overhangs (edge {length(collapse.edge)}, sigma {collapse.sigma}; "
             f"{result.num_overhang:,} overhang points)"
         )
     else:
@@ -725,11 +755,11 @@ def map_of_scan(points, name, config, remove_overhangs: bool, elevation=None, no
     return elevation_map, source, result
 
 
-def classified_map(points, name, config, remove_overhangs: bool, no_returns=None):
+def classified_map(points, name, config, remove_overhangs: bool, no_returns=None, length=length_text):
     """(elevation map, (nx, ny) uint8 classes, description, map ms, classification ms) of one scan.
 
-    The classes are measured from :func:`terrain_params`' ground reference; ``no_returns`` as
-    :func:`map_of_scan`'s.
+    The classes are measured from :func:`terrain_params`' ground reference; ``no_returns`` and
+    ``length`` as :func:`map_of_scan`'s.
     """
     from . import classify_terrain
 
@@ -737,7 +767,9 @@ def classified_map(points, name, config, remove_overhangs: bool, no_returns=None
     terrain.to_core()  # checks the thresholds before the map is built
     elevation = elevation_params(config, points)  # the automatic window is not the map's time
     start = time.perf_counter()
-    elevation_map, source, _ = map_of_scan(points, name, config, remove_overhangs, elevation, no_returns)
+    elevation_map, source, _ = map_of_scan(
+        points, name, config, remove_overhangs, elevation, no_returns, length
+    )
     map_ms = _elapsed_ms(start)
     start = time.perf_counter()
     classes = classify_terrain(elevation_map, terrain)
@@ -808,7 +840,7 @@ def _run_classify(
 
     _check_cloud_format(cloud_format)
     elevation_map, classes, source, map_ms, classify_ms = classified_map(
-        points, name, config, remove_overhangs, scan.no_returns
+        points, name, config, remove_overhangs, scan.no_returns, scan.length
     )
     g = elevation_map.geometry
     counts = np.bincount(classes.ravel(), minlength=len(TerrainClass))
@@ -816,7 +848,8 @@ def _run_classify(
     terrain, where = terrain_params(config)
     report = StageReport(name, len(points))
     report.lines.append(
-        f"{name}: {g.size[0]} x {g.size[1]} cells at {g.resolution:g} m, {known:,} with data; {source}; "
+        f"{name}: {g.size[0]} x {g.size[1]} cells at {scan.length(g.resolution)}, {known:,} with data; "
+        f"{source}; "
         f"map {map_ms:.1f} ms, classification {classify_ms:.1f} ms"
     )
     report.lines.append(f"  ground reference: {where}")
@@ -866,7 +899,7 @@ def _run_fem(
 
     start = time.perf_counter()
     elevation_map, source, collapse = map_of_scan(
-        points, name, config, remove_overhangs, no_returns=scan.no_returns
+        points, name, config, remove_overhangs, no_returns=scan.no_returns, length=scan.length
     )
     leveled, use = leveled_points(points, config)
     if collapse is not None:
@@ -883,8 +916,9 @@ def _run_fem(
     report.lines.append(
         f"{name}: fuzzy elevation map of {fem.num_rules} rules ({fem.num_parameters} parameters) from "
         f"{fem.num_training_points:,} points of the {source}; training RMSE "
-        f"{history[-1]:.3f} m after {len(history) - 1} epochs; {int(np.isfinite(fitted).sum()):,} of "
-        f"{g.size[0] * g.size[1]:,} cells ({g.resolution:g} m) filled, RMSE to the mean DEM {rmse:.3f} m; "
+        f"{scan.length(history[-1], '.3f')} after {len(history) - 1} epochs; "
+        f"{int(np.isfinite(fitted).sum()):,} of {g.size[0] * g.size[1]:,} cells "
+        f"({scan.length(g.resolution)}) filled, RMSE to the mean DEM {scan.length(rmse, '.3f')}; "
         f"{elapsed_ms:.1f} ms"
     )
     if remove_overhangs:

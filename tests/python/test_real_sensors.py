@@ -4,6 +4,7 @@ reference, the sensor presets, GeoTIFF metadata and the classified LAS that keep
 from __future__ import annotations
 
 import dataclasses
+import re
 from pathlib import Path
 
 import numpy as np
@@ -485,3 +486,31 @@ def test_the_trajectory_is_drawn_over_the_map_pictures(tmp_path):
 def test_the_configs_stay_equal_after_a_dataclass_round_trip():
     frame = dataclasses.replace(default_config().frame, max_range=30.0)
     assert frame.max_range == 30.0 and frame.min_range == 0.1
+
+
+def test_the_lengths_of_a_stage_report_carry_the_unit_of_a_foot_crs(tmp_path, shared_data):
+    """The bundled tile measures in US survey feet: its reports give the cube edge, the cell size
+    and the RMSEs in ftUS, not in metres they are not."""
+    pytest.importorskip("rasterio")
+    pytest.importorskip("laspy")
+    path = shared_data.path("als_classified/laspy_wkt_geotiff_ground_veg_building.las")
+    points = read_points(path)[:, :3]
+    first = {
+        stage: run_stage(stage, points, stage, tmp_path, source=path, png=False).lines[0]
+        for stage in ("collapse", "dem", "classify", "fem")
+    }
+    assert "(edge 0.5 ftUS, sigma 2 cubes;" in first["collapse"], first
+    assert "cells at 0.1 ftUS," in first["dem"] and "(edge 0.5 ftUS, sigma 2)" in first["dem"], first
+    assert "cells at 0.1 ftUS," in first["classify"], first
+    assert "(edge 0.5 ftUS, sigma 2;" in first["fem"] and "cells (0.1 ftUS) filled" in first["fem"], first
+    assert re.search(r"training RMSE \d+\.\d{3} ftUS .* mean DEM \d+\.\d{3} ftUS;", first["fem"]), first
+    assert not any(re.search(r"\d m\b", line) for line in first.values()), first
+
+
+def test_length_text_names_the_unit_or_says_file_units():
+    from terracube.pipeline import length_text
+
+    assert length_text(0.5) == "0.5 m"
+    assert length_text(3.28084, ("US survey foot", 1200 / 3937)) == "3.28084 ftUS"
+    assert length_text(0.1234, ("foot", 0.3048), ".2f") == "0.12 ft"
+    assert length_text(0.5, ("degree", None)) == "0.5 (file units, degree)"
