@@ -51,6 +51,7 @@ __all__ = [
     "fill_note",
     "ground_reference_given",
     "leveled_points",
+    "looks_airborne",
     "map_scans",
     "mapper_params",
     "point_classes",
@@ -781,10 +782,39 @@ def _add_beams_note(report: StageReport, collapse, scan: ScanOutput) -> None:
         report.lines.append(f"  {len(scan.no_returns):,} beams without a return showed free space")
 
 
+def looks_airborne(points: np.ndarray) -> bool:
+    """Whether a cloud looks like an airborne tile rather than a ground sensor's scan: its height
+    (1st to 99th percentile) is less than half its width, and it is seen from above: either the
+    origin lies farther from the cloud's footprint than the footprint is wide (georeferenced
+    coordinates: the sensor is not at the origin) or the origin is a sensor higher above the
+    cloud's top than the cloud is deep. A car's LiDAR sits amid its returns, some of them above it."""
+    xyz = np.asarray(points)[:, :3]
+    xyz = xyz[:: max(1, len(xyz) // 100_000)]  # the percentiles of 100,000 points are enough
+    xyz = xyz[np.isfinite(xyz).all(axis=1)]
+    if len(xyz) < 3:
+        return False
+    low, high = np.percentile(xyz, [1.0, 99.0], axis=0)
+    width = float(np.hypot(*(high[:2] - low[:2])))
+    depth = float(high[2] - low[2])
+    if not depth < 0.5 * width:
+        return False
+    outside = np.maximum(np.maximum(low[:2], -high[:2]), 0.0)  # the origin's xy distance to the footprint
+    georeferenced = float(np.hypot(*outside)) > width
+    from_above = float(-high[2]) > depth
+    return georeferenced or from_above
+
+
 def _add_notes(report: StageReport, elevation_map, scan: ScanOutput) -> None:
     unit = _scan_length_unit(scan)
-    # Airborne tiles come as LAS/LAZ (or as arrays); a bag, a KITTI .bin or a PCD is a ground sensor's.
-    airborne = scan.source is None or scan.source.suffix.lower() in (".las", ".laz")
+    # Airborne tiles come as LAS/LAZ; a KITTI .bin or a PCD is a ground sensor's; other sources (a
+    # bag's clouds, arrays, .npz) by their geometry.
+    suffix = "" if scan.source is None else scan.source.suffix.lower()
+    if suffix in (".las", ".laz"):
+        airborne = True
+    elif suffix in (".bin", ".pcd"):
+        airborne = False
+    else:
+        airborne = looks_airborne(scan.points[scan.keep] if not scan.keep.all() else scan.points)
     note = fill_note(elevation_map, None if unit is None else unit[0], airborne)
     if note is not None:
         report.lines.append(note)

@@ -514,3 +514,37 @@ def test_length_text_names_the_unit_or_says_file_units():
     assert length_text(3.28084, ("US survey foot", 1200 / 3937)) == "3.28084 ftUS"
     assert length_text(0.1234, ("foot", 0.3048), ".2f") == "0.12 ft"
     assert length_text(0.5, ("degree", None)) == "0.5 (file units, degree)"
+
+
+def test_looks_airborne_tells_a_tile_seen_from_above_from_a_ground_sensors_scan():
+    from terracube.pipeline import looks_airborne
+
+    rng = np.random.default_rng(3)
+    n = 20_000
+    angle, reach = rng.uniform(0, 2 * np.pi, n), rng.uniform(2.0, 60.0, n)
+    ground_scan = np.column_stack([reach * np.cos(angle), reach * np.sin(angle), rng.uniform(-1.7, 3.0, n)])
+    forward = ground_scan[ground_scan[:, 1] > 5.0]  # a car's forward-looking LiDAR: none behind it
+    tile = np.column_stack([rng.uniform(0, 300, n), rng.uniform(0, 300, n), rng.uniform(0, 25, n)])
+    column = np.column_stack([rng.uniform(0, 8, n), rng.uniform(0, 8, n), rng.uniform(0, 30, n)])  # a tree
+    assert not looks_airborne(ground_scan) and not looks_airborne(forward)
+    assert looks_airborne(tile + [500_000.0, 4_000_000.0, 100.0])  # georeferenced
+    assert looks_airborne(tile - [150.0, 150.0, 600.0])  # the scanner's own frame, 575 m above the top
+    assert not looks_airborne(tile - [150.0, 150.0, 0.0])  # a sensor amid the points
+    assert not looks_airborne(column + [500_000.0, 4_000_000.0, 100.0])  # taller than wide
+    assert not looks_airborne(np.zeros((2, 3))) and not looks_airborne(np.full((10, 3), np.nan))
+
+
+def test_the_airborne_hint_follows_the_clouds_geometry_when_the_source_does_not_tell(tmp_path):
+    rng = np.random.default_rng(4)
+    n = 5000
+    tile = np.column_stack([rng.uniform(0, 200, n), rng.uniform(0, 200, n), rng.uniform(0, 20, n)])
+    hints = {}
+    for label, points in (
+        ("georeferenced", tile + [500_000.0, 4_000_000.0, 100.0]),
+        ("amid", tile - [100, 100, 0]),
+    ):
+        report = run_stage("dem", points, label, tmp_path, png=False)
+        fill = [line for line in report.lines if "cells hold data" in line]
+        assert len(fill) == 1, report.lines
+        hints[label] = "--preset airborne_las" in fill[0]
+    assert hints == {"georeferenced": True, "amid": False}
