@@ -475,6 +475,20 @@ def leveled_points(points: np.ndarray, config) -> tuple[np.ndarray, np.ndarray]:
     return leveled, inside
 
 
+def points_cropped(points: np.ndarray, config) -> int:
+    """How many finite points of ``points`` the config's crop box leaves out (0 without one)."""
+    if config.frame.crop_box() is None:
+        return 0
+    leveled, inside = leveled_points(points, config)
+    finite = np.isfinite(leveled[:, 0]) & np.isfinite(leveled[:, 1]) & np.isfinite(leveled[:, 2])
+    return int(np.count_nonzero(finite & ~inside))
+
+
+def _add_crop_line(report: StageReport, cropped: int) -> None:
+    if cropped:
+        report.lines.append(f"  {cropped:,} points outside the crop box were left out")
+
+
 def point_classes(leveled: np.ndarray, inside: np.ndarray, elevation_map, classes: np.ndarray) -> np.ndarray:
     """(N,) uint8 class of each point: the class of the map cell holding it (leveled x, y), 0 outside.
 
@@ -616,8 +630,7 @@ def _run_collapse(
         f"grid {grid.ixmax}x{grid.iymax}x{grid.izmax}; "
         f"{elapsed_ms:.1f} ms)"
     )
-    if result.num_cropped:
-        report.lines.append(f"  {result.num_cropped:,} points outside the crop box were left out")
+    _add_crop_line(report, result.num_cropped)
     if len(result.cube_reasons):
         report.lines.append("  cubes by reason (shadow_aware): " + reason_counts(result.cube_reasons))
     _add_beams_note(report, params, scan)
@@ -688,6 +701,7 @@ def _run_dem(
         f"{lower:,} cells lower, {emptied:,} emptied; raw DEM {raw_ms:.1f} ms, DEM without overhangs "
         f"{clean_ms:.1f} ms"
     )
+    _add_crop_line(report, result.num_cropped)  # the raw map's crop box is the removal's
     _add_beams_note(report, collapse, scan)
     _add_notes(report, raw, scan)
     report.add("map", clean.save(output_dir / f"{name}_dem.npz"))
@@ -882,6 +896,7 @@ def _run_classify(
         f"{source}; "
         f"map {map_ms:.1f} ms, classification {classify_ms:.1f} ms"
     )
+    _add_crop_line(report, points_cropped(points, config))
     report.lines.append(f"  ground reference: {where}")
     if remove_overhangs:
         _add_beams_note(report, config.collapse, scan)
@@ -951,6 +966,7 @@ def _run_fem(
         f"({scan.length(g.resolution)}) filled, RMSE to the mean DEM {scan.length(rmse, '.3f')}; "
         f"{elapsed_ms:.1f} ms"
     )
+    _add_crop_line(report, points_cropped(points, config))
     if remove_overhangs:
         _add_beams_note(report, config.collapse, scan)
     _add_notes(report, elevation_map, scan)

@@ -548,3 +548,20 @@ def test_the_airborne_hint_follows_the_clouds_geometry_when_the_source_does_not_
         assert len(fill) == 1, report.lines
         hints[label] = "--preset airborne_las" in fill[0]
     assert hints == {"georeferenced": True, "amid": False}
+
+
+def test_every_stage_reports_the_points_the_kitti_crop_box_leaves_out(tmp_path, shared_data):
+    """--preset kitti crops 40 m around the car: collapse, dem, classify and fem all say how many
+    points it left out, and agree (a count independent of each stage's own removal)."""
+    from terracube.pipeline import leveled_points
+
+    config = load_config(None, preset="kitti")
+    points = shared_data.kitti_xyzi(0)[:, :3]
+    kept = points[config.frame.in_range(points)]
+    leveled, inside = leveled_points(kept, config)
+    expected = int(np.count_nonzero(np.isfinite(leveled).all(axis=1) & ~inside))
+    assert expected > 1000  # the KITTI scan reaches 80 m
+    line = f"  {expected:,} points outside the crop box were left out"
+    for stage in ("collapse", "dem", "classify", "fem"):
+        report = run_stage(stage, points, stage, tmp_path, config, png=False)
+        assert line in report.lines, (stage, report.lines)
