@@ -1126,7 +1126,8 @@ def view(
 def map_command(
     scans: Path = typer.Argument(
         ...,
-        help="Directory of scans (any readable format, sorted by name) or one glob pattern.",
+        help="Directory of scans (any readable format, sorted by name; the files of its most common scan "
+        "suffix when it holds several) or one glob pattern (every scan it matches).",
         show_default=False,
     ),
     poses: Path | None = _POSES,
@@ -1304,7 +1305,10 @@ def stream_lidar_only_poses(scans, values: dict[str, Any]):
 @app.command("stream")
 def stream_command(
     scans: Path = typer.Argument(
-        ..., help="Directory of scans (sorted by name) or one glob pattern.", show_default=False
+        ...,
+        help="Directory of scans (sorted by name; the files of its most common scan suffix when it holds "
+        "several) or one glob pattern (every scan it matches).",
+        show_default=False,
     ),
     poses: Path | None = _POSES,
     lidar_only: bool = typer.Option(
