@@ -21,6 +21,7 @@ import json
 import math
 import os
 import re
+import weakref
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -34,6 +35,7 @@ from .pipeline import (
     CLOUD_FORMATS,
     ESTIMATED_GROUND_WINDOW_M,
     REGISTRATION_METHODS,
+    SCAN_SUFFIXES,
     STAGE_OUTPUT_OPTIONS,
     STAGES,
     read_scan,
@@ -78,8 +80,26 @@ def _main(
 # ------------------------------------------------------------------------------------------ errors
 
 
+#: The progress bars shown now (:func:`progress_bar`): an error closes them so that its line starts
+#: on a line of its own instead of being glued onto a bar's.
+_PROGRESS_BARS: weakref.WeakSet = weakref.WeakSet()
+
+
+def progress_bar(iterable, what: str, unit: str = "scan", **kwargs):
+    """A tqdm bar over ``iterable`` that :func:`_fail` closes before printing its error."""
+    from tqdm import tqdm
+
+    bar = tqdm(iterable, unit=unit, desc=what, **kwargs)
+    _PROGRESS_BARS.add(bar)
+    return bar
+
+
 def _fail(message: str) -> typer.Exit:
-    """Print a red error message; the caller raises the returned Exit (code 2)."""
+    """Print a red error message (closing the progress bars first); the caller raises the returned
+    Exit (code 2)."""
+    for bar in list(_PROGRESS_BARS):
+        bar.close()
+    _PROGRESS_BARS.clear()
     typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
     return typer.Exit(2)
 
@@ -134,19 +154,46 @@ def _writable_folder(folder: Path, option: str = "--output-dir") -> Path:
 
 def _scan_files(scans: Path, limit: int | None) -> tuple[list[Path], int]:
     """The scan files of a folder (sorted) or a glob, at most ``limit``, and how many there are in
-    all (read_odometry matches scans to poses by their count); exits when there are none."""
-    from .pipeline import SCAN_SUFFIXES, expand_inputs
+    all (read_odometry matches scans to poses by their count); exits when there are none.
+
+    A folder holding files of several scan suffixes (KITTI's ``*.bin`` beside its ``calib.txt``)
+    gives the files of the most common one, with a note naming what was left out; a glob pattern
+    gives every scan it matches."""
+    from .pipeline import expand_inputs
 
     if scans.is_dir():
         files = sorted(p for p in scans.iterdir() if p.is_file() and not p.name.startswith("."))
+        every = _scans_of_one_suffix(scans, files)
     else:
         with _exit_on_bad_input():
             files = expand_inputs([str(scans)])
-    every = [f for f in files if f.suffix.lower() in SCAN_SUFFIXES]
-    files = every[: None if limit is None else max(limit, 0)]
+        every = [f for f in files if f.suffix.lower() in SCAN_SUFFIXES]
+    files = every[:limit]
     if not files:
         raise _fail(f"{scans}: no scans found")
     return files, len(every)
+
+
+def _scans_of_one_suffix(folder: Path, files: list[Path]) -> list[Path]:
+    """The files of ``folder`` with its most common scan suffix (the first of SCAN_SUFFIXES on a
+    tie); prints a note when other files are left out."""
+    counts: dict[str, int] = {}
+    for path in files:
+        suffix = path.suffix.lower()
+        if suffix in SCAN_SUFFIXES:
+            counts[suffix] = counts.get(suffix, 0) + 1
+    if not counts:
+        return []
+    chosen = max(counts, key=lambda suffix: (counts[suffix], -SCAN_SUFFIXES.index(suffix)))
+    scans = [p for p in files if p.suffix.lower() == chosen]
+    others = [p for p in files if p.suffix.lower() != chosen]
+    if others:
+        suffixes = sorted({p.suffix.lower() or "no suffix" for p in others})
+        typer.echo(
+            f"{_short_path(folder)}: {len(scans)} {chosen} scans; {len(others)} other "
+            f"file{'s' if len(others) != 1 else ''} left out ({', '.join(suffixes)})"
+        )
+    return scans
 
 
 def _existing_file(path: Path | None, option: str) -> None:
@@ -625,7 +672,30 @@ def command_config(command: str, options: dict[str, Any]):
 
             sigma = sigma_from_robot_height(options["robot_height"], config.collapse.edge)
             config = config.replace("collapse", sigma=sigma)
+    _check_terrain_heights(config, options)
     return config
+
+
+def _check_terrain_heights(config, options: dict[str, Any]) -> None:
+    """Exit 2 naming --high-height and --ground-height as the user typed them when the high-cell
+    threshold lies below the low-cell one (the core's message names its own fields)."""
+    high, ground = options.get("high_height"), options.get("ground_height")
+    if high is None and ground is None:
+        return
+    terrain = config["terrain"]
+    if not terrain.robot_height < terrain.ground_height:
+        return
+
+    def named(option: str, given: float | None, key: str) -> str:
+        if given is not None:
+            return f"{option} {given:g}"
+        return f"{option} {getattr(terrain, key):g} (terrain.{key} of the configuration)"
+
+    raise _fail(
+        f"{named('--high-height', high, 'robot_height')} is below "
+        f"{named('--ground-height', ground, 'ground_height')}: cells above --high-height are high and "
+        "cells below --ground-height low, so --high-height must be at least --ground-height"
+    )
 
 
 def stage_output_options(stage: str, options: dict[str, Any]) -> dict[str, Any]:
@@ -660,6 +730,18 @@ _POSES = typer.Option(
     "scan named by its time (1622812345.123456789.pcd) the pose interpolated at it; other names one pose "
     "each, in order. Needed unless --lidar-only.",
     show_default=False,
+)
+
+
+def _scan_limit(value: int | None) -> int | None:
+    """--limit is a count of scans: exit 2 naming it when below 1 (0 would read no scan at all)."""
+    if value is not None and value < 1:
+        raise _fail(f"--limit {value}: give how many scans to use, at least 1")
+    return value
+
+
+_LIMIT = typer.Option(
+    None, "--limit", help="Use the first N scans only.", show_default=False, callback=_scan_limit
 )
 
 _STAGE_HELP = {
@@ -901,7 +983,8 @@ def register(
         typer.echo(f"  written: {output}")
     if not record["trusted"]:
         # Issue 38: an answer the verdict does not trust is a failure for scripts (exit code 1).
-        typer.secho(f"registration not trusted: {record['verdict']}", fg=typer.colors.RED, err=True)
+        why = record["verdict"].removeprefix("not trusted: ")  # the core's verdict starts with it
+        typer.secho(f"registration not trusted: {why}", fg=typer.colors.RED, err=True)
         raise typer.Exit(1)
 
 
@@ -1051,7 +1134,8 @@ def view(
 def map_command(
     scans: Path = typer.Argument(
         ...,
-        help="Directory of scans (any readable format, sorted by name) or one glob pattern.",
+        help="Directory of scans (any readable format, sorted by name; the files of its most common scan "
+        "suffix when it holds several) or one glob pattern (every scan it matches).",
         show_default=False,
     ),
     poses: Path | None = _POSES,
@@ -1109,7 +1193,7 @@ def map_command(
         help="Scan-match every step, or chain by odometry alone [config mapper.use_registration].",
         show_default=False,
     ),
-    limit: int | None = typer.Option(None, "--limit", help="Use the first N scans only.", show_default=False),
+    limit: int | None = _LIMIT,
     ground_truth: Path | None = typer.Option(
         None,
         "--ground-truth",
@@ -1130,8 +1214,6 @@ def map_command(
     writing no map, when no point falls in the map; a scan spanning over 10 km (coordinates in
     millimetres, say) is named then, and warned of otherwise.
     """
-    from tqdm import tqdm
-
     from .mapping import read_odometry
     from .pipeline import build_global_map
 
@@ -1166,7 +1248,7 @@ def map_command(
     _warn_of_the_kitti_car(
         files, cfg.frame.min_range, configured=any(v is not None for v in (config, preset, min_range))
     )
-    sequence = tqdm(list(enumerate(files)), unit="scan", desc="mapping")
+    sequence = progress_bar(list(enumerate(files)), "mapping")
     with _exit_on_bad_input("global map"):
         report = build_global_map(
             ((str(path), _read_scan(path), k) for k, path in sequence),
@@ -1231,7 +1313,10 @@ def stream_lidar_only_poses(scans, values: dict[str, Any]):
 @app.command("stream")
 def stream_command(
     scans: Path = typer.Argument(
-        ..., help="Directory of scans (sorted by name) or one glob pattern.", show_default=False
+        ...,
+        help="Directory of scans (sorted by name; the files of its most common scan suffix when it holds "
+        "several) or one glob pattern (every scan it matches).",
+        show_default=False,
     ),
     poses: Path | None = _POSES,
     lidar_only: bool = typer.Option(
@@ -1260,7 +1345,7 @@ def stream_command(
     animation: Path | None = typer.Option(
         None, "--animation", help="Write a .gif (or .mp4 with ffmpeg) of the elevation.", show_default=False
     ),
-    limit: int | None = typer.Option(None, "--limit", help="Use the first N scans only.", show_default=False),
+    limit: int | None = _LIMIT,
     config: Path | None = OPTIONS["config"].info,
     preset: str | None = OPTIONS["preset"].info,
     min_range: float | None = OPTIONS["min_range"].info,
@@ -1280,8 +1365,6 @@ def stream_command(
     writing no map, when no point of any scan falls in the map; warns when the map knows no cell at
     the end, or when a scan spans over 10 km (coordinates in millimetres, say).
     """
-    from tqdm import tqdm
-
     from .mapping import read_odometry
     from .pipeline import read_returns_and_beams
     from .stream import run_stream
@@ -1311,7 +1394,7 @@ def stream_command(
     _warn_of_the_kitti_car(
         files, params.min_range, configured=any(v is not None for v in (config, preset, min_range))
     )
-    sequence = tqdm(list(enumerate(files)), unit="scan", desc="streaming")
+    sequence = progress_bar(list(enumerate(files)), "streaming")
     beams = params.collapse.method == "shadow_aware"  # the empty pixels of organised scans help it
     used_beams = []
 

@@ -109,9 +109,9 @@ def _leveled_pose(cloud) -> np.ndarray | None:
 
 
 def _progress(iterable, total: int, what: str):
-    from tqdm import tqdm
+    from .cli import progress_bar
 
-    return tqdm(iterable, total=total, unit="cloud", desc=what, disable=total < 2)
+    return progress_bar(iterable, what, unit="cloud", total=total, disable=total < 2)
 
 
 # ------------------------------------------------------------------------------------------ stages

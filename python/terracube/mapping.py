@@ -458,6 +458,22 @@ _IN_ORDER = (
 )
 
 
+def _suffix_counts(scans: list, total: int) -> str:
+    """`` (6 .bin, 2 .txt)`` when the ``total`` scans are all listed and of several suffixes (a
+    glob that caught a folder's other files), else ``""``."""
+    if len(scans) != total:
+        return ""
+    counts: dict[str, int] = {}
+    for scan in scans:
+        suffix = Path(scan).suffix.lower() or "no suffix"
+        counts[suffix] = counts.get(suffix, 0) + 1
+    if len(counts) < 2:
+        return ""
+    return (
+        " (" + ", ".join(f"{n} {suffix}" for suffix, n in sorted(counts.items(), key=lambda c: -c[1])) + ")"
+    )
+
+
 def _rows(indices: np.ndarray, count: int, path, names=None) -> np.ndarray:
     """``indices`` when each is a row of a file of ``count`` poses; else ValueError naming a scan."""
     beyond = np.flatnonzero(indices >= count)
@@ -534,7 +550,8 @@ def read_odometry(
         matrices = np.tile(np.eye(4), (len(scans), 1, 1))
     else:
         if in_order_of is not None and in_order_of != len(matrices):
-            raise ValueError(f"{in_order_of} scans and {len(matrices)} poses in {poses}: {_IN_ORDER}")
+            counted = f"{in_order_of} scans{_suffix_counts(scans, in_order_of)}"
+            raise ValueError(f"{counted} and {len(matrices)} poses in {poses}: {_IN_ORDER}")
         matrices = matrices[_rows(indices, len(matrices), poses, [str(scan) for scan in scans])]
     if times is not None:
         per_scan = read_times(times, int(indices.max()) + 1 if len(indices) else 0)[indices]

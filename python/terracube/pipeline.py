@@ -52,6 +52,7 @@ __all__ = [
     "fill_note",
     "ground_reference_given",
     "leveled_points",
+    "looks_airborne",
     "map_scans",
     "mapper_params",
     "point_classes",
@@ -423,6 +424,22 @@ def _scan_length_unit(scan: ScanOutput) -> tuple[str, float | None] | None:
     return None if unit is None or unit[1] == 1.0 else unit
 
 
+#: Short symbols of the units of length other than the metre that LAS files' CRSs name.
+_UNIT_SYMBOLS = {"foot": "ft", "US survey foot": "ftUS"}
+
+
+def length_text(value: float, unit: tuple[str, float | None] | None = None, spec: str = "g") -> str:
+    """``value`` formatted by ``spec`` with the unit of length it is in: ``unit`` as
+    :func:`_scan_length_unit` gives it, None for metres ("0.5 m"); a foot CRS gives "0.5 ft" or
+    "0.5 ftUS", another unit (or a geographic CRS's degrees) "0.5 (file units, NAME)"."""
+    number = format(value, spec)
+    if unit is None:
+        return f"{number} m"
+    name = unit[0]
+    symbol = _UNIT_SYMBOLS.get(name)
+    return f"{number} {symbol}" if symbol is not None else f"{number} (file units, {name})"
+
+
 def unit_note(scan: ScanOutput, config) -> str | None:
     """A warning line when the CRS of the scan's LAS/LAZ source does not measure in metres: terracube
     takes the coordinates as they are, so every length of the settings acts in the file's unit (a
@@ -499,6 +516,20 @@ def leveled_points(points: np.ndarray, config) -> tuple[np.ndarray, np.ndarray]:
         for axis in range(3):
             inside &= (leveled[:, axis] >= box[0][axis]) & (leveled[:, axis] <= box[1][axis])
     return leveled, inside
+
+
+def points_cropped(points: np.ndarray, config) -> int:
+    """How many finite points of ``points`` the config's crop box leaves out (0 without one)."""
+    if config.frame.crop_box() is None:
+        return 0
+    leveled, inside = leveled_points(points, config)
+    finite = np.isfinite(leveled[:, 0]) & np.isfinite(leveled[:, 1]) & np.isfinite(leveled[:, 2])
+    return int(np.count_nonzero(finite & ~inside))
+
+
+def _add_crop_line(report: StageReport, cropped: int) -> None:
+    if cropped:
+        report.lines.append(f"  {cropped:,} points outside the crop box were left out")
 
 
 def point_classes(leveled: np.ndarray, inside: np.ndarray, elevation_map, classes: np.ndarray) -> np.ndarray:
@@ -582,6 +613,15 @@ class ScanOutput:
         fields = self.source_fields
         return no_beams_reason(fields["xyz"], fields.get("ring"), self.image_shape) or "none were given"
 
+    @functools.cached_property
+    def length_unit(self) -> tuple[str, float | None] | None:
+        """The unit of length of the source's CRS when it is not the metre (:func:`_scan_length_unit`)."""
+        return _scan_length_unit(self)
+
+    def length(self, value: float, spec: str = "g") -> str:
+        """``value`` with the unit of length of the scan's coordinates (:func:`length_text`)."""
+        return length_text(value, self.length_unit, spec)
+
     def labels(self, kept_labels: np.ndarray) -> np.ndarray:
         """(N,) labels of every input point from those of the kept ones (0 / False elsewhere)."""
         kept_labels = np.asarray(kept_labels)
@@ -664,12 +704,12 @@ def _run_collapse(
     report = StageReport(name, int(result.num_points))
     report.lines.append(
         f"{name}: {result.num_overhang:,} of {result.num_points:,} points are overhang "
-        f"(edge {params.edge} m, sigma {params.sigma} cubes; {len(result.occupied_cubes):,} occupied cubes, "
-        f"{len(result.removed_cubes):,} collapsed; grid {grid.ixmax}x{grid.iymax}x{grid.izmax}; "
+        f"(edge {scan.length(params.edge)}, sigma {params.sigma} cubes; "
+        f"{len(result.occupied_cubes):,} occupied cubes, {len(result.removed_cubes):,} collapsed; "
+        f"grid {grid.ixmax}x{grid.iymax}x{grid.izmax}; "
         f"{elapsed_ms:.1f} ms)"
     )
-    if result.num_cropped:
-        report.lines.append(f"  {result.num_cropped:,} points outside the crop box were left out")
+    _add_crop_line(report, result.num_cropped)
     if len(result.cube_reasons):
         report.lines.append("  cubes by reason (shadow_aware): " + reason_counts(result.cube_reasons))
     _add_beams_note(report, params, scan)
@@ -681,7 +721,7 @@ def _run_collapse(
         leveled, _ = leveled_points(points, config)
         title = (
             f"{name}: {result.num_overhang:,} of {result.num_points:,} points are overhang "
-            f"(collapsible cubes, E = {params.edge} m, sigma = {params.sigma})"
+            f"(collapsible cubes, E = {scan.length(params.edge)}, sigma = {params.sigma})"
         )
         path = output_dir / f"{name}_overhangs.png"
         report.add("picture", *_pictures(lambda: plot_overhangs(leveled, result.overhang, path, title=title)))
@@ -733,12 +773,14 @@ def _run_dem(
     emptied = int(np.count_nonzero(np.isfinite(before) & np.isnan(after)))
     report = StageReport(name, int(result.num_points))
     report.lines.append(
-        f"{name}: DEM {g.size[0]} x {g.size[1]} cells at {g.resolution:g} m, "
+        f"{name}: DEM {g.size[0]} x {g.size[1]} cells at {scan.length(g.resolution)}, "
         f"{int(np.count_nonzero(np.isfinite(before))):,} with data; {result.num_overhang:,} of "
-        f"{result.num_points:,} points are overhang (edge {collapse.edge} m, sigma {collapse.sigma}); "
+        f"{result.num_points:,} points are overhang (edge {scan.length(collapse.edge)}, sigma "
+        f"{collapse.sigma}); "
         f"{lower:,} cells lower, {emptied:,} emptied; raw DEM {raw_ms:.1f} ms, DEM without overhangs "
         f"{clean_ms:.1f} ms"
     )
+    _add_crop_line(report, result.num_cropped)  # the raw map's crop box is the removal's
     _add_beams_note(report, collapse, scan)
     _add_notes(report, raw, scan)
     report.add("map", clean.save(output_dir / f"{name}_dem.npz"))
@@ -754,7 +796,7 @@ def _run_dem(
                 clean,
                 output_dir / f"{name}_dem_comparison.png",
                 title=f"{name}: highest elevation before and after overhang removal "
-                f"(E = {collapse.edge} m, σ = {collapse.sigma})",
+                f"(E = {scan.length(collapse.edge)}, σ = {collapse.sigma})",
             ),
             lambda: plot_layer(
                 clean,
@@ -779,12 +821,15 @@ def _run_dem(
     return report
 
 
-def map_of_scan(points, name, config, remove_overhangs: bool, elevation=None, no_returns=None):
+def map_of_scan(
+    points, name, config, remove_overhangs: bool, elevation=None, no_returns=None, length=length_text
+):
     """The elevation map of one scan (raw, or without overhangs), a description of it, and the
     :class:`terracube.CollapseResult` (None for the raw map). ``elevation``: the map's
     :class:`terracube.ElevationParams` (default :func:`elevation_params`, with the automatic window
     from the points); ``no_returns``: the scan's beams without a return, for the shadow-aware
-    removal. ValueError when no point is in the map."""
+    removal; ``length`` formats a length for the description (:meth:`ScanOutput.length`: the
+    file's unit). ValueError when no point is in the map."""
     from . import build_elevation_map, dem_without_overhangs
 
     elevation = elevation_params(config, points) if elevation is None else elevation
@@ -794,7 +839,7 @@ def map_of_scan(points, name, config, remove_overhangs: bool, elevation=None, no
             points, collapse=collapse, elevation=elevation, no_returns=no_returns
         )
         source = (
-            f"DEM without overhangs (edge {collapse.edge} m, sigma {collapse.sigma}; "
+            f"DEM without overhangs (edge {length(collapse.edge)}, sigma {collapse.sigma}; "
             f"{result.num_overhang:,} overhang points)"
         )
     else:
@@ -804,11 +849,11 @@ def map_of_scan(points, name, config, remove_overhangs: bool, elevation=None, no
     return elevation_map, source, result
 
 
-def classified_map(points, name, config, remove_overhangs: bool, no_returns=None):
+def classified_map(points, name, config, remove_overhangs: bool, no_returns=None, length=length_text):
     """(elevation map, (nx, ny) uint8 classes, description, map ms, classification ms) of one scan.
 
-    The classes are measured from :func:`terrain_params`' ground reference; ``no_returns`` as
-    :func:`map_of_scan`'s.
+    The classes are measured from :func:`terrain_params`' ground reference; ``no_returns`` and
+    ``length`` as :func:`map_of_scan`'s.
     """
     from . import classify_terrain
 
@@ -816,7 +861,9 @@ def classified_map(points, name, config, remove_overhangs: bool, no_returns=None
     terrain.to_core()  # checks the thresholds before the map is built
     elevation = elevation_params(config, points)  # the automatic window is not the map's time
     start = time.perf_counter()
-    elevation_map, source, _ = map_of_scan(points, name, config, remove_overhangs, elevation, no_returns)
+    elevation_map, source, _ = map_of_scan(
+        points, name, config, remove_overhangs, elevation, no_returns, length
+    )
     map_ms = _elapsed_ms(start)
     start = time.perf_counter()
     classes = classify_terrain(elevation_map, terrain)
@@ -834,10 +881,39 @@ def _add_beams_note(report: StageReport, collapse, scan: ScanOutput) -> None:
         )
 
 
+def looks_airborne(points: np.ndarray) -> bool:
+    """Whether a cloud looks like an airborne tile rather than a ground sensor's scan: its height
+    (1st to 99th percentile) is less than half its width, and it is seen from above: either the
+    origin lies farther from the cloud's footprint than the footprint is wide (georeferenced
+    coordinates: the sensor is not at the origin) or the origin is a sensor higher above the
+    cloud's top than the cloud is deep. A car's LiDAR sits amid its returns, some of them above it."""
+    xyz = np.asarray(points)[:, :3]
+    xyz = xyz[:: max(1, len(xyz) // 100_000)]  # the percentiles of 100,000 points are enough
+    xyz = xyz[np.isfinite(xyz).all(axis=1)]
+    if len(xyz) < 3:
+        return False
+    low, high = np.percentile(xyz, [1.0, 99.0], axis=0)
+    width = float(np.hypot(*(high[:2] - low[:2])))
+    depth = float(high[2] - low[2])
+    if not depth < 0.5 * width:
+        return False
+    outside = np.maximum(np.maximum(low[:2], -high[:2]), 0.0)  # the origin's xy distance to the footprint
+    georeferenced = float(np.hypot(*outside)) > width
+    from_above = float(-high[2]) > depth
+    return georeferenced or from_above
+
+
 def _add_notes(report: StageReport, elevation_map, scan: ScanOutput) -> None:
     unit = _scan_length_unit(scan)
-    # Airborne tiles come as LAS/LAZ (or as arrays); a bag, a KITTI .bin or a PCD is a ground sensor's.
-    airborne = scan.source is None or scan.source.suffix.lower() in (".las", ".laz")
+    # Airborne tiles come as LAS/LAZ; a KITTI .bin or a PCD is a ground sensor's; other sources (a
+    # bag's clouds, arrays, .npz) by their geometry.
+    suffix = "" if scan.source is None else scan.source.suffix.lower()
+    if suffix in (".las", ".laz"):
+        airborne = True
+    elif suffix in (".bin", ".pcd"):
+        airborne = False
+    else:
+        airborne = looks_airborne(scan.points[scan.keep] if not scan.keep.all() else scan.points)
     note = fill_note(elevation_map, None if unit is None else unit[0], airborne)
     if note is not None:
         report.lines.append(note)
@@ -893,7 +969,7 @@ def _run_classify(
 
     _check_cloud_format(cloud_format)
     elevation_map, classes, source, map_ms, classify_ms = classified_map(
-        points, name, config, remove_overhangs, scan.no_returns
+        points, name, config, remove_overhangs, scan.no_returns, scan.length
     )
     g = elevation_map.geometry
     counts = np.bincount(classes.ravel(), minlength=len(TerrainClass))
@@ -901,9 +977,11 @@ def _run_classify(
     terrain, where = terrain_params(config)
     report = StageReport(name, len(points))
     report.lines.append(
-        f"{name}: {g.size[0]} x {g.size[1]} cells at {g.resolution:g} m, {known:,} with data; {source}; "
+        f"{name}: {g.size[0]} x {g.size[1]} cells at {scan.length(g.resolution)}, {known:,} with data; "
+        f"{source}; "
         f"map {map_ms:.1f} ms, classification {classify_ms:.1f} ms"
     )
+    _add_crop_line(report, points_cropped(points, config))
     report.lines.append(f"  ground reference: {where}")
     if remove_overhangs:
         _add_beams_note(report, config.collapse, scan)
@@ -951,7 +1029,7 @@ def _run_fem(
 
     start = time.perf_counter()
     elevation_map, source, collapse = map_of_scan(
-        points, name, config, remove_overhangs, no_returns=scan.no_returns
+        points, name, config, remove_overhangs, no_returns=scan.no_returns, length=scan.length
     )
     leveled, use = leveled_points(points, config)
     if collapse is not None:
@@ -968,10 +1046,12 @@ def _run_fem(
     report.lines.append(
         f"{name}: fuzzy elevation map of {fem.num_rules} rules ({fem.num_parameters} parameters) from "
         f"{fem.num_training_points:,} points of the {source}; training RMSE "
-        f"{history[-1]:.3f} m after {len(history) - 1} epochs; {int(np.isfinite(fitted).sum()):,} of "
-        f"{g.size[0] * g.size[1]:,} cells ({g.resolution:g} m) filled, RMSE to the mean DEM {rmse:.3f} m; "
+        f"{scan.length(history[-1], '.3f')} after {len(history) - 1} epochs; "
+        f"{int(np.isfinite(fitted).sum()):,} of {g.size[0] * g.size[1]:,} cells "
+        f"({scan.length(g.resolution)}) filled, RMSE to the mean DEM {scan.length(rmse, '.3f')}; "
         f"{elapsed_ms:.1f} ms"
     )
+    _add_crop_line(report, points_cropped(points, config))
     if remove_overhangs:
         _add_beams_note(report, config.collapse, scan)
     _add_notes(report, elevation_map, scan)

@@ -1459,3 +1459,14 @@ def test_a_long_range_forward_sensor_is_told_to_widen_the_local_map_and_then_reg
     steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
     assert 2.0 < np.median(steps) < 2.8  # 72-100 km/h
     np.testing.assert_allclose(steps, np.median(steps), rtol=0.02)
+
+
+def test_a_sparse_cloud_of_a_cars_lidar_in_a_bag_gets_no_airborne_hint(bags, tmp_path):
+    """The Luminar's road scan reaches 252 m: a 0.1 m map is mostly empty, and the fill warning says
+    so, but a car's forward-looking sensor frame is no airborne tile (--preset airborne_las)."""
+    from terracube.pipeline import run_stage
+
+    cloud = next(iter(read_bag(bags / "luminar_embag.bag", LUMINAR_TOPIC).clouds()))
+    report = run_stage("dem", cloud.points, "luminar", tmp_path, png=False)
+    fill = [line for line in report.lines if "cells hold data" in line]
+    assert len(fill) == 1 and "airborne" not in fill[0], report.lines

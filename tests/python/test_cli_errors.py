@@ -73,6 +73,22 @@ CASES = {  # id: (command line, the error line holds)
         "map scans -p poses.txt --ground-truth no.txt",
         "--ground-truth no.txt: no such",
     ),
+    **{
+        f"--limit {n}, {command}": (
+            f"{command} scans --lidar-only --limit {n} -o out",
+            f"error: --limit {n}: give how many scans to use, at least 1",
+        )
+        for command in ("map", "stream")
+        for n in (0, -1)
+    },
+    "--high-height below --ground-height": (
+        "classify scan.npy --ground-height 1 --high-height 0.5 -o out",
+        "error: --high-height 0.5 is below --ground-height 1: cells above --high-height are high",
+    ),
+    "--high-height below the configured ground height": (
+        "classify scan.npy --high-height 0.1 -o out",
+        "error: --high-height 0.1 is below --ground-height 0.2 (terrain.ground_height of the configuration)",
+    ),
     "config -o a folder": ("config -o .", "error: --output .: is a folder"),
     "batch --out a file": (
         "batch dem scan.npy --out afile",

@@ -291,3 +291,61 @@ def test_collapse_of_the_real_kitti_scan_to_bin_keeps_its_intensities(shared_dat
     written = np.fromfile(tmp_path / "000000_classified.bin", dtype="<f4").reshape(-1, 4)
     np.testing.assert_array_equal(written, shared_data.kitti_xyzi(0))
     assert np.count_nonzero(written[:, 3]) > 0.9 * len(written)
+
+
+@pytest.fixture
+def kitti_beside_its_text_files(tmp_path, shared_data) -> Path:
+    """KITTI's velodyne scans in one folder with the sequence's README.txt and calib.txt."""
+    kitti = shared_data.path("kitti_seq00/poses.txt").parent
+    folder = tmp_path / "mixseq"
+    folder.mkdir()
+    for path in [*sorted((kitti / "velodyne").glob("*.bin")), kitti / "README.txt", kitti / "calib.txt"]:
+        shutil.copy(path, folder / path.name)
+    return folder
+
+
+@pytest.mark.parametrize("command", ["map", "stream"])
+def test_a_folder_of_scans_and_text_files_maps_its_most_common_suffix_and_names_what_it_left_out(
+    tmp_path, kitti_beside_its_text_files, command
+):
+    out = tmp_path / "out"
+    done = _terracube(
+        command,
+        str(kitti_beside_its_text_files),
+        "--lidar-only",
+        "--preset",
+        "kitti",
+        "--no-png",
+        "-o",
+        str(out),
+    )
+    assert done.returncode == 0, done.stderr
+    assert f"{kitti_beside_its_text_files}: 6 .bin scans; 2 other files left out (.txt)" in done.stdout
+    assert any(out.iterdir())
+
+
+def test_a_glob_keeps_every_file_it_matches_and_the_error_starts_its_own_line(
+    tmp_path, kitti_beside_its_text_files, shared_data
+):
+    pattern = str(kitti_beside_its_text_files / "*")
+    done = _terracube(
+        "map", pattern, "--lidar-only", "--preset", "kitti", "--no-png", "-o", str(tmp_path / "a")
+    )
+    assert done.returncode == 2
+    readme = kitti_beside_its_text_files / "README.txt"
+    assert f"\nerror: {readme}: cannot read as .txt" in done.stderr, done.stderr  # not glued onto the bar
+    poses = shared_data.path("kitti_seq00/poses.txt")
+    done = _terracube("map", pattern, "-p", str(poses), "--no-png", "-o", str(tmp_path / "b"))
+    assert done.returncode == 2
+    assert f"error: 8 scans (6 .bin, 2 .txt) and 6 poses in {poses}" in done.stderr
+
+
+def test_an_untrusted_registration_of_unrelated_scans_says_not_trusted_once(shared_data):
+    done = _terracube(
+        "register",
+        str(shared_data.path("ouster128/ouster128_000000.pcd")),
+        str(shared_data.path("kitti_seq00/velodyne/000000.bin")),
+    )
+    assert done.returncode == 1, done.stderr
+    line = done.stderr.strip().splitlines()[-1]
+    assert line.startswith("registration not trusted: only ") and line.count("not trusted") == 1, line

@@ -4,6 +4,7 @@ reference, the sensor presets, GeoTIFF metadata and the classified LAS that keep
 from __future__ import annotations
 
 import dataclasses
+import re
 from pathlib import Path
 
 import numpy as np
@@ -485,3 +486,82 @@ def test_the_trajectory_is_drawn_over_the_map_pictures(tmp_path):
 def test_the_configs_stay_equal_after_a_dataclass_round_trip():
     frame = dataclasses.replace(default_config().frame, max_range=30.0)
     assert frame.max_range == 30.0 and frame.min_range == 0.1
+
+
+def test_the_lengths_of_a_stage_report_carry_the_unit_of_a_foot_crs(tmp_path, shared_data):
+    """The bundled tile measures in US survey feet: its reports give the cube edge, the cell size
+    and the RMSEs in ftUS, not in metres they are not."""
+    pytest.importorskip("rasterio")
+    pytest.importorskip("laspy")
+    path = shared_data.path("als_classified/laspy_wkt_geotiff_ground_veg_building.las")
+    points = read_points(path)[:, :3]
+    first = {
+        stage: run_stage(stage, points, stage, tmp_path, source=path, png=False).lines[0]
+        for stage in ("collapse", "dem", "classify", "fem")
+    }
+    assert "(edge 0.5 ftUS, sigma 2 cubes;" in first["collapse"], first
+    assert "cells at 0.1 ftUS," in first["dem"] and "(edge 0.5 ftUS, sigma 2)" in first["dem"], first
+    assert "cells at 0.1 ftUS," in first["classify"], first
+    assert "(edge 0.5 ftUS, sigma 2;" in first["fem"] and "cells (0.1 ftUS) filled" in first["fem"], first
+    assert re.search(r"training RMSE \d+\.\d{3} ftUS .* mean DEM \d+\.\d{3} ftUS;", first["fem"]), first
+    assert not any(re.search(r"\d m\b", line) for line in first.values()), first
+
+
+def test_length_text_names_the_unit_or_says_file_units():
+    from terracube.pipeline import length_text
+
+    assert length_text(0.5) == "0.5 m"
+    assert length_text(3.28084, ("US survey foot", 1200 / 3937)) == "3.28084 ftUS"
+    assert length_text(0.1234, ("foot", 0.3048), ".2f") == "0.12 ft"
+    assert length_text(0.5, ("degree", None)) == "0.5 (file units, degree)"
+
+
+def test_looks_airborne_tells_a_tile_seen_from_above_from_a_ground_sensors_scan():
+    from terracube.pipeline import looks_airborne
+
+    rng = np.random.default_rng(3)
+    n = 20_000
+    angle, reach = rng.uniform(0, 2 * np.pi, n), rng.uniform(2.0, 60.0, n)
+    ground_scan = np.column_stack([reach * np.cos(angle), reach * np.sin(angle), rng.uniform(-1.7, 3.0, n)])
+    forward = ground_scan[ground_scan[:, 1] > 5.0]  # a car's forward-looking LiDAR: none behind it
+    tile = np.column_stack([rng.uniform(0, 300, n), rng.uniform(0, 300, n), rng.uniform(0, 25, n)])
+    column = np.column_stack([rng.uniform(0, 8, n), rng.uniform(0, 8, n), rng.uniform(0, 30, n)])  # a tree
+    assert not looks_airborne(ground_scan) and not looks_airborne(forward)
+    assert looks_airborne(tile + [500_000.0, 4_000_000.0, 100.0])  # georeferenced
+    assert looks_airborne(tile - [150.0, 150.0, 600.0])  # the scanner's own frame, 575 m above the top
+    assert not looks_airborne(tile - [150.0, 150.0, 0.0])  # a sensor amid the points
+    assert not looks_airborne(column + [500_000.0, 4_000_000.0, 100.0])  # taller than wide
+    assert not looks_airborne(np.zeros((2, 3))) and not looks_airborne(np.full((10, 3), np.nan))
+
+
+def test_the_airborne_hint_follows_the_clouds_geometry_when_the_source_does_not_tell(tmp_path):
+    rng = np.random.default_rng(4)
+    n = 5000
+    tile = np.column_stack([rng.uniform(0, 200, n), rng.uniform(0, 200, n), rng.uniform(0, 20, n)])
+    hints = {}
+    for label, points in (
+        ("georeferenced", tile + [500_000.0, 4_000_000.0, 100.0]),
+        ("amid", tile - [100, 100, 0]),
+    ):
+        report = run_stage("dem", points, label, tmp_path, png=False)
+        fill = [line for line in report.lines if "cells hold data" in line]
+        assert len(fill) == 1, report.lines
+        hints[label] = "--preset airborne_las" in fill[0]
+    assert hints == {"georeferenced": True, "amid": False}
+
+
+def test_every_stage_reports_the_points_the_kitti_crop_box_leaves_out(tmp_path, shared_data):
+    """--preset kitti crops 40 m around the car: collapse, dem, classify and fem all say how many
+    points it left out, and agree (a count independent of each stage's own removal)."""
+    from terracube.pipeline import leveled_points
+
+    config = load_config(None, preset="kitti")
+    points = shared_data.kitti_xyzi(0)[:, :3]
+    kept = points[config.frame.in_range(points)]
+    leveled, inside = leveled_points(kept, config)
+    expected = int(np.count_nonzero(np.isfinite(leveled).all(axis=1) & ~inside))
+    assert expected > 1000  # the KITTI scan reaches 80 m
+    line = f"  {expected:,} points outside the crop box were left out"
+    for stage in ("collapse", "dem", "classify", "fem"):
+        report = run_stage(stage, points, stage, tmp_path, config, png=False)
+        assert line in report.lines, (stage, report.lines)
