@@ -63,6 +63,7 @@ void bind_local_map(py::module_& m) {
       .def_readonly("num_in_map", &LocalMapUpdate::num_in_map)
       .def_readonly("num_overhang", &LocalMapUpdate::num_overhang)
       .def_readonly("num_dropped_non_finite", &LocalMapUpdate::num_dropped_non_finite)
+      .def_readonly("num_cropped", &LocalMapUpdate::num_cropped)
       .def_readonly("num_out_of_range", &LocalMapUpdate::num_out_of_range)
       .def_readonly("num_fused_cells", &LocalMapUpdate::num_fused_cells)
       .def_readonly("num_replaced_cells", &LocalMapUpdate::num_replaced_cells)
@@ -74,6 +75,7 @@ void bind_local_map(py::module_& m) {
                                               f("num_in_map", r.num_in_map);
                                               f("num_overhang", r.num_overhang);
                                               f("num_dropped_non_finite", r.num_dropped_non_finite);
+                                              f("num_cropped", r.num_cropped);
                                               f("num_out_of_range", r.num_out_of_range);
                                               f("num_fused_cells", r.num_fused_cells);
                                               f("num_replaced_cells", r.num_replaced_cells);
@@ -83,10 +85,10 @@ void bind_local_map(py::module_& m) {
       .def("__repr__", [](const LocalMapUpdate& u) {
         std::ostringstream text;
         text << "LocalMapUpdate(num_points=" << u.num_points << ", num_in_map=" << u.num_in_map
-             << ", num_overhang=" << u.num_overhang << ", num_out_of_range=" << u.num_out_of_range
-             << ", num_fused_cells=" << u.num_fused_cells << ", num_replaced_cells=" << u.num_replaced_cells
-             << ", num_cleared_cells=" << u.num_cleared_cells << ", map_reset=" << (u.map_reset ? "True" : "False")
-             << ")";
+             << ", num_overhang=" << u.num_overhang << ", num_cropped=" << u.num_cropped
+             << ", num_out_of_range=" << u.num_out_of_range << ", num_fused_cells=" << u.num_fused_cells
+             << ", num_replaced_cells=" << u.num_replaced_cells << ", num_cleared_cells=" << u.num_cleared_cells
+             << ", map_reset=" << (u.map_reset ? "True" : "False") << ")";
         return text.str();
       });
 

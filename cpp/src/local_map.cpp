@@ -343,18 +343,20 @@ struct ScanBinning {
   }
 };
 
-/// The one pass that levels the scan (by the pose): every finite return within the range limits
-/// (LocalMapParams' min_range_m and max_range_m, counted in `out_of_range` otherwise) goes into the
-/// visibility image (when clearing), those inside `area` (the map's area with a cell to spare) into
-/// w.points, the cloud that collapse_overhangs and the binning read. Returns the NaN/Inf rows.
+/// The one pass that levels the scan (by the pose): every finite return within LocalMapParams'
+/// crop around the sensor (counted in report.num_cropped otherwise) and its range limits
+/// (min_range_m, max_range_m; report.num_out_of_range otherwise) goes into the visibility image
+/// (when clearing), those inside `area` (the map's area with a cell to spare) into w.points, the
+/// cloud that collapse_overhangs and the binning read. Returns the NaN/Inf rows.
 template <typename Scalar>
 detail::NonFiniteRows level_scan(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose, const CropBox& area,
-                                 const LocalMapParams& params, bool clearing, Workspace& w, std::size_t& out_of_range) {
+                                 const LocalMapParams& params, bool clearing, Workspace& w, LocalMapUpdate& report) {
   detail::NonFiniteRows non_finite;
   w.points.clear();
   const Eigen::Vector3d sensor = pose.block<3, 1>(0, 3);
   const double nearest = params.min_range_m * params.min_range_m;
   const double farthest = params.max_range_m * params.max_range_m;  // +inf without a limit
+  const std::optional<CropBox>& crop = params.collapse.crop;        // around the sensor, leveled axes
   detail::visit_leveled(points, pose, area, [&](const auto& leveled) {
     leveled.with_fixed_layout([&](const auto& cloud) {  // KITTI's and numpy's rows at fixed offsets
       Eigen::Vector3d p;
@@ -365,9 +367,13 @@ detail::NonFiniteRows level_scan(const PointsView<Scalar>& points, const Eigen::
           continue;
         }
         const Eigen::Vector3d v = p - sensor;  // the range is the sensor frame's: the pose is rigid
+        if (crop && !((v.array() >= crop->min.array()).all() && (v.array() <= crop->max.array()).all())) {
+          ++report.num_cropped;
+          continue;
+        }
         const double range_squared = v.squaredNorm();
         if (!(range_squared >= nearest && range_squared <= farthest)) {
-          ++out_of_range;
+          ++report.num_out_of_range;
           continue;
         }
         if (clearing) w.visibility.add(v);
@@ -390,7 +396,7 @@ CollapseResult level_and_collapse(const PointsView<Scalar>& points, const Eigen:
                                   const LocalMapParams& params, const PointsView<double>& no_returns, bool clearing,
                                   Workspace& w, LocalMapUpdate& report) {
   const Eigen::Vector3d sensor = pose.block<3, 1>(0, 3);
-  const detail::NonFiniteRows non_finite = level_scan(points, pose, area, params, clearing, w, report.num_out_of_range);
+  const detail::NonFiniteRows non_finite = level_scan(points, pose, area, params, clearing, w, report);
   if (w.points.size() >= kNotKept) {
     throw std::invalid_argument("LocalMap.update: over 2^32 - 1 points inside the map; split the scan");
   }
@@ -685,6 +691,21 @@ bool LocalMap::move_to(const Eigen::Vector2d& position) {
   return reset;
 }
 
+void LocalMap::check_stamp(double stamp_s, double relative_s, double origin_s) const {
+  if (std::isinf(stamp_s)) throw std::invalid_argument("LocalMap.update: stamp must be finite (or NaN)");
+  if (num_updates_ > 0 && stamped_ != !std::isnan(stamp_s)) {
+    throw std::invalid_argument(
+        std::string("LocalMap.update: ") +
+        (stamped_ ? "no stamp (NaN) after updates with one" : "a stamp after updates without one (NaN: their count)") +
+        "; give every update its stamp, or none");
+  }
+  if (!(std::abs(relative_s) <= 1e30)) {  // "time" is float (3.4e38 at most)
+    throw std::invalid_argument("LocalMap.update: stamp " + detail::number_text(stamp_s) + " lies " +
+                                detail::number_text(relative_s) + " s from the first update's " +
+                                detail::number_text(origin_s) + ": over 1e30 s, beyond the float \"time\" layer");
+  }
+}
+
 LocalMapUpdate LocalMap::update(const PointsView<float>& points, const Eigen::Matrix4d& pose, double stamp_s,
                                 const PointsView<double>& no_return_directions) {
   return update_impl(points, pose, stamp_s, no_return_directions);
@@ -698,12 +719,12 @@ template <typename Scalar>
 LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose, double stamp_s,
                                      const PointsView<double>& no_return_directions) {
   detail::check_rigid_transform(pose, "pose");
-  if (std::isinf(stamp_s)) throw std::invalid_argument("LocalMap.update: stamp must be finite (or NaN)");
   check_directions(no_return_directions, "LocalMap.update: no_returns");
   const double absolute_stamp = std::isnan(stamp_s) ? static_cast<double>(num_updates_) : stamp_s;
   // "time" is float: relative to the first update's stamp, ROS stamps (1.7e9 s) keep their ms.
-  if (!time_origin_s_) time_origin_s_ = absolute_stamp;
-  const double stamp = absolute_stamp - *time_origin_s_;
+  const double time_origin = time_origin_s_.value_or(absolute_stamp);
+  const double stamp = absolute_stamp - time_origin;
+  check_stamp(stamp_s, stamp, time_origin);
   const int n = geometry_.size.x();
   const double res = params_.resolution_m;
   const Eigen::Vector3d sensor = pose.block<3, 1>(0, 3);
@@ -730,6 +751,8 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
   const CollapseResult removed =
       level_and_collapse(points, pose, area, params_, no_return_directions, clearing, w, report);
 
+  time_origin_s_ = time_origin;  // the first change to the map
+  stamped_ = !std::isnan(stamp_s);
   report.map_reset = move_to(sensor.head<2>());
   const LayerData layer = layer_data(layers_);
   if (last_sensor_ && params_.drift_m_per_sqrt_m > 0.0) {

@@ -112,7 +112,9 @@ class TraversabilityCost {
         clearance < tp_.min_clearance_m) {
       return 0.0F;
     }
-    return static_cast<float>(1.0 - (slope_ * slope + step_ * step + roughness_ * roughness));
+    // In [0, 1] as the formula is; the clamp holds it there when weights near the smallest double
+    // (1e-320) lose the precision that keeps the normalised terms' sum at most 1.
+    return static_cast<float>(std::clamp(1.0 - (slope_ * slope + step_ * step + roughness_ * roughness), 0.0, 1.0));
   }
 
  private:
@@ -243,7 +245,7 @@ void check_traversability_params(const TraversabilityParams& p) {
 int traversability_window_radius(const TraversabilityParams& tp, double resolution_m, const CellIndex& size) {
   detail::check_positive(resolution_m, "add_traversability_layers: the map's resolution");
   const double radius =
-      std::min(std::round(tp.footprint_radius_m / resolution_m), static_cast<double>(size.maxCoeff()));
+      std::min(std::max(1.0, std::round(tp.footprint_radius_m / resolution_m)), static_cast<double>(size.maxCoeff()));
   if (!(radius <= kMaxWindowRadius)) {
     throw std::invalid_argument(
         "TraversabilityParams.footprint_radius_m " + detail::number_text(tp.footprint_radius_m) + " m at " +

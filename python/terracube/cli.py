@@ -1281,8 +1281,11 @@ STREAM_CONFIG_OPTIONS = (
 def stream_params(values: dict[str, Any]):
     """The LocalMapParams of ``terracube stream``'s options (a folder of scans or a bag): the
     --config / --preset frame range limits and collapse section, the options given over them;
-    exit 2 naming a bad value before any scan is read. The map's area and each scan's pose replace
-    the frame's crop and leveling."""
+    exit 2 naming a bad value before any scan is read. Each scan's pose replaces the frame's
+    leveling; the frame's crop box applies around the sensor (the scan leveled by its
+    pose, relative to the sensor's position), as it does around a single scan's sensor."""
+    import dataclasses
+
     from .local_map import LocalMapParams
 
     cfg = command_config("stream", {name: values.get(name) for name in STREAM_CONFIG_OPTIONS})
@@ -1291,7 +1294,7 @@ def stream_params(values: dict[str, Any]):
         params = LocalMapParams(
             length=values["length"],
             resolution=values["resolution"],
-            collapse=cfg.collapse,
+            collapse=dataclasses.replace(cfg.collapse, crop=cfg.frame.crop_box()),
             min_range=cfg.frame.min_range,
             max_range=math.inf if max_range is None else max_range,
         )

@@ -29,8 +29,11 @@ class LocalMapParams:
         Memory guard: a map keeps about 72 bytes a cell, so the default 16 M cells (4096 x 4096,
         409.6 m at 0.1 m) is about 1.2 GB; a larger map is refused with its size named.
     collapse : CollapseParams
-        Overhang removal of each scan ([CBC]); its transform and crop are set per scan (the pose and
-        the map's area), its other fields are used as given.
+        Overhang removal of each scan ([CBC]); its transform is each scan's pose, its other fields
+        are used as given. Its ``crop``, when set, is a box around the sensor: the scan leveled by
+        the pose, relative to the sensor's position (``((-40, -40, -3), (40, 40, 20))`` leaves out
+        multipath returns under the road seen from 1.7 m up); returns outside it take no part
+        (``LocalMapUpdate.num_cropped``).
     min_range, max_range : float
         Returns nearer the sensor than ``min_range`` (the robot's own body; no-returns stored as
         (0, 0, 0)) or farther than ``max_range`` take no part [m]; ``max_range=inf``: no limit.
@@ -229,12 +232,14 @@ class LocalMap:
         ``pose`` (4x4).
 
         ``stamp`` [s] goes into the ``time`` layer, relative to the first update's (NaN: the number of
-        the update). ``no_returns``: (M, 3) directions of the scan's beams that returned nothing, in
-        the sensor frame (:func:`terracube.no_return_directions`), for the shadow-aware overhang
-        removal (``collapse.method="shadow_aware"``; ignored by the paper's). An empty scan only
+        the update; every update gives a stamp, or none). ``no_returns``: (M, 3) directions of the
+        scan's beams that returned nothing, in the sensor frame (:func:`terracube.no_return_directions`),
+        for the shadow-aware overhang removal (``collapse.method="shadow_aware"``; ignored by the
+        paper's). An empty scan only
         moves the map. ValueError for a non-finite or non-rigid pose, NaN/Inf rows (unless
-        ``collapse.drop_non_finite``), a zero or non-finite beam or an infinite stamp, before
-        anything changes. Releases the GIL.
+        ``collapse.drop_non_finite``), a zero or non-finite beam, an infinite stamp, a NaN stamp
+        after stamped updates (or the reverse) or one over 1e30 s from the first, before anything
+        changes. Releases the GIL.
         """
         points = _as_points(points, self.resolution, "resolution")
         beams = None if no_returns is None else _as_directions(no_returns)

@@ -29,8 +29,10 @@ class TraversabilityParams:
     Attributes
     ----------
     footprint_radius : float
-        Half-side of the window [m] (the robot's footprint), >= 0; at most 255 cells (a window of
-        511 cells a side, or the whole map when it is smaller), else refused.
+        Half-side of the window [m] (the robot's footprint), >= 0, rounded to whole cells but at
+        least one (a plane needs the 3 x 3 cells around, also on cells coarser than the footprint);
+        at most 255 cells (a window of 511 cells a side, or the whole map when it is smaller), else
+        refused.
     max_slope : float
         [rad], > 0 (0.35 rad, about 20 degrees).
     max_step, max_roughness : float

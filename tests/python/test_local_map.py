@@ -387,3 +387,64 @@ def test_planner_layers_on_demand_equal_those_of_every_update(shared_data):
     for name in ("step", "slope", "roughness", "traversability"):
         np.testing.assert_array_equal(on_demand[name], every[name], err_msg=name)
     assert np.isfinite(every["traversability"]).sum() > 2000
+
+
+def test_a_crop_around_the_sensor_leaves_a_return_under_the_road_out():
+    # Independent reference: the same scan without the stray return. A multipath return 2.5 m under
+    # the road would be a pit; the crop (z >= -1.5 m from the sensor, which sits 0.8 m up at
+    # (100, 50)) leaves it out, whatever the pose's translation.
+    sensor = pose_at(100.0, 50.0, 0.8, yaw=0.3)
+    ground = gentle_ground() + [100.0, 50.0, 0.0]  # around the sensor, in the odometry frame
+    scan = (ground - sensor[:3, 3]) @ sensor[:3, :3]  # the odometry-frame ground in the sensor frame
+    stray = np.array([[2.0, 0.5, -3.3]])  # in the sensor frame: 2.5 m under the road
+    crop = terracube.CollapseParams(crop=((-40.0, -40.0, -1.5), (40.0, 40.0, 20.0)))
+    cropped = terracube.LocalMap(length=8.0, collapse=crop)
+    report = cropped.update(np.vstack([scan, stray]), sensor)
+    clean = terracube.LocalMap(length=8.0, collapse=crop)
+    clean.update(scan, sensor)
+    assert report.num_cropped == 1 and "num_cropped=1" in repr(report)
+    for name in cropped.layers:
+        np.testing.assert_array_equal(cropped[name], clean[name], err_msg=name)
+    pitted = terracube.LocalMap(length=8.0)
+    pitted.update(np.vstack([scan, stray]), sensor)
+    where = (sensor[:3, :3] @ stray[0] + sensor[:3, 3])[:2]
+    assert pitted["elevation"][pitted.index_of(where)] < -2.0  # without the crop: the pit
+
+
+def test_stamps_are_all_given_or_all_nan_and_fit_the_time_layer():
+    sensor = pose_at(0.0, 0.0, 1.0)
+    points = gentle_ground() - sensor[:3, 3]
+    stamped = terracube.LocalMap(length=4.0)
+    nan_rows = points.copy()
+    nan_rows[0, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        stamped.update(nan_rows, sensor, stamp=1.7e9)  # a failed first update sets no time origin
+    assert math.isnan(stamped.time_origin)
+    stamped.update(points, sensor, stamp=1.7e9)
+    stamped.update(points, sensor, stamp=1.7e9 + 30.0)
+    assert stamped.time_origin == 1.7e9 and np.nanmax(stamped["time"]) == 30.0
+    with pytest.raises(ValueError, match=r"no stamp \(NaN\) after updates with one"):
+        stamped.update(points, sensor)
+    with pytest.raises(ValueError, match="over 1e30 s"):
+        stamped.update(points, sensor, stamp=1e39)
+    counted = terracube.LocalMap(length=4.0)
+    counted.update(points, sensor)
+    with pytest.raises(ValueError, match="a stamp after updates without one"):
+        counted.update(points, sensor, stamp=1.7e9)
+    counted.update(points, sensor)
+    assert np.nanmax(counted["time"]) == 1.0 and np.isfinite(counted["time"][counted["count"] > 0]).all()
+
+
+def test_cells_coarser_than_the_footprint_still_get_planner_layers():
+    # At 0.7 m a 0.3 m footprint rounds to no neighbour: the window is the 3 x 3 cells around.
+    points = gentle_ground(half=10.0, n=40000)
+    sensor = pose_at(0.0, 0.0, 1.0)
+    m = terracube.LocalMap(length=14.0, resolution=0.7)
+    m.update(points - sensor[:3, 3], sensor)
+    known = np.isfinite(m["elevation"])
+    assert known.sum() > 300 and np.isfinite(m["traversability"][known]).mean() > 0.9
+    tiny = terracube.TraversabilityParams(slope_weight=1e-320, step_weight=0.0, roughness_weight=0.0)
+    weighted = terracube.LocalMap(length=14.0, resolution=0.7, traversability=tiny)
+    weighted.update(points - sensor[:3, 3], sensor)
+    values = weighted["traversability"][np.isfinite(weighted["traversability"])]
+    assert values.size and values.min() >= 0.0 and values.max() <= 1.0

@@ -8,7 +8,7 @@ import terracube as tc
 
 def naive_planner_layers(height: np.ndarray, resolution: float, params: tc.TraversabilityParams):
     """Every cell's window fitted by np.linalg.lstsq, written plainly."""
-    r = int(round(params.footprint_radius / resolution))
+    r = max(1, int(round(params.footprint_radius / resolution)))
     nx, ny = height.shape
     out = {name: np.full(height.shape, np.nan) for name in ("step", "slope", "roughness", "traversability")}
     for i in range(nx):

@@ -28,9 +28,12 @@ struct LocalMapParams {
   /// Largest number of cells allowed (memory guard): a map keeps about 72 bytes a cell (14 float
   /// layers and the update's per-cell work), so the default 16 M cells (4096 x 4096) is about 1.2 GB.
   std::size_t max_cells = std::size_t{1} << 24;
-  /// Overhang removal of each scan. update() sets its transform (the scan's pose) and crop (the
-  /// map's area); every other field is used as given (drop_non_finite decides whether NaN/Inf rows
-  /// are dropped or refused).
+  /// Overhang removal of each scan. update() sets its transform (the scan's pose) and bounds it
+  /// by the map's area; every other field is used as given (drop_non_finite decides whether NaN/Inf
+  /// rows are dropped or refused). Its crop, when set, is a box around the sensor: the scan leveled
+  /// by the pose, relative to the sensor's position (z >= -3 m leaves out multipath returns under a
+  /// road seen from 1.7 m up); returns outside it take no part, not even in the see-through test
+  /// (counted in LocalMapUpdate::num_cropped).
   CollapseParams collapse;
   /// Returns nearer the sensor than min_range_m (the robot's own body, no-returns stored as
   /// (0, 0, 0)) or farther than max_range_m take no part (counted in LocalMapUpdate::num_out_of_range);
@@ -96,6 +99,7 @@ struct LocalMapUpdate {
   std::size_t num_in_map = 0;    ///< finite rows inside the map's area
   std::size_t num_overhang = 0;  ///< rows collapse_overhangs flagged (not fused)
   std::size_t num_dropped_non_finite = 0;
+  std::size_t num_cropped = 0;         ///< finite rows outside collapse.crop around the sensor
   std::size_t num_out_of_range = 0;    ///< rows nearer than min_range_m or farther than max_range_m
   std::size_t num_fused_cells = 0;     ///< cells that got a measurement
   std::size_t num_replaced_cells = 0;  ///< of those, cells whose measurement failed the gate
@@ -141,9 +145,10 @@ class LocalMap {
   /// Fuses one scan given in the sensor frame with its pose (odometry <- sensor, a rigid 4x4):
   /// moves the map to the pose (see move_to), removes overhangs, clears cells seen through, fuses
   /// the kept points and refreshes the planner layers. `stamp_s` goes into "time" (NaN: the
-  /// number of the update). An empty scan only moves the map. Throws std::invalid_argument on a
-  /// non-finite or non-rigid pose (or a position move_to refuses), NaN/Inf rows (unless
-  /// collapse.drop_non_finite) or a non-finite stamp other than NaN, before changing anything: a
+  /// number of the update; every update gives a stamp, or none). An empty scan only moves the map.
+  /// Throws std::invalid_argument on a non-finite or non-rigid pose (or a position move_to
+  /// refuses), NaN/Inf rows (unless collapse.drop_non_finite), an infinite stamp, a NaN stamp
+  /// after stamped updates or the reverse, or one over 1e30 s from the first, before changing anything: a
   /// failed update leaves the map as it was. `no_return_directions`: the scan's beams that
   /// returned nothing, in the sensor frame, for the shadow-aware overhang removal
   /// (collapse_overhangs); a zero or non-finite one is refused too.
@@ -171,6 +176,9 @@ class LocalMap {
   double time_origin_s() const { return time_origin_s_.value_or(std::numeric_limits<double>::quiet_NaN()); }
 
  private:
+  /// Throws unless `stamp_s` (relative_s from origin_s) can be this update's: finite or NaN, NaN
+  /// exactly when the earlier updates had no stamp, within 1e30 s of the first.
+  void check_stamp(double stamp_s, double relative_s, double origin_s) const;
   template <typename Scalar>
   LocalMapUpdate update_impl(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose, double stamp_s,
                              const PointsView<double>& no_return_directions);
@@ -187,6 +195,7 @@ class LocalMap {
   std::size_t num_updates_ = 0;
   std::optional<Eigen::Vector3d> last_sensor_;  // for the drift
   std::optional<double> time_origin_s_;
+  bool stamped_ = false;  // whether the updates so far had stamps (all do, or none)
 };
 
 }  // namespace terracube

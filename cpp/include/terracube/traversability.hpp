@@ -11,7 +11,8 @@ namespace terracube {
 
 /// Thresholds of the traversability layer. With, per cell, the plane z = a x + b y + c fitted by
 /// least squares to the known cells of the (2r + 1)^2 window around it (clipped at the map's
-/// border), r = round(footprint_radius_m / resolution):
+/// border), r = max(1, round(footprint_radius_m / resolution)) (a plane needs neighbours: at
+/// least the 3 x 3 cells around, also when the cells are coarser than the footprint):
 ///   slope     = atan(sqrt(a^2 + b^2))                         [rad]
 ///   roughness = RMS distance of the window's heights to the plane (vertical) [m]
 ///   step      = highest minus lowest height in the window      [m]
@@ -37,8 +38,8 @@ struct TraversabilityParams {
 /// Throws std::invalid_argument naming the first invalid field.
 void check_traversability_params(const TraversabilityParams& params);
 
-/// The window's half-side r = round(footprint_radius_m / resolution_m) in cells on a map of `size`
-/// cells, at most its longer side (a window over the whole map). Throws std::invalid_argument when
+/// The window's half-side r = max(1, round(footprint_radius_m / resolution_m)) in cells on a map of
+/// `size` cells, at most its longer side (a window over the whole map). Throws std::invalid_argument when
 /// r > kMaxWindowRadius: a window's extremes cost 2 (2r + 1) reads a cell, so a footprint of
 /// hundreds of cells (a fine resolution) on a large map would take hours.
 constexpr int kMaxWindowRadius = 255;
