@@ -162,6 +162,16 @@ def test_bad_input_is_refused_and_leaves_the_map_unchanged():
     assert "LocalMap(length=4.0" in repr(m)
 
 
+def test_position_of_refuses_a_cell_index_that_is_not_a_whole_number():
+    m = terracube.LocalMap(length=4.0)
+    assert m.position_of((1, 2)) == pytest.approx(m.position_of(np.array([1, 2])))
+    for index in ((1.5, 2.0), (1, 2.0), (True, 2), ("1", 2)):
+        with pytest.raises(TypeError, match=r"index must be two whole cell numbers \(i, j\)"):
+            m.position_of(index)
+    with pytest.raises(ValueError, match=r"index must be two whole cell numbers \(i, j\), got 3 values"):
+        m.position_of((1, 2, 3))
+
+
 def test_stream_command_on_kitti_frames_writes_the_map_pictures_and_an_animation(shared_data, tmp_path):
     from terracube.cli import app
     from typer.testing import CliRunner
