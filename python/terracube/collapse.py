@@ -402,7 +402,8 @@ def collapse_overhangs(
     ----------
     points : (N, 3) float32 or float64 array
         x, y, z [m]; any strides, not copied. Wider rows (up to 16 values, x, y, z first: KITTI's
-        x, y, z, intensity) are read in place. Other sequences are converted to float64.
+        x, y, z, intensity) are read in place. Other sequences are converted to float64, and an
+        array in the other byte order (``dtype=">f4"``) to one native copy, as every entry point does.
     edge, sigma, transform, crop, drop_non_finite, storage, num_threads, method, sensor_origin
         See :class:`CollapseParams`; ``params`` overrides them all when given. ``method="paper"``
         (the default) reproduces the paper; ``method="shadow_aware"`` is recommended for mapping.
