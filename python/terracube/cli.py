@@ -1367,13 +1367,16 @@ def stream_command(
     """
     from .mapping import read_odometry
     from .pipeline import read_returns_and_beams
-    from .stream import run_stream
+    from .stream import check_animation_target, run_stream
 
     files, total = _scan_files(scans, limit)
     if poses is None and not lidar_only:
         raise _fail("give the odometry as --poses FILE, or stream without it: --lidar-only")
     for path, option in ((poses, "--poses"), (calib, "--calib"), (times, "--times")):
         _existing_file(path, option)
+    if animation is not None:  # before the output folder is made
+        with _exit_on_bad_input("stream"):
+            check_animation_target(animation)
     _writable_folder(output_dir)
     with _exit_on_bad_input():
         odometry = read_odometry(poses, files, pose_format, calib, times, total=total)

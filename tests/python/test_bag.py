@@ -942,6 +942,12 @@ def test_stream_on_a_kitti_bag_gives_the_local_map_of_the_loose_files_and_publis
         assert {c.topic: c.msgcount for c in reader.connections}["/terracube/grid_map"] == FRAMES // 2
     result = cli("stream", kitti_bags["odometry"], "--points", "/velodyne_points", "-o", tmp_path / "x")
     assert result.exit_code == 2 and "--odom TOPIC" in result.output and "--lidar-only" in result.output
+    (tmp_path / "file").write_text("")  # an animation that cannot be written: refused before any cloud
+    result = cli(
+        "stream", bag, "--odom", "/odom", "--animation", tmp_path / "file" / "a.gif", "--out", tmp_path / "y"
+    )
+    assert result.exit_code == 2 and "is not a folder" in result.output, result.output
+    assert "streaming" not in result.output and not (tmp_path / "y").exists()
     result = cli("stream", kitti_bags["odometry"], "--odom", "/odom", "--poses", tum, "-o", tmp_path / "x")
     assert result.exit_code == 2 and "--poses is for a folder of scans" in result.output
 

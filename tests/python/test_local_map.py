@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -170,6 +171,69 @@ def test_position_of_refuses_a_cell_index_that_is_not_a_whole_number():
             m.position_of(index)
     with pytest.raises(ValueError, match=r"index must be two whole cell numbers \(i, j\), got 3 values"):
         m.position_of((1, 2, 3))
+
+
+def _drive(count: int, consumed: list[str] | None = None):
+    """``count`` scans of gentle ground, the sensor 0.2 m further along x each time."""
+    for k in range(count):
+        sensor = pose_at(0.2 * k, 0.0, 1.0)
+        if consumed is not None:
+            consumed.append(f"scan{k}")
+        yield f"scans/scan{k}.npy", gentle_ground(seed=k, n=4000) - sensor[:3, 3], sensor, float(k)
+
+
+@pytest.mark.parametrize("target", ["ffmpeg", "a file as folder", "proc"])
+def test_a_bad_animation_target_is_refused_before_the_first_scan_with_nothing_written(
+    tmp_path, monkeypatch, target
+):
+    import gc
+    import warnings
+
+    from matplotlib import animation
+    from terracube.stream import run_stream
+
+    if target == "ffmpeg":
+        monkeypatch.setattr(animation.FFMpegWriter, "isAvailable", classmethod(lambda cls: False))
+        movie, match = tmp_path / "a.mp4", "an .mp4 needs ffmpeg on the PATH"
+    elif target == "a file as folder":
+        (tmp_path / "file").write_text("")
+        movie, match = tmp_path / "file" / "a.gif", "is not a folder"
+    else:
+        if not Path("/proc").is_dir():
+            pytest.skip("no /proc")
+        movie, match = Path("/proc/nope/a.gif"), "cannot write in /proc"
+    consumed: list[str] = []
+    out = tmp_path / "out"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with pytest.raises(ValueError, match=match):
+            run_stream(_drive(3, consumed), out, terracube.LocalMapParams(length=4.0), animation=movie)
+        gc.collect()  # matplotlib warns of an animation never saved when it is collected
+    assert consumed == []
+    assert not out.exists() or list(out.iterdir()) == []
+    assert not movie.exists()
+    assert [str(w.message) for w in caught] == []
+
+
+def test_stream_command_checks_the_animation_before_reading_a_scan(shared_data, tmp_path, monkeypatch):
+    from matplotlib import animation
+    from terracube.cli import app
+    from typer.testing import CliRunner
+
+    monkeypatch.setattr(animation.FFMpegWriter, "isAvailable", classmethod(lambda cls: False))
+    kitti = shared_data.root / "kitti_seq00"
+    (tmp_path / "file").write_text("")
+    out = tmp_path / "stream"
+    args = ["stream", str(kitti / "velodyne"), "--poses", str(kitti / "poses.txt"), "-o", str(out)]
+    for movie, message in (
+        (tmp_path / "a.mp4", "error: stream: a.mp4: an .mp4 needs ffmpeg on the PATH"),
+        (tmp_path / "file" / "a.gif", "is not a folder"),
+    ):
+        result = CliRunner().invoke(app, [*args, "--animation", str(movie)])
+        assert result.exit_code == 2, result.output
+        assert message in result.output.replace("\n", "")
+        assert "streaming" not in result.output and "Animation was deleted" not in result.output
+        assert not out.exists()
 
 
 def test_stream_command_on_kitti_frames_writes_the_map_pictures_and_an_animation(shared_data, tmp_path):
