@@ -317,8 +317,8 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
 def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     """``terracube stream BAG``: the local map over every cloud of the topic, posed by --odom or
     --tf (or with --lidar-only by a LiDAR-only mapper); with --out, the local map as a GridMap and
-    its traversability as an OccupancyGrid every --every clouds (every cloud when 0), in the poses'
-    frame, stamped like the cloud."""
+    its traversability as an OccupancyGrid every --every clouds (every cloud when 0) and after the
+    last cloud (the map of local_map.npz), in the poses' frame, stamped like the cloud."""
     from .bag import occupancy_from_traversability, read_bag
     from .cli import (
         _echo_report,

@@ -194,7 +194,9 @@ def run_stream(
         (:func:`check_animation_target`).
     on_update : callable, optional
         Called as ``on_update(local_map, name, stamp)`` after every ``every``-th update (every
-        update when ``every`` is 0): e.g. to publish the map (``terracube stream BAG --out``).
+        update when ``every`` is 0) and after the last one (once, when it is also an ``every``-th):
+        e.g. to publish the map (``terracube stream BAG --out``), whose last message is then the
+        map written to ``local_map.npz``.
 
     Returns
     -------
@@ -219,6 +221,7 @@ def run_stream(
     pictures: list[Path] = []  # one every `every` scans
     seconds, count, cleared, replaced, out_of_range, fused = 0.0, 0, 0, 0, 0, 0
     spans: list[float] = []
+    frame_due = False
     for name, points, pose, stamp, *beams in scans:
         start = time.perf_counter()
         try:
@@ -256,6 +259,8 @@ def run_stream(
             f"{p.min_range:g}..{p.max_range:g} m from it (--length, --min-range, --max-range)"
         )
         raise ValueError(f"no point of the {count} scans fell in the local map: {cause}")
+    if on_update is not None and not frame_due:  # the final map, when the last scan was not an every-th
+        on_update(local_map, name, stamp)
     final = local_map.to_elevation_map()
     report.add("map", final.save(output_dir / "local_map.npz"))
     if png:

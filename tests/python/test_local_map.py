@@ -236,6 +236,25 @@ def test_stream_command_checks_the_animation_before_reading_a_scan(shared_data, 
         assert not out.exists()
 
 
+@pytest.mark.parametrize(
+    ("count", "every", "published"), [(7, 2, [1, 3, 5, 6]), (6, 2, [1, 3, 5]), (3, 0, [0, 1, 2])]
+)
+def test_on_update_also_gets_the_final_map_once(tmp_path, count, every, published):
+    from terracube.stream import run_stream
+
+    calls = []
+
+    def on_update(local_map, name, stamp):
+        calls.append((name, stamp, local_map.to_elevation_map()["elevation"].copy()))
+
+    params = terracube.LocalMapParams(length=4.0)
+    run_stream(_drive(count), tmp_path, params, every=every, png=False, on_update=on_update)
+    assert [stamp for _, stamp, _ in calls] == published
+    assert calls[-1][0] == f"scans/scan{count - 1}.npy"
+    final = terracube.ElevationMap.load(tmp_path / "local_map.npz")["elevation"]
+    np.testing.assert_array_equal(calls[-1][2], final)
+
+
 def test_stream_command_on_kitti_frames_writes_the_map_pictures_and_an_animation(shared_data, tmp_path):
     from terracube.cli import app
     from typer.testing import CliRunner
