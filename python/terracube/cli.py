@@ -1341,7 +1341,12 @@ def stream_command(
     output_dir: Path = _OUTPUT_DIR,
     length: float = typer.Option(20.0, "--length", help="Side of the square local map [m]."),
     resolution: float = typer.Option(0.1, "--resolution", help="Cell size [m]."),
-    every: int = typer.Option(0, "--every", help="A PNG (or animation frame) every N scans; 0: none."),
+    every: int = typer.Option(
+        0,
+        "--every",
+        help="A PNG (or animation frame) after every N-th scan, local_elevation_NNNNNN.png with NNNNNN the "
+        "scan's 0-based index (KITTI's 000005.bin gives local_elevation_000005.png); 0: none.",
+    ),
     animation: Path | None = typer.Option(
         None, "--animation", help="Write a .gif (or .mp4 with ffmpeg) of the elevation.", show_default=False
     ),

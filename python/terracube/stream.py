@@ -186,8 +186,10 @@ def run_stream(
         Writes ``local_map.npz`` (every layer in map order, read with ``ElevationMap.load``) and,
         with ``png``, ``local_elevation.png`` and ``local_traversability.png``.
     every : int
-        With ``every > 0``: ``local_elevation_NNNNNN.png`` after every ``every``-th scan, or with
-        ``animation`` one frame of the animation.
+        With ``every > 0``: ``local_elevation_NNNNNN.png`` after every ``every``-th scan, NNNNNN the
+        scan's 0-based index in ``scans`` (KITTI's ``000005.bin``, the 6th scan, gives
+        ``local_elevation_000005.png``), or with ``animation`` one frame of the animation, titled
+        with the scan's file stem and index.
     animation : path, optional
         A ``.gif`` (Pillow) or ``.mp4`` (ffmpeg) of the elevation, one frame per ``every`` scans
         (every scan when ``every`` is 0); checked before the first scan
@@ -239,13 +241,14 @@ def run_stream(
         frame_due = count % (every or 1) == 0
         if on_update is not None and frame_due:
             on_update(local_map, name, stamp)
+        index = count - 1  # the scan's 0-based index names its picture and frame
         if animation is not None and frame_due:
             ordered = local_map.to_elevation_map()
             frames.append(
-                (f"{Path(name).stem} ({count})", ordered["elevation"].copy(), ordered.geometry.origin)
+                (f"{Path(name).stem} (scan {index})", ordered["elevation"].copy(), ordered.geometry.origin)
             )
         elif every > 0 and frame_due and png:
-            path = output_dir / f"local_elevation_{count:06d}.png"
+            path = output_dir / f"local_elevation_{index:06d}.png"
             pictures.append(_frame_png(local_map, path, f"{Path(name).stem}: elevation"))
     if count == 0:
         raise ValueError("no scan to fuse")

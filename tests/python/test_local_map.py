@@ -255,6 +255,22 @@ def test_on_update_also_gets_the_final_map_once(tmp_path, count, every, publishe
     np.testing.assert_array_equal(calls[-1][2], final)
 
 
+def test_stream_pictures_and_animation_frames_are_named_by_the_scans_0_based_index(tmp_path, monkeypatch):
+    from terracube import stream
+
+    titles = []
+    monkeypatch.setattr(stream, "_write_animation", lambda frames, path, resolution: titles.extend(frames))
+    params = terracube.LocalMapParams(length=4.0)
+    report = stream.run_stream(_drive(5), tmp_path, params, every=2, png=True)
+    assert sorted(p.name for p in tmp_path.glob("local_elevation_0*.png")) == [
+        "local_elevation_000001.png",
+        "local_elevation_000003.png",
+    ]
+    assert "(local_elevation_000001.png ... local_elevation_000003.png)" in "\n".join(report.lines)
+    stream.run_stream(_drive(5), tmp_path / "a", params, every=2, animation=tmp_path / "a.gif", png=False)
+    assert [title for title, _, _ in titles] == ["scan1 (scan 1)", "scan3 (scan 3)"]
+
+
 def test_stream_command_on_kitti_frames_writes_the_map_pictures_and_an_animation(shared_data, tmp_path):
     from terracube.cli import app
     from typer.testing import CliRunner
@@ -266,13 +282,13 @@ def test_stream_command_on_kitti_frames_writes_the_map_pictures_and_an_animation
     assert result.exit_code == 0, result.output
     assert "6 scans into a 100 x 100 local map" in result.output
     pictures = sorted(p.name for p in out.glob("local_elevation_*.png"))
-    assert pictures == [
-        "local_elevation_000002.png",
-        "local_elevation_000004.png",
-        "local_elevation_000006.png",
+    assert pictures == [  # after the 2nd, 4th and 6th scan, named like their files (0-based)
+        "local_elevation_000001.png",
+        "local_elevation_000003.png",
+        "local_elevation_000005.png",
     ]
     assert (
-        f"pictures every 2 scans: 3 in {out} (local_elevation_000002.png ... local_elevation_000006.png)"
+        f"pictures every 2 scans: 3 in {out} (local_elevation_000001.png ... local_elevation_000005.png)"
         in (result.output.replace("\n", ""))
     )
     for name in ("local_map.npz", "local_elevation.png", "local_traversability.png"):
@@ -299,7 +315,7 @@ def test_stream_command_on_kitti_frames_writes_the_map_pictures_and_an_animation
     )
     assert result.exit_code == 0, result.output
     assert movie.stat().st_size > 1000
-    assert not (out / "local_elevation_000003.png").exists()
+    assert not (out / "local_elevation_000002.png").exists()
     result = CliRunner().invoke(
         app, [*args, "--length", "10", "--no-png", "--limit", "2", "--preset", "kitti"]
     )
