@@ -1344,7 +1344,12 @@ def stream_command(
     output_dir: Path = _OUTPUT_DIR,
     length: float = typer.Option(20.0, "--length", help="Side of the square local map [m]."),
     resolution: float = typer.Option(0.1, "--resolution", help="Cell size [m]."),
-    every: int = typer.Option(0, "--every", help="A PNG (or animation frame) every N scans; 0: none."),
+    every: int = typer.Option(
+        0,
+        "--every",
+        help="A PNG (or animation frame) after every N-th scan, local_elevation_NNNNNN.png with NNNNNN the "
+        "scan's 0-based index (KITTI's 000005.bin gives local_elevation_000005.png); 0: none.",
+    ),
     animation: Path | None = typer.Option(
         None, "--animation", help="Write a .gif (or .mp4 with ffmpeg) of the elevation.", show_default=False
     ),
@@ -1370,13 +1375,16 @@ def stream_command(
     """
     from .mapping import read_odometry
     from .pipeline import read_returns_and_beams
-    from .stream import run_stream
+    from .stream import check_animation_target, run_stream
 
     files, total = _scan_files(scans, limit)
     if poses is None and not lidar_only:
         raise _fail("give the odometry as --poses FILE, or stream without it: --lidar-only")
     for path, option in ((poses, "--poses"), (calib, "--calib"), (times, "--times")):
         _existing_file(path, option)
+    if animation is not None:  # before the output folder is made
+        with _exit_on_bad_input("stream"):
+            check_animation_target(animation)
     _writable_folder(output_dir)
     with _exit_on_bad_input():
         odometry = read_odometry(poses, files, pose_format, calib, times, total=total)

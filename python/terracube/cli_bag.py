@@ -317,8 +317,8 @@ def map_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
 def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
     """``terracube stream BAG``: the local map over every cloud of the topic, posed by --odom or
     --tf (or with --lidar-only by a LiDAR-only mapper); with --out, the local map as a GridMap and
-    its traversability as an OccupancyGrid every --every clouds (every cloud when 0), in the poses'
-    frame, stamped like the cloud."""
+    its traversability as an OccupancyGrid every --every clouds (every cloud when 0) and after the
+    last cloud (the map of local_map.npz), in the poses' frame, stamped like the cloud."""
     from .bag import occupancy_from_traversability, read_bag
     from .cli import (
         _echo_report,
@@ -328,12 +328,15 @@ def stream_bag(bag: Path, values: dict, bag_options: BagOptions) -> None:
         stream_lidar_only_poses,
         stream_params,
     )
-    from .stream import run_stream
+    from .stream import check_animation_target, run_stream
 
     for option, flag in (("poses", "--poses"), ("calib", "--calib"), ("times", "--times")):
         if values.get(option) is not None:
             raise _fail(f"{flag} is for a folder of scans; a bag takes its poses from --odom or --tf")
     _check_pose_source(bag_options, values.get("lidar_only", False))
+    if values.get("animation") is not None:  # before the output folder is made
+        with _exit_on_bad_input("stream"):
+            check_animation_target(values["animation"])
     output_dir = _writable_folder(bag_options.out or values["output_dir"])
     params = stream_params(values)
     beams = params.collapse.method == "shadow_aware"  # the empty pixels of organised clouds help it

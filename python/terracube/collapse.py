@@ -58,14 +58,25 @@ FLOAT32_SAMPLE_ROWS = 1024
 def _as_points(points, length: float | None = None, length_name: str = "") -> np.ndarray:
     """Numpy arrays pass through untouched (float32/float64 of any strides); sequences become float64.
 
-    A float32 array warns (:func:`float32_step_warning`) when its coordinates are too large for
-    float32 to hold them to a tenth of ``length`` [m], the cell or cube edge named ``length_name``."""
+    float32/float64 in the other byte order (a big-endian file read with ``dtype=">f4"``) take one
+    copy in the native order; the core reads native numbers only. A float32 array warns
+    (:func:`float32_step_warning`) when its coordinates are too large for float32 to hold them to a
+    tenth of ``length`` [m], the cell or cube edge named ``length_name``."""
     if isinstance(points, np.ndarray):
+        points = _native_byte_order(points)
         message = float32_step_warning(points, length, length_name)
         if message is not None:
             warnings.warn(message, UserWarning, stacklevel=3)
         return points
     return np.asarray(points, dtype=np.float64)
+
+
+def _native_byte_order(points):
+    """A float32/float64 array in the other byte order as one native copy; anything else as it is."""
+    if isinstance(points, np.ndarray) and not points.dtype.isnative and points.dtype.kind == "f":
+        if points.dtype.itemsize in (4, 8):
+            return points.astype(points.dtype.newbyteorder("="))
+    return points
 
 
 def float32_step_warning(
@@ -391,7 +402,8 @@ def collapse_overhangs(
     ----------
     points : (N, 3) float32 or float64 array
         x, y, z [m]; any strides, not copied. Wider rows (up to 16 values, x, y, z first: KITTI's
-        x, y, z, intensity) are read in place. Other sequences are converted to float64.
+        x, y, z, intensity) are read in place. Other sequences are converted to float64, and an
+        array in the other byte order (``dtype=">f4"``) to one native copy, as every entry point does.
     edge, sigma, transform, crop, drop_non_finite, storage, num_threads, method, sensor_origin
         See :class:`CollapseParams`; ``params`` overrides them all when given. ``method="paper"``
         (the default) reproduces the paper; ``method="shadow_aware"`` is recommended for mapping.

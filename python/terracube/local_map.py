@@ -126,6 +126,22 @@ def _max_cells(value) -> int:
     return cells
 
 
+def _cell_index(index) -> tuple[int, int]:
+    """``(i, j)`` as two Python ints: integers (numpy's too), not floats, bools or strings."""
+    values = list(index)
+    if len(values) != 2:
+        raise ValueError(f"index must be two whole cell numbers (i, j), got {len(values)} values")
+    try:
+        if any(isinstance(v, (bool, np.bool_)) for v in values):
+            raise TypeError
+        return operator.index(values[0]), operator.index(values[1])
+    except TypeError:
+        raise TypeError(
+            f"index must be two whole cell numbers (i, j), got {tuple(values)!r} (index_of gives the "
+            "cell holding a position [m])"
+        ) from None
+
+
 def _as_pose(pose) -> np.ndarray:
     matrix = np.asarray(pose, dtype=np.float64)
     if matrix.shape != (4, 4):
@@ -223,8 +239,9 @@ class LocalMap:
         return self._core.index_of(x, y)
 
     def position_of(self, index: Sequence[int]) -> np.ndarray:
-        """Centre (x, y) [m] of the cell at storage index ``(i, j)``."""
-        i, j = (int(v) for v in index)
+        """Centre (x, y) [m] of the cell at storage index ``(i, j)``. TypeError for an index that is
+        not two whole numbers (``(1.5, 2.0)`` names no cell; no rounding)."""
+        i, j = _cell_index(index)
         return self._core.position_of(i, j)
 
     def update(self, points, pose, stamp: float = math.nan, *, no_returns=None) -> _core.LocalMapUpdate:

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import _core
-from .collapse import _as_classes, _checked
+from .collapse import _as_classes, _checked, _native_byte_order
 from .elevation import ElevationMap, TerrainClass
 
 __all__ = [
@@ -345,9 +345,9 @@ def register_points(
     """
     params = params or RegistrationParams(**kwargs)
     return _core.register_points(
-        np.asarray(source),
+        _native_byte_order(np.asarray(source)),
         _as_classes(source_classes, "source_classes"),
-        np.asarray(target),
+        _native_byte_order(np.asarray(target)),
         _as_classes(target_classes, "target_classes"),
         _as_guess(initial),
         params.to_core(),

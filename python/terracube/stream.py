@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import tempfile
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -19,7 +20,7 @@ from .pipeline import (
     scan_span_warning,
 )
 
-__all__ = ["run_stream", "LidarOnlyPoses"]
+__all__ = ["run_stream", "LidarOnlyPoses", "check_animation_target"]
 
 ANIMATION_SUFFIXES = (".gif", ".mp4")
 
@@ -30,16 +31,52 @@ def _frame_png(local_map: LocalMap, path: Path, title: str) -> Path:
     return plot_layer(local_map.to_elevation_map(), "elevation", path, title=title)
 
 
-def _write_animation(frames: list[tuple[str, np.ndarray, np.ndarray]], path: Path, resolution: float) -> Path:
-    """One frame per kept map: the elevation in map order, drawn in the odometry frame."""
+def _animation_writer(path: Path):
+    """The matplotlib writer of ``path``'s suffix (an instance), or why there is none."""
     try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
         from matplotlib import animation
     except ImportError as error:  # pragma: no cover - matplotlib is a plotting extra
         raise ImportError('an animation needs matplotlib: pip install "terracube[plot]"') from error
+    if path.suffix.lower() == ".gif":
+        if not animation.PillowWriter.isAvailable():  # pragma: no cover - Pillow comes with matplotlib
+            raise ValueError(f"{path.name}: a .gif needs Pillow: pip install pillow")
+        return animation.PillowWriter(fps=5)
+    if not animation.FFMpegWriter.isAvailable():
+        raise ValueError(f"{path.name}: an .mp4 needs ffmpeg on the PATH; write a .gif instead")
+    return animation.FFMpegWriter(fps=5)
+
+
+def check_animation_target(path: str | Path) -> Path:
+    """``path`` as a Path when an animation can be written there, checked before any scan is read:
+    a .gif or .mp4, its writer available (Pillow; ffmpeg on the PATH), and its folder (or the
+    nearest one that exists, the rest is created) one that takes a new file. ValueError (ImportError
+    without matplotlib) otherwise; nothing is left behind."""
+    path = Path(path)
+    if path.suffix.lower() not in ANIMATION_SUFFIXES:
+        raise ValueError(f"the animation must be a .gif or .mp4 file, got {path.name!r}")
+    _animation_writer(path)
+    if path.is_dir():
+        raise ValueError(f"the animation {path}: is a folder")
+    folder = next(f for f in (path.parent, *path.parent.parents) if f.exists() or f == f.parent)
+    if not folder.is_dir():
+        raise ValueError(f"the animation {path}: {folder} is not a folder")
+    try:  # as root os.access says yes to everything; a file made and removed tells the truth
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as error:
+        raise ValueError(f"the animation {path}: cannot write in {folder} ({error.strerror})") from error
+    return path
+
+
+def _write_animation(frames: list[tuple[str, np.ndarray, np.ndarray]], path: Path, resolution: float) -> Path:
+    """One frame per kept map: the elevation in map order, drawn in the odometry frame."""
+    writer = _animation_writer(path)  # before the figure: an animation never saved makes matplotlib warn
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib import animation
+
     from .io import atomic_path
 
     finite = np.concatenate([values[np.isfinite(values)] for _, values, _ in frames])
@@ -67,13 +104,6 @@ def _write_animation(frames: list[tuple[str, np.ndarray, np.ndarray]], path: Pat
         return image, title
 
     movie = animation.FuncAnimation(fig, draw, frames=len(frames), blit=False)
-    if path.suffix.lower() == ".gif":
-        writer = animation.PillowWriter(fps=5)
-    else:
-        if not animation.FFMpegWriter.isAvailable():
-            plt.close(fig)
-            raise ValueError(f"{path.name}: an .mp4 needs ffmpeg on the PATH; write a .gif instead")
-        writer = animation.FFMpegWriter(fps=5)
     try:
         with atomic_path(path) as temporary:  # the temporary name keeps the suffix
             movie.save(str(temporary), writer=writer)
@@ -156,14 +186,19 @@ def run_stream(
         Writes ``local_map.npz`` (every layer in map order, read with ``ElevationMap.load``) and,
         with ``png``, ``local_elevation.png`` and ``local_traversability.png``.
     every : int
-        With ``every > 0``: ``local_elevation_NNNNNN.png`` after every ``every``-th scan, or with
-        ``animation`` one frame of the animation.
+        With ``every > 0``: ``local_elevation_NNNNNN.png`` after every ``every``-th scan, NNNNNN the
+        scan's 0-based index in ``scans`` (KITTI's ``000005.bin``, the 6th scan, gives
+        ``local_elevation_000005.png``), or with ``animation`` one frame of the animation, titled
+        with the scan's file stem and index.
     animation : path, optional
         A ``.gif`` (Pillow) or ``.mp4`` (ffmpeg) of the elevation, one frame per ``every`` scans
-        (every scan when ``every`` is 0).
+        (every scan when ``every`` is 0); checked before the first scan
+        (:func:`check_animation_target`).
     on_update : callable, optional
         Called as ``on_update(local_map, name, stamp)`` after every ``every``-th update (every
-        update when ``every`` is 0): e.g. to publish the map (``terracube stream BAG --out``).
+        update when ``every`` is 0) and after the last one (once, when it is also an ``every``-th):
+        e.g. to publish the map (``terracube stream BAG --out``), whose last message is then the
+        map written to ``local_map.npz``.
 
     Returns
     -------
@@ -173,12 +208,13 @@ def run_stream(
         spans more than a scan in metres could (:func:`terracube.pipeline.scan_span_warning`).
 
     Raises ValueError, before anything is written, when no scan put a point into the map (scans in
-    millimetres, the range limits or a map too small for the scans).
+    millimetres, the range limits or a map too small for the scans), and before the first scan is
+    read when the animation cannot be written.
     """
     if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 0:
         raise ValueError(f"every must be a whole number of scans >= 0, got {every!r}")
-    if animation is not None and Path(animation).suffix.lower() not in ANIMATION_SUFFIXES:
-        raise ValueError(f"the animation must be a .gif or .mp4 file, got {Path(animation).name!r}")
+    if animation is not None:
+        animation = check_animation_target(animation)
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     local_map = LocalMap(params=params or LocalMapParams())
@@ -187,6 +223,7 @@ def run_stream(
     pictures: list[Path] = []  # one every `every` scans
     seconds, count, cleared, replaced, out_of_range, fused = 0.0, 0, 0, 0, 0, 0
     spans: list[float] = []
+    frame_due = False
     for name, points, pose, stamp, *beams in scans:
         start = time.perf_counter()
         try:
@@ -204,13 +241,14 @@ def run_stream(
         frame_due = count % (every or 1) == 0
         if on_update is not None and frame_due:
             on_update(local_map, name, stamp)
+        index = count - 1  # the scan's 0-based index names its picture and frame
         if animation is not None and frame_due:
             ordered = local_map.to_elevation_map()
             frames.append(
-                (f"{Path(name).stem} ({count})", ordered["elevation"].copy(), ordered.geometry.origin)
+                (f"{Path(name).stem} (scan {index})", ordered["elevation"].copy(), ordered.geometry.origin)
             )
         elif every > 0 and frame_due and png:
-            path = output_dir / f"local_elevation_{count:06d}.png"
+            path = output_dir / f"local_elevation_{index:06d}.png"
             pictures.append(_frame_png(local_map, path, f"{Path(name).stem}: elevation"))
     if count == 0:
         raise ValueError("no scan to fuse")
@@ -224,6 +262,8 @@ def run_stream(
             f"{p.min_range:g}..{p.max_range:g} m from it (--length, --min-range, --max-range)"
         )
         raise ValueError(f"no point of the {count} scans fell in the local map: {cause}")
+    if on_update is not None and not frame_due:  # the final map, when the last scan was not an every-th
+        on_update(local_map, name, stamp)
     final = local_map.to_elevation_map()
     report.add("map", final.save(output_dir / "local_map.npz"))
     if png:

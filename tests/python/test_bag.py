@@ -936,12 +936,31 @@ def test_stream_on_a_kitti_bag_gives_the_local_map_of_the_loose_files_and_publis
         # In the poses' frame: the odometry's, or the TF tree's root.
         assert grids[-1].header.frame_id == {"odom": "world", "tf": "map"}[name]
     bag = kitti_bags["odometry"]
-    every = cli("stream", bag, "--odom", "/odom", "--every", "2", "--out", tmp_path / "every", *options)
-    assert every.exit_code == 0, every.output
-    with AnyReader([tmp_path / "every" / "odometry_stream"]) as reader:
-        assert {c.topic: c.msgcount for c in reader.connections}["/terracube/grid_map"] == FRAMES // 2
+    # --every N: the map after every N-th cloud, and the final map (local_map.npz) once at the end.
+    assert FRAMES == 3
+    for every, published in ((2, [2, 3]), (3, [3])):
+        folder = tmp_path / f"every{every}"
+        result = cli("stream", bag, "--odom", "/odom", "--every", every, "--out", folder, *options)
+        assert result.exit_code == 0, result.output
+        with AnyReader([folder / "odometry_stream"]) as reader:
+            stamps = {
+                c.topic: [
+                    reader.deserialize(raw, c.msgtype).header.stamp for _, _, raw in reader.messages([c])
+                ]
+                for c in reader.connections
+            }
+        expected = [stamp_of(k - 1) * 1e-9 for k in published]  # stamps pass through float seconds
+        for topic in ("/terracube/grid_map", "/terracube/occupancy"):
+            got = [s.sec + s.nanosec * 1e-9 for s in stamps[topic]]
+            assert got == pytest.approx(expected, abs=1e-6), topic
     result = cli("stream", kitti_bags["odometry"], "--points", "/velodyne_points", "-o", tmp_path / "x")
     assert result.exit_code == 2 and "--odom TOPIC" in result.output and "--lidar-only" in result.output
+    (tmp_path / "file").write_text("")  # an animation that cannot be written: refused before any cloud
+    result = cli(
+        "stream", bag, "--odom", "/odom", "--animation", tmp_path / "file" / "a.gif", "--out", tmp_path / "y"
+    )
+    assert result.exit_code == 2 and "is not a folder" in result.output, result.output
+    assert "streaming" not in result.output and not (tmp_path / "y").exists()
     result = cli("stream", kitti_bags["odometry"], "--odom", "/odom", "--poses", tum, "-o", tmp_path / "x")
     assert result.exit_code == 2 and "--poses is for a folder of scans" in result.output
 

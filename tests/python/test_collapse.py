@@ -945,3 +945,40 @@ def test_calls_release_the_gil_while_they_run(function):
     if max(elapsed) < 0.005:
         pytest.skip(f"the calls took {max(elapsed) * 1e3:.2f} ms at most, too fast to observe")
     pytest.fail(f"the main thread never ran during calls of {[round(s, 3) for s in elapsed]} s")
+
+
+@pytest.mark.parametrize("native", [np.float32, np.float64])
+def test_points_in_the_other_byte_order_give_the_native_result_everywhere(native):
+    """Big-endian rows (a file read with ``dtype=">f4"``, x, y, z, intensity) are converted once,
+    at the entry point, and give what the native array gives; the caller's array is left as it is."""
+    rng = np.random.default_rng(7)
+    ground = np.column_stack([rng.uniform(-4, 4, (3000, 2)), rng.normal(0.0, 0.02, 3000)])
+    roof = np.column_stack([rng.uniform(-1, 1, (500, 2)), np.full(500, 2.5)])
+    rows = np.column_stack([np.vstack([ground, roof]), rng.uniform(0, 1, 3500)]).astype(native)
+    swapped = rows.astype(rows.dtype.newbyteorder())
+    assert not swapped.dtype.isnative and swapped.dtype.byteorder != rows.dtype.byteorder
+    before = swapped.copy()
+    np.testing.assert_array_equal(
+        tc.collapse_overhangs(swapped, 0.5, 2).overhang, tc.collapse_overhangs(rows, 0.5, 2).overhang
+    )
+    for build in (tc.build_elevation_map, lambda points: tc.dem_without_overhangs(points)[0]):
+        got, expected = build(swapped), build(rows)
+        for layer in expected.layers:
+            np.testing.assert_array_equal(got[layer], expected[layer], err_msg=layer)
+    local = [tc.LocalMap(length=10.0, resolution=0.2) for _ in range(2)]
+    for local_map, points in zip(local, (swapped, rows), strict=True):
+        local_map.update(points, np.eye(4))
+    np.testing.assert_array_equal(local[0]["elevation"], local[1]["elevation"])
+    mappers = [tc.Mapper(), tc.Mapper()]
+    for mapper, points in zip(mappers, (swapped, rows), strict=True):
+        mapper.add_scan(points, np.eye(4))
+    np.testing.assert_array_equal(mappers[0].global_map()["max"], mappers[1].global_map()["max"])
+    shifted = rows[:, :3].astype(np.float64) + (0.05, 0.0, 0.0)
+    got = tc.register_points(shifted.astype(">f8"), swapped[:, :3])
+    np.testing.assert_array_equal(got.transform, tc.register_points(shifted, rows[:, :3]).transform)
+    assert swapped.dtype == before.dtype
+    np.testing.assert_array_equal(swapped, before)
+    if native is np.float32:  # float32 at a UTM northing is still flagged
+        far = (rows + np.float32(4_500_000.0)).astype(">f4")
+        with pytest.warns(UserWarning, match="float32 points reach"):
+            tc.build_elevation_map(far, 0.1)

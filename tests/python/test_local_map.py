@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -162,6 +163,114 @@ def test_bad_input_is_refused_and_leaves_the_map_unchanged():
     assert "LocalMap(length=4.0" in repr(m)
 
 
+def test_position_of_refuses_a_cell_index_that_is_not_a_whole_number():
+    m = terracube.LocalMap(length=4.0)
+    assert m.position_of((1, 2)) == pytest.approx(m.position_of(np.array([1, 2])))
+    for index in ((1.5, 2.0), (1, 2.0), (True, 2), ("1", 2)):
+        with pytest.raises(TypeError, match=r"index must be two whole cell numbers \(i, j\)"):
+            m.position_of(index)
+    with pytest.raises(ValueError, match=r"index must be two whole cell numbers \(i, j\), got 3 values"):
+        m.position_of((1, 2, 3))
+
+
+def _drive(count: int, consumed: list[str] | None = None):
+    """``count`` scans of gentle ground, the sensor 0.2 m further along x each time."""
+    for k in range(count):
+        sensor = pose_at(0.2 * k, 0.0, 1.0)
+        if consumed is not None:
+            consumed.append(f"scan{k}")
+        yield f"scans/scan{k}.npy", gentle_ground(seed=k, n=4000) - sensor[:3, 3], sensor, float(k)
+
+
+@pytest.mark.parametrize("target", ["ffmpeg", "a file as folder", "proc"])
+def test_a_bad_animation_target_is_refused_before_the_first_scan_with_nothing_written(
+    tmp_path, monkeypatch, target
+):
+    import gc
+    import warnings
+
+    from matplotlib import animation
+    from terracube.stream import run_stream
+
+    if target == "ffmpeg":
+        monkeypatch.setattr(animation.FFMpegWriter, "isAvailable", classmethod(lambda cls: False))
+        movie, match = tmp_path / "a.mp4", "an .mp4 needs ffmpeg on the PATH"
+    elif target == "a file as folder":
+        (tmp_path / "file").write_text("")
+        movie, match = tmp_path / "file" / "a.gif", "is not a folder"
+    else:
+        if not Path("/proc").is_dir():
+            pytest.skip("no /proc")
+        movie, match = Path("/proc/nope/a.gif"), "cannot write in /proc"
+    consumed: list[str] = []
+    out = tmp_path / "out"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with pytest.raises(ValueError, match=match):
+            run_stream(_drive(3, consumed), out, terracube.LocalMapParams(length=4.0), animation=movie)
+        gc.collect()  # matplotlib warns of an animation never saved when it is collected
+    assert consumed == []
+    assert not out.exists() or list(out.iterdir()) == []
+    assert not movie.exists()
+    assert [str(w.message) for w in caught] == []
+
+
+def test_stream_command_checks_the_animation_before_reading_a_scan(shared_data, tmp_path, monkeypatch):
+    from matplotlib import animation
+    from terracube.cli import app
+    from typer.testing import CliRunner
+
+    monkeypatch.setattr(animation.FFMpegWriter, "isAvailable", classmethod(lambda cls: False))
+    kitti = shared_data.root / "kitti_seq00"
+    (tmp_path / "file").write_text("")
+    out = tmp_path / "stream"
+    args = ["stream", str(kitti / "velodyne"), "--poses", str(kitti / "poses.txt"), "-o", str(out)]
+    for movie, message in (
+        (tmp_path / "a.mp4", "error: stream: a.mp4: an .mp4 needs ffmpeg on the PATH"),
+        (tmp_path / "file" / "a.gif", "is not a folder"),
+    ):
+        result = CliRunner().invoke(app, [*args, "--animation", str(movie)])
+        assert result.exit_code == 2, result.output
+        assert message in result.output.replace("\n", "")
+        assert "streaming" not in result.output and "Animation was deleted" not in result.output
+        assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("count", "every", "published"), [(7, 2, [1, 3, 5, 6]), (6, 2, [1, 3, 5]), (3, 0, [0, 1, 2])]
+)
+def test_on_update_also_gets_the_final_map_once(tmp_path, count, every, published):
+    from terracube.stream import run_stream
+
+    calls = []
+
+    def on_update(local_map, name, stamp):
+        calls.append((name, stamp, local_map.to_elevation_map()["elevation"].copy()))
+
+    params = terracube.LocalMapParams(length=4.0)
+    run_stream(_drive(count), tmp_path, params, every=every, png=False, on_update=on_update)
+    assert [stamp for _, stamp, _ in calls] == published
+    assert calls[-1][0] == f"scans/scan{count - 1}.npy"
+    final = terracube.ElevationMap.load(tmp_path / "local_map.npz")["elevation"]
+    np.testing.assert_array_equal(calls[-1][2], final)
+
+
+def test_stream_pictures_and_animation_frames_are_named_by_the_scans_0_based_index(tmp_path, monkeypatch):
+    from terracube import stream
+
+    titles = []
+    monkeypatch.setattr(stream, "_write_animation", lambda frames, path, resolution: titles.extend(frames))
+    params = terracube.LocalMapParams(length=4.0)
+    report = stream.run_stream(_drive(5), tmp_path, params, every=2, png=True)
+    assert sorted(p.name for p in tmp_path.glob("local_elevation_0*.png")) == [
+        "local_elevation_000001.png",
+        "local_elevation_000003.png",
+    ]
+    assert "(local_elevation_000001.png ... local_elevation_000003.png)" in "\n".join(report.lines)
+    stream.run_stream(_drive(5), tmp_path / "a", params, every=2, animation=tmp_path / "a.gif", png=False)
+    assert [title for title, _, _ in titles] == ["scan1 (scan 1)", "scan3 (scan 3)"]
+
+
 def test_stream_command_on_kitti_frames_writes_the_map_pictures_and_an_animation(shared_data, tmp_path):
     from terracube.cli import app
     from typer.testing import CliRunner
@@ -173,13 +282,13 @@ def test_stream_command_on_kitti_frames_writes_the_map_pictures_and_an_animation
     assert result.exit_code == 0, result.output
     assert "6 scans into a 100 x 100 local map" in result.output
     pictures = sorted(p.name for p in out.glob("local_elevation_*.png"))
-    assert pictures == [
-        "local_elevation_000002.png",
-        "local_elevation_000004.png",
-        "local_elevation_000006.png",
+    assert pictures == [  # after the 2nd, 4th and 6th scan, named like their files (0-based)
+        "local_elevation_000001.png",
+        "local_elevation_000003.png",
+        "local_elevation_000005.png",
     ]
     assert (
-        f"pictures every 2 scans: 3 in {out} (local_elevation_000002.png ... local_elevation_000006.png)"
+        f"pictures every 2 scans: 3 in {out} (local_elevation_000001.png ... local_elevation_000005.png)"
         in (result.output.replace("\n", ""))
     )
     for name in ("local_map.npz", "local_elevation.png", "local_traversability.png"):
@@ -206,7 +315,7 @@ def test_stream_command_on_kitti_frames_writes_the_map_pictures_and_an_animation
     )
     assert result.exit_code == 0, result.output
     assert movie.stat().st_size > 1000
-    assert not (out / "local_elevation_000003.png").exists()
+    assert not (out / "local_elevation_000002.png").exists()
     result = CliRunner().invoke(
         app, [*args, "--length", "10", "--no-png", "--limit", "2", "--preset", "kitti"]
     )
