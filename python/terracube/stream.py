@@ -221,7 +221,7 @@ def run_stream(
     report = StageReport("stream", 0)
     frames: list[tuple[str, np.ndarray, np.ndarray]] = []
     pictures: list[Path] = []  # one every `every` scans
-    seconds, count, cleared, replaced, out_of_range, fused = 0.0, 0, 0, 0, 0, 0
+    seconds, count, cleared, replaced, out_of_range, fused, cropped = 0.0, 0, 0, 0, 0, 0, 0
     spans: list[float] = []
     frame_due = False
     for name, points, pose, stamp, *beams in scans:
@@ -235,6 +235,7 @@ def run_stream(
         report.points += int(update.num_points)
         cleared += int(update.num_cleared_cells)
         out_of_range += int(update.num_out_of_range)
+        cropped += int(update.num_cropped)
         replaced += int(update.num_replaced_cells)
         fused += int(update.num_fused_cells)
         spans.append(scan_span(points))
@@ -313,4 +314,6 @@ def run_stream(
             f"  {out_of_range:,} returns outside {params.min_range:g}..{params.max_range:g} m from the "
             "sensor left out (min_range, max_range)",
         )
+    if cropped:
+        report.lines.insert(1, f"  {cropped:,} returns outside the crop box around the sensor were left out")
     return report

@@ -476,6 +476,11 @@ def test_min_range_leaves_the_kitti_cars_own_body_out_of_the_map(shared_data, tm
     assert "returns outside 2.5..40 m from the sensor left out" in result.output
     result = CliRunner().invoke(app, [*args, "--limit", "1", "--preset", "kitti"])  # min_range 3
     assert result.exit_code == 0 and f"{np.count_nonzero(distances[0] < 3.0)} returns" in result.output
+    # The preset's crop, around the sensor of the leveled scan: under the road and beyond 40 m.
+    leveled = scans[0].astype(np.float64) @ poses[0][:3, :3].T
+    outside = np.any((leveled < [-40.0, -40.0, -3.0]) | (leveled > [40.0, 40.0, 20.0]), axis=1)
+    assert outside.sum() > 1000
+    assert f"{outside.sum():,} returns outside the crop box around the sensor were left out" in result.output
     result = CliRunner().invoke(app, [*args, "--min-range", "5", "--max-range", "4"])
     assert result.exit_code != 0 and "max_range must be a distance [m] beyond min_range" in result.output
 
