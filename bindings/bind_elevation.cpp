@@ -82,6 +82,10 @@ void bind_elevation(py::module_& m) {
       .def_property_readonly("length", &MapGeometry::length_m, "(2,) map length along x and y [m]")
       .def_property_readonly("num_cells", &MapGeometry::num_cells)
       .def(
+          "__eq__", [](const MapGeometry& a, const MapGeometry& b) { return a == b; }, py::is_operator())
+      .def(
+          "__ne__", [](const MapGeometry& a, const MapGeometry& b) { return a != b; }, py::is_operator())
+      .def(
           "position_of", [](const MapGeometry& g, int i, int j) { return Eigen::Vector2d(g.position_of({i, j})); },
           py::arg("i"), py::arg("j"), "centre of cell (i, j) [m]")
       .def(

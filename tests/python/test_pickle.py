@@ -280,3 +280,13 @@ def test_maps_iterate_over_their_layer_names_like_a_mapping():
     np.testing.assert_array_equal(dict(elevation.items())["max"], elevation["max"])
     local_map = tc.LocalMap(length=4.0, resolution=0.5)
     assert list(local_map) == local_map.layers and len(local_map) == len(local_map.layers)
+
+
+def test_geometries_compare_by_resolution_origin_and_size():
+    local_map = tc.LocalMap(length=4.0, resolution=0.5)
+    local_map.update(scene(), np.eye(4))
+    geometry = local_map.geometry
+    assert geometry == local_map.to_elevation_map().geometry == pickle.loads(pickle.dumps(geometry))
+    assert geometry != tc.MapGeometry(0.25, geometry.origin, geometry.size)
+    assert geometry != tc.MapGeometry(0.5, geometry.origin + [0.5, 0.0], geometry.size)
+    assert geometry != tc.MapGeometry(0.5, geometry.origin, geometry.size + [1, 0])

@@ -41,6 +41,11 @@ struct MapGeometry {
   }
   /// The cell holding `position`, or nothing when it lies outside the map.
   std::optional<CellIndex> index_of(const Eigen::Vector2d& position) const;
+  /// The same grid: equal resolution, origin and size.
+  bool operator==(const MapGeometry& other) const {
+    return resolution_m == other.resolution_m && origin_m == other.origin_m && (size == other.size).all();
+  }
+  bool operator!=(const MapGeometry& other) const { return !(*this == other); }
 };
 
 /// A grid geometry with named float layers, NaN meaning "no data".
