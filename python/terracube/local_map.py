@@ -162,9 +162,11 @@ class LocalMap:
     updates) are in *storage order*: index them with :meth:`index_of`, as in grid_map. Layers:
     ``elevation`` [m], ``variance`` [m^2], ``count``, ``time``, ``min``, ``max``, ``std_dev``,
     ``discontinuity`` ([TC] Table 1 inputs), ``overhang_min``, ``clearance`` (free height under the
-    lowest overhang, +inf without one), ``step``, ``slope`` [rad], ``roughness``, ``traversability``
-    in [0, 1] (:class:`TraversabilityParams`); NaN where unknown. :meth:`to_elevation_map` gives a
-    copy in map order for ``classify_terrain``, the writers and plots.
+    lowest overhang, +inf without one; 0 when that point lies at or below the elevation, which
+    blocks rather than guesses), ``step``, ``slope`` [rad], ``roughness``, ``traversability`` in
+    [0, 1] (:class:`TraversabilityParams`); NaN where unknown (``count`` 0).
+    :meth:`to_elevation_map` gives a copy in map order for ``classify_terrain``, the writers and
+    plots.
 
     Parameters
     ----------

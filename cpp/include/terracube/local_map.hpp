@@ -48,7 +48,9 @@ struct LocalMapParams {
   /// not average out over the points: on sloped ground their mean lies off the cell's centre, and
   /// a moving sensor's sweep is distorted.
   /// Defaults for a Velodyne HDL-64E-class sensor on a vehicle; the simulator's exact noise is
-  /// range 0.02, angle 0, cell 0.004 (the normalised error is then about 1).
+  /// range 0.02, angle 0, cell 0.004 (the normalised error is then about 1 on a drive). Scans from
+  /// a sensor standing still repeat the same beams, whose errors are not independent: the
+  /// variance then shrinks faster than the error.
   double range_sigma_m = 0.02;      ///< >= 0
   double angle_sigma_rad = 0.0015;  ///< >= 0
   double cell_sigma_m = 0.02;       ///< > 0
@@ -119,9 +121,10 @@ struct LocalMapUpdate {
 /// height [m]), "variance" [m^2], "count" (kept points fused since the cell was last reset),
 /// "time" (stamp of the last update that measured the cell minus time_origin_s() [s]), "min", "max", "std_dev" (of
 /// those points), "discontinuity" (of the last scan that measured the cell, 1 or 0), "overhang_min" (lowest overhang
-/// point of the last scan that saw one above the cell), "clearance" (overhang_min - elevation, +inf when no overhang
-/// was seen, NaN without elevation), and the planner layers "step", "slope", "roughness", "traversability"
-/// (TraversabilityParams).
+/// point of the last scan that saw one in the cell), "clearance" (overhang_min - elevation, 0 when that
+/// point lies at or below the elevation: a cube column straddling the cell can flag a point level with its ground,
+/// and 0 blocks rather than guesses; +inf when no overhang was seen, NaN without elevation), and the planner layers
+/// "step", "slope", "roughness", "traversability" (TraversabilityParams).
 class LocalMap {
  public:
   /// Throws std::invalid_argument naming the first bad parameter.
