@@ -349,3 +349,4 @@ def test_an_untrusted_registration_of_unrelated_scans_says_not_trusted_once(shar
     assert done.returncode == 1, done.stderr
     line = done.stderr.strip().splitlines()[-1]
     assert line.startswith("registration not trusted: only ") and line.count("not trusted") == 1, line
+    assert line.count("found a partner") == 1 and "no better than chance" in line, line  # said once

@@ -170,13 +170,15 @@ void judge_registration(RegistrationResult& result,
   if (!(result.converged || result.reason == StopReason::kMaxIterations)) {
     fail(std::string("the ICP stopped: ") + to_string(result.reason));
   }
-  if (!(result.overlap >= params.trust_min_overlap)) {
+  const bool low_overlap = !(result.overlap >= params.trust_min_overlap);
+  if (low_overlap) {
     fail("only " + percent(result.overlap) + " of the source's object cells found a partner (at least " +
          percent(params.trust_min_overlap) + " needed): the maps may not show the same place");
   }
   if (!(result.overlap >= params.trust_min_contrast * result.chance_overlap)) {
-    fail(percent(result.overlap) + " of the source's object cells found a partner, " + percent(result.chance_overlap) +
-         " 1 m away (at least " + number(params.trust_min_contrast) +
+    // After the overlap's own clause, the share is not said twice.
+    fail((low_overlap ? "" : percent(result.overlap) + " of the source's object cells found a partner, ") +
+         percent(result.chance_overlap) + " 1 m away (at least " + number(params.trust_min_contrast) +
          " times as many needed): the match is no better than chance");
   }
   if (!(result.rmse_m <= params.trust_max_rmse_m)) {
