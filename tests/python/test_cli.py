@@ -552,14 +552,20 @@ def test_a_scan_in_metres_is_not_flagged_as_millimetres(runner, tmp_path):
     assert "millimetres" not in result.output
 
 
-@pytest.mark.parametrize("command", ["stream", "map"])
-def test_scans_in_millimetres_stop_stream_and_map_before_an_empty_map_is_written(runner, tmp_path, command):
-    folder, poses = _sequence(tmp_path, 1000.0)
+def _run_sequence(runner, tmp_path, command: str, scale: float):
+    """(result, output folder) of `terracube stream` or `map` (odometry only) over _sequence's scans."""
+    folder, poses = _sequence(tmp_path, scale)
     out = tmp_path / "out"
     options = ["--odometry-only", "--no-loop-closing"] if command == "map" else []
     result = runner.invoke(
         app, [command, str(folder), "--poses", str(poses), "-o", str(out), "--no-png", *options]
     )
+    return result, out
+
+
+@pytest.mark.parametrize("command", ["stream", "map"])
+def test_scans_in_millimetres_stop_stream_and_map_before_an_empty_map_is_written(runner, tmp_path, command):
+    result, out = _run_sequence(runner, tmp_path, command, 1000.0)
     assert result.exit_code == 2, result.output
     assert "no point of the 2 scans fell in the" in result.output
     assert "2 of 2 scans span over 10 km (the widest 16 km)" in result.output
@@ -569,12 +575,7 @@ def test_scans_in_millimetres_stop_stream_and_map_before_an_empty_map_is_written
 
 @pytest.mark.parametrize("command", ["stream", "map"])
 def test_scans_in_metres_stream_and_map_without_a_unit_warning(runner, tmp_path, command):
-    folder, poses = _sequence(tmp_path, 1.0)
-    out = tmp_path / "out"
-    options = ["--odometry-only", "--no-loop-closing"] if command == "map" else []
-    result = runner.invoke(
-        app, [command, str(folder), "--poses", str(poses), "-o", str(out), "--no-png", *options]
-    )
+    result, out = _run_sequence(runner, tmp_path, command, 1.0)
     assert result.exit_code == 0, result.output
     assert "millimetres" not in result.output and "knows no cell" not in result.output
     assert len(list(out.glob("*.npz"))) == 1

@@ -729,6 +729,23 @@ def test_a_cloud_stored_by_columns_is_refused_with_the_hint_to_transpose_it():
         tc.collapse_overhangs(np.zeros((4, 100), dtype=np.float32))
 
 
+def assert_maps_agree(points, reference) -> None:
+    """Every map entry point (build_elevation_map, dem_without_overhangs, LocalMap.update,
+    Mapper.add_scan) gives `points` what it gives `reference`, bit for bit."""
+    for build in (tc.build_elevation_map, lambda cloud: tc.dem_without_overhangs(cloud)[0]):
+        got, expected = build(points), build(reference)
+        for layer in expected.layers:
+            np.testing.assert_array_equal(got[layer], expected[layer], err_msg=layer)
+    local = [tc.LocalMap(length=10.0, resolution=0.2) for _ in range(2)]
+    for local_map, cloud in zip(local, (points, reference), strict=True):
+        local_map.update(cloud, np.eye(4))
+    np.testing.assert_array_equal(local[0]["elevation"], local[1]["elevation"])
+    mappers = [tc.Mapper(), tc.Mapper()]
+    for mapper, cloud in zip(mappers, (points, reference), strict=True):
+        mapper.add_scan(cloud, np.eye(4))
+    np.testing.assert_array_equal(mappers[0].global_map()["max"], mappers[1].global_map()["max"])
+
+
 def test_wider_rows_give_what_their_x_y_z_give_everywhere(shared_data):
     """KITTI's (N, 4) rows (x, y, z, intensity), read in place, give every entry point the result
     of a separate (N, 3) copy of their x, y, z."""
@@ -740,18 +757,7 @@ def test_wider_rows_give_what_their_x_y_z_give_everywhere(shared_data):
         tc.collapse_overhangs(rows, 0.5, 4, method="shadow_aware").overhang,
         tc.collapse_overhangs(xyz, 0.5, 4, method="shadow_aware").overhang,
     )
-    for build in (tc.build_elevation_map, lambda points: tc.dem_without_overhangs(points)[0]):
-        wide, plain = build(rows), build(xyz)
-        for layer in plain.layers:
-            np.testing.assert_array_equal(wide[layer], plain[layer], err_msg=layer)
-    local = [tc.LocalMap(length=10.0, resolution=0.2) for _ in range(2)]
-    for local_map, points in zip(local, (rows, xyz), strict=True):
-        local_map.update(points, np.eye(4))
-    np.testing.assert_array_equal(local[0]["elevation"], local[1]["elevation"])
-    mappers = [tc.Mapper(), tc.Mapper()]
-    for mapper, points in zip(mappers, (rows, xyz), strict=True):
-        mapper.add_scan(points, np.eye(4))
-    np.testing.assert_array_equal(mappers[0].global_map()["max"], mappers[1].global_map()["max"])
+    assert_maps_agree(rows, xyz)
 
 
 @pytest.mark.parametrize("dtype", [np.int64, np.int32, np.float16, np.complex128, np.uint8])
@@ -961,18 +967,7 @@ def test_points_in_the_other_byte_order_give_the_native_result_everywhere(native
     np.testing.assert_array_equal(
         tc.collapse_overhangs(swapped, 0.5, 2).overhang, tc.collapse_overhangs(rows, 0.5, 2).overhang
     )
-    for build in (tc.build_elevation_map, lambda points: tc.dem_without_overhangs(points)[0]):
-        got, expected = build(swapped), build(rows)
-        for layer in expected.layers:
-            np.testing.assert_array_equal(got[layer], expected[layer], err_msg=layer)
-    local = [tc.LocalMap(length=10.0, resolution=0.2) for _ in range(2)]
-    for local_map, points in zip(local, (swapped, rows), strict=True):
-        local_map.update(points, np.eye(4))
-    np.testing.assert_array_equal(local[0]["elevation"], local[1]["elevation"])
-    mappers = [tc.Mapper(), tc.Mapper()]
-    for mapper, points in zip(mappers, (swapped, rows), strict=True):
-        mapper.add_scan(points, np.eye(4))
-    np.testing.assert_array_equal(mappers[0].global_map()["max"], mappers[1].global_map()["max"])
+    assert_maps_agree(swapped, rows)
     shifted = rows[:, :3].astype(np.float64) + (0.05, 0.0, 0.0)
     got = tc.register_points(shifted.astype(">f8"), swapped[:, :3])
     np.testing.assert_array_equal(got.transform, tc.register_points(shifted, rows[:, :3]).transform)
