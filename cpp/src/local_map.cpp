@@ -586,6 +586,16 @@ void refresh_clearance(const LayerData& layer, std::size_t cells) {
   }
 }
 
+/// The lower-left corner of the global cells numbered `cell` [m]: cell x resolution, raised by the
+/// few ulps that put it in that cell by index_of's floor(x / resolution) (-58 x 0.1 is
+/// -5.800000000000001, which lies in cell -59), so that index_of(geometry().origin_m) is the map's
+/// lower-left cell.
+double cell_corner(std::int64_t cell, double resolution) {
+  double corner = static_cast<double>(cell) * resolution;
+  while (std::floor(corner / resolution) < static_cast<double>(cell)) corner = std::nextafter(corner, kInf);
+  return corner;
+}
+
 /// The origin cell of an n x n map centred on `position`: floor(position / resolution) - n / 2 per
 /// axis. Throws (naming `what`) unless the position is finite, within 1e12 m and within 2^52 cells
 /// of the origin (a finer resolution than that would overflow the cell index).
@@ -609,7 +619,8 @@ LocalMap::LocalMap(const LocalMapParams& params) : params_(params) {
   geometry_.resolution_m = params.resolution_m;
   geometry_.size = CellIndex(n, n);
   origin_cell_ = Eigen::Matrix<std::int64_t, 2, 1>::Constant(-(n / 2));
-  geometry_.origin_m = origin_cell_.cast<double>() * params.resolution_m;
+  geometry_.origin_m = {cell_corner(origin_cell_.x(), params.resolution_m),
+                        cell_corner(origin_cell_.y(), params.resolution_m)};
   layers_ = ElevationMap(geometry_);
   for (const char* name : kLayerNames) layers_.add(name, name == std::string("count") ? 0.0F : kNaN);
   const std::size_t cells = geometry_.num_cells();
@@ -687,7 +698,8 @@ bool LocalMap::move_to(const Eigen::Vector2d& position) {
     }
   }
   origin_cell_ = target;
-  geometry_.origin_m = origin_cell_.cast<double>() * params_.resolution_m;
+  geometry_.origin_m = {cell_corner(origin_cell_.x(), params_.resolution_m),
+                        cell_corner(origin_cell_.y(), params_.resolution_m)};
   return reset;
 }
 

@@ -127,6 +127,10 @@ TEST(LocalMap, CircularShiftMatchesANaiveRebinningOfTheGlobalCells) {
     }
     EXPECT_FALSE(map.index_of({(ox - 0.5) * res, (oy + 0.5) * res}).has_value());
     EXPECT_FALSE(map.index_of({(ox + n + 0.5) * res, (oy + 0.5) * res}).has_value());
+    // The reported corner lies in the lower-left cell (ox x res alone can round into the cell before).
+    const auto corner = map.index_of(map.geometry().origin_m);
+    ASSERT_TRUE(corner.has_value()) << "step " << k << " origin " << map.geometry().origin_m.transpose();
+    ASSERT_TRUE((*corner == map.start_index()).all());
   }
 }
 
