@@ -14,6 +14,8 @@ the same amount of work every call). Timed side by side, in turn, on one thread:
   Kalman fusion and the planner layers (step, slope, roughness, traversability over 7 x 7 windows);
 - the same update without the planner layers (``compute_planner_layers=False``), and without the
   see-through test too, to show where the time goes;
+- ``update_planner_layers`` alone: the step, slope, roughness and traversability of the fused map,
+  the stage the first two rows differ by;
 - ``dem_without_overhangs`` over the same area (collapse, then the map), for information.
 
 Before timing, the fused map of frames 0-5 is checked against ``build_elevation_map``: of the cells
@@ -116,6 +118,7 @@ def main(argv: list[str] | None = None) -> int:
             "LocalMap.update": lambda: full.update(last, pose),
             "update, no planner layers": lambda: no_planner.update(last, pose),
             "update, fusion only": lambda: fusion_only.update(last, pose),
+            "update_planner_layers": full.update_planner_layers,
             "dem_without_overhangs": lambda: tc.dem_without_overhangs(
                 last,
                 collapse=tc.CollapseParams(transform=pose),
