@@ -82,10 +82,12 @@ void add_row(const RowWindows& row, double x, double sign, MomentArrays& sums) {
 }
 
 /// Per column j, the least-squares plane z = a x + b y + c of the cells with moments `m` (x, y in
-/// cells): a^2 + b^2 into gradient2[j] and the mean squared vertical residual into residual2[j],
+/// cells, `resolution` m apart): its squared slope tangent (a^2 + b^2) / resolution^2 into tan2[j]
+/// and the mean squared vertical residual into residual2[j],
 /// both NaN with fewer than min_cells known cells (or only collinear ones). Branch-free, and
 /// the outputs overlap no moment (restrict): the loop vectorises.
-void fit_planes(const MomentArrays& m, double min_cells, double* __restrict gradient2, double* __restrict residual2) {
+void fit_planes(const MomentArrays& m, double min_cells, double resolution, double* __restrict tan2,
+                double* __restrict residual2) {
   for (std::size_t j = 0; j < m[kN].size(); ++j) {
     const double w = 1.0 / m[kN][j];  // the means and covariances of the window's cells
     const double mx = m[kX][j] * w, my = m[kY][j] * w, mz = m[kZ][j] * w;
@@ -94,7 +96,8 @@ void fit_planes(const MomentArrays& m, double min_cells, double* __restrict grad
     const double det = cxx * cyy - cxy * cxy;
     const double divisor = (m[kN][j] >= min_cells) & (det > 1e-9) ? det : kNaN;  // NaN: no plane, no branch
     const double a = (cyy * cxz - cxy * cyz) / divisor, b = (cxx * cyz - cxy * cxz) / divisor;
-    gradient2[j] = a * a + b * b;
+    const double a_m = a / resolution, b_m = b / resolution;  // per metre (no 1 / resolution^2 to overflow)
+    tan2[j] = a_m * a_m + b_m * b_m;
     residual2[j] = czz - a * cxz - b * cyz;
   }
 }
@@ -150,13 +153,13 @@ struct PlannerData {
 struct RowFits {
   const std::vector<float>& lowest;
   const std::vector<float>& highest;
-  const std::vector<double>& gradient2;
+  const std::vector<double>& tan2;
   const std::vector<double>& residual2;
 };
 
 /// Each cell of geometric row `gi`: its window's step, plane fit and traversability when it is
 /// known (finite), else NaN.
-void write_row(const PlannerData& d, const StorageOrder& order, const RowFits& w, std::size_t gi, double resolution,
+void write_row(const PlannerData& d, const StorageOrder& order, const RowFits& w, std::size_t gi,
                const TraversabilityCost& cost) {
   const std::size_t n = order.column.size();
   for (std::size_t gj = 0; gj < n; ++gj) {
@@ -164,8 +167,8 @@ void write_row(const PlannerData& d, const StorageOrder& order, const RowFits& w
     const bool known = std::isfinite(d.height[cell]);
     const float step = known ? w.highest[gj] - w.lowest[gj] : kNaN;
     float slope = kNaN, roughness = kNaN, traversability = kNaN;
-    if (known && !std::isnan(w.gradient2[gj])) {
-      slope = std::atan(static_cast<float>(std::sqrt(w.gradient2[gj]) / resolution));  // float: the layer's type
+    if (known && !std::isnan(w.tan2[gj])) {
+      slope = std::atan(static_cast<float>(std::sqrt(w.tan2[gj])));  // float: the layer's type
       const double rms = std::sqrt(std::max(w.residual2[gj], 0.0));
       roughness = static_cast<float>(rms);
       traversability = cost(slope, step, rms, d.clearance != nullptr ? d.clearance[cell] : kInfF);
@@ -192,7 +195,7 @@ void planner_rows(const PlannerData& d, const StorageOrder& order, double refere
   std::vector<RowWindows> ring(static_cast<std::size_t>(slots), RowWindows(n));
   std::vector<float> padded(n + 2 * static_cast<std::size_t>(r), kNaN), lowest(n), highest(n);
   MomentArrays prefix(kRowMoments, std::vector<double>(padded.size() + 1)), sums(kMoments, std::vector<double>(n));
-  std::vector<double> gradient2(n), residual2(n);
+  std::vector<double> tan2(n), residual2(n);
   const auto enter = [&](int a) {
     for (std::size_t gj = 0; gj < n; ++gj) {
       const float h = d.height[order.row[static_cast<std::size_t>(a)] + order.column[gj]];
@@ -218,8 +221,8 @@ void planner_rows(const PlannerData& d, const StorageOrder& order, double refere
         highest[gj] = std::max(highest[gj], row.highest[gj]);
       }
     }
-    fit_planes(sums, tp.min_window_cells, gradient2.data(), residual2.data());
-    write_row(d, order, {lowest, highest, gradient2, residual2}, static_cast<std::size_t>(gi), resolution, cost);
+    fit_planes(sums, tp.min_window_cells, resolution, tan2.data(), residual2.data());
+    write_row(d, order, {lowest, highest, tan2, residual2}, static_cast<std::size_t>(gi), cost);
   }
 }
 
