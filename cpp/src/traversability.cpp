@@ -83,9 +83,9 @@ void add_row(const RowWindows& row, double x, double sign, MomentArrays& sums) {
 
 /// Per column j, the least-squares plane z = a x + b y + c of the cells with moments `m` (x, y in
 /// cells, `resolution` m apart): its squared slope tangent (a^2 + b^2) / resolution^2 into tan2[j]
-/// and the mean squared vertical residual into residual2[j],
-/// both NaN with fewer than min_cells known cells (or only collinear ones). Branch-free, and
-/// the outputs overlap no moment (restrict): the loop vectorises.
+/// and the mean squared vertical residual into residual2[j], both NaN with fewer than min_cells
+/// known cells (or only collinear ones). Branch-free, and the outputs overlap no moment
+/// (restrict): the loop vectorises.
 void fit_planes(const MomentArrays& m, double min_cells, double resolution, double* __restrict tan2,
                 double* __restrict residual2) {
   for (std::size_t j = 0; j < m[kN].size(); ++j) {
@@ -116,8 +116,9 @@ class TraversabilityCost {
     // In [0, 1] as the formula is; the clamp holds it there when weights near the smallest double
     // (1e-320) lose the precision that keeps the normalised terms' sum at most 1.
     const double value = std::clamp(1.0 - (slope_ * slope + step_ * step + roughness_ * roughness), 0.0, 1.0);
+    // | rather than ||: fewer hard-to-predict branches (the blocked cells are scattered)
     const bool blocked = (slope > tp_.max_slope_rad) | (step > tp_.max_step_m) | (roughness > tp_.max_roughness_m) |
-                         (clearance < tp_.min_clearance_m);  // | : no branches
+                         (clearance < tp_.min_clearance_m);
     return blocked ? 0.0F : static_cast<float>(value);
   }
 
