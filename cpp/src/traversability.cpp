@@ -20,81 +20,86 @@ namespace {
 constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
 constexpr float kInfF = std::numeric_limits<float>::infinity();
 
-/// The sums over a set of known cells that a least-squares plane needs: x, y the geometric cell
-/// indices, z the height relative to a reference. x and y sums are whole numbers, exact in double.
-struct Moments {
-  double n = 0, x = 0, y = 0, z = 0, xx = 0, xy = 0, yy = 0, xz = 0, yz = 0, zz = 0;
+/// The moments a least-squares plane needs, summed over a set of known cells: their number n and
+/// the sums of y, y^2, z, y z, z^2, x, x^2, x y, x z, with x, y the geometric cell indices and z the
+/// height relative to a reference (sums of x and y are whole numbers, exact in double). Within a
+/// geometric row x is constant: a row's windows need only the first kRowMoments.
+enum Moment { kN, kY, kYY, kZ, kYZ, kZZ, kX, kXX, kXY, kXZ };
+constexpr int kRowMoments = 6, kMoments = 10;
 
-  void add(double cx, double cy, double cz) {
-    n += 1.0;
-    x += cx;
-    y += cy;
-    z += cz;
-    xx += cx * cx;
-    xy += cx * cy;
-    yy += cy * cy;
-    xz += cx * cz;
-    yz += cy * cz;
-    zz += cz * cz;
-  }
-  Moments& operator+=(const Moments& o) {
-    n += o.n, x += o.x, y += o.y, z += o.z, xx += o.xx, xy += o.xy, yy += o.yy, xz += o.xz, yz += o.yz, zz += o.zz;
-    return *this;
-  }
-  Moments& operator-=(const Moments& o) {
-    n -= o.n, x -= o.x, y -= o.y, z -= o.z, xx -= o.xx, xy -= o.xy, yy -= o.yy, xz -= o.xz, yz -= o.yz, zz -= o.zz;
-    return *this;
-  }
-  Moments operator-(const Moments& o) const {
-    return {n - o.n, x - o.x, y - o.y, z - o.z, xx - o.xx, xy - o.xy, yy - o.yy, xz - o.xz, yz - o.yz, zz - o.zz};
-  }
+/// One array per moment, over the columns of a row (structure of arrays: the loops vectorise).
+using MomentArrays = std::vector<std::vector<double>>;
+
+/// The windows [j - r, j + r] of one geometric row, per column j: their first kRowMoments and
+/// their lowest and highest height (+inf and -inf when all unknown).
+struct RowWindows {
+  MomentArrays moments;
+  std::vector<float> lowest, highest;
+
+  explicit RowWindows(std::size_t n) : moments(kRowMoments, std::vector<double>(n)), lowest(n), highest(n) {}
 };
 
-/// The moments of geometric row `x` summed over the windows [j - r, j + r] clipped to the row, from
-/// differences of prefix sums, into sums[0, n), and each window's lowest and highest height into
-/// lowest[0, n) and highest[0, n) (+inf and -inf when all unknown). `padded` holds the row's n
-/// heights in map order (NaN unknown; the moments take them relative to `reference`) between r
-/// NaNs on each side, so that every window reads 2 r + 1 of them: loops without bounds to clip,
-/// which the compiler vectorises.
-void row_windows(const std::vector<float>& padded, double x, double reference, int r, std::vector<Moments>& prefix,
-                 Moments* sums, float* lowest, float* highest) {
-  const int n = static_cast<int>(padded.size()) - 2 * r;
-  const float* z = padded.data() + r;
-  prefix[0] = Moments();
-  for (int j = 0; j < n; ++j) {
-    prefix[j + 1] = prefix[j];
-    if (!std::isnan(z[j])) prefix[j + 1].add(x, j, z[j] - reference);
+/// The windows of one row (`out`) from `padded`: the row's n heights in map order (NaN unknown;
+/// the moments take them relative to `reference`) between r NaNs on each side, so that every
+/// window reads 2 r + 1 of them. The moments are differences of prefix sums (`prefix`: n + 2 r + 1
+/// per moment, the first 0); the other loops run without bounds to clip, and vectorise.
+void row_windows(const std::vector<float>& padded, double reference, int r, MomentArrays& prefix, RowWindows& out) {
+  double sum[kRowMoments] = {};                      // of the cells before p, in registers rather than read back
+  for (std::size_t p = 0; p < padded.size(); ++p) {  // padded position p is column p - r
+    const bool known = !std::isnan(padded[p]);
+    const double y = known ? static_cast<double>(p) - r : 0.0, z = known ? padded[p] - reference : 0.0;
+    const double cell[kRowMoments] = {known ? 1.0 : 0.0, y, y * y, z, y * z, z * z};
+    for (int k = 0; k < kRowMoments; ++k) prefix[k][p + 1] = sum[k] += cell[k];
   }
-  for (int j = 0; j < n; ++j) sums[j] = prefix[std::min(j + r, n - 1) + 1] - prefix[std::max(j - r, 0)];
+  const std::size_t n = out.lowest.size(), width = 2 * static_cast<std::size_t>(r) + 1;
+  for (int k = 0; k < kRowMoments; ++k) {
+    for (std::size_t j = 0; j < n; ++j) out.moments[k][j] = prefix[k][j + width] - prefix[k][j];
+  }
+  float *lowest = out.lowest.data(), *highest = out.highest.data();
   std::fill(lowest, lowest + n, kInfF);
   std::fill(highest, highest + n, -kInfF);
-  for (int d = -r; d <= r; ++d) {
-    for (int j = 0; j < n; ++j) {  // std::min/max keep the first argument against NaN
-      lowest[j] = std::min(lowest[j], z[j + d]);
-      highest[j] = std::max(highest[j], z[j + d]);
+  for (std::size_t d = 0; d < width; ++d) {
+    for (std::size_t j = 0; j < n; ++j) {  // std::min/max keep the first argument against NaN
+      lowest[j] = std::min(lowest[j], padded[j + d]);
+      highest[j] = std::max(highest[j], padded[j + d]);
     }
   }
 }
 
-/// The least-squares plane z = a x + b y + c of a window from its moments (x, y in cells): the
-/// gradient |(a, b)| per cell and the RMS vertical residual; invalid for collinear cells.
-struct PlaneFit {
-  bool valid = false;
-  double gradient = 0.0, roughness = 0.0;
-};
-PlaneFit fit_plane(const Moments& m) {
-  const double w = 1.0 / m.n;  // the means and covariances of the window's cells
-  const double mx = m.x * w, my = m.y * w, mz = m.z * w;
-  const double cxx = m.xx * w - mx * mx, cxy = m.xy * w - mx * my, cyy = m.yy * w - my * my;
-  const double cxz = m.xz * w - mx * mz, cyz = m.yz * w - my * mz, czz = m.zz * w - mz * mz;
-  const double det = cxx * cyy - cxy * cxy;
-  PlaneFit fit;
-  if (!(det > 1e-9)) return fit;
-  const double a = (cyy * cxz - cxy * cyz) / det, b = (cxx * cyz - cxy * cxz) / det;
-  fit.valid = true;
-  fit.gradient = std::sqrt(a * a + b * b);
-  fit.roughness = std::sqrt(std::max(czz - a * cxz - b * cyz, 0.0));
-  return fit;
+/// Adds (sign 1) or takes away (sign -1) the moments of the windows of geometric row `x` to the
+/// column sums `sums`, the x ones formed here from the row's: x n, x^2 n, x y and x z.
+void add_row(const RowWindows& row, double x, double sign, MomentArrays& sums) {
+  const auto add = [&](Moment to, Moment from, double factor) {
+    double* s = sums[to].data();
+    const double* v = row.moments[from].data();
+    for (std::size_t j = 0; j < row.lowest.size(); ++j) s[j] += factor * v[j];
+  };
+  for (int k = 0; k < kRowMoments; ++k) add(static_cast<Moment>(k), static_cast<Moment>(k), sign);
+  add(kX, kN, sign * x);
+  add(kXX, kN, sign * x * x);
+  add(kXY, kY, sign * x);
+  add(kXZ, kZ, sign * x);
+}
+
+/// Per column j, the least-squares plane z = a x + b y + c of the cells with moments `m` (x, y in
+/// cells, `resolution` m apart): its squared slope tangent (a^2 + b^2) / resolution^2 into tan2[j]
+/// and the mean squared vertical residual into residual2[j], both NaN with fewer than min_cells
+/// known cells (or only collinear ones). Branch-free, and the outputs overlap no moment
+/// (restrict): the loop vectorises.
+void fit_planes(const MomentArrays& m, double min_cells, double resolution, double* __restrict tan2,
+                double* __restrict residual2) {
+  for (std::size_t j = 0; j < m[kN].size(); ++j) {
+    const double w = 1.0 / m[kN][j];  // the means and covariances of the window's cells
+    const double mx = m[kX][j] * w, my = m[kY][j] * w, mz = m[kZ][j] * w;
+    const double cxx = m[kXX][j] * w - mx * mx, cxy = m[kXY][j] * w - mx * my, cyy = m[kYY][j] * w - my * my;
+    const double cxz = m[kXZ][j] * w - mx * mz, cyz = m[kYZ][j] * w - my * mz, czz = m[kZZ][j] * w - mz * mz;
+    const double det = cxx * cyy - cxy * cxy;
+    const double divisor = (m[kN][j] >= min_cells) & (det > 1e-9) ? det : kNaN;  // NaN: no plane, no branch
+    const double a = (cyy * cxz - cxy * cyz) / divisor, b = (cxx * cyz - cxy * cxz) / divisor;
+    const double a_m = a / resolution, b_m = b / resolution;  // per metre (no 1 / resolution^2 to overflow)
+    tan2[j] = a_m * a_m + b_m * b_m;
+    residual2[j] = czz - a * cxz - b * cyz;
+  }
 }
 
 /// TraversabilityParams' formula (traversability.hpp), its weights divided by their thresholds
@@ -108,13 +113,13 @@ class TraversabilityCost {
     roughness_ = tp.roughness_weight / (tp.max_roughness_m * weights);
   }
   float operator()(double slope, double step, double roughness, float clearance) const {
-    if (slope > tp_.max_slope_rad || step > tp_.max_step_m || roughness > tp_.max_roughness_m ||
-        clearance < tp_.min_clearance_m) {
-      return 0.0F;
-    }
     // In [0, 1] as the formula is; the clamp holds it there when weights near the smallest double
     // (1e-320) lose the precision that keeps the normalised terms' sum at most 1.
-    return static_cast<float>(std::clamp(1.0 - (slope_ * slope + step_ * step + roughness_ * roughness), 0.0, 1.0));
+    const double value = std::clamp(1.0 - (slope_ * slope + step_ * step + roughness_ * roughness), 0.0, 1.0);
+    // | rather than ||: fewer hard-to-predict branches (the blocked cells are scattered)
+    const bool blocked = (slope > tp_.max_slope_rad) | (step > tp_.max_step_m) | (roughness > tp_.max_roughness_m) |
+                         (clearance < tp_.min_clearance_m);
+    return blocked ? 0.0F : static_cast<float>(value);
   }
 
  private:
@@ -144,84 +149,81 @@ struct PlannerData {
   float *step, *slope, *roughness, *traversability;
 };
 
-/// The windows of the cells of one geometric row, per column: the moments summed over the window
-/// and its lowest and highest height.
-struct RowWindows {
-  const std::vector<Moments>& sums;
+/// The windows of the cells of one geometric row, per column: their lowest and highest height
+/// and their plane (fit_planes).
+struct RowFits {
   const std::vector<float>& lowest;
   const std::vector<float>& highest;
+  const std::vector<double>& tan2;
+  const std::vector<double>& residual2;
 };
 
-/// Each known (finite) cell of geometric row `gi`: its window's step, plane fit and traversability.
-void fit_row(const PlannerData& d, const StorageOrder& order, const RowWindows& w, std::size_t gi, double resolution,
-             int min_window_cells, const TraversabilityCost& cost) {
+/// Each cell of geometric row `gi`: its window's step, plane fit and traversability when it is
+/// known (finite), else NaN.
+void write_row(const PlannerData& d, const StorageOrder& order, const RowFits& w, std::size_t gi,
+               const TraversabilityCost& cost) {
   const std::size_t n = order.column.size();
   for (std::size_t gj = 0; gj < n; ++gj) {
     const std::size_t cell = order.row[gi] + order.column[gj];
-    float* out[] = {d.step + cell, d.slope + cell, d.roughness + cell, d.traversability + cell};
-    for (float* value : out) *value = kNaN;
-    if (!std::isfinite(d.height[cell])) continue;
-    *out[0] = w.highest[gj] - w.lowest[gj];
-    const Moments& window = w.sums[gj];
-    if (window.n < min_window_cells) continue;
-    const PlaneFit fit = fit_plane(window);
-    if (!fit.valid) continue;
-    const float slope = std::atan(static_cast<float>(fit.gradient / resolution));  // float: the layer's type
-    *out[1] = slope;
-    *out[2] = static_cast<float>(fit.roughness);
-    const float clearance = d.clearance != nullptr ? d.clearance[cell] : kInfF;
-    *out[3] = cost(slope, *out[0], fit.roughness, clearance);
+    const bool known = std::isfinite(d.height[cell]);
+    const float step = known ? w.highest[gj] - w.lowest[gj] : kNaN;
+    float slope = kNaN, roughness = kNaN, traversability = kNaN;
+    if (known && !std::isnan(w.tan2[gj])) {
+      slope = std::atan(static_cast<float>(std::sqrt(w.tan2[gj])));  // float: the layer's type
+      const double rms = std::sqrt(std::max(w.residual2[gj], 0.0));
+      roughness = static_cast<float>(rms);
+      traversability = cost(slope, step, rms, d.clearance != nullptr ? d.clearance[cell] : kInfF);
+    }
+    d.step[cell] = step;
+    d.slope[cell] = slope;
+    d.roughness[cell] = roughness;
+    d.traversability[cell] = traversability;
   }
 }
 
 /// The planner layers of the cells of geometric rows [begin, end). The windows slide down the
-/// rows: each row's window sums and extremes along y (row_windows) enter a ring of the window's
-/// rows (row a in slot a mod slots) and the moments a running sum per column as the window
-/// reaches them, and leave it as it passes them, so a window's moments cost the same whatever its
-/// size and the memory is that of the window's rows, not the map's. A part starts its sums
-/// afresh: the same bits whatever the number of threads.
+/// rows: each row's windows along y (row_windows) enter a ring of the window's rows (row a in
+/// slot a mod slots) and their moments running sums per column as the window reaches them, and
+/// leave as it passes them, so a window's moments cost the same whatever its size and the memory
+/// is that of the window's rows, not the map's. A part starts its sums afresh: the same bits
+/// whatever the number of threads.
 void planner_rows(const PlannerData& d, const StorageOrder& order, double reference, int r, double resolution,
                   const TraversabilityParams& tp, std::size_t begin, std::size_t end) {
   if (begin == end) return;  // more parts than rows (a map of a few long rows)
   const int rows = static_cast<int>(order.row.size());
   const std::size_t n = order.column.size();
   const int slots = static_cast<int>(std::min<std::int64_t>(2 * std::int64_t{r} + 1, rows));
-  std::vector<Moments> ring(static_cast<std::size_t>(slots) * n), sums(n), row_prefix(n + 1);
-  std::vector<float> lowest_ring(static_cast<std::size_t>(slots) * n), highest_ring(lowest_ring.size());
-  std::vector<float> lowest(n), highest(n);
-  std::vector<float> padded(n + 2 * static_cast<std::size_t>(r), kNaN);
-  const auto slot = [&](int a) { return static_cast<std::size_t>(a % slots) * n; };
+  std::vector<RowWindows> ring(static_cast<std::size_t>(slots), RowWindows(n));
+  std::vector<float> padded(n + 2 * static_cast<std::size_t>(r), kNaN), lowest(n), highest(n);
+  MomentArrays prefix(kRowMoments, std::vector<double>(padded.size() + 1)), sums(kMoments, std::vector<double>(n));
+  std::vector<double> tan2(n), residual2(n);
   const auto enter = [&](int a) {
     for (std::size_t gj = 0; gj < n; ++gj) {
       const float h = d.height[order.row[static_cast<std::size_t>(a)] + order.column[gj]];
       padded[r + gj] = std::isfinite(h) ? h : kNaN;  // +-inf heights are unknown too
     }
-    const std::size_t s = slot(a);
-    row_windows(padded, a, reference, r, row_prefix, ring.data() + s, lowest_ring.data() + s, highest_ring.data() + s);
-    for (std::size_t gj = 0; gj < n; ++gj) sums[gj] += ring[s + gj];
-  };
-  const auto leave = [&](int a) {
-    for (std::size_t gj = 0; gj < n; ++gj) sums[gj] -= ring[slot(a) + gj];
+    row_windows(padded, reference, r, prefix, ring[a % slots]);
+    add_row(ring[a % slots], a, 1.0, sums);
   };
   const TraversabilityCost cost(tp);
   const int first = static_cast<int>(begin);
   for (int a = std::max(first - r, 0); a <= std::min(first + r, rows - 1); ++a) enter(a);
   for (int gi = first; gi < static_cast<int>(end); ++gi) {
     if (gi > first) {
-      if (gi - r - 1 >= 0) leave(gi - r - 1);  // before its slot is reused
+      if (gi - r - 1 >= 0) add_row(ring[(gi - r - 1) % slots], gi - r - 1, -1.0, sums);  // before its slot is reused
       if (gi + r <= rows - 1) enter(gi + r);
     }
     std::fill(lowest.begin(), lowest.end(), kInfF);
     std::fill(highest.begin(), highest.end(), -kInfF);
     for (int a = std::max(gi - r, 0); a <= std::min(gi + r, rows - 1); ++a) {
-      const float* row_lowest = lowest_ring.data() + slot(a);
-      const float* row_highest = highest_ring.data() + slot(a);
+      const RowWindows& row = ring[a % slots];
       for (std::size_t gj = 0; gj < n; ++gj) {
-        lowest[gj] = std::min(lowest[gj], row_lowest[gj]);
-        highest[gj] = std::max(highest[gj], row_highest[gj]);
+        lowest[gj] = std::min(lowest[gj], row.lowest[gj]);
+        highest[gj] = std::max(highest[gj], row.highest[gj]);
       }
     }
-    fit_row(d, order, {sums, lowest, highest}, static_cast<std::size_t>(gi), resolution, tp.min_window_cells, cost);
+    fit_planes(sums, tp.min_window_cells, resolution, tan2.data(), residual2.data());
+    write_row(d, order, {lowest, highest, tan2, residual2}, static_cast<std::size_t>(gi), cost);
   }
 }
 
@@ -267,7 +269,11 @@ void add_traversability_layers(ElevationMap& map, const TraversabilityParams& tp
   const double resolution = map.geometry().resolution_m;
   const int r = traversability_window_radius(tp, resolution, size);
   const auto window_rows = static_cast<double>(std::min(2 * r + 1, std::max(size.x(), 1)));
-  if (window_rows * size.y() * sizeof(Moments) > 1e9) {  // the ring of planner_rows, per part
+  // planner_rows' memory per part and column: the ring's rows of moments and extremes, and one
+  // row's column sums, prefix sums, fits and extremes.
+  const double ring_bytes = window_rows * (kRowMoments * sizeof(double) + 2 * sizeof(float));
+  const double row_bytes = (kMoments + kRowMoments + 2) * sizeof(double) + 3 * sizeof(float);
+  if ((ring_bytes + row_bytes) * size.y() > 1e9) {
     throw std::invalid_argument("add_traversability_layers: the sums of a window's " +
                                 detail::number_text(window_rows) + " rows of " + std::to_string(size.y()) +
                                 " cells would need over 1 GB; use a coarser resolution or a smaller footprint");

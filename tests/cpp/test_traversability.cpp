@@ -81,7 +81,8 @@ TEST(Traversability, AWindowWithTooFewKnownCellsHasNoSlope) {
 
 TEST(Traversability, PartsAndThreadsGiveTheNaiveFitOfEveryWindowBitForBitAlike) {
   // 240 x 150 cells: the rows are cut into two parts whose windows start afresh; every cell's slope
-  // and roughness against a plain least-squares solve over its window, on 1, 2 and all threads.
+  // and roughness against a plain least-squares solve over its window, its step and traversability
+  // against a plain loop and the formula, on 1, 2 and all threads.
   MapGeometry geometry;
   geometry.size = CellIndex(240, 150);
   ElevationMap map(geometry);
@@ -110,9 +111,13 @@ TEST(Traversability, PartsAndThreadsGiveTheNaiveFitOfEveryWindowBitForBitAlike) 
     for (int j = 0; j < 150; ++j) {
       if (std::isnan(height(i, j))) continue;
       std::vector<Eigen::Vector3d> cells;
+      float lowest = height(i, j), highest = height(i, j);
       for (int a = std::max(i - 2, 0); a <= std::min(i + 2, 239); ++a) {
         for (int b = std::max(j - 2, 0); b <= std::min(j + 2, 149); ++b) {
-          if (!std::isnan(height(a, b))) cells.emplace_back(a, b, height(a, b));
+          if (std::isnan(height(a, b))) continue;
+          cells.emplace_back(a, b, height(a, b));
+          lowest = std::min(lowest, height(a, b));
+          highest = std::max(highest, height(a, b));
         }
       }
       Eigen::MatrixXd design(cells.size(), 3);
@@ -123,8 +128,17 @@ TEST(Traversability, PartsAndThreadsGiveTheNaiveFitOfEveryWindowBitForBitAlike) 
       }
       const Eigen::Vector3d plane = design.colPivHouseholderQr().solve(z);
       const double roughness = std::sqrt((design * plane - z).squaredNorm() / static_cast<double>(cells.size()));
-      ASSERT_NEAR(map.get("slope")(i, j), std::atan(plane.head<2>().norm() / 0.1), 1e-5) << i << " " << j;
+      const double slope = std::atan(plane.head<2>().norm() / 0.1);
+      ASSERT_NEAR(map.get("slope")(i, j), slope, 1e-5) << i << " " << j;
       ASSERT_NEAR(map.get("roughness")(i, j), roughness, 1e-5) << i << " " << j;
+      ASSERT_EQ(map.get("step")(i, j), highest - lowest) << i << " " << j;
+      // The formula of traversability.hpp, its three weights 1 (no clearance layer).
+      const double step = highest - lowest;
+      const bool blocked =
+          slope > params.max_slope_rad || step > params.max_step_m || roughness > params.max_roughness_m;
+      const double cost =
+          (slope / params.max_slope_rad + step / params.max_step_m + roughness / params.max_roughness_m) / 3;
+      ASSERT_NEAR(map.get("traversability")(i, j), blocked ? 0.0 : 1.0 - cost, 1e-4) << i << " " << j;
     }
   }
 }
