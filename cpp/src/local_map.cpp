@@ -592,7 +592,9 @@ void refresh_clearance(const LayerData& layer, std::size_t cells) {
 /// lower-left cell.
 double cell_corner(std::int64_t cell, double resolution) {
   double corner = static_cast<double>(cell) * resolution;
-  while (std::floor(corner / resolution) < static_cast<double>(cell)) corner = std::nextafter(corner, kInf);
+  for (int ulp = 0; ulp < 16 && std::floor(corner / resolution) < static_cast<double>(cell); ++ulp) {
+    corner = std::nextafter(corner, kInf);  // one or two ulps in practice; bounded all the same
+  }
   return corner;
 }
 
