@@ -1351,7 +1351,11 @@ def stream_command(
         "scan's 0-based index (KITTI's 000005.bin gives local_elevation_000005.png); 0: none.",
     ),
     animation: Path | None = typer.Option(
-        None, "--animation", help="Write a .gif (or .mp4 with ffmpeg) of the elevation.", show_default=False
+        None,
+        "--animation",
+        help="Write a .gif (or .mp4 with ffmpeg) of the elevation: a frame every --every scans and the "
+        "final map.",
+        show_default=False,
     ),
     limit: int | None = _LIMIT,
     config: Path | None = OPTIONS["config"].info,

@@ -192,7 +192,7 @@ def run_stream(
         with the scan's file stem and index.
     animation : path, optional
         A ``.gif`` (Pillow) or ``.mp4`` (ffmpeg) of the elevation, one frame per ``every`` scans
-        (every scan when ``every`` is 0); checked before the first scan
+        (every scan when ``every`` is 0), ending on the final map; checked before the first scan
         (:func:`check_animation_target`).
     on_update : callable, optional
         Called as ``on_update(local_map, name, stamp)`` after every ``every``-th update (every
@@ -266,6 +266,10 @@ def run_stream(
     if on_update is not None and not frame_due:  # the final map, when the last scan was not an every-th
         on_update(local_map, name, stamp)
     final = local_map.to_elevation_map()
+    if animation is not None and not frame_due:  # the animation ends on the final map, as the bag does
+        frames.append(
+            (f"{Path(name).stem} (scan {count - 1})", final["elevation"].copy(), final.geometry.origin)
+        )
     report.add("map", final.save(output_dir / "local_map.npz"))
     if png:
         from .viz import plot_layer
@@ -289,7 +293,7 @@ def run_stream(
         report.lines.append(
             f"  pictures every {every} scans: {len(pictures)} in {output_dir} ({pictures[0].name}{last})"
         )
-    if animation is not None and frames:
+    if animation is not None:
         report.add("animation", _write_animation(frames, Path(animation), local_map.resolution))
     known = int(np.count_nonzero(np.isfinite(final["elevation"])))
     g = final.geometry

@@ -268,7 +268,13 @@ def test_stream_pictures_and_animation_frames_are_named_by_the_scans_0_based_ind
     ]
     assert "(local_elevation_000001.png ... local_elevation_000003.png)" in "\n".join(report.lines)
     stream.run_stream(_drive(5), tmp_path / "a", params, every=2, animation=tmp_path / "a.gif", png=False)
-    assert [title for title, _, _ in titles] == ["scan1 (scan 1)", "scan3 (scan 3)"]
+    # every 2nd scan, then the final map (scan 4 is no 2nd scan)
+    assert [title for title, _, _ in titles] == ["scan1 (scan 1)", "scan3 (scan 3)", "scan4 (scan 4)"]
+    final = terracube.ElevationMap.load(tmp_path / "a" / "local_map.npz")
+    np.testing.assert_array_equal(titles[-1][1], final["elevation"])
+    titles.clear()  # fewer scans than --every: the animation is the final map alone, not missing
+    stream.run_stream(_drive(5), tmp_path / "b", params, every=10, animation=tmp_path / "b.gif", png=False)
+    assert [title for title, _, _ in titles] == ["scan4 (scan 4)"]
 
 
 def test_stream_command_on_kitti_frames_writes_the_map_pictures_and_an_animation(shared_data, tmp_path):
