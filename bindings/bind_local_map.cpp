@@ -129,7 +129,8 @@ void bind_local_map(py::module_& m) {
           py::arg("points"), py::arg("pose"), py::arg("stamp") = std::numeric_limits<double>::quiet_NaN(),
           py::arg("no_returns") = py::none())
       .def(
-          "move_to", [](LocalMap& map, double x, double y) { return map.move_to({x, y}); }, py::arg("x"), py::arg("y"))
+          "move_to", [](LocalMap& map, double x, double y) { return map.move_to({x, y}); }, py::arg("x"), py::arg("y"),
+          py::call_guard<py::gil_scoped_release>())
       .def("clear", &LocalMap::clear)
       .def("update_planner_layers", &LocalMap::update_planner_layers, py::call_guard<py::gil_scoped_release>())
       .def("to_elevation_map", &LocalMap::to_elevation_map);

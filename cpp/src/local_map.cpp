@@ -675,6 +675,14 @@ void LocalMap::clear_cells(std::size_t first, std::size_t count, std::size_t str
 void LocalMap::clear() { clear_cells(0, geometry_.num_cells(), 1); }
 
 bool LocalMap::move_to(const Eigen::Vector2d& position) {
+  const Eigen::Matrix<std::int64_t, 2, 1> before = origin_cell_;
+  const bool reset = shift_to(position);
+  // The planner layers near the entering border were computed from cells that have left.
+  if (params_.compute_planner_layers && origin_cell_ != before) update_planner_layers();
+  return reset;
+}
+
+bool LocalMap::shift_to(const Eigen::Vector2d& position) {
   const int n = geometry_.size.x();
   const Eigen::Matrix<std::int64_t, 2, 1> target =
       origin_cell_at(position, params_.resolution_m, n, "LocalMap.move_to: the position");
@@ -767,7 +775,7 @@ LocalMapUpdate LocalMap::update_impl(const PointsView<Scalar>& points, const Eig
 
   time_origin_s_ = time_origin;  // the first change to the map
   stamped_ = !std::isnan(stamp_s);
-  report.map_reset = move_to(sensor.head<2>());
+  report.map_reset = shift_to(sensor.head<2>());  // the planner layers are refreshed at the end
   const LayerData layer = layer_data(layers_);
   if (last_sensor_ && params_.drift_m_per_sqrt_m > 0.0) {
     // Odometry drift: every known height grows less certain with the distance travelled.

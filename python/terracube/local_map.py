@@ -272,7 +272,8 @@ class LocalMap:
         self._core.update_planner_layers()
 
     def move_to(self, position: Sequence[float]) -> bool:
-        """Centre the map on ``(x, y)``; True when the move dropped every cell."""
+        """Centre the map on ``(x, y)``; True when the move dropped every cell. With
+        ``compute_planner_layers`` the planner layers are refreshed after a move. Releases the GIL."""
         x, y = (float(v) for v in position)
         return self._core.move_to(x, y)
 
@@ -281,7 +282,10 @@ class LocalMap:
 
     def to_elevation_map(self) -> ElevationMap:
         """A copy of every layer in map order, with :attr:`geometry`: cell (i, j) is centred on
-        ``geometry.position_of(i, j)``."""
+        ``geometry.position_of(i, j)``. The copy's ``geometry.index_of`` rounds ``(x - origin) /
+        resolution`` where :meth:`index_of` rounds ``x / resolution``: a position on a cell's
+        border (a round number) may fall in the neighbouring cell of the copy; use
+        :meth:`index_of` for the cell a point was fused into."""
         return ElevationMap(self._core.to_elevation_map())
 
     def __repr__(self) -> str:

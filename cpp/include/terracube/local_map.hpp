@@ -132,7 +132,8 @@ class LocalMap {
 
   const LocalMapParams& params() const { return params_; }
   /// The map's area: origin is its lower-left corner in the odometry frame (a multiple of the
-  /// resolution), size its cells. Before the first update or move the map is centred on (0, 0).
+  /// resolution, raised by the ulps that put it inside the lower-left cell), size its cells.
+  /// Before the first update or move the map is centred on (0, 0).
   const MapGeometry& geometry() const { return geometry_; }
   /// Storage index of the map's lower-left cell (geometric cell (0, 0)).
   CellIndex start_index() const;
@@ -163,7 +164,9 @@ class LocalMap {
                         const PointsView<double>& no_return_directions = {});
 
   /// Centres the map on the cell of `position` [m]. Cells that leave are dropped, cells that
-  /// enter are empty; a move by the map's size or more drops every cell (returns true then).
+  /// enter are empty; a move by the map's size or more drops every cell (returns true then). With
+  /// compute_planner_layers the planner layers are refreshed after a move (the windows near the
+  /// entering border held cells that left).
   /// Throws std::invalid_argument unless the position is finite, within 1e12 m and within 2^52
   /// cells of the origin (its cell index exact in a double).
   bool move_to(const Eigen::Vector2d& position);
@@ -185,6 +188,8 @@ class LocalMap {
   template <typename Scalar>
   LocalMapUpdate update_impl(const PointsView<Scalar>& points, const Eigen::Matrix4d& pose, double stamp_s,
                              const PointsView<double>& no_return_directions);
+  /// move_to without the planner layers' refresh (update() refreshes them once, at its end).
+  bool shift_to(const Eigen::Vector2d& position);
   void clear_cells(std::size_t first, std::size_t count, std::size_t stride);
   std::int64_t storage_of(std::int64_t global, int axis) const;
 
