@@ -1347,6 +1347,7 @@ def stream_command(
     every: int = typer.Option(
         0,
         "--every",
+        min=0,
         help="A PNG (or animation frame) after every N-th scan, local_elevation_NNNNNN.png with NNNNNN the "
         "scan's 0-based index (KITTI's 000005.bin gives local_elevation_000005.png); 0: none.",
     ),

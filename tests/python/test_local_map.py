@@ -234,6 +234,10 @@ def test_stream_command_checks_the_animation_before_reading_a_scan(shared_data, 
         assert message in result.output.replace("\n", "")
         assert "streaming" not in result.output and "Animation was deleted" not in result.output
         assert not out.exists()
+    result = CliRunner().invoke(app, [*args, "--every", "-1"])  # refused as it is parsed, nothing read
+    assert result.exit_code == 2, result.output
+    assert "--every" in result.output and "calib" not in result.output
+    assert not out.exists()
 
 
 @pytest.mark.parametrize(
